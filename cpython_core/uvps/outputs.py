@@ -1,0 +1,119 @@
+"""Command results and atomic writing of outputs.
+
+Every file uvps writes goes first to a temporary name in the same folder and is then renamed into
+place (``os.replace`` is atomic on one file system), so a crash never leaves a half-written output
+and inputs are never touched.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Optional
+
+from .errors import UVPSInputError
+
+#: A progress callback: fraction in [0, 1] and a short message.
+Progress = Optional[Callable[[float, str], None]]
+
+
+@dataclass
+class OutputSpec:
+    """One output file of a command, as reported in the bridge response."""
+
+    name: str
+    path: str
+    kind: str = "image"  # image | table | json | html | folder
+    axes: Optional[str] = None
+    dtype: Optional[str] = None
+    units: Optional[str] = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class CommandResult:
+    """What a command produced: its outputs and diagnostics (JSON-serialisable)."""
+
+    outputs: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+
+def report(progress: Progress, fraction: float, message: str) -> None:
+    """Call ``progress`` if given."""
+    if progress is not None:
+        progress(float(min(max(fraction, 0.0), 1.0)), message)
+
+
+def check_output_dir(path) -> Path:
+    """Validate an output folder path: it may exist as a folder, must not be a file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UVPSInputError(f"output folder {path} is an existing file; expected a folder path")
+    if not path.parent.exists():
+        raise UVPSInputError(f"output folder {path}: its parent folder {path.parent} does not exist")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_output_dir(path) -> Iterator[Path]:
+    """Yield a fresh temporary folder beside ``path``; on success move its files into ``path``.
+
+    Files already in ``path`` that the run did not write are kept; files it wrote replace old
+    ones one by one with ``os.replace``. On an exception the temporary folder is removed and
+    ``path`` is untouched.
+    """
+    path = check_output_dir(path)
+    tmp = Path(tempfile.mkdtemp(prefix="." + path.name + ".tmp-", dir=path.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if not path.exists():
+        os.replace(tmp, path)
+        return
+    for src in sorted(tmp.rglob("*")):
+        rel = src.relative_to(tmp)
+        dst = path / rel
+        if src.is_dir():
+            dst.mkdir(parents=True, exist_ok=True)
+        else:
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(src, dst)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_json_atomic(path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(obj, fh, indent=2, allow_nan=False, default=_json_default)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _json_default(obj):
+    import numpy as np
+
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return None if not np.isfinite(obj) else float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
