@@ -1,0 +1,206 @@
+"""ImageJ-style wand (magic wand) with a tolerance, for the manual protrusion count.
+
+The paper's manual method (Salvant et al., "Manual Protrusion Detection") clicks each protrusion on
+the albedo image with ImageJ's wand tool: the contiguous pixels whose value lies within a tolerance
+of the clicked pixel are selected. :func:`wand_select` reproduces ImageJ 1.x ``ij.gui.Wand``
+(``autoOutline(x, y, tolerance, mode)``, version 2009-06-01 and later) for a list of clicks, so a
+point list exported from ImageJ gives the same selections here.
+
+ImageJ's rules, as implemented in ``ij/gui/Wand.java``:
+
+- Inclusion: with seed value ``v0`` a pixel is inside when ``v0 - tol <= v <= v0 + tol`` (both
+  bounds inclusive). NaN pixels are never inside; a click on a NaN pixel selects nothing.
+- RGB: with ``tolerance > 0`` ImageJ compares the *grey value* of the colour pixel
+  (``ColorProcessor.getPixelValue``: ``(r + g + b) / 3`` with the default unweighted conversion);
+  with ``tolerance == 0`` it requires the exact same RGB triple. ``rgb="mean"`` (default) does
+  exactly that. ``rgb="channels"`` instead requires every channel to lie within the tolerance of
+  the seed's channel (a stricter, colour-aware rule; the two agree at ``tolerance == 0``).
+- Connectivity: "4-connected" or "8-connected" trace the outline of the 4- or 8-connected region.
+  "Legacy" mode is 8-connected when ``tolerance > 0``; with ``tolerance == 0`` it is 4-connected
+  unless the region looks like a thin line (fewer than 25 % inside pixels in an 11 x 11 window to
+  the right of the seed's run, ImageJ's ``isLine``), then 8-connected.
+- Holes: the wand traces the *outer outline* only, so interior holes (a caldera's crater whose
+  pixels fail the tolerance) are part of the selection. We fill them with
+  :func:`scipy.ndimage.binary_fill_holes`, using the background connectivity dual to the region's
+  (a hole of an 8-connected region is 4-connected background and vice versa).
+"""
+from __future__ import annotations
+
+import csv
+import logging
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.segmentation import flood
+
+from .errors import UVPSInputError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["wand_select", "read_seeds"]
+
+_CONNECTIVITY = {4: 4, 8: 8, "4": 4, "8": 8, "4-connected": 4, "8-connected": 8, "legacy": "legacy"}
+
+
+def _is_line(inside: np.ndarray, row: int, border_col: int) -> bool:
+    """ImageJ's ``Wand.isLine``: few inside pixels in an 11 x 11 window right of the border."""
+    m, n = inside.shape
+    win = inside[max(row - 5, 0):min(row + 5, m - 1) + 1, border_col:min(border_col + 10, n - 1) + 1]
+    return win.size > 0 and win.mean() < 0.25
+
+
+def wand_select(image, seeds, *, tolerance, connectivity=8, rgb="mean") -> np.ndarray:
+    """Select the region around each seed the way ImageJ's wand tool does.
+
+    Parameters
+    ----------
+    image : (M, N) or (M, N, 3) array
+        Grey or RGB image (usually the albedo). Not modified.
+    seeds : (S, 2) array_like
+        Clicks as ``(x_px, y_px)`` = ``(col, row)``, as ImageJ reports them. Fractional coordinates
+        are floored (ImageJ's pixel containing the point).
+    tolerance : float
+        ImageJ's wand tolerance, in the image's units; ``0 <= tolerance <= max - min`` of the data.
+    connectivity : {8, 4, "legacy"}
+        ImageJ's mode: "8-connected", "4-connected" or "Legacy" (see module notes).
+    rgb : {"mean", "channels"}
+        RGB inclusion rule: ImageJ's grey value (default) or every channel within the tolerance.
+
+    Returns
+    -------
+    labels : (M, N) int32
+        0 = not selected; seed ``i`` (0-based) gets label ``i + 1``. A seed that falls inside the
+        region of an earlier seed reuses that label (the click would select the same region in
+        ImageJ). Where two regions overlap, the earlier seed keeps the pixels.
+
+    Raises
+    ------
+    UVPSInputError
+        Bad image shape, seeds outside the image or on NaN, tolerance negative or beyond the data
+        range, unknown connectivity.
+
+    Notes
+    -----
+    One :func:`skimage.segmentation.flood` per seed on the inclusion mask, then the region's
+    interior holes are filled, as ImageJ's traced outline encloses them. Cost: one flood over the
+    image per seed (a few ms at 1600 x 1200).
+    """
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 3:
+        colour = True
+    elif img.ndim == 2:
+        colour = False
+    else:
+        raise UVPSInputError(f"`image` must be (M, N) or (M, N, 3); got shape {img.shape}")
+    if not np.issubdtype(img.dtype, np.number) or np.issubdtype(img.dtype, np.complexfloating):
+        raise UVPSInputError(f"`image` must be real numeric; got dtype {img.dtype}")
+    if rgb not in ("mean", "channels"):
+        raise UVPSInputError(f"`rgb` must be 'mean' or 'channels'; got {rgb!r}")
+    key = connectivity.lower() if isinstance(connectivity, str) else connectivity
+    if key not in _CONNECTIVITY:
+        raise UVPSInputError(f"`connectivity` must be 4, 8 or 'legacy'; got {connectivity!r}")
+    mode = _CONNECTIVITY[key]
+    pts = _as_seed_array(seeds, "seeds")
+    m, n = img.shape[:2]
+
+    data = img.astype(np.float64)
+    # ImageJ's comparison value: grey (mean of R, G, B) for RGB with tolerance > 0.
+    grey = data.mean(axis=2) if colour else data
+    finite = np.isfinite(data) if not colour else np.isfinite(data).all(axis=2)
+    try:
+        tol = float(tolerance)
+    except (TypeError, ValueError):
+        raise UVPSInputError(f"`tolerance` must be a number; got {tolerance!r}") from None
+    span = float(np.ptp(data[finite])) if finite.any() else 0.0
+    if not np.isfinite(tol) or tol < 0 or tol > span:
+        raise UVPSInputError(f"`tolerance` must be within [0, {span:g}] (the data range); got {tolerance!r}")
+
+    labels = np.zeros((m, n), np.int32)
+    for i, (x, y) in enumerate(pts):
+        if not (0 <= x < n and 0 <= y < m):
+            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
+        if not finite[y, x]:
+            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+        if labels[y, x]:
+            continue  # inside an earlier seed's selection: same region, same label
+        if colour and (rgb == "channels" or tol == 0):
+            inside = (np.abs(data - data[y, x]) <= tol).all(axis=2)
+        else:
+            v0 = grey[y, x]
+            # float32 bounds, as ImageJ computes them ((float)(startValue -/+ tolerance))
+            lo, hi = np.float32(v0 - tol), np.float32(v0 + tol)
+            inside = (grey >= lo) & (grey <= hi)
+        conn = mode
+        if mode == "legacy":
+            if tol > 0:
+                conn = 8
+            else:
+                run_end = x + int(np.argmin(np.append(inside[y, x:], False)))
+                conn = 8 if _is_line(inside, y, run_end) else 4
+        region = flood(inside, (y, x), connectivity=1 if conn == 4 else 2)
+        # ImageJ selects the traced outline: fill holes (background dual to the region's connectivity)
+        hole_structure = ndi.generate_binary_structure(2, 1 if conn == 8 else 2)
+        region = ndi.binary_fill_holes(region, structure=hole_structure)
+        labels[region & (labels == 0)] = i + 1
+    logger.debug("wand: %d seeds, %d labels", len(pts), len(np.unique(labels)) - 1)
+    return labels
+
+
+def _as_seed_array(arr, name: str) -> np.ndarray:
+    a = np.asarray(arr, dtype=float)
+    if a.size == 0:
+        return np.zeros((0, 2), np.int64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise UVPSInputError(f"`{name}` must be (S, 2) as (x_px, y_px); got shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise UVPSInputError(f"`{name}` must be finite (x_px, y_px) coordinates; got NaN or inf")
+    return np.floor(a).astype(np.int64)
+
+
+def read_seeds(path_or_array: Union[str, Path, np.ndarray, list]) -> np.ndarray:
+    """Read wand clicks from a CSV file (or pass an array through).
+
+    Parameters
+    ----------
+    path_or_array : path or (S, 2) array_like
+        A CSV file whose header has ``x_px`` and ``y_px`` columns, or ``X`` and ``Y`` as in ImageJ's
+        point export (File > Save As > XY Coordinates, or Measure on a point selection of an
+        uncalibrated image), in pixels; or an (S, 2) array of ``(x_px, y_px)``.
+
+    Returns
+    -------
+    seeds : (S, 2) int64
+        ``(x_px, y_px)`` floored to the containing pixel.
+    """
+    if isinstance(path_or_array, (str, Path)):
+        path = Path(path_or_array)
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as fh:
+                rows = list(csv.reader(fh))
+        except OSError as exc:
+            raise UVPSInputError(f"cannot read seeds file {path}: {exc.strerror}") from None
+        if not rows:
+            raise UVPSInputError(f"seeds file {path} is empty; expected a header with x_px,y_px or X,Y")
+        header = [h.strip() for h in rows[0]]
+        lower = [h.lower() for h in header]
+        if "x_px" in lower and "y_px" in lower:
+            ix, iy = lower.index("x_px"), lower.index("y_px")
+        elif "X" in header and "Y" in header:
+            ix, iy = header.index("X"), header.index("Y")
+        elif "x" in lower and "y" in lower:
+            ix, iy = lower.index("x"), lower.index("y")
+        else:
+            raise UVPSInputError(f"seeds file {path}: header must contain x_px,y_px or X,Y; got {','.join(header)}")
+        pts = []
+        for k, row in enumerate(rows[1:], start=2):
+            if not any(c.strip() for c in row):
+                continue
+            try:
+                pts.append((float(row[ix]), float(row[iy])))
+            except (ValueError, IndexError):
+                raise UVPSInputError(f"seeds file {path} line {k}: expected numbers in columns "
+                                     f"{header[ix]},{header[iy]}; got {','.join(row)}") from None
+        return _as_seed_array(np.array(pts, float).reshape(-1, 2), f"seeds file {path}")
+    return _as_seed_array(path_or_array, "seeds")
