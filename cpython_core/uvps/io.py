@@ -1,0 +1,862 @@
+"""Reading captures, light files and masks; writing ImageJ TIFFs; SHA-256 of files.
+
+A *capture* is K photographs of the same field of view, one per lamp position, as a float32
+stack ``(K, M, N)`` (grey) or ``(K, M, N, 3)`` (RGB) in the file's own counts (see
+:class:`Capture`). Nothing here rescales intensities: a uint16 TIFF stays in 0..65535 and a
+uint8 JPEG in 0..255, so a saturation threshold and a dark frame keep their meaning.
+
+Formats: TIFF (tifffile; uint8, uint16, float32, grey or RGB, single files or one multi-page
+stack including ImageJ hyperstacks), PNG (8/16-bit, read with OpenCV because Pillow silently
+reduces 16-bit RGB PNGs to 8 bits) and JPEG (imageio). Alpha channels are dropped.
+
+Every error in the input raises :class:`~uvps.errors.UVPSInputError` with one line naming the
+file or parameter. Inputs are only ever opened for reading.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple, Optional, Sequence, Union
+
+import numpy as np
+
+from .errors import UVPSInputError
+from .outputs import Progress, report
+
+log = logging.getLogger(__name__)
+
+PathLike = Union[str, os.PathLike]
+
+TIFF_EXTS = (".tif", ".tiff")
+PNG_EXTS = (".png",)
+JPEG_EXTS = (".jpg", ".jpeg")
+IMAGE_EXTS = TIFF_EXTS + PNG_EXTS + JPEG_EXTS
+
+#: Length units found in TIFF/ImageJ metadata, in micrometres.
+_UNIT_UM = {
+    "micron": 1.0, "microns": 1.0, "um": 1.0, "\u00b5m": 1.0, "\u03bcm": 1.0,
+    "\\u00b5m": 1.0, "nm": 1e-3, "mm": 1e3, "cm": 1e4, "m": 1e6, "inch": 25400.0, "in": 25400.0,
+}
+#: ImageJ hyperstack axis order (a written stack's axes must be a subsequence of it).
+_IMAGEJ_AXES = "TZCYXS"
+#: Above this many bytes tifffile writes ImageJ's own > 4 GB layout (see write_imagej_tiff).
+LARGE_TIFF_BYTES = 2**32 - 2**25
+
+
+@dataclass
+class Capture:
+    """A capture: K images of one field of view, one per light.
+
+    Attributes
+    ----------
+    images : ndarray
+        ``(K, M, N)`` or ``(K, M, N, 3)`` float32, linear, dark-subtracted, NOT rescaled: the
+        file's own counts (uint16 -> 0..65535, uint8 -> 0..255).
+    files : list of str
+        One per image; an image of a multi-page stack is ``"stack.tif#k"`` with k from 1 (the
+        ImageJ slice number).
+    pixel_size_um : float
+        Size of a pixel on the painting, micrometres.
+    mask : ndarray or None
+        ``(M, N)`` bool, True = use.
+    saturation : float or None
+        Counts at/above which a sample is saturated (dtype max); None for float input.
+    light_directions : ndarray or None
+        ``(K, 3)`` unit vectors toward the lights (world frame), from an ``.lp`` file.
+    light_positions_mm : ndarray or None
+        ``(K, 3)`` light positions in mm from the image centre, from a positions file.
+    bit_depth : str
+        The files' dtype, e.g. ``"uint16"``.
+    """
+
+    images: np.ndarray
+    files: list
+    pixel_size_um: float
+    mask: Optional[np.ndarray]
+    saturation: Optional[float]
+    light_directions: Optional[np.ndarray]
+    light_positions_mm: Optional[np.ndarray]
+    bit_depth: str
+
+
+@dataclass
+class LightFile:
+    """An RTI ``.lp`` light file: one unit direction per image file."""
+
+    path: str
+    files: list
+    directions: np.ndarray  # (K, 3) unit
+
+
+@dataclass
+class LightPositions:
+    """Known lights from a positions file (CSV or uvps ``lights.json``)."""
+
+    path: str
+    files: Optional[list]  # None when the file gives no names (then: image order)
+    positions_mm: Optional[np.ndarray]  # (K, 3) mm from the image centre
+    directions: Optional[np.ndarray]  # (K, 3) unit
+
+
+class TiffData(NamedTuple):
+    """A TIFF read back: the array as stored and the pixel size (um) if the file has one."""
+
+    data: np.ndarray
+    pixel_size_um: Optional[float]
+
+
+@dataclass
+class _Source:
+    """One image of a capture: a file, or one plane of a stack."""
+
+    label: str
+    path: Path
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers
+
+
+def _natural_key(name: str):
+    # Natural order ("img2" before "img10"); the standard library has no such sort and natsort
+    # is not a dependency.
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _is_image(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_EXTS
+
+
+def _kind(path: Path) -> str:
+    ext = path.suffix.lower()
+    if ext in TIFF_EXTS:
+        return "tiff"
+    if ext in PNG_EXTS:
+        return "png"
+    if ext in JPEG_EXTS:
+        return "jpeg"
+    raise UVPSInputError(
+        f"{path}: not a supported image file; expected one of {', '.join(IMAGE_EXTS)}"
+    )
+
+
+def _basename(name: str) -> str:
+    # .lp files written on Windows use backslashes.
+    return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def _check_pixel_size(value, name="pixel_size_um") -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise UVPSInputError(f"{name} must be a positive number in micrometres; got {value!r}")
+    if not math.isfinite(value) or value <= 0:
+        raise UVPSInputError(f"{name} must be a positive finite number in micrometres; got {value}")
+    return value
+
+
+def _drop_alpha(arr: np.ndarray) -> np.ndarray:
+    """(M, N, 4) -> (M, N, 3), (M, N, 2) grey+alpha -> (M, N), (M, N, 1) -> (M, N)."""
+    if arr.ndim == 3:
+        if arr.shape[2] == 4:
+            return arr[..., :3]
+        if arr.shape[2] in (1, 2):
+            return arr[..., 0]
+    return arr
+
+
+def _saturation_of(dtype: np.dtype) -> Optional[float]:
+    return float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
+
+
+def srgb_to_linear(values: np.ndarray, full_scale: float) -> np.ndarray:
+    """Apply the sRGB EOTF (IEC 61966-2-1) to counts in ``0..full_scale``, in place if float32.
+
+    Returns linear values in the same ``0..full_scale`` range. Written out because neither numpy
+    nor scikit-image exposes the bare transfer function (skimage only applies it inside colour
+    space conversions that would also change the primaries).
+    """
+    v = np.clip(values / np.float32(full_scale), 0.0, 1.0, dtype=np.float32)
+    lin = np.where(v <= 0.04045, v / np.float32(12.92), ((v + 0.055) / 1.055) ** 2.4)
+    return (lin * np.float32(full_scale)).astype(np.float32, copy=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# reading single images
+
+
+def read_image(path: PathLike) -> np.ndarray:
+    """Read one image file as stored: ``(M, N)`` or ``(M, N, 3)`` in its own dtype.
+
+    Parameters
+    ----------
+    path : path
+        A TIFF, PNG or JPEG file. A multi-page TIFF is refused here (see :func:`read_capture`).
+
+    Returns
+    -------
+    ndarray
+        The pixels, alpha dropped, never rescaled.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"image file {path} does not exist")
+    kind = _kind(path)
+    try:
+        if kind == "tiff":
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                series = tif.series[0]
+                arr = series.asarray()
+                if series.axes.upper() in ("SYX", "CYX") and arr.shape[0] in (3, 4) and (
+                    series.axes.upper() == "SYX" or tif.pages.first.photometric == 2
+                ):
+                    arr = np.moveaxis(arr, 0, -1)  # planar RGB -> channels last
+        elif kind == "png":
+            import cv2
+
+            # OpenCV keeps 16-bit colour PNGs (Pillow would reduce them to 8 bits).
+            buf = np.fromfile(path, dtype=np.uint8)
+            arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+            if arr is None:
+                raise ValueError("OpenCV could not decode it")
+            if arr.ndim == 3:
+                arr = arr[..., [2, 1, 0, 3][: arr.shape[2]]] if arr.shape[2] >= 3 else arr
+        else:
+            import imageio.v3 as iio
+
+            arr = iio.imread(path)
+    except UVPSInputError:
+        raise
+    except Exception as exc:  # any decoder failure is bad input: name the file
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UVPSInputError(f"{path}: cannot read as {kind.upper()} image ({msg})") from exc
+    arr = _drop_alpha(np.asarray(arr))
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+        raise UVPSInputError(
+            f"{path}: expected a single grey (M, N) or RGB (M, N, 3) image; got shape {arr.shape}"
+            " (a multi-page stack must be given alone, as the only input)"
+        )
+    if arr.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise UVPSInputError(
+            f"{path}: unsupported pixel type {arr.dtype}; expected uint8, uint16 or float32"
+        )
+    return arr
+
+
+def _tiff_pixel_size_um(tif) -> Optional[float]:
+    """Pixel size from a TIFF's resolution tags / ImageJ metadata, or None.
+
+    tifffile's ``page.resolution`` is (X, Y) in *pixels per unit*; the unit is the
+    ResolutionUnit tag (1 none, 2 inch, 3 cm) or, for ImageJ files (which write unit NONE),
+    the ``unit`` entry of the ImageJ description.
+    """
+    page = tif.pages.first
+    tags = page.tags
+    if "XResolution" not in tags:
+        return None
+    num, den = tags["XResolution"].value
+    if not num or not den:
+        return None
+    per_unit = num / den  # pixels per unit
+    resunit = int(tags["ResolutionUnit"].value) if "ResolutionUnit" in tags else 2
+    ij_unit = str((tif.imagej_metadata or {}).get("unit", "")).strip().lower()
+    if ij_unit:
+        unit_um = _UNIT_UM.get(ij_unit)  # None for "pixel" and unknown units
+    else:
+        unit_um = {2: _UNIT_UM["inch"], 3: _UNIT_UM["cm"]}.get(resunit)
+    if unit_um is None:
+        return None
+    size = unit_um / per_unit
+    return size if math.isfinite(size) and size > 0 else None
+
+
+def read_tiff(path: PathLike) -> TiffData:
+    """Read a TIFF written by uvps (or any TIFF) as stored, with its pixel size.
+
+    Parameters
+    ----------
+    path : path
+        The TIFF file.
+
+    Returns
+    -------
+    TiffData
+        ``(data, pixel_size_um)``; ``pixel_size_um`` is None when the file has no physical
+        calibration.
+    """
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"TIFF file {path} does not exist")
+    try:
+        with tifffile.TiffFile(path) as tif:
+            data = tif.series[0].asarray()
+            px = _tiff_pixel_size_um(tif)
+    except Exception as exc:
+        raise UVPSInputError(f"{path}: cannot read as TIFF ({str(exc).splitlines()[0]})") from exc
+    return TiffData(data, px)
+
+
+# ---------------------------------------------------------------------------------------------
+# light files
+
+
+def read_lp(path: PathLike) -> LightFile:
+    """Read an RTI ``.lp`` light file.
+
+    Parameters
+    ----------
+    path : path
+        First line: the number of images K; then K lines ``filename x y z`` (light direction,
+        normalised here).
+
+    Returns
+    -------
+    LightFile
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"light file {path} does not exist")
+    lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()]
+    lines = [ln for ln in lines if ln and not ln.startswith("#")]
+    if not lines:
+        raise UVPSInputError(f"light file {path} is empty; expected a count then 'file x y z' lines")
+    try:
+        count = int(lines[0].split()[0])
+    except ValueError:
+        raise UVPSInputError(
+            f"light file {path}: first line must be the number of images; got {lines[0]!r}"
+        )
+    rows = lines[1:]
+    if len(rows) != count:
+        raise UVPSInputError(f"light file {path} announces {count} lights but lists {len(rows)}")
+    files, dirs = [], []
+    for i, row in enumerate(rows, start=2):
+        parts = row.split()
+        try:
+            vec = [float(t) for t in parts[-3:]]
+            name = " ".join(parts[:-3])
+            if not name or len(parts) < 4:
+                raise ValueError
+        except ValueError:
+            raise UVPSInputError(f"light file {path} line {i}: expected 'file x y z'; got {row!r}")
+        norm = math.sqrt(sum(v * v for v in vec))
+        if not math.isfinite(norm) or norm == 0:
+            raise UVPSInputError(f"light file {path} line {i}: direction {vec} has no length")
+        files.append(name)
+        dirs.append([v / norm for v in vec])
+    return LightFile(str(path), files, np.asarray(dirs, dtype=np.float64))
+
+
+def read_positions(path: PathLike) -> LightPositions:
+    """Read known light positions (mm) or directions from a CSV or uvps ``lights.json``.
+
+    Parameters
+    ----------
+    path : path
+        CSV with header ``file,x_mm,y_mm,z_mm`` (or just ``x_mm,y_mm,z_mm`` in image order), or
+        JSON as written by uvps (``lights.json``: a ``lights`` list whose entries have
+        ``position_mm`` and/or ``direction``).
+
+    Returns
+    -------
+    LightPositions
+        Positions are in the world frame (x right, y up, z toward the camera), mm from the image
+        centre; directions are normalised.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"light positions file {path} does not exist")
+    if path.suffix.lower() == ".json":
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            lights = doc["lights"] if isinstance(doc, dict) else doc
+            if not isinstance(lights, list) or not lights:
+                raise ValueError("no 'lights' list")
+        except (ValueError, KeyError, TypeError) as exc:
+            raise UVPSInputError(
+                f"light positions file {path}: expected uvps lights.json with a 'lights' list ({exc})"
+            )
+        files = [lt.get("file") for lt in lights]
+        pos = [lt.get("position_mm") for lt in lights]
+        dirs = [lt.get("direction") for lt in lights]
+        positions = np.asarray(pos, dtype=np.float64) if all(p is not None for p in pos) else None
+        directions = np.asarray(dirs, dtype=np.float64) if all(d is not None for d in dirs) else None
+        if positions is None and directions is None:
+            raise UVPSInputError(
+                f"light positions file {path}: every light needs 'position_mm' or 'direction'"
+            )
+        names = files if all(isinstance(f, str) and f for f in files) else None
+    else:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        need = ("x_mm", "y_mm", "z_mm")
+        if not rows or any(k not in rows[0] for k in need):
+            raise UVPSInputError(
+                f"light positions file {path}: expected a CSV with columns file,x_mm,y_mm,z_mm"
+            )
+        try:
+            positions = np.array([[float(r[k]) for k in need] for r in rows])
+        except (TypeError, ValueError):
+            raise UVPSInputError(f"light positions file {path}: non-numeric x_mm/y_mm/z_mm value")
+        names = [r["file"] for r in rows] if "file" in rows[0] else None
+        directions = None
+    for name, arr in (("position_mm", positions), ("direction", directions)):
+        if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all()):
+            raise UVPSInputError(
+                f"light positions file {path}: each {name} must be 3 finite numbers; got shape {arr.shape}"
+            )
+    if directions is not None:
+        norms = np.linalg.norm(directions, axis=1)
+        if np.any(norms == 0):
+            raise UVPSInputError(f"light positions file {path}: a direction has zero length")
+        directions = directions / norms[:, None]
+    return LightPositions(str(path), names, positions, directions)
+
+
+def _order_by_name(lightfile_path: str, names: Sequence[str], sources: list, by_name: bool):
+    """Index array mapping each image to its row in a light file (by file name or order)."""
+    k = len(sources)
+    if len(names) != k:
+        raise UVPSInputError(f"light file {lightfile_path} lists {len(names)} lights for {k} images")
+    if not by_name:
+        return np.arange(k)
+    base = {_basename(n): i for i, n in enumerate(names)}
+    stem = {}
+    for i, n in enumerate(names):
+        stem.setdefault(Path(_basename(n)).stem, []).append(i)
+    order = []
+    for src in sources:
+        name = src.path.name
+        if name in base:
+            order.append(base[name])
+        elif len(stem.get(src.path.stem, [])) == 1:
+            order.append(stem[src.path.stem][0])
+        else:
+            raise UVPSInputError(f"light file {lightfile_path} has no entry for image {name}")
+    if len(set(order)) != k:
+        raise UVPSInputError(f"light file {lightfile_path} names the same image twice")
+    return np.asarray(order)
+
+
+def _attach_lights(lights, sources, by_name):
+    """(light_directions, light_positions_mm) for the capture, in image order."""
+    path = Path(lights)
+    if not path.is_file():
+        raise UVPSInputError(f"lights: file {path} does not exist")
+    if path.suffix.lower() == ".lp":
+        lp = read_lp(path)
+        if len(lp.files) != len(sources):
+            raise UVPSInputError(
+                f"light file {path} lists {len(lp.files)} lights for {len(sources)} images"
+            )
+        if by_name:
+            missing = [_basename(n) for n in lp.files
+                       if _basename(n) not in {s.path.name for s in sources}
+                       and Path(_basename(n)).stem not in {s.path.stem for s in sources}]
+            if missing:
+                raise UVPSInputError(f"light file {path} names {missing[0]}, which is not among the images")
+        order = _order_by_name(str(path), lp.files, sources, by_name)
+        return lp.directions[order], None
+    if path.suffix.lower() in (".csv", ".json", ".txt"):
+        lpos = read_positions(path)
+        use_names = by_name and lpos.files is not None
+        n = len(lpos.positions_mm if lpos.positions_mm is not None else lpos.directions)
+        order = _order_by_name(str(path), lpos.files if use_names else [""] * n, sources, use_names)
+        pos = lpos.positions_mm[order] if lpos.positions_mm is not None else None
+        dirs = lpos.directions[order] if lpos.directions is not None else None
+        return dirs, pos
+    raise UVPSInputError(
+        f"lights: {path} is neither an .lp direction file nor a .csv/.json positions file"
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# capture
+
+
+def _list_sources(images) -> tuple:
+    """-> (sources, stack_path or None, by_name)."""
+    if isinstance(images, (str, os.PathLike)):
+        root = Path(images)
+        if not root.exists():
+            raise UVPSInputError(f"images: {root} does not exist")
+        if root.is_dir():
+            files = sorted(
+                (p for p in root.iterdir() if p.is_file() and _is_image(p) and not p.name.startswith(".")),
+                key=lambda p: _natural_key(p.name),
+            )
+            if not files:
+                raise UVPSInputError(f"images: folder {root} holds no TIFF/PNG/JPEG files")
+        else:
+            files = [root]
+    else:
+        files = [Path(p) for p in images]
+        if not files:
+            raise UVPSInputError("images: empty list; expected at least 3 image files")
+    for f in files:
+        if not f.exists():
+            raise UVPSInputError(f"images: {f} does not exist")
+        if f.is_dir():
+            raise UVPSInputError(f"images: {f} is a folder; give a folder alone or a list of files")
+        _kind(f)
+    if len(files) == 1 and files[0].suffix.lower() in TIFF_EXTS:
+        return [], files[0], False
+    return [_Source(str(f), f) for f in files], None, True
+
+
+def _stack_layout(shape: tuple, axes: str, path: Path) -> tuple:
+    """How to view a TIFF series as (K, M, N[, 3]): returns (transpose order, colour?).
+
+    Y and X are the image axes; S (samples) of size 3/4 is colour (alpha dropped); an ImageJ
+    ``C`` axis of size 3 is colour when another frame axis (Z, T, ...) holds the lights,
+    otherwise the C planes are the images. All remaining axes are flattened into K.
+    """
+    axes = axes.upper()
+    if "Y" not in axes or "X" not in axes:
+        raise UVPSInputError(f"{path}: TIFF series has axes {axes}; expected Y and X axes")
+    frame = [i for i, a in enumerate(axes) if a not in "YXS"]
+    colour_axis = None
+    if "S" in axes:
+        colour_axis = axes.index("S")
+    elif "C" in axes and shape[axes.index("C")] == 3:
+        others = [i for i in frame if axes[i] != "C" and shape[i] > 1]
+        if others:
+            colour_axis = axes.index("C")
+    frame = [i for i in frame if i != colour_axis]
+    order = frame + [axes.index("Y"), axes.index("X")] + ([colour_axis] if colour_axis is not None else [])
+    return order, colour_axis is not None
+
+
+def _check_image(arr: np.ndarray, label: str) -> None:
+    if arr.size == 0:
+        raise UVPSInputError(f"image {label} is empty")
+    mx = arr.max()
+    if not np.isfinite(mx) or not np.isfinite(arr.min()):
+        raise UVPSInputError(f"image {label} contains NaN or infinite values")
+    if mx <= 0:
+        raise UVPSInputError(f"image {label} is all black (no pixel above 0)")
+    sat = _saturation_of(arr.dtype)
+    if sat is not None and arr.min() >= sat:
+        raise UVPSInputError(f"image {label} is fully saturated (every pixel at {int(sat)})")
+
+
+def _read_mask(mask, shape2d: tuple) -> np.ndarray:
+    if isinstance(mask, np.ndarray):
+        arr, name = mask, "mask"
+    else:
+        arr, name = read_image(mask), f"mask {mask}"
+    arr = np.asarray(arr)
+    if arr.ndim == 3:
+        arr = arr.any(axis=2)
+    if arr.shape != tuple(shape2d):
+        raise UVPSInputError(f"{name} has shape {arr.shape}; expected the image shape {tuple(shape2d)}")
+    out = arr != 0
+    if not out.any():
+        raise UVPSInputError(f"{name} is empty (no pixel selected); expected True/non-zero = use")
+    return out
+
+
+def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=None,
+                 linearize: str = "auto", progress: Progress = None) -> Capture:
+    """Read a capture (K images, one per light) into a float32 stack.
+
+    Parameters
+    ----------
+    images : path or list of paths
+        A folder (every TIFF/PNG/JPEG file inside, natural order; other files and subfolders
+        are ignored), a list of image files, or ONE multi-page TIFF (``(K, M, N)``,
+        ``(K, M, N, 3)``, ImageJ hyperstacks: Y, X and colour (S, or C of size 3 beside another
+        frame axis) are the image, every other axis is flattened into K).
+    lights : path, optional
+        An RTI ``.lp`` file (directions, matched to the images by file name for a folder/list,
+        by order for a stack) or a positions file (``.csv`` ``file,x_mm,y_mm,z_mm`` or uvps
+        ``lights.json``), see :func:`read_lp` and :func:`read_positions`.
+    mask : path or ndarray, optional
+        ``(M, N)`` image; non-zero = use. An empty mask is an error.
+    dark : path, optional
+        A dark frame of the same shape and type; subtracted after linearisation, clipped at 0.
+    pixel_size_um : float, optional
+        Overrides the TIFF resolution tags. Required for PNG/JPEG captures and uncalibrated
+        TIFFs (they carry no reliable physical size).
+    linearize : {"auto", "srgb", "none"}
+        "auto" applies the sRGB EOTF to JPEG files only (8-bit PNGs are often written linear by
+        scientific cameras: pass "srgb" if yours are sRGB-encoded), "srgb" to every integer
+        image, "none" to none. The result stays in the file's range (a linearised JPEG is in
+        0..255 linear counts). Float images are never linearised.
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Capture
+
+    Notes
+    -----
+    Memory: the float32 stack is preallocated and filled one file at a time, so reading needs
+    the stack plus one file in its own dtype (for a multi-page TIFF: the stack file).
+    """
+    if linearize not in ("auto", "srgb", "none"):
+        raise UVPSInputError(f"linearize must be 'auto', 'srgb' or 'none'; got {linearize!r}")
+    if pixel_size_um is not None:
+        pixel_size_um = _check_pixel_size(pixel_size_um)
+    sources, stack_path, by_name = _list_sources(images)
+
+    if stack_path is not None:
+        stack, labels, first_kind, tag_px = _read_stack(stack_path, progress)
+        sources = [_Source(lb, stack_path) for lb in labels]
+        dtype = stack.dtype_in
+        arr = stack.images
+    else:
+        arr, dtype, tag_px = None, None, None
+    if len(sources) < 3:
+        what = stack_path if stack_path is not None else images
+        raise UVPSInputError(
+            f"images: photometric stereo needs at least 3 images; got {len(sources)} from {what}"
+        )
+    if stack_path is None:
+        arr, dtype, tag_px = _read_files(sources, linearize, progress)
+    elif _needs_linearize(first_kind, dtype, linearize):
+        for k in range(arr.shape[0]):
+            arr[k] = srgb_to_linear(arr[k], _saturation_of(dtype))
+
+    shape_img = arr.shape[1:]
+    if dark is not None:
+        dark_path = Path(dark)
+        d = read_image(dark_path)
+        if d.shape != shape_img or d.dtype != dtype:
+            raise UVPSInputError(
+                f"dark frame {dark_path} is {d.shape} {d.dtype}; expected {shape_img} {dtype} like the images"
+            )
+        d = d.astype(np.float32)
+        if _needs_linearize(_kind(dark_path), dtype, linearize):
+            d = srgb_to_linear(d, _saturation_of(dtype))
+        for k in range(arr.shape[0]):
+            np.subtract(arr[k], d, out=arr[k])
+            np.maximum(arr[k], 0, out=arr[k])
+
+    if pixel_size_um is None:
+        if tag_px is None:
+            raise UVPSInputError(
+                "pixel size unknown: the images carry no physical resolution (PNG/JPEG or an "
+                "uncalibrated TIFF); pass --pixel-size-um (params 'pixel_size_um')"
+            )
+        pixel_size_um = _check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
+
+    mask_arr = _read_mask(mask, shape_img[:2]) if mask is not None else None
+    directions = positions = None
+    if lights is not None:
+        directions, positions = _attach_lights(lights, sources, by_name)
+    report(progress, 1.0, f"read {len(sources)} images {shape_img} {dtype}")
+    log.info("capture: %d images %s %s, pixel %.4g um", len(sources), shape_img, dtype, pixel_size_um)
+    return Capture(
+        images=arr,
+        files=[s.label for s in sources],
+        pixel_size_um=float(pixel_size_um),
+        mask=mask_arr,
+        saturation=_saturation_of(dtype),
+        light_directions=directions,
+        light_positions_mm=positions,
+        bit_depth=str(dtype),
+    )
+
+
+def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
+    if linearize == "none" or not np.issubdtype(dtype, np.integer):
+        return False
+    return linearize == "srgb" or kind == "jpeg"
+
+
+def _read_files(sources: list, linearize: str, progress: Progress):
+    """Fill a preallocated float32 stack file by file."""
+    import tifffile
+
+    k = len(sources)
+    first = read_image(sources[0].path)
+    dtype, shape = first.dtype, first.shape
+    if dtype == np.float64:
+        raise UVPSInputError(f"image {sources[0].path}: float64 is not supported; save as float32")
+    tag_px = None
+    if _kind(sources[0].path) == "tiff":
+        with tifffile.TiffFile(sources[0].path) as tif:
+            tag_px = _tiff_pixel_size_um(tif)
+    out = np.empty((k,) + shape, dtype=np.float32)
+    for i, src in enumerate(sources):
+        img = first if i == 0 else read_image(src.path)
+        if img.shape != shape or img.dtype != dtype:
+            raise UVPSInputError(
+                f"image {src.path} is {img.shape} {img.dtype}; expected {shape} {dtype} like {sources[0].path.name}"
+            )
+        _check_image(img, str(src.path))
+        out[i] = img
+        if _needs_linearize(_kind(src.path), dtype, linearize):
+            out[i] = srgb_to_linear(out[i], _saturation_of(dtype))
+        report(progress, (i + 1) / (k + 1), f"read {src.path.name}")
+    return out, dtype, tag_px
+
+
+class _Stack(NamedTuple):
+    images: np.ndarray
+    dtype_in: np.dtype
+
+
+def _read_stack(path: Path, progress: Progress):
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            series = tif.series[0]
+            shape, axes, dtype = tuple(series.shape), series.axes, series.dtype
+            order, colour = _stack_layout(shape, axes, path)
+            if dtype not in (np.uint8, np.uint16, np.float32):
+                raise UVPSInputError(f"{path}: unsupported pixel type {dtype}; expected uint8, uint16 or float32")
+            raw = series.asarray()
+            tag_px = _tiff_pixel_size_um(tif)
+    except UVPSInputError:
+        raise
+    except Exception as exc:
+        raise UVPSInputError(f"{path}: cannot read as TIFF ({str(exc).splitlines()[0]})") from exc
+    raw = np.transpose(raw, order)
+    nimg = 2 + colour
+    raw = raw.reshape((-1,) + raw.shape[-nimg:])
+    if colour:
+        if raw.shape[-1] not in (3, 4):
+            raise UVPSInputError(f"{path}: colour axis has {raw.shape[-1]} samples; expected 3 (RGB) or 4 (RGBA)")
+        raw = raw[..., :3]
+    k = raw.shape[0]
+    out = np.empty(raw.shape, dtype=np.float32)
+    labels = []
+    for i in range(k):
+        label = f"{path.name}#{i + 1}"
+        _check_image(raw[i], f"{path}#{i + 1}")
+        out[i] = raw[i]
+        labels.append(label)
+        report(progress, (i + 1) / (k + 1), f"read {label}")
+    return _Stack(out, dtype), labels, "tiff", tag_px
+
+
+# ---------------------------------------------------------------------------------------------
+# writing
+
+
+def _imagej_dtype(data: np.ndarray) -> np.ndarray:
+    """Cast to a type ImageJ hyperstacks hold (uint8, uint16, float32).
+
+    ImageJ has no int32/uint32 images (tifffile refuses them with ``imagej=True``): integer
+    label images are written uint16 when all values fit in 0..65535, else float32 (exact up to
+    2**24 labels).
+    """
+    if data.dtype == np.bool_:
+        return data.astype(np.uint8)
+    if data.dtype in (np.uint8, np.uint16, np.float32):
+        return data
+    if np.issubdtype(data.dtype, np.integer):
+        lo, hi = (int(data.min()), int(data.max())) if data.size else (0, 0)
+        if lo >= 0 and hi <= 65535:
+            return data.astype(np.uint16)
+        if abs(lo) > 2**24 or abs(hi) > 2**24:
+            raise UVPSInputError(f"integer image values {lo}..{hi} do not fit float32 exactly")
+        return data.astype(np.float32)
+    if np.issubdtype(data.dtype, np.floating):
+        return data.astype(np.float32)
+    raise UVPSInputError(f"cannot write {data.dtype} data as an ImageJ TIFF")
+
+
+def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size_um: float,
+                      unit: str = "um", labels: Optional[Sequence[str]] = None,
+                      metadata: Optional[dict] = None) -> Path:
+    """Write an ImageJ hyperstack TIFF with a micrometre calibration, atomically.
+
+    Parameters
+    ----------
+    path : path
+        Output file; written to a temporary file in the same folder, then renamed into place.
+    data : ndarray
+        float32, uint16 or uint8 (bool -> uint8, float64 -> float32; int32 labels -> uint16 if
+        they fit, else float32: ImageJ has no 32-bit integer images).
+    axes : str
+        One letter per dimension, a subsequence of ImageJ's ``TZCYXS`` ending in ``YX``:
+        ``"YX"``, ``"CYX"`` (channels), ``"ZYX"`` (a stack of K images), ``"ZCYX"``.
+    pixel_size_um : float
+        Pixel size; written as X/YResolution = 1 / pixel size (pixels per micron) with ImageJ
+        ``unit='micron'``, so ImageJ's scale bar is right.
+    unit : str
+        Only "um" (micrometres) is written by uvps; kept explicit for readers.
+    labels : sequence of str, optional
+        Channel labels (one per C) or one per plane; shown as ImageJ slice labels.
+    metadata : dict, optional
+        Extra ImageJ metadata (e.g. ``{"Info": "..."}``); stored in the ImageJ description.
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Notes
+    -----
+    Files above about 3.9 GB are written in ImageJ's own large-file layout (one IFD, the data
+    contiguous after it, as ImageJ's "Save As Tiff" does) rather than BigTIFF, because ImageJ
+    1.x opens that layout natively but needs Bio-Formats for BigTIFF; tifffile reads both.
+    """
+    import tifffile
+
+    path = Path(path)
+    px = _check_pixel_size(pixel_size_um)
+    if unit not in ("um", "micron", "\u00b5m"):
+        raise UVPSInputError(f"unit must be 'um' (micrometres); got {unit!r}")
+    data = np.asarray(data)
+    axes = str(axes).upper()
+    if len(axes) != data.ndim:
+        raise UVPSInputError(f"axes {axes!r} has {len(axes)} letters for data of shape {data.shape}")
+    it = iter(_IMAGEJ_AXES)
+    if not axes.endswith("YX") and not axes.endswith("YXS") or not all(a in it for a in axes):
+        raise UVPSInputError(f"axes {axes!r} must be a subsequence of ImageJ's 'TZCYXS' ending in YX")
+    data = _imagej_dtype(data)
+    meta = {"axes": axes, "unit": "micron"}
+    if labels is not None:
+        labels = [str(s) for s in labels]
+        nplanes = int(np.prod([n for a, n in zip(axes, data.shape) if a in "TZC"] or [1]))
+        nc = data.shape[axes.index("C")] if "C" in axes else 1
+        if len(labels) == nc and nplanes != nc:
+            labels = labels * (nplanes // nc)  # ImageJ plane order: C fastest, then Z, then T
+        if len(labels) != nplanes:
+            raise UVPSInputError(f"labels: got {len(labels)}; expected one per channel ({nc}) or per plane ({nplanes})")
+        meta["Labels"] = labels
+    if metadata:
+        meta.update(metadata)
+    if not path.parent.is_dir():
+        raise UVPSInputError(f"output folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        tifffile.imwrite(
+            tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
+            photometric="rgb" if axes.endswith("S") else "minisblack",
+        )
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def sha256_file(path: PathLike, *, chunk_bytes: int = 1 << 20) -> str:
+    """SHA-256 hex digest of a file, read in chunks of ``chunk_bytes``."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(chunk_bytes), b""):
+            h.update(block)
+    return h.hexdigest()
