@@ -686,8 +686,6 @@ def _read_files(sources: list, linearize: str, progress: Progress):
     k = len(sources)
     first = read_image(sources[0].path)
     dtype, shape = first.dtype, first.shape
-    if dtype == np.float64:
-        raise UVPSInputError(f"image {sources[0].path}: float64 is not supported; save as float32")
     tag_px = None
     if _kind(sources[0].path) == "tiff":
         with tifffile.TiffFile(sources[0].path) as tif:
@@ -720,8 +718,10 @@ def _read_stack(path: Path, progress: Progress):
             series = tif.series[0]
             shape, axes, dtype = tuple(series.shape), series.axes, series.dtype
             order, colour = _stack_layout(shape, axes, path)
-            if dtype not in (np.uint8, np.uint16, np.float32):
-                raise UVPSInputError(f"{path}: unsupported pixel type {dtype}; expected uint8, uint16 or float32")
+            if dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+                raise UVPSInputError(
+                    f"{path}: unsupported pixel type {dtype}; expected uint8, uint16 or float32"
+                )
             raw = series.asarray()
             tag_px = _tiff_pixel_size_um(tif)
     except UVPSInputError:
