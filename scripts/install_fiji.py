@@ -1,0 +1,189 @@
+#!/usr/bin/env python3
+"""Install (or remove) the uvps plugins in a Fiji or ImageJ 1.x folder.
+
+Layout written (the plugin scripts rely on it):
+
+- menu scripts: ``<root>/plugins/UV_Photometric_Stereo/*.py`` (menu Plugins > UV Photometric Stereo);
+- Jython library, Fiji: ``<root>/jars/Lib/uvps_fiji/`` (Fiji puts ``jars/Lib`` on Jython's path);
+- Jython library, plain ImageJ 1.x: ``<root>/plugins/jars/Lib/uvps_fiji/`` (ImageJ turns every
+  ``.py`` at depth <= 2 under ``plugins/`` into a menu command, so helpers must live at depth >= 3);
+- ``<lib>/uvps_fiji/uvps_fiji.cfg``: ``python = /abs/path/to/python``, the CPython that has uvps
+  installed (read by ``uvps_fiji.bridge_logic.read_config``).
+
+Each menu script adds ``IJ.getDirectory("imagej") + "jars/Lib"`` and
+``IJ.getDirectory("plugins") + "jars/Lib"`` to ``sys.path`` before importing ``uvps_fiji``.
+
+Usage::
+
+    python scripts/install_fiji.py /path/to/Fiji.app [--python /path/to/python]
+    python scripts/install_fiji.py /path/to/Fiji.app --uninstall
+
+Pure CPython standard library, so that it runs before anything else is set up.
+"""
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+
+MENU_FOLDER = "UV_Photometric_Stereo"
+PACKAGE = "uvps_fiji"
+CONFIG_NAME = "uvps_fiji.cfg"
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class InstallError(Exception):
+    """A one-line reason why installing cannot go on."""
+
+
+def is_fiji(root):
+    """Return True when ``root`` looks like ``Fiji.app``: ``jars/`` and an ``ImageJ-*`` launcher
+    or a macOS ``Contents/`` folder."""
+    if not os.path.isdir(os.path.join(root, "jars")):
+        return False
+    if os.path.isdir(os.path.join(root, "Contents")):
+        return True
+    return any(name.startswith("ImageJ-") for name in os.listdir(root))
+
+
+def library_dir(root):
+    """Return the folder that receives ``uvps_fiji/`` for this installation."""
+    if is_fiji(root):
+        return os.path.join(root, "jars", "Lib")
+    return os.path.join(root, "plugins", "jars", "Lib")
+
+
+def check_root(root):
+    if not os.path.isdir(os.path.join(root, "plugins")):
+        raise InstallError("%s is not a Fiji or ImageJ folder: expected a plugins/ folder in it"
+                           % root)
+
+
+def check_python(python):
+    """Return the uvps version that ``python`` imports, or raise InstallError."""
+    try:
+        proc = subprocess.run(
+            [python, "-c", "import uvps, sys; sys.stdout.write(uvps.__version__)"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, universal_newlines=True, timeout=120)
+    except OSError as exc:
+        raise InstallError("--python %s cannot be run: %s" % (python, exc))
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["exit status %d" % proc.returncode])[-1]
+        raise InstallError("--python %s cannot import uvps (%s); install uvps into it first "
+                           "(pip install /path/to/uvps) or pass --python" % (python, last))
+    return proc.stdout.strip()
+
+
+def source_files(source_root):
+    """Return (menu scripts, library folder) found under ``source_root``."""
+    menu_dir = os.path.join(source_root, "plugins", MENU_FOLDER)
+    lib_dir = os.path.join(source_root, "jython_lib", PACKAGE)
+    scripts = sorted(name for name in os.listdir(menu_dir) if name.endswith(".py")) \
+        if os.path.isdir(menu_dir) else []
+    if not scripts:
+        raise InstallError("no menu scripts (*.py) in %s" % menu_dir)
+    if not os.path.isfile(os.path.join(lib_dir, "__init__.py")):
+        raise InstallError("no Jython library in %s (expected __init__.py)" % lib_dir)
+    return [os.path.join(menu_dir, name) for name in scripts], lib_dir
+
+
+def _replace_dir(target, fill):
+    """Build the new folder beside ``target`` with ``fill(tmp)``, then swap it in."""
+    parent = os.path.dirname(target)
+    if not os.path.isdir(parent):
+        os.makedirs(parent)
+    tmp = tempfile.mkdtemp(prefix="." + os.path.basename(target) + ".", dir=parent)
+    try:
+        fill(tmp)
+        if os.path.isdir(target):
+            shutil.rmtree(target)
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    os.chmod(target, 0o755)
+
+
+def install(root, python, source_root=REPO_ROOT):
+    """Copy the menu scripts and the library into ``root`` and write the config.
+
+    Returns
+    -------
+    list of str
+        The folders written.
+    """
+    root = os.path.abspath(root)
+    check_root(root)
+    scripts, lib_src = source_files(source_root)
+    version = check_python(python)
+    menu_target = os.path.join(root, "plugins", MENU_FOLDER)
+    lib_target = os.path.join(library_dir(root), PACKAGE)
+
+    def fill_menu(tmp):
+        for path in scripts:
+            shutil.copy2(path, tmp)
+
+    def fill_lib(tmp):
+        for name in sorted(os.listdir(lib_src)):
+            if name.endswith(".py"):
+                shutil.copy2(os.path.join(lib_src, name), tmp)
+        with open(os.path.join(tmp, CONFIG_NAME), "w") as fh:
+            fh.write("# written by scripts/install_fiji.py; the CPython that runs the uvps core\n")
+            fh.write("python = %s\n" % python)
+            fh.write("uvps_version = %s\n" % version)
+
+    _replace_dir(menu_target, fill_menu)
+    _replace_dir(lib_target, fill_lib)
+    return [menu_target, lib_target]
+
+
+def uninstall(root):
+    """Remove what ``install`` wrote (both library locations). Returns the folders removed."""
+    root = os.path.abspath(root)
+    check_root(root)
+    removed = []
+    for path in (os.path.join(root, "plugins", MENU_FOLDER),
+                 os.path.join(root, "jars", "Lib", PACKAGE),
+                 os.path.join(root, "plugins", "jars", "Lib", PACKAGE)):
+        if os.path.isdir(path):
+            shutil.rmtree(path)
+            removed.append(path)
+    return removed
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description="Install the uvps menu commands into Fiji or ImageJ 1.x.")
+    parser.add_argument("root", help="the Fiji.app or ImageJ folder (the one holding plugins/)")
+    parser.add_argument("--python", default=sys.executable,
+                        help="CPython with uvps installed (default: this interpreter, %(default)s)")
+    parser.add_argument("--uninstall", action="store_true",
+                        help="remove the uvps menu commands and library instead")
+    parser.add_argument("--source-root", default=REPO_ROOT, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    try:
+        if args.uninstall:
+            removed = uninstall(args.root)
+            for path in removed:
+                print("removed %s" % path)
+            if not removed:
+                print("nothing to remove in %s" % os.path.abspath(args.root))
+        else:
+            # A bare name is looked up on PATH now: ImageJ may start with a different PATH.
+            # abspath, not realpath: a venv's python is a symlink that must stay one.
+            python = args.python if os.sep in args.python else (
+                shutil.which(args.python) or args.python)
+            python = os.path.abspath(python)
+            for path in install(args.root, python, source_root=args.source_root):
+                print("installed %s" % path)
+            print("uvps core runs with %s; restart Fiji/ImageJ to see "
+                  "Plugins > UV Photometric Stereo" % python)
+    except (InstallError, OSError) as exc:
+        print("install_fiji.py: error: %s" % exc, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
