@@ -1,0 +1,261 @@
+"""Tests of uvps.integrate on analytic surfaces with exact normals.
+
+Frame (docs/architecture.md): x = column direction, y UP (decreasing row), z toward the camera,
+p = dz/dx, q = dz/dy, n = (-p, -q, 1) / norm. Surfaces are defined in pixel units on the pixel
+centres and scaled by the pixel size, so the expected height in um is known exactly.
+"""
+
+import numpy as np
+import pytest
+
+from uvps.errors import UVPSInputError
+from uvps.integrate import (
+    Gradients,
+    IntegrationResult,
+    dct_poisson,
+    frankot_chellappa,
+    gradients_from_normals,
+    integrate_normals,
+)
+
+PX_UM = 3.0
+SOLVERS = {"fc": frankot_chellappa, "dct": dct_poisson}
+# Largest error allowed, as a fraction of the height range, on smooth non-periodic surfaces:
+# (interior = more than 5 px from the borders, whole image). FC uses the spectral derivative
+# and rings slightly where the mirrored surface has a kink at a border; DCT-Poisson is exact
+# for quadratics up to float32 rounding.
+TOL = {"fc": (0.005, 0.01), "dct": (0.0005, 0.0005)}
+
+
+def _xy(shape):
+    """x (toward increasing column) and y (toward decreasing row) of pixel centres, in px."""
+    M, N = shape
+    r, c = np.mgrid[:M, :N].astype(float)
+    return c - (N - 1) / 2, (M - 1) / 2 - r
+
+
+def tilted_plane(shape):
+    x, y = _xy(shape)
+    return 0.3 * x + 0.5 * y, np.full(shape, 0.3), np.full(shape, 0.5)
+
+
+def tilted_paraboloid(shape):
+    """A dome-shaped paraboloid on a tilted plane: non-periodic, slope not zero at the borders."""
+    x, y = _xy(shape)
+    z = 0.2 * x - 0.1 * y + 12.0 * (1 - (x**2 + y**2) / 50.0**2)
+    return z, 0.2 - 24.0 * x / 50.0**2, -0.1 - 24.0 * y / 50.0**2
+
+
+def sphere_dome(shape, radius=150.0):
+    """The top of a sphere of radius 150 px covering the whole image."""
+    x, y = _xy(shape)
+    s = np.sqrt(radius**2 - x**2 - y**2)
+    return s, -x / s, -y / s
+
+
+def sphere_cap_on_flat(shape, base_radius=25.0, cap_height=8.0):
+    """A spherical cap (a bump) on a flat canvas; the slope jumps at its rim."""
+    x, y = _xy(shape)
+    R = (base_radius**2 + cap_height**2) / (2 * cap_height)
+    rho2 = x**2 + y**2
+    inside = rho2 < base_radius**2
+    s = np.sqrt(np.maximum(R**2 - rho2, 1e-12))
+    z = np.where(inside, s - (R - cap_height), 0.0)
+    return z, np.where(inside, -x / s, 0.0), np.where(inside, -y / s, 0.0)
+
+
+def normals_from_gradients(p, q):
+    n = np.stack([-p, -q, np.ones_like(p)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def expected_um(z_px, valid=None):
+    z = z_px * PX_UM
+    return z - np.median(z if valid is None else z[valid])
+
+
+SURFACES = {"plane": tilted_plane, "paraboloid": tilted_paraboloid, "sphere": sphere_dome}
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+@pytest.mark.parametrize("surface", sorted(SURFACES))
+@pytest.mark.parametrize("shape", [(96, 128), (81, 67)])
+def test_reconstructs_smooth_non_periodic_surfaces(method, surface, shape):
+    z, p, q = SURFACES[surface](shape)
+    result = integrate_normals(normals_from_gradients(p, q), pixel_size_um=PX_UM, method=method)
+    assert isinstance(result, IntegrationResult)
+    assert result.method == method
+    assert result.height_um.shape == shape and result.height_um.dtype == np.float32
+    err = np.abs(result.height_um - expected_um(z))
+    span = np.ptp(z) * PX_UM
+    tol_interior, tol_all = TOL[method]
+    assert err[5:-5, 5:-5].max() < tol_interior * span
+    assert err.max() < tol_all * span
+    assert result.integrability < 1e-3
+    assert result.residual_rms < 0.02
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_bump_is_positive_toward_the_camera(method):
+    shape = (80, 90)
+    z, p, q = sphere_cap_on_flat(shape)
+    result = SOLVERS[method](p, q, pixel_size_um=PX_UM)
+    h = result.height_um
+    apex = h[shape[0] // 2, shape[1] // 2]
+    # Flat canvas around the bump is at the median (0): the apex is +8 px * 3 um high.
+    assert apex == pytest.approx(8.0 * PX_UM, rel=0.03)
+    assert abs(h[0, 0]) < 0.03 * 8.0 * PX_UM
+    # The slope jumps at the rim, so the error there is larger, but bounded (5 % of the height).
+    assert np.abs(h - expected_um(z)).max() < 0.05 * 8.0 * PX_UM
+
+
+def test_gradients_sign_convention():
+    shape = (60, 30)
+    # A plane rising toward the image top (decreasing row) by 0.4 um per um.
+    n_up = normals_from_gradients(np.zeros(shape), np.full(shape, 0.4))
+    assert n_up[..., 1].max() < 0  # normal leans toward -y (down the image)
+    g = gradients_from_normals(n_up)
+    assert isinstance(g, Gradients)
+    assert g.p.dtype == np.float32 and g.q.dtype == np.float32
+    np.testing.assert_allclose(g.q, 0.4, rtol=1e-5)
+    np.testing.assert_allclose(g.p, 0.0, atol=1e-6)
+    h = frankot_chellappa(g.p, g.q, pixel_size_um=PX_UM).height_um
+    assert np.all(np.diff(h, axis=0) < 0)  # higher at row 0 (image top)
+    drop = h[0] - h[-1]  # FC rings near the borders (of the slope), not of the total drop
+    np.testing.assert_allclose(drop, 0.4 * PX_UM * (shape[0] - 1), rtol=0.01)
+    # A plane rising toward increasing column: p > 0, height grows with column.
+    g = gradients_from_normals(normals_from_gradients(np.full(shape, 0.25), np.zeros(shape)))
+    np.testing.assert_allclose(g.p, 0.25, rtol=1e-5)
+    h = dct_poisson(g.p, g.q, pixel_size_um=PX_UM).height_um
+    np.testing.assert_allclose(np.diff(h, axis=1), 0.25 * PX_UM, rtol=1e-3)
+
+
+def test_gradients_clamp_steep_and_flag_invalid_normals(caplog):
+    shape = (6, 7)
+    n = normals_from_gradients(np.full(shape, 0.1), np.zeros(shape))
+    n[1, 1] = [1.0, 0.0, 0.0]  # grazing: slope infinite
+    n[2, 2] = [0.0, 0.6, -0.8]  # facing away from the camera
+    n[3, 3] = [np.nan, 0.0, 1.0]
+    n[4, 4] = [0.0, 0.0, -1.0]  # no direction at all
+    before = n.copy()
+    g = gradients_from_normals(n, max_slope=5.0)
+    np.testing.assert_array_equal(n, before)
+    assert g.n_clamped == 2 and g.n_invalid == 2
+    assert g.p[1, 1] == pytest.approx(-5.0) and g.q[1, 1] == pytest.approx(0.0)
+    assert g.p[2, 2] == pytest.approx(0.0) and g.q[2, 2] == pytest.approx(-5.0)
+    assert g.p[3, 3] == 0 and g.q[3, 3] == 0 and g.p[4, 4] == 0
+    assert np.all(np.isfinite(g.p)) and np.all(np.isfinite(g.q))
+    np.testing.assert_allclose(g.p[0], 0.1, rtol=1e-5)  # untouched pixels: p = -nx/nz
+    assert "non-finite or degenerate" in caplog.text
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_nan_normals_are_zero_gradient_and_counted(method):
+    shape = (64, 72)
+    z, p, q = tilted_paraboloid(shape)
+    n = normals_from_gradients(p, q)
+    rng = np.random.default_rng(7)
+    holes = rng.choice(n.shape[0] * n.shape[1], size=12, replace=False)
+    n.reshape(-1, 3)[holes] = np.nan
+    result = integrate_normals(n, pixel_size_um=PX_UM, method=method)
+    assert result.n_invalid == 12
+    assert np.all(np.isfinite(result.height_um))
+    # A few isolated holes integrated as flat leave the shape within 2 % of its range.
+    err = np.abs(result.height_um - expected_um(z))
+    assert np.median(err) < 0.02 * np.ptp(z) * PX_UM
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_median_is_zero_and_nan_outside_mask(method):
+    shape = (60, 70)
+    z, p, q = sphere_dome(shape)
+    result = SOLVERS[method](p, q, pixel_size_um=PX_UM)
+    assert np.median(result.height_um) == pytest.approx(0.0, abs=1e-4)
+
+    # A bump on a flat canvas; the mask leaves out a band of wild gradients on the right.
+    z, p, q = sphere_cap_on_flat(shape, base_radius=15.0, cap_height=6.0)
+    rng = np.random.default_rng(11)
+    p[:, 55:] = rng.normal(0, 3, size=(shape[0], 15))
+    q[:, 55:] = np.nan
+    mask = np.ones(shape, bool)
+    mask[:, 55:] = False
+    masked = SOLVERS[method](p, q, pixel_size_um=PX_UM, mask=mask)
+    assert masked.n_invalid == 0  # the NaNs are outside the mask
+    h = masked.height_um
+    assert np.all(np.isnan(h[~mask])) and np.all(np.isfinite(h[mask]))
+    assert np.median(h[mask]) == pytest.approx(0.0, abs=1e-4)
+    err = np.abs(h[mask] - expected_um(z, mask)[mask])
+    assert err.max() < 0.05 * 6.0 * PX_UM
+
+
+def test_reflect_padding_avoids_wrap_around():
+    shape = (64, 80)
+    z, p, q = tilted_plane(shape)
+    span = np.ptp(z) * PX_UM
+    good = frankot_chellappa(p, q, pixel_size_um=PX_UM, pad="reflect")
+    periodic = frankot_chellappa(p, q, pixel_size_um=PX_UM, pad="none")
+    assert np.abs(good.height_um - expected_um(z)).max() < 0.01 * span
+    # Without padding, a plane is not periodic: its mean slope is lost to the DC term.
+    assert np.abs(periodic.height_um - expected_um(z)).max() > 0.3 * span
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_height_scales_with_pixel_size(method):
+    z, p, q = tilted_paraboloid((40, 50))
+    h1 = SOLVERS[method](p, q, pixel_size_um=1.0).height_um
+    h15 = SOLVERS[method](p, q, pixel_size_um=15.0).height_um
+    np.testing.assert_allclose(h15, 15.0 * h1, rtol=1e-4, atol=1e-3)
+
+
+def test_inputs_not_modified_and_float64_accepted():
+    z, p, q = tilted_paraboloid((30, 40))
+    p[0, 0] = np.nan
+    p_before, q_before = p.copy(), q.copy()
+    for solver in SOLVERS.values():
+        result = solver(p, q, pixel_size_um=PX_UM)
+        assert result.n_invalid == 1
+    np.testing.assert_array_equal(p, p_before)
+    np.testing.assert_array_equal(q, q_before)
+
+
+def test_diagnostics_detect_non_integrable_field():
+    shape = (48, 64)
+    z, p, q = tilted_paraboloid(shape)
+    clean = dct_poisson(p, q, pixel_size_um=PX_UM)
+    noise = np.random.default_rng(3).normal(0, 0.2, size=(2,) + shape)
+    noisy = dct_poisson(p + noise[0], q + noise[1], pixel_size_um=PX_UM)
+    assert clean.integrability < 1e-6
+    assert noisy.integrability > 0.1
+    assert clean.residual_rms < 0.01
+    # Least squares keeps the integrable part: about half the noise power stays in the residual.
+    assert 0.1 < noisy.residual_rms < 0.3
+
+
+def test_fc_and_dct_agree():
+    z, p, q = sphere_dome((70, 90))
+    n = normals_from_gradients(p, q)
+    fc = integrate_normals(n, pixel_size_um=PX_UM, method="fc").height_um
+    dct = integrate_normals(n, pixel_size_um=PX_UM, method="dct").height_um
+    assert np.abs(fc - dct).max() < 0.01 * np.ptp(z) * PX_UM
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda p, n: frankot_chellappa(p, p, pixel_size_um=0), "pixel_size_um"),
+        (lambda p, n: dct_poisson(p, p, pixel_size_um="abc"), "pixel_size_um"),
+        (lambda p, n: frankot_chellappa(p, p[:, :-1], pixel_size_um=1), "same shape"),
+        (lambda p, n: frankot_chellappa(p, p, pixel_size_um=1, pad="zero"), "pad"),
+        (lambda p, n: dct_poisson(p[0], p[0], pixel_size_um=1), "2-D"),
+        (lambda p, n: dct_poisson(p, p, pixel_size_um=1, mask=np.ones((3, 3), bool)), "mask"),
+        (lambda p, n: dct_poisson(p, p, pixel_size_um=1, mask=np.zeros(p.shape, bool)), "mask"),
+        (lambda p, n: integrate_normals(n, pixel_size_um=1, method="poisson"), "method"),
+        (lambda p, n: integrate_normals(n[..., :2], pixel_size_um=1), "normals"),
+        (lambda p, n: gradients_from_normals(n, max_slope=-1), "max_slope"),
+    ],
+)
+def test_bad_input_raises_clear_error(call, match):
+    p = np.zeros((8, 9), np.float32)
+    n = normals_from_gradients(p, p)
+    with pytest.raises(UVPSInputError, match=match):
+        call(p, n)
