@@ -1,0 +1,278 @@
+"""The file bridge between the Fiji side and the numpy core: ``uvps bridge REQUEST.json``.
+
+One request folder per call holds ``request.json``::
+
+    {"schema_version": 1, "command": "run", "inputs": {...}, "params": {...},
+     "output_dir": "/abs/out"}
+
+:func:`run_bridge` validates it, runs ``uvps.commands.COMMANDS[command](inputs, params,
+output_dir, progress=...)`` and always writes ``response.json`` beside the request (atomically),
+on success and on failure alike. Progress goes to stdout as ``PROGRESS <fraction> <message>``
+lines, logs and tracebacks to stderr; anything else a library prints is diverted to stderr so
+stdout carries only the protocol. Exit status: 0 ok, 1 bad request or input
+(:class:`~uvps.errors.UVPSInputError`), 2 anything else. See ``docs/bridge.md``.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from . import __version__
+from .errors import UVPSComputeError, UVPSInputError
+from .outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+RESPONSE_NAME = "response.json"
+
+#: Parameters whose string values are file paths (resolved against the request folder).
+#: ``regions`` may also be the keyword "auto".
+PATH_PARAMS = frozenset({"lights", "mask", "dark", "regions", "labels", "masks"})
+_PATH_KEYWORDS = frozenset({"auto"})
+_REQUEST_KEYS = frozenset({"schema_version", "command", "inputs", "params", "output_dir"})
+
+
+@dataclass
+class BridgeRequest:
+    """A validated request: absolute paths, known command."""
+
+    command: str
+    inputs: dict
+    params: dict
+    output_dir: Path
+    warnings: list = field(default_factory=list)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    line = text.splitlines()[0].strip() if text else ""
+    return line or type(exc).__name__
+
+
+def _resolve(value: Any, base: Path) -> Any:
+    """Resolve a path string (or a list of them) against ``base``; other values unchanged."""
+    if isinstance(value, str):
+        if value in _PATH_KEYWORDS or not value:
+            return value
+        p = Path(os.path.expanduser(value))
+        return str(p if p.is_absolute() else (base / p))
+    if isinstance(value, list):
+        return [_resolve(v, base) for v in value]
+    return value
+
+
+def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequest:
+    """Read and validate ``request.json``.
+
+    Parameters
+    ----------
+    request_path : path
+        The request file.
+    commands : dict, optional
+        The command registry (default ``uvps.commands.COMMANDS``); only its names are used.
+
+    Returns
+    -------
+    BridgeRequest
+        Relative paths (``output_dir``, every string in ``inputs``, and the file parameters
+        ``lights``, ``mask``, ``dark``, ``regions``, ``labels``, ``masks``) resolved against the
+        request's folder.
+
+    Raises
+    ------
+    UVPSInputError
+        Missing file, bad JSON, wrong schema version, unknown command, wrong field types, an
+        output folder that is a file or whose parent does not exist.
+    """
+    path = Path(request_path)
+    if not path.is_file():
+        raise UVPSInputError(f"request file {path} does not exist")
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UVPSInputError(f"request file {path} is not valid JSON ({_one_line(exc)})")
+    if not isinstance(raw, dict):
+        raise UVPSInputError(f"request file {path}: expected a JSON object; got {type(raw).__name__}")
+    version = raw.get("schema_version")
+    if version != SCHEMA_VERSION or isinstance(version, bool):
+        raise UVPSInputError(
+            f"request file {path}: schema_version must be {SCHEMA_VERSION}; got {version!r}"
+        )
+    if commands is None:
+        commands = _registry()
+    command = raw.get("command")
+    if not isinstance(command, str) or command not in commands:
+        raise UVPSInputError(
+            f"request file {path}: unknown command {command!r}; expected one of "
+            f"{', '.join(sorted(commands))}"
+        )
+    inputs = raw.get("inputs", {})
+    params = raw.get("params", {})
+    for name, value in (("inputs", inputs), ("params", params)):
+        if not isinstance(value, dict):
+            raise UVPSInputError(
+                f"request file {path}: '{name}' must be a JSON object; got {type(value).__name__}"
+            )
+    out = raw.get("output_dir")
+    if not isinstance(out, str) or not out.strip():
+        raise UVPSInputError(f"request file {path}: 'output_dir' must be a folder path; got {out!r}")
+    base = path.parent.absolute()
+    warnings = [f"request key '{k}' ignored (unknown)" for k in sorted(set(raw) - _REQUEST_KEYS)]
+    inputs = {k: _resolve(v, base) for k, v in inputs.items()}
+    params = {k: (_resolve(v, base) if k in PATH_PARAMS else v) for k, v in params.items()}
+    output_dir = check_output_dir(Path(_resolve(out, base)))
+    return BridgeRequest(command, inputs, params, output_dir, warnings)
+
+
+def _registry() -> dict:
+    from .commands import COMMANDS
+
+    return COMMANDS
+
+
+def _jsonable(obj: Any) -> Any:
+    """A JSON-safe copy: numpy scalars/arrays to Python, NaN/inf to None, paths to str."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, OutputSpec):
+        return _jsonable(obj.to_dict())
+    if isinstance(obj, (str, bool)) or obj is None:
+        return obj
+    if isinstance(obj, int):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.ndarray):
+            return _jsonable(obj.tolist())
+        if isinstance(obj, np.generic):
+            return _jsonable(obj.item())
+    except ImportError:  # numpy is a dependency; kept so a broken install still answers
+        pass
+    return str(obj)
+
+
+def _progress_printer(stream) -> Callable[[float, str], None]:
+    def progress(fraction: float, message: str) -> None:
+        fraction = min(max(float(fraction), 0.0), 1.0) if math.isfinite(fraction) else 0.0
+        text = " ".join(str(message).split())
+        stream.write(f"PROGRESS {fraction:.4f} {text}\n")
+        stream.flush()
+
+    return progress
+
+
+def _configure_logging() -> None:
+    """Log to stderr (INFO, or $UVPS_LOG_LEVEL) unless the host already configured logging."""
+    level = os.environ.get("UVPS_LOG_LEVEL", "INFO").upper()
+    root = logging.getLogger()
+    if not root.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root.addHandler(handler)
+        root.setLevel(getattr(logging, level, logging.INFO))
+    logging.captureWarnings(True)
+
+
+def _outputs_of(result: Any, command: str) -> tuple:
+    if not isinstance(result, CommandResult):
+        raise UVPSComputeError(
+            f"command {command} returned {type(result).__name__}; expected a CommandResult"
+        )
+    outputs = []
+    for spec in result.outputs:
+        d = spec.to_dict() if isinstance(spec, OutputSpec) else dict(spec)
+        d["path"] = str(Path(d["path"]).absolute())
+        outputs.append(d)
+    return outputs, result.diagnostics, [str(w) for w in result.warnings]
+
+
+def run_bridge(request_path) -> int:
+    """Run one bridge request and write ``response.json`` beside it.
+
+    Parameters
+    ----------
+    request_path : path
+        ``request.json`` (see the module docstring and ``docs/bridge.md``).
+
+    Returns
+    -------
+    int
+        Exit status: 0 ok, 1 bad request or :class:`~uvps.errors.UVPSInputError`, 2 any other
+        exception (:class:`~uvps.errors.UVPSComputeError` or unexpected). The error message in
+        the response is one line; the full traceback of an unexpected error goes to stderr only.
+    """
+    t0 = time.monotonic()
+    _configure_logging()
+    request_path = Path(request_path).absolute()
+    response = {
+        "schema_version": SCHEMA_VERSION, "status": "error", "command": None, "error": None,
+        "outputs": [], "diagnostics": {}, "warnings": [], "version": __version__, "elapsed_s": 0.0,
+    }
+    progress = _progress_printer(sys.stdout)
+    code = 2
+    try:
+        request = load_request(request_path)
+        response["command"] = request.command
+        response["warnings"] = list(request.warnings)
+        for w in request.warnings:
+            log.warning("%s", w)
+        func = _registry()[request.command]
+        log.info("bridge: %s -> %s", request.command, request.output_dir)
+        # Only PROGRESS lines may reach stdout: divert anything printed by libraries.
+        with contextlib.redirect_stdout(sys.stderr):
+            result = func(request.inputs, request.params, request.output_dir, progress=progress)
+        outputs, diagnostics, warnings = _outputs_of(result, request.command)
+        response.update(status="ok", outputs=outputs, diagnostics=diagnostics)
+        response["warnings"] += warnings
+        code = 0
+    except UVPSInputError as exc:
+        code = 1
+        response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
+        log.error("%s: %s", type(exc).__name__, _one_line(exc))
+    except Exception as exc:  # noqa: BLE001 - the bridge must answer whatever happened
+        code = 2
+        response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
+        if isinstance(exc, UVPSComputeError):
+            log.error("%s: %s", type(exc).__name__, _one_line(exc))
+        traceback.print_exc(file=sys.stderr)
+    response["elapsed_s"] = round(time.monotonic() - t0, 3)
+    _write_response(request_path.parent / RESPONSE_NAME, response)
+    return code
+
+
+def _write_response(path: Path, response: dict) -> None:
+    try:
+        write_json_atomic(path, _jsonable(response))
+    except OSError as exc:
+        # No folder to answer in (e.g. the request path's folder does not exist): stderr only.
+        print(f"uvps bridge: cannot write {path}: {_one_line(exc)}", file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    """``python -m uvps.bridge REQUEST.json`` (the CLI's ``uvps bridge`` calls :func:`run_bridge`)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if len(argv) != 1 or argv[0] in ("-h", "--help"):
+        print("usage: uvps bridge REQUEST.json", file=sys.stderr)
+        return 0 if argv and argv[0] in ("-h", "--help") else 1
+    return run_bridge(argv[0])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,180 @@
+"""Tests of the file bridge: real subprocesses on real requests, and every failure path."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uvps import bridge
+from uvps.errors import UVPSComputeError
+from uvps.io import read_capture, read_tiff, sha256_file, write_imagej_tiff
+from uvps.outputs import CommandResult, OutputSpec, atomic_output_dir
+
+PX_UM = 20.0
+
+
+def _capture(folder, k=4, shape=(16, 20)):
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(7)
+    imgs = rng.integers(100, 5000, (k,) + shape).astype(np.uint16)
+    for i, img in enumerate(imgs):
+        write_imagej_tiff(folder / f"img{i + 1:02d}.tif", img, axes="YX", pixel_size_um=PX_UM)
+    return imgs
+
+
+def _mean_command(inputs, params, output_dir, *, progress=None):
+    """A small real command: the mean image of a capture, written as an ImageJ TIFF."""
+    cap = read_capture(inputs["images"], pixel_size_um=params.get("pixel_size_um"))
+    if params.get("fail") == "compute":
+        raise UVPSComputeError("the mean is undefined\nsecond line of detail")
+    with atomic_output_dir(output_dir) as tmp:
+        for k in range(cap.images.shape[0]):
+            if progress:
+                progress(k / cap.images.shape[0], f"image {k + 1}\nof {cap.images.shape[0]}")
+        if params.get("fail") == "crash":
+            (tmp / "mean.tif").write_bytes(b"half")
+            raise ZeroDivisionError("boom")
+        write_imagej_tiff(tmp / "mean.tif", cap.images.mean(axis=0), axes="YX",
+                          pixel_size_um=cap.pixel_size_um)
+    print("a stray print from a library")
+    out = OutputSpec("mean", str(output_dir / "mean.tif"), axes="YX", dtype="float32", units="counts")
+    return CommandResult([out], {"k": np.int64(cap.images.shape[0]), "ratio": float("nan"),
+                                 "pixel_size_um": np.float32(cap.pixel_size_um)}, ["a warning"])
+
+
+@pytest.fixture
+def registry(monkeypatch):
+    reg = {"mean": _mean_command}
+    monkeypatch.setattr(bridge, "_registry", lambda: reg)
+    return reg
+
+
+def _request(folder, **fields):
+    folder.mkdir(parents=True, exist_ok=True)
+    req = {"schema_version": 1, "command": "mean", "inputs": {}, "params": {},
+           "output_dir": str(folder / "out")}
+    req.update(fields)
+    path = folder / "request.json"
+    path.write_text(json.dumps(req))
+    return path
+
+
+def _response(req_path):
+    return json.loads((req_path.parent / "response.json").read_text())
+
+
+def test_in_process_round_trip_with_relative_paths(tmp_path, registry, capsys):
+    imgs = _capture(tmp_path / "req" / "cap")
+    req = _request(tmp_path / "req", inputs={"images": "cap"}, output_dir="out", extra=1)
+    assert bridge.run_bridge(req) == 0
+    resp = _response(req)
+    assert resp["status"] == "ok" and resp["error"] is None and resp["command"] == "mean"
+    out = resp["outputs"][0]
+    assert out["path"] == str(tmp_path / "req" / "out" / "mean.tif")
+    data, px = read_tiff(out["path"])
+    np.testing.assert_allclose(data, imgs.astype(np.float32).mean(axis=0), rtol=1e-6)
+    assert px == pytest.approx(PX_UM, rel=1e-6)
+    assert resp["diagnostics"] == {"k": 4, "ratio": None, "pixel_size_um": PX_UM}
+    assert resp["warnings"] == ["request key 'extra' ignored (unknown)", "a warning"]
+    assert resp["version"] and resp["elapsed_s"] >= 0
+    stdout = capsys.readouterr().out.splitlines()
+    assert stdout == [f"PROGRESS {k / 4:.4f} image {k + 1} of 4" for k in range(4)]
+
+
+@pytest.mark.parametrize("text,match", [
+    ("{not json", "not valid JSON"),
+    ("[1, 2]", "expected a JSON object"),
+    (json.dumps({"schema_version": 2, "command": "mean", "output_dir": "o"}), "schema_version must be 1; got 2"),
+    (json.dumps({"schema_version": 1, "command": "nope", "output_dir": "o"}), "unknown command 'nope'"),
+    (json.dumps({"schema_version": 1, "command": "mean", "inputs": [], "output_dir": "o"}), "'inputs' must be"),
+    (json.dumps({"schema_version": 1, "command": "mean", "params": "x", "output_dir": "o"}), "'params' must be"),
+    (json.dumps({"schema_version": 1, "command": "mean"}), "'output_dir' must be"),
+    (json.dumps({"schema_version": 1, "command": "mean", "output_dir": "a_file"}), "is an existing file"),
+    (json.dumps({"schema_version": 1, "command": "mean", "output_dir": "no/such/out"}), "does not exist"),
+])
+def test_bad_requests_exit_1_with_one_line(tmp_path, registry, text, match):
+    (tmp_path / "a_file").write_text("x")
+    req = tmp_path / "request.json"
+    req.write_text(text)
+    assert bridge.run_bridge(req) == 1
+    resp = _response(req)
+    assert resp["status"] == "error" and resp["error"]["type"] == "UVPSInputError"
+    assert match in resp["error"]["message"] and "\n" not in resp["error"]["message"]
+    assert resp["outputs"] == []
+
+
+def test_missing_request_file_still_answers(tmp_path, registry):
+    assert bridge.run_bridge(tmp_path / "request.json") == 1
+    assert "does not exist" in _response(tmp_path / "request.json")["error"]["message"]
+
+
+def test_input_error_from_command_leaves_output_untouched(tmp_path, registry):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("keep")
+    before = {p.name: sha256_file(p) for p in out.iterdir()}
+    req = _request(tmp_path, inputs={"images": str(tmp_path / "missing")})
+    assert bridge.run_bridge(req) == 1
+    resp = _response(req)
+    assert resp["error"]["type"] == "UVPSInputError" and "missing" in resp["error"]["message"]
+    assert {p.name: sha256_file(p) for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("fail,exc_type,message", [
+    ("compute", "UVPSComputeError", "the mean is undefined"),
+    ("crash", "ZeroDivisionError", "boom"),
+])
+def test_other_errors_exit_2_traceback_on_stderr_only(tmp_path, registry, capsys, fail, exc_type, message):
+    _capture(tmp_path / "cap")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mean.tif").write_bytes(b"previous result")
+    req = _request(tmp_path, inputs={"images": str(tmp_path / "cap")}, params={"fail": fail})
+    assert bridge.run_bridge(req) == 2
+    resp = _response(req)
+    assert resp["error"] == {"type": exc_type, "message": message}
+    assert resp["status"] == "error" and resp["outputs"] == []
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out and all(
+        ln.startswith("PROGRESS ") for ln in captured.out.splitlines())
+    if fail == "crash":
+        assert "Traceback" in captured.err and "ZeroDivisionError" in captured.err
+    assert (out / "mean.tif").read_bytes() == b"previous result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "out", "request.json", "response.json"]
+
+
+def test_command_returning_wrong_type_is_compute_error(tmp_path, registry):
+    registry["mean"] = lambda inputs, params, output_dir, *, progress=None: {"outputs": []}
+    req = _request(tmp_path)
+    assert bridge.run_bridge(req) == 2
+    assert _response(req)["error"]["type"] == "UVPSComputeError"
+
+
+def test_jsonable_makes_strict_json():
+    obj = {"a": np.float64("inf"), "b": [np.int32(3), np.array([1.5, np.nan])], 4: Path("/x")}
+    text = json.dumps(bridge._jsonable(obj), allow_nan=False)
+    assert json.loads(text) == {"a": None, "b": [3, [1.5, None]], "4": "/x"}
+
+
+# --- real subprocesses --------------------------------------------------------------------------
+
+
+def _run(req, *args):
+    env = dict(os.environ, PYTHONWARNINGS="error")
+    return subprocess.run([sys.executable, "-m", *args, str(req)], capture_output=True, text=True,
+                          env=env, timeout=120)
+
+
+def test_subprocess_bad_requests(tmp_path):
+    req = tmp_path / "request.json"
+    req.write_text("{broken")
+    proc = _run(req, "uvps.bridge")
+    assert proc.returncode == 1 and proc.stdout == ""
+    resp = _response(req)
+    assert resp["status"] == "error" and "not valid JSON" in resp["error"]["message"]
+    proc = _run(tmp_path / "nowhere" / "request.json", "uvps.bridge")
+    assert proc.returncode == 1 and "does not exist" in proc.stderr
+    assert not (tmp_path / "nowhere").exists()
