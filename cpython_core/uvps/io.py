@@ -332,7 +332,9 @@ def read_lp(path: PathLike) -> LightFile:
     lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()]
     lines = [ln for ln in lines if ln and not ln.startswith("#")]
     if not lines:
-        raise UVPSInputError(f"light file {path} is empty; expected a count then 'file x y z' lines")
+        raise UVPSInputError(
+            f"light file {path} is empty; expected a count then 'file x y z' lines"
+        )
     try:
         count = int(lines[0].split()[0])
     except ValueError:
@@ -387,13 +389,15 @@ def read_positions(path: PathLike) -> LightPositions:
                 raise ValueError("no 'lights' list")
         except (ValueError, KeyError, TypeError) as exc:
             raise UVPSInputError(
-                f"light positions file {path}: expected uvps lights.json with a 'lights' list ({exc})"
+                f"light positions file {path}: expected uvps lights.json with a 'lights' list"
+                f" ({exc})"
             )
         files = [lt.get("file") for lt in lights]
         pos = [lt.get("position_mm") for lt in lights]
         dirs = [lt.get("direction") for lt in lights]
         positions = np.asarray(pos, dtype=np.float64) if all(p is not None for p in pos) else None
-        directions = np.asarray(dirs, dtype=np.float64) if all(d is not None for d in dirs) else None
+        directions = (np.asarray(dirs, dtype=np.float64)
+                      if all(d is not None for d in dirs) else None)
         if positions is None and directions is None:
             raise UVPSInputError(
                 f"light positions file {path}: every light needs 'position_mm' or 'direction'"
@@ -416,7 +420,8 @@ def read_positions(path: PathLike) -> LightPositions:
     for name, arr in (("position_mm", positions), ("direction", directions)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all()):
             raise UVPSInputError(
-                f"light positions file {path}: each {name} must be 3 finite numbers; got shape {arr.shape}"
+                f"light positions file {path}: each {name} must be 3 finite numbers;"
+                f" got shape {arr.shape}"
             )
     if directions is not None:
         norms = np.linalg.norm(directions, axis=1)
@@ -430,7 +435,9 @@ def _order_by_name(lightfile_path: str, names: Sequence[str], sources: list, by_
     """Index array mapping each image to its row in a light file (by file name or order)."""
     k = len(sources)
     if len(names) != k:
-        raise UVPSInputError(f"light file {lightfile_path} lists {len(names)} lights for {k} images")
+        raise UVPSInputError(
+            f"light file {lightfile_path} lists {len(names)} lights for {k} images"
+        )
     if not by_name:
         return np.arange(k)
     base = {_basename(n): i for i, n in enumerate(names)}
@@ -467,7 +474,9 @@ def _attach_lights(lights, sources, by_name):
                        if _basename(n) not in {s.path.name for s in sources}
                        and Path(_basename(n)).stem not in {s.path.stem for s in sources}]
             if missing:
-                raise UVPSInputError(f"light file {path} names {missing[0]}, which is not among the images")
+                raise UVPSInputError(
+                    f"light file {path} names {missing[0]}, which is not among the images"
+                )
         order = _order_by_name(str(path), lp.files, sources, by_name)
         return lp.directions[order], None
     if path.suffix.lower() in (".csv", ".json", ".txt"):
@@ -495,7 +504,8 @@ def _list_sources(images) -> tuple:
             raise UVPSInputError(f"images: {root} does not exist")
         if root.is_dir():
             files = sorted(
-                (p for p in root.iterdir() if p.is_file() and _is_image(p) and not p.name.startswith(".")),
+                (p for p in root.iterdir()
+                 if p.is_file() and _is_image(p) and not p.name.startswith(".")),
                 key=lambda p: _natural_key(p.name),
             )
             if not files:
@@ -536,7 +546,9 @@ def _stack_layout(shape: tuple, axes: str, path: Path) -> tuple:
         if others:
             colour_axis = axes.index("C")
     frame = [i for i in frame if i != colour_axis]
-    order = frame + [axes.index("Y"), axes.index("X")] + ([colour_axis] if colour_axis is not None else [])
+    order = frame + [axes.index("Y"), axes.index("X")]
+    if colour_axis is not None:
+        order.append(colour_axis)
     return order, colour_axis is not None
 
 
@@ -562,7 +574,9 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
     if arr.ndim == 3:
         arr = arr.any(axis=2)
     if arr.shape != tuple(shape2d):
-        raise UVPSInputError(f"{name} has shape {arr.shape}; expected the image shape {tuple(shape2d)}")
+        raise UVPSInputError(
+            f"{name} has shape {arr.shape}; expected the image shape {tuple(shape2d)}"
+        )
     out = arr != 0
     if not out.any():
         raise UVPSInputError(f"{name} is empty (no pixel selected); expected True/non-zero = use")
@@ -638,7 +652,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         d = read_image(dark_path)
         if d.shape != shape_img or d.dtype != dtype:
             raise UVPSInputError(
-                f"dark frame {dark_path} is {d.shape} {d.dtype}; expected {shape_img} {dtype} like the images"
+                f"dark frame {dark_path} is {d.shape} {d.dtype};"
+                f" expected {shape_img} {dtype} like the images"
             )
         d = d.astype(np.float32)
         if _needs_linearize(_kind(dark_path), dtype, linearize):
@@ -660,7 +675,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     if lights is not None:
         directions, positions = _attach_lights(lights, sources, by_name)
     report(progress, 1.0, f"read {len(sources)} images {shape_img} {dtype}")
-    log.info("capture: %d images %s %s, pixel %.4g um", len(sources), shape_img, dtype, pixel_size_um)
+    log.info("capture: %d images %s %s, pixel %.4g um",
+             len(sources), shape_img, dtype, pixel_size_um)
     return Capture(
         images=arr,
         files=[s.label for s in sources],
@@ -695,7 +711,8 @@ def _read_files(sources: list, linearize: str, progress: Progress):
         img = first if i == 0 else read_image(src.path)
         if img.shape != shape or img.dtype != dtype:
             raise UVPSInputError(
-                f"image {src.path} is {img.shape} {img.dtype}; expected {shape} {dtype} like {sources[0].path.name}"
+                f"image {src.path} is {img.shape} {img.dtype};"
+                f" expected {shape} {dtype} like {sources[0].path.name}"
             )
         _check_image(img, str(src.path))
         out[i] = img
@@ -733,7 +750,9 @@ def _read_stack(path: Path, progress: Progress):
     raw = raw.reshape((-1,) + raw.shape[-nimg:])
     if colour:
         if raw.shape[-1] not in (3, 4):
-            raise UVPSInputError(f"{path}: colour axis has {raw.shape[-1]} samples; expected 3 (RGB) or 4 (RGBA)")
+            raise UVPSInputError(
+                f"{path}: colour axis has {raw.shape[-1]} samples; expected 3 (RGB) or 4 (RGBA)"
+            )
         raw = raw[..., :3]
     k = raw.shape[0]
     out = np.empty(raw.shape, dtype=np.float32)
@@ -819,10 +838,14 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
     data = np.asarray(data)
     axes = str(axes).upper()
     if len(axes) != data.ndim:
-        raise UVPSInputError(f"axes {axes!r} has {len(axes)} letters for data of shape {data.shape}")
+        raise UVPSInputError(
+            f"axes {axes!r} has {len(axes)} letters for data of shape {data.shape}"
+        )
     it = iter(_IMAGEJ_AXES)
     if not axes.endswith("YX") and not axes.endswith("YXS") or not all(a in it for a in axes):
-        raise UVPSInputError(f"axes {axes!r} must be a subsequence of ImageJ's 'TZCYXS' ending in YX")
+        raise UVPSInputError(
+            f"axes {axes!r} must be a subsequence of ImageJ's 'TZCYXS' ending in YX"
+        )
     data = _imagej_dtype(data)
     meta = {"axes": axes, "unit": "micron"}
     if labels is not None:
@@ -832,7 +855,10 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
         if len(labels) == nc and nplanes != nc:
             labels = labels * (nplanes // nc)  # ImageJ plane order: C fastest, then Z, then T
         if len(labels) != nplanes:
-            raise UVPSInputError(f"labels: got {len(labels)}; expected one per channel ({nc}) or per plane ({nplanes})")
+            raise UVPSInputError(
+                f"labels: got {len(labels)}; expected one per channel ({nc})"
+                f" or per plane ({nplanes})"
+            )
         meta["Labels"] = labels
     if metadata:
         meta.update(metadata)
