@@ -125,3 +125,10 @@ def test_bad_input_raises_clear_error(kwargs, albedo_shape, match):
 def test_bad_normals_shape():
     with pytest.raises(UVPSInputError, match="normals"):
         hillshade(np.zeros((3,) + SHAPE, np.float32))
+
+
+def test_integer_albedo_gives_float32_counts():
+    albedo = np.full(SHAPE, 40000, np.uint16)
+    img = relight(plane_normals(0, 0), albedo, elevation_deg=30.0)
+    assert img.dtype == np.float32
+    np.testing.assert_allclose(img, 20000.0, rtol=1e-6)

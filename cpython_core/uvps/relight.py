@@ -116,7 +116,7 @@ def relight(
         raise UVPSInputError(f"ambient must be a number >= 0; got {ambient!r}")
     light = light_direction(azimuth_deg, elevation_deg).astype(np.float32)
 
-    n = normals.astype(np.float32)
+    n = normals.astype(np.float32, copy=False)  # read only: no copy needed
     with np.errstate(invalid="ignore", divide="ignore"):
         length = np.sqrt(np.einsum("ijk,ijk->ij", n, n))
         shading = (n @ light) / length  # NaN for non-finite or zero-length normals
@@ -126,7 +126,7 @@ def relight(
         return shading.astype(np.float32, copy=False)
     if albedo.ndim == 3:
         shading = shading[:, :, None]
-    return (albedo.astype(np.float32) * shading).astype(np.float32, copy=False)
+    return albedo.astype(np.float32, copy=False) * shading
 
 
 def hillshade(normals, *, azimuth_deg: float = 315.0, elevation_deg: float = 15.0, ambient: float = 0.0):
