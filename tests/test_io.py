@@ -350,6 +350,26 @@ def test_truncated_tiff_is_input_error(tmp_path):
         read_capture(paths)
 
 
+@pytest.mark.parametrize("linearize", ["none", "srgb"])
+def test_reading_holds_one_float_stack_plus_about_one_file(tmp_path, linearize):
+    import tracemalloc
+
+    arr = _images(k=6, shape=(120, 160), rgb=True)
+    _write_tiffs(tmp_path, arr, px=5)
+    read_capture(tmp_path, linearize=linearize)  # warm up imports and caches
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        cap = read_capture(tmp_path, linearize=linearize)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    one_float_image = cap.images[0].nbytes
+    # the stack, one file in its own dtype (half a float32 image) and, for the sRGB curve, one
+    # float32 temporary of part of an image plus a boolean mask
+    assert peak <= cap.images.nbytes + 2.5 * one_float_image
+
+
 def test_sha256_file_matches_hashlib(tmp_path):
     import hashlib
 

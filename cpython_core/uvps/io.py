@@ -178,16 +178,44 @@ def _saturation_of(dtype: np.dtype) -> Optional[float]:
     return float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
 
 
-def srgb_to_linear(values: np.ndarray, full_scale: float) -> np.ndarray:
-    """Apply the sRGB EOTF (IEC 61966-2-1) to counts in ``0..full_scale``, in place if float32.
+def srgb_to_linear(values: np.ndarray, full_scale: float, *, out: Optional[np.ndarray] = None
+                   ) -> np.ndarray:
+    """Apply the sRGB EOTF (IEC 61966-2-1) to counts in ``0..full_scale``.
 
-    Returns linear values in the same ``0..full_scale`` range. Written out because neither numpy
-    nor scikit-image exposes the bare transfer function (skimage only applies it inside colour
-    space conversions that would also change the primaries).
+    Parameters
+    ----------
+    values : ndarray
+        sRGB-encoded counts.
+    full_scale : float
+        The count of encoded 1.0 (255 for 8-bit files).
+    out : ndarray, optional
+        float32 array to write into (may be ``values`` itself), to avoid a copy.
+
+    Returns
+    -------
+    ndarray
+        float32 linear values in the same ``0..full_scale`` range.
+
+    Notes
+    -----
+    Written out because neither numpy nor scikit-image exposes the bare transfer function
+    (skimage applies it only inside colour-space conversions that also change the primaries).
+    Works in place with one temporary of the upper branch, so linearising a large image costs
+    about one extra float32 image.
     """
-    v = np.clip(values / np.float32(full_scale), 0.0, 1.0, dtype=np.float32)
-    lin = np.where(v <= 0.04045, v / np.float32(12.92), ((v + 0.055) / 1.055) ** 2.4)
-    return (lin * np.float32(full_scale)).astype(np.float32, copy=False)
+    if out is None:
+        out = np.empty(np.shape(values), dtype=np.float32)
+    np.divide(values, np.float32(full_scale), out=out, dtype=np.float32, casting="unsafe")
+    np.clip(out, 0.0, 1.0, out=out)
+    high = out > 0.04045
+    upper = out[high]
+    upper += np.float32(0.055)
+    upper /= np.float32(1.055)
+    np.power(upper, np.float32(2.4), out=upper)
+    out /= np.float32(12.92)
+    out[high] = upper
+    out *= np.float32(full_scale)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -644,7 +672,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         arr, dtype, tag_px = _read_files(sources, linearize, progress)
     elif _needs_linearize(first_kind, dtype, linearize):
         for k in range(arr.shape[0]):
-            arr[k] = srgb_to_linear(arr[k], _saturation_of(dtype))
+            srgb_to_linear(arr[k], _saturation_of(dtype), out=arr[k])
 
     shape_img = arr.shape[1:]
     if dark is not None:
@@ -708,7 +736,7 @@ def _read_files(sources: list, linearize: str, progress: Progress):
             tag_px = _tiff_pixel_size_um(tif)
     out = np.empty((k,) + shape, dtype=np.float32)
     for i, src in enumerate(sources):
-        img = first if i == 0 else read_image(src.path)
+        img, first = (first, None) if i == 0 else (read_image(src.path), None)
         if img.shape != shape or img.dtype != dtype:
             raise UVPSInputError(
                 f"image {src.path} is {img.shape} {img.dtype};"
@@ -717,7 +745,7 @@ def _read_files(sources: list, linearize: str, progress: Progress):
         _check_image(img, str(src.path))
         out[i] = img
         if _needs_linearize(_kind(src.path), dtype, linearize):
-            out[i] = srgb_to_linear(out[i], _saturation_of(dtype))
+            srgb_to_linear(out[i], _saturation_of(dtype), out=out[i])
         report(progress, (i + 1) / (k + 1), f"read {src.path.name}")
     return out, dtype, tag_px
 
