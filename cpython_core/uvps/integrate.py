@@ -155,7 +155,9 @@ def _check_gradients(p, q) -> tuple[np.ndarray, np.ndarray]:
     q = np.asarray(q)
     for name, arr in (("p", p), ("q", q)):
         if arr.ndim != 2 or min(arr.shape) < 2:
-            raise UVPSInputError(f"{name} must be a 2-D (M, N) array with M, N >= 2; got {arr.shape}")
+            raise UVPSInputError(
+                f"{name} must be a 2-D (M, N) array with M, N >= 2; got {arr.shape}"
+            )
         if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
             raise UVPSInputError(f"{name} must be a real numeric array; got dtype {arr.dtype}")
     if p.shape != q.shape:
@@ -240,7 +242,9 @@ def gradients_from_normals(normals, *, mask=None, max_slope: float = 20.0) -> Gr
     n_invalid = int(invalid.sum())
     n_clamped = int(steep.sum())
     if n_invalid:
-        logger.warning("%d pixel(s) with non-finite or degenerate normals: gradient set to 0", n_invalid)
+        logger.warning(
+            "%d pixel(s) with non-finite or degenerate normals: gradient set to 0", n_invalid
+        )
     if n_clamped:
         logger.info("%d pixel(s) steeper than max_slope=%g clamped", n_clamped, max_slope)
     return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped)
@@ -326,8 +330,7 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     -----
     Frankot and Chellappa (1988) project the measured gradient field onto the integrable
     functions of the Fourier basis. With ``G_c = p`` and ``G_r = -q`` the gradients along columns
-    and rows and ``w_c``, ``w_r`` the angular frequencies (rad/pixel), the least-squares height is
-    (their eq. 21)::
+    and rows and ``w_c``, ``w_r`` the angular frequencies (rad/pixel), the least-squares height is::
 
         Z(w) = (-i w_c G_c(w) - i w_r G_r(w)) / (w_c**2 + w_r**2),   Z(0) = 0
 
@@ -492,7 +495,9 @@ def dct_poisson(p, q, *, pixel_size_um, mask=None) -> IntegrationResult:
     return _finish(z, p, q, valid, mask, pixel_size_um, "dct", n_invalid)
 
 
-def integrate_normals(normals, *, pixel_size_um, method: str = "fc", mask=None) -> IntegrationResult:
+def integrate_normals(
+    normals, *, pixel_size_um, method: str = "fc", mask=None
+) -> IntegrationResult:
     """Height in micrometres from a normal map.
 
     Parameters

@@ -96,7 +96,9 @@ def relight(
     """
     normals = np.asarray(normals)
     if normals.ndim != 3 or normals.shape[2] != 3:
-        raise UVPSInputError(f"normals must be an (M, N, 3) array (components last); got {normals.shape}")
+        raise UVPSInputError(
+            f"normals must be an (M, N, 3) array (components last); got {normals.shape}"
+        )
     if not np.issubdtype(normals.dtype, np.floating):
         raise UVPSInputError(f"normals must be a floating-point array; got dtype {normals.dtype}")
     shape = normals.shape[:2]
@@ -106,7 +108,8 @@ def relight(
             raise UVPSInputError(
                 f"albedo must be (M, N) or (M, N, C) with (M, N) = {shape}; got {albedo.shape}"
             )
-        if not (np.issubdtype(albedo.dtype, np.floating) or np.issubdtype(albedo.dtype, np.integer)):
+        kind = albedo.dtype
+        if not (np.issubdtype(kind, np.floating) or np.issubdtype(kind, np.integer)):
             raise UVPSInputError(f"albedo must be a real numeric array; got dtype {albedo.dtype}")
     try:
         ambient = float(ambient)
@@ -129,7 +132,9 @@ def relight(
     return albedo.astype(np.float32, copy=False) * shading
 
 
-def hillshade(normals, *, azimuth_deg: float = 315.0, elevation_deg: float = 15.0, ambient: float = 0.0):
+def hillshade(
+    normals, *, azimuth_deg: float = 315.0, elevation_deg: float = 15.0, ambient: float = 0.0
+) -> np.ndarray:
     """Grey rendering of the surface shape alone: :func:`relight` with albedo 1.
 
     Parameters
@@ -144,4 +149,6 @@ def hillshade(normals, *, azimuth_deg: float = 315.0, elevation_deg: float = 15.
     ndarray, shape (M, N), float32
         ``max(0, n . l) + ambient``; NaN where the normal is not finite.
     """
-    return relight(normals, None, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg, ambient=ambient)
+    return relight(
+        normals, None, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg, ambient=ambient
+    )
