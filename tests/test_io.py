@@ -350,24 +350,40 @@ def test_truncated_tiff_is_input_error(tmp_path):
         read_capture(paths)
 
 
-@pytest.mark.parametrize("linearize", ["none", "srgb"])
-def test_reading_holds_one_float_stack_plus_about_one_file(tmp_path, linearize):
+@pytest.mark.parametrize("layout,linearize", [("folder", "none"), ("folder", "srgb"),
+                                             ("stack", "none")])
+def test_reading_holds_one_float_stack_plus_about_one_file(tmp_path, layout, linearize):
     import tracemalloc
 
     arr = _images(k=6, shape=(120, 160), rgb=True)
-    _write_tiffs(tmp_path, arr, px=5)
-    read_capture(tmp_path, linearize=linearize)  # warm up imports and caches
+    if layout == "folder":
+        _write_tiffs(tmp_path, arr, px=5)
+        src = tmp_path
+    else:
+        src = tmp_path / "stack.tif"
+        write_imagej_tiff(src, np.moveaxis(arr, -1, 1), axes="ZCYX", pixel_size_um=5)
+    read_capture(src, linearize=linearize)  # warm up imports and caches
     tracemalloc.start()
     try:
         base = tracemalloc.get_traced_memory()[0]
-        cap = read_capture(tmp_path, linearize=linearize)
+        cap = read_capture(src, linearize=linearize)
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
+    np.testing.assert_array_equal(cap.images[..., 0] > 0, arr[..., 0] > 0)
     one_float_image = cap.images[0].nbytes
-    # the stack, one file in its own dtype (half a float32 image) and, for the sRGB curve, one
-    # float32 temporary of part of an image plus a boolean mask
-    assert peak <= cap.images.nbytes + 2.5 * one_float_image
+    # the stack, one file in its own dtype (half a float32 image; a stack file is memory-mapped)
+    # and, for the sRGB curve, one float32 temporary of part of an image plus a boolean mask
+    assert peak <= cap.images.nbytes + (2.5 if layout == "folder" else 0.2) * one_float_image
+
+
+def test_truncated_stack_is_input_error(tmp_path):
+    p = tmp_path / "stack.tif"
+    write_imagej_tiff(p, _images(k=4, shape=(64, 64)), axes="ZYX", pixel_size_um=5)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) * 3 // 4])
+    with pytest.raises(UVPSInputError, match=r"stack\.tif: truncated .* announces 4 images"):
+        read_capture(p)
 
 
 def test_sha256_file_matches_hashlib(tmp_path):

@@ -767,8 +767,24 @@ def _read_stack(path: Path, progress: Progress):
                 raise UVPSInputError(
                     f"{path}: unsupported pixel type {dtype}; expected uint8, uint16 or float32"
                 )
-            raw = series.asarray()
+            announced = (tif.imagej_metadata or {}).get("images")
+            planes = int(np.prod([n for a, n in zip(axes, shape) if a not in "YXS"]))
+            if announced is not None and int(announced) != planes:
+                raise UVPSInputError(
+                    f"{path}: truncated or corrupted stack: its ImageJ header announces "
+                    f"{announced} images, the file holds {planes}"
+                )
             tag_px = _tiff_pixel_size_um(tif)
+            contiguous = series.dataoffset is not None
+        raw = None
+        if contiguous:
+            # Uncompressed contiguous data (ImageJ hyperstacks, plain stacks): map the file
+            # read-only so that only the float32 stack is held in memory.
+            with contextlib.suppress(ValueError, OSError):
+                raw = tifffile.memmap(path, mode="r")
+        if raw is None:
+            with tifffile.TiffFile(path) as tif:
+                raw = tif.series[0].asarray()
     except UVPSInputError:
         raise
     except Exception as exc:
