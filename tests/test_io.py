@@ -73,6 +73,8 @@ def test_list_of_files_and_explicit_pixel_size_overrides_tags(tmp_path):
     cap = read_capture([str(p) for p in paths[::-1]], pixel_size_um=4.0)
     assert cap.pixel_size_um == 4.0
     np.testing.assert_array_equal(cap.images, arr[::-1].astype(np.float32))
+    # a list holding one folder is that folder
+    np.testing.assert_array_equal(read_capture([str(tmp_path)]).images, arr.astype(np.float32))
 
 
 def test_png_16bit_grey_and_rgb_are_not_reduced(tmp_path):

@@ -526,6 +526,8 @@ def _attach_lights(lights, sources, by_name):
 
 def _list_sources(images) -> tuple:
     """-> (sources, stack_path or None, by_name)."""
+    if isinstance(images, (list, tuple)) and len(images) == 1:
+        images = images[0]  # ["folder"] or ["stack.tif"], as the bridge may send them
     if isinstance(images, (str, os.PathLike)):
         root = Path(images)
         if not root.exists():
