@@ -107,6 +107,10 @@ def test_ok_response_is_validated_and_gives_paths(tmp_path):
         str(tmp_path / "normals.tif"), str(tmp_path / "albedo.tif")]
     with pytest.raises(bl.BridgeError, match="did not produce the output 'depth'"):
         resp.path("depth")
+    assert resp.file("albedo.tif") == str(tmp_path / "albedo.tif")
+    assert resp.has_file("normals.tif") and not resp.has_file("depth.tif")
+    with pytest.raises(bl.BridgeError, match="did not produce depth.tif"):
+        resp.file("depth.tif")
 
 
 def test_missing_output_file_is_an_error_not_a_blank_result(tmp_path):

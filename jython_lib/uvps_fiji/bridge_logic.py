@@ -97,6 +97,22 @@ class Response(object):
         """Return the path of output ``name`` (which exists: checked at validation)."""
         return self.output(name)["path"]
 
+    def file(self, filename):
+        """Return the path of the listed output whose file name is ``filename`` (e.g.
+        ``albedo.tif``, the names of docs/architecture.md); BridgeError if not listed."""
+        for out in self.outputs:
+            if os.path.basename(out.get("path", "")) == filename:
+                return out["path"]
+        raise BridgeError("the core did not produce %s (it listed: %s)"
+                          % (filename, ", ".join(os.path.basename(o.get("path", "?"))
+                                                 for o in self.outputs) or "nothing"))
+
+    def has_file(self, filename):
+        for out in self.outputs:
+            if os.path.basename(out.get("path", "")) == filename:
+                return True
+        return False
+
     def has(self, name):
         for out in self.outputs:
             if out.get("name") == name:

@@ -1,0 +1,206 @@
+"""Show the core's outputs in ImageJ/Fiji (Jython 2.7).
+
+Images open with ``IJ.openImage``, which reads the ImageJ metadata that tifffile writes (hyperstack
+axes, ``micron`` unit, pixel size), so calibration and the scale bar are right. Tables open as
+ResultsTables; protrusions become ROIs in the ROI Manager and an overlay on the albedo; lights are
+drawn as a top view of the lamps.
+"""
+import json
+import math
+import os
+
+from java.awt import Color
+
+from ij import IJ, WindowManager
+from ij.gui import OvalRoi, Overlay, Plot, PolygonRoi, Roi, Wand
+from ij.measure import ResultsTable
+from ij.plugin.frame import RoiManager
+
+from uvps_fiji.bridge_logic import BridgeError
+
+#: Colour of protrusion outlines (the paper's figure 3b uses a red overlay).
+PROTRUSION_COLOUR = Color(255, 0, 0)
+
+
+def open_image(path, title=None, show=True):
+    """Open a TIFF output (BridgeError if missing or unreadable) and show it.
+
+    A window with the same title is closed first, so re-running a step replaces its result.
+    """
+    if not os.path.isfile(path):
+        raise BridgeError("output image %s is missing" % path)
+    imp = IJ.openImage(path)
+    if imp is None:
+        raise BridgeError("ImageJ cannot open the output image %s" % path)
+    if title:
+        imp.setTitle(title)
+    if show:
+        old = WindowManager.getImage(imp.getTitle())
+        if old is not None:
+            old.changes = False
+            old.close()
+        imp.show()
+    return imp
+
+
+def open_table(path, title):
+    """Open a CSV output as a ResultsTable window called ``title`` and return the table."""
+    if not os.path.isfile(path):
+        raise BridgeError("output table %s is missing" % path)
+    table = ResultsTable.open(path)
+    if table is None:
+        raise BridgeError("ImageJ cannot read the table %s" % path)
+    table.setPrecision(4)
+    table.show(title)
+    return table
+
+
+def _column(table, name):
+    if not table.columnExists(name):
+        return None
+    return table.getColumnAsDoubles(table.getColumnIndex(name))
+
+
+def protrusion_rois(table, labels_imp=None, pixel_size_um=None):
+    """Make one ROI per protrusion row.
+
+    The outline is traced in the label image (``protrusions_labels.tif``) from the centroid with
+    ImageJ's Wand when the centroid lies inside its own label; otherwise (ring-shaped label, no
+    label image) a circle of the row's ``width_um`` around the centroid is used.
+    """
+    xs = _column(table, "x_px")
+    ys = _column(table, "y_px")
+    if xs is None or ys is None:
+        raise BridgeError("the protrusion table has no x_px, y_px columns")
+    ids = _column(table, "id")
+    widths = _column(table, "width_um")
+    ip = labels_imp.getProcessor() if labels_imp is not None else None
+    if pixel_size_um is None and labels_imp is not None:
+        cal = labels_imp.getCalibration()
+        if cal.scaled():
+            pixel_size_um = cal.pixelWidth
+    rois = []
+    for i in range(len(xs)):
+        label = int(ids[i]) if ids is not None else i + 1
+        x, y = int(math.floor(xs[i])), int(math.floor(ys[i]))
+        roi = None
+        if ip is not None and 0 <= x < ip.getWidth() and 0 <= y < ip.getHeight() \
+                and int(round(ip.getPixelValue(x, y))) == label:
+            wand = Wand(ip)
+            wand.autoOutline(x, y, label - 0.5, label + 0.5, Wand.EIGHT_CONNECTED)
+            if wand.npoints > 0:
+                roi = PolygonRoi(wand.xpoints, wand.ypoints, wand.npoints, Roi.TRACED_ROI)
+        if roi is None:
+            d = 3.0
+            if widths is not None and pixel_size_um and widths[i] == widths[i]:
+                d = max(widths[i] / pixel_size_um, 1.0)
+            roi = OvalRoi(xs[i] + 0.5 - d / 2.0, ys[i] + 0.5 - d / 2.0, d, d)
+        roi.setName("protrusion %d" % label)
+        roi.setStrokeColor(PROTRUSION_COLOUR)
+        rois.append(roi)
+    return rois
+
+
+def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrusions"):
+    """Open ``protrusions.csv`` as a table, its outlines in the ROI Manager and on the albedo.
+
+    Returns
+    -------
+    int
+        The number of protrusions.
+    """
+    table = open_table(csv_path, title)
+    labels_imp = None
+    if labels_path:
+        if not os.path.isfile(labels_path):
+            raise BridgeError("output label image %s is missing" % labels_path)
+        labels_imp = IJ.openImage(labels_path)
+    rois = protrusion_rois(table, labels_imp)
+    manager = RoiManager.getInstance() or RoiManager()
+    manager.reset()
+    overlay = Overlay()
+    for roi in rois:
+        manager.addRoi(roi)
+        overlay.add(roi)
+    if albedo_imp is not None:
+        albedo_imp.setOverlay(overlay)
+    IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
+    return table.size()
+
+
+def read_lights(path):
+    """Read ``lights.json`` (BridgeError if missing or without lights)."""
+    if not os.path.isfile(path):
+        raise BridgeError("lights file %s is missing" % path)
+    fh = open(path, "r")
+    try:
+        data = json.load(fh)
+    finally:
+        fh.close()
+    if not data.get("lights"):
+        raise BridgeError("lights file %s lists no lights" % path)
+    return data
+
+
+def show_lights(path, title="Lights (top view)"):
+    """Plot the lamps seen from the camera and open a "Lights" table; return the Plot.
+
+    Each lamp sits at ``(cos(el) cos(az), cos(el) sin(az))`` (azimuth from +x toward +y, the
+    world frame of docs/architecture.md), so the centre is a lamp overhead and the unit circle
+    the horizon.
+    """
+    data = read_lights(path)
+    table = ResultsTable()
+    xs, ys = [], []
+    for i, light in enumerate(data["lights"]):
+        az = light.get("azimuth_deg")
+        el = light.get("elevation_deg")
+        table.incrementCounter()
+        table.addValue("light", i + 1)
+        table.addValue("file", os.path.basename(light.get("file") or ""))
+        table.addValue("azimuth_deg", az if az is not None else float("nan"))
+        table.addValue("elevation_deg", el if el is not None else float("nan"))
+        table.addValue("intensity", light.get("intensity") or float("nan"))
+        pos = light.get("position_mm") or [float("nan")] * 3
+        for axis, value in zip("xyz", pos):
+            table.addValue(axis + "_mm", value if value is not None else float("nan"))
+        if az is None:
+            continue
+        r = math.cos(math.radians(el)) if el is not None else 1.0
+        xs.append(r * math.cos(math.radians(az)))
+        ys.append(r * math.sin(math.radians(az)))
+    table.setPrecision(3)
+    table.show("Lights")
+    plot = Plot(title, "x (toward image right)", "y (toward image top)")
+    plot.setLimits(-1.15, 1.15, -1.15, 1.15)
+    circle_x = [math.cos(2 * math.pi * t / 90.0) for t in range(91)]
+    circle_y = [math.sin(2 * math.pi * t / 90.0) for t in range(91)]
+    plot.setColor(Color.gray)
+    plot.addPoints(circle_x, circle_y, Plot.LINE)
+    plot.setColor(Color(0, 90, 200))
+    plot.addPoints(xs, ys, Plot.CIRCLE)
+    plot.setColor(Color.black)
+    for i in range(len(xs)):
+        plot.addText(str(i + 1), xs[i] + 0.04, ys[i] + 0.04)
+    plot.setColor(Color.black)
+    plot.show()
+    return plot
+
+
+def show_report(path, interactive):
+    """Open ``report.html`` in the browser when interactive; always log its path."""
+    if not os.path.isfile(path):
+        raise BridgeError("report %s is missing" % path)
+    IJ.log("uvps: report " + path)
+    if interactive:
+        from ij.plugin import BrowserLauncher
+        BrowserLauncher.openURL("file://" + path)
+
+
+def image_size(path):
+    """Return (width, height) of a TIFF without reading its pixels."""
+    from ij.io import Opener
+    infos = Opener.getTiffFileInfo(path)
+    if not infos:
+        raise BridgeError("cannot read the TIFF header of %s" % path)
+    return infos[0].width, infos[0].height

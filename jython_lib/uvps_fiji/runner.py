@@ -1,0 +1,236 @@
+"""Run one uvps bridge command from ImageJ/Fiji (Jython 2.7).
+
+The core runs as a separate CPython process started with ``java.lang.ProcessBuilder`` from an
+argument list (no shell). Its ``PROGRESS`` lines go to ImageJ's status and progress bars, Esc
+cancels (the process is destroyed), a timeout ends it, and the result counts only when the exit
+status is 0, ``response.json`` says ``ok`` and every listed output exists (see
+``bridge_logic.finish_call``).
+
+Errors: :func:`report_error` writes the message to the Log; when a user clicked the menu item it
+also shows it in an ``IJ.error`` dialog; when a macro (or ``ImageJ -batch``) ran the command it
+aborts the macro and raises :class:`PluginError`, so that the macro fails instead of carrying on
+with missing results (the test harness turns the uncaught exception into a non-zero exit status).
+"""
+import os
+import threading
+import time
+
+from java.awt import GraphicsEnvironment
+from java.io import BufferedReader, File, InputStreamReader
+from java.lang import ProcessBuilder, System, Throwable
+from java.util.concurrent import TimeUnit
+
+from ij import IJ, Macro, Prefs
+from ij.macro import Interpreter
+
+from uvps_fiji import bridge_logic
+from uvps_fiji.bridge_logic import BridgeError
+
+#: ij.Prefs key of the CPython chosen in the Settings menu item.
+PYTHON_PREF = "uvps.python"
+
+#: Default timeout of one call, in seconds (a whole 12-megapixel run takes minutes).
+DEFAULT_TIMEOUT_S = 4 * 3600
+
+
+class PluginError(Exception):
+    """Raised at the end of a failed menu command run from a macro, so the macro fails."""
+
+
+def python_command():
+    """Return (python, source) following ``bridge_logic.find_python``'s order."""
+    setting = Prefs.get(PYTHON_PREF, "")
+    config_path = bridge_logic.default_config_path()
+    return bridge_logic.find_python(setting, None, config_path)
+
+
+def is_interactive():
+    """True when a user clicked the menu item (no macro options, no batch mode, a display)."""
+    if GraphicsEnvironment.isHeadless():
+        return False
+    if Macro.getOptions() is not None:
+        return False
+    if Interpreter.isBatchMode():
+        return False
+    if System.getProperty("uvps.test") is not None:
+        return False
+    return True
+
+
+class _LineReader(threading.Thread):
+    """Read a child's stream line by line on its own thread (so the pipe never fills up)."""
+
+    def __init__(self, stream, on_line=None):
+        threading.Thread.__init__(self)
+        self.daemon = True
+        self.reader = BufferedReader(InputStreamReader(stream, "UTF-8"))
+        self.on_line = on_line
+        self.lines = []
+
+    def run(self):
+        while True:
+            line = self.reader.readLine()
+            if line is None:
+                break
+            line = unicode(line)  # noqa: F821 (Jython)
+            self.lines.append(line)
+            if self.on_line is not None:
+                try:
+                    self.on_line(line)
+                except (Exception, Throwable):  # a display problem must not stop the reading
+                    pass
+
+    def text(self):
+        return u"\n".join(self.lines)
+
+
+def _show_progress(line):
+    parsed = bridge_logic.parse_progress(line)
+    if parsed is None:
+        return
+    fraction, message = parsed
+    IJ.showStatus("uvps: " + message)
+    IJ.showProgress(fraction)
+
+
+def run_process(args, timeout_s=DEFAULT_TIMEOUT_S, on_line=_show_progress, cwd=None):
+    """Run ``args`` and return (exit_code, stdout_text, stderr_text).
+
+    Esc cancels; a timeout ends the process. Both raise BridgeError (types ``Cancelled`` and
+    ``Timeout``) after the process is destroyed.
+    """
+    builder = ProcessBuilder(args)
+    if cwd:
+        builder.directory(File(cwd))
+    env = builder.environment()
+    env.put("PYTHONUNBUFFERED", "1")
+    env.put("PYTHONIOENCODING", "utf-8")
+    try:
+        process = builder.start()
+    except (Exception, Throwable) as exc:  # java.io.IOException: the python was not found
+        raise BridgeError("cannot start %s (%s); choose the CPython with uvps installed in "
+                          "Plugins > UV Photometric Stereo > UVPS Settings" % (args[0], exc),
+                          error_type="Configuration")
+    process.getOutputStream().close()
+    out = _LineReader(process.getInputStream(), on_line)
+    err = _LineReader(process.getErrorStream())
+    out.start()
+    err.start()
+    IJ.resetEscape()
+    start = time.time()
+    stop = None
+    while not process.waitFor(200, TimeUnit.MILLISECONDS):
+        if IJ.escapePressed():
+            stop = BridgeError("cancelled with Esc; the core was stopped", error_type="Cancelled")
+        elif timeout_s and time.time() - start > timeout_s:
+            stop = BridgeError("the core did not finish within %d s and was stopped" % timeout_s,
+                               error_type="Timeout")
+        if stop is not None:
+            process.destroy()
+            if not process.waitFor(5, TimeUnit.SECONDS):
+                process.destroyForcibly()
+                process.waitFor()
+            break
+    out.join(10)
+    err.join(10)
+    IJ.showProgress(1.0)
+    if stop is not None:
+        IJ.resetEscape()
+        stop.log = err.text()
+        raise stop
+    return process.exitValue(), out.text(), err.text()
+
+
+def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
+         timeout_s=DEFAULT_TIMEOUT_S, python=None):
+    """Run one bridge command and return its validated :class:`bridge_logic.Response`.
+
+    Parameters
+    ----------
+    command : str
+        A command of the table in docs/architecture.md.
+    inputs, params : dict
+    output_dir : str
+        The run folder (absolute).
+    request_dir : str, optional
+        An existing request folder (when the caller already wrote inputs into it); a fresh one
+        is made otherwise.
+    timeout_s : float
+    python : str, optional
+        Overrides the configured CPython.
+
+    Raises
+    ------
+    BridgeError
+        For every failure; its message is the core's own ``error.message`` when it sent one.
+    """
+    request = bridge_logic.build_request(command, inputs, params, output_dir)
+    if request_dir is None:
+        request_dir = bridge_logic.make_request_dir()
+    request_path = bridge_logic.write_request(request, request_dir)
+    if python is None:
+        python = python_command()[0]
+    args = bridge_logic.build_command(python, request_path)
+    IJ.log("uvps: " + bridge_logic.format_command(args))
+    IJ.showStatus("uvps: %s..." % command)
+    exit_code, _, stderr = run_process(args, timeout_s=timeout_s)
+    response = bridge_logic.finish_call(exit_code, request_path, command=command, stderr=stderr)
+    IJ.showStatus("uvps: %s done in %.1f s" % (command, response.elapsed_s or 0.0))
+    return response
+
+
+def report_error(title, exc):
+    """Show a failure: Log always; a dialog when interactive; abort + raise in a macro.
+
+    Parameters
+    ----------
+    title : str
+        The menu item's name.
+    exc : Exception
+        A BridgeError (its ``message`` and ``log`` are used) or any other exception.
+    """
+    if isinstance(exc, BridgeError):
+        message = exc.message
+        kind = exc.error_type
+        log = exc.log
+    else:
+        message = (exc.getMessage() if isinstance(exc, Throwable) else str(exc)) \
+            or exc.__class__.__name__
+        kind = exc.__class__.__name__
+        log = ""
+    line = "uvps %s failed (%s): %s" % (title, kind, message)
+    IJ.log(line)
+    if log and log.strip():
+        IJ.log("uvps core log:\n" + log.strip())
+    System.err.println(line)
+    IJ.showStatus("uvps: " + title + " failed")
+    IJ.showProgress(1.0)
+    if is_interactive():
+        IJ.error("uvps: " + title, message)
+        return
+    raise PluginError(line)
+
+
+def run_menu(title, func):
+    """Run a menu script's body ``func()``; failures go through :func:`report_error`."""
+    try:
+        return func()
+    except PluginError:
+        raise
+    except BridgeError as exc:
+        report_error(title, exc)
+    except (Exception, Throwable) as exc:  # Java exceptions are not Python Exceptions
+        report_error(title, exc)
+
+
+def check_python(python):
+    """Return (ok, text): whether ``python`` imports uvps, with its version or the error."""
+    args = bridge_logic.build_check_command(python)
+    try:
+        code, out, err = run_process(args, timeout_s=120, on_line=None)
+    except BridgeError as exc:
+        return False, exc.message
+    if code != 0:
+        return False, "%s cannot import uvps: %s" % (python, bridge_logic.last_line(err))
+    return True, "%s has uvps %s" % (python, out.strip())
+

@@ -1,0 +1,33 @@
+"""Integrate Height: height map in micrometres from the run's normals.
+
+Frankot-Chellappa (FFT, the paper's choice) or a DCT Poisson solver (Neumann boundary). The height
+is known up to a constant: the median over valid pixels is set to 0. Opens and writes depth.tif.
+
+Macro: run("Integrate Height", "run=[/data/run] integration=[Frankot-Chellappa (FFT)]");
+"""
+import os
+import sys
+
+from ij import IJ
+
+sys.dont_write_bytecode = True
+for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
+    _lib = os.path.join(_root or "", "jars", "Lib")
+    if _root and os.path.isdir(_lib) and _lib not in sys.path:
+        sys.path.insert(0, _lib)
+
+from uvps_fiji import dialogs, menus, runner
+
+TITLE = "Integrate Height"
+
+
+def main():
+    dlg = dialogs.UVPSDialog(TITLE)
+    dialogs.add_run_field(dlg)
+    dlg.choice("Integration method", menus.INTEGRATION_CHOICES, menus.INTEGRATION_CHOICES[0])
+    values = dlg.show()
+    if values is not None:
+        menus.integrate_height(values)
+
+
+runner.run_menu(TITLE, main)

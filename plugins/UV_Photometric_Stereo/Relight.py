@@ -1,0 +1,34 @@
+"""Relight: render the surface under a virtual raking light from the run's normals and albedo.
+
+Azimuth in degrees counter-clockwise from the image's right (+x), elevation above the canvas.
+Opens and writes relight.tif.
+
+Macro: run("Relight", "run=[/data/run] azimuth=315 elevation=15");
+"""
+import os
+import sys
+
+from ij import IJ
+
+sys.dont_write_bytecode = True
+for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
+    _lib = os.path.join(_root or "", "jars", "Lib")
+    if _root and os.path.isdir(_lib) and _lib not in sys.path:
+        sys.path.insert(0, _lib)
+
+from uvps_fiji import dialogs, menus, runner
+
+TITLE = "Relight"
+
+
+def main():
+    dlg = dialogs.UVPSDialog(TITLE)
+    dialogs.add_run_field(dlg)
+    dlg.number("Azimuth (from image right, counter-clockwise)", 315, decimals=1, units="deg")
+    dlg.number("Elevation (above the canvas)", 15, decimals=1, units="deg")
+    values = dlg.show()
+    if values is not None:
+        menus.relight(values)
+
+
+runner.run_menu(TITLE, main)

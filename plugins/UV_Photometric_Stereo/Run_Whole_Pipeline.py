@@ -1,0 +1,39 @@
+"""Run Whole Pipeline: capture -> lights, flat-field, normals, albedo, height, and optionally
+colour areas, protrusion detection and the report, in one call.
+
+Opens the normals, the height, the lamps' top view and the albedo (with protrusion outlines when
+detection ran); everything is written into the run folder (run.json records the parameters).
+
+Macro: run("Run Whole Pipeline", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4 integration=[Frankot-Chellappa (FFT)] regions=auto detect");
+"""
+import os
+import sys
+
+from ij import IJ
+
+sys.dont_write_bytecode = True
+for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
+    _lib = os.path.join(_root or "", "jars", "Lib")
+    if _root and os.path.isdir(_lib) and _lib not in sys.path:
+        sys.path.insert(0, _lib)
+
+from uvps_fiji import dialogs, menus, runner
+
+TITLE = "Run Whole Pipeline"
+
+
+def main():
+    dlg = dialogs.UVPSDialog(TITLE)
+    dialogs.add_capture_fields(dlg)
+    dialogs.add_run_field(dlg)
+    dialogs.add_light_fields(dlg)
+    dlg.checkbox("Robust (drop shadowed and saturated samples)", False)
+    dlg.choice("Integration method", menus.INTEGRATION_CHOICES, menus.INTEGRATION_CHOICES[0])
+    dlg.string("Regions (label TIFF, auto, or empty)", "")
+    dlg.checkbox("Detect protrusions", False)
+    values = dlg.show()
+    if values is not None:
+        menus.run_whole_pipeline(values)
+
+
+runner.run_menu(TITLE, main)

@@ -1,0 +1,40 @@
+"""Wand Count: the paper's manual method, one wand selection per clicked protrusion.
+
+Click each protrusion on the albedo with the multi-point tool (or add point selections to the ROI
+Manager), then run this: every click grows a region of similar albedo (ImageJ's wand with a
+tolerance) and the regions are counted and measured. In a macro, the points come from a CSV with
+x_px,y_px columns (key points) or from makeSelection("point", xs, ys) on the open albedo.
+Opens a "Manual protrusions" table and ROIs; writes protrusions_manual.csv and
+protrusions_manual_labels.tif.
+
+Macro: run("Wand Count", "run=[/data/run] points=[/data/clicks.csv] tolerance=0.05 connectivity=8");
+"""
+import os
+import sys
+
+from ij import IJ
+
+sys.dont_write_bytecode = True
+for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
+    _lib = os.path.join(_root or "", "jars", "Lib")
+    if _root and os.path.isdir(_lib) and _lib not in sys.path:
+        sys.path.insert(0, _lib)
+
+from uvps_fiji import dialogs, menus, runner
+
+TITLE = "Wand Count"
+
+
+def main():
+    dlg = dialogs.UVPSDialog(TITLE)
+    dialogs.add_run_field(dlg)
+    dlg.file("Points CSV (x_px,y_px; empty = current point selection)", "")
+    dlg.number("Tolerance (albedo units, as the wand tool)", 0.05, decimals=4)
+    dlg.choice("Connectivity", ["8", "4"], "8")
+    dlg.string("Regions (label TIFF, auto, or empty)", "")
+    values = dlg.show()
+    if values is not None:
+        menus.wand_count(values)
+
+
+runner.run_menu(TITLE, main)
