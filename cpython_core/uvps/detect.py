@@ -362,6 +362,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     rejected = {r: 0 for r in REJECTION_REASONS}
     empty = np.zeros((m, n), bool)
     if valid.sum() < 16:
+        _report(progress, 1.0, "done: no valid pixels")
         return Detection(np.zeros((m, n), np.int32), np.zeros(0, "<U13"), empty, empty.copy(), rejected)
 
     min_w, max_w = p.min_width_um / px, p.max_width_um / px
@@ -453,6 +454,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         lab = np.where(acomp2 > 0, acomp2 + n_h, lab).astype(np.int32)
     n_all = n_h + na2
     if n_all == 0:
+        _report(progress, 1.0, "done: no candidates")
         return Detection(np.zeros((m, n), np.int32), np.zeros(0, "<U13"), mask_albedo, mask_height,
                          rejected, noise, {"dynamic_um": dyn, "candidates": 0})
 

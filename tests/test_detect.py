@@ -1,0 +1,176 @@
+"""Tests of uvps.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
+import numpy as np
+import pytest
+
+from uvps.detect import Detection, DetectionParams, detect_protrusions
+from uvps.errors import UVPSInputError
+
+PAINT = np.array([0.80, 0.73, 0.58], np.float32)      # beige fluorescence
+SOAP = np.array([1.0, 0.95, 0.76], np.float32)        # whitish-yellow protrusion
+PRIMER = np.array([0.90, 0.92, 0.97], np.float32)     # bluish-white primer
+
+
+def scene(shape=(160, 160), seed=0, noise_um=0.3):
+    rng = np.random.default_rng(seed)
+    h = rng.normal(0, noise_um, shape).astype(np.float32)
+    alb = np.broadcast_to(PAINT, shape + (3,)).copy()
+    alb *= (1 + rng.normal(0, 0.01, shape + (3,))).astype(np.float32)
+    return alb, h
+
+
+def rho_map(shape, centre, radius_px):
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    return np.hypot(yy - centre[0], xx - centre[1]) / radius_px
+
+
+def add_dome(alb, h, centre, width_um, px, *, crater=False, weak=False, colour=SOAP):
+    """Dome H (1 - rho^2)^1.2 with H = 0.25 width (the synthetic captures' law)."""
+    r = width_um / 2 / px
+    rho = rho_map(h.shape, centre, r)
+    prof = np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)
+    if crater:
+        prof = prof - 0.5 * np.clip(1 - (rho / 0.4) ** 2, 0, None) ** 2
+    h += (0.25 * width_um * prof).astype(np.float32)
+    if not weak:
+        wgt = np.clip((1 - rho) * r, 0, 1)[..., None]
+        alb[:] = alb * (1 - wgt) + colour * wgt
+    return rho
+
+
+def eq_diameter(mask):
+    return np.sqrt(4 * mask.sum() / np.pi)
+
+
+@pytest.mark.parametrize("crater", [False, True])
+def test_dome_and_caldera_found_with_right_width(crater):
+    px = 15.0
+    alb, h = scene()
+    rho = add_dome(alb, h, (80, 80), 300.0, px, crater=crater)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert isinstance(det, Detection)
+    assert det.labels.dtype == np.int32 and det.labels.max() == 1
+    assert abs(eq_diameter(det.labels == 1) - 20.0) <= 2.0
+    assert det.labels[80, 80] == 1  # the crater is inside the protrusion
+    assert list(det.source) == ["albedo+height"]
+    assert det.mask_albedo[rho < 0.8].all() and det.mask_height[80, 80 + 5]
+
+
+def test_small_protrusion_at_60_um():
+    px = 15.0
+    alb, h = scene()
+    add_dome(alb, h, (50, 50), 60.0, px)
+    add_dome(alb, h, (110, 110), 90.0, px)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 2
+    assert det.labels[50, 50] > 0 and det.labels[110, 110] > 0
+
+
+def test_weak_protrusion_found_from_height_only():
+    px = 15.0
+    alb, h = scene(seed=1)
+    add_dome(alb, h, (80, 80), 200.0, px, weak=True)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[80, 80] == 1
+    assert list(det.source) == ["height"]
+    assert abs(eq_diameter(det.labels == 1) - 200.0 / px) <= 0.2 * 200.0 / px
+
+
+def test_brush_ridge_rejected_as_ridge():
+    px = 15.0
+    alb, h = scene(seed=2)
+    yy, xx = np.mgrid[:160, :160]
+    dist = np.abs(yy - 0.3 * xx - 40) / np.hypot(1, 0.3)
+    along = (xx > 10) & (xx < 150)
+    h += np.where(along & (dist < 6), 12.0 * 0.5 * (1 + np.cos(np.pi * dist / 6)), 0).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0
+    assert det.rejected["ridge"] >= 1
+
+
+def test_flat_bright_primer_spot_rejected():
+    px = 15.0
+    alb, h = scene(seed=3)
+    rho = rho_map((160, 160), (80, 80), 12)
+    alb[rho < 1] = PRIMER
+    h[rho < 1] -= 1.5  # paint missing: slightly below the surround
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0
+    assert det.rejected["flat_bright"] >= 1
+    assert det.mask_albedo[80, 80]
+
+
+def test_canvas_weave_not_detected_but_dome_on_it_is():
+    px = 15.0
+    alb, h = scene((240, 240), seed=4)
+    yy, xx = np.mgrid[:240, :240] * px
+    k = 2 * np.pi / 450.0
+    h += (3.0 * np.sin(k * xx) * np.sin(k * yy)).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0
+    add_dome(alb, h, (120, 120), 150.0, px, weak=True)
+    det2 = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det2.labels.max() == 1 and det2.labels[120, 120] == 1
+
+
+@pytest.mark.parametrize("px", [7.5, 15.0, 25.0])
+def test_defaults_work_at_other_pixel_sizes(px):
+    n = int(round(2400 / px))
+    alb, h = scene((n, n), seed=5)
+    add_dome(alb, h, (n // 2, n // 2), 300.0, px)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1
+    width_um = eq_diameter(det.labels == 1) * px
+    assert abs(width_um - 300.0) <= max(2 * px, 0.1 * 300.0)
+
+
+def test_mask_excludes_and_inputs_untouched():
+    px = 15.0
+    alb, h = scene()
+    add_dome(alb, h, (80, 80), 300.0, px)
+    a0, h0 = alb.copy(), h.copy()
+    mask = np.ones((160, 160), bool)
+    mask[:, :40] = False
+    det = detect_protrusions(alb, h, pixel_size_um=px, mask=mask)
+    assert det.labels.max() == 1
+    mask[60:100, 60:100] = False
+    det2 = detect_protrusions(alb, h, pixel_size_um=px, mask=mask)
+    assert not det2.labels[~mask].any()
+    np.testing.assert_array_equal(alb, a0)
+    np.testing.assert_array_equal(h, h0)
+
+
+def test_normals_flatness_rejects_bright_spot_with_small_relief():
+    px = 15.0
+    alb, h = scene(seed=6)
+    rho = rho_map((160, 160), (80, 80), 12)
+    alb[rho < 1] = SOAP
+    normals = np.zeros((160, 160, 3), np.float32)
+    normals[..., 2] = 1
+    det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals)
+    assert det.labels.max() == 0 and det.rejected["flat_bright"] == 1
+
+
+def test_progress_reported():
+    alb, h = scene((64, 64))
+    seen = []
+    detect_protrusions(alb, h, pixel_size_um=15.0, progress=lambda f, m: seen.append(f))
+    assert seen[0] == 0.0 and seen[-1] == 1.0 and seen == sorted(seen)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(pixel_size_um=0.0), "pixel_size_um"),
+    (dict(pixel_size_um=15.0, mask=np.ones((3, 3), bool)), "mask"),
+    (dict(pixel_size_um=15.0, normals=np.ones((64, 64))), "normals"),
+    (dict(pixel_size_um=15.0, params=DetectionParams(min_width_um=500, max_width_um=100)), "min_width_um"),
+])
+def test_bad_input(kwargs, match):
+    alb, h = scene((64, 64))
+    with pytest.raises(UVPSInputError, match=match) as err:
+        detect_protrusions(alb, h, **kwargs)
+    assert "\n" not in str(err.value)
+
+
+def test_albedo_shape_mismatch():
+    alb, h = scene((64, 64))
+    with pytest.raises(UVPSInputError, match="albedo"):
+        detect_protrusions(alb[:32], h, pixel_size_um=15.0)
