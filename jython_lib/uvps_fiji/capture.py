@@ -78,8 +78,11 @@ def current_stack_input(request_dir):
 def capture_inputs(values, request_dir):
     """Build ``{"images": [...]}`` from the capture fields (keys capture, images)."""
     if values.get("capture") == CAPTURE_CURRENT:
-        return {"images": current_stack_input(request_dir)}
-    return {"images": bridge_logic.images_input(values.get("images"))}
+        images = current_stack_input(request_dir)
+    else:
+        images = bridge_logic.images_input(values.get("images"))
+    IJ.log("uvps: capture " + "; ".join(images))
+    return {"images": images}
 
 
 def pixel_size_of_current(values):

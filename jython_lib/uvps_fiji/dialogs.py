@@ -4,7 +4,8 @@ A field's macro key is the first word of its label, lower-cased (ImageJ's ``Macr
 every label here starts with a unique, stable word: ``Degree of the drop-off fit`` is ``degree=4``
 in a macro. Values are remembered in ``ij.Prefs`` under ``uvps.<key>`` (shared by all menu items:
 the run folder chosen once is offered everywhere) and saved only when a user clicked OK, so a
-batch macro does not change the user's defaults.
+batch macro does not change the user's defaults; a key a macro leaves out takes the built-in
+default, not the remembered value, so a macro is reproducible.
 """
 from ij import IJ, Macro, Prefs
 from ij.gui import GenericDialog
@@ -46,6 +47,10 @@ class UVPSDialog(object):
                 raise ValueError("two fields of dialog '%s' share the macro key '%s'"
                                  % (self.title, key))
         self.fields.append((key, kind))
+        if Macro.getOptions() is not None:
+            # A macro gets the built-in defaults for keys it leaves out, not the user's last
+            # values, so the same macro gives the same result on every machine.
+            return default if default is not None else ""
         pref = PREFIX + key
         if kind == "number":
             return Prefs.get(pref, float(default))

@@ -175,7 +175,9 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
     IJ.showStatus("uvps: %s..." % command)
     exit_code, _, stderr = run_process(args, timeout_s=timeout_s)
     response = bridge_logic.finish_call(exit_code, request_path, command=command, stderr=stderr)
-    IJ.showStatus("uvps: %s done in %.1f s" % (command, response.elapsed_s or 0.0))
+    done = "uvps: %s done; core %.2f s" % (command, response.elapsed_s or 0.0)
+    IJ.showStatus(done)
+    IJ.log(done)
     return response
 
 

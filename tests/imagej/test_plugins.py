@@ -75,3 +75,134 @@ def test_settings_rejects_a_python_without_uvps(run_macro, tmp_path):
     assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stderr
     assert "uvps UVPS Settings failed (Configuration): cannot start %s" % missing in result.stdout
     assert "went on" not in result.stdout
+
+
+# --------------------------------------------------------------------------- whole runs
+
+
+def _assert_same_image(path_a, path_b, atol):
+    a, b = tifffile.imread(str(path_a)), tifffile.imread(str(path_b))
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a, b, atol=atol, equal_nan=True)
+
+
+def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run, tmp_path):
+    out = tmp_path / "run folder"
+    result = run_macro(
+        'run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s degree=4 '
+        'integration=[Frankot-Chellappa (FFT)] regions=auto detect");\n'
+        'print("rois " + roiManager("count"));\n'
+        'print("rows " + Table.size("Protrusions"));\n'
+        'print("lights " + Table.size("Lights"));\n'
+        'selectImage("albedo");\n'
+        'print("overlay " + Overlay.size);\n'
+        'getPixelSize(unit, pw, ph);\n'
+        'print("pixel " + unit + " " + pw);\n' % (q(capture_dir), q(out)),
+        timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    for name in ("normals.tif", "albedo.tif", "depth.tif", "lights.json", "protrusions.csv",
+                 "regions_labels.tif", "run.json"):
+        assert (out / name).is_file(), name
+    n = len(_read_csv(out / "protrusions.csv"))
+    assert n > 0
+    assert "rois %d" % n in lines and "rows %d" % n in lines and "overlay %d" % n in lines
+    assert "lights %d" % N_LIGHTS in lines
+    assert any(line.split() in (["pixel", unit, "15"] for unit in ("micron", "microns", u"\u00b5m"))
+               for line in lines), lines
+    # The bridge passed the same request as a direct call: same numbers.
+    _assert_same_image(out / "albedo.tif", reference_run / "albedo.tif", atol=1e-5)
+    _assert_same_image(out / "depth.tif", reference_run / "depth.tif", atol=1e-3)
+    assert n == len(_read_csv(reference_run / "protrusions.csv"))
+
+
+def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run, tmp_path):
+    out = tmp_path / "steps"
+    points = tmp_path / "clicks.csv"
+    manual = _read_csv(reference_run / "protrusions.csv")[:3]
+    points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in manual))
+    steps = [
+        ('Estimate Lights', 'capture=[Folder or files] images=%s run=%s degree=4'
+         % (q(capture_dir), q(out)), ["lights.json", "dropoff.tif"]),
+        ('Flat Field', 'capture=[Folder or files] images=%s run=%s degree=4'
+         % (q(capture_dir), q(out)), ["flatfield.tif"]),
+        ('Normals and Albedo', 'capture=[Folder or files] images=%s run=%s degree=4'
+         % (q(capture_dir), q(out)), ["normals.tif", "albedo.tif", "gradients.tif"]),
+        ('Integrate Height', 'run=%s integration=[DCT Poisson (Neumann)]' % q(out),
+         ["depth.tif"]),
+        ('Colour Areas', 'run=%s source=Automatic number=0' % q(out),
+         ["regions_labels.tif", "regions.csv"]),
+        ('Detect Protrusions', 'run=%s regions=%s' % (q(out), q(out / "regions_labels.tif")),
+         ["protrusions.csv", "protrusions_labels.tif"]),
+        ('Wand Count', 'run=%s points=%s tolerance=0.05 connectivity=8' % (q(out), q(points)),
+         ["protrusions_manual.csv", "protrusions_manual_labels.tif"]),
+        ('Compare Counts', 'run=%s first=%s second=%s match=30'
+         % (q(out), q(out / "protrusions_manual.csv"), q(out / "protrusions.csv")),
+         ["comparison.csv"]),
+        ('Statistics and Report', 'run=%s bins=100' % q(out), ["report.html", "regions.csv"]),
+        ('Relight', 'run=%s azimuth=315 elevation=15' % q(out), ["relight.tif"]),
+    ]
+    macro = "".join('run("%s", "%s");\nprint("done %s");\n' % (cmd, opts.replace('"', '\\"'), cmd)
+                    for cmd, opts, _ in steps)
+    macro += 'print("tables " + Table.size("Lights") + " " + Table.size("Comparison"));\n'
+    result = run_macro(macro, timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    for cmd, _, files in steps:
+        assert "done %s" % cmd in lines
+        for name in files:
+            assert (out / name).is_file(), (cmd, name)
+    assert "tables %d %d" % (N_LIGHTS, len(_read_csv(out / "comparison.csv"))) in lines
+    lights = json.loads((out / "lights.json").read_text())
+    assert len(lights["lights"]) == N_LIGHTS
+    assert tifffile.imread(str(out / "relight.tif")).shape[-2:] == SHAPE
+    assert tifffile.imread(str(out / "depth.tif")).shape == SHAPE
+    # Estimated azimuths follow the lamps of the synthetic capture (the right images were sent).
+    truth = json.loads((capture_dir / "truth" / "truth.json").read_text())
+    pos = np.asarray(truth["light_positions_mm"])
+    az_true = np.degrees(np.arctan2(pos[:, 1], pos[:, 0]))
+    az = np.asarray([light["azimuth_deg"] for light in lights["lights"]])
+    diff = (az - az_true + 180.0) % 360.0 - 180.0
+    assert np.all(np.abs(diff) < 15.0), diff
+
+
+# --------------------------------------------------------------------------- failures
+
+
+def _core_error(command, inputs, params, out):
+    """The message the core itself gives for this bad input (run in-process)."""
+    from uvps.commands import COMMANDS
+    from uvps.errors import UVPSInputError
+
+    with pytest.raises(UVPSInputError) as info:
+        COMMANDS[command](inputs, params, out)
+    return str(info.value).splitlines()[0]
+
+
+def test_a_folder_with_two_images_fails_the_macro_with_the_core_message(
+        run_macro, capture_dir, tmp_path):
+    bad = tmp_path / "two images"
+    bad.mkdir()
+    for name in ("uv_00.tif", "uv_01.tif"):
+        (bad / name).write_bytes((capture_dir / name).read_bytes())
+    message = _core_error("run", {"images": [str(bad)]}, {}, tmp_path / "direct")
+    out = tmp_path / "run"
+    result = run_macro('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s");\n'
+                       'print("macro went on");\n' % (q(bad), q(out)), timeout=TIMEOUT)
+    assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stdout + result.stderr
+    assert message in result.stdout
+    assert "uvps Run Whole Pipeline failed (UVPSInputError): " + message in result.stdout
+    assert "macro went on" not in result.stdout
+    assert not (out / "normals.tif").exists()
+
+
+def test_a_light_file_with_the_wrong_count_fails_with_the_core_message(
+        run_macro, capture_dir, tmp_path):
+    lines = (capture_dir / "lights.lp").read_text().splitlines()
+    lp = tmp_path / "seven lights.lp"
+    lp.write_text("\n".join([str(len(lines) - 2)] + lines[1:-1]) + "\n")
+    message = _core_error("normals", {"images": [str(capture_dir)]}, {"lights": str(lp)},
+                          tmp_path / "direct")
+    result = run_macro('run("Normals and Albedo", "capture=[Folder or files] images=%s run=%s '
+                       'lights=%s");\n' % (q(capture_dir), q(tmp_path / "run"), q(lp)),
+                       timeout=TIMEOUT)
+    assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stdout + result.stderr
+    assert "uvps Normals and Albedo failed (UVPSInputError): " + message in result.stdout
