@@ -141,11 +141,15 @@ def normals_from_height(height_um, *, pixel_size_um) -> np.ndarray:
         raise UVPSInputError(f"height_um must be a 2-D array of at least 2 x 2; got shape {h.shape}")
     if not pixel_size_um > 0:
         raise UVPSInputError(f"pixel_size_um must be > 0; got {pixel_size_um}")
-    d_row, d_col = np.gradient(h, float(pixel_size_um))
+    return _normals64(h, float(pixel_size_um)).astype(np.float32)
+
+
+def _normals64(h, pixel_size_um):
+    d_row, d_col = np.gradient(h, pixel_size_um)
     p = d_col
-    q = -d_row
+    q = -d_row                                   # y is up: rows grow downward
     norm = np.sqrt(1.0 + p * p + q * q)
-    return np.stack([-p / norm, -q / norm, 1.0 / norm], axis=-1).astype(np.float32)
+    return np.stack([-p / norm, -q / norm, 1.0 / norm], axis=-1)
 
 
 def pixel_centres_mm(shape, pixel_size_um):
@@ -250,7 +254,10 @@ def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
     if e.shape != (k,):
         raise UVPSInputError(f"intensities must be ({k},); got shape {e.shape}")
     integer = dtype is not None and np.issubdtype(np.dtype(dtype), np.integer)
-    normals = normals_from_height(h, pixel_size_um=pixel_size_um)
+    if h.ndim != 2 or min(h.shape) < 2 or not pixel_size_um > 0:
+        raise UVPSInputError(f"height_um must be (M, N) with M, N >= 2 and pixel_size_um > 0; "
+                             f"got shape {h.shape}, pixel_size_um={pixel_size_um}")
+    normals = _normals64(h, float(pixel_size_um))
 
     def shading():
         return _shading(normals, h, pixel_size_um, positions, directions, e)
@@ -440,7 +447,7 @@ def _primer_spots(rng, shape, px, count, albedo, occupied):
         rho = np.sqrt((u / a) ** 2 + (v / b) ** 2) / wobble
         wgt = np.clip((1 - rho) * a / 1.5, 0, 1)
         depth = rng.uniform(0.0, 3.0)
-        layer[r0:r1, c0:c1] -= depth * wgt
+        layer[r0:r1, c0:c1] = np.minimum(layer[r0:r1, c0:c1], -depth * wgt)
         sub = albedo[r0:r1, c0:c1]
         sub[:] = sub * (1 - wgt[..., None]) + primer * rng.uniform(0.95, 1.05) * wgt[..., None]
         occupied[r0:r1, c0:c1] |= rho < 1.3

@@ -1,0 +1,429 @@
+"""Tests of uvps.synthetic: the renderer against the analytic image model, the frames, the ground
+truth against the rendered height map, densities, written files and determinism."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import tifffile
+from scipy import ndimage
+
+from uvps.errors import UVPSInputError
+from uvps.synthetic import (
+    DARK_AREA_COLOURS,
+    LIGHT_AREA_COLOURS,
+    PRIMER_COLOUR,
+    SyntheticSpec,
+    make_capture,
+    normals_from_height,
+    pixel_centres_mm,
+    render_images,
+    write_capture,
+)
+
+SMALL = dict(shape=(240, 320), n_lights=8)
+# A scene with nothing but protrusions on a flat canvas: the truth can be measured exactly.
+CLEAN = dict(shape=(400, 400), n_lights=3, weave_amplitude_um=0.0, bow_um=0.0, n_ridges=0,
+             n_primer_spots=0, protrusion_density_light=400.0, protrusion_density_dark=400.0,
+             noise=False)
+
+
+def _light(azimuth_deg, elevation_deg, distance_mm):
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return distance_mm * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                                   math.sin(el)])
+
+
+# ------------------------------------------------------------------------------------------
+# Renderer against the image model
+# ------------------------------------------------------------------------------------------
+
+
+def test_flat_plane_centre_is_albedo_times_intensity_times_sine_of_elevation():
+    light = _light(30.0, 35.0, 300.0)
+    img = render_images(np.zeros((101, 101)), np.full((101, 101), 0.6), pixel_size_um=15.0,
+                        light_positions_mm=light[None], intensities=[1.3], noise=False,
+                        dtype=None)
+    assert img.shape == (1, 101, 101) and img.dtype == np.float64
+    # On a flat canvas n.l at the centre is cos(zenith) = sin(elevation).
+    assert img[0, 50, 50] == pytest.approx(0.6 * 1.3 * math.sin(math.radians(35.0)), rel=1e-12)
+
+
+def test_flat_plane_follows_inverse_square_and_cosine_everywhere():
+    m, n, px = 61, 81, 100.0                     # 6 x 8 mm under a close lamp: strong fall-off
+    light = _light(200.0, 40.0, 30.0)
+    img = render_images(np.zeros((m, n)), np.full((m, n), 0.5), pixel_size_um=px,
+                        light_positions_mm=light[None], noise=False, dtype=None)[0]
+    x, y = pixel_centres_mm((m, n), px)
+    d = np.sqrt((light[0] - x) ** 2 + (light[1] - y) ** 2 + light[2] ** 2)
+    expected = 0.5 * (np.linalg.norm(light) / d) ** 2 * light[2] / d
+    np.testing.assert_allclose(img, expected, rtol=1e-12)
+    # Ratio between two pixels: pixel (0, 0) is top-left, i.e. x < 0, y > 0.
+    r_a, r_b = d[0, 0], d[m - 1, n - 1]
+    assert img[0, 0] / img[m - 1, n - 1] == pytest.approx((r_b / r_a) ** 3, rel=1e-12)
+    # The lamp is at azimuth 200 deg (x < 0, y < 0): bottom-left is brighter than top-right.
+    assert img[m - 1, 0] > img[0, n - 1]
+
+
+def test_attached_shadow_is_zero_and_far_lights_follow_cosine():
+    m, n, px = 41, 41, 15.0
+    x, _ = pixel_centres_mm((m, n), px)
+    height = np.broadcast_to(2.0 * x * 1000.0, (m, n))   # slope 2 rising toward +x
+    normal = np.array([-2.0, 0.0, 1.0]) / math.sqrt(5.0)
+    toward_minus_x = _light(180.0, 40.0, 1.0)            # lit: the face looks toward -x
+    toward_plus_x = _light(0.0, 20.0, 1.0)               # n.l < 0: attached shadow
+    img = render_images(height, np.ones((m, n)), pixel_size_um=px,
+                        light_directions=np.stack([toward_minus_x, toward_plus_x]),
+                        intensities=[1.0, 2.0], noise=False, dtype=None)
+    np.testing.assert_allclose(img[0], normal @ toward_minus_x, rtol=1e-12)
+    assert np.all(img[1] == 0.0)
+    assert normal @ toward_plus_x < 0
+
+
+def test_rgb_albedo_scales_each_channel():
+    albedo = np.broadcast_to(np.array([0.9, 0.5, 0.2]), (30, 40, 3))
+    img = render_images(np.zeros((30, 40)), albedo, pixel_size_um=15.0,
+                        light_positions_mm=[_light(0, 30, 300), _light(120, 50, 400)],
+                        noise=False, dtype=None)
+    assert img.shape == (2, 30, 40, 3)
+    np.testing.assert_allclose(img[..., 1] / img[..., 0], 0.5 / 0.9, rtol=1e-12)
+
+
+def test_noise_matches_photon_and_read_noise_and_uint16_quantisation():
+    rng = np.random.default_rng(5)
+    light = _light(0, 90, 1e6)                           # uniform: flat, lamp far overhead
+    gain, read_noise = 2.0, 6.0
+    img = render_images(np.zeros((200, 200)), np.full((200, 200), 0.5), pixel_size_um=15.0,
+                        light_positions_mm=light[None], rng=rng, gain=gain,
+                        read_noise=read_noise, exposure=40000.0)
+    assert img.dtype == np.uint16
+    expected = 0.5 * 40000.0
+    assert img.mean() == pytest.approx(expected, rel=1e-3)
+    assert img.var() == pytest.approx(gain * expected + read_noise ** 2, rel=0.05)
+    dark = render_images(np.zeros((200, 200)), np.full((200, 200), 0.5), pixel_size_um=15.0,
+                         light_positions_mm=light[None], rng=rng, gain=1.0, read_noise=0.0,
+                         exposure=20.0)   # 10 electrons: the exact Poisson branch
+    assert dark.mean() == pytest.approx(10.0, rel=0.02)
+    assert dark.var() == pytest.approx(10.0, rel=0.06)
+
+
+def test_auto_exposure_puts_the_brightest_sample_at_three_quarters_of_full_scale():
+    img = render_images(np.zeros((50, 50)), np.full((50, 50), 0.3), pixel_size_um=15.0,
+                        light_positions_mm=[_light(10, 30, 300), _light(190, 60, 300)],
+                        noise=False)
+    assert img.max() == pytest.approx(0.75 * 65535, abs=1)
+
+
+# ------------------------------------------------------------------------------------------
+# Frames and normals
+# ------------------------------------------------------------------------------------------
+
+
+def test_normals_of_a_paraboloid_match_the_analytic_ones():
+    m, n, px = 81, 101, 10.0
+    x, y = pixel_centres_mm((m, n), px)
+    xu, yu = x * 1000.0, y * 1000.0
+    c = 1e-3                                        # z = c (x^2 + y^2), um
+    height = c * (xu ** 2 + yu ** 2)
+    normals = normals_from_height(height, pixel_size_um=px)
+    p, q = 2 * c * xu, 2 * c * yu
+    norm = np.sqrt(1 + p ** 2 + q ** 2)
+    expected = np.stack(np.broadcast_arrays(-p / norm, -q / norm, 1 / norm), axis=-1)
+    np.testing.assert_allclose(normals[1:-1, 1:-1], expected[1:-1, 1:-1], atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-6)
+
+
+def test_sign_conventions_x_right_y_up():
+    rows, cols = np.mgrid[0:20, 0:30].astype(float)
+    rising_x = normals_from_height(3.0 * cols, pixel_size_um=15.0)       # up toward +x
+    rising_up = normals_from_height(-3.0 * rows, pixel_size_um=15.0)     # up toward row 0
+    assert np.all(rising_x[..., 0] < 0) and np.allclose(rising_x[..., 1], 0)
+    assert np.all(rising_up[..., 1] < 0) and np.allclose(rising_up[..., 0], 0)
+    assert rising_up[0, 0, 1] == pytest.approx(-0.2 / math.sqrt(1.04), rel=1e-6)
+    # A face looking up (+y) is brighter under a lamp above the image (+y) than below it.
+    lamps = [_light(90.0, 30.0, 300.0), _light(270.0, 30.0, 300.0)]
+    img = render_images(3.0 * rows, np.ones((20, 30)), pixel_size_um=15.0,
+                        light_positions_mm=lamps, noise=False, dtype=None)
+    # Height grows with row, so z falls toward +y (q < 0): the face looks toward +y.
+    assert img[0].mean() > img[1].mean()
+
+
+# ------------------------------------------------------------------------------------------
+# Scene and ground truth
+# ------------------------------------------------------------------------------------------
+
+
+def test_small_capture_contents():
+    cap = make_capture(**SMALL)
+    k, (m, n) = 8, SMALL["shape"]
+    assert cap.images.shape == (k, m, n, 3) and cap.images.dtype == np.uint16
+    assert cap.light_positions_mm.shape == (k, 3) and cap.intensities.shape == (k,)
+    assert np.all(np.abs(cap.intensities - 1) <= 0.1)
+    dist = np.linalg.norm(cap.light_positions_mm, axis=1)
+    elev = np.degrees(np.arcsin(cap.light_positions_mm[:, 2] / dist))
+    assert np.all((dist >= 250) & (dist <= 500)) and np.all((elev >= 20) & (elev <= 60))
+    az = np.sort(np.degrees(np.arctan2(cap.light_positions_mm[:, 1],
+                                       cap.light_positions_mm[:, 0])) % 360)
+    assert np.diff(np.r_[az, az[0] + 360]).max() < 2 * 360 / k        # spread around
+    assert cap.height_um.dtype == np.float32 and np.median(cap.height_um) == 0
+    assert cap.albedo.shape == (m, n, 3) and cap.normals.shape == (m, n, 3)
+    np.testing.assert_allclose(np.linalg.norm(cap.normals, axis=-1), 1, atol=1e-5)
+    labels = np.unique(cap.regions)
+    assert 5 <= labels.size <= 8 and labels.tolist() == list(range(1, labels.size + 1))
+    assert len(cap.region_names) == labels.size == len(cap.region_light)
+    for name, light in zip(cap.region_names, cap.region_light):
+        assert light == (name in LIGHT_AREA_COLOURS) and (light or name in DARK_AREA_COLOURS)
+    # Light areas fluoresce more than dark ones.
+    means = [cap.albedo[cap.regions == r].mean() for r in labels]
+    light_means = [v for v, lt in zip(means, cap.region_light) if lt]
+    dark_means = [v for v, lt in zip(means, cap.region_light) if not lt]
+    assert min(light_means) > 1.5 * max(dark_means)
+    # Exposure: brightest pixels near 75 % of full scale, nothing saturated.
+    assert 0.70 * 65535 < cap.images.max() < 0.80 * 65535
+
+
+def test_grey_capture():
+    cap = make_capture(shape=(64, 80), n_lights=4, rgb=False)
+    assert cap.images.shape == (4, 64, 80) and cap.albedo.shape == (64, 80)
+
+
+def test_images_are_the_rendering_of_the_truth():
+    cap = make_capture(shape=(120, 160), n_lights=5, noise=False)
+    again = render_images(cap.height_um, cap.albedo, pixel_size_um=15.0,
+                          light_positions_mm=cap.light_positions_mm,
+                          intensities=cap.intensities, noise=False, exposure=cap.exposure)
+    np.testing.assert_array_equal(cap.images, again)
+    np.testing.assert_allclose(normals_from_height(cap.height_um, pixel_size_um=15.0),
+                               cap.normals)
+
+
+def _components(height, threshold):
+    lab, count = ndimage.label(height > threshold)
+    return lab, count
+
+
+def test_protrusion_truth_matches_the_rendered_height_map():
+    cap = make_capture(**CLEAN)
+    prot = cap.protrusions
+    assert prot["id"].size > 30
+    lab, count = _components(cap.height_um, 1e-6)
+    assert count == prot["id"].size                     # non-overlapping, one blob each
+    px = cap.spec.pixel_size_um
+    rel_w, rel_h = [], []
+    for i in range(prot["id"].size):
+        r, c = prot["y_px"][i], prot["x_px"][i]
+        comp = lab == lab[int(round(r)), int(round(c))]
+        assert lab[int(round(r)), int(round(c))] > 0
+        cr, cc = ndimage.center_of_mass(comp)
+        assert abs(cr - r) < 0.6 and abs(cc - c) < 0.6
+        width = 2 * math.sqrt(comp.sum() / math.pi) * px
+        peak = cap.height_um[comp].max()
+        assert peak <= prot["height_um"][i] * 1.001
+        assert cap.regions[int(round(r)), int(round(c))] == prot["region"][i]
+        if prot["width_um"][i] >= 100:
+            rel_w.append(width / prot["width_um"][i] - 1)
+            rel_h.append(peak / prot["height_um"][i] - 1)
+    rel_w, rel_h = np.array(rel_w), np.array(rel_h)
+    assert rel_w.size > 20
+    assert np.abs(rel_w).max() < 0.08 and abs(rel_w.mean()) < 0.02
+    assert rel_h.min() > -0.12 and rel_h.mean() > -0.05
+    ratio = prot["height_um"] / prot["width_um"]
+    assert ratio.min() >= 0.15 * 0.4 and ratio.max() <= 0.35
+    # Craters: the centre is lower than the rim.
+    for i in np.flatnonzero(prot["crater"])[:5]:
+        r, c = int(round(prot["y_px"][i])), int(round(prot["x_px"][i]))
+        if prot["width_um"][i] > 150:
+            assert cap.height_um[r, c] < 0.95 * prot["height_um"][i]
+
+
+def test_protrusion_statistics_widths_craters_weak():
+    cap = make_capture(**CLEAN)
+    prot = cap.protrusions
+    w = prot["width_um"]
+    assert w.min() >= 30 and w.max() <= 600
+    assert 100 <= np.median(w) <= 200
+    assert np.mean((w >= 100) & (w < 200)) > 0.4
+    assert 0.15 < prot["crater"].mean() < 0.45
+    assert 0.08 < prot["weak"].mean() < 0.35
+    # Strong protrusions are whitish-yellow and brighter than the paint; weak ones are close to it.
+    rows, cols = np.mgrid[0:400, 0:400]
+    n_weak_checked = 0
+    for i in range(prot["id"].size):
+        r, c = int(round(prot["y_px"][i])), int(round(prot["x_px"][i]))
+        centre = cap.albedo[r, c]
+        if not prot["weak"][i]:
+            assert centre.sum() > 2.2 and centre[0] > centre[2]
+            continue
+        rad = prot["width_um"][i] / 2 / cap.spec.pixel_size_um
+        dist = np.hypot(rows - r, cols - c)
+        ring = (dist > 1.2 * rad + 1) & (dist < 1.2 * rad + 3) & (cap.height_um < 1e-6)
+        if np.unique(cap.regions[ring]).size > 1:
+            continue                                   # on a colour boundary: no single paint
+        paint = np.median(cap.albedo[ring], axis=0)
+        assert np.all(np.abs(centre / paint - 1) < 0.3)
+        n_weak_checked += 1
+    assert n_weak_checked >= 3
+
+
+def test_measure_one_protrusion_on_a_realistic_capture():
+    cap = make_capture(shape=(300, 400), n_lights=3, seed=3)
+    prot = cap.protrusions
+    i = int(np.argmax(prot["width_um"]))
+    px = cap.spec.pixel_size_um
+    r, c = prot["y_px"][i], prot["x_px"][i]
+    rad = prot["width_um"][i] / 2 / px
+    rows, cols = np.mgrid[0:300, 0:400]
+    dist = np.hypot(rows - r, cols - c)
+    ring = (dist > 1.6 * rad) & (dist < 1.6 * rad + 6)
+    base = np.median(cap.height_um[ring])
+    inside = dist < 1.4 * rad
+    assert cap.height_um[inside].max() - base == pytest.approx(prot["height_um"][i],
+                                                               rel=0.15, abs=4.0)
+    # Footprint: the connected part above the weave (amplitude 3 um) around the centre.
+    lab, _ = ndimage.label(cap.height_um - base > 4.0)
+    above = lab == lab[int(round(r)), int(round(c))]
+    width = 2 * math.sqrt(above.sum() / math.pi) * px
+    assert width == pytest.approx(prot["width_um"][i], rel=0.15)
+
+
+def test_densities_light_versus_dark_areas():
+    cap = make_capture(shape=(600, 800), n_lights=3, noise=False, seed=1,
+                       protrusion_density_light=60.0, protrusion_density_dark=6.0)
+    px = cap.spec.pixel_size_um
+    count = {True: 0, False: 0}
+    area = {True: 0.0, False: 0.0}
+    for reg, light in enumerate(cap.region_light, start=1):
+        area[light] += (cap.regions == reg).sum() * px * px / 1e8
+        count[light] += int((cap.protrusions["region"] == reg).sum())
+    assert area[True] > 0.2 and area[False] > 0.2
+    for light, density in ((True, 60.0), (False, 6.0)):
+        expected = density * area[light]
+        assert abs(count[light] - expected) < 4 * math.sqrt(expected) + 2
+    assert count[True] / area[True] > 4 * count[False] / area[False]
+
+
+def test_ridges_are_elongated_and_primer_spots_flat_and_bright():
+    from skimage.measure import regionprops
+
+    base = dict(shape=(400, 500), n_lights=3, noise=False, weave_amplitude_um=0.0, bow_um=0.0,
+                protrusion_density_light=0.0, protrusion_density_dark=0.0)
+    ridges = make_capture(**base, n_ridges=6, n_primer_spots=0)
+    lab, count = _components(ridges.height_um, 2.0)
+    m, n = ridges.height_um.shape
+    thicknesses = []
+    for prop in regionprops(lab):
+        r0, c0, r1, c1 = prop.bbox
+        # Thickness from the largest inscribed disc; a stroke is much longer than thick,
+        # unless it is a stroke end cut by the image border or a tapered tip above 2 um.
+        thickness = 2 * ndimage.distance_transform_edt(np.pad(prop.image, 1)).max()
+        on_border = r0 == 0 or c0 == 0 or r1 == m or c1 == n
+        assert on_border or prop.area < 30 or prop.area > 4 * thickness ** 2
+        if prop.area > 200:
+            thicknesses.append(thickness * ridges.spec.pixel_size_um)
+    assert len(thicknesses) >= 1 and np.median(thicknesses) < 330   # 100-300 um wide strokes
+    assert 5.0 <= ridges.height_um.max() <= 20.0 + 1e-3
+    spots = make_capture(**base, n_ridges=0, n_primer_spots=6)
+    assert spots.height_um.max() <= 1e-6 and spots.height_um.min() >= -3.0 - 1e-6
+    spot = spots.albedo.min(axis=2) > 0.8 * min(PRIMER_COLOUR)
+    lab, count = ndimage.label(spot)
+    assert count >= 3
+    sizes = ndimage.sum(spot, lab, range(1, count + 1)) * spots.spec.pixel_size_um ** 2
+    widths = 2 * np.sqrt(sizes / math.pi)
+    assert widths.max() < 500 and np.median(widths) > 60
+
+
+def test_protrusions_avoid_ridges_and_primer_spots():
+    cap = make_capture(shape=(400, 500), n_lights=3, noise=False, weave_amplitude_um=0.0,
+                       bow_um=0.0, n_ridges=6, n_primer_spots=8, protrusion_density_light=300.0,
+                       protrusion_density_dark=300.0)
+    bright_flat = (cap.albedo.min(axis=2) > 0.8) & (np.abs(cap.height_um) < 0.5)
+    for r, c in zip(cap.protrusions["y_px"], cap.protrusions["x_px"]):
+        assert not bright_flat[int(round(r)), int(round(c))]
+
+
+# ------------------------------------------------------------------------------------------
+# Files, determinism, bad input
+# ------------------------------------------------------------------------------------------
+
+
+def test_write_capture_files_are_readable_with_the_right_pixel_size(tmp_path):
+    cap = make_capture(shape=(60, 80), n_lights=4, pixel_size_um=12.5)
+    out = tmp_path / "capture"
+    paths = write_capture(cap, out)
+    assert all(p.exists() for p in paths)
+    names = [f"uv_{i:02d}.tif" for i in range(4)]
+    assert [p.name for p in paths[:4]] == names
+    with tifffile.TiffFile(out / "uv_02.tif") as tif:
+        page = tif.pages[0]
+        np.testing.assert_array_equal(tif.asarray(), cap.images[2])
+        assert tif.asarray().shape == (60, 80, 3) and page.dtype == np.uint16
+        num, den = page.tags["XResolution"].value
+        assert den / num == pytest.approx(12.5)
+        assert tif.imagej_metadata["unit"] == "micron"
+    with open(out / "lights_positions_mm.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["file"] for r in rows] == names
+    pos = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows])
+    np.testing.assert_allclose(pos, cap.light_positions_mm, atol=1e-5)
+    lp = (out / "lights.lp").read_text().split("\n")
+    assert int(lp[0]) == 4
+    dirs = np.array([[float(v) for v in line.split()[1:]] for line in lp[1:5]])
+    np.testing.assert_allclose(dirs, pos / np.linalg.norm(pos, axis=1, keepdims=True), atol=1e-6)
+    truth = out / "truth"
+    np.testing.assert_array_equal(tifffile.imread(truth / "height_um.tif"), cap.height_um)
+    normals = tifffile.imread(truth / "normals.tif")
+    assert normals.shape == (3, 60, 80)
+    np.testing.assert_array_equal(np.moveaxis(normals, 0, -1), cap.normals)
+    with tifffile.TiffFile(truth / "height_um.tif") as tif:
+        num, den = tif.pages[0].tags["XResolution"].value
+        assert den / num == pytest.approx(12.5) and tif.imagej_metadata["unit"] == "micron"
+    np.testing.assert_array_equal(tifffile.imread(truth / "regions.tif"), cap.regions)
+    assert tifffile.imread(truth / "albedo.tif").shape == (3, 60, 80)
+    meta = json.loads((truth / "truth.json").read_text())
+    assert meta["region_names"] == cap.region_names and meta["pixel_size_um"] == 12.5
+    np.testing.assert_allclose(meta["intensities"], cap.intensities)
+    with open(truth / "protrusions.csv", newline="") as fh:
+        prot_rows = list(csv.DictReader(fh))
+    assert len(prot_rows) == cap.protrusions["id"].size
+
+
+def test_write_grey_capture_without_truth(tmp_path):
+    cap = make_capture(shape=(40, 50), n_lights=3, rgb=False)
+    paths = write_capture(cap, tmp_path / "c", truth=False)
+    assert not (tmp_path / "c" / "truth").exists() and len(paths) == 5
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "c" / "uv_00.tif"), cap.images[0])
+
+
+def test_same_seed_same_capture_other_seed_other_capture():
+    a = make_capture(**SMALL, seed=7)
+    b = make_capture(SyntheticSpec(shape=(240, 320), n_lights=8, seed=7))
+    c = make_capture(**SMALL, seed=8)
+    np.testing.assert_array_equal(a.images, b.images)
+    np.testing.assert_array_equal(a.height_um, b.height_um)
+    for key in a.protrusions:
+        np.testing.assert_array_equal(a.protrusions[key], b.protrusions[key])
+    assert not np.array_equal(a.images, c.images)
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(colour=3), "unknown SyntheticSpec option"),
+    (dict(shape=(10, 300)), "shape"),
+    (dict(n_lights=2), "n_lights"),
+    (dict(elevation_deg=(60.0, 20.0)), "elevation_deg"),
+    (dict(weak_fraction=1.5), "weak_fraction"),
+])
+def test_bad_spec_is_refused(overrides, match):
+    with pytest.raises(UVPSInputError, match=match):
+        make_capture(**overrides)
+
+
+def test_render_refuses_bad_lights():
+    with pytest.raises(UVPSInputError, match="exactly one"):
+        render_images(np.zeros((5, 5)), np.ones((5, 5)), pixel_size_um=1.0)
+    with pytest.raises(UVPSInputError, match=r"light_positions_mm must be \(K, 3\)"):
+        render_images(np.zeros((5, 5)), np.ones((5, 5)), pixel_size_um=1.0,
+                      light_positions_mm=np.ones((4, 2)))
+    with pytest.raises(UVPSInputError, match="albedo"):
+        render_images(np.zeros((5, 5)), np.ones((4, 5)), pixel_size_um=1.0,
+                      light_directions=[[0, 0, 1]])
