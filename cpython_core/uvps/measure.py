@@ -254,6 +254,16 @@ def _fmt(value) -> str:
     return str(value)
 
 
+def file_mode() -> int:
+    """The permission bits a plain ``open`` would give a new file (0o666 minus the umask).
+
+    ``tempfile.mkstemp`` creates files 0o600; outputs get the usual mode before being renamed.
+    """
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write_text(path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
     path = Path(path)
@@ -261,6 +271,7 @@ def atomic_write_text(path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
