@@ -1,0 +1,178 @@
+"""Tests of the protrusion commands on run folders built from a synthetic capture."""
+import csv
+import shutil
+
+import numpy as np
+import pytest
+import tifffile
+
+from uvps.compare import compare_detections
+from uvps.errors import UVPSInputError
+from uvps.io import read_tiff, write_imagej_tiff
+from uvps.measure import read_protrusions_csv
+from uvps.protrusion_commands import PROTRUSION_COMMANDS, cmd_compare, cmd_detect, cmd_regions, \
+    cmd_stats, cmd_wand
+from uvps.synthetic import make_capture
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return make_capture(shape=(240, 320), n_lights=8, seed=3)
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory, capture):
+    """A run folder as the core writes it: albedo (CYX), depth (um), normals (CYX)."""
+    d = tmp_path_factory.mktemp("template")
+    px = capture.spec.pixel_size_um
+    write_imagej_tiff(d / "albedo.tif", np.moveaxis(capture.albedo, -1, 0), axes="CYX",
+                      pixel_size_um=px)
+    write_imagej_tiff(d / "depth.tif", capture.height_um, axes="YX", pixel_size_um=px)
+    write_imagej_tiff(d / "normals.tif", np.moveaxis(capture.normals, -1, 0), axes="CYX",
+                      pixel_size_um=px)
+    return d
+
+
+@pytest.fixture
+def run(tmp_path, template):
+    d = tmp_path / "run"
+    shutil.copytree(template, d)
+    return d
+
+
+def _truth_table(capture):
+    p = capture.protrusions
+    return {"x_px": p["x_px"], "y_px": p["y_px"], "width_um": p["width_um"]}
+
+
+def test_registry():
+    assert set(PROTRUSION_COMMANDS) == {"detect", "wand", "regions", "stats", "report", "compare"}
+    assert PROTRUSION_COMMANDS["report"] is PROTRUSION_COMMANDS["stats"]
+
+
+def test_detect_writes_consistent_table_and_labels(run, capture):
+    res = cmd_detect({}, {}, run)
+    assert {o.name for o in res.outputs} == {"protrusions", "protrusions_labels"}
+    table = read_protrusions_csv(run / "protrusions.csv")
+    labels, px = read_tiff(run / "protrusions_labels.tif")
+    assert px == pytest.approx(capture.spec.pixel_size_um)
+    assert labels.shape == capture.height_um.shape
+    np.testing.assert_array_equal(np.unique(labels[labels > 0]), table["id"])
+    assert res.diagnostics["n_protrusions"] == len(table["id"]) > 0
+    assert set(table["source"]) <= {"albedo", "height", "albedo+height"}
+    # most detections lie on a true protrusion (synthetic ground truth; detect's own tests
+    # measure its accuracy)
+    comp = compare_detections(_truth_table(capture), table, regions=None,
+                              pixel_size_um=capture.spec.pixel_size_um)
+    assert len(comp.pairs) >= max(1, len(table["id"]) // 2)
+
+
+def test_detect_with_auto_regions(run):
+    res = cmd_detect({}, {"regions": "auto", "min_width_um": 40.0}, run)
+    regions, _ = read_tiff(run / "regions_labels.tif")
+    assert res.diagnostics["n_areas"] == len(np.unique(regions[regions > 0])) >= 2
+    table = read_protrusions_csv(run / "protrusions.csv")
+    rows = np.rint(table["y_px"]).astype(int)
+    cols = np.rint(table["x_px"]).astype(int)
+    np.testing.assert_array_equal(table["region"], regions[rows, cols])
+
+
+def test_detect_unknown_param_is_warned(run):
+    res = cmd_detect({}, {"min_widht_um": 3}, run)
+    assert any("min_widht_um" in w for w in res.warnings)
+
+
+def test_wand_at_true_centres(run, capture):
+    p = capture.protrusions
+    pts = np.column_stack([p["x_px"], p["y_px"]])
+    seeds = run.parent / "points.csv"
+    with open(seeds, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["x_px", "y_px"])
+        w.writerows(pts.tolist())
+    res = cmd_wand({"points": str(seeds)}, {"tolerance": 0.08}, run)
+    table = read_protrusions_csv(run / "protrusions_manual.csv")
+    assert res.diagnostics["n_protrusions"] == len(table["id"]) == len(pts)
+    assert list(set(table["source"])) == ["wand"]
+    # each selection is centred on its protrusion and about as wide (albedo outline)
+    comp = compare_detections(_truth_table(capture), table, regions=None,
+                              pixel_size_um=capture.spec.pixel_size_um)
+    assert len(comp.pairs) == len(pts)
+    np.testing.assert_allclose(table["width_um"][comp.pairs[:, 1]],
+                               p["width_um"][comp.pairs[:, 0]], rtol=0.35)
+    assert read_tiff(run / "protrusions_manual_labels.tif").data.max() == len(pts)
+
+
+def test_regions_from_masks_and_stats_and_compare(run, capture):
+    px = capture.spec.pixel_size_um
+    shape = capture.height_um.shape
+    masks = []
+    for k, cols in enumerate([slice(0, 160), slice(160, 320)]):
+        m = np.zeros(shape, np.uint8)
+        m[:, cols] = 255
+        path = run.parent / f"{['left', 'right'][k]}.tif"
+        write_imagej_tiff(path, m, axes="YX", pixel_size_um=px)
+        masks.append(str(path))
+    res = cmd_regions({"masks": masks}, {}, run)
+    assert res.diagnostics["names"] == {"1": "left", "2": "right"}
+    assert any("no protrusions.csv" in w for w in res.warnings)
+    half_cm2 = 240 * 160 * px**2 / 1e8
+    assert res.diagnostics["area_cm2"]["1"] == pytest.approx(half_cm2)
+    cmd_detect({}, {}, run)
+    res = cmd_stats({}, {"bins_um": [0, 100, 200, 1000]}, run)
+    with open(run / "regions.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    table = read_protrusions_csv(run / "protrusions.csv")
+    n_left = int((np.rint(table["x_px"]) < 160).sum())
+    assert [r["name"] for r in rows] == ["left", "right", "all areas"]
+    assert int(rows[0]["count"]) == n_left
+    assert float(rows[0]["density_per_cm2"]) == pytest.approx(n_left / half_cm2, rel=1e-6)
+    assert "count_200-1000um" in rows[0]
+    assert (run / "report.html").is_file() and (run / "figures" / "histograms.png").is_file()
+    assert any(o.kind == "html" for o in res.outputs)
+    # a table compared with itself: everything matched
+    res = cmd_compare({"a": str(run / "protrusions.csv"), "b": str(run / "protrusions.csv")}, {},
+                      run)
+    assert res.diagnostics["matched"] == len(table["id"])
+    assert res.diagnostics["missed"] == res.diagnostics["extra"] == 0
+    with open(run / "comparison.csv", newline="") as fh:
+        comp_rows = list(csv.DictReader(fh))
+    assert [r["name"] for r in comp_rows] == ["left", "right", "all areas"]
+
+
+def test_regions_auto_writes_imagej_label_tiff(run):
+    res = cmd_regions({}, {"auto": True, "n_areas": 3}, run)
+    with tifffile.TiffFile(run / "regions_labels.tif") as tif:
+        assert tif.is_imagej
+        data = tif.asarray()
+    assert data.shape == (240, 320) and res.diagnostics["n_areas"] == len(np.unique(data)) <= 3
+
+
+@pytest.mark.parametrize("cmd, inputs, params, match", [
+    (cmd_regions, {}, {}, "exactly one of"),
+    (cmd_regions, {"labels": "WRONG"}, {}, "expected the capture's 240 x 320"),
+    (cmd_stats, {}, {}, "no protrusions.csv"),
+    (cmd_wand, {"points": [[10, 10]]}, {}, "tolerance"),
+    (cmd_wand, {}, {"tolerance": 0.1}, "points"),
+    (cmd_compare, {"a": "x.csv"}, {}, "inputs.b"),
+    (cmd_detect, {}, {"regions": "WRONG"}, "expected the capture's 240 x 320"),
+    (cmd_detect, {}, {"pixel_size_um": -3}, "pixel_size_um"),
+])
+def test_bad_input(run, cmd, inputs, params, match):
+    wrong = run.parent / "wrong.tif"
+    write_imagej_tiff(wrong, np.ones((10, 10), np.uint8), axes="YX", pixel_size_um=15.0)
+    inputs = {k: (str(wrong) if v == "WRONG" else v) for k, v in inputs.items()}
+    params = {k: (str(wrong) if v == "WRONG" else v) for k, v in params.items()}
+    before = sorted(p.name for p in run.iterdir())
+    with pytest.raises(UVPSInputError, match=match) as exc:
+        cmd(inputs, params, run)
+    assert "\n" not in str(exc.value)
+    assert sorted(p.name for p in run.iterdir()) == before  # nothing half-written
+
+
+def test_detect_needs_depth(tmp_path, template):
+    d = tmp_path / "run"
+    d.mkdir()
+    shutil.copy(template / "albedo.tif", d)
+    with pytest.raises(UVPSInputError, match="no depth.tif; run the 'integrate' command"):
+        cmd_detect({}, {}, d)
