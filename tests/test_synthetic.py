@@ -3,6 +3,9 @@ truth against the rendered height map, densities, written files and determinism.
 import csv
 import json
 import math
+import shutil
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -427,3 +430,43 @@ def test_render_refuses_bad_lights():
     with pytest.raises(UVPSInputError, match="albedo"):
         render_images(np.zeros((5, 5)), np.ones((4, 5)), pixel_size_um=1.0,
                       light_directions=[[0, 0, 1]])
+
+
+def test_written_capture_reads_back_through_uvps_io(tmp_path):
+    from uvps.io import read_capture
+
+    cap = make_capture(shape=(48, 64), n_lights=4, pixel_size_um=12.5)
+    write_capture(cap, tmp_path / "cap")
+    for lights in ("lights_positions_mm.csv", "lights.lp"):
+        back = read_capture(tmp_path / "cap", lights=tmp_path / "cap" / lights)
+        assert back.pixel_size_um == pytest.approx(12.5)
+        np.testing.assert_array_equal(back.images, cap.images)
+        if lights.endswith(".csv"):
+            np.testing.assert_allclose(back.light_positions_mm, cap.light_positions_mm, atol=1e-5)
+        else:
+            unit = cap.light_positions_mm / np.linalg.norm(cap.light_positions_mm, axis=1)[:, None]
+            np.testing.assert_allclose(back.light_directions, unit, atol=1e-6)
+
+
+IJ_JAR = Path("/usr/share/java/ij.jar")
+
+
+@pytest.mark.imagej
+@pytest.mark.skipif(not (IJ_JAR.exists() and shutil.which("java") and shutil.which("xvfb-run")),
+                    reason="needs java, xvfb-run and ImageJ's ij.jar")
+def test_imagej_reads_images_and_truth_with_the_pixel_size_in_microns(tmp_path):
+    cap = make_capture(shape=(30, 40), n_lights=3, pixel_size_um=12.5)
+    write_capture(cap, tmp_path / "cap")
+    files = [tmp_path / "cap" / "uv_01.tif", tmp_path / "cap" / "truth" / "height_um.tif",
+             tmp_path / "cap" / "truth" / "normals.tif"]
+    macro = tmp_path / "check.ijm"
+    macro.write_text("".join(
+        f'open("{f}"); getPixelSize(unit, pw, ph); getDimensions(w, h, c, z, t); '
+        f'print("RESULT " + unit + " " + pw + " " + w + " " + h + " " + c + " " + bitDepth()); '
+        f'close();\n' for f in files))
+    run = subprocess.run(["xvfb-run", "-a", "java", "-jar", str(IJ_JAR), "-batch", str(macro)],
+                         capture_output=True, text=True, timeout=120)
+    results = [line.split()[1:] for line in run.stdout.splitlines() if line.startswith("RESULT")]
+    assert results == [["microns", "12.5", "40", "30", "3", "16"],
+                       ["microns", "12.5", "40", "30", "1", "32"],
+                       ["microns", "12.5", "40", "30", "3", "32"]], run.stdout + run.stderr
