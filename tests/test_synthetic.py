@@ -470,3 +470,26 @@ def test_imagej_reads_images_and_truth_with_the_pixel_size_in_microns(tmp_path):
     assert results == [["microns", "12.5", "40", "30", "3", "16"],
                        ["microns", "12.5", "40", "30", "1", "32"],
                        ["microns", "12.5", "40", "30", "3", "32"]], run.stdout + run.stderr
+
+
+def test_near_light_photometric_stereo_recovers_the_truth():
+    """Per-pixel least squares with the known lamps inverts the renderer (up to quantisation)."""
+    cap = make_capture(shape=(120, 160), n_lights=8, rgb=False, noise=False, seed=4)
+    m, n = cap.height_um.shape
+    x, y = pixel_centres_mm((m, n), cap.spec.pixel_size_um)
+    pts = np.stack(np.broadcast_arrays(x, y, cap.height_um / 1000.0), axis=-1)   # (M, N, 3)
+    vec = cap.light_positions_mm[:, None, None, :] - pts                           # (K, M, N, 3)
+    dist = np.linalg.norm(vec, axis=-1)
+    lamp2 = np.sum(cap.light_positions_mm ** 2, axis=1)
+    scale = (cap.intensities * lamp2)[:, None, None] / dist ** 3
+    lit = np.all(cap.images > 0, axis=0)
+    obs = cap.images / scale                                                        # = b . (L - X)
+    a = np.einsum("kmni,kmnj->mnij", vec, vec)
+    rhs = np.einsum("kmni,kmn->mni", vec, obs)
+    b = np.linalg.solve(a[lit], rhs[lit][..., None])[..., 0]                       # albedo * n
+    rho = np.linalg.norm(b, axis=-1)
+    normals = b / rho[:, None]
+    angle = np.degrees(np.arccos(np.clip(np.sum(normals * cap.normals[lit], axis=-1), -1, 1)))
+    assert lit.mean() > 0.95
+    assert np.median(angle) < 0.05 and np.percentile(angle, 99) < 1.0
+    np.testing.assert_allclose(rho / cap.albedo[lit], cap.exposure, rtol=5e-3)
