@@ -138,7 +138,8 @@ def normals_from_height(height_um, *, pixel_size_um) -> np.ndarray:
     """
     h = np.asarray(height_um, dtype=np.float64)
     if h.ndim != 2 or min(h.shape) < 2:
-        raise UVPSInputError(f"height_um must be a 2-D array of at least 2 x 2; got shape {h.shape}")
+        raise UVPSInputError(f"height_um must be a 2-D array of at least 2 x 2; "
+                             f"got shape {h.shape}")
     if not pixel_size_um > 0:
         raise UVPSInputError(f"pixel_size_um must be > 0; got {pixel_size_um}")
     return _normals64(h, float(pixel_size_um)).astype(np.float32)
@@ -225,6 +226,19 @@ def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
     :func:`normals_from_height`. Far lights: ``I_k = albedo * E_k * max(0, n . l_k)``. Photon
     noise uses the Gaussian approximation of the Poisson law above 50 electrons (exact Poisson
     below); it matches mean and variance and is ~5x faster than ``Generator.poisson``.
+
+    Examples
+    --------
+    A flat canvas under one lamp 300 mm away at 35 deg elevation: the centre pixel is
+    ``albedo * E * sin(35 deg)``.
+
+    >>> import numpy as np
+    >>> el = np.radians(35.0)
+    >>> lamp = 300.0 * np.array([[np.cos(el), 0.0, np.sin(el)]])
+    >>> img = render_images(np.zeros((5, 5)), np.full((5, 5), 0.5), pixel_size_um=15.0,
+    ...                     light_positions_mm=lamp, noise=False, dtype=None)
+    >>> bool(np.isclose(img[0, 2, 2], 0.5 * np.sin(el)))
+    True
     """
     h = np.asarray(height_um, dtype=np.float64)
     if h.ndim != 2:
@@ -391,7 +405,8 @@ def _ridges(rng, shape, px, count, albedo_factor, occupied):
         start = rng.uniform([0, 0], [m, n])
         direc = np.array([np.sin(angle), np.cos(angle)])
         end = start + length * direc
-        ctrl = (start + end) / 2 + rng.uniform(-0.15, 0.15) * length * np.array([-direc[1], direc[0]])
+        bend = rng.uniform(-0.15, 0.15) * length
+        ctrl = (start + end) / 2 + bend * np.array([-direc[1], direc[0]])
         t = np.linspace(0, 1, int(2 * length) + 2)[:, None]
         path = (1 - t) ** 2 * start + 2 * t * (1 - t) * ctrl + t ** 2 * end
         pad = int(width) + 2
@@ -608,6 +623,15 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     Fig. 4), rejecting any placement that overlaps another protrusion, a ridge or a primer spot.
     The exposure puts the brightest noise-free sample at ``exposure_fraction`` of 65535; noise is
     photon noise with ``gain = 65535 / full_well_e`` counts per electron plus read noise.
+    Cost: about 4 s for the default 1200 x 1600 x 12 RGB capture, 0.1 s for 240 x 320 x 8.
+
+    Examples
+    --------
+    >>> cap = make_capture(shape=(240, 320), n_lights=8, seed=1)
+    >>> cap.images.shape, cap.images.dtype
+    ((8, 240, 320, 3), dtype('uint16'))
+    >>> sorted(cap.protrusions)[:3]
+    ['angle_deg', 'aspect', 'crater']
     """
     spec = dataclasses.replace(spec or SyntheticSpec(), **_checked_overrides(overrides))
     spec.shape = tuple(int(s) for s in spec.shape)
