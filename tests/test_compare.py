@@ -35,8 +35,9 @@ def test_matched_missed_extra_per_area(tmp_path):
     np.testing.assert_array_equal(c.missed, [2, 4])
     np.testing.assert_array_equal(c.extra, [2, 4])
     r1, r2, tot = c.rows
-    assert (r1["count_a"], r1["count_b"], r1["matched"], r1["missed"], r1["extra"]) == (3, 3, 2, 1, 1)
-    assert (r2["count_a"], r2["count_b"], r2["matched"], r2["missed"], r2["extra"]) == (2, 2, 1, 1, 1)
+    keys = ("count_a", "count_b", "matched", "missed", "extra")
+    assert tuple(r1[k] for k in keys) == (3, 3, 2, 1, 1)
+    assert tuple(r2[k] for k in keys) == (2, 2, 1, 1, 1)
     assert (tot["count_a"], tot["matched"], tot["missed"], tot["extra"]) == (5, 3, 2, 2)
     assert r1["density_a"] == pytest.approx(6.0) and r2["density_b"] == pytest.approx(2.0)
     path = tmp_path / "comparison.csv"

@@ -154,7 +154,8 @@ def compare_detections(a, b, *, regions: Optional[RegionMap], pixel_size_um: flo
     if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
         raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
     if match_radius_um is not None and not (np.isfinite(match_radius_um) and match_radius_um > 0):
-        raise UVPSInputError(f"match_radius_um must be a positive number or null; got {match_radius_um}")
+        raise UVPSInputError(f"match_radius_um must be a positive number or null; "
+                             f"got {match_radius_um}")
     xy_a, w_a = _xy_w(a, name_a)
     xy_b, w_b = _xy_w(b, name_b)
     pairs, dist = match_protrusions(xy_a, w_a, xy_b, w_b, pixel_size_um=pixel_size_um,
@@ -189,7 +190,11 @@ def compare_detections(a, b, *, regions: Optional[RegionMap], pixel_size_um: flo
 
 def _row(label, name, area_cm2, sel_a, sel_b, matched_a, matched_b) -> dict:
     count_a, count_b = int(sel_a.sum()), int(sel_b.sum())
-    dens = (lambda n: n / area_cm2) if np.isfinite(area_cm2) and area_cm2 > 0 else (lambda n: np.nan)
+    known = bool(np.isfinite(area_cm2) and area_cm2 > 0)
+
+    def dens(n):
+        return n / area_cm2 if known else float("nan")
+
     return {"label": label, "name": name, "area_cm2": float(area_cm2), "count_a": count_a,
             "count_b": count_b, "density_a": dens(count_a), "density_b": dens(count_b),
             "matched": int((sel_a & matched_a).sum()), "missed": int((sel_a & ~matched_a).sum()),
@@ -197,7 +202,7 @@ def _row(label, name, area_cm2, sel_a, sel_b, matched_a, matched_b) -> dict:
 
 
 def write_comparison_csv(path, comparison: Comparison) -> None:
-    """Write ``comparison.csv`` atomically: one row per area then "all" (columns :data:`COLUMNS`)."""
+    """Write ``comparison.csv`` atomically: a row per area, then "all" (:data:`COLUMNS`)."""
     cols = {c: [r[c] for r in comparison.rows] for c in COLUMNS}
     atomic_write_text(path, table_to_csv_text(cols, list(COLUMNS)))
 

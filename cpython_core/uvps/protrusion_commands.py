@@ -87,7 +87,8 @@ def _pixel_size(param, found, where) -> float:
         try:
             px = float(param)
         except (TypeError, ValueError):
-            raise UVPSInputError(f"pixel_size_um must be a positive number; got {param!r}") from None
+            raise UVPSInputError(f"pixel_size_um must be a positive number; "
+                                 f"got {param!r}") from None
         if not (np.isfinite(px) and px > 0):
             raise UVPSInputError(f"pixel_size_um must be a positive number; got {param!r}")
         return px
@@ -125,7 +126,8 @@ def _tiff_dtype(path: Path) -> str:
 
 
 def _unknown(params: dict, known) -> list:
-    return [f"parameter '{k}' ignored (unknown to this command)" for k in sorted(set(params) - set(known))]
+    return [f"parameter '{k}' ignored (unknown to this command)"
+            for k in sorted(set(params) - set(known))]
 
 
 def _write_labels(path: Path, labels: np.ndarray, px: float, info: str) -> None:
@@ -149,7 +151,8 @@ def _source_counts(table) -> dict:
 # commands
 
 
-def cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+def cmd_detect(inputs: dict, params: dict, output_dir, *,
+               progress: Progress = None) -> CommandResult:
     """Automated detection (albedo colour + template, height blobs) and measurement.
 
     Params: ``regions`` (label TIFF, "auto" or null = the run's ``regions_labels.tif`` if any),
@@ -201,7 +204,8 @@ def cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = N
     return CommandResult(outputs, diagnostics, warnings)
 
 
-def cmd_wand(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+def cmd_wand(inputs: dict, params: dict, output_dir, *,
+             progress: Progress = None) -> CommandResult:
     """Manual protrusions: ImageJ's wand at each clicked point on the albedo, then measurement.
 
     Inputs: ``points`` (CSV with ``x_px,y_px`` or ImageJ's ``X,Y``, or a list of [x, y]).
@@ -215,9 +219,11 @@ def cmd_wand(inputs: dict, params: dict, output_dir, *, progress: Progress = Non
     run_dir = Path(output_dir)
     warnings = _unknown(params, {"tolerance", "connectivity", "rgb", "regions", "pixel_size_um"})
     if "points" not in inputs:
-        raise UVPSInputError("wand: inputs.points is required (a CSV of x_px,y_px or a list of [x, y])")
+        raise UVPSInputError("wand: inputs.points is required (a CSV of x_px,y_px or a list "
+                             "of [x, y])")
     if params.get("tolerance") is None:
-        raise UVPSInputError("wand: params.tolerance is required (in albedo units, as ImageJ's wand)")
+        raise UVPSInputError("wand: params.tolerance is required (in albedo units, as "
+                             "ImageJ's wand)")
     seeds = read_seeds(inputs["points"])
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params.get("pixel_size_um"))
     regions, _ = _regions_for(params.get("regions"), run_dir, images, params=params)
@@ -256,7 +262,8 @@ def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnin
     return stats
 
 
-def cmd_regions(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+def cmd_regions(inputs: dict, params: dict, output_dir, *,
+                progress: Progress = None) -> CommandResult:
     """Colour areas: load a label TIFF or masks, or propose them from the albedo colour.
 
     Inputs: ``labels`` (TIFF) or ``masks`` (list of mask files, one area each). Params: ``auto``
@@ -299,15 +306,18 @@ def cmd_regions(inputs: dict, params: dict, output_dir, *, progress: Progress = 
         stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,
                                params.get("bins_um", 100.0), warnings)
     report(progress, 1.0, f"{len(regions.ids)} areas")
-    outputs = [OutputSpec("regions_labels", str(run_dir / "regions_labels.tif"), kind="image",
-                          axes="YX", units="label", dtype=_tiff_dtype(run_dir / "regions_labels.tif")),
+    labels_path = run_dir / "regions_labels.tif"
+    outputs = [OutputSpec("regions_labels", str(labels_path), kind="image", axes="YX",
+                          units="label", dtype=_tiff_dtype(labels_path)),
                OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2")]
-    diagnostics = {"n_areas": len(regions.ids), "names": {str(k): v for k, v in regions.names.items()},
+    diagnostics = {"n_areas": len(regions.ids),
+                   "names": {str(k): v for k, v in regions.names.items()},
                    "area_cm2": {str(r.label): r.area_cm2 for r in stats.rows}}
     return CommandResult(outputs, diagnostics, warnings)
 
 
-def cmd_stats(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+def cmd_stats(inputs: dict, params: dict, output_dir, *,
+              progress: Progress = None) -> CommandResult:
     """Per-area statistics (``regions.csv``) and the report (``report.html``, ``figures/``).
 
     Params: ``bins_um`` (100, or a list of edges), ``regions`` (label TIFF; default the run's
@@ -351,7 +361,8 @@ def cmd_stats(inputs: dict, params: dict, output_dir, *, progress: Progress = No
                                                 for e in stats.edges_um]}, warnings)
 
 
-def cmd_compare(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+def cmd_compare(inputs: dict, params: dict, output_dir, *,
+                progress: Progress = None) -> CommandResult:
     """Compare two protrusion tables per colour area (paper Fig. 4c).
 
     Inputs: ``a`` (reference, e.g. ``protrusions_manual.csv``), ``b`` (e.g. ``protrusions.csv``).

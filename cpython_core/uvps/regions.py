@@ -14,7 +14,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Optional, Union
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -83,7 +83,8 @@ def _as_label_image(arr: np.ndarray, what: str) -> np.ndarray:
         raise UVPSInputError(f"{what} must be a 2-D label image; got shape {arr.shape}")
     if np.issubdtype(arr.dtype, np.floating):
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
-            raise UVPSInputError(f"{what} must hold whole-number labels; got fractional or NaN values")
+            raise UVPSInputError(f"{what} must hold whole-number labels; got fractional or "
+                                 "NaN values")
     elif not (np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_):
         raise UVPSInputError(f"{what} must be an integer label image; got {arr.dtype}")
     if arr.size and arr.min() < 0:
@@ -208,7 +209,8 @@ def load_regions(labels_or_masks, *, shape, names: Optional[dict] = None) -> Reg
                 log.warning("%s overlaps earlier masks; the earlier ones keep %d pixels", what,
                             int(mask.sum() - free.sum()))
             if not free.any():
-                raise UVPSInputError(f"{what} lies entirely under earlier masks; its area has no pixels")
+                raise UVPSInputError(f"{what} lies entirely under earlier masks; its area has "
+                                     "no pixels")
             labels[free] = i
         ids = list(range(1, len(labels_or_masks) + 1))
     else:
@@ -399,8 +401,8 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
         smooth = np.where(tiny, smooth[idx[0], idx[1]], smooth)
     report(progress, 0.85, "full size")
     full = np.repeat(np.repeat(smooth, step, axis=0), step, axis=1)
-    full = np.pad(full, ((0, max(0, shape[0] - full.shape[0])), (0, max(0, shape[1] - full.shape[1]))),
-                  mode="edge")[: shape[0], : shape[1]].astype(np.int32)
+    grow = ((0, max(0, shape[0] - full.shape[0])), (0, max(0, shape[1] - full.shape[1])))
+    full = np.pad(full, grow, mode="edge")[: shape[0], : shape[1]].astype(np.int32)
     full[~valid] = 0
     gaps = valid & (full == 0)  # valid pixels in blocks that were mostly outside the mask
     if gaps.any() and (full > 0).any():
@@ -454,7 +456,8 @@ def bin_edges(bins_um, max_width: float) -> np.ndarray:
     if np.ndim(bins_um) == 0:
         w = float(bins_um)
         if not (np.isfinite(w) and w > 0):
-            raise UVPSInputError(f"bins_um must be a positive width or increasing edges; got {bins_um}")
+            raise UVPSInputError(f"bins_um must be a positive width or increasing edges; "
+                                 f"got {bins_um}")
         n = max(1, int(np.floor(max_width / w)) + 1) if np.isfinite(max_width) else 1
         return np.arange(n + 1) * w
     edges = np.asarray(bins_um, dtype=float)
@@ -511,7 +514,8 @@ def region_statistics(table, regions: RegionMap, *, pixel_size_um: float,
             raise UVPSInputError(f"colour area {i} ({regions.names[i]}) has no pixels")
         rows.append(_area_row(i, regions.names[i], area_px[i] * px_cm2, widths[where == i], edges))
     inside = np.isin(where, regions.ids)
-    rows.append(_area_row("all", "all areas", sum(area_px.values()) * px_cm2, widths[inside], edges))
+    total_cm2 = sum(area_px.values()) * px_cm2
+    rows.append(_area_row("all", "all areas", total_cm2, widths[inside], edges))
     outside = int((~inside).sum())
     if outside:
         log.info("%d protrusions lie in no colour area", outside)

@@ -205,7 +205,7 @@ def plot_detail_3d(height_um: np.ndarray, path, *, pixel_size_um: float, centre_
     """
     from matplotlib import cm
     from matplotlib.colors import LightSource
-    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the 3-D projection)
+    import mpl_toolkits.mplot3d  # noqa: F401  (registers the 3-D projection)
 
     m, n = height_um.shape
     half = int(max(16, np.ceil(1.5 * width_um / pixel_size_um)))
@@ -248,7 +248,8 @@ def region_colours(regions, albedo: Optional[np.ndarray]) -> dict:
                 sel = regions.labels == i
                 cols[i] = a[sel].mean(axis=0) if sel.any() else np.array([0.5, 0.5, 0.5])
     tab = colormaps["tab10"]
-    return {i: tuple(np.clip(cols.get(i, tab(k % 10)[:3]), 0, 1)) for k, i in enumerate(regions.ids)}
+    return {i: tuple(np.clip(cols.get(i, tab(k % 10)[:3]), 0, 1))
+            for k, i in enumerate(regions.ids)}
 
 
 def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> Path:
@@ -488,7 +489,9 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
         table = read_protrusions_csv(run_dir / "protrusions.csv")
     report(progress, 0.45, "height map")
     if height is not None and images_ok:
-        lab = plabels.astype(np.int64) if plabels is not None and plabels.shape == height.shape else None
+        lab = None
+        if plabels is not None and plabels.shape == height.shape:
+            lab = plabels.astype(np.int64)
         _figure_step(page, "height.png", "Height map (\u00b5m) with the detected protrusions "
                      "outlined in red.", plot_height, height, figdir / "height.png",
                      pixel_size_um=px, labels=lab)
