@@ -381,11 +381,19 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
                                         p.weave_factor)
         t = t - _opening_background(t, 1.2 * max_w + 2)
         t[~valid] = 0
-    # smoothing by sigma s (px) divides white noise by ~ 2 sqrt(pi) s
-    noise_s = noise / max(1.0, 2 * math.sqrt(math.pi) * s)
+    # white noise after the separable Gaussian: times the kernel's L2 norm, squared (2-D)
+    if s >= 0.3:
+        k1 = cv2.getGaussianKernel(2 * int(math.ceil(4 * s)) + 1, s)
+        noise_s = noise * float(np.sum(k1 ** 2))
+    else:
+        noise_s = noise
     # texture level (weave, fine brush marks): robust spread of the top-hat itself
+    # the opening sits on the noise minima: put the top-hat's typical level at 0
     tv = t[valid]
-    texture = float(1.4826 * np.median(np.abs(tv - np.median(tv))))
+    t_med = float(np.median(tv))
+    t -= t_med
+    t[~valid] = 0
+    texture = float(1.4826 * np.median(np.abs(tv - t_med)))
     dyn = max(p.min_dynamic_um, p.dynamic_k * noise_s, p.texture_k * texture)
     relief_min = dyn
     _report(progress, 0.2, "height maxima")
@@ -398,8 +406,13 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         # maximum through a saddle above 0.5 * dyn stays inside the area); skip areas never
         # reaching dyn. Much cheaper than the full-image reconstruction.
         top = _label_max(t, comp, ncomp)
+        # an area rising less than 1.5 dyn holds one maximum of dynamic >= dyn at most: its top
+        simple = np.concatenate([[False], (top >= dyn) & (top < 1.5 * dyn)])
+        at_top = simple[comp] & (t >= np.concatenate([[np.inf], top])[comp])
+        markers[at_top] = comp[at_top]
+        n_h = ncomp
         for k_comp, sl in enumerate(ndi.find_objects(comp)):
-            if top[k_comp] < dyn:
+            if top[k_comp] < 1.5 * dyn:
                 continue
             inside = comp[sl] == k_comp + 1
             sub = np.where(inside, t[sl], 0.0).astype(np.float64)
@@ -408,6 +421,12 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
             if k:
                 markers[sl][lab > 0] = lab[lab > 0] + n_h
                 n_h += k
+        # compact the marker ids to 1..n_h
+        used = np.unique(markers[markers > 0])
+        lut = np.zeros(n_h + 1, np.int32)
+        lut[used] = np.arange(1, used.size + 1, dtype=np.int32)
+        markers = lut[markers]
+        n_h = int(used.size)
     _report(progress, 0.4, "height footprints")
     ws = watershed(-t, markers, mask=low | (markers > 0)) if n_h else np.zeros((m, n), np.int32)
     if n_h:
@@ -431,7 +450,10 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
 
     # ---- albedo cue -------------------------------------------------------------------------
     _report(progress, 0.55, "albedo cue")
-    contrast = _albedo_contrast(lum, valid, max(2.0, 0.5 * max_w), p.albedo_contrast)
+    lum_s = np.where(valid, lum, float(np.median(lum[valid]))).astype(np.float32)
+    if s >= 0.3:
+        lum_s = cv2.GaussianBlur(lum_s, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    contrast = _albedo_contrast(lum_s, valid, max(2.0, 0.5 * max_w), p.albedo_contrast)
     raw = valid & (contrast > p.albedo_contrast)
     acomp, na = ndi.label(raw, structure=np.ones((3, 3)))
     mask_albedo = np.zeros((m, n), bool)
