@@ -493,3 +493,17 @@ def test_near_light_photometric_stereo_recovers_the_truth():
     assert lit.mean() > 0.95
     assert np.median(angle) < 0.05 and np.percentile(angle, 99) < 1.0
     np.testing.assert_allclose(rho / cap.albedo[lit], cap.exposure, rtol=5e-3)
+
+
+def test_truth_table_reads_back_with_uvps_measure(tmp_path):
+    from uvps.measure import read_protrusions_csv
+
+    cap = make_capture(shape=(200, 260), n_lights=3, protrusion_density_light=200.0, seed=2)
+    write_capture(cap, tmp_path / "cap")
+    table = read_protrusions_csv(tmp_path / "cap" / "truth" / "protrusions.csv")
+    assert table["id"].size == cap.protrusions["id"].size > 5
+    for key in ("x_px", "y_px", "width_um", "height_um"):
+        np.testing.assert_allclose(table[key], cap.protrusions[key], atol=1e-4)
+    np.testing.assert_array_equal(table["crater"], cap.protrusions["crater"].astype(int))
+    np.testing.assert_array_equal(table["region"], cap.protrusions["region"])
+    np.testing.assert_allclose(table["area_um2"], np.pi * table["width_um"] ** 2 / 4, rtol=1e-4)

@@ -724,11 +724,6 @@ def _checked_overrides(overrides):
 # --------------------------------------------------------------------------------------------
 
 
-def _imagej_write(path, data, pixel_size_um, axes):
-    tifffile.imwrite(path, data, imagej=True, resolution=(1 / pixel_size_um, 1 / pixel_size_um),
-                     metadata={"unit": "micron", "axes": axes})
-
-
 def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> list:
     """Write a capture as a folder of 16-bit TIFFs, light files and (optionally) ground truth.
 
@@ -752,8 +747,10 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> l
     ``unit=micron`` so that ImageJ's calibration is right. ``lights_positions_mm.csv``
     (file,x_mm,y_mm,z_mm) and ``lights.lp`` (RTI format: K, then ``file x y z``, the unit
     direction from the image centre to each light). ``truth/``: ``height_um.tif``,
-    ``normals.tif`` (3, M, N) CYX, ``albedo.tif``, ``regions.tif`` (uint16 labels),
-    ``protrusions.csv``, ``truth.json``. Truth TIFFs are ImageJ hyperstacks (float32).
+    ``normals.tif`` (3, M, N) CYX, ``albedo.tif``, ``regions.tif`` (labels, uint16 as ImageJ has
+    no 32-bit integers), ``protrusions.csv`` (columns as ``uvps.measure``'s, plus ``weak``,
+    ``aspect``, ``angle_deg``, ``region_name``), ``truth.json``. Truth TIFFs are ImageJ
+    hyperstacks written by :func:`uvps.io.write_imagej_tiff`.
     """
     px = float(capture.spec.pixel_size_um)
     k = capture.images.shape[0]
@@ -787,19 +784,26 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> l
 def _write_truth(capture, folder, image_names):
     folder.mkdir()
     px = float(capture.spec.pixel_size_um)
-    _imagej_write(folder / "height_um.tif", capture.height_um.astype(np.float32), px, "YX")
-    _imagej_write(folder / "normals.tif",
-                  np.ascontiguousarray(np.moveaxis(capture.normals, -1, 0), dtype=np.float32),
-                  px, "CYX")
+    # Truth TIFFs are ImageJ hyperstacks through the shared writer (atomic, calibrated in um).
+    from .io import write_imagej_tiff
+
+    def imagej(name, data, axes, labels=None):
+        write_imagej_tiff(folder / name, data, axes=axes, pixel_size_um=px, labels=labels)
+
+    imagej("height_um.tif", capture.height_um.astype(np.float32), "YX")
+    imagej("normals.tif", np.moveaxis(capture.normals, -1, 0).astype(np.float32), "CYX",
+           ["nx", "ny", "nz"])
     alb = capture.albedo.astype(np.float32)
     if alb.ndim == 3:
-        _imagej_write(folder / "albedo.tif", np.ascontiguousarray(np.moveaxis(alb, -1, 0)),
-                      px, "CYX")
+        imagej("albedo.tif", np.moveaxis(alb, -1, 0), "CYX", ["R", "G", "B"])
     else:
-        _imagej_write(folder / "albedo.tif", alb, px, "YX")
-    _imagej_write(folder / "regions.tif", capture.regions.astype(np.uint16), px, "YX")
-    prot = capture.protrusions
-    columns = list(prot)
+        imagej("albedo.tif", alb, "YX")
+    imagej("regions.tif", capture.regions.astype(np.int32), "YX")
+    # Same leading columns as uvps.measure's protrusions.csv, so `compare` takes it as is.
+    prot = dict(capture.protrusions)
+    prot["area_um2"] = np.pi * prot["width_um"] ** 2 / 4
+    columns = ["id", "x_px", "y_px", "width_um", "area_um2", "height_um", "crater", "region",
+               "weak", "aspect", "angle_deg"]
     with open(folder / "protrusions.csv", "w", newline="", encoding="utf-8") as fh:
         wr = csv.writer(fh)
         wr.writerow(columns + ["region_name"])
