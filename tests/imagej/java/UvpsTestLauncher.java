@@ -7,7 +7,7 @@
 //     TextAreas, TextFields, MultiLineLabels, Checkboxes, Choices, Buttons) to stderr and halts the JVM with status 3
 //     (DIALOG_STATUS); or
 //   - with -Duvps.screenshot.dir=/abs/dir, waits uvps.screenshot.delay_ms (default 1000) for the
-//     dialog to paint, saves it as <dir>/<title>.png (java.awt.Robot), prints
+//     dialog to paint, saves it as <dir>/<title>.png (painted off screen with printAll), prints
 //     "UVPS-SCREENSHOT: <png>" to stderr, then presses the button named by uvps.screenshot.button
 //     (default "OK"; the dialog is disposed when no such button exists), so the macro continues.
 // ImageJ's own uncaught-exception and IJ.error paths in batch mode end up in a dialog, so they are
@@ -20,8 +20,6 @@ import java.awt.Component;
 import java.awt.Container;
 import java.awt.Dialog;
 import java.awt.Label;
-import java.awt.Rectangle;
-import java.awt.Robot;
 import java.awt.TextComponent;
 import java.awt.Toolkit;
 import java.awt.Window;
@@ -150,8 +148,7 @@ public class UvpsTestLauncher {
             for (int i = 2; png.exists(); i++) {
                 png = new File(dir, name + "_" + i + ".png");
             }
-            Rectangle bounds = dialog.getBounds();
-            BufferedImage image = new Robot().createScreenCapture(bounds);
+            BufferedImage image = paint(dialog);
             ImageIO.write(image, "png", png);
             System.err.println("UVPS-SCREENSHOT: " + png.getAbsolutePath());
             System.err.flush();
@@ -171,6 +168,31 @@ public class UvpsTestLauncher {
                 }
             }
         });
+    }
+
+    /**
+     * Render the dialog off screen with printAll on the event thread. A java.awt.Robot screen
+     * capture was tried first but is unreliable without a window manager: under load the dialog
+     * reports bounds (0, 0) while X shows it elsewhere, which gives a black capture.
+     */
+    private static BufferedImage paint(final Dialog dialog) throws Exception {
+        final BufferedImage[] out = new BufferedImage[1];
+        java.awt.EventQueue.invokeAndWait(new Runnable() {
+            @Override
+            public void run() {
+                dialog.validate();
+                BufferedImage image = new BufferedImage(dialog.getWidth(), dialog.getHeight(),
+                        BufferedImage.TYPE_INT_RGB);
+                java.awt.Graphics2D g = image.createGraphics();
+                g.setColor(dialog.getBackground() != null ? dialog.getBackground()
+                        : java.awt.Color.LIGHT_GRAY);
+                g.fillRect(0, 0, image.getWidth(), image.getHeight());
+                dialog.printAll(g);
+                g.dispose();
+                out[0] = image;
+            }
+        });
+        return out[0];
     }
 
     private static Button findButton(Container root, String label) {
