@@ -1,0 +1,120 @@
+"""scripts/install_fiji.py run as users run it (a subprocess) on Fiji-like and ImageJ-like
+folders in tmp_path, with a small source tree so the expected files are known exactly."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+INSTALLER = Path(__file__).resolve().parent.parent / "scripts" / "install_fiji.py"
+
+
+def run_installer(*args):
+    return subprocess.run([sys.executable, str(INSTALLER)] + [str(a) for a in args],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          universal_newlines=True, timeout=120)
+
+
+@pytest.fixture
+def source(tmp_path):
+    root = tmp_path / "source"
+    menu = root / "plugins" / "UV_Photometric_Stereo"
+    lib = root / "jython_lib" / "uvps_fiji"
+    menu.mkdir(parents=True)
+    lib.mkdir(parents=True)
+    (menu / "Run_Whole_Pipeline.py").write_text("print('run')\n")
+    (menu / "UVPS_Settings.py").write_text("print('settings')\n")
+    (menu / "notes.txt").write_text("not a script\n")
+    (lib / "__init__.py").write_text("")
+    (lib / "bridge_logic.py").write_text("X = 1\n")
+    (lib / "bridge_logic$py.class").write_bytes(b"\xca\xfe")
+    return root
+
+
+def make_fiji(tmp_path, marker="ImageJ-linux64"):
+    root = tmp_path / "Fiji.app"
+    (root / "plugins").mkdir(parents=True)
+    (root / "jars").mkdir()
+    if marker == "Contents":
+        (root / "Contents").mkdir()
+    else:
+        (root / marker).write_text("")
+    return root
+
+
+def read_cfg(path):
+    lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    return dict((k.strip(), v.strip()) for k, v in (ln.split("=", 1) for ln in lines))
+
+
+@pytest.mark.parametrize("marker", ["ImageJ-linux64", "Contents"])
+def test_fiji_layout(tmp_path, source, marker):
+    root = make_fiji(tmp_path, marker)
+    proc = run_installer(root, "--source-root", source)
+    assert proc.returncode == 0, proc.stderr
+    menu = root / "plugins" / "UV_Photometric_Stereo"
+    lib = root / "jars" / "Lib" / "uvps_fiji"
+    assert sorted(p.name for p in menu.iterdir()) == ["Run_Whole_Pipeline.py", "UVPS_Settings.py"]
+    assert sorted(p.name for p in lib.iterdir()) == ["__init__.py", "bridge_logic.py",
+                                                     "uvps_fiji.cfg"]
+    cfg = read_cfg(lib / "uvps_fiji.cfg")
+    assert cfg["python"] == sys.executable
+    import uvps
+    assert cfg["uvps_version"] == uvps.__version__
+    assert not (root / "plugins" / "jars").exists()
+
+
+def test_plain_imagej_layout_puts_library_at_depth_three(tmp_path, source):
+    root = tmp_path / "ImageJ"
+    (root / "plugins").mkdir(parents=True)
+    (root / "jars").mkdir()  # jars/ without a launcher is not Fiji
+    proc = run_installer(root, "--source-root", source)
+    assert proc.returncode == 0, proc.stderr
+    lib = root / "plugins" / "jars" / "Lib" / "uvps_fiji"
+    assert (lib / "bridge_logic.py").read_text() == "X = 1\n"
+    assert read_cfg(lib / "uvps_fiji.cfg")["python"] == sys.executable
+    assert not (root / "jars" / "Lib").exists()
+
+
+def test_reinstall_replaces_stale_files_and_uninstall_removes_all(tmp_path, source):
+    root = make_fiji(tmp_path)
+    assert run_installer(root, "--source-root", source).returncode == 0
+    stale = root / "plugins" / "UV_Photometric_Stereo" / "Old_Command.py"
+    stale.write_text("print('old')\n")
+    (root / "plugins" / "Other_Plugin.py").write_text("print('not ours')\n")
+    assert run_installer(root, "--source-root", source).returncode == 0
+    assert not stale.exists()
+    proc = run_installer(root, "--uninstall")
+    assert proc.returncode == 0, proc.stderr
+    assert not (root / "plugins" / "UV_Photometric_Stereo").exists()
+    assert not (root / "jars" / "Lib" / "uvps_fiji").exists()
+    assert (root / "plugins" / "Other_Plugin.py").is_file()
+    assert "nothing to remove" in run_installer(root, "--uninstall").stdout
+
+
+def test_python_without_uvps_is_refused(tmp_path, source):
+    root = make_fiji(tmp_path)
+    fake = tmp_path / "fake_python"
+    fake.write_text("#!/bin/sh\necho \"ModuleNotFoundError: No module named 'uvps'\" >&2\nexit 1\n")
+    fake.chmod(0o755)
+    proc = run_installer(root, "--python", fake, "--source-root", source)
+    assert proc.returncode == 1
+    assert "cannot import uvps" in proc.stderr and str(fake) in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (root / "plugins" / "UV_Photometric_Stereo").exists()
+
+
+@pytest.mark.parametrize("layout, message", [
+    ("no_plugins", "is not a Fiji or ImageJ folder"),
+    ("no_scripts", "no menu scripts"),
+])
+def test_bad_folders_are_refused(tmp_path, source, layout, message):
+    root = tmp_path / "target"
+    root.mkdir()
+    if layout == "no_scripts":
+        (root / "plugins").mkdir()
+        for script in (source / "plugins" / "UV_Photometric_Stereo").glob("*.py"):
+            script.unlink()
+    proc = run_installer(root, "--source-root", source)
+    assert proc.returncode == 1
+    assert message in proc.stderr
