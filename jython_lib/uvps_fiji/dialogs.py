@@ -55,7 +55,8 @@ class UVPSDialog(object):
         if kind == "number":
             return Prefs.get(pref, float(default))
         if kind == "checkbox":
-            return Prefs.get(pref, bool(default))
+            # Jython resolves Prefs.get(String, bool) to the double overload: keep text.
+            return Prefs.get(pref, "true" if default else "false") == "true"
         return Prefs.get(pref, default if default is not None else "")
 
     def number(self, label, default, decimals=2, units=None):
@@ -108,7 +109,10 @@ class UVPSDialog(object):
             raise ValueError("a number field of '%s' holds no number" % self.title)
         if Macro.getOptions() is None:
             for key, kind in self.fields:
-                Prefs.set(PREFIX + key, values[key])
+                value = values[key]
+                if kind == "checkbox":
+                    value = "true" if value else "false"
+                Prefs.set(PREFIX + key, value)
         return values
 
 

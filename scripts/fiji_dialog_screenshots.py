@@ -1,0 +1,101 @@
+#!/usr/bin/env python3
+"""Screenshot every uvps menu item's dialog in the real ImageJ 1.x under Xvfb, for docs/fiji/.
+
+Uses the test harness's launcher (tests/imagej/java/UvpsTestLauncher.java) in screenshot mode:
+each dialog is saved as PNG and then cancelled, so nothing runs. The dialogs are pre-filled with
+example values through ij.Prefs (the values a user would see after a first run).
+
+Usage::
+
+    .venv/bin/python scripts/fiji_dialog_screenshots.py [--out docs/fiji/img]
+"""
+import argparse
+import os
+import select
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+IJ_JAR = "/usr/share/java/ij.jar"
+JYTHON_JAR = "/usr/share/java/jython.jar"
+
+MENU_ITEMS = ["Run Whole Pipeline", "Estimate Lights", "Flat Field", "Normals and Albedo",
+              "Integrate Height", "Colour Areas", "Detect Protrusions", "Wand Count",
+              "Statistics and Report", "Compare Counts", "Relight", "UVPS Settings"]
+
+#: Example values shown in the screenshots (ij.Prefs keys uvps.<macro key>).
+EXAMPLES = {"run": "/data/okeeffe/run1", "images": "/data/okeeffe/uv capture",
+            "capture": "Folder or files", "first": "/data/okeeffe/run1/protrusions_manual.csv",
+            "second": "/data/okeeffe/run1/protrusions.csv"}
+
+
+def start_xvfb():
+    read_fd, write_fd = os.pipe()
+    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24",
+                             "-nolisten", "tcp"], pass_fds=(write_fd,),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    os.close(write_fd)
+    data = b""
+    deadline = time.monotonic() + 30
+    while not data.endswith(b"\n") and time.monotonic() < deadline:
+        if select.select([read_fd], [], [], 0.5)[0]:
+            chunk = os.read(read_fd, 64)
+            if not chunk:
+                break
+            data += chunk
+    os.close(read_fd)
+    return proc, ":" + data.decode().strip()
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=str(REPO / "docs" / "fiji" / "img"))
+    args = parser.parse_args(argv)
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix="uvps-shots-"))
+    xvfb = None
+    try:
+        build = work / "classes"
+        build.mkdir()
+        subprocess.run(["javac", "-nowarn", "-d", str(build), "-cp",
+                        os.pathsep.join([IJ_JAR, JYTHON_JAR])]
+                       + [str(p) for p in (REPO / "tests" / "imagej" / "java").glob("*.java")],
+                       check=True)
+        home = work / "ImageJ"
+        (home / "plugins").mkdir(parents=True)
+        subprocess.run([sys.executable, str(REPO / "scripts" / "install_fiji.py"), str(home),
+                        "--python", sys.executable], check=True, stdout=subprocess.DEVNULL)
+        macro = "".join('call("ij.Prefs.set", "uvps.%s", "%s");\n' % kv for kv in EXAMPLES.items())
+        macro += "".join('run("%s");\n' % item for item in MENU_ITEMS)
+        (work / "shots.ijm").write_text(macro)
+        xvfb, display = start_xvfb()
+        cmd = ["java", "-Duser.home=%s" % work, "-Duvps.screenshot.dir=%s" % out,
+               "-Duvps.screenshot.button=Cancel", "-Duvps.screenshot.delay_ms=3000", "-cp",
+               os.pathsep.join([IJ_JAR, JYTHON_JAR, str(build)]), "UvpsTestLauncher",
+               "-ijpath", str(home), "-batch", str(work / "shots.ijm"), ""]
+        proc = subprocess.run(cmd, env=dict(os.environ, DISPLAY=display),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              universal_newlines=True, timeout=600)
+        shots = [line.split(": ", 1)[1] for line in proc.stderr.splitlines()
+                 if line.startswith("UVPS-SCREENSHOT: /")]
+        for shot in shots:
+            print(shot)
+        if proc.returncode != 0 or len(shots) != len(MENU_ITEMS):
+            print(proc.stdout, proc.stderr, file=sys.stderr)
+            return 1
+    finally:
+        if xvfb is not None:
+            xvfb.terminate()
+            xvfb.wait()
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
