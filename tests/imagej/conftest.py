@@ -1,6 +1,6 @@
 """Fixtures that run the real ImageJ 1.x (Debian's ij.jar + jython.jar) under a private Xvfb.
 
-See tests/imagej/README.md. In short: one Xvfb and one compilation of ``java/*.java`` per session;
+See tests/imagej/README.md. In short: one Xvfb and one compilation of ``java/*.java`` (into pytest's temp folder) per session;
 a fresh ImageJ folder per test, filled by ``scripts/install_fiji.py`` (the real installer); one
 fresh JVM per macro (``UvpsTestLauncher ... -batch macro.ijm``), killed with its process group on
 timeout. A modal dialog halts the JVM with status 3, an uncaught Python exception with status 4.
@@ -22,7 +22,6 @@ import pytest
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
 JAVA_SOURCES = sorted((HERE / "java").glob("*.java"))
-BUILD_DIR = HERE / "_build"
 DEPS_SCRIPT = REPO / "scripts" / "install_imagej_deps.sh"
 INSTALLER = REPO / "scripts" / "install_fiji.py"
 IJ_JAR = Path(os.environ.get("UVPS_IJ_JAR", "/usr/share/java/ij.jar"))
@@ -102,10 +101,9 @@ def _ensure_tools():
                      % (", ".join(missing), proc.stdout.strip()[-2000:]))
 
 
-def _compile():
-    BUILD_DIR.mkdir(exist_ok=True)
+def _compile(build_dir):
     classpath = os.pathsep.join([str(IJ_JAR), str(JYTHON_JAR)])
-    proc = subprocess.run(["javac", "-nowarn", "-encoding", "UTF-8", "-d", str(BUILD_DIR),
+    proc = subprocess.run(["javac", "-nowarn", "-encoding", "UTF-8", "-d", str(build_dir),
                            "-cp", classpath] + [str(p) for p in JAVA_SOURCES],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           universal_newlines=True, timeout=300)
@@ -146,9 +144,13 @@ def _start_xvfb(log_path):
 def imagej_env(tmp_path_factory):
     """Dependencies checked (installed when allowed), Java helpers compiled, Xvfb running."""
     _ensure_tools()
-    _compile()
+    # Classes go to this session's private temp folder, not into the working tree: several
+    # pytest sessions may run at once in a shared checkout, and javac rewriting class files
+    # while another session's JVM loads them would make both flaky.
+    build_dir = tmp_path_factory.mktemp("ij_classes")
+    _compile(build_dir)
     xvfb, display = _start_xvfb(tmp_path_factory.mktemp("xvfb") / "xvfb.log")
-    classpath = os.pathsep.join([str(IJ_JAR), str(JYTHON_JAR), str(BUILD_DIR)])
+    classpath = os.pathsep.join([str(IJ_JAR), str(JYTHON_JAR), str(build_dir)])
     try:
         yield ImageJEnv(java=shutil.which("java"), classpath=classpath, display=display)
     finally:
