@@ -168,3 +168,28 @@ def test_bad_csv(tmp_path):
     p.write_text("x_px,y_px,width_um\n1,two,3\n")
     with pytest.raises(UVPSInputError, match="'two'"):
         read_protrusions_csv(p)
+
+
+def _profile(rho, crater):
+    """Dome (1 - rho^2)^1.3, minus a central crater of depth 0.35 and radius 0.35 if asked."""
+    f = np.where(rho < 1, np.clip(1 - rho**2, 0, None) ** 1.3, 0.0)
+    if crater:
+        f = f - 0.35 * np.clip(1 - (rho / 0.35) ** 2, 0, None) ** 2
+    return f
+
+
+@pytest.mark.parametrize("crater", [True, False])
+def test_crater_and_relief_on_a_slope_with_a_loose_outline(crater):
+    """A 40 um protrusion (radius 12 px) on a surface sloping 2 um per pixel; the label is a
+    larger disc shifted by 3 px (as an albedo outline may be)."""
+    shape = (80, 80)
+    rr, cc = np.mgrid[: shape[0], : shape[1]]
+    rho = np.hypot(rr - 40, cc - 40) / 12.0
+    slope = 2.0 * cc + 0.5 * rr
+    height = slope + 40.0 * _profile(rho, crater)
+    peak = (40.0 * _profile(rho, crater)).max()
+    labels = (np.hypot(rr - 37, cc - 42) <= 14).astype(np.int32)
+    t = measure_protrusions(labels, albedo=np.ones(shape), height_um=height, pixel_size_um=PX)
+    assert t["crater"][0] == int(crater)
+    # relief above the local (sloping) surface, not above the ring's median
+    assert t["height_um"][0] == pytest.approx(peak, rel=0.03)

@@ -41,14 +41,17 @@ class MeasureOptions:
         Width of the surround ring, as a fraction of the protrusion width (the paper's
         protrusions sit on a flat-ish paint layer; 0.5 x width reaches clear of the slope).
     crater_fraction : float
-        A crater needs its centre at least this fraction of the rim's relief below the rim.
+        A crater needs its centre at least this fraction of the relief below the rim.
+    crater_min_depth_um : float
+        ... and at least this many micrometres below it (noise on low protrusions).
     crater_min_width_px : float
         Protrusions narrower than this (in pixels) are too small to resolve a crater: crater = 0.
     """
 
     ring_factor: float = 0.5
-    crater_fraction: float = 0.15
-    crater_min_width_px: float = 6.0
+    crater_fraction: float = 0.10
+    crater_min_depth_um: float = 1.0
+    crater_min_width_px: float = 8.0
 
 
 def empty_table() -> dict:
@@ -121,20 +124,38 @@ def _region_at(regions, rows, cols, shape) -> np.ndarray:
     return reg[r, c].astype(np.int64)
 
 
+def _surround_plane(rows, cols, values):
+    """Least-squares plane ``a + b*row + c*col`` through the surround ring (a callable).
+
+    Falls back to the median (a constant) when the ring is too small or degenerate to fit a
+    plane (fewer than 8 pixels, or all in one line)."""
+    med = float(np.median(values))
+    if len(values) >= 8:
+        A = np.column_stack([np.ones(len(values)), rows, cols])
+        coef, _, rank, _ = np.linalg.lstsq(A, values, rcond=None)
+        if rank == 3:
+            return lambda r, c: coef[0] + coef[1] * r + coef[2] * c
+    return lambda r, c: np.full(np.shape(r), med)
+
+
 def _height_and_crater(labels, height, ids, widths_px, opts: MeasureOptions):
-    """Peak height above the surround ring, and the crater flag, per label.
+    """Peak height above the surround, and the crater flag, per label.
 
     Hand-written because no library measures a local relief: for each protrusion the ring is the
     background pixels (label 0, finite height) within ``ring_factor * width`` of its outline (a
-    Euclidean distance transform on a padded crop); the relief is the maximum height inside minus
-    the median height of that ring.
+    Euclidean distance transform on a padded crop). A least-squares plane through the ring (its
+    median when the ring is too small) is the local surface, so the canvas weave or bow under a
+    protrusion does not bias it. The relief is the highest point inside above that plane.
 
-    Crater (the paper's caldera-like craters): the core is the inner half of the protrusion (pixels
-    whose distance to the outline is at least half the largest such distance), the rim zone is the
-    rest. The rim height is the 90th percentile of the rim zone (robust to a stray pixel), the
-    centre height the median of the core. Crater = 1 when the centre lies below the rim by at least
-    ``crater_fraction`` of the rim's relief above the surround. A dome has its core above its rim
-    zone, so it never qualifies; noise below that fraction of the relief does not either.
+    Crater (the paper's caldera-like craters): with heights taken above the surround plane, the
+    body is the part of the label raised by at least 20 % of the relief (a label outline from the
+    albedo may reach past the relief), its centre the relief-weighted centroid (for a ring-shaped
+    rim still the crater's middle), the centre height the median within 0.2 x the body's
+    equivalent radius (at least 1 px) of that centre, and the rim height the body's 98th
+    percentile (a robust maximum). Crater = 1 when the centre lies below the rim by at least
+    ``crater_fraction`` of the relief and by ``crater_min_depth_um``. A dome peaks at its centre,
+    so it never qualifies; neither does a tilted surround (removed by the plane) nor noise below
+    those thresholds.
     """
     n = len(ids)
     rel = np.full(n, np.nan)
@@ -149,29 +170,33 @@ def _height_and_crater(labels, height, ids, widths_px, opts: MeasureOptions):
         c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, N)
         lab_crop = labels[r0:r1, c0:c1]
         h_crop = height[r0:r1, c0:c1]
-        inside = lab_crop == lab
-        h_in = h_crop[inside]
-        h_in = h_in[np.isfinite(h_in)]
-        if h_in.size == 0:
+        finite = np.isfinite(h_crop)
+        inside = (lab_crop == lab) & finite
+        if not inside.any():
             continue
-        dist_out = ndi.distance_transform_edt(~inside)
-        ring = (dist_out > 0) & (dist_out <= ring_px) & (lab_crop == 0) & np.isfinite(h_crop)
+        dist_out = ndi.distance_transform_edt(lab_crop != lab)
+        ring = (dist_out > 0) & (dist_out <= ring_px) & (lab_crop == 0) & finite
         if not ring.any():
             log.debug("label %d: no free surround ring; height left NaN", lab)
             continue
-        surround = float(np.median(h_crop[ring]))
-        rel[i] = float(h_in.max()) - surround
-        if widths_px[i] < opts.crater_min_width_px:
+        rr, cc = np.nonzero(ring)
+        plane = _surround_plane(rr, cc, h_crop[ring])
+        ri, ci = np.nonzero(inside)
+        above = h_crop[inside] - plane(ri, ci)
+        rel[i] = float(above.max())
+        if widths_px[i] < opts.crater_min_width_px or rel[i] <= 0:
             continue
-        dist_in = ndi.distance_transform_edt(np.pad(inside, 1))[1:-1, 1:-1]
-        core = inside & (dist_in >= 0.5 * dist_in.max()) & np.isfinite(h_crop)
-        rim = inside & ~core & np.isfinite(h_crop)
-        if not core.any() or not rim.any():
+        body = above >= 0.2 * rel[i]  # the raised body (a label may reach past it)
+        wts = above[body]
+        cr, cc_ = np.average(ri[body], weights=wts), np.average(ci[body], weights=wts)
+        radius = max(1.0, 0.2 * np.sqrt(body.sum() / np.pi))
+        core = body & ((ri - cr) ** 2 + (ci - cc_) ** 2 <= radius**2)
+        if not core.any():
             continue
-        rim_h = float(np.percentile(h_crop[rim], 90))
-        centre_h = float(np.median(h_crop[core]))
-        relief = rim_h - surround
-        if relief > 0 and rim_h - centre_h >= opts.crater_fraction * relief:
+        rim_h = float(np.percentile(above[body], 98))
+        centre_h = float(np.median(above[core]))
+        depth = rim_h - centre_h
+        if depth >= opts.crater_fraction * rel[i] and depth >= opts.crater_min_depth_um:
             crater[i] = 1
     return rel, crater
 
@@ -202,9 +227,9 @@ def measure_protrusions(labels, *, albedo, height_um, pixel_size_um: float, regi
     table : dict of str -> ndarray
         Columns :data:`COLUMNS`, one row per label in increasing label order: ``id`` (the label),
         ``x_px``/``y_px`` centroid (column/row), ``width_um`` equivalent-circle diameter,
-        ``area_um2``, ``height_um`` peak height above the median of a surround ring of
-        ``ring_factor x width`` (NaN if no free surround), ``crater`` (0/1), ``r``, ``g``, ``b``,
-        ``region``, ``source``.
+        ``area_um2``, ``height_um`` peak height above the local surface (a plane through the
+        ring of ``ring_factor x width`` around the protrusion; NaN if no free surround),
+        ``crater`` (0/1), ``r``, ``g``, ``b``, ``region``, ``source``.
 
     Notes
     -----
