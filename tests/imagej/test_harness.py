@@ -49,6 +49,21 @@ def test_jython_plugin_runs_as_menu_command(run_macro, bare_imagej_home, write_p
     assert elapsed < 60
 
 
+def test_java_exception_from_jython_fails_too(run_macro, bare_imagej_home, write_plugin):
+    write_plugin(bare_imagej_home, "Test_Menu/Parse_Number.py",
+                 'from java.lang import Integer\nInteger.parseInt("twelve")\n')
+    result = run_macro('run("Parse Number");\n', home=bare_imagej_home)
+    assert result.returncode == PYTHON_EXCEPTION_STATUS
+    assert "NumberFormatException" in result.stderr and "twelve" in result.stderr
+
+
+def test_stalled_macro_is_killed_at_the_timeout(run_macro, bare_imagej_home):
+    started = time.monotonic()
+    with pytest.raises(pytest.fail.Exception, match="did not finish within 3 s"):
+        run_macro('print("waiting");\nwait(600000);\n', home=bare_imagej_home, timeout=3)
+    assert time.monotonic() - started < 15
+
+
 def test_python_exception_fails_with_traceback(run_macro, bare_imagej_home, write_plugin):
     write_plugin(bare_imagej_home, "Test_Menu/Raise_Error.py",
                  'def inner():\n    raise ValueError("lamp 7 is missing")\n'
