@@ -188,3 +188,17 @@ def test_propose_bad_input():
         propose_regions(alb, pixel_size_um=15.0, mask=np.ones((5, 5), bool))
     with pytest.raises(UVPSInputError, match="albedo"):
         propose_regions(np.ones((2, 5, 5)), pixel_size_um=15.0)
+
+
+def test_statistics_reject_an_area_without_pixels():
+    regions = _two_areas()
+    regions.names[3] = "ghost"
+    with pytest.raises(UVPSInputError, match=r"colour area 3 \(ghost\) has no pixels"):
+        region_statistics(_table([[1, 1, 10]]), regions, pixel_size_um=PX)
+
+
+def test_statistics_bad_table_and_regions():
+    with pytest.raises(UVPSInputError, match="width_um"):
+        region_statistics({"x_px": [1.0], "y_px": [1.0]}, _two_areas(), pixel_size_um=PX)
+    with pytest.raises(UVPSInputError, match="RegionMap"):
+        region_statistics(_table([]), np.ones((3, 3), int), pixel_size_um=PX)
