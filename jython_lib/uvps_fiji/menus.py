@@ -208,7 +208,7 @@ def compare_counts(values):
             raise BridgeError("protrusion table '%s' (key %s) does not exist" % (path or "", key))
         paths.append(path)
     response = runner.call("compare", {"a": paths[0], "b": paths[1]},
-                           {"match_radius_um": float(values.get("match"))}, out)
+                           {"match_radius_um": number_or_none(values.get("match"))}, out)
     display.open_table(response.file("comparison.csv"), "Comparison")
     return response
 

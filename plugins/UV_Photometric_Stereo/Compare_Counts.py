@@ -3,7 +3,7 @@
 A protrusion of the first table matches one of the second within the match radius; opens a
 "Comparison" table (matched / missed / extra per area) and writes comparison.csv.
 
-Macro: run("Compare Counts", "run=[/data/run] first=[/data/run/protrusions_manual.csv] second=[/data/run/protrusions.csv] match=30");
+Macro: run("Compare Counts", "run=[/data/run] first=[/data/run/protrusions_manual.csv] second=[/data/run/protrusions.csv] match=0");
 """
 import os
 import sys
@@ -26,7 +26,7 @@ def main():
     dialogs.add_run_field(dlg)
     dlg.file("First protrusion table (e.g. protrusions_manual.csv)", "")
     dlg.file("Second protrusion table (e.g. protrusions.csv)", "")
-    dlg.number("Match radius", 30, decimals=1, units=u"\u00b5m")
+    dlg.number("Match radius (0 = automatic)", 0, decimals=1, units=u"\u00b5m")
     values = dlg.show()
     if values is not None:
         menus.compare_counts(values)
