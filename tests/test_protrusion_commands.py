@@ -138,6 +138,11 @@ def test_regions_from_masks_and_stats_and_compare(run, capture):
     with open(run / "comparison.csv", newline="") as fh:
         comp_rows = list(csv.DictReader(fh))
     assert [r["name"] for r in comp_rows] == ["left", "right", "all areas"]
+    assert (run / "figures" / "comparison_map.png").is_file()
+    # the report picks up the comparison
+    cmd_stats({}, {}, run)
+    text = (run / "report.html").read_text()
+    assert "figures/comparison_map.png" in text and "figures/comparison.png" in text
 
 
 def test_regions_auto_writes_imagej_label_tiff(run):

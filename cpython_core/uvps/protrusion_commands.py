@@ -368,11 +368,13 @@ def cmd_compare(inputs: dict, params: dict, output_dir, *,
     Inputs: ``a`` (reference, e.g. ``protrusions_manual.csv``), ``b`` (e.g. ``protrusions.csv``).
     Params: ``match_radius_um`` (null = max(2 px, 0.5 x the larger width)), ``regions`` (label
     TIFF; default the run's ``regions_labels.tif``, else the whole image), ``pixel_size_um``
-    (default from the run's TIFFs). Writes ``comparison.csv``.
+    (default from the run's TIFFs). Writes ``comparison.csv`` and, when the run has an albedo,
+    ``figures/comparison_map.png`` (``b`` circled in red, ``a``'s missed ones in yellow).
     """
     from .compare import compare_detections, write_comparison_csv
     from .measure import read_protrusions_csv
     from .regions import whole_image
+    from .report import plot_comparison_map
 
     run_dir = Path(output_dir)
     warnings = _unknown(params, {"match_radius_um", "regions", "pixel_size_um"})
@@ -395,12 +397,20 @@ def cmd_compare(inputs: dict, params: dict, output_dir, *,
     comp = compare_detections(a, b, regions=regions, pixel_size_um=images.pixel_size_um,
                               match_radius_um=params.get("match_radius_um"),
                               name_a=a_path.stem, name_b=b_path.stem)
+    outputs = [OutputSpec("comparison", str(run_dir / "comparison.csv"), kind="table",
+                          units="cm^-2")]
     with atomic_output_dir(run_dir) as tmp:
         write_comparison_csv(tmp / "comparison.csv", comp)
+        if images.albedo is not None:
+            report(progress, 0.6, "comparison map")
+            plot_comparison_map(images.albedo, a, b, comp, tmp / "figures" / "comparison_map.png",
+                                pixel_size_um=images.pixel_size_um)
+            outputs.append(OutputSpec("figure_comparison_map",
+                                      str(run_dir / "figures" / "comparison_map.png"),
+                                      kind="image", axes="YXS", dtype="uint8"))
     report(progress, 1.0, f"{len(comp.pairs)} matched")
     total = comp.rows[-1]
-    return CommandResult([OutputSpec("comparison", str(run_dir / "comparison.csv"), kind="table",
-                                     units="cm^-2")],
+    return CommandResult(outputs,
                          {"matched": total["matched"], "missed": total["missed"],
                           "extra": total["extra"], "a": str(a_path), "b": str(b_path)}, warnings)
 

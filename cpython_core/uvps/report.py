@@ -334,6 +334,42 @@ def plot_comparison(rows: list, path, *, name_a: str = "a", name_b: str = "b") -
     return save_figure(fig, path)
 
 
+def plot_comparison_map(albedo: np.ndarray, a: dict, b: dict, comparison, path, *,
+                        pixel_size_um: float) -> Path:
+    """Albedo with ``b``'s protrusions circled in red and ``a``'s missed ones in yellow (Fig. 4b).
+
+    Circles have the protrusion's width as diameter, at its centroid.
+    """
+    from matplotlib.patches import Circle
+
+    img = _display_albedo(albedo)
+    step = _display_step(img.shape)
+    m, n = img.shape[:2]
+    fig = _figure((7, 7 * m / n + 0.6), layout=None)
+    ax = fig.add_subplot()
+    ext = _extent_mm(img.shape, pixel_size_um)
+    ax.imshow(img[::step, ::step], cmap="gray", vmin=0, vmax=1, extent=ext,
+              interpolation="nearest")
+    to_mm = pixel_size_um / 1000.0
+
+    def circles(table, rows, colour):
+        for i in rows:
+            x = (float(table["x_px"][i]) - (n - 1) / 2) * to_mm
+            y = ((m - 1) / 2 - float(table["y_px"][i])) * to_mm
+            r = max(float(np.nan_to_num(table["width_um"][i])) / 2000.0, 2 * to_mm)
+            ax.add_patch(Circle((x, y), r * 1.3, fill=False, color=colour, linewidth=1.0))
+
+    circles(b, range(len(b["x_px"])), "red")
+    circles(a, comparison.missed, "yellow")
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
+    ax.set_title(f"red: {comparison.name_b} ({len(b['x_px'])}); yellow: {comparison.name_a} "
+                 f"missed by it ({len(comparison.missed)})", fontsize=9)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    return save_figure(fig, path)
+
+
 # ---------------------------------------------------------------------------------------------
 # the report
 
@@ -539,6 +575,9 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
         rows, name_a, name_b = comparison.rows, comparison.name_a, comparison.name_b
     elif (run_dir / "comparison.csv").is_file():
         rows = read_comparison_csv(run_dir / "comparison.csv")
+    if rows and (figdir / "comparison_map.png").is_file():
+        page.figures.append(("comparison_map.png", "Protrusions of the second table circled in "
+                             "red, those of the first it missed in yellow (paper Fig. 4b)."))
     if rows:
         _figure_step(page, "comparison.png", f"Density per area: {name_a} vs {name_b} "
                      "(paper Fig. 4c).", plot_comparison, rows, figdir / "comparison.png",
