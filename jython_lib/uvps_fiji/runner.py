@@ -210,6 +210,10 @@ def report_error(title, exc):
     if is_interactive():
         IJ.error("uvps: " + title, message)
         return
+    if Interpreter.getInstance() is not None:
+        # Stop the calling macro: without this, ImageJ would run its next line after a Python
+        # exception in a menu command (tried with ImageJ 1.53t -batch).
+        Interpreter.abort()
     raise PluginError(line)
 
 

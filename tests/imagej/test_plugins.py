@@ -289,3 +289,53 @@ def test_colour_areas_from_rois_in_the_roi_manager(run_macro, truth_run):
     assert labels[110, 210] == 2 and labels[5, 300] == 0
     assert abs(np.sum(labels == 2) - np.pi * 60 * 50) < 0.03 * np.pi * 60 * 50
     assert "areas" in result.stdout
+
+
+# --------------------------------------------------------------------------- the current stack
+
+
+@pytest.fixture(scope="module")
+def grey_capture_dir(tmp_path_factory):
+    from uvps.synthetic import make_capture, write_capture
+
+    cap = make_capture(shape=SHAPE, n_lights=N_LIGHTS, rgb=False, seed=4)
+    folder = tmp_path_factory.mktemp("grey") / "grey capture"
+    write_capture(cap, folder, truth=False)
+    return folder
+
+
+def _azimuths(path):
+    return np.asarray([light["azimuth_deg"] for light in json.loads(path.read_text())["lights"]])
+
+
+def test_an_unsaved_stack_is_written_to_the_request_folder(run_macro, grey_capture_dir,
+                                                           tmp_path):
+    from uvps.commands import COMMANDS
+
+    direct = tmp_path / "direct"
+    COMMANDS["lights"]({"images": [str(grey_capture_dir)]}, {"degree": 4}, direct)
+    out = tmp_path / "from stack"
+    result = run_macro(
+        'File.openSequence("%s/", " filter=uv_");\n'
+        'print("slices " + nSlices);\n'
+        'run("Estimate Lights", "capture=[Current stack] run=%s degree=4");\n'
+        % (grey_capture_dir, q(out)), timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    assert "slices %d" % N_LIGHTS in lines
+    written = [line.split("capture ", 1)[1] for line in lines if line.startswith("uvps: capture ")]
+    assert len(written) == 1 and "uvps-request-" in written[0], lines
+    np.testing.assert_allclose(_azimuths(out / "lights.json"), _azimuths(direct / "lights.json"),
+                               atol=1e-6)
+
+
+def test_a_saved_stack_is_passed_by_its_file(run_macro, grey_capture_dir, tmp_path):
+    stack = np.stack([tifffile.imread(str(p)) for p in sorted(grey_capture_dir.glob("uv_*.tif"))])
+    path = tmp_path / "saved stack.tif"
+    tifffile.imwrite(str(path), stack, imagej=True, resolution=(1 / 15.0, 1 / 15.0),
+                     metadata={"unit": "um"})
+    out = tmp_path / "run"
+    result = run_macro('open("%s");\n'
+                       'run("Estimate Lights", "capture=[Current stack] run=%s degree=4");\n'
+                       % (path, q(out)), timeout=TIMEOUT).check()
+    assert "uvps: capture %s" % path in _log_lines(result)
+    assert len(json.loads((out / "lights.json").read_text())["lights"]) == N_LIGHTS
