@@ -87,6 +87,10 @@ class DetectionParams:
         Minor/major axis ratio below which an elongated region is a brush-stroke ridge.
     ridge_min_length_um : float
         ... provided its major axis is at least this long.
+    ridge_relief_ratio : float
+        A candidate lying on a long elongated raised area (its elevated area passes the ridge
+        test and is 3x longer than the candidate is wide) is a piece of that ridge when its
+        relief / width is below this (protrusions are steeper).
     min_relief_ratio : float
         Relief (peak height above the surround) / equivalent diameter below which a region is
         too low for a protrusion (canvas weave; protrusions are 0.1-0.4).
@@ -109,6 +113,7 @@ class DetectionParams:
     template_scales: int = 4
     ridge_axis_ratio: float = 0.4
     ridge_min_length_um: float = 150.0
+    ridge_relief_ratio: float = 0.1
     min_relief_ratio: float = 0.05
     albedo_grow_um: float = 60.0
 
@@ -192,6 +197,28 @@ def _opening_background(img: np.ndarray, diameter_px: float) -> np.ndarray:
     return opened
 
 
+def _periodic_smooth(u: np.ndarray) -> tuple:
+    """Moisan's periodic + smooth decomposition ``u = p + s`` (J. Math. Imaging Vis. 39, 2011).
+
+    ``p`` has no jump across the image borders when repeated, so its FFT has no edge
+    artefacts; ``s`` is smooth (it carries the border jumps). Hand-written: no library has it.
+    """
+    m, n = u.shape
+    v = np.zeros((m, n), np.float64)
+    v[0, :] = u[-1, :] - u[0, :]
+    v[-1, :] = u[0, :] - u[-1, :]
+    v[:, 0] += u[:, -1] - u[:, 0]
+    v[:, -1] += u[:, 0] - u[:, -1]
+    cy = np.cos(2 * np.pi * np.arange(m) / m)[:, None]
+    cx = np.cos(2 * np.pi * np.fft.rfftfreq(n))[None, :]
+    den = 2 * cy + 2 * cx - 4
+    den[0, 0] = 1.0
+    sv = np.fft.rfft2(v) / den
+    sv[0, 0] = 0
+    smooth = np.fft.irfft2(sv, s=(m, n))
+    return u - smooth, smooth
+
+
 def _remove_periodic(t: np.ndarray, px: float, min_period_um: float, max_period_um: float,
                      factor: float) -> tuple:
     """Remove a periodic texture (canvas weave) by notching strong spectral peaks.
@@ -199,12 +226,14 @@ def _remove_periodic(t: np.ndarray, px: float, min_period_um: float, max_period_
     A weave is a few sharp peaks of the 2-D spectrum (and harmonics) at periods of a few hundred
     um; a protrusion's spectrum is broad and smooth, so zeroing the few bins whose power exceeds
     ``factor`` times the median power at the same spatial frequency (periods in
-    ``[min_period_um, max_period_um]``) removes the weave and leaves the domes. Hand-written
-    because no library does spectral notch filtering of a 2-D image. Returns (filtered, n_bins).
+    ``[min_period_um, max_period_um]``) removes the weave and leaves the domes. The FFT is taken
+    of the periodic component of ``t`` (:func:`_periodic_smooth`) so the edges do not ring.
+    Hand-written because no library does spectral notch filtering of a 2-D image.
+    Returns (filtered, number of notched coefficients).
     """
     m, n = t.shape
-    mean = float(t.mean())
-    spec = np.fft.rfft2(t - mean)
+    per, smooth = _periodic_smooth(t.astype(np.float64))
+    spec = np.fft.rfft2(per)
     fy = np.fft.fftfreq(m)[:, None]
     fx = np.fft.rfftfreq(n)[None, :]
     fr = np.hypot(fy, fx)  # cycles per pixel
@@ -214,20 +243,21 @@ def _remove_periodic(t: np.ndarray, px: float, min_period_um: float, max_period_
     power = spec.real ** 2 + spec.imag ** 2
     ring = np.minimum((fr * max(m, n)).astype(np.int64), max(m, n))
     sel = ring[band]
-    # median power per radial ring (sorted by ring, then per-ring median via reduceat)
-    order = np.lexsort((power[band], sel))
-    rs, ps = sel[order], power[band][order]
+    pb = power[band]
+    # median power per radial ring: sort by (ring, power), take each ring's middle element
+    order = np.lexsort((pb, sel))
+    rs, ps = sel[order], pb[order]
     starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
     counts = np.diff(np.r_[starts, rs.size])
-    med = ps[starts + counts // 2]
     ring_med = np.zeros(int(ring.max()) + 1)
-    ring_med[rs[starts]] = med
+    ring_med[rs[starts]] = ps[starts + counts // 2]
     peaks = band & (power > factor * ring_med[ring])
     if not peaks.any():
         return t, 0
     peaks = ndi.binary_dilation(peaks, structure=np.ones((3, 3))) & band
     spec[peaks] = 0
-    return (np.fft.irfft2(spec, s=(m, n)) + mean).astype(np.float32), int(peaks.sum())
+    out = np.fft.irfft2(spec, s=(m, n)) + smooth
+    return out.astype(np.float32), int(peaks.sum())
 
 
 def _noise_sigma(h: np.ndarray, valid: np.ndarray) -> float:
@@ -493,6 +523,25 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     n_alb = np.bincount(lab[mask_albedo], minlength=n_lab + 1)[lbl]
     has_h = lbl <= n_h
+    # a low piece of a long elongated raised area (a brush stroke broken into bumps by its own
+    # relief) is part of a ridge: judge the elevated area holding the candidate
+    on_ridge = np.zeros(lbl.size, bool)
+    if n_h and ncomp:
+        comp_of = _label_max(comp, lab, n_lab)[lbl - 1]
+        used = np.unique(comp_of[has_h & np.isfinite(comp_of)]).astype(np.int64)
+        used = used[used > 0]
+        if used.size:
+            sub = np.zeros(ncomp + 1, np.int32)
+            sub[used] = used
+            cprops = regionprops_table(sub[comp], properties=("label", "axis_major_length",
+                                                              "axis_minor_length"))
+            c_ratio = np.ones(ncomp + 1)
+            c_major = np.zeros(ncomp + 1)
+            c_ratio[cprops["label"]] = cprops["axis_minor_length"] / np.maximum(cprops["axis_major_length"], 1e-9)
+            c_major[cprops["label"]] = cprops["axis_major_length"]
+            ci = np.where(has_h & np.isfinite(comp_of), comp_of, 0).astype(np.int64)
+            on_ridge = (ci > 0) & (c_ratio[ci] < p.ridge_axis_ratio) & (c_major[ci] * px >= p.ridge_min_length_um) \
+                & (c_major[ci] >= 3 * eqd)
     has_a = n_alb >= np.maximum(1, 0.2 * props["area"])
     flat = relief < relief_min
     if normals is not None:
@@ -504,7 +553,8 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     rules = [
         ("too_small", eqd < min_w),
         ("too_large", eqd > max_w),
-        ("ridge", (ratio < p.ridge_axis_ratio) & (major * px >= p.ridge_min_length_um)),
+        ("ridge", ((ratio < p.ridge_axis_ratio) & (major * px >= p.ridge_min_length_um))
+                  | (on_ridge & (relief < p.ridge_relief_ratio * eqd * px))),
         ("flat_bright", flat & has_a & ~has_h),
         ("weave", (relief < p.min_relief_ratio * eqd * px) | flat),
     ]
@@ -524,5 +574,6 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
                      rejected=rejected, noise_um=noise,
                      diagnostics={"dynamic_um": dyn, "relief_min_um": relief_min,
                                   "candidates": int(lbl.size), "height_candidates": int(n_h),
+                                  "candidate_labels": lab, "candidate_reasons": reason,
                                   "texture_um": texture, "weave_bins_notched": n_notched,
                                   "albedo_only_candidates": int(na2)})
