@@ -3,7 +3,7 @@
 
 Layout written (the plugin scripts rely on it):
 
-- menu scripts: ``<root>/plugins/UV_Photometric_Stereo/*.py`` (menu Plugins > UV Photometric Stereo);
+- menu scripts: ``<root>/plugins/UV_Photometric_Stereo/*.py`` (Plugins > UV Photometric Stereo);
 - Jython library, Fiji: ``<root>/jars/Lib/uvps_fiji/`` (Fiji puts ``jars/Lib`` on Jython's path);
 - Jython library, plain ImageJ 1.x: ``<root>/plugins/jars/Lib/uvps_fiji/`` (ImageJ turns every
   ``.py`` at depth <= 2 under ``plugins/`` into a menu command, so helpers must live at depth >= 3);
@@ -38,13 +38,16 @@ class InstallError(Exception):
 
 
 def is_fiji(root):
-    """Return True when ``root`` looks like ``Fiji.app``: ``jars/`` and an ``ImageJ-*`` launcher
-    or a macOS ``Contents/`` folder."""
-    if not os.path.isdir(os.path.join(root, "jars")):
+    """Return True when ``root`` looks like ``Fiji.app``: ``jars/`` plus a launcher
+    (``ImageJ-*``, or ``fiji-*`` since 2025), a macOS ``Contents/`` folder or ``jars/ij-*.jar``."""
+    jars = os.path.join(root, "jars")
+    if not os.path.isdir(jars):
         return False
     if os.path.isdir(os.path.join(root, "Contents")):
         return True
-    return any(name.startswith("ImageJ-") for name in os.listdir(root))
+    if any(name.startswith(("ImageJ-", "fiji-")) for name in os.listdir(root)):
+        return True
+    return any(name.startswith("ij-") and name.endswith(".jar") for name in os.listdir(jars))
 
 
 def library_dir(root):

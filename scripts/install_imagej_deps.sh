@@ -23,8 +23,8 @@ if [ "$(id -u)" -eq 0 ]; then
 elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
     SUDO="sudo -n"
 else
-    echo "install_imagej_deps.sh: ImageJ test dependencies are missing and this user cannot install" >&2
-    echo "them; run as root: apt-get update && apt-get install -y $PACKAGES" >&2
+    echo "install_imagej_deps.sh: ImageJ test dependencies are missing and this user cannot" >&2
+    echo "install them; run as root: apt-get update && apt-get install -y $PACKAGES" >&2
     exit 1
 fi
 

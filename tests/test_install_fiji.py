@@ -37,6 +37,8 @@ def make_fiji(tmp_path, marker="ImageJ-linux64"):
     (root / "jars").mkdir()
     if marker == "Contents":
         (root / "Contents").mkdir()
+    elif marker.endswith(".jar"):
+        (root / "jars" / marker).write_text("")
     else:
         (root / marker).write_text("")
     return root
@@ -47,7 +49,8 @@ def read_cfg(path):
     return dict((k.strip(), v.strip()) for k, v in (ln.split("=", 1) for ln in lines))
 
 
-@pytest.mark.parametrize("marker", ["ImageJ-linux64", "Contents"])
+@pytest.mark.parametrize("marker", ["ImageJ-linux64", "fiji-linux-x64", "Contents",
+                                    "ij-1.54f.jar"])
 def test_fiji_layout(tmp_path, source, marker):
     root = make_fiji(tmp_path, marker)
     proc = run_installer(root, "--source-root", source)

@@ -1,9 +1,10 @@
 """Fixtures that run the real ImageJ 1.x (Debian's ij.jar + jython.jar) under a private Xvfb.
 
-See tests/imagej/README.md. In short: one Xvfb and one compilation of ``java/*.java`` (into pytest's temp folder) per session;
-a fresh ImageJ folder per test, filled by ``scripts/install_fiji.py`` (the real installer); one
-fresh JVM per macro (``UvpsTestLauncher ... -batch macro.ijm``), killed with its process group on
-timeout. A modal dialog halts the JVM with status 3, an uncaught Python exception with status 4.
+See tests/imagej/README.md. In short: one Xvfb and one compilation of ``java/*.java`` (into
+pytest's temp folder) per session; a fresh ImageJ folder per test, filled by
+``scripts/install_fiji.py`` (the real installer); one fresh JVM per macro (``UvpsTestLauncher ...
+-batch macro.ijm``), killed with its process group on timeout. A modal dialog halts the JVM with
+status 3, an uncaught Python exception with status 4.
 """
 import dataclasses
 import os
@@ -62,7 +63,8 @@ class MacroResult:
     def check(self):
         """Raise AssertionError with the whole output unless ImageJ exited with status 0."""
         if self.returncode != 0:
-            raise AssertionError("ImageJ exited with status %d\n--- stdout ---\n%s\n--- stderr ---\n%s"
+            raise AssertionError("ImageJ exited with status %d\n--- stdout ---\n%s\n"
+                                 "--- stderr ---\n%s"
                                  % (self.returncode, self.stdout, self.stderr))
         return self
 

@@ -164,7 +164,8 @@ def test_installed_layout_is_importable_inside_imagej(run_macro, tmp_path, write
         "            return line.split('=', 1)[1].strip()\n")
     (menu / "Probe_Install.py").write_text(
         "import sys\nfrom ij import IJ\n"
-        "for d in (IJ.getDirectory('imagej') + 'jars/Lib', IJ.getDirectory('plugins') + 'jars/Lib'):\n"
+        "for d in (IJ.getDirectory('imagej') + 'jars/Lib',\n"
+        "          IJ.getDirectory('plugins') + 'jars/Lib'):\n"
         "    if d not in sys.path:\n        sys.path.append(d)\n"
         "from uvps_fiji import probe\n"
         "print('python=' + probe.configured_python())\n")

@@ -4,8 +4,8 @@
 // Under Xvfb nobody can close a modal dialog, so a dialog would hang the test forever. On every
 // Dialog WINDOW_OPENED this launcher either
 //   - (default) prints "UVPS-TEST: dialog opened" with the dialog's title and text (Labels,
-//     TextAreas, TextFields, MultiLineLabels, Checkboxes, Choices, Buttons) to stderr and halts the JVM with status 3
-//     (DIALOG_STATUS); or
+//     TextAreas, TextFields, MultiLineLabels, Checkboxes, Choices, Buttons) to stderr and halts
+//     the JVM with status 3 (DIALOG_STATUS); or
 //   - with -Duvps.screenshot.dir=/abs/dir, waits uvps.screenshot.delay_ms (default 1000) for the
 //     dialog to paint, saves it as <dir>/<title>.png (painted off screen with printAll), prints
 //     "UVPS-SCREENSHOT: <png>" to stderr, then presses the button named by uvps.screenshot.button
@@ -65,7 +65,8 @@ public class UvpsTestLauncher {
                     t.start();
                 } else {
                     System.out.flush();
-                    System.err.println("UVPS-TEST: dialog opened: title=\"" + dialog.getTitle() + "\"");
+                    System.err.println("UVPS-TEST: dialog opened: title=\""
+                            + dialog.getTitle() + "\"");
                     System.err.println(describe(dialog));
                     System.err.flush();
                     Runtime.getRuntime().halt(DIALOG_STATUS);
