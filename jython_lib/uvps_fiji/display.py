@@ -61,7 +61,7 @@ def _column(table, name):
     return table.getColumnAsDoubles(table.getColumnIndex(name))
 
 
-def protrusion_rois(table, labels_imp=None, pixel_size_um=None):
+def protrusion_rois(table, labels_imp=None, pixel_size_um=None, name="protrusion"):
     """Make one ROI per protrusion row.
 
     The outline is traced in the label image (``protrusions_labels.tif``) from the centroid with
@@ -95,7 +95,7 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None):
             if widths is not None and pixel_size_um and widths[i] == widths[i]:
                 d = max(widths[i] / pixel_size_um, 1.0)
             roi = OvalRoi(xs[i] + 0.5 - d / 2.0, ys[i] + 0.5 - d / 2.0, d, d)
-        roi.setName("protrusion %d" % label)
+        roi.setName("%s %d" % (name, label))
         roi.setStrokeColor(PROTRUSION_COLOUR)
         rois.append(roi)
     return rois
@@ -115,9 +115,9 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
         if not os.path.isfile(labels_path):
             raise BridgeError("output label image %s is missing" % labels_path)
         labels_imp = IJ.openImage(labels_path)
-    rois = protrusion_rois(table, labels_imp)
+    rois = protrusion_rois(table, labels_imp, name=title)
     manager = RoiManager.getInstance() or RoiManager()
-    manager.reset()
+    replace_rois(manager, title + " ")
     overlay = Overlay()
     for roi in rois:
         manager.addRoi(roi)
@@ -126,6 +126,15 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
         albedo_imp.setOverlay(overlay)
     IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
     return table.size()
+
+
+def replace_rois(manager, prefix):
+    """Delete the ROIs whose names start with ``prefix`` (an earlier run's), keep the user's."""
+    old = [i for i, roi in enumerate(manager.getRoisAsArray())
+           if (roi.getName() or "").startswith(prefix)]
+    if old:
+        manager.setSelectedIndexes(old)
+        manager.runCommand("Delete")
 
 
 def read_lights(path):

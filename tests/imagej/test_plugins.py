@@ -247,11 +247,15 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
         'run("Wand Count", "run=%s tolerance=0.05 connectivity=8");\n'
         'print("rois " + roiManager("count"));\n'
         'print("rows " + Table.size("Manual protrusions"));\n'
+        'selectImage("albedo");\nroiManager("select", 0);\n'
+        'print("type " + selectionType() + " " + Roi.getName);\n'
         % (run / "albedo.tif", ",".join("%.2f" % v for v in xs), ",".join("%.2f" % v for v in ys),
            q(run)), timeout=TIMEOUT).check()
     lines = _log_lines(result)
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     assert "rois %d" % len(clicked) in lines and "rows %d" % len(clicked) in lines
+    # Outlines traced in the label image (4 = traced), not circles.
+    assert "type 4 Manual protrusions 1" in lines
     _check_manual(run, clicked)
 
 
@@ -259,9 +263,15 @@ def test_wand_count_from_a_points_csv(run_macro, truth_run, tmp_path):
     run, clicked = truth_run
     points = tmp_path / "my clicks.csv"
     points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked))
-    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
-                       % (q(run), q(points)), timeout=TIMEOUT).check()
+    # A user's ROI stays in the ROI Manager; a re-run replaces the earlier run's outlines.
+    result = run_macro('newImage("user", "8-bit black", 320, 240, 1);\n'
+                       'makeRectangle(1, 1, 20, 20);\nroiManager("add");\n'
+                       'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
+                       'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
+                       'print("rois " + roiManager("count"));\n'
+                       % (q(run), q(points), q(run), q(points)), timeout=TIMEOUT).check()
     assert "uvps Wand Count: %d protrusions" % len(clicked) in _log_lines(result)
+    assert "rois %d" % (len(clicked) + 1) in _log_lines(result)
     _check_manual(run, clicked)
 
 
