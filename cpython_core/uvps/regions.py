@@ -262,7 +262,7 @@ class ProposalOptions:
 
     smooth_mm: float = 1.0
     min_area_mm2: float = 1.0
-    delta_e: float = 10.0
+    delta_e: float = 7.0
     max_areas: int = 8
     sample: int = 20000
 
