@@ -128,9 +128,8 @@ def install(root, python, source_root=REPO_ROOT):
             shutil.copy2(path, tmp)
 
     def fill_lib(tmp):
-        for name in sorted(os.listdir(lib_src)):
-            if name.endswith(".py"):
-                shutil.copy2(os.path.join(lib_src, name), tmp)
+        shutil.copytree(lib_src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(
+            "*$py.class", "*.pyc", "__pycache__", CONFIG_NAME))
         with open(os.path.join(tmp, CONFIG_NAME), "w") as fh:
             fh.write("# written by scripts/install_fiji.py; the CPython that runs the uvps core\n")
             fh.write("python = %s\n" % python)

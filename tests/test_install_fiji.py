@@ -28,6 +28,9 @@ def source(tmp_path):
     (lib / "__init__.py").write_text("")
     (lib / "bridge_logic.py").write_text("X = 1\n")
     (lib / "bridge_logic$py.class").write_bytes(b"\xca\xfe")
+    (lib / "uvps_fiji.cfg").write_text("python = /a/developer/python\n")
+    (lib / "widgets").mkdir()
+    (lib / "widgets" / "__init__.py").write_text("Y = 2\n")
     return root
 
 
@@ -59,7 +62,8 @@ def test_fiji_layout(tmp_path, source, marker):
     lib = root / "jars" / "Lib" / "uvps_fiji"
     assert sorted(p.name for p in menu.iterdir()) == ["Run_Whole_Pipeline.py", "UVPS_Settings.py"]
     assert sorted(p.name for p in lib.iterdir()) == ["__init__.py", "bridge_logic.py",
-                                                     "uvps_fiji.cfg"]
+                                                     "uvps_fiji.cfg", "widgets"]
+    assert (lib / "widgets" / "__init__.py").read_text() == "Y = 2\n"
     cfg = read_cfg(lib / "uvps_fiji.cfg")
     assert cfg["python"] == sys.executable
     import uvps
