@@ -150,6 +150,16 @@ def compare_detections(a, b, *, regions: Optional[RegionMap], pixel_size_um: flo
         ``matched`` (pairs whose ``a`` protrusion is in the area), ``missed`` (``a`` without a
         partner), ``extra`` (``b`` without a partner); so ``count_a = matched + missed``, while
         ``count_b`` may differ from ``matched + extra`` when a pair straddles an area border.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> a = {"x_px": np.array([10.0, 50.0]), "y_px": np.array([10.0, 10.0]),
+    ...      "width_um": np.array([200.0, 200.0])}
+    >>> b = {"x_px": np.array([11.0]), "y_px": np.array([10.0]), "width_um": np.array([180.0])}
+    >>> c = compare_detections(a, b, regions=None, pixel_size_um=15.0)
+    >>> c.pairs.tolist(), c.missed.tolist(), c.extra.tolist()
+    ([[0, 0]], [1], [])
     """
     if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
         raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")

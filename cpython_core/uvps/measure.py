@@ -231,6 +231,17 @@ def measure_protrusions(labels, *, albedo, height_um, pixel_size_um: float, regi
         ring of ``ring_factor x width`` around the protrusion; NaN if no free surround),
         ``crater`` (0/1), ``r``, ``g``, ``b``, ``region``, ``source``.
 
+    Examples
+    --------
+    >>> import numpy as np
+    >>> labels = np.zeros((40, 40), np.int32)
+    >>> rr, cc = np.mgrid[:40, :40]
+    >>> labels[(rr - 20) ** 2 + (cc - 15) ** 2 <= 64] = 1
+    >>> t = measure_protrusions(labels, albedo=np.ones((40, 40)), height_um=10.0 * (labels > 0),
+    ...                         pixel_size_um=15.0)
+    >>> float(t["x_px"][0]), float(t["y_px"][0]), float(t["height_um"][0])
+    (15.0, 20.0, 10.0)
+
     Notes
     -----
     Geometry and colour come from :func:`skimage.measure.regionprops_table`. The paper (Salvant

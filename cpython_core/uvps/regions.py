@@ -494,6 +494,16 @@ def region_statistics(table, regions: RegionMap, *, pixel_size_um: float,
     -------
     RegionStats
         One row per area (increasing label) and a last row ``"all"`` (all areas together).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> regions = RegionMap(np.ones((200, 200), np.int32), {1: "beige"})  # 1 cm^2 at 50 um
+    >>> table = {"x_px": np.array([10.0, 20.0]), "y_px": np.array([5.0, 5.0]),
+    ...          "width_um": np.array([150.0, 420.0])}
+    >>> s = region_statistics(table, regions, pixel_size_um=50.0, bins_um=100.0)
+    >>> s.rows[0].density_per_cm2, s.rows[0].counts.tolist()
+    (2.0, [0, 1, 0, 0, 1])
     """
     if not isinstance(regions, RegionMap):
         raise UVPSInputError(f"regions must be a RegionMap; got {type(regions).__name__}")
