@@ -5,6 +5,7 @@ unchanged; otherwise it is written as an ImageJ TIFF into the request folder (wi
 ``ij.io.TiffEncoder``, so the user's window keeps its title and file).
 """
 import os
+import time
 
 from java.io import BufferedOutputStream, DataOutputStream, FileOutputStream
 from java.lang import Throwable
@@ -71,7 +72,10 @@ def current_stack_input(request_dir):
     if path is None:
         path = bridge_logic.stack_request_path(request_dir, imp.getTitle())
         IJ.showStatus("uvps: writing %s (%d images)..." % (imp.getTitle(), n))
+        start = time.time()
         write_stack(imp, path)
+        IJ.log("uvps: wrote the stack '%s' (%d images) in %.2f s"
+               % (imp.getTitle(), n, time.time() - start))
     return [path]
 
 
