@@ -174,3 +174,27 @@ def test_albedo_shape_mismatch():
     alb, h = scene((64, 64))
     with pytest.raises(UVPSInputError, match="albedo"):
         detect_protrusions(alb[:32], h, pixel_size_um=15.0)
+
+
+def test_synthetic_capture_recall_and_precision():
+    """End to end on a small synthetic capture (ground-truth albedo and height plus noise)."""
+    synthetic = pytest.importorskip("uvps.synthetic")
+    cap = synthetic.make_capture(shape=(400, 500), seed=3, n_lights=3, noise=False)
+    px = cap.spec.pixel_size_um
+    rng = np.random.default_rng(7)
+    h = cap.height_um + rng.normal(0, 1.0, cap.height_um.shape).astype(np.float32)
+    alb = cap.albedo * (1 + rng.normal(0, 0.03, cap.albedo.shape)).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    pr = cap.protrusions
+    big = pr["width_um"] >= 60
+    assert big.sum() >= 10
+    rows = np.rint(pr["y_px"][big]).astype(int)
+    cols = np.rint(pr["x_px"][big]).astype(int)
+    hit = det.labels[rows, cols]
+    assert (hit > 0).mean() >= 0.9                      # recall
+    assert np.unique(hit[hit > 0]).size == (hit > 0).sum()  # one label per protrusion
+    assert det.labels.max() <= (hit > 0).sum() + 1     # at most one extra detection
+    # widths (equivalent diameters) of the found ones within 15 % (median)
+    areas = np.bincount(det.labels.ravel())[hit[hit > 0]]
+    width = np.sqrt(4 * areas / np.pi) * px
+    assert np.median(np.abs(width / pr["width_um"][big][hit > 0] - 1)) < 0.15
