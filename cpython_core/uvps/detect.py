@@ -138,7 +138,10 @@ class Detection:
     noise_um : float
         Height noise estimate (um) used for the thresholds.
     diagnostics : dict
-        Thresholds used and the number of candidates.
+        ``dynamic_um`` / ``relief_min_um`` (thresholds used), ``texture_um``,
+        ``weave_bins_notched``, counts (``candidates``, ``height_candidates``,
+        ``albedo_only_candidates``), and ``candidate_labels`` ((M, N) int32, every candidate
+        before rejection) with ``candidate_reasons`` (per candidate, "" = kept), for overlays.
     """
 
     labels: np.ndarray
