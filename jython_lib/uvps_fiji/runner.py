@@ -207,14 +207,15 @@ def report_error(title, exc):
     System.err.println(line)
     IJ.showStatus("uvps: " + title + " failed")
     IJ.showProgress(1.0)
-    if is_interactive():
+    interactive = is_interactive()
+    if interactive:
         IJ.error("uvps: " + title, message)
-        return
     if Interpreter.getInstance() is not None:
         # Stop the calling macro: without this, ImageJ would run its next line after a Python
         # exception in a menu command (tried with ImageJ 1.53t -batch).
         Interpreter.abort()
-    raise PluginError(line)
+    if not interactive:
+        raise PluginError(line)
 
 
 def run_menu(title, func):
