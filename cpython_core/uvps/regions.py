@@ -20,7 +20,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from .errors import UVPSInputError
-from .measure import albedo_rgb, atomic_write_text, table_to_csv_text
+from .measure import atomic_write_text, table_to_csv_text
 
 log = logging.getLogger(__name__)
 
@@ -321,13 +321,14 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
 
     Notes
     -----
-    The albedo is scaled by its 99.5th percentile, sRGB-encoded and converted to CIE Lab
-    (``skimage.color.rgb2lab``), block-averaged to about 1/9 of ``smooth_mm`` per pixel
+    The albedo is block-averaged over its valid pixels to about 1/9 of ``smooth_mm`` per block
     (``skimage.transform.downscale_local_mean``; this also averages noise and protrusions away),
-    clustered with k-means (``cv2.kmeans``, k-means++) on a sample of pixels, assigned to the
-    nearest centre, majority-filtered (``skimage.filters.rank.majority``) over a disc of
-    ``smooth_mm`` diameter, islands under ``min_area_mm2`` join their nearest neighbour area,
-    and the map is scaled back to full size (nearest neighbour). It is a proposal: the user
+    scaled by the pixels' 99.5th percentile, sRGB-encoded and converted to CIE Lab
+    (``skimage.color.rgb2lab``), clustered with k-means (``cv2.kmeans``, k-means++) on a
+    sample of blocks, each block assigned to the nearest centre, majority-filtered
+    (``skimage.filters.rank.majority``) over a disc of ``smooth_mm`` diameter, islands under
+    ``min_area_mm2`` join their nearest neighbour area, and the map is scaled back to full size
+    (nearest neighbour). It is a proposal: the user
     edits ``regions_labels.tif`` in ImageJ and loads it back with :func:`load_regions`.
     """
     from scipy.cluster.vq import vq
@@ -345,24 +346,46 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     if n_areas is not None and (int(n_areas) != n_areas or n_areas < 1):
         raise UVPSInputError(f"n_areas must be a positive integer or None; got {n_areas}")
     arr = np.asarray(albedo)
-    shape = arr.shape if arr.ndim == 2 else (arr.shape[1:] if arr.shape[0] == 3 else arr.shape[:2])
-    rgb = albedo_rgb(arr, shape)
     grey = arr.ndim == 2
-    valid = np.all(np.isfinite(rgb), axis=-1)
+    if grey:
+        shape, channels = arr.shape, [arr]
+    elif arr.ndim == 3 and arr.shape[0] == 3:
+        shape, channels = arr.shape[1:], [arr[c] for c in range(3)]
+    elif arr.ndim == 3 and arr.shape[-1] == 3:
+        shape, channels = arr.shape[:2], [arr[..., c] for c in range(3)]
+    else:
+        raise UVPSInputError(f"albedo must be (M, N), (3, M, N) or (M, N, 3); got {arr.shape}")
+    valid = np.ones(shape, bool)
+    for ch in channels:
+        valid &= np.isfinite(ch)
     if mask is not None:
         mask = np.asarray(mask)
         _check_shape(mask, shape, "mask")
         valid &= mask.astype(bool)
     if not valid.any():
         raise UVPSInputError("propose_regions: no valid pixel (mask empty or albedo all NaN)")
-    report(progress, 0.05, "colour space")
-    scale = float(np.percentile(rgb[valid], 99.5)) or 1.0
-    lab = rgb2lab(_srgb_encode(np.where(valid[..., None], rgb, 0.0) / scale))
+    # Everything but the final label map is computed on blocks of about smooth_mm / 9: block
+    # means over the valid pixels (also averaging noise and protrusions away), so a large capture
+    # never needs a full-size float copy.
+    report(progress, 0.05, "block means")
     step = max(1, int(round(opts.smooth_mm * 1000.0 / 9.0 / pixel_size_um)))
-    small = downscale_local_mean(lab, (step, step, 1))
-    small_valid = downscale_local_mean(valid.astype(float), (step, step)) > 0.5
-    feats = small[..., :1] if grey else small
-    data = feats[small_valid]
+    count = downscale_local_mean(valid.astype(np.float32), (step, step))
+    small_any = count > 0
+    small_valid = count > 0.5
+    sums = [downscale_local_mean(np.where(valid, ch, 0).astype(np.float32), (step, step))
+            for ch in channels]
+    small_rgb = np.stack([sm / np.where(small_any, count, 1.0) for sm in sums], axis=-1)
+    if grey:
+        small_rgb = np.repeat(small_rgb, 3, axis=-1)
+    # scale: the pixels' 99.5th percentile (as the report displays the albedo), on a subsample
+    sub = max(1, int(np.sqrt(valid.size / 1e6)))
+    sample_px = np.stack([ch[::sub, ::sub] for ch in channels], axis=-1)[valid[::sub, ::sub]]
+    scale = float(np.percentile(sample_px, 99.5)) if sample_px.size else 0.0
+    scale = scale if np.isfinite(scale) and scale > 0 else 1.0
+    report(progress, 0.15, "colour space")
+    lab = rgb2lab(_srgb_encode(small_rgb / scale))
+    feats = lab[..., :1] if grey else lab
+    data = feats[small_valid if small_valid.any() else small_any]
     rng = np.random.default_rng(seed)
     if len(data) > opts.sample:
         data = data[rng.choice(len(data), opts.sample, replace=False)]
@@ -384,42 +407,34 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     flat = feats.reshape(-1, feats.shape[-1])
     nearest, _ = vq(flat, centres.astype(flat.dtype))
     small_lab = (nearest + 1).reshape(feats.shape[:2]).astype(np.uint16)
-    small_lab[~small_valid] = 0
+    small_lab[~small_any] = 0
     report(progress, 0.6, "smoothing")
     radius = max(1, int(round(opts.smooth_mm * 1000.0 / 2.0 / (pixel_size_um * step))))
-    smooth = majority(small_lab, disk(radius), mask=small_valid)
-    smooth[~small_valid] = 0
+    smooth = majority(small_lab, disk(radius), mask=small_any)
+    smooth[~small_any] = 0
     # islands below min_area join their nearest other area (hand-written fill: no library merges
     # small label components into neighbours)
     min_px = opts.min_area_mm2 * 1e6 / (pixel_size_um * step) ** 2
     comps = cc_label(smooth, background=0, connectivity=1)
     sizes = np.bincount(comps.ravel())
     tiny = (sizes < min_px)[comps] & (comps > 0)
-    if tiny.any() and (~tiny & small_valid).any():
+    if tiny.any() and (~tiny & small_any).any():
         keep = ~tiny & (smooth > 0)
         idx = ndi.distance_transform_edt(~keep, return_distances=False, return_indices=True)
         smooth = np.where(tiny, smooth[idx[0], idx[1]], smooth)
-    report(progress, 0.85, "full size")
-    full = np.repeat(np.repeat(smooth, step, axis=0), step, axis=1)
-    grow = ((0, max(0, shape[0] - full.shape[0])), (0, max(0, shape[1] - full.shape[1])))
-    full = np.pad(full, grow, mode="edge")[: shape[0], : shape[1]].astype(np.int32)
-    full[~valid] = 0
-    gaps = valid & (full == 0)  # valid pixels in blocks that were mostly outside the mask
-    if gaps.any() and (full > 0).any():
-        idx = ndi.distance_transform_edt(full == 0, return_distances=False, return_indices=True)
-        full[gaps] = full[idx[0][gaps], idx[1][gaps]]
     # relabel 1.. by decreasing lightness, dropping areas that vanished in smoothing
-    present = [int(i) for i in np.unique(full) if i != 0]
-    lightness = {i: float(np.mean(lab[..., 0][full == i])) for i in present}
-    order = sorted(present, key=lambda i: -lightness[i])
-    lut = np.zeros(int(full.max()) + 1, np.int32)
+    present = [int(i) for i in np.unique(smooth) if i != 0]
+    order = sorted(present, key=lambda i: -float(np.mean(lab[..., 0][smooth == i])))
+    lut = np.zeros(int(smooth.max()) + 1, np.int32)
     for new, old in enumerate(order, start=1):
         lut[old] = new
-    full = lut[full]
-    colors = {}
-    for new in range(1, len(order) + 1):
-        c = rgb[full == new].mean(axis=0) / scale
-        colors[new] = np.clip(c, 0.0, 1.0)
+    smooth = lut[smooth]
+    colors = {new: np.clip(small_rgb[smooth == new].mean(axis=0) / scale, 0.0, 1.0)
+              for new in range(1, len(order) + 1)}
+    report(progress, 0.85, "full size")
+    full = np.repeat(np.repeat(smooth, step, axis=0), step, axis=1)[: shape[0], : shape[1]]
+    full = full.astype(np.int32)
+    full[~valid] = 0
     report(progress, 1.0, f"{len(order)} areas")
     log.info("proposed %d colour areas (block %d px, majority radius %d)", len(order), step, radius)
     return RegionMap(full, {i: f"area {i}" for i in range(1, len(order) + 1)}, colors)
