@@ -147,3 +147,11 @@ def test_read_seeds_bad_files(tmp_path):
         read_seeds(p)
     with pytest.raises(UVPSInputError, match="cannot read"):
         read_seeds(tmp_path / "missing.csv")
+
+
+def test_read_seeds_tab_separated_and_headerless(tmp_path):
+    p = tmp_path / "xy.txt"
+    p.write_text("12\t7\n3.5\t4.9\n")
+    np.testing.assert_array_equal(read_seeds(p), [[12, 7], [3, 4]])
+    p.write_text(" \tX\tY\n1\t5\t6\n")
+    np.testing.assert_array_equal(read_seeds(p), [[5, 6]])

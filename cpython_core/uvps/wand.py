@@ -159,15 +159,24 @@ def _as_seed_array(arr, name: str) -> np.ndarray:
     return np.floor(a).astype(np.int64)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def read_seeds(path_or_array: Union[str, Path, np.ndarray, list]) -> np.ndarray:
     """Read wand clicks from a CSV file (or pass an array through).
 
     Parameters
     ----------
     path_or_array : path or (S, 2) array_like
-        A CSV file whose header has ``x_px`` and ``y_px`` columns, or ``X`` and ``Y`` as in ImageJ's
-        point export (File > Save As > XY Coordinates, or Measure on a point selection of an
-        uncalibrated image), in pixels; or an (S, 2) array of ``(x_px, y_px)``.
+        A CSV (comma or tab separated) whose header has ``x_px`` and ``y_px`` columns, or ``X``
+        and ``Y`` as in ImageJ's Results of Measure on a point selection (of an uncalibrated
+        image: pixels), or headerless two-column ``x y`` lines (File > Save As > XY
+        Coordinates); or an (S, 2) array of ``(x_px, y_px)``.
 
     Returns
     -------
@@ -178,12 +187,18 @@ def read_seeds(path_or_array: Union[str, Path, np.ndarray, list]) -> np.ndarray:
         path = Path(path_or_array)
         try:
             with open(path, newline="", encoding="utf-8-sig") as fh:
-                rows = list(csv.reader(fh))
-        except OSError as exc:
-            raise UVPSInputError(f"cannot read seeds file {path}: {exc.strerror}") from None
+                text = fh.read()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UVPSInputError(f"cannot read seeds file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+        delim = "\t" if "\t" in text.split("\n", 1)[0] else ","
+        rows = list(csv.reader(text.splitlines(), delimiter=delim))
         if not rows:
             raise UVPSInputError(f"seeds file {path} is empty; expected a header with x_px,y_px or X,Y")
         header = [h.strip() for h in rows[0]]
+        if len(header) == 2 and all(_is_number(h) for h in header):
+            # ImageJ's headerless "XY Coordinates" text: x <TAB> y per line
+            header = ["X", "Y"]
+            rows = [header] + rows
         lower = [h.lower() for h in header]
         if "x_px" in lower and "y_px" in lower:
             ix, iy = lower.index("x_px"), lower.index("y_px")
