@@ -74,8 +74,9 @@ def _yxc(img: np.ndarray) -> np.ndarray:
     return img
 
 
-def _display_albedo(albedo: np.ndarray) -> np.ndarray:
-    a = _yxc(albedo).astype(np.float64)
+def _display_albedo(albedo: np.ndarray, step: int = 1) -> np.ndarray:
+    """Every ``step``-th pixel of the albedo as (M', N[, 3]) in 0..1 (99.5th percentile = 1)."""
+    a = _yxc(albedo)[::step, ::step].astype(np.float64)
     finite = a[np.isfinite(a)]
     scale = float(np.percentile(finite, 99.5)) if finite.size else 1.0
     return np.clip(np.nan_to_num(a / (scale or 1.0)), 0.0, 1.0)
@@ -158,12 +159,12 @@ def plot_normals(normals: np.ndarray, path, *, pixel_size_um: float) -> Path:
 
 def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float) -> Path:
     """Albedo (fluorescence colour), scaled by its 99.5th percentile."""
-    a = _display_albedo(albedo)
-    step = _display_step(a.shape)
-    fig = _figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
+    shape = _yxc(albedo).shape
+    a = _display_albedo(albedo, _display_step(shape))
+    fig = _figure((7, 7 * shape[0] / shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
-    ax.imshow(a[::step, ::step], cmap="gray", vmin=0, vmax=1,
-              extent=_extent_mm(a.shape, pixel_size_um), interpolation="nearest")
+    ax.imshow(a, cmap="gray", vmin=0, vmax=1, extent=_extent_mm(shape, pixel_size_um),
+              interpolation="nearest")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title("albedo (UV fluorescence)")
@@ -240,12 +241,14 @@ def region_colours(regions, albedo: Optional[np.ndarray]) -> dict:
 
     cols = dict(getattr(regions, "colors", {}) or {})
     if albedo is not None:
-        a = _display_albedo(albedo)
+        step = _display_step(regions.labels.shape)
+        a = _display_albedo(albedo, step)
         if a.ndim == 2:
             a = np.repeat(a[..., None], 3, axis=-1)
+        small = regions.labels[::step, ::step]
         for i in regions.ids:
             if i not in cols:
-                sel = regions.labels == i
+                sel = small == i
                 cols[i] = a[sel].mean(axis=0) if sel.any() else np.array([0.5, 0.5, 0.5])
     tab = colormaps["tab10"]
     return {i: tuple(np.clip(cols.get(i, tab(k % 10)[:3]), 0, 1))
@@ -258,9 +261,8 @@ def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> 
     from skimage.segmentation import find_boundaries
     from scipy import ndimage as ndi
 
-    a = _display_albedo(albedo)
-    step = _display_step(a.shape)
-    a = a[::step, ::step]
+    step = _display_step(regions.labels.shape)
+    a = _display_albedo(albedo, step)
     fig = _figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
     ext = _extent_mm(regions.labels.shape, pixel_size_um)
@@ -342,13 +344,12 @@ def plot_comparison_map(albedo: np.ndarray, a: dict, b: dict, comparison, path, 
     """
     from matplotlib.patches import Circle
 
-    img = _display_albedo(albedo)
-    step = _display_step(img.shape)
-    m, n = img.shape[:2]
+    m, n = _yxc(albedo).shape[:2]
+    img = _display_albedo(albedo, _display_step((m, n)))
     fig = _figure((7, 7 * m / n + 0.6), layout=None)
     ax = fig.add_subplot()
-    ext = _extent_mm(img.shape, pixel_size_um)
-    ax.imshow(img[::step, ::step], cmap="gray", vmin=0, vmax=1, extent=ext,
+    ext = _extent_mm((m, n), pixel_size_um)
+    ax.imshow(img, cmap="gray", vmin=0, vmax=1, extent=ext,
               interpolation="nearest")
     to_mm = pixel_size_um / 1000.0
 
