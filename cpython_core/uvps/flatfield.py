@@ -1,0 +1,268 @@
+"""Polynomial flat-field: the lamp's drop-off map of each image (paper Fig. 1c).
+
+Each image is fitted with a 2-D Legendre polynomial (normalised to its mean), the light drop-off map;
+the flat-fielded image is image / fit. The fit is made on a reduced grid of block means, so its cost
+depends on the grid, not on the megapixels.
+
+The painting's own colour areas are large and sharp-edged: fitting the intensities directly would let
+a light area on one side pass for a lamp on that side (and a smooth variation of the paint's
+fluorescence is indistinguishable from drop-off in any single image). The albedo is the same in every
+image of a capture, so each image is fitted *relative to the geometric mean of the stack*, which
+cancels the albedo exactly; the part of the drop-off common to all images is taken from the fitted
+light model (see :func:`fit_dropoffs` and :func:`set_common`).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from numpy.polynomial import legendre as L
+
+from .errors import UVPSInputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BlockGrid", "DropoffFit", "block_grid", "fit_dropoffs", "set_common", "flatfield"]
+
+
+@dataclass
+class BlockGrid:
+    """Block means of a stack on a reduced grid.
+
+    Attributes
+    ----------
+    values : ndarray, (K, R, C) float64
+        Block means of the grey images.
+    valid : ndarray, (K, R, C) bool
+        Blocks whose pixels are all usable (inside the mask, not shadowed, not saturated).
+    rows, cols : ndarray
+        Pixel coordinates (row, col) of the block centres.
+    shape : tuple
+        Full image shape (M, N).
+    block : int
+        Block size in pixels.
+    """
+
+    values: np.ndarray
+    valid: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    shape: tuple
+    block: int
+
+
+@dataclass
+class DropoffFit:
+    """A Legendre polynomial fit of the log drop-off of one image.
+
+    ``log F(u, v) = sum_ij coeffs[i, j] P_i(v) P_j(u)`` with ``u`` (columns) and ``v`` (rows) mapped to
+    [-1, 1]; the constant is chosen so that F has mean 1 over the image.
+    """
+
+    coeffs: np.ndarray
+    degree: int
+    shape: tuple
+    level: float  # median log intensity of the image minus log F: the image's overall level
+    n_blocks: int
+    gradient_rms: float  # rms of the albedo-free drop-off gradient per pixel (1/px)
+    ratio_coeffs: Optional[np.ndarray] = None  # fit of log(I_k / geometric mean of the stack)
+
+    def log_evaluate(self, rows=None, cols=None) -> np.ndarray:
+        """log F at the given pixel rows and columns (a separable grid)."""
+        M, N = self.shape
+        rows = np.arange(M) if rows is None else np.asarray(rows, dtype=float)
+        cols = np.arange(N) if cols is None else np.asarray(cols, dtype=float)
+        v = _to_unit(rows, M)
+        u = _to_unit(cols, N)
+        Vv = L.legvander(v, self.degree)
+        Vu = L.legvander(u, self.degree)
+        return Vv @ self.coeffs @ Vu.T
+
+    def evaluate(self, rows=None, cols=None) -> np.ndarray:
+        """The drop-off map F (mean 1 over the full image) at the given rows and columns."""
+        return np.exp(self.log_evaluate(rows, cols))
+
+
+def _to_unit(coord, size):
+    """Pixel coordinate 0..size-1 -> [-1, 1]."""
+    return (2.0 * np.asarray(coord, dtype=float) - (size - 1)) / max(size - 1, 1)
+
+
+def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
+    """Block means of each image on a grid of about ``target`` blocks along the longer side.
+
+    Parameters
+    ----------
+    images : ndarray, (K, M, N) or (K, M, N, C)
+        Linear intensities.
+    mask : ndarray of bool, (M, N), optional
+        True where the pixel may be used.
+    saturation : float, optional
+        Counts at or above which a sample is saturated.
+    target : int
+        About this many blocks along the longer side.
+    """
+    K, M, N = images.shape[:3]
+    b = max(1, int(np.ceil(max(M, N) / target)))
+    R, C = M // b, N // b
+    r0 = (M - R * b) // 2
+    c0 = (N - C * b) // 2
+    values = np.empty((K, R, C))
+    valid = np.ones((K, R, C), bool)
+    if mask is not None:
+        mblk = mask[r0:r0 + R * b, c0:c0 + C * b].reshape(R, b, C, b).all(axis=(1, 3))
+        valid &= mblk[None]
+    for k in range(K):
+        img = images[k, r0:r0 + R * b, c0:c0 + C * b]
+        if img.ndim == 3:
+            sat_px = (img >= saturation).any(axis=-1) if saturation is not None else None
+            img = img.mean(axis=-1)
+        else:
+            sat_px = img >= saturation if saturation is not None else None
+        blk = img.reshape(R, b, C, b)
+        values[k] = blk.mean(axis=(1, 3), dtype=np.float64)
+        # a block is unusable when any of its pixels is dark (shadow) or saturated
+        valid[k] &= blk.min(axis=(1, 3)) > 0
+        if sat_px is not None:
+            valid[k] &= ~sat_px.reshape(R, b, C, b).any(axis=(1, 3))
+    rows = r0 + b * np.arange(R) + (b - 1) / 2.0
+    cols = c0 + b * np.arange(C) + (b - 1) / 2.0
+    return BlockGrid(values, valid, rows, cols, (M, N), b)
+
+
+def _design(rows, cols, shape, degree):
+    """Legendre design matrices (rows, cols) on the unit square."""
+    M, N = shape
+    return L.legvander(_to_unit(rows, M), degree), L.legvander(_to_unit(cols, N), degree)
+
+
+def _irls(A, y, n_iter):
+    """Weighted least squares with Cauchy weights and a MAD scale (robust to colour edges, spots)."""
+    w = np.ones_like(y)
+    coef = np.zeros(A.shape[1])
+    for _ in range(n_iter):
+        sw = np.sqrt(w)
+        coef, *_ = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)
+        r = y - A @ coef
+        scale = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-12
+        w = 1.0 / (1.0 + (r / (2.385 * scale)) ** 2)
+    return coef
+
+
+def _fit_values(logv, ok, grid, degree, n_iter):
+    """Robust Legendre fit of log values on the block grid (value domain)."""
+    n = degree + 1
+    Vv, Vu = _design(grid.rows, grid.cols, grid.shape, degree)
+    A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
+    use = ok.ravel() & np.isfinite(logv.ravel())
+    return _irls(A[use], logv.ravel()[use], n_iter).reshape(n, n)
+
+
+def _normalise(C, shape, degree):
+    """Set the constant so that exp(poly) has mean 1 over the image."""
+    M, N = shape
+    Vv, Vu = _design(np.linspace(0, M - 1, min(M, 256)), np.linspace(0, N - 1, min(N, 256)), shape, degree)
+    C = C.copy()
+    C[0, 0] -= np.log(np.exp(Vv @ C @ Vu.T).mean())
+    return C
+
+
+def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
+    """Fit the albedo-free part of every image's log drop-off on a block grid.
+
+    Parameters
+    ----------
+    grid : BlockGrid
+        From :func:`block_grid`.
+    degree : int
+        Legendre degree in each direction (paper: "an orthogonal polynomial"; 2 to 6 is sensible).
+    n_iter : int
+        Reweighting iterations.
+
+    Returns
+    -------
+    list of DropoffFit
+        With ``ratio_coeffs`` set and ``coeffs`` = the ratio fit alone (normalised to mean 1); call
+        :func:`set_common` with the part common to all images (from the light model) to complete them.
+
+    Notes
+    -----
+    The albedo (and so every colour area and its smooth variations) is the same in every image. Each
+    image is divided by the geometric mean of the stack, ``R_k = I_k / G``, which cancels the albedo
+    exactly, and ``log R_k`` is fitted with a robust (Cauchy-weighted) least-squares Legendre
+    polynomial. What the ratio cannot see is the part of the drop-off common to all images; no image
+    can separate it from a smooth albedo variation, so it is taken from the light model
+    (:func:`uvps.lights.estimate_lights`). Reference: Salvant et al., Sec. "Calculating the
+    illumination vector" (polynomial fit normalised to the mean).
+    """
+    K = grid.values.shape[0]
+    ok_all = grid.valid.all(axis=0)
+    if ok_all.sum() < 3 * (degree + 1) ** 2:
+        raise UVPSInputError(
+            f"only {int(ok_all.sum())} blocks are lit and unsaturated in every image; the drop-off fit "
+            f"needs at least {3 * (degree + 1) ** 2} (check exposure, the mask, or lower --degree)")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logv = np.log(np.where(ok_all[None], grid.values, np.nan))
+    logG = logv.mean(axis=0)
+    fits = []
+    for k in range(K):
+        ratio = _fit_values(logv[k] - logG, ok_all, grid, degree, n_iter)
+        fit = DropoffFit(_normalise(ratio, grid.shape, degree), degree, grid.shape, 0.0, int(ok_all.sum()),
+                         0.0, ratio)
+        gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
+        fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
+        fits.append(fit)
+    _set_levels(fits, grid)
+    return fits
+
+
+def _set_levels(fits, grid):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, fit in enumerate(fits):
+            lv = np.log(np.where(grid.valid[k], grid.values[k], np.nan))
+            fit.level = float(np.nanmedian(lv - fit.log_evaluate(grid.rows, grid.cols)))
+
+
+def set_common(fits, grid: BlockGrid, log_common) -> None:
+    """Complete the drop-off fits with the part common to all images.
+
+    ``log_common(rows, cols)`` gives that part on a separable grid (e.g. the mean log drop-off of the
+    fitted light model); it is projected on the same Legendre basis and added to each ratio fit, and
+    each map is renormalised to mean 1.
+    """
+    if not fits:
+        return
+    degree, shape = fits[0].degree, fits[0].shape
+    M, N = shape
+    rows, cols = np.linspace(0, M - 1, 48), np.linspace(0, N - 1, 48)
+    Vv, Vu = _design(rows, cols, shape, degree)
+    n = degree + 1
+    A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
+    common = np.linalg.lstsq(A, np.asarray(log_common(rows, cols)).ravel(), rcond=None)[0].reshape(n, n)
+    for fit in fits:
+        fit.coeffs = _normalise(fit.ratio_coeffs + common, shape, degree)
+    _set_levels(fits, grid)
+
+
+def flatfield(image, fit: DropoffFit, *, row0=0) -> np.ndarray:
+    """Divide an image (or a band of rows starting at ``row0``) by its drop-off map.
+
+    Parameters
+    ----------
+    image : ndarray, (m, N) or (m, N, C)
+        Linear intensities (rows ``row0 .. row0 + m`` of the full image).
+    fit : DropoffFit
+    row0 : int
+
+    Returns
+    -------
+    ndarray, float32
+        ``image / F``: the image as if the lamp lit the whole field as it lights the average point.
+    """
+    rows = np.arange(row0, row0 + image.shape[0])
+    F = fit.evaluate(rows=rows).astype(np.float32)
+    if image.ndim == 3:
+        F = F[..., None]
+    return (image / F).astype(np.float32)

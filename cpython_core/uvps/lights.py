@@ -1,0 +1,523 @@
+"""Light directions and near-light positions from the images themselves (no calibration sphere).
+
+Frame (docs/architecture.md): x toward increasing column, y up, z toward the camera; positions in mm
+from the image centre; the canvas is the plane z = 0. Image model of a near point light ``L_k``::
+
+    I_k(X) = albedo(X) * E_k * (|L_k| / |L_k - X|)^2 * n(X) . (L_k - X) / |L_k - X|
+
+Three steps, after Salvant et al. (Fig. 1b-e) and Huang et al. (2015):
+
+1. **Azimuth** from the drop-off fit resampled in polar coordinates about the image centre: the angle of
+   maximum intensity (paper Fig. 1d), taken as the phase of the first circular harmonic of the angular
+   profile, which equals the argmax for a unimodal profile and is not quantised to the bin width.
+2. **Equidistant near lights** (paper Eq. 2): every lamp at the same distance ``m`` from the centre.
+   For a given ``m`` each light's azimuth and elevation are fitted to its drop-off map (a flat canvas
+   under ``L`` gives ``log F = -3 log |L - X| + c``); ``m`` itself is refined with
+   ``scipy.optimize.least_squares`` by minimising the photometric-stereo residual ``|L(m) . N - I|`` on
+   a sample of pixels, the normals solved in closed form for each trial (variable projection).
+3. **Per-light refinement** (beyond the paper): every light's position and intensity, by the same
+   residual plus the drop-off residual as a prior. Lamps drift as they warm up and a hand-placed lamp
+   is never exactly equidistant.
+
+The trap: over a field of a few cm with the lamp tens of cm away, the drop-off gradient
+``3 cos(e) / |L|`` barely separates distance from elevation, and a bowed canvas biases it. The
+photometric residual over the surface texture (weave, strokes, protrusions) is what pins them; samples
+near attached shadow bias it and are left out.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from scipy.optimize import least_squares
+from skimage.transform import warp_polar
+
+from .errors import UVPSComputeError, UVPSInputError
+from .flatfield import BlockGrid, DropoffFit
+from .outputs import Progress, report
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "LightModel", "LightEstimate", "PixelSample", "azimuth_from_dropoff", "pixel_coordinates_mm",
+    "estimate_lights", "intensities_from_levels", "sample_pixels", "photometric_residual",
+]
+
+
+@dataclass
+class LightModel:
+    """Lights of a capture: near point lights (positions) or far lights (directions).
+
+    Attributes
+    ----------
+    positions_mm : ndarray (K, 3) or None
+        Near point lights, mm from the image centre.
+    directions : ndarray (K, 3)
+        Unit vectors from the image centre toward each light.
+    intensities : ndarray (K,)
+        Relative lamp irradiance at the image centre ``E_k`` (median 1).
+    """
+
+    directions: np.ndarray
+    intensities: np.ndarray
+    positions_mm: Optional[np.ndarray] = None
+
+    @property
+    def near(self) -> bool:
+        return self.positions_mm is not None
+
+    @classmethod
+    def from_positions(cls, positions_mm, intensities=None):
+        P = np.asarray(positions_mm, dtype=float)
+        E = np.ones(len(P)) if intensities is None else np.asarray(intensities, dtype=float)
+        return cls(P / np.linalg.norm(P, axis=1, keepdims=True), E, P)
+
+    @classmethod
+    def from_directions(cls, directions, intensities=None):
+        D = np.asarray(directions, dtype=float)
+        D = D / np.linalg.norm(D, axis=1, keepdims=True)
+        E = np.ones(len(D)) if intensities is None else np.asarray(intensities, dtype=float)
+        return cls(D, E, None)
+
+    def vectors(self, X) -> np.ndarray:
+        """Per-point light vectors ``E_k (|L_k|/d)^2 (L_k - X)/d`` for points X (..., 3) mm.
+
+        Returns (K, ..., 3); far lights give ``E_k l_k`` everywhere.
+        """
+        if not self.near:
+            shape = (len(self.directions),) + X.shape
+            v = self.directions * self.intensities[:, None]
+            return np.broadcast_to(v.reshape((len(v),) + (1,) * (X.ndim - 1) + (3,)), shape)
+        P = self.positions_mm
+        out = np.empty((len(P),) + X.shape, dtype=np.float32 if X.dtype == np.float32 else float)
+        for k, (Lk, Ek) in enumerate(zip(P, self.intensities)):
+            V = Lk - X
+            d2 = np.einsum("...i,...i->...", V, V)
+            out[k] = V * (Ek * np.dot(Lk, Lk) / d2 ** 1.5)[..., None]
+        return out
+
+    def to_json(self, files, *, extra=None) -> dict:
+        lights = []
+        for k, f in enumerate(files):
+            d = self.directions[k]
+            lights.append({
+                "file": str(f),
+                "direction": [float(x) for x in d],
+                "position_mm": None if not self.near else [float(x) for x in self.positions_mm[k]],
+                "azimuth_deg": float(np.degrees(np.arctan2(d[1], d[0])) % 360.0),
+                "elevation_deg": float(np.degrees(np.arcsin(np.clip(d[2], -1, 1)))),
+                "intensity": float(self.intensities[k]),
+            })
+        out = {"mode": "near" if self.near else "far", "lights": lights}
+        if extra:
+            out.update(extra)
+        return out
+
+
+@dataclass
+class LightEstimate:
+    """Result of :func:`estimate_lights`."""
+
+    model: LightModel
+    m_mm: float
+    azimuth_polar_deg: np.ndarray
+    residual_history: list = field(default_factory=list)  # dicts: stage, m_mm or iteration, cost
+    equidistant: Optional[LightModel] = None  # the paper's equidistant solution before refinement
+
+
+@dataclass
+class PixelSample:
+    """Grey intensities of a sample of pixels, for the photometric residual."""
+
+    I: np.ndarray        # (K, P)
+    X: np.ndarray        # (P, 3) mm
+    rows: np.ndarray
+    cols: np.ndarray
+
+
+def pixel_coordinates_mm(rows, cols, shape, pixel_size_um, z_mm=None) -> np.ndarray:
+    """World coordinates (mm) of pixel centres; rows/cols broadcast. Returns (..., 3)."""
+    M, N = shape
+    px = pixel_size_um / 1000.0
+    rows, cols = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
+    X = np.empty(rows.shape + (3,))
+    X[..., 0] = (cols - (N - 1) / 2.0) * px
+    X[..., 1] = ((M - 1) / 2.0 - rows) * px
+    X[..., 2] = 0.0 if z_mm is None else z_mm
+    return X
+
+
+def azimuth_from_dropoff(fit: DropoffFit, *, n_angles=360, size=256) -> float:
+    """Azimuth (degrees, counter-clockwise from +x) of the light from its drop-off map (paper Fig. 1d).
+
+    The fit is evaluated on a square grid (isotropic in mm), resampled into polar coordinates about the
+    image centre with ``skimage.transform.warp_polar`` and averaged over radii; the azimuth is the phase
+    of the first circular harmonic of that angular profile (its maximum, without bin quantisation).
+    """
+    M, N = fit.shape
+    side = min(M, N)
+    rows = np.linspace((M - side) / 2, (M + side) / 2 - 1, size)
+    cols = np.linspace((N - side) / 2, (N + side) / 2 - 1, size)
+    F = fit.evaluate(rows, cols)
+    polar = warp_polar(F, center=((size - 1) / 2, (size - 1) / 2), radius=(size - 1) / 2,
+                       output_shape=(n_angles, size // 2))
+    prof = polar[:, size // 8:].mean(axis=1)  # rows of warp_polar: angle from +col, clockwise on screen
+    ang = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+    h = np.sum((prof - prof.mean()) * np.exp(1j * ang))
+    screen = np.angle(h)  # measured toward increasing row = toward -y
+    return float(np.degrees(-screen) % 360.0)
+
+
+def _flat_log_dropoff(Lk, X):
+    """X-dependent part of log irradiance on the flat canvas from a point light: -3 log |L - X|."""
+    V = Lk - X
+    return -1.5 * np.log(np.einsum("...i,...i->...", V, V))
+
+
+def _ratio_samples(fits, shape, n=24):
+    """The albedo-free log ratio maps ``log(I_k / G)`` on an n x n grid, each centred to mean 0."""
+    M, N = shape
+    rows = np.linspace(0, M - 1, n)
+    cols = np.linspace(0, N - 1, n)
+    from numpy.polynomial import legendre as Lg
+    from .flatfield import _to_unit
+
+    Vv = Lg.legvander(_to_unit(rows, M), fits[0].degree)
+    Vu = Lg.legvander(_to_unit(cols, N), fits[0].degree)
+    R = np.stack([Vv @ f.ratio_coeffs @ Vu.T for f in fits])
+    return rows, cols, R - R.mean(axis=(1, 2), keepdims=True)
+
+
+def _model_logs(P, X):
+    """Model log drop-offs of all lights on the flat canvas, each centred: (K, ...)."""
+    h = np.stack([_flat_log_dropoff(Lk, X) for Lk in P])
+    return h - h.mean(axis=tuple(range(1, h.ndim)), keepdims=True)
+
+
+def _fit_light_given_distance(target, X, m, az0, el0):
+    """Azimuth and elevation of one light at distance m fitted to a centred log drop-off map."""
+    y = target.ravel()
+
+    def resid(t):
+        a, e = t
+        Lk = m * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        r = _flat_log_dropoff(Lk, X).ravel()
+        return (r - r.mean()) - y
+
+    el0 = float(np.clip(el0, np.radians(3), np.radians(89)))
+    sol = least_squares(resid, [az0, el0], bounds=([az0 - np.pi, np.radians(2)], [az0 + np.pi, np.radians(89.5)]),
+                        x_scale=[0.1, 0.1])
+    a, e = sol.x
+    return m * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
+def _equidistant_positions(R, X, m, start, n_outer=3):
+    """Positions at distance m whose drop-offs, relative to their mean, match the ratio maps R.
+
+    The ratio maps see each light's drop-off minus the mean over lights; the mean is taken from the
+    current positions and the lights are refitted one by one (a few alternations converge, the mean
+    being small for lights spread around the region).
+    """
+    P = np.asarray(start, dtype=float).copy()
+    P *= m / np.linalg.norm(P, axis=1, keepdims=True)
+    for _ in range(n_outer):
+        hbar = _model_logs(P, X).mean(axis=0)
+        for k in range(len(P)):
+            az = np.arctan2(P[k, 1], P[k, 0])
+            el = np.arcsin(np.clip(P[k, 2] / m, -1, 1))
+            P[k] = _fit_light_given_distance(R[k] + hbar, X, m, az, el)
+    return P
+
+
+def intensities_from_levels(levels, positions_mm, shape, pixel_size_um, *, directions=None):
+    """Relative lamp intensities ``E_k`` (median 1) from each image's overall level.
+
+    ``levels[k]`` is the mean log intensity of image k above its mean-1 drop-off map; the albedo is the
+    same in every image, so ``E_k`` is ``exp(level_k)`` over the mean model irradiance of a flat canvas.
+    """
+    M, N = shape
+    rows = np.linspace(0, M - 1, 32)
+    cols = np.linspace(0, N - 1, 32)
+    X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, pixel_size_um)
+    E = np.empty(len(levels))
+    for k, lev in enumerate(levels):
+        if positions_mm is not None:
+            Lk = positions_mm[k]
+            V = Lk - X
+            d2 = np.einsum("...i,...i->...", V, V)
+            S = np.dot(Lk, Lk) * V[..., 2] / d2 ** 1.5
+            E[k] = np.exp(lev) / np.exp(np.log(S).mean())
+        else:
+            E[k] = np.exp(lev) / max(directions[k][2], 1e-3)
+    return E / np.median(E)
+
+
+def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=30000, seed=0) -> PixelSample:
+    """A random sample of pixels lit by every lamp, for the photometric residual.
+
+    Pixels where some image is saturated, or dim relative to what the flat-fielded stack predicts
+    (attached or cast shadow), are left out: they bias the residual.
+    """
+    K, M, N = images.shape[:3]
+    rng = np.random.default_rng(seed)
+    cand = rng.choice(M * N, size=min(M * N, 4 * n), replace=False)
+    r, c = np.unravel_index(cand, (M, N))
+    I = images[:, r, c]
+    if I.ndim == 3:
+        sat = (I >= saturation).any(axis=-1) if saturation is not None else np.zeros(I.shape[:2], bool)
+        I = I.mean(axis=-1)
+    else:
+        sat = I >= saturation if saturation is not None else np.zeros(I.shape, bool)
+    I = I.astype(float)
+    F = np.stack([np.exp(_eval_points(f, r, c)) for f in fits])
+    q = I / F
+    q /= np.median(q, axis=1, keepdims=True)
+    med = np.median(q, axis=0)
+    ok = (~sat.any(axis=0)) & (I.min(axis=0) > 0) & (q.min(axis=0) > 0.55 * med) & (q.max(axis=0) < 1.8 * med)
+    if mask is not None:
+        ok &= mask[r, c]
+    idx = np.flatnonzero(ok)[:n]
+    if idx.size < 100:
+        raise UVPSComputeError("too few pixels lit by every light to refine the light positions")
+    X = pixel_coordinates_mm(r[idx], c[idx], (M, N), pixel_size_um)
+    return PixelSample(I[:, idx], X, r[idx], c[idx])
+
+
+def _eval_points(fit: DropoffFit, r, c):
+    """log F at scattered points (r[i], c[i])."""
+    from numpy.polynomial import legendre as Lg
+    from .flatfield import _to_unit
+
+    M, N = fit.shape
+    Vv = Lg.legvander(_to_unit(r, M), fit.degree)
+    Vu = Lg.legvander(_to_unit(c, N), fit.degree)
+    return np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu)
+
+
+def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
+    """Relative photometric-stereo residual ``(I - L . b) / mean(I)`` with per-pixel least-squares b.
+
+    This is paper Eq. 2's ``|L(m) . N - I|`` with the normals (times albedo) ``b`` solved in closed form
+    for the given lights (variable projection). Returns the (K * P,) residual vector.
+    """
+    V = model.vectors(sample.X)                # (K, P, 3)
+    A = np.einsum("kpi,kpj->pij", V, V)
+    rhs = np.einsum("kpi,kp->pi", V, sample.I)
+    try:
+        b = np.linalg.solve(A, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        b = np.einsum("pij,pj->pi", np.linalg.pinv(A), rhs)
+    pred = np.einsum("kpi,pi->kp", V, b)
+    return ((sample.I - pred) / sample.I.mean(axis=0)).ravel()
+
+
+def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pixel_size_um,
+                    refine=True, m_bounds=(80.0, 3000.0), progress: Progress = None) -> LightEstimate:
+    """Estimate near-light positions from the drop-off fits and the photometric residual.
+
+    Parameters
+    ----------
+    grid : BlockGrid
+        Block means of the capture (for each image's overall level).
+    fits : list of DropoffFit
+        One per image, from :func:`uvps.flatfield.fit_dropoffs` (their albedo-free ratio part is used).
+        On return their common part is set from the estimated lights (:func:`uvps.flatfield.set_common`).
+    sample : PixelSample or None
+        Pixels for the photometric residual (:func:`sample_pixels`); None keeps ``m`` at the
+        drop-off-only optimum and skips the per-light refinement.
+    pixel_size_um : float
+    refine : bool
+        Refine each light's position and intensity after the equidistant solution.
+    m_bounds : (float, float)
+        Range of the shared distance ``m`` in mm.
+
+    Returns
+    -------
+    LightEstimate
+
+    Notes
+    -----
+    Paper Eq. 2: ``argmin_{N, m} |L(m) . N - I|``. For each trial ``m`` the lights' azimuths and
+    elevations are fitted to the drop-off ratio maps, the normals solved in closed form, and the
+    residual evaluated on the pixel sample; ``m`` is scanned on a log grid and then refined with
+    ``scipy.optimize.least_squares``. The per-light refinement minimises the same residual over all
+    ``L_k`` and ``E_k`` with the drop-off misfit as a prior.
+    """
+    from .flatfield import set_common
+
+    shape = grid.shape
+    K = len(fits)
+    weak = [k for k, f in enumerate(fits) if f.gradient_rms * max(shape) < 0.005]
+    if len(weak) == K:
+        raise UVPSInputError(
+            "no measurable light drop-off in any image (less than 0.5 % across the field): the lights "
+            "cannot be estimated from the images; pass calibrated lights with --lights")
+    rows, cols, R = _ratio_samples(fits, shape)
+    X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, pixel_size_um)
+    history = []
+    # start: azimuth from the polar resampling of each ratio map, elevation 40 degrees
+    az_ratio = np.radians([azimuth_from_dropoff(f) for f in fits])
+    start = np.stack([np.cos(np.radians(40)) * np.cos(az_ratio), np.cos(np.radians(40)) * np.sin(az_ratio),
+                      np.full(K, np.sin(np.radians(40)))], axis=1)
+    cache = {}
+
+    def equidistant(m):
+        key = round(float(m), 6)
+        if key not in cache:
+            near = min(cache, key=lambda q: abs(np.log(q / m))) if cache else None
+            P = _equidistant_positions(R, X, m, cache[near].positions_mm if near else start)
+            set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
+                np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
+            E = intensities_from_levels([f.level for f in fits], P, shape, pixel_size_um)
+            cache[key] = LightModel.from_positions(P, E)
+        return cache[key]
+
+    def cost(m):
+        model = equidistant(m)
+        if sample is None:
+            r = (_model_logs(model.positions_mm, X) - (R + _model_logs(model.positions_mm, X).mean(axis=0))).ravel()
+        else:
+            r = photometric_residual(sample, model)
+        c = float(np.mean(r ** 2))
+        history.append({"stage": "equidistant", "m_mm": float(m), "cost": c})
+        return c
+
+    report(progress, 0.05, "lights: scanning the shared distance m")
+    grid_m = np.geomspace(m_bounds[0], m_bounds[1], 12)
+    costs = [cost(m) for m in grid_m]
+    i = int(np.argmin(costs))
+    lo, hi = grid_m[max(i - 1, 0)], grid_m[min(i + 1, len(grid_m) - 1)]
+    report(progress, 0.3, "lights: refining m (paper Eq. 2)")
+    sol = least_squares(lambda t: [np.sqrt(cost(float(np.exp(t[0]))))], [np.log(grid_m[i])],
+                        bounds=([np.log(lo)], [np.log(hi) + 1e-9]), diff_step=1e-3, max_nfev=20)
+    m = float(np.exp(sol.x[0]))
+    eq = equidistant(m)
+    model = eq
+    if refine and sample is not None:
+        report(progress, 0.5, "lights: refining each light's position and intensity")
+        model = _refine_each(sample, eq, R, X, history)
+        report(progress, 0.85, "lights: refining the overall scale of the light positions")
+        model = _refine_scale(sample, model, history)
+    P = model.positions_mm
+    set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
+        np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
+    az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
+    report(progress, 1.0, "lights: done")
+    return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
+                         equidistant=eq)
+
+
+def _ratio_resid(P, R, X):
+    h = _model_logs(P, X)
+    return (h - h.mean(axis=0) - R).ravel()
+
+
+def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale):
+    """Photometric residual and its Jacobian in (P / scale, log E), by variable projection.
+
+    The Jacobian is Kaufman's approximation: the derivative of the residual with the per-pixel
+    ``b`` held fixed, projected on the orthogonal complement of each pixel's light matrix. Written
+    out here because no library does variable projection with per-pixel 3-vectors; it turns each
+    iteration of ``least_squares`` from 4K + 1 residual evaluations into one.
+    """
+    K = len(P)
+    model = LightModel.from_positions(P, E)
+    V = model.vectors(sample.X)                          # (K, Pn, 3)
+    A = np.einsum("kpi,kpj->pij", V, V)
+    Ainv = np.linalg.inv(A)
+    b = np.einsum("pij,kpj,kp->pi", Ainv, V, sample.I)
+    mu = sample.I.mean(axis=0)
+    r = ((sample.I - np.einsum("kpi,pi->kp", V, b)) / mu).ravel()
+    J = np.zeros((K, r.size // K, 4 * K))
+    h = 1e-6 * scale
+    for k in range(K):
+        cols = []
+        for j in range(3):
+            Lp = P[k].copy()
+            Lp[j] += h
+            Vk = LightModel.from_positions(Lp[None], E[k:k + 1]).vectors(sample.X)[0]
+            cols.append((Vk - V[k]) / h * scale)           # d V_k / d (L_kj / scale)
+        cols.append(V[k])                                 # d V_k / d log E_k
+        for j, dV in enumerate(cols):
+            d = -np.einsum("pi,pi->p", dV, b) / mu           # residual change of light k, b fixed
+            c = np.einsum("pij,pj->pi", Ainv, V[k] * d[:, None])
+            col = -np.einsum("kpi,pi->kp", V, c)            # minus the part the normals absorb
+            col[k] += d
+            J[:, :, 4 * k + j] = col
+    return r, J.reshape(r.size, 4 * K)
+
+
+def _refine_scale(sample: PixelSample, model: LightModel, history):
+    """Scale all positions together to minimise the photometric residual.
+
+    Moving every lamp toward or away from the centre by the same factor changes each image almost
+    only as a global linear map of the lights, which the per-pixel normals absorb (the bas-relief
+    ambiguity of far lights); only the near-light geometry across the field tells them apart. This
+    valley is so shallow that a joint optimiser crawls along it, so it is searched on its own.
+    """
+    P, E = model.positions_mm, model.intensities
+
+    def f(t):
+        return photometric_residual(sample, LightModel.from_positions(P * np.exp(t[0]), E))
+
+    c0 = float(np.mean(f([0.0]) ** 2))
+    grid = np.log(np.linspace(0.6, 1.8, 13))
+    costs = [float(np.mean(f([g]) ** 2)) for g in grid]
+    i = int(np.argmin(costs))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    sol = least_squares(f, [grid[i]], bounds=([lo], [hi + 1e-9]), diff_step=1e-3, max_nfev=20)
+    s = float(np.exp(sol.x[0]))
+    history.append({"stage": "scale", "scale": s, "cost_start": c0, "cost": float(np.mean(sol.fun ** 2))})
+    return LightModel.from_positions(P * s, E)
+
+
+def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=0.15, max_nfev=40):
+    """All positions and log-intensities by least squares on the photometric + drop-off residuals.
+
+    The drop-off term is a weak prior: a bowed canvas biases it (its shading is smooth and different
+    under every lamp), while the photometric residual over the texture is unbiased.
+    """
+    K = len(start.intensities)
+    P0 = start.positions_mm
+    scale = np.linalg.norm(P0, axis=1).mean()
+    x0 = np.concatenate([(P0 / scale).ravel(), np.log(start.intensities)])
+    n_res = sample.I.size
+    n_dr = R.size
+
+    def unpack(t):
+        th = t.reshape(K, 4)
+        return th[:, :3] * scale, np.exp(th[:, 3])
+
+    def drop(t):
+        return w_drop * _ratio_resid(unpack(t)[0], R, X) / np.sqrt(n_dr)
+
+    def fun(t):
+        P, E = unpack(t)
+        r_ph = photometric_residual(sample, LightModel.from_positions(P, E))
+        return np.concatenate([r_ph / np.sqrt(n_res), drop(t), [np.mean(t.reshape(K, 4)[:, 3])]])
+
+    def jac(t):
+        P, E = unpack(t)
+        _, Jp = _vp_residual_and_jacobian(sample, P, E, scale)
+        d0 = drop(t)
+        Jd = np.empty((d0.size, t.size))
+        for i in range(t.size):   # the drop-off prior is tiny: forward differences
+            tt = t.copy()
+            tt[i] += 1e-6
+            Jd[:, i] = (drop(tt) - d0) / 1e-6
+        Jm = np.zeros((1, t.size))
+        Jm[0, 3::4] = 1.0 / K
+        return np.concatenate([Jp / np.sqrt(n_res), Jd, Jm])
+
+    x0 = np.concatenate([P0 / scale, np.log(start.intensities)[:, None]], axis=1).ravel()
+    lb = np.tile([-5, -5, 0.02, -2.0], K)
+    ub = np.tile([5, 5, 5, 2.0], K)
+    c0 = float(np.sum(fun(x0) ** 2))
+    sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, bounds=(lb, ub), x_scale="jac",
+                        max_nfev=max_nfev, tr_solver="lsmr")
+    history.append({"stage": "per-light", "iterations": int(sol.nfev), "cost_start": c0,
+                    "cost": float(np.sum(sol.fun ** 2))})
+    P, E = unpack(sol.x)
+    return LightModel.from_positions(P, E / np.median(E))
