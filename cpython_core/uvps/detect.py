@@ -526,17 +526,30 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
 
     # ---- measurements and rejection ---------------------------------------------------------
     _report(progress, 0.85, "rejection")
-    props = regionprops_table(lab, properties=("label", "area", "axis_major_length", "axis_minor_length"))
-    lbl = props["label"]
-    eqd = np.sqrt(4 * props["area"] / np.pi)
-    major = props["axis_major_length"]
-    minor = props["axis_minor_length"]
+    n_lab = int(lab.max())
+    area = np.bincount(lab.ravel(), minlength=n_lab + 1)[1:]
+    lbl = np.flatnonzero(area) + 1
+    area = area[lbl - 1]
+    eqd = np.sqrt(4 * area / np.pi)
     # relief of every candidate above a ring around it (albedo-only ones included)
     ring = expand_labels(lab, distance=max(2.0, 0.25 * min_w + 1)) * (lab == 0)
-    n_lab = int(lab.max())
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     n_alb = np.bincount(lab[mask_albedo], minlength=n_lab + 1)[lbl]
     has_h = lbl <= n_h
+    has_a = n_alb >= np.maximum(1, 0.2 * area)
+    # shape (regionprops_table, one Python step per region) only where it can decide something:
+    # candidates of an acceptable size with some relief or colour (skips the many noise bumps)
+    major = np.zeros(lbl.size)
+    minor = np.zeros(lbl.size)
+    need = (eqd >= min_w) & (eqd <= max_w) & ((relief >= relief_min) | has_a)
+    if need.any():
+        keep_lut = np.zeros(n_lab + 1, np.int32)
+        keep_lut[lbl[need]] = lbl[need]
+        props = regionprops_table(keep_lut[lab], properties=("label", "axis_major_length",
+                                                             "axis_minor_length"))
+        pos = np.searchsorted(lbl, props["label"])
+        major[pos] = props["axis_major_length"]
+        minor[pos] = props["axis_minor_length"]
     # a low piece of a long elongated raised area (a brush stroke broken into bumps by its own
     # relief) is part of a ridge: judge the elevated area holding the candidate
     on_ridge = np.zeros(lbl.size, bool)
@@ -556,7 +569,6 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
             ci = np.where(has_h & np.isfinite(comp_of), comp_of, 0).astype(np.int64)
             on_ridge = (ci > 0) & (c_ratio[ci] < p.ridge_axis_ratio) & (c_major[ci] * px >= p.ridge_min_length_um) \
                 & (c_major[ci] >= 3 * eqd)
-    has_a = n_alb >= np.maximum(1, 0.2 * props["area"])
     flat = relief < relief_min
     if normals is not None:
         nz = np.clip(np.asarray(normals, np.float64)[..., 2], -1, 1)
