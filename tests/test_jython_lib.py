@@ -236,18 +236,8 @@ def test_stack_source_decision(tmp_path):
     assert bl.stack_request_path("/r", "") == os.path.join("/r", "capture.tif")
 
 
-def test_points_csv_round_trip(tmp_path):
-    path = tmp_path / "points.csv"
-    path.write_text(bl.points_csv_text([(10, 20.5), (3.25, 4)]))
-    assert bl.read_points_csv(str(path)) == [(10.0, 20.5), (3.25, 4.0)]
-    path.write_text("x,y,extra\n1,2,3\n")
-    assert bl.read_points_csv(str(path)) == [(1.0, 2.0)]
-    path.write_text("col,row\n1,2\n")
-    with pytest.raises(bl.BridgeError, match="needs columns x_px,y_px"):
-        bl.read_points_csv(str(path))
-    path.write_text("x_px,y_px\n1,oops\n")
-    with pytest.raises(bl.BridgeError, match="line 2"):
-        bl.read_points_csv(str(path))
+def test_points_csv_text():
+    assert bl.points_csv_text([(10, 20.5), (3.25, 4)]) == "x_px,y_px\n10.0,20.5\n3.25,4.0\n"
 
 
 # --------------------------------------------------------------------------- Jython

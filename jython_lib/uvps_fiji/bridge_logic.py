@@ -565,32 +565,3 @@ def points_csv_text(points):
         lines.append("%r,%r" % (float(x), float(y)))
     return "\n".join(lines) + "\n"
 
-
-def read_points_csv(path):
-    """Read (x, y) pixel points from a CSV with ``x_px,y_px`` (or ``x,y``) columns."""
-    if not os.path.isfile(path):
-        raise BridgeError("points file %s does not exist" % path)
-    fh = open(path, "r")
-    try:
-        rows = [ln.strip() for ln in fh.read().splitlines() if ln.strip()]
-    finally:
-        fh.close()
-    if not rows:
-        raise BridgeError("points file %s is empty; expected a header x_px,y_px" % path)
-    header = [h.strip().lower() for h in rows[0].split(",")]
-    xi = yi = None
-    for names in (("x_px", "y_px"), ("x", "y")):
-        if names[0] in header and names[1] in header:
-            xi, yi = header.index(names[0]), header.index(names[1])
-            break
-    if xi is None:
-        raise BridgeError("points file %s needs columns x_px,y_px; got %s" % (path, rows[0]))
-    points = []
-    for number, row in enumerate(rows[1:], 2):
-        cells = row.split(",")
-        try:
-            points.append((float(cells[xi]), float(cells[yi])))
-        except (ValueError, IndexError):
-            raise BridgeError("points file %s line %d: expected two numbers, got '%s'"
-                              % (path, number, row))
-    return points

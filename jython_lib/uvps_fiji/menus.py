@@ -129,10 +129,9 @@ def wand_points(values, request_dir):
     Manager points, written to the request folder."""
     path = optional_path(values.get("points"))
     if path is not None:
-        points = bridge_logic.read_points_csv(path)
-        if not points:
-            raise BridgeError("points file %s holds no points" % path)
-        return path
+        if not os.path.isfile(path):
+            raise BridgeError("points file %s does not exist" % path)
+        return path  # the core reads and checks it (CSV, tab-separated or ImageJ XY)
     points = capture.point_selection()
     if not points:
         raise BridgeError("no points: click the protrusions with the multi-point tool (or add "
