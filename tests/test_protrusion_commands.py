@@ -1,5 +1,7 @@
 """Tests of the protrusion commands on run folders built from a synthetic capture."""
 import csv
+import json
+import pathlib
 import shutil
 
 import numpy as np
@@ -45,6 +47,14 @@ def _truth_table(capture):
     return {"x_px": p["x_px"], "y_px": p["y_px"], "width_um": p["width_um"]}
 
 
+def _bridge_ready(res):
+    """The bridge writes outputs and diagnostics as strict JSON."""
+    json.dumps({"outputs": [o.to_dict() for o in res.outputs], "diagnostics": res.diagnostics,
+                "warnings": res.warnings}, allow_nan=False)
+    for o in res.outputs:
+        assert o.path and pathlib.Path(o.path).is_file()
+
+
 def test_registry():
     assert set(PROTRUSION_COMMANDS) == {"detect", "wand", "regions", "stats", "report", "compare"}
     assert PROTRUSION_COMMANDS["report"] is PROTRUSION_COMMANDS["stats"]
@@ -52,6 +62,7 @@ def test_registry():
 
 def test_detect_writes_consistent_table_and_labels(run, capture):
     res = cmd_detect({}, {}, run)
+    _bridge_ready(res)
     assert {o.name for o in res.outputs} == {"protrusions", "protrusions_labels"}
     table = read_protrusions_csv(run / "protrusions.csv")
     labels, px = read_tiff(run / "protrusions_labels.tif")
@@ -69,6 +80,7 @@ def test_detect_writes_consistent_table_and_labels(run, capture):
 
 def test_detect_with_auto_regions(run):
     res = cmd_detect({}, {"regions": "auto", "min_width_um": 40.0}, run)
+    _bridge_ready(res)
     regions, _ = read_tiff(run / "regions_labels.tif")
     assert res.diagnostics["n_areas"] == len(np.unique(regions[regions > 0])) >= 2
     table = read_protrusions_csv(run / "protrusions.csv")
@@ -91,6 +103,7 @@ def test_wand_at_true_centres(run, capture):
         w.writerow(["x_px", "y_px"])
         w.writerows(pts.tolist())
     res = cmd_wand({"points": str(seeds)}, {"tolerance": 0.08}, run)
+    _bridge_ready(res)
     table = read_protrusions_csv(run / "protrusions_manual.csv")
     assert res.diagnostics["n_protrusions"] == len(table["id"]) == len(pts)
     assert list(set(table["source"])) == ["wand"]
@@ -114,12 +127,14 @@ def test_regions_from_masks_and_stats_and_compare(run, capture):
         write_imagej_tiff(path, m, axes="YX", pixel_size_um=px)
         masks.append(str(path))
     res = cmd_regions({"masks": masks}, {}, run)
+    _bridge_ready(res)
     assert res.diagnostics["names"] == {"1": "left", "2": "right"}
     assert any("no protrusions.csv" in w for w in res.warnings)
     half_cm2 = 240 * 160 * px**2 / 1e8
     assert res.diagnostics["area_cm2"]["1"] == pytest.approx(half_cm2)
     cmd_detect({}, {}, run)
     res = cmd_stats({}, {"bins_um": [0, 100, 200, 1000]}, run)
+    _bridge_ready(res)
     with open(run / "regions.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     table = read_protrusions_csv(run / "protrusions.csv")
@@ -133,6 +148,7 @@ def test_regions_from_masks_and_stats_and_compare(run, capture):
     # a table compared with itself: everything matched
     res = cmd_compare({"a": str(run / "protrusions.csv"), "b": str(run / "protrusions.csv")}, {},
                       run)
+    _bridge_ready(res)
     assert res.diagnostics["matched"] == len(table["id"])
     assert res.diagnostics["missed"] == res.diagnostics["extra"] == 0
     with open(run / "comparison.csv", newline="") as fh:

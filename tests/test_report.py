@@ -125,3 +125,16 @@ def test_height_only_without_protrusions(tmp_path):
 def test_missing_run_folder(tmp_path):
     with pytest.raises(UVPSInputError, match="does not exist"):
         write_report(tmp_path / "nope")
+
+
+def test_far_lights_figure_shows_elevations(tmp_path):
+    """Far lights have no position: the second panel gives each lamp's elevation instead."""
+    from uvps.report import plot_lights
+
+    lights = {"mode": "far", "lights": [
+        {"file": f"l{k}.tif", "direction": [0.5, 0.0, 0.866], "position_mm": None,
+         "azimuth_deg": 45.0 * k, "elevation_deg": 20.0 + 5 * k, "intensity": 1.0}
+        for k in range(8)]}
+    _check_png(plot_lights(lights, tmp_path / "lights.png"))
+    with pytest.raises(UVPSInputError, match="no 'lights'"):
+        plot_lights({"mode": "far", "lights": []}, tmp_path / "x.png")
