@@ -43,7 +43,8 @@ def test_matched_missed_extra_per_area(tmp_path):
     path = tmp_path / "comparison.csv"
     write_comparison_csv(path, c)
     rows = read_comparison_csv(path)
-    assert list(rows[0]) == list(COLUMNS)
+    assert list(rows[0]) == list(COLUMNS) + ["table_a", "table_b"]
+    assert rows[0]["table_a"] == "manual" and rows[2]["table_b"] == "automated"
     assert [r["label"] for r in rows] == ["1", "2", "all"]
     assert rows[2]["matched"] == "3" and float(rows[0]["density_a"]) == pytest.approx(6.0)
 

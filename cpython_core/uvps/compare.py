@@ -212,9 +212,15 @@ def _row(label, name, area_cm2, sel_a, sel_b, matched_a, matched_b) -> dict:
 
 
 def write_comparison_csv(path, comparison: Comparison) -> None:
-    """Write ``comparison.csv`` atomically: a row per area, then "all" (:data:`COLUMNS`)."""
+    """Write ``comparison.csv`` atomically: a row per area, then "all".
+
+    Columns :data:`COLUMNS`, then ``table_a`` and ``table_b`` (what the two tables are, e.g. the
+    file names ``protrusions_manual`` and ``protrusions``), so the file describes itself.
+    """
     cols = {c: [r[c] for r in comparison.rows] for c in COLUMNS}
-    atomic_write_text(path, table_to_csv_text(cols, list(COLUMNS)))
+    cols["table_a"] = [comparison.name_a] * len(comparison.rows)
+    cols["table_b"] = [comparison.name_b] * len(comparison.rows)
+    atomic_write_text(path, table_to_csv_text(cols, list(cols)))
 
 
 def read_comparison_csv(path) -> list:

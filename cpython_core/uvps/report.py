@@ -576,6 +576,8 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
         rows, name_a, name_b = comparison.rows, comparison.name_a, comparison.name_b
     elif (run_dir / "comparison.csv").is_file():
         rows = read_comparison_csv(run_dir / "comparison.csv")
+        if rows:
+            name_a, name_b = rows[0].get("table_a") or "a", rows[0].get("table_b") or "b"
     if rows and (figdir / "comparison_map.png").is_file():
         page.figures.append(("comparison_map.png", "Protrusions of the second table circled in "
                              "red, those of the first it missed in yellow (paper Fig. 4b)."))
