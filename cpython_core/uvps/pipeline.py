@@ -1,0 +1,189 @@
+"""The whole run, stage by stage: capture -> drop-off fits -> lights -> normals/albedo -> height.
+
+Each stage is a function on arrays; the ``write_*`` functions put its results in a (temporary) run
+folder in the formats of docs/architecture.md. ``uvps.commands`` strings them together for the CLI and
+the file bridge.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from . import __version__
+from .errors import UVPSInputError
+from .flatfield import block_grid, fit_dropoffs, flatfield, set_common
+from .integrate import integrate_normals
+from .io import Capture, sha256_file, write_imagej_tiff
+from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels,
+                     pixel_coordinates_mm, sample_pixels, _model_logs)
+from .outputs import Progress, report, write_json_atomic
+from .stereo import StereoResult, solve_normals
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RunOptions", "LightsResult", "estimate_capture_lights", "write_lights", "write_flatfield",
+           "write_stereo", "write_depth", "RunLog"]
+
+
+@dataclass
+class RunOptions:
+    """Options of the photometric-stereo stages (everything else is read from the capture)."""
+
+    degree: int = 4                 # Legendre degree of the drop-off fit
+    robust: bool = False            # IRLS photometric stereo (visible light, highlights)
+    integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
+    refine_lights: bool = True      # per-light refinement after the equidistant solution
+    sample_pixels: int = 8000       # pixels used by the photometric residual
+
+    def __post_init__(self):
+        if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
+            raise UVPSInputError(f"degree must be an integer from 1 to 8; got {self.degree!r}")
+        if self.integration not in ("fc", "dct"):
+            raise UVPSInputError(f"integration must be 'fc' or 'dct'; got {self.integration!r}")
+        if int(self.sample_pixels) < 500:
+            raise UVPSInputError(f"sample_pixels must be >= 500; got {self.sample_pixels!r}")
+
+
+@dataclass
+class LightsResult:
+    """Lights of a capture and how they were obtained."""
+
+    model: LightModel
+    fits: list
+    source: str                          # "estimated", "positions" or "directions"
+    estimate: Optional[LightEstimate] = None
+
+
+@dataclass
+class RunLog:
+    """What run.json records: parameters, inputs, timings, warnings."""
+
+    command: str
+    params: dict
+    inputs: list = field(default_factory=list)
+    timings_s: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+
+    def time(self, stage, t0):
+        self.timings_s[stage] = round(time.perf_counter() - t0, 3)
+
+    def write(self, path):
+        d = asdict(self)
+        d = {"version": __version__, **d}
+        write_json_atomic(path, d)
+
+
+def input_hashes(capture: Capture) -> list:
+    """SHA-256 of every input file (a stack is hashed once)."""
+    seen, out = set(), []
+    for f in capture.files:
+        p = f.split("#")[0] if "#" in f and not Path(f).exists() else f
+        if p in seen:
+            continue
+        seen.add(p)
+        out.append({"path": str(p), "sha256": sha256_file(p)})
+    return out
+
+
+def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: Progress = None) -> LightsResult:
+    """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
+
+    Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
+    intensity measured from the images' levels. Known directions (an RTI ``.lp`` file) give far lights.
+    Otherwise the near-light positions are estimated from the images (:func:`uvps.lights.estimate_lights`).
+    """
+    px = capture.pixel_size_um
+    report(progress, 0.0, "drop-off fits")
+    grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
+    fits = fit_dropoffs(grid, degree=int(options.degree))
+    shape = grid.shape
+
+    def common_of(P):
+        return lambda r, c: _model_logs(P, pixel_coordinates_mm(np.asarray(r)[:, None], np.asarray(c)[None, :],
+                                                                  shape, px)).mean(axis=0)
+
+    if capture.light_positions_mm is not None:
+        P = capture.light_positions_mm
+        set_common(fits, grid, common_of(P))
+        E = intensities_from_levels([f.level for f in fits], P, shape, px)
+        return LightsResult(LightModel.from_positions(P, E), fits, "positions")
+    if capture.light_directions is not None:
+        # far lights: no drop-off model; the fits stay relative to the stack's geometric mean
+        E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=capture.light_directions)
+        return LightsResult(LightModel.from_directions(capture.light_directions, E), fits, "directions")
+    sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
+                           pixel_size_um=px, n=int(options.sample_pixels))
+    sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
+    est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights, progress=sub)
+    return LightsResult(est.model, fits, "estimated", est)
+
+
+def write_lights(folder: Path, capture: Capture, lights: LightsResult, *, dropoff=True) -> dict:
+    """``lights.json`` (and ``dropoff.tif``, the fitted drop-off maps, at most 1024 px wide)."""
+    extra = {"pixel_size_um": capture.pixel_size_um, "image_shape": list(capture.images.shape[1:3]),
+             "source": lights.source,
+             "dropoff": [{"degree": f.degree, "legendre_coeffs": f.coeffs.tolist(), "level": f.level}
+                         for f in lights.fits]}
+    if lights.estimate is not None:
+        est = lights.estimate
+        extra.update({"m_mm": est.m_mm, "residual_history": est.residual_history,
+                      "azimuth_polar_deg": [float(a) for a in est.azimuth_polar_deg],
+                      "equidistant_positions_mm": est.equidistant.positions_mm.tolist()})
+    data = lights.model.to_json([Path(f).name for f in capture.files], extra=extra)
+    write_json_atomic(folder / "lights.json", data)
+    if dropoff:
+        M, N = capture.images.shape[1:3]
+        step = max(1, int(np.ceil(max(M, N) / 1024)))
+        rows, cols = np.arange(0, M, step), np.arange(0, N, step)
+        maps = np.stack([f.evaluate(rows, cols) for f in lights.fits]).astype(np.float32)
+        write_imagej_tiff(folder / "dropoff.tif", maps, axes="ZYX", pixel_size_um=capture.pixel_size_um * step,
+                          labels=[Path(f).name for f in capture.files],
+                          metadata={"Info": f"uvps drop-off maps (mean 1), sampled every {step} px"})
+    return data
+
+
+def write_flatfield(folder: Path, capture: Capture, lights: LightsResult, *, progress: Progress = None) -> Path:
+    """``flatfield/<name>.tif``: each image divided by its drop-off map, one float32 file per image."""
+    out = folder / "flatfield"
+    out.mkdir(exist_ok=True)
+    K = capture.images.shape[0]
+    for k, (img, fit) in enumerate(zip(capture.images, lights.fits)):
+        ff = flatfield(img, fit)
+        axes = "YX"
+        if ff.ndim == 3:
+            ff, axes = np.moveaxis(ff, -1, 0), "CYX"
+        name = Path(capture.files[k].replace("#", "_")).stem
+        write_imagej_tiff(out / f"{k:03d}_{name}.tif", ff, axes=axes, pixel_size_um=capture.pixel_size_um)
+        report(progress, (k + 1) / K, f"flat field {k + 1}/{K}")
+    return out
+
+
+def write_stereo(folder: Path, res: StereoResult, pixel_size_um: float) -> None:
+    """``normals.tif`` (3, M, N), ``albedo.tif`` ((3,) M, N) and ``gradients.tif`` (2, M, N)."""
+    from .integrate import gradients_from_normals
+
+    write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
+                      pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
+    if res.albedo.ndim == 3:
+        write_imagej_tiff(folder / "albedo.tif", np.moveaxis(res.albedo, -1, 0), axes="CYX",
+                          pixel_size_um=pixel_size_um, labels=["R", "G", "B"][:res.albedo.shape[-1]])
+    else:
+        write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
+    g = gradients_from_normals(res.normals)
+    write_imagej_tiff(folder / "gradients.tif", np.stack([g.p, g.q]), axes="CYX",
+                      pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"])
+
+
+def write_depth(folder: Path, normals, pixel_size_um: float, *, method="fc", mask=None) -> dict:
+    """``depth.tif``: height in micrometres (median 0), from the normals."""
+    res = integrate_normals(normals, pixel_size_um=pixel_size_um, method=method, mask=mask)
+    write_imagej_tiff(folder / "depth.tif", res.height_um, axes="YX", pixel_size_um=pixel_size_um,
+                      metadata={"Info": f"uvps height in micrometres ({res.method}), median 0"})
+    return {"method": res.method, "residual_rms": res.residual_rms, "integrability": res.integrability,
+            "height_range_um": [float(np.nanmin(res.height_um)), float(np.nanmax(res.height_um))]}
