@@ -114,6 +114,14 @@ def test_wand_at_true_centres(run, capture):
     np.testing.assert_allclose(table["width_um"][comp.pairs[:, 1]],
                                p["width_um"][comp.pairs[:, 0]], rtol=0.35)
     assert read_tiff(run / "protrusions_manual_labels.tif").data.max() == len(pts)
+    # statistics of the wand count (the paper's Fig. 4a is the manual method): only the wand
+    # has run, so stats falls back to protrusions_manual.csv and says so
+    res = cmd_stats({}, {}, run)
+    assert any("protrusions_manual.csv" in w for w in res.warnings)
+    with open(run / "regions.csv", newline="") as fh:
+        assert list(csv.DictReader(fh))[-1]["count"] == str(len(pts))
+    text = (run / "report.html").read_text()
+    assert "href='protrusions_manual.csv'" in text and "protrusions_manual_labels.tif" in text
 
 
 def test_regions_from_masks_and_stats_and_compare(run, capture):
@@ -173,6 +181,7 @@ def test_regions_auto_writes_imagej_label_tiff(run):
     (cmd_regions, {}, {}, "exactly one of"),
     (cmd_regions, {"labels": "WRONG"}, {}, "expected the capture's 240 x 320"),
     (cmd_stats, {}, {}, "no protrusions.csv"),
+    (cmd_stats, {}, {"table": "missing.csv"}, "missing.csv does not exist"),
     (cmd_wand, {"points": [[10, 10]]}, {}, "tolerance"),
     (cmd_wand, {}, {"tolerance": 0.1}, "points"),
     (cmd_compare, {"a": "x.csv"}, {}, "inputs.b"),

@@ -247,11 +247,12 @@ def cmd_wand(inputs: dict, params: dict, output_dir, *,
                           "pixel_size_um": images.pixel_size_um}, warnings)
 
 
-def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list):
+def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
+                   path: Optional[Path] = None):
     from .measure import empty_table, read_protrusions_csv
     from .regions import region_statistics, write_regions_csv
 
-    path = run_dir / "protrusions.csv"
+    path = path or run_dir / "protrusions.csv"
     if path.is_file():
         table = read_protrusions_csv(path)
     else:
@@ -321,14 +322,27 @@ def cmd_stats(inputs: dict, params: dict, output_dir, *,
     """Per-area statistics (``regions.csv``) and the report (``report.html``, ``figures/``).
 
     Params: ``bins_um`` (100, or a list of edges), ``regions`` (label TIFF; default the run's
-    ``regions_labels.tif``, else the whole image), ``pixel_size_um``.
+    ``regions_labels.tif``, else the whole image), ``table`` (the protrusion CSV to count: a
+    path or a file name in the run folder; default ``protrusions.csv``, else
+    ``protrusions_manual.csv`` when only the wand has run), ``pixel_size_um``.
     """
     from .regions import whole_image
     from .report import write_report
 
     run_dir = Path(output_dir)
-    warnings = _unknown(params, {"bins_um", "regions", "pixel_size_um"})
-    if not (run_dir / "protrusions.csv").is_file():
+    warnings = _unknown(params, {"bins_um", "regions", "pixel_size_um", "table"})
+    if params.get("table"):
+        table_path = Path(params["table"])
+        table_path = table_path if table_path.is_absolute() else run_dir / table_path
+        if not table_path.is_file():
+            raise UVPSInputError(f"table: protrusion CSV {table_path} does not exist")
+    elif (run_dir / "protrusions.csv").is_file():
+        table_path = run_dir / "protrusions.csv"
+    elif (run_dir / "protrusions_manual.csv").is_file():
+        table_path = run_dir / "protrusions_manual.csv"
+        warnings.append("no protrusions.csv: statistics of the wand count "
+                        "(protrusions_manual.csv)")
+    else:
         raise UVPSInputError(f"run folder {run_dir} has no protrusions.csv; run the 'detect' or "
                              "'wand' command first")
     images = read_run(run_dir, need=(), pixel_size_um=params.get("pixel_size_um"))
@@ -345,10 +359,10 @@ def cmd_stats(inputs: dict, params: dict, output_dir, *,
     report(progress, 0.05, "statistics")
     with atomic_output_dir(run_dir) as tmp:
         stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,
-                               params.get("bins_um", 100.0), warnings)
+                               params.get("bins_um", 100.0), warnings, table_path)
     sub = None if progress is None else (lambda f, m: progress(0.1 + 0.9 * f, m))
     html = write_report(run_dir, stats=stats, regions=regions, warnings=list(warnings),
-                        progress=sub)
+                        table=table_path, progress=sub)
     figures = sorted((run_dir / "figures").glob("*.png"))
     outputs = [OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2"),
                OutputSpec("report", str(html), kind="html")]
@@ -357,6 +371,7 @@ def cmd_stats(inputs: dict, params: dict, output_dir, *,
     diagnostics = {r.name: {"count": r.count, "area_cm2": r.area_cm2,
                             "density_per_cm2": r.density_per_cm2} for r in stats.rows}
     return CommandResult(outputs, {"areas": diagnostics, "outside": stats.outside,
+                                   "table": str(table_path),
                                    "edges_um": [float(e) if np.isfinite(e) else None
                                                 for e in stats.edges_um]}, warnings)
 

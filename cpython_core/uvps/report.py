@@ -431,7 +431,7 @@ td:first-child,th:first-child{text-align:left}figure{margin:1em 0}img{max-width:
 .warn{color:#a40}pre{background:#f6f6f6;padding:0.5em;overflow-x:auto}"""
 
 
-def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison=None,
+def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None, comparison=None,
                  warnings: Optional[list] = None, title: Optional[str] = None,
                  progress: Progress = None) -> Path:
     """Write ``report.html`` and ``figures/*.png`` for a run folder.
@@ -442,6 +442,9 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
         The run folder (see ``docs/architecture.md``). Read if present: ``run.json``,
         ``lights.json``, ``normals.tif``, ``albedo.tif``, ``depth.tif``, ``protrusions.csv``,
         ``protrusions_labels.tif``, ``regions_labels.tif``, ``comparison.csv``.
+    table : path, optional
+        The protrusion CSV to summarise and outline (default ``<run_dir>/protrusions.csv``; e.g.
+        ``protrusions_manual.csv`` for the wand count, then with its ``*_labels.tif``).
     bins_um : float or sequence of float
         Width bins of the histograms when ``stats`` is not given.
     stats : RegionStats, optional
@@ -487,7 +490,10 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
     normals, px_n = _read_optional_tiff(run_dir / "normals.tif")
     albedo, px_a = _read_optional_tiff(run_dir / "albedo.tif")
     height, px_h = _read_optional_tiff(run_dir / "depth.tif")
-    plabels, px_l = _read_optional_tiff(run_dir / "protrusions_labels.tif")
+    table_path = Path(table) if table is not None else run_dir / "protrusions.csv"
+    if table is not None and not table_path.is_file():
+        raise UVPSInputError(f"protrusion table {table_path} does not exist")
+    plabels, px_l = _read_optional_tiff(table_path.with_name(table_path.stem + "_labels.tif"))
     px = next((p for p in (px_h, px_a, px_n, px_l) if p), None)
     if px is None and run is not None:
         px = run.get("pixel_size_um") or (run.get("params") or {}).get("pixel_size_um")
@@ -521,9 +527,7 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
     elif albedo is None:
         page.skipped.append(("albedo.png", "albedo.tif missing"))
 
-    table = None
-    if (run_dir / "protrusions.csv").is_file():
-        table = read_protrusions_csv(run_dir / "protrusions.csv")
+    table = read_protrusions_csv(table_path) if table_path.is_file() else None
     report(progress, 0.45, "height map")
     if height is not None and images_ok:
         lab = None
@@ -589,7 +593,7 @@ def write_report(run_dir, *, bins_um=100.0, stats=None, regions=None, comparison
     else:
         page.skipped.append(("comparison", "no comparison.csv (run the compare command)"))
 
-    text = _html(run_dir, run, table, page, warn, title)
+    text = _html(run_dir, run, table, table_path, page, warn, title)
     out = run_dir / "report.html"
     atomic_write_text(out, text)
     report(progress, 1.0, "report written")
@@ -626,7 +630,16 @@ def _summary_rows(run: dict) -> list:
     return [(k, v) for k, v in src.items()]
 
 
-def _html(run_dir: Path, run, table, page: _Page, warn: list, title) -> str:
+def _link(path: Path, run_dir: Path) -> str:
+    """A relative link when ``path`` is inside the run folder, else its absolute file URI."""
+    try:
+        target = path.resolve().relative_to(run_dir.resolve()).as_posix()
+    except ValueError:
+        target = path.resolve().as_uri()
+    return f"<a href='{html.escape(target)}'>{html.escape(path.name)}</a>"
+
+
+def _html(run_dir: Path, run, table, table_path: Path, page: _Page, warn: list, title) -> str:
     e = html.escape
     title = title or f"uvps report: {run_dir.name}"
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title>"
@@ -651,9 +664,10 @@ def _html(run_dir: Path, run, table, page: _Page, warn: list, title) -> str:
         w = np.asarray(table["width_um"], float)
         wtxt = (f"; widths {np.nanmin(w):.0f} to {np.nanmax(w):.0f} \u00b5m (median "
                 f"{np.nanmedian(w):.0f})") if n else ""
+        labels_path = table_path.with_name(table_path.stem + "_labels.tif")
+        labels_link = f", labels: {_link(labels_path, run_dir)}" if labels_path.is_file() else ""
         parts.append(f"<p><b>{n}</b> protrusions ({e(by_src) if n else 'none'}), {craters} with "
-                     f"a crater{wtxt}. Table: <a href='protrusions.csv'>protrusions.csv</a>, "
-                     "labels: <a href='protrusions_labels.tif'>protrusions_labels.tif</a>.</p>")
+                     f"a crater{wtxt}. Table: {_link(table_path, run_dir)}{labels_link}.</p>")
     else:
         parts.append("<p>No protrusions.csv: detection has not run.</p>")
     if warn:
