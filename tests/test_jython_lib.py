@@ -279,3 +279,41 @@ def test_every_jython_source_compiles_under_jython_2_7():
     assert out.stdout.strip() == "ok"
     for src in sources:
         src.read_bytes().decode("ascii")
+
+
+# --------------------------------------------------------------------------- with the real core
+
+def _run_core(request, tmp_path):
+    req_dir = bl.make_request_dir(str(tmp_path))
+    req_path = bl.write_request(request, req_dir)
+    proc = subprocess.run(bl.build_command(sys.executable, req_path), capture_output=True,
+                          text=True, timeout=300)
+    return proc, req_path
+
+
+def test_an_error_of_the_real_core_reaches_the_fiji_side(tmp_path):
+    """`uvps bridge` on a request the core rejects: BridgeError with the core's type and text."""
+    request = bl.build_request("wand", {}, {"tolerance": 0.05}, str(tmp_path / "run"))
+    proc, req_path = _run_core(request, tmp_path)
+    assert proc.returncode == 1
+    with pytest.raises(bl.BridgeError) as info:
+        bl.finish_call(proc.returncode, req_path, command="wand", stderr=proc.stderr)
+    assert info.value.error_type == "UVPSInputError"
+    assert "points" in info.value.message and info.value.exit_code == 1
+
+
+def test_a_real_core_run_is_accepted_with_its_outputs(tmp_path):
+    from uvps.synthetic import make_capture, write_capture
+
+    write_capture(make_capture(shape=(60, 80), n_lights=6, seed=2), tmp_path / "cap",
+                  truth=False)
+    request = bl.build_request("lights", {"images": [str(tmp_path / "cap")]}, {"degree": 2},
+                               str(tmp_path / "run"))
+    proc, req_path = _run_core(request, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    progress = [bl.parse_progress(line) for line in proc.stdout.splitlines()]
+    assert progress and all(p is not None for p in progress)
+    assert [f for f, _ in progress] == sorted(f for f, _ in progress)
+    response = bl.finish_call(proc.returncode, req_path, command="lights", stderr=proc.stderr)
+    lights = json.loads(Path(response.file("lights.json")).read_text())
+    assert len(lights["lights"]) == 6

@@ -43,6 +43,33 @@ def open_image(path, title=None, show=True):
     return imp
 
 
+def open_folder_stack(path, title):
+    """Open a folder of TIFFs (one per light, e.g. ``flatfield/``) as one stack and show it;
+    files with C > 1 channels (RGB float) give a hyperstack of C channels x lights."""
+    from ij.plugin import FolderOpener
+    if not os.path.isdir(path):
+        raise BridgeError("output folder %s is missing" % path)
+    files = sorted(f for f in os.listdir(path) if f.lower().endswith(".tif"))
+    if not files:
+        raise BridgeError("output folder %s holds no TIFF" % path)
+    probe = IJ.openImage(os.path.join(path, files[0]))
+    channels = probe.getNChannels() if probe is not None else 1
+    imp = FolderOpener.open(path)
+    if imp is None or imp.getStackSize() == 0:
+        raise BridgeError("ImageJ cannot open the images in %s" % path)
+    n = imp.getStackSize()
+    if channels > 1 and n % channels == 0:
+        imp.setDimensions(channels, 1, n // channels)
+        imp.setOpenAsHyperStack(True)
+    imp.setTitle(title)
+    old = WindowManager.getImage(title)
+    if old is not None:
+        old.changes = False
+        old.close()
+    imp.show()
+    return imp
+
+
 def open_table(path, title):
     """Open a CSV output as a ResultsTable window called ``title`` and return the table."""
     if not os.path.isfile(path):

@@ -85,10 +85,10 @@ def flat_field(values):
     request_dir = bridge_logic.make_request_dir()
     response = runner.call("flatfield", capture.capture_inputs(values, request_dir),
                            _light_params(values), out, request_dir=request_dir)
-    display.open_image(response.file("flatfield.tif"), "flatfield")
     display.open_image(response.file("dropoff.tif"), "dropoff")
+    # One float32 TIFF per image in <run>/flatfield/ (3 channels each for an RGB capture).
+    display.open_folder_stack(response.path("flatfield"), "flatfield")
     return response
-
 
 def normals_and_albedo(values):
     """``normals``: per-pixel least squares for normals and the RGB fluorescence albedo."""

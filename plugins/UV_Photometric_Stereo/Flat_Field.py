@@ -1,7 +1,7 @@
 """Flat Field: divide every image by its own Legendre drop-off fit (uneven near-light lighting).
 
-Opens the flat-fielded stack and the drop-off fits; writes flatfield.tif, dropoff.tif and
-lights.json (azimuths only) into the run folder.
+Opens the flat-fielded stack and the drop-off fits; writes flatfield/ (one TIFF per image),
+dropoff.tif and lights.json into the run folder.
 
 Macro: run("Flat Field", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4");
 """

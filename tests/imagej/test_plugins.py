@@ -124,7 +124,7 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
         ('Estimate Lights', 'capture=[Folder or files] images=%s run=%s degree=4'
          % (q(capture_dir), q(out)), ["lights.json", "dropoff.tif"]),
         ('Flat Field', 'capture=[Folder or files] images=%s run=%s degree=4'
-         % (q(capture_dir), q(out)), ["flatfield.tif"]),
+         % (q(capture_dir), q(out)), ["flatfield"]),
         ('Normals and Albedo', 'capture=[Folder or files] images=%s run=%s degree=4'
          % (q(capture_dir), q(out)), ["normals.tif", "albedo.tif", "gradients.tif"]),
         ('Integrate Height', 'run=%s integration=[DCT Poisson (Neumann)]' % q(out),
@@ -149,7 +149,7 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
     for cmd, _, files in steps:
         assert "done %s" % cmd in lines
         for name in files:
-            assert (out / name).is_file(), (cmd, name)
+            assert (out / name).exists(), (cmd, name)
     assert "tables %d %d" % (N_LIGHTS, len(_read_csv(out / "comparison.csv"))) in lines
     lights = json.loads((out / "lights.json").read_text())
     assert len(lights["lights"]) == N_LIGHTS
