@@ -159,22 +159,127 @@ def test_jsonable_makes_strict_json():
     assert json.loads(text) == {"a": None, "b": [3, [1.5, None]], "4": "/x"}
 
 
-# --- real subprocesses --------------------------------------------------------------------------
+# --- real subprocesses, real commands -----------------------------------------------------------
 
 
-def _run(req, *args):
+def _run(req, *, module="uvps", extra=("bridge",)):
     env = dict(os.environ, PYTHONWARNINGS="error")
-    return subprocess.run([sys.executable, "-m", *args, str(req)], capture_output=True, text=True,
-                          env=env, timeout=120)
+    return subprocess.run([sys.executable, "-m", module, *extra, str(req)], capture_output=True,
+                          text=True, env=env, timeout=120)
 
 
-def test_subprocess_bad_requests(tmp_path):
+def _bump_run(folder, shape=(48, 64)):
+    """A run folder holding normals.tif of an analytic Gaussian bump; returns its height (um)."""
+    from uvps.synthetic import normals_from_height
+
+    m, n = shape
+    r, c = np.mgrid[:m, :n]
+    height = (30.0 * np.exp(-((c - n / 2) ** 2 + (r - m / 2) ** 2) / (2 * 8.0 ** 2))).astype(np.float32)
+    normals = normals_from_height(height, pixel_size_um=PX_UM)
+    (folder / "run").mkdir(parents=True)
+    write_imagej_tiff(folder / "run" / "normals.tif", np.moveaxis(normals, -1, 0), axes="CYX",
+                      pixel_size_um=PX_UM)
+    return height - np.median(height)
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder): (p.stat().st_mtime_ns, sha256_file(p))
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_subprocess_integrate_round_trip(tmp_path, method):
+    height = _bump_run(tmp_path)
+    req = _request(tmp_path, command="integrate", params={"integration": method}, output_dir="run")
+    proc = _run(req)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines and all(ln.startswith("PROGRESS ") for ln in lines)
+    fractions = [float(ln.split()[1]) for ln in lines]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert "uvps.bridge" in proc.stderr  # the log goes to stderr
+    resp = _response(req)
+    assert resp["status"] == "ok" and resp["command"] == "integrate" and resp["error"] is None
+    (depth,) = [o for o in resp["outputs"] if o["name"] == "depth"]
+    assert depth["path"] == str(tmp_path / "run" / "depth.tif") and depth["units"] == "um"
+    data, px = read_tiff(depth["path"])
+    assert px == pytest.approx(PX_UM, rel=1e-6)
+    # a 30 um bump recovered to within 1 um (FC's periodic/mirror boundary costs a little)
+    assert np.abs(data - height).max() < 1.0
+    assert resp["elapsed_s"] > 0 and isinstance(resp["diagnostics"], dict)
+
+
+def test_subprocess_input_errors_exit_1_and_leave_run_folder(tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    before = _snapshot(tmp_path / "run")
+    cases = [
+        ({"command": "integrate"}, "no normals.tif"),
+        ({"command": "integrate", "params": {"integration": "poisson"}}, "integration"),
+        ({"command": "nonsense"}, "unknown command 'nonsense'"),
+        ({"command": "integrate", "schema_version": 7}, "schema_version must be 1"),
+        ({"command": "integrate", "output_dir": str(tmp_path / "run" / "notes.txt")},
+         "is an existing file"),
+    ]
+    for fields, match in cases:
+        req = _request(tmp_path, **{"output_dir": "run", **fields})
+        proc = _run(req)
+        assert proc.returncode == 1, (fields, proc.stderr)
+        resp = _response(req)
+        assert resp["status"] == "error" and resp["error"]["type"] == "UVPSInputError"
+        assert match in resp["error"]["message"] and "\n" not in resp["error"]["message"]
+        assert "Traceback" not in proc.stderr and "Traceback" not in proc.stdout
+        assert _snapshot(tmp_path / "run") == before
     req = tmp_path / "request.json"
     req.write_text("{broken")
-    proc = _run(req, "uvps.bridge")
+    proc = _run(req)
     assert proc.returncode == 1 and proc.stdout == ""
+    assert "not valid JSON" in _response(req)["error"]["message"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["request.json", "response.json", "run"]
+
+
+def test_subprocess_unexpected_error_exit_2(tmp_path):
+    _bump_run(tmp_path)
+    (tmp_path / "run" / "depth.tif").mkdir()  # the output cannot replace a folder
+    req = _request(tmp_path, command="integrate", output_dir="run")
+    proc = _run(req)
+    assert proc.returncode == 2
     resp = _response(req)
-    assert resp["status"] == "error" and "not valid JSON" in resp["error"]["message"]
-    proc = _run(tmp_path / "nowhere" / "request.json", "uvps.bridge")
+    assert resp["status"] == "error" and resp["error"]["type"] == "IsADirectoryError"
+    assert "\n" not in resp["error"]["message"]
+    assert "Traceback" in proc.stderr and "Traceback" not in proc.stdout
+    assert (tmp_path / "run" / "depth.tif").is_dir()
+
+
+def test_subprocess_missing_request_and_python_m_uvps_bridge(tmp_path):
+    proc = _run(tmp_path / "nowhere" / "request.json")
     assert proc.returncode == 1 and "does not exist" in proc.stderr
     assert not (tmp_path / "nowhere").exists()
+    proc = _run(tmp_path / "request.json", module="uvps.bridge", extra=())
+    assert proc.returncode == 1
+    assert "does not exist" in _response(tmp_path / "request.json")["error"]["message"]
+
+
+def test_subprocess_sigterm_cancels_cleanly(tmp_path):
+    from uvps.synthetic import make_capture, write_capture
+
+    write_capture(make_capture(shape=(120, 160), n_lights=6), tmp_path / "cap", truth=False)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "old.txt").write_text("previous")
+    before = _snapshot(tmp_path / "run")
+    req = _request(tmp_path, command="flatfield", inputs={"images": "cap"}, output_dir="run")
+    proc = subprocess.Popen([sys.executable, "-m", "uvps", "bridge", str(req)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stdout:  # wait until the command works inside its temporary folder
+            if float(line.split()[1]) > 0.1:
+                break
+        proc.terminate()
+        proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 2
+    resp = _response(req)
+    assert resp["error"]["type"] == "Cancelled" and resp["status"] == "error"
+    assert _snapshot(tmp_path / "run") == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "request.json", "response.json", "run"]

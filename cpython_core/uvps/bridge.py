@@ -19,7 +19,9 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -40,6 +42,10 @@ RESPONSE_NAME = "response.json"
 PATH_PARAMS = frozenset({"lights", "mask", "dark", "regions", "labels", "masks"})
 _PATH_KEYWORDS = frozenset({"auto"})
 _REQUEST_KEYS = frozenset({"schema_version", "command", "inputs", "params", "output_dir"})
+
+
+class Cancelled(Exception):
+    """The bridge process was asked to stop (SIGTERM, e.g. Cancel on the Fiji side)."""
 
 
 @dataclass
@@ -203,6 +209,28 @@ def _outputs_of(result: Any, command: str) -> tuple:
     return outputs, result.diagnostics, [str(w) for w in result.warnings]
 
 
+@contextlib.contextmanager
+def _sigterm_cancels():
+    """Turn SIGTERM into :class:`Cancelled` while a command runs (main thread only).
+
+    So a Cancel on the Fiji side (which terminates the process) unwinds normally: the command's
+    temporary output folder is removed, the run folder stays as it was, and the response says
+    ``Cancelled``.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Cancelled("cancelled: the bridge received SIGTERM")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def run_bridge(request_path) -> int:
     """Run one bridge request and write ``response.json`` beside it.
 
@@ -215,8 +243,9 @@ def run_bridge(request_path) -> int:
     -------
     int
         Exit status: 0 ok, 1 bad request or :class:`~uvps.errors.UVPSInputError`, 2 any other
-        exception (:class:`~uvps.errors.UVPSComputeError` or unexpected). The error message in
-        the response is one line; the full traceback of an unexpected error goes to stderr only.
+        exception (:class:`~uvps.errors.UVPSComputeError`, :class:`Cancelled` on SIGTERM, or
+        unexpected). The error message in the response is one line; the full traceback of an
+        unexpected error goes to stderr only.
     """
     t0 = time.monotonic()
     _configure_logging()
@@ -236,7 +265,7 @@ def run_bridge(request_path) -> int:
         func = _registry()[request.command]
         log.info("bridge: %s -> %s", request.command, request.output_dir)
         # Only PROGRESS lines may reach stdout: divert anything printed by libraries.
-        with contextlib.redirect_stdout(sys.stderr):
+        with contextlib.redirect_stdout(sys.stderr), _sigterm_cancels():
             result = func(request.inputs, request.params, request.output_dir, progress=progress)
         outputs, diagnostics, warnings = _outputs_of(result, request.command)
         response.update(status="ok", outputs=outputs, diagnostics=diagnostics)
@@ -249,9 +278,10 @@ def run_bridge(request_path) -> int:
     except Exception as exc:  # noqa: BLE001 - the bridge must answer whatever happened
         code = 2
         response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
-        if isinstance(exc, UVPSComputeError):
-            log.error("%s: %s", type(exc).__name__, _one_line(exc))
-        traceback.print_exc(file=sys.stderr)
+        if isinstance(exc, Cancelled):
+            log.error("%s", _one_line(exc))
+        else:
+            traceback.print_exc(file=sys.stderr)
     response["elapsed_s"] = round(time.monotonic() - t0, 3)
     _write_response(request_path.parent / RESPONSE_NAME, response)
     return code
