@@ -248,6 +248,25 @@ def test_uncalibrated_tiff_needs_pixel_size(tmp_path):
         read_capture(tmp_path)
 
 
+@pytest.mark.parametrize("dpi,expected_um", [(72, None), (300, None), (2540, 10.0)])
+def test_inch_resolution_defaults_are_not_a_calibration(tmp_path, dpi, expected_um):
+    for i, img in enumerate(_images(k=3)):
+        tifffile.imwrite(tmp_path / f"i{i}.tif", img, resolution=(dpi, dpi), resolutionunit="INCH")
+    if expected_um is None:
+        with pytest.raises(UVPSInputError, match="software default"):
+            read_capture(tmp_path)
+    else:
+        assert read_capture(tmp_path).pixel_size_um == pytest.approx(expected_um, rel=1e-6)
+
+
+def test_missing_mask_and_dark_are_named(tmp_path):
+    _write_tiffs(tmp_path, _images(k=3), px=5)
+    with pytest.raises(UVPSInputError, match=r"mask file .*nomask\.png does not exist"):
+        read_capture(tmp_path, mask=tmp_path / "nomask.png")
+    with pytest.raises(UVPSInputError, match=r"dark frame .*nodark\.tif does not exist"):
+        read_capture(tmp_path, dark=tmp_path / "nodark.tif")
+
+
 def test_bad_inputs_one_line_messages(tmp_path):
     arr = _images(k=3)
     paths = _write_tiffs(tmp_path, arr, px=5)

@@ -46,6 +46,9 @@ _UNIT_UM = {
     "micron": 1.0, "microns": 1.0, "um": 1.0, "\u00b5m": 1.0, "\u03bcm": 1.0,
     "\\u00b5m": 1.0, "nm": 1e-3, "mm": 1e3, "cm": 1e4, "m": 1e6, "inch": 25400.0, "in": 25400.0,
 }
+#: Resolutions (dots per inch) that software writes when it does not know the physical size
+#: (screen and print defaults); a TIFF claiming one of them is treated as uncalibrated.
+_DEFAULT_DPI = frozenset({72.0, 96.0, 150.0, 240.0, 300.0, 350.0})
 #: ImageJ hyperstack axis order (a written stack's axes must be a subsequence of it).
 _IMAGEJ_AXES = "TZCYXS"
 #: Above this many bytes tifffile writes ImageJ's own > 4 GB layout (see write_imagej_tiff).
@@ -303,6 +306,10 @@ def _tiff_pixel_size_um(tif) -> Optional[float]:
         unit_um = _UNIT_UM.get(ij_unit)  # None for "pixel" and unknown units
     else:
         unit_um = {2: _UNIT_UM["inch"], 3: _UNIT_UM["cm"]}.get(resunit)
+        if resunit == 2 and round(per_unit, 6) in _DEFAULT_DPI:
+            log.warning("%s: %g dpi is a software default, not a physical size; ignored",
+                        tif.filename, per_unit)
+            return None
     if unit_um is None:
         return None
     size = unit_um / per_unit
@@ -599,6 +606,8 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
     if isinstance(mask, np.ndarray):
         arr, name = mask, "mask"
     else:
+        if not Path(mask).is_file():
+            raise UVPSInputError(f"mask file {mask} does not exist")
         arr, name = read_image(mask), f"mask {mask}"
     arr = np.asarray(arr)
     if arr.ndim == 3:
@@ -679,6 +688,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     shape_img = arr.shape[1:]
     if dark is not None:
         dark_path = Path(dark)
+        if not dark_path.is_file():
+            raise UVPSInputError(f"dark frame {dark_path} does not exist")
         d = read_image(dark_path)
         if d.shape != shape_img or d.dtype != dtype:
             raise UVPSInputError(
@@ -695,8 +706,9 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     if pixel_size_um is None:
         if tag_px is None:
             raise UVPSInputError(
-                "pixel size unknown: the images carry no physical resolution (PNG/JPEG or an "
-                "uncalibrated TIFF); pass --pixel-size-um (params 'pixel_size_um')"
+                "pixel size unknown: the images carry no physical resolution (PNG/JPEG, an "
+                "uncalibrated TIFF, or a 72/96/300 dpi software default); pass --pixel-size-um "
+                "(params 'pixel_size_um')"
             )
         pixel_size_um = _check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
 
