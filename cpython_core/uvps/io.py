@@ -23,6 +23,7 @@ import math
 import os
 import re
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
@@ -52,6 +53,7 @@ _DEFAULT_DPI = frozenset({72.0, 96.0, 150.0, 240.0, 300.0, 350.0})
 #: ImageJ hyperstack axis order (a written stack's axes must be a subsequence of it).
 _IMAGEJ_AXES = "TZCYXS"
 #: Above this many bytes tifffile writes ImageJ's own > 4 GB layout (see write_imagej_tiff).
+#: tifffile's own BigTIFF threshold, 4 GiB less 32 MiB for the metadata.
 LARGE_TIFF_BYTES = 2**32 - 2**25
 
 
@@ -925,10 +927,15 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        tifffile.imwrite(
-            tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
-            photometric="rgb" if axes.endswith("S") else "minisblack",
-        )
+        with warnings.catch_warnings():
+            if data.nbytes > LARGE_TIFF_BYTES:
+                # Expected: above 4 GB tifffile writes ImageJ's one-IFD layout and says so.
+                log.info("%s: %.2f GB, ImageJ large-file layout", path, data.nbytes / 2**30)
+                warnings.filterwarnings("ignore", message=".*truncating ImageJ file")
+            tifffile.imwrite(
+                tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
+                photometric="rgb" if axes.endswith("S") else "minisblack",
+            )
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
