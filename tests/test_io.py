@@ -259,6 +259,15 @@ def test_inch_resolution_defaults_are_not_a_calibration(tmp_path, dpi, expected_
         assert read_capture(tmp_path).pixel_size_um == pytest.approx(expected_um, rel=1e-6)
 
 
+def test_files_with_different_calibrations(tmp_path):
+    arr = _images(k=3)
+    paths = _write_tiffs(tmp_path, arr[:2], px=10.0)
+    paths += _write_tiffs(tmp_path, arr[2:], px=12.0, names=["other.tif"])
+    with pytest.raises(UVPSInputError, match=r"other\.tif has pixel size 12 um .* expected 10 um"):
+        read_capture(paths)
+    assert read_capture(paths, pixel_size_um=11.0).pixel_size_um == 11.0
+
+
 def test_missing_mask_and_dark_are_named(tmp_path):
     _write_tiffs(tmp_path, _images(k=3), px=5)
     with pytest.raises(UVPSInputError, match=r"mask file .*nomask\.png does not exist"):

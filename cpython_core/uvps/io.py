@@ -240,10 +240,16 @@ def read_image(path: PathLike) -> np.ndarray:
     ndarray
         The pixels, alpha dropped, never rescaled.
     """
+    return _read_image_px(path)[0]
+
+
+def _read_image_px(path: PathLike) -> tuple:
+    """(pixels as :func:`read_image`, pixel size in um from the TIFF tags or None)."""
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"image file {path} does not exist")
     kind = _kind(path)
+    px = None
     try:
         if kind == "tiff":
             import tifffile
@@ -251,6 +257,7 @@ def read_image(path: PathLike) -> np.ndarray:
             with tifffile.TiffFile(path) as tif:
                 series = tif.series[0]
                 arr = series.asarray()
+                px = _tiff_pixel_size_um(tif)
                 if series.axes.upper() in ("SYX", "CYX") and arr.shape[0] in (3, 4) and (
                     series.axes.upper() == "SYX" or tif.pages.first.photometric == 2
                 ):
@@ -284,7 +291,7 @@ def read_image(path: PathLike) -> np.ndarray:
         raise UVPSInputError(
             f"{path}: unsupported pixel type {arr.dtype}; expected uint8, uint16 or float32"
         )
-    return arr
+    return arr, px
 
 
 def _tiff_pixel_size_um(tif) -> Optional[float]:
@@ -682,7 +689,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
             f"images: photometric stereo needs at least 3 images; got {len(sources)} from {what}"
         )
     if stack_path is None:
-        arr, dtype, tag_px = _read_files(sources, linearize, progress)
+        arr, dtype, tag_px = _read_files(sources, linearize, progress,
+                                         check_px=pixel_size_um is None)
     elif _needs_linearize(first_kind, dtype, linearize):
         for k in range(arr.shape[0]):
             srgb_to_linear(arr[k], _saturation_of(dtype), out=arr[k])
@@ -739,20 +747,27 @@ def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
     return linearize == "srgb" or kind == "jpeg"
 
 
-def _read_files(sources: list, linearize: str, progress: Progress):
-    """Fill a preallocated float32 stack file by file."""
-    import tifffile
+def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: bool = True):
+    """Fill a preallocated float32 stack file by file; -> (stack, dtype, pixel size or None).
 
+    The pixel size comes from the first file's tags; a later file with another calibration is
+    an error (a mixed capture) when ``check_px`` (no explicit pixel size was given).
+    """
     k = len(sources)
-    first = read_image(sources[0].path)
+    first, tag_px = _read_image_px(sources[0].path)
     dtype, shape = first.dtype, first.shape
-    tag_px = None
-    if _kind(sources[0].path) == "tiff":
-        with tifffile.TiffFile(sources[0].path) as tif:
-            tag_px = _tiff_pixel_size_um(tif)
     out = np.empty((k,) + shape, dtype=np.float32)
     for i, src in enumerate(sources):
-        img, first = (first, None) if i == 0 else (read_image(src.path), None)
+        if i == 0:
+            img, first = first, None
+        else:
+            img, px = _read_image_px(src.path)
+            if (check_px and tag_px is not None and px is not None
+                    and not math.isclose(px, tag_px, rel_tol=1e-4)):
+                raise UVPSInputError(
+                    f"image {src.path} has pixel size {px:.6g} um in its TIFF tags;"
+                    f" expected {tag_px:.6g} um like {sources[0].path.name}"
+                )
         if img.shape != shape or img.dtype != dtype:
             raise UVPSInputError(
                 f"image {src.path} is {img.shape} {img.dtype};"
