@@ -651,8 +651,11 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     dark : path, optional
         A dark frame of the same shape and type; subtracted after linearisation, clipped at 0.
     pixel_size_um : float, optional
-        Overrides the TIFF resolution tags. Required for PNG/JPEG captures and uncalibrated
-        TIFFs (they carry no reliable physical size).
+        Overrides the TIFF calibration. Without it the calibration is read from the TIFF tags
+        (ImageJ ``unit`` + X resolution, or ResolutionUnit inch/cm + X resolution; tifffile's
+        resolution is pixels per unit); files calibrated differently are an error. Required
+        for PNG/JPEG captures, uncalibrated TIFFs and TIFFs claiming a software-default
+        72/96/150/240/300/350 dpi (none of which is a physical size).
     linearize : {"auto", "srgb", "none"}
         "auto" applies the sRGB EOTF to JPEG files only (8-bit PNGs are often written linear by
         scientific cameras: pass "srgb" if yours are sRGB-encoded), "srgb" to every integer
@@ -668,7 +671,13 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     Notes
     -----
     Memory: the float32 stack is preallocated and filled one file at a time, so reading needs
-    the stack plus one file in its own dtype (for a multi-page TIFF: the stack file).
+    the stack plus one file in its own dtype; an uncompressed multi-page TIFF is memory-mapped
+    read-only (a compressed one is read whole). Measured on 6 RGB uint16 images: peak = stack
+    + 1.1 single float32 images (1.8 with ``linearize="srgb"``; 0.02 for a stack file).
+
+    Images of a stack are named ``"stack.tif#k"``, k = 1..K (ImageJ's slice numbers).
+    Each image is checked: same shape and dtype as the first, not all black, not fully
+    saturated (every pixel at the dtype maximum), finite.
     """
     if linearize not in ("auto", "srgb", "none"):
         raise UVPSInputError(f"linearize must be 'auto', 'srgb' or 'none'; got {linearize!r}")
