@@ -84,16 +84,21 @@ def test_in_process_round_trip_with_relative_paths(tmp_path, registry, capsys):
     assert stdout == [f"PROGRESS {k / 4:.4f} image {k + 1} of 4" for k in range(4)]
 
 
+def _req_text(**fields):
+    return json.dumps({"schema_version": 1, "command": "mean", "output_dir": "o", **fields})
+
+
 @pytest.mark.parametrize("text,match", [
     ("{not json", "not valid JSON"),
     ("[1, 2]", "expected a JSON object"),
-    (json.dumps({"schema_version": 2, "command": "mean", "output_dir": "o"}), "schema_version must be 1; got 2"),
-    (json.dumps({"schema_version": 1, "command": "nope", "output_dir": "o"}), "unknown command 'nope'"),
-    (json.dumps({"schema_version": 1, "command": "mean", "inputs": [], "output_dir": "o"}), "'inputs' must be"),
-    (json.dumps({"schema_version": 1, "command": "mean", "params": "x", "output_dir": "o"}), "'params' must be"),
-    (json.dumps({"schema_version": 1, "command": "mean"}), "'output_dir' must be"),
-    (json.dumps({"schema_version": 1, "command": "mean", "output_dir": "a_file"}), "is an existing file"),
-    (json.dumps({"schema_version": 1, "command": "mean", "output_dir": "no/such/out"}), "does not exist"),
+    (_req_text(schema_version=2), "schema_version must be 1; got 2"),
+    (_req_text(schema_version=True), "schema_version must be 1; got True"),
+    (_req_text(command="nope"), "unknown command 'nope'"),
+    (_req_text(inputs=[]), "'inputs' must be"),
+    (_req_text(params="x"), "'params' must be"),
+    (_req_text(output_dir=None), "'output_dir' must be"),
+    (_req_text(output_dir="a_file"), "is an existing file"),
+    (_req_text(output_dir="no/such/out"), "does not exist"),
 ])
 def test_bad_requests_exit_1_with_one_line(tmp_path, registry, text, match):
     (tmp_path / "a_file").write_text("x")
@@ -127,7 +132,8 @@ def test_input_error_from_command_leaves_output_untouched(tmp_path, registry):
     ("compute", "UVPSComputeError", "the mean is undefined"),
     ("crash", "ZeroDivisionError", "boom"),
 ])
-def test_other_errors_exit_2_traceback_on_stderr_only(tmp_path, registry, capsys, fail, exc_type, message):
+def test_other_errors_exit_2_traceback_on_stderr_only(tmp_path, registry, capsys, fail, exc_type,
+                                                      message):
     _capture(tmp_path / "cap")
     out = tmp_path / "out"
     out.mkdir()
