@@ -423,3 +423,27 @@ def test_sha256_file_matches_hashlib(tmp_path):
     p = tmp_path / "x.bin"
     p.write_bytes(data)
     assert sha256_file(p, chunk_bytes=65536) == hashlib.sha256(data).hexdigest()
+
+
+def test_lp_with_a_stack_goes_by_order_and_progress_reaches_one(tmp_path):
+    data = _images(k=4)
+    stack = tmp_path / "stack.tif"
+    write_imagej_tiff(stack, data, axes="ZYX", pixel_size_um=5)
+    dirs = np.array([[1, 0, 2], [0, 1, 2], [-1, 0, 2], [0, -1, 2]], float)
+    lp = tmp_path / "l.lp"
+    lp.write_text("4\n" + "".join(f"photo_{i}.jpg {d[0]} {d[1]} {d[2]}\n" for i, d in enumerate(dirs)))
+    calls = []
+    cap = read_capture(stack, lights=lp, progress=lambda f, m: calls.append((f, m)))
+    np.testing.assert_allclose(cap.light_directions, dirs / np.sqrt(5))
+    fractions = [f for f, _ in calls]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(calls) == 5
+
+
+def test_lights_json_with_directions_only(tmp_path):
+    _write_tiffs(tmp_path, _images(k=3), px=5)
+    dirs = [[0.0, 0.6, 0.8], [0.6, 0.0, 0.8], [0.0, 0.0, 2.0]]
+    jp = tmp_path.parent / (tmp_path.name + "_far.json")
+    jp.write_text(json.dumps({"mode": "far", "lights": [{"direction": d} for d in dirs]}))
+    cap = read_capture(tmp_path, lights=jp)
+    assert cap.light_positions_mm is None
+    np.testing.assert_allclose(cap.light_directions, [[0, 0.6, 0.8], [0.6, 0, 0.8], [0, 0, 1]])
