@@ -196,39 +196,38 @@ def _model_logs(P, X):
     return h - h.mean(axis=tuple(range(1, h.ndim)), keepdims=True)
 
 
-def _fit_light_given_distance(target, X, m, az0, el0):
-    """Azimuth and elevation of one light at distance m fitted to a centred log drop-off map."""
-    y = target.ravel()
-
-    def resid(t):
-        a, e = t
-        Lk = m * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-        r = _flat_log_dropoff(Lk, X).ravel()
-        return (r - r.mean()) - y
-
-    el0 = float(np.clip(el0, np.radians(3), np.radians(89)))
-    sol = least_squares(resid, [az0, el0], bounds=([az0 - np.pi, np.radians(2)], [az0 + np.pi, np.radians(89.5)]),
-                        x_scale=[0.1, 0.1])
-    a, e = sol.x
-    return m * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-
-
 def _equidistant_positions(R, X, m, start, n_outer=3):
     """Positions at distance m whose drop-offs, relative to their mean, match the ratio maps R.
 
     The ratio maps see each light's drop-off minus the mean over lights; the mean is taken from the
-    current positions and the lights are refitted one by one (a few alternations converge, the mean
-    being small for lights spread around the region).
+    current positions, and all lights' (azimuth, elevation) are refitted in one sparse least-squares
+    problem (each light's residuals depend on its own two angles only). A few alternations converge,
+    the mean being small for lights spread around the region.
     """
-    P = np.asarray(start, dtype=float).copy()
-    P *= m / np.linalg.norm(P, axis=1, keepdims=True)
+    from scipy.sparse import block_diag
+
+    K = len(start)
+    P = np.asarray(start, dtype=float)
+    az = np.arctan2(P[:, 1], P[:, 0])
+    el = np.clip(np.arcsin(np.clip(P[:, 2] / np.linalg.norm(P, axis=1), -1, 1)), np.radians(3), np.radians(89))
+    sparsity = block_diag([np.ones((R[0].size, 2))] * K)
+
+    def positions(t):
+        a, e = t[0::2], t[1::2]
+        return m * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+
+    t = np.ravel(np.column_stack([az, el]))
+    lb = np.ravel(np.column_stack([az - np.pi, np.full(K, np.radians(2))]))
+    ub = np.ravel(np.column_stack([az + np.pi, np.full(K, np.radians(89.5))]))
     for _ in range(n_outer):
-        hbar = _model_logs(P, X).mean(axis=0)
-        for k in range(len(P)):
-            az = np.arctan2(P[k, 1], P[k, 0])
-            el = np.arcsin(np.clip(P[k, 2] / m, -1, 1))
-            P[k] = _fit_light_given_distance(R[k] + hbar, X, m, az, el)
-    return P
+        target = (R + _model_logs(positions(t), X).mean(axis=0)).reshape(K, -1)
+
+        def resid(tt):
+            return (_model_logs(positions(tt), X).reshape(K, -1) - target).ravel()
+
+        t = least_squares(resid, np.clip(t, lb + 1e-9, ub - 1e-9), bounds=(lb, ub), jac_sparsity=sparsity,
+                          x_scale=0.1).x
+    return positions(t)
 
 
 def intensities_from_levels(levels, positions_mm, shape, pixel_size_um, *, directions=None):
@@ -385,13 +384,13 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         return c
 
     report(progress, 0.05, "lights: scanning the shared distance m")
-    grid_m = np.geomspace(m_bounds[0], m_bounds[1], 12)
+    grid_m = np.geomspace(m_bounds[0], m_bounds[1], 9)
     costs = [cost(m) for m in grid_m]
     i = int(np.argmin(costs))
     lo, hi = grid_m[max(i - 1, 0)], grid_m[min(i + 1, len(grid_m) - 1)]
     report(progress, 0.3, "lights: refining m (paper Eq. 2)")
     sol = least_squares(lambda t: [np.sqrt(cost(float(np.exp(t[0]))))], [np.log(grid_m[i])],
-                        bounds=([np.log(lo)], [np.log(hi) + 1e-9]), diff_step=1e-3, max_nfev=20)
+                        bounds=([np.log(lo)], [np.log(hi) + 1e-9]), diff_step=1e-3, max_nfev=10)
     m = float(np.exp(sol.x[0]))
     eq = equidistant(m)
     model = eq
@@ -473,7 +472,7 @@ def _refine_scale(sample: PixelSample, model: LightModel, history):
     return LightModel.from_positions(P * s, E)
 
 
-def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=0.15, max_nfev=40):
+def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=1.0, max_nfev=25):
     """All positions and log-intensities by least squares on the photometric + drop-off residuals.
 
     The drop-off term is a weak prior: a bowed canvas biases it (its shading is smooth and different
@@ -516,7 +515,7 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
     ub = np.tile([5, 5, 5, 2.0], K)
     c0 = float(np.sum(fun(x0) ** 2))
     sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, bounds=(lb, ub), x_scale="jac",
-                        max_nfev=max_nfev, tr_solver="lsmr")
+                        max_nfev=max_nfev)
     history.append({"stage": "per-light", "iterations": int(sol.nfev), "cost_start": c0,
                     "cost": float(np.sum(sol.fun ** 2))})
     P, E = unpack(sol.x)

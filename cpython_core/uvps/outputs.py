@@ -79,15 +79,17 @@ def atomic_output_dir(path) -> Iterator[Path]:
     if not path.exists():
         os.replace(tmp, path)
         return
-    for src in sorted(tmp.rglob("*")):
-        rel = src.relative_to(tmp)
-        dst = path / rel
-        if src.is_dir():
-            dst.mkdir(parents=True, exist_ok=True)
-        else:
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(src, dst)
-    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        for src in sorted(tmp.rglob("*")):
+            rel = src.relative_to(tmp)
+            dst = path / rel
+            if src.is_dir():
+                dst.mkdir(parents=True, exist_ok=True)
+            else:
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(src, dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_json_atomic(path, obj: Any) -> None:
