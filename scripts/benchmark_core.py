@@ -87,17 +87,37 @@ class ProcStats:
 
 
 def measure(cmd, *, cwd=None) -> ProcStats:
-    """Run ``cmd`` in a fresh process; wall time and that process's own peak RSS (os.wait4)."""
+    """Run ``cmd`` in a fresh process; wall time and its peak RSS.
+
+    Through ``/usr/bin/time -v`` when present: ``os.wait4`` on a child forked from this (large)
+    process would report this process's own high-water mark, which Linux carries across exec.
+    """
+    timer = shutil.which("time", path="/usr/bin:/bin")
+    full = ([timer, "-v"] if timer else []) + list(cmd)
     t0 = time.perf_counter()
     with tempfile.TemporaryFile() as err:
-        p = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
+        p = subprocess.Popen(full, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
         _, status, ru = os.wait4(p.pid, 0)
         p.returncode = os.waitstatus_to_exitcode(status)
         wall = time.perf_counter() - t0
         err.seek(0)
-        tail = err.read().decode(errors="replace")[-400:]
-    # Linux: ru_maxrss in KiB
-    return ProcStats(wall, ru.ru_maxrss / 1024.0, p.returncode, tail)
+        text = err.read().decode(errors="replace")
+    rss_kb = ru.ru_maxrss  # Linux: KiB
+    if timer:
+        for line in text.splitlines():
+            if "Maximum resident set size" in line:
+                rss_kb = float(line.rsplit(":", 1)[1])
+            if "Elapsed (wall clock)" in line:
+                wall = _clock_s(line.rsplit(": ", 1)[1])
+        text = text.split("\tCommand being timed")[0]
+        if "Command exited with non-zero status" in text:
+            text = text.split("Command exited with non-zero status")[0]
+    return ProcStats(wall, rss_kb / 1024.0, p.returncode, text[-400:])
+
+
+def _clock_s(s):
+    parts = [float(v) for v in s.strip().split(":")]
+    return sum(v * 60 ** i for i, v in enumerate(reversed(parts)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -370,21 +390,30 @@ def part3(workdir: Path):
                               + [f"{r[k][0]:.2f} / {r[k][1]:.2f}" for k in ("even-odd", "even-all", "odd-all")])
             except Exception as exc:  # report and carry on: this is a benchmark, not the core
                 rows_h.append([name, "-", "-", "-", f"failed: {exc}", "", ""])
-    if bust_json is not None and (workdir / "run_bust_3lights" / "normals.tif").exists():
-        # the file format keeps only unit directions; compare with the intensities folded in S
+    if bust_json is not None:
+        # the lights file keeps unit directions only: the pipeline measures each lamp's intensity
+        # from the image levels. Compare with the intensities folded into S (|S_k|).
         import tifffile
         S = np.loadtxt(bust / "S_xright_yup.txt")
         cap = read_capture([str(bust / f"image_{i + 1}.png") for i in range(3)], mask=str(bust / "mask.png"),
-                           pixel_size_um=100.0)
-        res = solve_normals(cap.images, LightModel.from_directions(S, np.linalg.norm(S, axis=1)),
+                           pixel_size_um=100.0, lights=str(bust_json))
+        E_pipe = estimate_capture_lights(cap, options=RunOptions()).model.intensities
+        E_s = np.linalg.norm(S, axis=1)
+        res = solve_normals(cap.images, LightModel.from_directions(S, E_s),
                             pixel_size_um=100.0, mask=cap.mask, saturation=cap.saturation)
-        cli = np.moveaxis(tifffile.imread(workdir / "run_bust_3lights" / "normals.tif"), 0, -1)
-        ang = angle_deg(cli, res.normals)
-        ok = np.isfinite(ang)
-        notes.append(f"bust_3lights: the lights file keeps unit directions only (the CLI measures each lamp's "
-                     f"intensity from the image levels); normals with S's own intensities (|S_k|) differ from the "
-                     f"CLI's by {ang[ok].mean():.2f} deg mean, {np.median(ang[ok]):.2f} deg median over "
-                     f"{ok.sum()} masked pixels.")
+        ok_s = np.isfinite(res.normals).all(-1) & cap.mask
+        notes.append(f"bust_3lights: intensities measured by the pipeline from the image levels "
+                     f"{np.array2string(E_pipe / E_pipe[0], precision=3)} (relative to light 1) vs |S_k| "
+                     f"{np.array2string(E_s / E_s[0], precision=3)}. In-process `solve_normals` with S's own "
+                     f"intensities solves {ok_s.sum()} of {cap.mask.sum()} masked pixels "
+                     f"({ok_s.sum() / cap.mask.sum() * 100:.1f} %), mean nz {np.nanmean(res.normals[..., 2][ok_s]):.3f}.")
+        cli_path = workdir / "run_bust_3lights" / "normals.tif"
+        if cli_path.exists():
+            cli = np.moveaxis(tifffile.imread(cli_path), 0, -1)
+            ang = angle_deg(cli, res.normals)
+            ok = np.isfinite(ang)
+            notes[-1] += (f" The CLI's normals differ from these by {ang[ok].mean():.2f} deg mean, "
+                          f"{np.median(ang[ok]):.2f} deg median over {ok.sum()} pixels.")
     txt = ["## Part 3: real captures (/work/shared/data)", "",
            "Commands (run folders in a temp folder):", ""] + [f"    {c}" for c in cmds] + ["",
            md_table(["capture", "status", "wall (s)", "peak RSS (MiB)", "result"], rows), "",
