@@ -340,7 +340,9 @@ def test_an_unsaved_stack_is_written_to_the_request_folder(run_macro, grey_captu
 
 def test_a_saved_stack_is_passed_by_its_file(run_macro, grey_capture_dir, tmp_path):
     stack = np.stack([tifffile.imread(str(p)) for p in sorted(grey_capture_dir.glob("uv_*.tif"))])
-    path = tmp_path / "saved stack.tif"
+    # Not in ImageJ's working folder (tmp_path): a relative path must not work by chance.
+    (tmp_path / "stacks").mkdir()
+    path = tmp_path / "stacks" / "saved stack.tif"
     tifffile.imwrite(str(path), stack, imagej=True, resolution=(1 / 15.0, 1 / 15.0),
                      metadata={"unit": "um"})
     out = tmp_path / "run"
