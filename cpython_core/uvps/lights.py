@@ -399,6 +399,8 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         model = _refine_each(sample, eq, R, X, history)
         report(progress, 0.85, "lights: refining the overall scale of the light positions")
         model = _refine_scale(sample, model, history)
+    if sample is not None:
+        model = _level(sample, model, history)
     P = model.positions_mm
     set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
         np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
@@ -446,6 +448,31 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale):
             col[k] += d
             J[:, :, 4 * k + j] = col
     return r, J.reshape(r.size, 4 * K)
+
+
+def _level(sample: PixelSample, model: LightModel, history) -> LightModel:
+    """Rotate all lights about the image centre so that the mean recovered normal is +z.
+
+    The camera is orthogonal to the canvas, so the mean surface plane is z = 0 (docs/architecture.md).
+    A common tilt of every lamp tilts every normal by the same rotation and leaves the residual
+    unchanged; the drop-off pins it only weakly on a small field. This removes it.
+    """
+    V = model.vectors(sample.X)
+    b = np.linalg.solve(np.einsum("kpi,kpj->pij", V, V), np.einsum("kpi,kp->pi", V, sample.I)[..., None])[..., 0]
+    n = b / np.linalg.norm(b, axis=1, keepdims=True)
+    nbar = n.mean(axis=0)
+    nbar /= np.linalg.norm(nbar)
+    axis = np.cross(nbar, [0.0, 0.0, 1.0])
+    s, c = np.linalg.norm(axis), nbar[2]
+    if s < 1e-12:
+        return model
+    k = axis / s
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    R = np.eye(3) + s * Kx + (1 - c) * Kx @ Kx   # Rodrigues: takes nbar to +z
+    out = LightModel.from_positions(model.positions_mm @ R.T, model.intensities)
+    history.append({"stage": "level", "tilt_deg": float(np.degrees(np.arctan2(s, c))),
+                    "cost": float(np.mean(photometric_residual(sample, out) ** 2))})
+    return out
 
 
 def _refine_scale(sample: PixelSample, model: LightModel, history):

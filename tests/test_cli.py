@@ -1,0 +1,181 @@
+"""The whole pipeline through the real `uvps` command (a subprocess) and every bad input."""
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from uvps.synthetic import make_capture, write_capture
+
+PX = 15.0
+
+
+def uvps(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "uvps", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    cap = make_capture(shape=(240, 320), n_lights=8, seed=5)
+    folder = tmp_path_factory.mktemp("cap")
+    write_capture(cap, folder)
+    return cap, folder
+
+
+def _images(folder):
+    return sorted(Path(folder).glob("uv_*.tif"))
+
+
+def _angle(a, b):
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
+
+
+def _digest(folder):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+def test_run_with_calibrated_lights(capture_dir, tmp_path):
+    cap, folder = capture_dir
+    before = _digest(folder)
+    out = tmp_path / "run"
+    r = uvps("run", *_images(folder), "-o", out, "--lights", folder / "lights_positions_mm.csv")
+    assert r.returncode == 0, r.stderr
+    assert _digest(folder) == before  # inputs untouched
+    with tifffile.TiffFile(out / "normals.tif") as t:
+        normals = np.moveaxis(t.asarray(), 0, -1)
+        assert t.imagej_metadata["unit"] == "micron"
+        xres = t.pages[0].tags["XResolution"].value
+        assert abs(xres[1] / xres[0] - PX) < 1e-6
+    assert _angle(normals, cap.normals).mean() < 1.0
+    depth = tifffile.imread(out / "depth.tif")
+    h = cap.height_um - np.median(cap.height_um)
+    assert np.corrcoef(depth.ravel(), h.ravel())[0, 1] > 0.9
+    albedo = tifffile.imread(out / "albedo.tif")
+    assert albedo.shape == (3, 240, 320)
+    assert tifffile.imread(out / "gradients.tif").shape == (2, 240, 320)
+    assert len(list((out / "flatfield").glob("*.tif"))) == 8
+    run = json.loads((out / "run.json").read_text())
+    assert {i["sha256"] for i in run["inputs"]} == {hashlib.sha256(p.read_bytes()).hexdigest() for p in _images(folder)}
+    assert set(run["timings_s"]) >= {"lights", "normals", "integrate"}
+    lights = json.loads((out / "lights.json").read_text())
+    assert lights["source"] == "positions"
+    np.testing.assert_allclose([l["position_mm"] for l in lights["lights"]], cap.light_positions_mm, rtol=1e-5)
+    E = np.array([l["intensity"] for l in lights["lights"]])
+    np.testing.assert_allclose(E / E.mean(), cap.intensities / cap.intensities.mean(), rtol=0.03)
+
+
+def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
+    cap, folder = capture_dir
+    out = tmp_path / "run"
+    r = uvps("run", folder, "-o", out, "--regions", "auto")
+    assert r.returncode == 0, r.stderr
+    normals = np.moveaxis(tifffile.imread(out / "normals.tif"), 0, -1)
+    assert _angle(normals, cap.normals).mean() < 3.0
+    lights = json.loads((out / "lights.json").read_text())
+    assert lights["source"] == "estimated" and len(lights["residual_history"]) > 3
+    for f in ("protrusions.csv", "protrusions_labels.tif", "regions.csv", "regions_labels.tif", "report.html"):
+        assert (out / f).is_file(), f
+    assert "report:" in r.stdout
+
+
+def test_lp_directions_give_far_lights(capture_dir, tmp_path):
+    cap, folder = capture_dir
+    out = tmp_path / "run"
+    r = uvps("normals", folder, "-o", out, "--lights", folder / "lights.lp")
+    assert r.returncode == 0, r.stderr
+    lights = json.loads((out / "lights.json").read_text())
+    assert lights["mode"] == "far"
+    normals = np.moveaxis(tifffile.imread(out / "normals.tif"), 0, -1)
+    assert _angle(normals, cap.normals).mean() < 5.0  # near lights solved as far: a few degrees
+
+
+def _bad_cases(folder, tmp):
+    imgs = _images(folder)
+    other = tmp / "other"
+    other.mkdir()
+    small = other / "small.tif"
+    tifffile.imwrite(small, np.ones((100, 100, 3), np.uint16) * 1000)
+    eight = other / "eight.tif"
+    tifffile.imwrite(eight, np.ones((240, 320, 3), np.uint8) * 100)
+    junk = other / "junk.tif"
+    junk.write_bytes(b"not an image at all")
+    trunc = other / "trunc.tif"
+    trunc.write_bytes(imgs[0].read_bytes()[:5000])
+    black = other / "black.tif"
+    tifffile.imwrite(black, np.zeros((240, 320, 3), np.uint16))
+    satur = other / "sat.tif"
+    tifffile.imwrite(satur, np.full((240, 320, 3), 65535, np.uint16))
+    lp_count = other / "count.lp"
+    lines = (folder / "lights.lp").read_text().splitlines()
+    lp_count.write_text("\n".join([str(int(lines[0]) + 1)] + lines[1:]) + "\n")
+    lp_missing = other / "missing.lp"
+    lp_missing.write_text("\n".join(lines[:2] + ["nothere.tif 0 0 1"] + lines[3:]) + "\n")
+    empty_mask = other / "mask.tif"
+    tifffile.imwrite(empty_mask, np.zeros((240, 320), np.uint8))
+    a_file = other / "a_file"
+    a_file.write_text("x")
+    flat = other / "flat"
+    flat.mkdir()
+    for k, d in enumerate([(0.5, 0, 0.866), (-0.25, 0.433, 0.866), (-0.25, -0.433, 0.866)]):
+        tifffile.imwrite(flat / f"f{k}.tif", np.full((240, 320), 20000, np.uint16),
+                         resolution=(1 / PX, 1 / PX), imagej=True, metadata={"unit": "micron"})
+    o = tmp / "out"
+    return {
+        "fewer than 3 images": (["run", imgs[0], imgs[1], "-o", o], "3"),
+        "different sizes": (["run", *imgs[:3], small, "-o", o], "small.tif"),
+        "different bit depths": (["run", *imgs[:3], eight, "-o", o], "eight.tif"),
+        "non-image": (["run", *imgs[:3], junk, "-o", o], "junk.tif"),
+        "truncated": (["run", *imgs[:3], trunc, "-o", o], "trunc.tif"),
+        "all black": (["run", *imgs[:3], black, "-o", o], "black.tif"),
+        "saturated": (["run", *imgs[:3], satur, "-o", o], "sat.tif"),
+        "lp wrong count": (["run", folder, "-o", o, "--lights", lp_count], "count.lp"),
+        "lp missing file": (["run", folder, "-o", o, "--lights", lp_missing], "nothere.tif"),
+        "empty mask": (["run", folder, "-o", o, "--mask", empty_mask], "mask"),
+        "pixel size <= 0": (["run", folder, "-o", o, "--pixel-size-um", "0"], "pixel_size_um"),
+        "output is a file": (["run", folder, "-o", a_file], "a_file"),
+        "no drop-off": (["run", flat, "-o", o], "calibrated lights"),
+    }
+
+
+CASES = ["fewer than 3 images", "different sizes", "different bit depths", "non-image", "truncated", "all black",
+         "saturated", "lp wrong count", "lp missing file", "empty mask", "pixel size <= 0", "output is a file",
+         "no drop-off"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_one_line_exit_1_nothing_written(case, capture_dir, tmp_path):
+    cap, folder = capture_dir
+    args, needle = _bad_cases(folder, tmp_path)[case]
+    before = _digest(folder)
+    r = uvps(*args)
+    assert r.returncode == 1, (r.returncode, r.stderr)
+    err = [l for l in r.stderr.splitlines() if "error" in l]
+    assert len(err) == 1 and needle in err[0], r.stderr
+    assert not (tmp_path / "out").exists()
+    assert not list(tmp_path.glob(".out.tmp-*"))
+    assert _digest(folder) == before
+
+
+def test_integrate_and_relight_on_a_run_folder(capture_dir, tmp_path):
+    cap, folder = capture_dir
+    out = tmp_path / "run"
+    assert uvps("normals", folder, "-o", out, "--lights", folder / "lights_positions_mm.csv").returncode == 0
+    assert not (out / "depth.tif").exists()
+    r = uvps("integrate", "-o", out, "--integration", "dct")
+    assert r.returncode == 0, r.stderr
+    assert tifffile.imread(out / "depth.tif").shape == (240, 320)
+    r = uvps("relight", "-o", out, "--azimuth-deg", "0", "--elevation-deg", "20")
+    assert r.returncode == 0, r.stderr
+    rel = tifffile.imread(out / "relight.tif")
+    assert rel.shape == (3, 240, 320) and np.isfinite(rel).mean() > 0.99
+
+
+def test_version_and_help():
+    r = uvps("--version")
+    assert r.returncode == 0 and r.stdout.startswith("uvps ")
+    assert uvps("--help").returncode == 0

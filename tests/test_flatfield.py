@@ -1,0 +1,75 @@
+"""Drop-off fits: known Legendre coefficients recovered despite large colour areas."""
+import numpy as np
+import pytest
+from numpy.polynomial import legendre as L
+
+from uvps.errors import UVPSInputError
+from uvps.flatfield import block_grid, fit_dropoffs, flatfield, set_common
+
+M, N, DEG = 240, 320, 3
+
+
+def _poly(C, rows, cols):
+    v = (2 * rows - (M - 1)) / (M - 1)
+    u = (2 * cols - (N - 1)) / (N - 1)
+    return L.legvander(v, DEG) @ C @ L.legvander(u, DEG).T
+
+
+def _capture(seed=0, K=5):
+    rng = np.random.default_rng(seed)
+    # sharp colour areas that cover a third and a quarter of the field, plus texture
+    albedo = np.ones((M, N))
+    albedo[:, : N // 3] = 0.25
+    albedo[M // 4: M // 2, N // 2:] = 3.0
+    albedo *= 1 + 0.02 * rng.standard_normal((M, N))
+    C = 0.15 * rng.standard_normal((K, DEG + 1, DEG + 1))
+    C[:, 0, 0] = 0
+    rows, cols = np.arange(M, dtype=float), np.arange(N, dtype=float)
+    images = np.stack([albedo * np.exp(_poly(C[k], rows, cols)) * 1000 for k in range(K)]).astype(np.float32)
+    return images, C
+
+
+def test_ratio_fit_recovers_known_coefficients_despite_colour_areas():
+    images, C = _capture()
+    fits = fit_dropoffs(block_grid(images), degree=DEG)
+    mean_C = C.mean(axis=0)
+    for k, fit in enumerate(fits):
+        expect = C[k] - mean_C
+        got = fit.ratio_coeffs.copy()
+        got[0, 0] = expect[0, 0] = 0  # the constant is not observable
+        assert np.abs(got - expect).max() < 2e-3
+
+
+def test_set_common_completes_the_maps_normalised_to_mean_one():
+    images, C = _capture(seed=1)
+    grid = block_grid(images)
+    fits = fit_dropoffs(grid, degree=DEG)
+    mean_C = C.mean(axis=0)
+    set_common(fits, grid, lambda r, c: _poly(mean_C, np.asarray(r), np.asarray(c)))
+    rows, cols = np.arange(M, dtype=float), np.arange(N, dtype=float)
+    for k, fit in enumerate(fits):
+        F = fit.evaluate()
+        truth = np.exp(_poly(C[k], rows, cols))
+        truth /= truth.mean()
+        assert abs(F.mean() - 1) < 1e-3
+        assert np.abs(F / truth - 1).max() < 3e-3
+
+
+def test_flatfield_divides_by_the_map_rgb_and_bands():
+    images, C = _capture(seed=2, K=3)
+    grid = block_grid(images)
+    fits = fit_dropoffs(grid, degree=DEG)
+    rgb = np.stack([images[0], 0.5 * images[0], 0.1 * images[0]], axis=-1)
+    full = flatfield(rgb, fits[0])
+    band = flatfield(rgb[100:150], fits[0], row0=100)
+    F = fits[0].evaluate()
+    np.testing.assert_allclose(full[..., 1], rgb[..., 1] / F, rtol=1e-5)
+    np.testing.assert_allclose(band, full[100:150], rtol=1e-6)
+    assert full.dtype == np.float32
+
+
+def test_too_few_usable_blocks_is_a_clear_error():
+    images, _ = _capture(K=3)
+    images[:, :, : int(N * 0.97)] = 0  # almost everything dark
+    with pytest.raises(UVPSInputError, match="blocks are lit"):
+        fit_dropoffs(block_grid(images), degree=6)
