@@ -179,20 +179,27 @@ def _capture_command(stages, name):
 
 def _run_protrusions(run_dir, params, result, progress):
     """``run`` with ``regions`` (or ``detect``): detection, statistics and the report."""
-    from .protrusion_commands import cmd_detect, cmd_stats
+    from .protrusion_commands import cmd_detect, cmd_regions, cmd_stats
 
     regions = params.get("regions")
     if not (regions or _as_bool(params.get("detect", False), "detect")):
         return result
-    p = {"regions": regions}
-    if params.get("n_areas") is not None:
-        p["n_areas"] = params["n_areas"]
-    r1 = cmd_detect({}, p, run_dir, progress=_sub(progress, 0.9, 0.95))
-    r2 = cmd_stats({}, {"bins_um": params.get("bins_um", 100.0)}, run_dir, progress=_sub(progress, 0.95, 0.99))
-    result.outputs += r1.outputs + r2.outputs
-    result.diagnostics["detect"] = r1.diagnostics
-    result.diagnostics["stats"] = r2.diagnostics
-    result.warnings += r1.warnings + r2.warnings
+    steps = []
+    if regions == "auto":
+        p = {"auto": True}
+        if params.get("n_areas") is not None:
+            p["n_areas"] = params["n_areas"]
+        steps.append(("regions", cmd_regions, {}, p))
+    elif regions:
+        steps.append(("regions", cmd_regions, {"labels": regions}, {}))
+    steps.append(("detect", cmd_detect, {}, {}))
+    steps.append(("stats", cmd_stats, {}, {"bins_um": params.get("bins_um", 100.0)}))
+    for i, (name, fn, inp, p) in enumerate(steps):
+        r = fn(inp, p, run_dir, progress=_sub(progress, 0.9 + 0.09 * i / len(steps), 0.9 + 0.09 * (i + 1) / len(steps)))
+        result.outputs += r.outputs
+        result.diagnostics[name] = r.diagnostics
+        # the areas are registered before detection: their "no protrusions yet" note is moot here
+        result.warnings += [w for w in r.warnings if not (name == "regions" and "protrusions.csv" in w)]
     return result
 
 
@@ -293,7 +300,8 @@ def cmd_demo(inputs, params, output_dir, *, progress=None):
     cap_dir = run_dir / "capture"
     write_capture(cap, cap_dir)
     images = sorted(cap_dir.glob("uv_*.tif"))
-    run_params = {"regions": str(cap_dir / "truth" / "regions.tif"), "bins_um": 100.0}
+    # the colour areas are proposed from the albedo, as a user would accept them (the truth stays unread)
+    run_params = {"regions": "auto", "bins_um": 100.0}
     result = cmd_run({"images": [str(p) for p in images]}, run_params, run_dir, progress=_sub(progress, 0.05, 1.0))
     result.outputs.insert(0, OutputSpec("capture", str(cap_dir), kind="folder"))
     result.diagnostics["truth_light_positions_mm"] = cap.light_positions_mm.tolist()
