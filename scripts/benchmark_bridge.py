@@ -67,8 +67,9 @@ def run_bridge(python, command, inputs, params, out_dir, request_dir):
     request_path = bridge_logic.write_request(request, str(request_dir))
     args = bridge_logic.build_command(python, request_path)
     start = time.perf_counter()
+    # cwd = the request folder, as the Fiji side (runner.call) runs the core.
     proc = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                          universal_newlines=True)
+                          universal_newlines=True, cwd=str(request_dir))
     wall = time.perf_counter() - start
     response = bridge_logic.finish_call(proc.returncode, request_path, command=command,
                                         stderr=proc.stderr)

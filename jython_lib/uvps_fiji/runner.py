@@ -173,7 +173,8 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
     args = bridge_logic.build_command(python, request_path)
     IJ.log("uvps: " + bridge_logic.format_command(args))
     IJ.showStatus("uvps: %s..." % command)
-    exit_code, _, stderr = run_process(args, timeout_s=timeout_s)
+    # The core runs in the request folder, never in ImageJ's (arbitrary) working folder.
+    exit_code, _, stderr = run_process(args, timeout_s=timeout_s, cwd=request_dir)
     response = bridge_logic.finish_call(exit_code, request_path, command=command, stderr=stderr)
     done = "uvps: %s done; core %.2f s" % (command, response.elapsed_s or 0.0)
     IJ.showStatus(done)
