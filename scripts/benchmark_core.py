@@ -301,9 +301,10 @@ def part2(workdir: Path, shape=(3000, 4000), n_lights=16, keep=False):
     M, N = shape
     txt = [f"## Part 2: real-size speed and memory ({N} x {M}, {n_lights} lights, RGB uint16)", "",
            f"Scene: `{scene}(shape=({M}, {N}), n_lights={n_lights}, seed=0)` in {t_make:.0f} s, written as "
-           f"{len(files)} uncompressed RGB uint16 TIFFs in {t_write:.0f} s; raw stack {raw_bytes / 2 ** 30:.3f} GiB "
+           f"{len(files)} uncompressed RGB uint16 TIFFs in {t_write:.1f} s (into the page cache, so the read below is warm); raw stack {raw_bytes / 2 ** 30:.3f} GiB "
            f"({raw_bytes / 1e9:.2f} GB), {disk / 1e9:.2f} GB on disk. Each line is a fresh process; peak RSS is "
-           "that process's ru_maxrss (os.wait4). The float32 stack alone is 2x the raw stack.", "",
+           "that process's maximum resident set size from `/usr/bin/time -v`. The float32 stack alone is 2x the "
+           "raw stack.", "",
            md_table(["process", "status", "wall (s)", "peak RSS (GiB)", "peak RSS / raw stack (target < 3)",
                      "wall / read wall", "stage timings from run.json (s)"], rows), "",
            "Load while measuring:", ""] + [f"- {s}" for s in loads] + [""]
