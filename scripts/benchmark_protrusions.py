@@ -54,12 +54,32 @@ def match(true_xy, true_w_px, det_xy):
     return t2d, d2t
 
 
-def run_one(seed, shape, height_noise, albedo_noise, params):
-    cap = make_capture(shape=shape, seed=seed, n_lights=3, noise=False)
+def pipeline_maps(cap, *, true_lights):
+    """Albedo and height as the core computes them from the rendered capture (12 lamps, noise)."""
+    from uvps.integrate import integrate_normals
+    from uvps.io import Capture
+    from uvps.pipeline import RunOptions, estimate_capture_lights
+    from uvps.stereo import solve_normals
+
     px = cap.spec.pixel_size_um
-    rng = np.random.default_rng(1000 + seed)
-    h = cap.height_um + rng.normal(0, height_noise, cap.height_um.shape).astype(np.float32)
-    alb = cap.albedo * (1 + rng.normal(0, albedo_noise, cap.albedo.shape)).astype(np.float32)
+    capture = Capture(images=cap.images.astype(np.float32), files=[f"uv_{k:02d}.tif" for k in range(len(cap.images))],
+                      pixel_size_um=px, mask=None, saturation=65535.0, light_directions=None,
+                      light_positions_mm=cap.light_positions_mm if true_lights else None, bit_depth="uint16")
+    lights = estimate_capture_lights(capture, options=RunOptions())
+    res = solve_normals(capture.images, lights.model, pixel_size_um=px, saturation=65535.0)
+    return res.albedo, integrate_normals(res.normals, pixel_size_um=px).height_um
+
+
+def run_one(seed, shape, height_noise, albedo_noise, params, pipeline=None):
+    if pipeline:
+        cap = make_capture(shape=shape, seed=seed, n_lights=12)
+        alb, h = pipeline_maps(cap, true_lights=(pipeline == "true"))
+    else:
+        cap = make_capture(shape=shape, seed=seed, n_lights=3, noise=False)
+        rng = np.random.default_rng(1000 + seed)
+        h = cap.height_um + rng.normal(0, height_noise, cap.height_um.shape).astype(np.float32)
+        alb = cap.albedo * (1 + rng.normal(0, albedo_noise, cap.albedo.shape)).astype(np.float32)
+    px = cap.spec.pixel_size_um
     t0 = time.perf_counter()
     det = detect_protrusions(alb, h, pixel_size_um=px, params=params)
     t1 = time.perf_counter()
@@ -73,7 +93,16 @@ def run_one(seed, shape, height_noise, albedo_noise, params):
     pr = cap.protrusions
     true_xy = np.column_stack([pr["x_px"], pr["y_px"]])
     t2d, d2t = match(true_xy, pr["width_um"] / px, det_xy)
-    return dict(true_w=pr["width_um"], weak=pr["weak"], t2d=t2d, d2t=d2t, det_w=det_w,
+    # density per colour area (the truth's areas, as a user's hand-drawn ones): counts by centroid
+    dens = []
+    reg = cap.regions
+    det_reg = reg[np.clip(np.round(props["centroid-0"]).astype(int), 0, reg.shape[0] - 1),
+                  np.clip(np.round(props["centroid-1"]).astype(int), 0, reg.shape[1] - 1)]
+    for lab in np.unique(reg):
+        n_true = int(np.sum(pr["region"] == lab))
+        if n_true >= 10:
+            dens.append((np.sum(det_reg == lab) - n_true) / n_true)
+    return dict(true_w=pr["width_um"], weak=pr["weak"], t2d=t2d, d2t=d2t, det_w=det_w, dens=dens,
                 time=elapsed, time_measure=elapsed_measure, rejected=det.rejected, source=det.source)
 
 
@@ -122,14 +151,20 @@ def main(argv=None) -> int:
     ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600])
     ap.add_argument("--levels", nargs="+", default=["0.3,0.01", "1.0,0.03", "2.0,0.05"],
                     help="noise levels as HEIGHT_UM,ALBEDO_FRACTION")
+    ap.add_argument("--pipeline", choices=["estimated", "true"],
+                    help="end to end: detect on the albedo and height the core computes from the rendered "
+                         "12-lamp capture, with lights estimated from the images or the true ones "
+                         "(--levels is then ignored)")
     args = ap.parse_args(argv)
+    if args.pipeline:
+        args.levels = ["pipeline"]
     cv2.setNumThreads(1)  # the target is one core
     params = DetectionParams()
     print(f"Synthetic captures {args.shape[0]}x{args.shape[1]} px at 15 um/px, seeds {args.seeds}; "
           f"detect_protrusions defaults.\n")
     for level in args.levels:
-        hn, an = (float(v) for v in level.split(","))
-        runs = [run_one(s, tuple(args.shape), hn, an, params) for s in args.seeds]
+        hn, an = (0.0, 0.0) if level == "pipeline" else (float(v) for v in level.split(","))
+        runs = [run_one(s, tuple(args.shape), hn, an, params, pipeline=args.pipeline) for s in args.seeds]
         rows = summarise(runs)
         times = [r["time"] for r in runs]
         tm = [r["time"] + r["time_measure"] for r in runs]
@@ -137,7 +172,10 @@ def main(argv=None) -> int:
         for r in runs:
             for k, v in r["rejected"].items():
                 rej[k] = rej.get(k, 0) + v
-        print(f"### height noise {hn} um, albedo noise {100 * an:.0f} %\n")
+        if args.pipeline:
+            print(f"### end to end: core albedo and height, {args.pipeline} lights\n")
+        else:
+            print(f"### height noise {hn} um, albedo noise {100 * an:.0f} %\n")
         print("| width class | true | detected | precision | recall | F1 | weak recall | median abs width err | median width bias |")
         print("|---|---|---|---|---|---|---|---|---|")
         for name, nt, nd, pr, rc, f1, wr, err, bias in rows:
@@ -145,6 +183,10 @@ def main(argv=None) -> int:
         print(f"\ntime per capture (one core): detection median {np.median(times):.2f} s "
               f"(max {max(times):.2f} s); detection + uvps.measure statistics median "
               f"{np.median(tm):.2f} s (max {max(tm):.2f} s)\n\nrejected candidates: {rej}\n")
+        dens = np.abs(np.concatenate([r["dens"] for r in runs]))
+        if dens.size:
+            print(f"density per colour area (areas with >= 10 true protrusions, n = {dens.size}): "
+                  f"median abs error {100 * np.median(dens):.1f} %, max {100 * dens.max():.1f} %\n")
     return 0
 
 
