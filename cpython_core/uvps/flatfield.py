@@ -68,6 +68,7 @@ class DropoffFit:
     n_blocks: int
     gradient_rms: float  # rms of the albedo-free drop-off gradient per pixel (1/px)
     ratio_coeffs: Optional[np.ndarray] = None  # fit of log(I_k / geometric mean of the stack)
+    log_bounds: Optional[tuple] = None  # log F is clamped to the range it takes where it was fitted
 
     def log_evaluate(self, rows=None, cols=None) -> np.ndarray:
         """log F at the given pixel rows and columns (a separable grid)."""
@@ -78,7 +79,12 @@ class DropoffFit:
         u = _to_unit(cols, N)
         Vv = L.legvander(v, self.degree)
         Vu = L.legvander(u, self.degree)
-        return Vv @ self.coeffs @ Vu.T
+        return self.clamp(Vv @ self.coeffs @ Vu.T)
+
+    def clamp(self, logF):
+        """Clamp log F to the range it takes over the fitted (lit, unmasked) blocks: a polynomial
+        extrapolated beyond a masked object would otherwise explode."""
+        return logF if self.log_bounds is None else np.clip(logF, *self.log_bounds)
 
     def evaluate(self, rows=None, cols=None) -> np.ndarray:
         """The drop-off map F (mean 1 over the full image) at the given rows and columns."""
@@ -160,13 +166,14 @@ def _fit_values(logv, ok, grid, degree, n_iter):
     return _irls(A[use], logv.ravel()[use], n_iter).reshape(n, n)
 
 
-def _normalise(C, shape, degree):
-    """Set the constant so that exp(poly) has mean 1 over the image."""
-    M, N = shape
-    Vv, Vu = _design(np.linspace(0, M - 1, min(M, 256)), np.linspace(0, N - 1, min(N, 256)), shape, degree)
+def _normalise(C, grid, ok, degree):
+    """Set the constant so that exp(poly) has mean 1 over the fitted blocks; -> (C, log bounds)."""
+    Vv, Vu = _design(grid.rows, grid.cols, grid.shape, degree)
+    logF = (Vv @ C @ Vu.T)[ok]
     C = C.copy()
-    C[0, 0] -= np.log(np.exp(Vv @ C @ Vu.T).mean())
-    return C
+    shift = np.log(np.exp(logF).mean())
+    C[0, 0] -= shift
+    return C, (float(logF.min() - shift - 0.05), float(logF.max() - shift + 0.05))
 
 
 def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
@@ -209,8 +216,8 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
     fits = []
     for k in range(K):
         ratio = _fit_values(logv[k] - logG, ok_all, grid, degree, n_iter)
-        fit = DropoffFit(_normalise(ratio, grid.shape, degree), degree, grid.shape, 0.0, int(ok_all.sum()),
-                         0.0, ratio)
+        C, bounds = _normalise(ratio, grid, ok_all, degree)
+        fit = DropoffFit(C, degree, grid.shape, 0.0, int(ok_all.sum()), 0.0, ratio, bounds)
         gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
         fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
         fits.append(fit)
@@ -241,8 +248,9 @@ def set_common(fits, grid: BlockGrid, log_common) -> None:
     n = degree + 1
     A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
     common = np.linalg.lstsq(A, np.asarray(log_common(rows, cols)).ravel(), rcond=None)[0].reshape(n, n)
+    ok_all = grid.valid.all(axis=0)
     for fit in fits:
-        fit.coeffs = _normalise(fit.ratio_coeffs + common, shape, degree)
+        fit.coeffs, fit.log_bounds = _normalise(fit.ratio_coeffs + common, grid, ok_all, degree)
     _set_levels(fits, grid)
 
 

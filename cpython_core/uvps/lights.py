@@ -292,7 +292,7 @@ def _eval_points(fit: DropoffFit, r, c):
     M, N = fit.shape
     Vv = Lg.legvander(_to_unit(r, M), fit.degree)
     Vu = Lg.legvander(_to_unit(c, N), fit.degree)
-    return np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu)
+    return fit.clamp(np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu))
 
 
 def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
