@@ -173,7 +173,9 @@ def _normalise(C, grid, ok, degree):
     C = C.copy()
     shift = np.log(np.exp(logF).mean())
     C[0, 0] -= shift
-    return C, (float(logF.min() - shift - 0.05), float(logF.max() - shift + 0.05))
+    # image corners lie half a block beyond the block centres: leave a margin for them
+    margin = 0.05 + 0.25 * float(logF.max() - logF.min())
+    return C, (float(logF.min() - shift - margin), float(logF.max() - shift + margin))
 
 
 def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
