@@ -19,8 +19,9 @@ pytestmark = pytest.mark.imagej
 
 SHAPE = (240, 320)
 N_LIGHTS = 8
-#: One bridge call on the small capture takes a few seconds; a whole macro well under a minute.
-TIMEOUT = 300
+#: One bridge call on the small capture takes seconds, the ten-step macro about 2 minutes on 2
+#: cores; the margin is for a loaded machine.
+TIMEOUT = 900
 
 
 def q(path):
@@ -334,8 +335,9 @@ def test_an_unsaved_stack_is_written_to_the_request_folder(run_macro, grey_captu
     assert "slices %d" % N_LIGHTS in lines
     written = [line.split("capture ", 1)[1] for line in lines if line.startswith("uvps: capture ")]
     assert len(written) == 1 and "uvps-request-" in written[0], lines
-    np.testing.assert_allclose(_azimuths(out / "lights.json"), _azimuths(direct / "lights.json"),
-                               atol=1e-6)
+    # Same pixels as the folder: the same lamps (the estimate samples pixels, so not bit-equal).
+    diff = (_azimuths(out / "lights.json") - _azimuths(direct / "lights.json") + 180) % 360 - 180
+    assert np.all(np.abs(diff) < 2.0), diff
 
 
 def test_a_saved_stack_is_passed_by_its_file(run_macro, grey_capture_dir, tmp_path):
