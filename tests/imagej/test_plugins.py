@@ -162,7 +162,9 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
     az_true = np.degrees(np.arctan2(pos[:, 1], pos[:, 0]))
     az = np.asarray([light["azimuth_deg"] for light in lights["lights"]])
     diff = (az - az_true + 180.0) % 360.0 - 180.0
-    assert np.all(np.abs(diff) < 15.0), diff
+    # A 3.6 x 4.8 mm field pins each lamp to within ~20 degrees (scripts/benchmark_core.py measures
+    # the real-size accuracy); images sent out of order or the wrong stack would be off by 45-180.
+    assert np.abs(diff).mean() < 12.0 and np.all(np.abs(diff) < 30.0), diff
 
 
 # --------------------------------------------------------------------------- failures
