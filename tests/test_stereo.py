@@ -109,3 +109,28 @@ def test_mask_and_bands_do_not_change_the_result():
     b = solve_normals(images, NEAR, pixel_size_um=PX, mask=mask, chunk_pixels=777)
     assert np.isnan(a.normals[~mask]).all() and a.n_invalid == 0
     np.testing.assert_allclose(a.normals[mask], b.normals[mask], atol=1e-6)
+
+
+def test_paraboloid_normals_and_height_near_lights():
+    """A paraboloid cap rendered under near lights: exact normals, and FC integration gives its height."""
+    from uvps.integrate import integrate_normals
+
+    r, c = np.mgrid[0:M, 0:N]
+    X = pixel_coordinates_mm(r, c, (M, N), PX)
+    a = 0.08  # z = a (R^2 - x^2 - y^2), mm
+    R2 = 1.0
+    rho2 = X[..., 0] ** 2 + X[..., 1] ** 2
+    inside = rho2 < R2
+    z = np.where(inside, a * (R2 - rho2), 0.0)
+    p = np.where(inside, -2 * a * X[..., 0], 0.0)
+    q = np.where(inside, -2 * a * X[..., 1], 0.0)
+    n = np.dstack([-p, -q, np.ones_like(p)])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    Xs = X.copy()
+    Xs[..., 2] = z
+    images = _render(n, Xs, NEAR, np.full((M, N), 800.0)).astype(np.float32)
+    res = solve_normals(images, NEAR, pixel_size_um=PX)
+    assert np.nanmean(_err(res.normals, n)) < 0.05
+    h = integrate_normals(res.normals, pixel_size_um=PX).height_um
+    truth = z * 1000 - np.median(z * 1000)
+    assert np.abs((h - h[~inside].mean()) - (truth - truth[~inside].mean())).max() < 0.05 * 80
