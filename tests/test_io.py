@@ -141,7 +141,7 @@ def test_imagej_hyperstack_is_one_capture(tmp_path, axes, shape, colour):
     else:
         expected = data.reshape((-1,) + shape[-2:])
     np.testing.assert_array_equal(cap.images, expected.astype(np.float32))
-    assert cap.files[0] == "stack.tif#1" and len(cap.files) == expected.shape[0]
+    assert cap.files[0] == f"{tmp_path / 'stack.tif'}#1" and len(cap.files) == expected.shape[0]
     assert cap.pixel_size_um == pytest.approx(7.5, rel=1e-6)
 
 

@@ -67,7 +67,7 @@ class Capture:
         ``(K, M, N)`` or ``(K, M, N, 3)`` float32, linear, dark-subtracted, NOT rescaled: the
         file's own counts (uint16 -> 0..65535, uint8 -> 0..255).
     files : list of str
-        One per image; an image of a multi-page stack is ``"stack.tif#k"`` with k from 1 (the
+        One per image; an image of a multi-page stack is ``"/path/stack.tif#k"`` with k from 1 (the
         ImageJ slice number).
     pixel_size_um : float
         Size of a pixel on the painting, micrometres.
@@ -676,7 +676,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     read-only (a compressed one is read whole). Measured on 6 RGB uint16 images: peak = stack
     + 1.1 single float32 images (1.8 with ``linearize="srgb"``; 0.02 for a stack file).
 
-    Images of a stack are named ``"stack.tif#k"``, k = 1..K (ImageJ's slice numbers).
+    Images of a stack are named ``"/path/stack.tif#k"``, k = 1..K (ImageJ's slice numbers).
     Each image is checked: same shape and dtype as the first, not all black, not fully
     saturated (every pixel at the dtype maximum), finite.
     """
@@ -850,7 +850,7 @@ def _read_stack(path: Path, progress: Progress):
     out = np.empty(raw.shape, dtype=np.float32)
     labels = []
     for i in range(k):
-        label = f"{path.name}#{i + 1}"
+        label = f"{path}#{i + 1}"
         _check_image(raw[i], f"{path}#{i + 1}")
         out[i] = raw[i]
         labels.append(label)

@@ -83,7 +83,7 @@ def input_hashes(capture: Capture) -> list:
     """SHA-256 of every input file (a stack is hashed once)."""
     seen, out = set(), []
     for f in capture.files:
-        p = f.split("#")[0] if "#" in f and not Path(f).exists() else f
+        p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
         if p in seen:
             continue
         seen.add(p)
