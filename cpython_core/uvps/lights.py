@@ -410,33 +410,9 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
                          equidistant=eq)
 
 
-def _bow_basis(X):
-    """Slopes (d/dx, d/dy) of the height terms x^2, xy, y^2, x^3, x^2 y, x y^2, y^3 (x, y scaled to ~1)."""
-    x = X[..., 0] / np.abs(X[..., 0]).max()
-    y = X[..., 1] / np.abs(X[..., 1]).max()
-    gx = np.stack([2 * x, y, 0 * x, 3 * x ** 2, 2 * x * y, y ** 2, 0 * x], axis=-1)
-    gy = np.stack([0 * x, x, 2 * y, 0 * x, x ** 2, 2 * x * y, 3 * y ** 2], axis=-1)
-    return gx, gy
-
-
 def _ratio_resid(P, R, X):
-    """Misfit of the drop-off ratio maps, after the best canvas bow is taken out.
-
-    A bowed canvas shades every image by ``log(n . l_k) - log(l_kz) ~ -(s_x l_kx + s_y l_ky) / l_kz``
-    with (s_x, s_y) the bow's slopes: smooth, and different under every lamp, so it biases the drop-off
-    toward lamps too close to the axis. The bow is modelled as a cubic height whose 7 coefficients are
-    solved linearly for the given lights (variable projection) and removed.
-    """
     h = _model_logs(P, X)
-    d = (R - (h - h.mean(axis=0)))                       # (K, n, n)
-    u = P[:, :2] / P[:, 2:3]                              # l_xy / l_z at the centre
-    u = u - u.mean(axis=0)
-    gx, gy = _bow_basis(X)                               # (n, n, 7)
-    B = -(u[:, 0, None, None, None] * gx[None] + u[:, 1, None, None, None] * gy[None])   # (K, n, n, 7)
-    B = B - B.mean(axis=(1, 2), keepdims=True)
-    A = B.reshape(-1, B.shape[-1])
-    c, *_ = np.linalg.lstsq(A, d.ravel(), rcond=None)
-    return d.ravel() - A @ c
+    return (h - h.mean(axis=0) - R).ravel()
 
 
 def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale):
