@@ -28,7 +28,9 @@ def main():
     dialogs.add_capture_fields(dlg)
     dialogs.add_run_field(dlg)
     dialogs.add_light_fields(dlg)
-    dlg.help("https://github.com/NU-ACCESS/ImageJ-Photometric-Stereo-Tools")
+    dlg.help("<html><b>Estimate Lights</b>: each lamp's azimuth from the polar drop-off fit, and its "
+             "position from the near-light model (Salvant et al., Fig. 1b-f). Leave <i>Lights file</i> "
+             "empty to estimate; see docs/fiji/Estimate_Lights.md in the uvps folder.</html>")
     values = dlg.show()
     if values is not None:
         menus.estimate_lights(values)
