@@ -22,7 +22,6 @@ import logging
 import math
 import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +30,7 @@ from typing import NamedTuple, Optional, Sequence, Union
 import numpy as np
 
 from .errors import UVPSInputError
-from .outputs import Progress, report
+from .outputs import Progress, atomic_path, report
 
 log = logging.getLogger(__name__)
 
@@ -956,23 +955,15 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
         meta.update(metadata)
     if not path.parent.is_dir():
         raise UVPSInputError(f"output folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with warnings.catch_warnings():
-            if data.nbytes > LARGE_TIFF_BYTES:
-                # Expected: above 4 GB tifffile writes ImageJ's one-IFD layout and says so.
-                log.info("%s: %.2f GB, ImageJ large-file layout", path, data.nbytes / 2**30)
-                warnings.filterwarnings("ignore", message=".*truncating ImageJ file")
-            tifffile.imwrite(
-                tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
-                photometric="rgb" if axes.endswith("S") else "minisblack",
-            )
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        if data.nbytes > LARGE_TIFF_BYTES:
+            # Expected: above 4 GB tifffile writes ImageJ's one-IFD layout and says so.
+            log.info("%s: %.2f GB, ImageJ large-file layout", path, data.nbytes / 2**30)
+            warnings.filterwarnings("ignore", message=".*truncating ImageJ file")
+        tifffile.imwrite(
+            tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
+            photometric="rgb" if axes.endswith("S") else "minisblack",
+        )
     return path
 
 

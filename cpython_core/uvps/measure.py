@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import csv
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
@@ -21,6 +19,7 @@ from scipy import ndimage as ndi
 from skimage.measure import regionprops_table
 
 from .errors import UVPSInputError
+from .outputs import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -290,29 +289,11 @@ def _fmt(value) -> str:
     return str(value)
 
 
-def file_mode() -> int:
-    """The permission bits a plain ``open`` would give a new file (0o666 minus the umask).
-
-    ``tempfile.mkstemp`` creates files 0o600; outputs get the usual mode before being renamed.
-    """
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
 def atomic_write_text(path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+    """Write text to ``path`` atomically (``uvps.outputs.atomic_path``)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
-        os.chmod(tmp, file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def table_to_csv_text(table: Mapping, columns: Sequence[str]) -> str:

@@ -92,19 +92,39 @@ def atomic_output_dir(path) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def write_json_atomic(path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
+def file_mode() -> int:
+    """The permission bits a plain ``open`` would give a new file (0o666 minus the umask).
+
+    ``tempfile.mkstemp`` creates files 0o600; outputs get the usual mode before being renamed.
+    """
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+@contextlib.contextmanager
+def atomic_path(path, *, suffix: str = ".tmp") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success give it the usual mode and rename it into
+    place (``os.replace``), on an exception remove it. The one atomic-write pattern of uvps."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=suffix, dir=path.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, indent=2, allow_nan=False, default=_json_default)
-            fh.write("\n")
+        yield Path(tmp)
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def write_json_atomic(path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(obj, fh, indent=2, allow_nan=False, default=_json_default)
+            fh.write("\n")
 
 
 def _json_default(obj):

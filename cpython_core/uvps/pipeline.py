@@ -22,7 +22,7 @@ from .io import Capture, sha256_file, write_imagej_tiff
 from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels,
                      pixel_coordinates_mm, sample_pixels, _model_logs)
 from .outputs import Progress, report, write_json_atomic
-from .stereo import StereoResult, solve_normals
+from .stereo import StereoResult
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 import html
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -22,8 +20,8 @@ import numpy as np
 
 from . import __version__
 from .errors import UVPSInputError
-from .measure import atomic_write_text, file_mode
-from .outputs import Progress, report
+from .measure import atomic_write_text
+from .outputs import Progress, atomic_path, report
 
 log = logging.getLogger(__name__)
 
@@ -46,19 +44,11 @@ def _figure(figsize, layout="constrained"):
 
 
 def save_figure(fig, path) -> Path:
-    """Save a matplotlib figure as PNG atomically (temporary file, then ``os.replace``)."""
+    """Save a matplotlib figure as PNG atomically (``uvps.outputs.atomic_path``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.stem + ".", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
-        os.chmod(tmp, file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 
