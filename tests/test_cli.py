@@ -181,3 +181,44 @@ def test_version_and_help():
     r = uvps("--version")
     assert r.returncode == 0 and r.stdout.startswith("uvps ")
     assert uvps("--help").returncode == 0
+
+
+def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
+    """regions / detect / wand / compare / report on a run folder, through the real CLI."""
+    import csv
+
+    def rows_of(path):
+        with open(path, newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    cap, folder = capture_dir
+    out = tmp_path / "run"
+    assert uvps("run", folder, "-o", out, "--lights", folder / "lights_positions_mm.csv").returncode == 0
+    r = uvps("regions", "-o", out, "--auto")
+    assert r.returncode == 0, r.stderr
+    assert (out / "regions_labels.tif").is_file()
+    r = uvps("detect", "-o", out)
+    assert r.returncode == 0, r.stderr
+    rows = rows_of(out / "protrusions.csv")
+    assert len(rows) > 0
+    clicks = tmp_path / "clicks.csv"
+    picked = rows[: min(5, len(rows))]
+    clicks.write_text("x_px,y_px\n" + "".join(f"{float(p['x_px']):.0f},{float(p['y_px']):.0f}\n" for p in picked))
+    r = uvps("wand", clicks, "-o", out, "--tolerance", "2000", "--connectivity", "8")
+    assert r.returncode == 0, r.stderr
+    manual = rows_of(out / "protrusions_manual.csv")
+    assert len(manual) == len(picked)
+    r = uvps("compare", out / "protrusions_manual.csv", out / "protrusions.csv", "-o", out)
+    assert r.returncode == 0, r.stderr
+    comp = {row["label"]: row for row in rows_of(out / "comparison.csv")}
+    total = comp.get("all") or comp.get("all areas")
+    assert int(total["matched"]) == len(picked) and int(total["missed"]) == 0
+    r = uvps("report", "-o", out, "--bins-um", "0", "100", "300", "1000")
+    assert r.returncode == 0, r.stderr
+    header = (out / "regions.csv").read_text().splitlines()[0]
+    assert "count_100-300um" in header and "report:" in r.stdout
+    # bad input: bins that are not increasing, a tolerance out of range
+    r = uvps("report", "-o", out, "--bins-um", "0", "300", "100")
+    assert r.returncode == 1 and "bins" in r.stderr.lower()
+    r = uvps("wand", clicks, "-o", out, "--tolerance", "-1")
+    assert r.returncode == 1 and "tolerance" in r.stderr
