@@ -7,5 +7,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh --test
-bash scripts/install_imagej_deps.sh
+# Without root or sudo the real-ImageJ tests cannot be set up: in CI that is a failure, elsewhere
+# they are skipped with the reason (the rest of the suite still runs).
+if ! bash scripts/install_imagej_deps.sh; then
+  [ "${CI:-}" = "true" ] && exit 1
+  echo "test_all.sh: ImageJ dependencies missing: the tests in tests/imagej will be skipped" >&2
+fi
 exec .venv/bin/python -m pytest -q "$@"
