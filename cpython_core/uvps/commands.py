@@ -209,31 +209,10 @@ cmd_lights = _capture_command((), "lights")
 cmd_normals = _capture_command(("normals",), "normals")
 
 
-def _read_normals(run_dir):
-    from .io import read_tiff
-
-    p = Path(run_dir) / "normals.tif"
-    if not p.is_file():
-        raise UVPSInputError(f"run folder {run_dir} has no normals.tif; run the 'normals' or 'run' command first")
-    data, px = read_tiff(p)
-    if data.ndim != 3 or data.shape[0] != 3:
-        raise UVPSInputError(f"{p}: expected a (3, M, N) normal map; got shape {data.shape}")
-    return np.moveaxis(data.astype(np.float32), 0, -1), px
-
-
-def _pixel(params, px, where):
-    v = params.get("pixel_size_um", px)
-    if v is None:
-        raise UVPSInputError(f"{where} has no pixel size; pass pixel_size_um")
-    v = float(v)
-    if not np.isfinite(v) or v <= 0:
-        raise UVPSInputError(f"pixel_size_um must be > 0; got {v!r}")
-    return v
-
-
 def cmd_integrate(inputs, params, output_dir, *, progress=None):
     """``integrate``: height in um from ``<run>/normals.tif`` (``integration`` = "fc" or "dct")."""
     from .pipeline import write_depth
+    from .protrusion_commands import read_run
 
     run_dir = check_output_dir(output_dir)
     warnings = []
@@ -241,18 +220,18 @@ def cmd_integrate(inputs, params, output_dir, *, progress=None):
     method = params.get("integration") or "fc"
     if method not in ("fc", "dct"):
         raise UVPSInputError(f"integration must be 'fc' or 'dct'; got {method!r}")
-    normals, px = _read_normals(run_dir)
-    px = _pixel(params, px, run_dir / "normals.tif")
+    run = read_run(run_dir, need=("normals",), pixel_size_um=params.get("pixel_size_um"))
     report(progress, 0.2, "integrating")
     with atomic_output_dir(run_dir) as tmp:
-        diag = write_depth(tmp, normals, px, method=method)
+        diag = write_depth(tmp, run.normals, run.pixel_size_um, method=method)
     report(progress, 1.0, "integrate: done")
     return CommandResult(_stage_outputs(run_dir, ["depth"]), diag, warnings)
 
 
 def cmd_relight(inputs, params, output_dir, *, progress=None):
     """``relight``: the surface under a virtual raking light (``azimuth_deg``, ``elevation_deg``)."""
-    from .io import read_tiff, write_imagej_tiff
+    from .io import write_imagej_tiff
+    from .protrusion_commands import read_run
     from .relight import relight
 
     run_dir = check_output_dir(output_dir)
@@ -266,17 +245,12 @@ def cmd_relight(inputs, params, output_dir, *, progress=None):
         raise UVPSInputError("azimuth_deg, elevation_deg and ambient must be numbers") from None
     if not 0 < el <= 90:
         raise UVPSInputError(f"elevation_deg must be in (0, 90]; got {el}")
-    normals, px = _read_normals(run_dir)
-    px = _pixel(params, px, run_dir / "normals.tif")
-    ap = run_dir / "albedo.tif"
-    albedo = None
-    if ap.is_file():
-        a, _ = read_tiff(ap)
-        albedo = np.moveaxis(a, 0, -1) if a.ndim == 3 else a
-    else:
+    run = read_run(run_dir, need=("normals",), pixel_size_um=params.get("pixel_size_um"))
+    px, albedo = run.pixel_size_um, run.albedo
+    if albedo is None:
         warnings.append("no albedo.tif: relit with a uniform albedo")
-        albedo = np.ones(normals.shape[:2], np.float32)
-    img = relight(normals, albedo, azimuth_deg=az, elevation_deg=el, ambient=amb)
+        albedo = np.ones(run.normals.shape[:2], np.float32)
+    img = relight(run.normals, albedo, azimuth_deg=az, elevation_deg=el, ambient=amb)
     with atomic_output_dir(run_dir) as tmp:
         if img.ndim == 3:
             write_imagej_tiff(tmp / "relight.tif", np.moveaxis(img, -1, 0), axes="CYX", pixel_size_um=px)
