@@ -38,7 +38,7 @@ class RunOptions:
     robust: bool = False            # IRLS photometric stereo (visible light, highlights)
     integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
     refine_lights: bool = True      # per-light refinement after the equidistant solution
-    sample_pixels: int = 5000       # pixels used by the photometric residual
+    sample_pixels: int = 30000      # pixels used by the photometric residual
 
     def __post_init__(self):
         if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):

@@ -73,6 +73,7 @@ class SyntheticSpec:
     elevation_deg: tuple = (20.0, 60.0)
     distance_mm: tuple = (250.0, 500.0)
     intensity_jitter: float = 0.1
+    fixed_exposure: bool = False
     n_regions: Optional[int] = None
     protrusion_density_light: float = 45.0
     protrusion_density_dark: float = 5.0
@@ -685,7 +686,13 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     report(progress, 0.4, "lights")
     positions = light_positions(rng, n_lights=spec.n_lights, elevation_deg=spec.elevation_deg,
                                 distance_mm=spec.distance_mm)
-    intensities = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, spec.n_lights)
+    drift = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, spec.n_lights)
+    if spec.fixed_exposure:
+        # one lamp moved around at one exposure: the irradiance at the centre falls as 1/distance^2
+        d = np.linalg.norm(positions, axis=1)
+        intensities = drift * (np.median(d) / d) ** 2
+    else:
+        intensities = drift   # as if the exposure were reset for every image
     amax = albedo if albedo.ndim == 2 else albedo.max(axis=2)
     peak = max(float(np.max(s * amax)) for s in
                _shading(normals, height32, px, positions, None, intensities))
