@@ -168,12 +168,13 @@ def normals_error(est, truth):
     return float(a[ok].mean()), float(np.median(a[ok])), float(np.percentile(a[ok], 95)), int((~ok).sum())
 
 
-def part1(shape, seeds, n_lights=12, px=15.0):
+def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
     rows_l, rows_n, rows_h, rows_t = [], [], [], []
     agg = {}
     for seed in seeds:
         t0 = time.perf_counter()
-        cap = make_capture(shape=shape, n_lights=n_lights, seed=seed, pixel_size_um=px)
+        cap = make_capture(shape=shape, n_lights=n_lights, seed=seed, pixel_size_um=px,
+                           fixed_exposure=fixed_exposure)
         t_make = time.perf_counter() - t0
         capture = Capture(images=cap.images.astype(np.float32), files=[f"uv_{i:02d}.tif" for i in range(n_lights)],
                           pixel_size_um=px, mask=None, saturation=65535.0, light_directions=None,
@@ -225,7 +226,9 @@ def part1(shape, seeds, n_lights=12, px=15.0):
                         f"{hm:.1f}", f"{hr:.1f}", "15"])
     M, N = shape
     txt = [f"## Part 1: accuracy on synthetic captures ({N} x {M}, {n_lights} lights, {px:g} um/px, "
-           f"seeds {', '.join(map(str, seeds))})", "",
+           f"seeds {', '.join(map(str, seeds))}"
+           + ("; one lamp at one exposure, irradiance at the centre ~ 1/distance^2" if fixed_exposure else "")
+           + ")", "",
            "Summary over seeds (light direction error: angle between estimated and true unit vectors from "
            "the image centre, mean over lights; normals: mean angular error over all solved pixels; "
            "protrusion height: median relative error over protrusions >= 100 um wide of all seeds, "
@@ -442,6 +445,8 @@ def main(argv=None):
     ap.add_argument("--big", action="store_true", help="run part 2 (4000 x 3000 x 16 RGB, ~1.2 GB on disk)")
     ap.add_argument("--parts", default=None, help="comma-separated subset of 1,2,3 (2 needs --big)")
     ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--fixed-exposure", action="store_true",
+                    help="part 1 with one lamp at one exposure (irradiance at the centre ~ 1/distance^2)")
     ap.add_argument("--tmp", default="/tmp", help="where part 2 writes its capture")
     args = ap.parse_args(argv)
     parts = {1, 3} | ({2} if args.big else set())
@@ -460,7 +465,7 @@ def main(argv=None):
     sections = []
     t_all = time.perf_counter()
     if 1 in parts:
-        sections.append(part1(shape, seeds) + f"\nProduced by: `{command_line()}`\n")
+        sections.append(part1(shape, seeds, fixed_exposure=args.fixed_exposure) + f"\nProduced by: `{command_line()}`\n")
         print(sections[-1], flush=True)
     if 2 in parts:
         work = Path(tempfile.mkdtemp(prefix="uvps_bench_big_", dir=args.tmp))

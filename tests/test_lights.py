@@ -105,3 +105,49 @@ def test_estimated_lights_from_the_images_alone(estimated):
     err = np.degrees(np.arccos(np.clip((n * cap.normals).sum(-1), -1, 1)))
     assert np.nanmean(err) < 2.5
     assert np.degrees(np.arccos(np.nanmean(n.reshape(-1, 3), axis=0)[2] / np.linalg.norm(np.nanmean(n.reshape(-1, 3), axis=0)))) < 0.5
+
+
+def test_lights_within_two_degrees_on_a_full_field():
+    """The benchmark's 24 x 18 mm field (1600 x 1200 at 15 um), 8 grey lamps at 20-60 deg, 250-500 mm.
+
+    Closer-and-higher lamps fit the images almost as well as the true ones (the mean squared residual
+    differs by ~1e-4 of itself), so this fails when the refinement is stopped early or given too few
+    pixels (that left the lamps ~20 % too close and 4-8 deg off), or when the equidistant start puts
+    the lamps at grazing incidence (this seed then gave 31 deg).
+    """
+    cap = make_capture(shape=(1200, 1600), n_lights=8, seed=3, rgb=False)
+    grid = block_grid(cap.images, saturation=65535)
+    fits = fit_dropoffs(grid, degree=4)
+    sample = sample_pixels(cap.images, fits, saturation=65535, pixel_size_um=PX, n=30000)
+    est = estimate_lights(grid, fits, sample, pixel_size_um=PX)
+    P = cap.light_positions_mm
+    assert _angles(est.model.positions_mm, P).mean() < 2.0
+    ratio = np.linalg.norm(est.model.positions_mm, axis=1) / np.linalg.norm(P, axis=1)
+    assert np.all(np.abs(ratio - 1) < 0.1), ratio
+    E = est.model.intensities / cap.intensities
+    assert np.all(np.abs(E / np.median(E) - 1) < 0.05)
+    per_light = [h for h in est.residual_history if h["stage"] == "per-light"]
+    assert [h["pixels"] for h in per_light] == [5000, 30000] and per_light[-1]["converged"]
+
+
+def test_variable_projection_jacobian_matches_finite_differences():
+    """The photometric residual's Jacobian (with Golub-Pereyra's second term) against central differences,
+    at random lamps and intensities that the lights do not explain (large residuals)."""
+    from uvps.lights import PixelSample, _vp_residual_and_jacobian, photometric_residual
+
+    rng = np.random.default_rng(0)
+    K, n, scale = 6, 50, 300.0
+    P = np.column_stack([rng.uniform(-200, 200, K), rng.uniform(-200, 200, K), rng.uniform(150, 300, K)])
+    E = rng.uniform(0.8, 1.2, K)
+    X = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-10, 10, n), np.zeros(n)])
+    sample = PixelSample(rng.uniform(0.5, 1.5, (K, n)), X, None, None)
+    r, J = _vp_residual_and_jacobian(sample, P, E, scale)
+    t0 = np.concatenate([P / scale, np.log(E)[:, None]], axis=1).ravel()
+
+    def f(t):
+        th = t.reshape(K, 4)
+        return photometric_residual(sample, LightModel.from_positions(th[:, :3] * scale, np.exp(th[:, 3])))
+
+    np.testing.assert_allclose(r, f(t0), rtol=1e-12, atol=1e-15)
+    Jn = np.column_stack([(f(t0 + h) - f(t0 - h)) / 2e-6 for h in np.eye(t0.size) * 1e-6])
+    assert np.abs(J - Jn).max() < 1e-5 * np.abs(Jn).max()

@@ -442,7 +442,8 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
     Ainv = np.linalg.inv(A)
     b = np.einsum("pij,kpj,kp->pi", Ainv, V, sample.I)
     mu = sample.I.mean(axis=0)
-    r = ((sample.I - np.einsum("kpi,pi->kp", V, b)) / mu).ravel()
+    rk = (sample.I - np.einsum("kpi,pi->kp", V, b)) / mu   # (K, Pn)
+    r = rk.ravel()
     J = (np.empty((r.size, 4 * K)) if out is None else out).reshape(K, r.size // K, 4 * K)
     h = 1e-6 * scale
     for k in range(K):
@@ -455,8 +456,10 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
         cols.append(V[k])                                 # d V_k / d log E_k
         for j, dV in enumerate(cols):
             d = -np.einsum("pi,pi->p", dV, b) / mu           # residual change of light k, b fixed
-            c = np.einsum("pij,pj->pi", Ainv, V[k] * d[:, None])
-            col = -np.einsum("kpi,pi->kp", V, c)            # minus the part the normals absorb
+            # the normals' response: the part of d they absorb (Kaufman) plus the change of b through
+            # the residual itself (Golub-Pereyra's second term: needed in the shallow valley)
+            c = np.einsum("pij,pj->pi", Ainv, V[k] * d[:, None] + dV * rk[k][:, None])
+            col = -np.einsum("kpi,pi->kp", V, c)
             col[k] += d
             J[:, :, 4 * k + j] = col * factor if factor != 1.0 else col
     return r, J.reshape(r.size, 4 * K)
@@ -493,7 +496,7 @@ def _subset(sample: PixelSample, n: int) -> PixelSample:
 
 
 def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=1.0,
-                 stages=(5000, None), max_nfev=100):
+                 stages=((5000, 60), (None, 40))):
     """All positions and log-intensities by least squares on the photometric + drop-off residuals.
 
     The drop-off term is a weak prior: a bowed canvas biases it (its shading is smooth and different
@@ -503,30 +506,41 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
     lower) is the near-light remnant of the bas-relief ambiguity, and only the residual over tens of
     thousands of textured pixels tells it from the truth. The optimiser must run to convergence on
     such a sample: with 5000 pixels and 25 evaluations the lamps stopped ~20 % too close and the
-    directions 6.6 deg off on the benchmark; with 30000 pixels to convergence, 0.5 deg
-    (docs/benchmarks.md). ``stages`` first solves on a subset (cheap, reaches the valley), then on the
-    whole sample (None).
+    directions 6.6 deg off on the benchmark; with 30000 pixels to convergence, 0.5-0.6 deg
+    (docs/benchmarks.md). ``stages`` ((pixels, max_nfev), ...) first solves on a subset (cheap, reaches
+    the valley), then on the whole sample (None). Each stage stops at scipy's default tolerances (a
+    looser ``ftol`` = 1e-5 stopped an 8-light capture 7 deg off) or after ``max_nfev`` evaluations: on
+    a field too small for the near-light geometry to resolve the valley (under ~1 cm at 15 um/px)
+    the solver only crawls along it.
     """
     model = start
-    for n in stages:
+    for n, max_nfev in stages:
         sub = sample if n is None or n >= sample.I.shape[1] else _subset(sample, n)
         model = _refine_lsq(sub, model, R, X, history, w_drop=w_drop, max_nfev=max_nfev)
         if sub is sample:
             break
-    return model
+    return LightModel.from_positions(model.positions_mm, model.intensities / np.median(model.intensities))
 
 
 def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop, max_nfev):
-    """One ``least_squares`` solve of :func:`_refine_each` on the given sample."""
+    """One ``least_squares`` solve of :func:`_refine_each` on the given sample.
+
+    Each light is parametrised by azimuth, elevation, log distance and log intensity: the shallow
+    valley (closer and higher) is nearly straight in these coordinates and curved in Cartesian ones.
+    """
     K = len(start.intensities)
     P0 = start.positions_mm
     scale = np.linalg.norm(P0, axis=1).mean()
     n_res = sample.I.size
     n_dr = R.size
 
+    def positions(th):
+        az, el, D = th[:, 0], th[:, 1], np.exp(th[:, 2])
+        return D[:, None] * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+
     def unpack(t):
         th = t.reshape(K, 4)
-        return th[:, :3] * scale, np.exp(th[:, 3])
+        return positions(th), np.exp(th[:, 3])
 
     def drop(t):
         return w_drop * _ratio_resid(unpack(t)[0], R, X) / np.sqrt(n_dr)
@@ -537,9 +551,19 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
         return np.concatenate([r_ph / np.sqrt(n_res), drop(t), [np.mean(t.reshape(K, 4)[:, 3])]])
 
     def jac(t):
+        th = t.reshape(K, 4)
         P, E = unpack(t)
         J = np.empty((n_res + n_dr + 1, t.size))      # filled in place: J is ~n_res x 4K float64
-        _vp_residual_and_jacobian(sample, P, E, scale, out=J[:n_res], factor=1.0 / np.sqrt(n_res))
+        Jp = J[:n_res]
+        _vp_residual_and_jacobian(sample, P, E, scale, out=Jp, factor=1.0 / np.sqrt(n_res))
+        # chain rule from (P / scale) to (azimuth, elevation, log distance), light by light
+        az, el = th[:, 0], th[:, 1]
+        for k in range(K):
+            D = np.exp(th[k, 2])
+            dP = np.array([[-np.cos(el[k]) * np.sin(az[k]), -np.sin(el[k]) * np.cos(az[k]), np.cos(el[k]) * np.cos(az[k])],
+                           [np.cos(el[k]) * np.cos(az[k]), -np.sin(el[k]) * np.sin(az[k]), np.cos(el[k]) * np.sin(az[k])],
+                           [0.0, np.cos(el[k]), np.sin(el[k])]]) * (D / scale)
+            Jp[:, 4 * k:4 * k + 3] = Jp[:, 4 * k:4 * k + 3] @ dP
         d0 = drop(t)
         for i in range(t.size):   # the drop-off prior is tiny: forward differences
             tt = t.copy()
@@ -549,13 +573,15 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
         J[-1, 3::4] = 1.0 / K
         return J
 
-    x0 = np.concatenate([P0 / scale, np.log(start.intensities)[:, None]], axis=1).ravel()
-    lb = np.tile([-5, -5, 0.02, -2.0], K)
-    ub = np.tile([5, 5, 5, 2.0], K)
+    D0 = np.linalg.norm(P0, axis=1)
+    x0 = np.column_stack([np.arctan2(P0[:, 1], P0[:, 0]), np.arcsin(np.clip(P0[:, 2] / D0, -1, 1)), np.log(D0),
+                          np.log(start.intensities)]).ravel()
+    lb = np.tile([-np.inf, np.radians(1.0), np.log(20.0), -2.0], K)
+    ub = np.tile([np.inf, np.radians(89.9), np.log(20000.0), 2.0], K)
     c0 = float(np.sum(fun(x0) ** 2))
     sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, bounds=(lb, ub), x_scale="jac",
                         max_nfev=max_nfev)
     history.append({"stage": "per-light", "pixels": int(sample.I.shape[1]), "iterations": int(sol.nfev),
                     "converged": bool(sol.status > 0), "cost_start": c0, "cost": float(np.sum(sol.fun ** 2))})
     P, E = unpack(sol.x)
-    return LightModel.from_positions(P, E / np.median(E))
+    return LightModel.from_positions(P, E / np.exp(np.mean(np.log(E))))

@@ -38,7 +38,7 @@ class RunOptions:
     robust: bool = False            # IRLS photometric stereo (visible light, highlights)
     integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
     refine_lights: bool = True      # per-light refinement after the equidistant solution
-    sample_pixels: int = 30000      # pixels used by the photometric residual
+    sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)
 
     def __post_init__(self):
         if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
@@ -117,8 +117,10 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean
         E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=capture.light_directions)
         return LightsResult(LightModel.from_directions(capture.light_directions, E), fits, "directions")
+    # at most one pixel in 16: a denser sample adds neighbours whose texture is correlated, and time
+    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16))
     sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
-                           pixel_size_um=px, n=int(options.sample_pixels))
+                           pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
     est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights, progress=sub)
     return LightsResult(est.model, fits, "estimated", est)
