@@ -117,8 +117,10 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean
         E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=capture.light_directions)
         return LightsResult(LightModel.from_directions(capture.light_directions, E), fits, "directions")
-    # at most one pixel in 16: a denser sample adds neighbours whose texture is correlated, and time
-    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16))
+    # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
+    # and at most 360000 residuals (30000 pixels x 12 lights): the refinement's Jacobian holds
+    # lights x pixels x 4 lights float64 values (plus copies in the solver), so its memory grows as K^2.
+    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(5000, 360000 // len(fits)))
     sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
                            pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
