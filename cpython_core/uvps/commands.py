@@ -110,6 +110,9 @@ def _lights_diag(lights):
     if lights.estimate is not None:
         d["m_mm"] = lights.estimate.m_mm
         d["final_cost"] = lights.estimate.residual_history[-1]["cost"] if lights.estimate.residual_history else None
+        per_light = [h for h in lights.estimate.residual_history if h["stage"] == "per-light"]
+        if per_light:
+            d["refinement_converged"] = bool(per_light[-1]["converged"])
     return d
 
 
@@ -125,6 +128,12 @@ def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
     lights = estimate_capture_lights(capture, options=options, progress=_sub(progress, 0.1, 0.45))
     runlog.time("lights", t0)
     runlog.diagnostics["lights"] = _lights_diag(lights)
+    if runlog.diagnostics["lights"].get("refinement_converged") is False:
+        msg = ("the light refinement stopped at its evaluation cap: on this field the lamps' distance and "
+               "elevation are poorly separated, so heights may be scaled; give measured lamp positions "
+               "(--lights) for heights to compare")
+        log.warning(msg)
+        runlog.warnings.append(msg)
     write_lights(tmp, capture, lights)
     if "flatfield" in stages:
         t0 = time.perf_counter()
