@@ -429,9 +429,9 @@ def _ratio_resid(P, R, X):
 def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, factor=1.0):
     """Photometric residual and its Jacobian in (P / scale, log E), by variable projection.
 
-    The Jacobian is Kaufman's approximation: the derivative of the residual with the per-pixel
-    ``b`` held fixed, projected on the orthogonal complement of each pixel's light matrix. Written
-    out here because no library does variable projection with per-pixel 3-vectors; it turns each
+    The Jacobian is exact (Golub and Pereyra): the derivative of the residual with the per-pixel
+    ``b`` held fixed, projected on the orthogonal complement of each pixel's light matrix (Kaufman's
+    approximation), plus the change of ``b`` driven by the residual itself. Written out here because no library does variable projection with per-pixel 3-vectors; it turns each
     iteration of ``least_squares`` from 4K + 1 residual evaluations into one. ``out`` (K * P, 4K),
     if given, receives the Jacobian times ``factor``.
     """
@@ -457,7 +457,8 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
         for j, dV in enumerate(cols):
             d = -np.einsum("pi,pi->p", dV, b) / mu           # residual change of light k, b fixed
             # the normals' response: the part of d they absorb (Kaufman) plus the change of b through
-            # the residual itself (Golub-Pereyra's second term: needed in the shallow valley)
+            # the residual itself (Golub-Pereyra's second term; Kaufman's alone is off by tens of per
+            # cent where the lights leave a large residual, tests/test_lights.py)
             c = np.einsum("pij,pj->pi", Ainv, V[k] * d[:, None] + dV * rk[k][:, None])
             col = -np.einsum("kpi,pi->kp", V, c)
             col[k] += d
