@@ -129,11 +129,11 @@ def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
     runlog.time("lights", t0)
     runlog.diagnostics["lights"] = _lights_diag(lights)
     if runlog.diagnostics["lights"].get("refinement_converged") is False:
-        msg = ("the light refinement stopped at its evaluation cap: on this field the lamps' distance and "
-               "elevation are poorly separated, so heights may be scaled; give measured lamp positions "
-               "(--lights) for heights to compare")
-        log.warning(msg)
-        runlog.warnings.append(msg)
+        # reported once, as a warning of the command (the CLI prints it, the bridge returns it)
+        runlog.warnings.append(
+            "the light refinement stopped at its evaluation cap before converging: the lamps' distance and "
+            "elevation may be poorly separated on this field, so heights may be scaled; for heights to "
+            "compare, give measured lamp positions (--lights)")
     write_lights(tmp, capture, lights)
     if "flatfield" in stages:
         t0 = time.perf_counter()
