@@ -507,3 +507,19 @@ def test_truth_table_reads_back_with_uvps_measure(tmp_path):
     np.testing.assert_array_equal(table["crater"], cap.protrusions["crater"].astype(int))
     np.testing.assert_array_equal(table["region"], cap.protrusions["region"])
     np.testing.assert_allclose(table["area_um2"], np.pi * table["width_um"] ** 2 / 4, rtol=1e-4)
+
+
+def test_fixed_exposure_irradiance_falls_as_inverse_square_of_lamp_distance():
+    free = make_capture(shape=(60, 80), n_lights=6, seed=2, noise=False)
+    fixed = make_capture(shape=(60, 80), n_lights=6, seed=2, noise=False, fixed_exposure=True)
+    np.testing.assert_allclose(fixed.light_positions_mm, free.light_positions_mm)
+    d = np.linalg.norm(fixed.light_positions_mm, axis=1)
+    # the same lamp drift (1 +- 10 %) times (median distance / distance)^2
+    np.testing.assert_allclose(fixed.intensities, free.intensities * (np.median(d) / d) ** 2, rtol=1e-12)
+    assert np.all(np.abs(free.intensities - 1) <= 0.1)
+    # and the images follow: mean level ~ E_k * sin(elevation_k) on a near-flat canvas
+    near, far = np.argmin(d), np.argmax(d)
+    sin_el = fixed.light_positions_mm[:, 2] / d
+    ratio = fixed.images[near].astype(float).mean() / fixed.images[far].astype(float).mean()
+    expect = fixed.intensities[near] * sin_el[near] / (fixed.intensities[far] * sin_el[far])
+    assert abs(ratio / expect - 1) < 0.03, (ratio, expect)

@@ -64,6 +64,9 @@ class SyntheticSpec:
 
     Densities are per cm^2 of the field; widths and heights in um; distances in mm.
     ``n_ridges`` / ``n_primer_spots`` = None means 4 ridges and 3 primer spots per cm^2.
+    Each image's irradiance at the centre is 1 +- ``intensity_jitter`` (as if the exposure were reset
+    per image); ``fixed_exposure`` instead models one lamp at one exposure: that drift times
+    (median distance / distance)^2, so a lamp at 500 mm gives an image 4x darker than at 250 mm.
     """
 
     shape: tuple = (1200, 1600)
