@@ -35,12 +35,17 @@ def open_image(path, title=None, show=True):
     if title:
         imp.setTitle(title)
     if show:
-        old = WindowManager.getImage(imp.getTitle())
-        if old is not None:
-            old.changes = False
-            old.close()
-        imp.show()
+        _show_replacing(imp)
     return imp
+
+
+def _show_replacing(imp):
+    """Show ``imp``, first closing (without asking to save) a window with the same title."""
+    old = WindowManager.getImage(imp.getTitle())
+    if old is not None:
+        old.changes = False
+        old.close()
+    imp.show()
 
 
 def open_folder_stack(path, title):
@@ -62,11 +67,7 @@ def open_folder_stack(path, title):
         imp.setDimensions(channels, 1, n // channels)
         imp.setOpenAsHyperStack(True)
     imp.setTitle(title)
-    old = WindowManager.getImage(title)
-    if old is not None:
-        old.changes = False
-        old.close()
-    imp.show()
+    _show_replacing(imp)
     return imp
 
 
