@@ -207,6 +207,73 @@ def test_lp_errors_name_the_file(tmp_path):
         read_lp(lp)
 
 
+def test_lp_fourth_column_gives_intensities_in_image_order(tmp_path):
+    arr = _images(k=3)
+    _write_tiffs(tmp_path, arr, px=5, names=["a.tif", "b.tif", "c.tif"])
+    lp = tmp_path.parent / (tmp_path.name + "_i.lp")
+    # a comment and a blank line do not shift the line numbers; listed in another order
+    lp.write_text("# lights with intensities\n3\n\nc.tif 0 0 1 0.5\na.tif 1 0 1 2\nb.tif 0 1 1 1.25\n")
+    lf = read_lp(lp)
+    assert lf.files == ["c.tif", "a.tif", "b.tif"]
+    np.testing.assert_allclose(lf.intensities, [0.5, 2.0, 1.25])
+    cap = read_capture(tmp_path, lights=lp)
+    np.testing.assert_allclose(cap.light_intensities, [2.0, 1.25, 0.5])
+    np.testing.assert_allclose(cap.light_directions[0], np.array([1, 0, 1]) / np.sqrt(2))
+    # the usual three columns: no intensities (uvps takes them as equal)
+    lp.write_text("3\nc.tif 0 0 1\na.tif 1 0 1\nb.tif 0 1 1\n")
+    assert read_lp(lp).intensities is None and read_capture(tmp_path, lights=lp).light_intensities is None
+
+
+@pytest.mark.parametrize("bad,match", [
+    ("0", r"must be a finite number > 0"), ("-1.5", r"must be a finite number > 0"),
+    ("nan", r"must be a finite number > 0"), ("inf", r"must be a finite number > 0"),
+    ("bright", r"'bright' is not a number"),
+])
+def test_lp_bad_intensity_is_one_line_naming_file_and_line(tmp_path, bad, match):
+    lp = tmp_path / "l.lp"
+    lp.write_text(f"3\na.tif 0 0 1 1\n# a comment\nb.tif 0 1 1 {bad}\nc.tif 1 0 1 1\n")
+    with pytest.raises(UVPSInputError, match=r"l\.lp line 4: intensity .*" + match) as err:
+        read_lp(lp)
+    assert "\n" not in str(err.value)
+
+
+def test_lp_intensity_column_on_every_line_or_none(tmp_path):
+    lp = tmp_path / "l.lp"
+    lp.write_text("3\na.tif 0 0 1\nb.tif 0 1 1 2.0\nc.tif 1 0 1\n")
+    with pytest.raises(UVPSInputError, match=r"l\.lp line 3 has intensity column but line 2 does not"):
+        read_lp(lp)
+    lp.write_text("3\na.tif 0 0 1 1\nb.tif 0 1 1\nc.tif 1 0 1 1\n")
+    with pytest.raises(UVPSInputError, match=r"l\.lp line 3 has no intensity column but line 2 does"):
+        read_lp(lp)
+    lp.write_text("3\na.tif 0 0 1\nb.tif 0 one 1\nc.tif 1 0 1\n")
+    with pytest.raises(UVPSInputError, match=r"l\.lp line 3: expected 'file x y z \[intensity\]'"):
+        read_lp(lp)
+
+
+def test_positions_csv_intensity_column(tmp_path):
+    arr = _images(k=3)
+    _write_tiffs(tmp_path, arr, px=5, names=["a.tif", "b.tif", "c.tif"])
+    pos = np.array([[100.0, 0, 300], [0, 100, 300], [-100, 0, 300]])
+    csvp = tmp_path.parent / (tmp_path.name + "_posi.csv")
+    csvp.write_text("file,x_mm,y_mm,z_mm,intensity\n" + "".join(
+        f"{n},{p[0]},{p[1]},{p[2]},{e}\n" for n, p, e in zip(["b.tif", "c.tif", "a.tif"], pos[[1, 2, 0]],
+                                                             [0.9, 1.3, 1.1])))
+    cap = read_capture(tmp_path, lights=csvp)
+    np.testing.assert_allclose(cap.light_positions_mm, pos)
+    np.testing.assert_allclose(cap.light_intensities, [1.1, 0.9, 1.3])
+    csvp.write_text("file,x_mm,y_mm,z_mm,intensity\na.tif,1,0,300,1\nb.tif,0,1,300,\nc.tif,0,0,300,1\n")
+    with pytest.raises(UVPSInputError, match=r"_posi\.csv line 3: intensity '' is not a number"):
+        read_positions(csvp)
+    csvp.write_text("file,x_mm,y_mm,z_mm,intensity\na.tif,1,0,300,1\nb.tif,0,1,300,1\nc.tif,0,0,300,-2\n")
+    with pytest.raises(UVPSInputError, match=r"_posi\.csv line 4: intensity '-2' must be a finite number > 0"):
+        read_positions(csvp)
+    # uvps lights.json: the intensities it wrote are read back
+    jp = tmp_path.parent / (tmp_path.name + "_li.json")
+    jp.write_text(json.dumps({"lights": [{"file": n, "position_mm": list(p), "intensity": e}
+                                         for n, p, e in zip(["a.tif", "b.tif", "c.tif"], pos, [1.0, 0.8, 1.2])]}))
+    np.testing.assert_allclose(read_capture(tmp_path, lights=jp).light_intensities, [1.0, 0.8, 1.2])
+
+
 def test_positions_csv_and_lights_json(tmp_path):
     arr = _images(k=3)
     _write_tiffs(tmp_path, arr, px=5, names=["a.tif", "b.tif", "c.tif"])

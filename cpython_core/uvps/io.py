@@ -80,6 +80,10 @@ class Capture:
         ``(K, 3)`` light positions in mm from the image centre, from a positions file.
     bit_depth : str
         The files' dtype, e.g. ``"uint16"``.
+    light_intensities : ndarray or None
+        ``(K,)`` relative lamp intensities ``E_k`` (> 0) when the light file gives them (an ``.lp``
+        4th column, a positions CSV ``intensity`` column, ``lights.json`` ``intensity``); None when
+        it does not.
     """
 
     images: np.ndarray
@@ -90,15 +94,17 @@ class Capture:
     light_directions: Optional[np.ndarray]
     light_positions_mm: Optional[np.ndarray]
     bit_depth: str
+    light_intensities: Optional[np.ndarray] = None
 
 
 @dataclass
 class LightFile:
-    """An RTI ``.lp`` light file: one unit direction per image file."""
+    """An RTI ``.lp`` light file: one unit direction (and optionally an intensity) per image file."""
 
     path: str
     files: list
     directions: np.ndarray  # (K, 3) unit
+    intensities: Optional[np.ndarray] = None  # (K,) > 0, when the file has a 4th column
 
 
 @dataclass
@@ -109,6 +115,7 @@ class LightPositions:
     files: Optional[list]  # None when the file gives no names (then: image order)
     positions_mm: Optional[np.ndarray]  # (K, 3) mm from the image centre
     directions: Optional[np.ndarray]  # (K, 3) unit
+    intensities: Optional[np.ndarray] = None  # (K,) > 0, when the file gives them
 
 
 class TiffData(NamedTuple):
@@ -356,6 +363,23 @@ def read_tiff(path: PathLike) -> TiffData:
 # light files
 
 
+def _number(token: str) -> Optional[float]:
+    """``float(token)``, or None when the token is not a number."""
+    try:
+        return float(token)
+    except ValueError:
+        return None
+
+
+def _check_intensity(value: Optional[float], token: str, where: str) -> float:
+    """A given lamp intensity: a finite number > 0, else a one-line error naming ``where``."""
+    if value is None:
+        raise UVPSInputError(f"{where}: intensity {token!r} is not a number")
+    if not (math.isfinite(value) and value > 0):
+        raise UVPSInputError(f"{where}: intensity {token!r} must be a finite number > 0")
+    return value
+
+
 def read_lp(path: PathLike) -> LightFile:
     """Read an RTI ``.lp`` light file.
 
@@ -363,46 +387,67 @@ def read_lp(path: PathLike) -> LightFile:
     ----------
     path : path
         First line: the number of images K; then K lines ``filename x y z`` (light direction,
-        normalised here).
+        normalised here), or ``filename x y z intensity`` on every line (the lamp's relative
+        intensity ``E_k``, a number > 0). Blank lines and lines starting with ``#`` are skipped.
 
     Returns
     -------
     LightFile
+        ``intensities`` is None when the file has no 4th column: an ``.lp`` file says nothing
+        about the lamps' intensities, and uvps then takes them as equal.
     """
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"light file {path} does not exist")
-    lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()]
-    lines = [ln for ln in lines if ln and not ln.startswith("#")]
-    if not lines:
+    numbered = [(i, ln.strip()) for i, ln in
+                enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1)]
+    numbered = [(i, ln) for i, ln in numbered if ln and not ln.startswith("#")]
+    if not numbered:
         raise UVPSInputError(
             f"light file {path} is empty; expected a count then 'file x y z' lines"
         )
     try:
-        count = int(lines[0].split()[0])
+        count = int(numbered[0][1].split()[0])
     except ValueError:
         raise UVPSInputError(
-            f"light file {path}: first line must be the number of images; got {lines[0]!r}"
+            f"light file {path}: first line must be the number of images; got {numbered[0][1]!r}"
         )
-    rows = lines[1:]
+    rows = numbered[1:]
     if len(rows) != count:
         raise UVPSInputError(f"light file {path} announces {count} lights but lists {len(rows)}")
-    files, dirs = [], []
-    for i, row in enumerate(rows, start=2):
+    files, dirs, intensities = [], [], []
+    first_layout = None  # (line, 3 or 4 numbers) of the first row: every row must match it
+    for i, row in rows:
+        where = f"light file {path} line {i}"
         parts = row.split()
-        try:
-            vec = [float(t) for t in parts[-3:]]
-            name = " ".join(parts[:-3])
-            if not name or len(parts) < 4:
-                raise ValueError
-        except ValueError:
-            raise UVPSInputError(f"light file {path} line {i}: expected 'file x y z'; got {row!r}")
+        values = [_number(t) for t in parts]
+        # trailing numbers (at most 4), leaving at least one token for the file name
+        n_num = 0
+        while n_num < min(4, len(parts) - 1) and values[-1 - n_num] is not None:
+            n_num += 1
+        if n_num < 3 and len(parts) >= 5 and all(v is not None for v in values[-4:-1]):
+            _check_intensity(values[-1], parts[-1], where)  # 'file x y z junk': raises
+        if n_num < 3:
+            raise UVPSInputError(f"{where}: expected 'file x y z [intensity]'; got {row!r}")
+        if first_layout is None:
+            first_layout = (i, n_num)
+        elif n_num != first_layout[1]:
+            has = "has" if n_num == 4 else "has no"
+            other = "does not" if n_num == 4 else "does"
+            raise UVPSInputError(
+                f"{where} {has} intensity column but line {first_layout[0]} {other};"
+                " give 'file x y z' or 'file x y z intensity' on every line"
+            )
+        vec = values[len(parts) - n_num:][:3]
+        if n_num == 4:
+            intensities.append(_check_intensity(values[-1], parts[-1], where))
         norm = math.sqrt(sum(v * v for v in vec))
         if not math.isfinite(norm) or norm == 0:
-            raise UVPSInputError(f"light file {path} line {i}: direction {vec} has no length")
-        files.append(name)
+            raise UVPSInputError(f"{where}: direction {vec} has no length")
+        files.append(" ".join(parts[:len(parts) - n_num]))
         dirs.append([v / norm for v in vec])
-    return LightFile(str(path), files, np.asarray(dirs, dtype=np.float64))
+    return LightFile(str(path), files, np.asarray(dirs, dtype=np.float64),
+                     np.asarray(intensities, dtype=np.float64) if intensities else None)
 
 
 def read_positions(path: PathLike) -> LightPositions:
@@ -411,15 +456,16 @@ def read_positions(path: PathLike) -> LightPositions:
     Parameters
     ----------
     path : path
-        CSV with header ``file,x_mm,y_mm,z_mm`` (or just ``x_mm,y_mm,z_mm`` in image order), or
-        JSON as written by uvps (``lights.json``: a ``lights`` list whose entries have
-        ``position_mm`` and/or ``direction``).
+        CSV with header ``file,x_mm,y_mm,z_mm`` (or just ``x_mm,y_mm,z_mm`` in image order) and
+        optionally an ``intensity`` column (each lamp's relative intensity, a number > 0), or JSON
+        as written by uvps (``lights.json``: a ``lights`` list whose entries have ``position_mm``
+        and/or ``direction``, and ``intensity``).
 
     Returns
     -------
     LightPositions
         Positions are in the world frame (x right, y up, z toward the camera), mm from the image
-        centre; directions are normalised.
+        centre; directions are normalised; ``intensities`` is None unless every light has one.
     """
     path = Path(path)
     if not path.is_file():
@@ -446,6 +492,15 @@ def read_positions(path: PathLike) -> LightPositions:
                 f"light positions file {path}: every light needs 'position_mm' or 'direction'"
             )
         names = files if all(isinstance(f, str) and f for f in files) else None
+        intensities = None
+        if all(lt.get("intensity") is not None for lt in lights):
+            intensities = []
+            for k, lt in enumerate(lights):
+                value = lt["intensity"]
+                number = (float(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
+                          else None)
+                intensities.append(_check_intensity(number, str(value),
+                                                    f"light positions file {path} light {k + 1}"))
     else:
         with open(path, newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
@@ -460,6 +515,12 @@ def read_positions(path: PathLike) -> LightPositions:
             raise UVPSInputError(f"light positions file {path}: non-numeric x_mm/y_mm/z_mm value")
         names = [r["file"] for r in rows] if "file" in rows[0] else None
         directions = None
+        intensities = None
+        if "intensity" in rows[0]:
+            # line numbers: the header is line 1 (a CSV row spanning lines is not expected here)
+            intensities = [_check_intensity(_number(r["intensity"] or ""), r["intensity"] or "",
+                                            f"light positions file {path} line {k + 2}")
+                           for k, r in enumerate(rows)]
     for name, arr in (("position_mm", positions), ("direction", directions)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all()):
             raise UVPSInputError(
@@ -471,7 +532,9 @@ def read_positions(path: PathLike) -> LightPositions:
         if np.any(norms == 0):
             raise UVPSInputError(f"light positions file {path}: a direction has zero length")
         directions = directions / norms[:, None]
-    return LightPositions(str(path), names, positions, directions)
+    if intensities is not None:
+        intensities = np.asarray(intensities, dtype=np.float64)
+    return LightPositions(str(path), names, positions, directions, intensities)
 
 
 def _order_by_name(lightfile_path: str, names: Sequence[str], sources: list, by_name: bool):
@@ -502,7 +565,7 @@ def _order_by_name(lightfile_path: str, names: Sequence[str], sources: list, by_
 
 
 def _attach_lights(lights, sources, by_name):
-    """(light_directions, light_positions_mm) for the capture, in image order."""
+    """(light_directions, light_positions_mm, light_intensities) for the capture, in image order."""
     path = Path(lights)
     if not path.is_file():
         raise UVPSInputError(f"lights: file {path} does not exist")
@@ -521,7 +584,7 @@ def _attach_lights(lights, sources, by_name):
                     f"light file {path} names {missing[0]}, which is not among the images"
                 )
         order = _order_by_name(str(path), lp.files, sources, by_name)
-        return lp.directions[order], None
+        return lp.directions[order], None, None if lp.intensities is None else lp.intensities[order]
     if path.suffix.lower() in (".csv", ".json", ".txt"):
         lpos = read_positions(path)
         use_names = by_name and lpos.files is not None
@@ -529,7 +592,7 @@ def _attach_lights(lights, sources, by_name):
         order = _order_by_name(str(path), lpos.files if use_names else [""] * n, sources, use_names)
         pos = lpos.positions_mm[order] if lpos.positions_mm is not None else None
         dirs = lpos.directions[order] if lpos.directions is not None else None
-        return dirs, pos
+        return dirs, pos, None if lpos.intensities is None else lpos.intensities[order]
     raise UVPSInputError(
         f"lights: {path} is neither an .lp direction file nor a .csv/.json positions file"
     )
@@ -644,7 +707,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     lights : path, optional
         An RTI ``.lp`` file (directions, matched to the images by file name for a folder/list,
         by order for a stack) or a positions file (``.csv`` ``file,x_mm,y_mm,z_mm`` or uvps
-        ``lights.json``), see :func:`read_lp` and :func:`read_positions`.
+        ``lights.json``), see :func:`read_lp` and :func:`read_positions`. Either may give each
+        lamp's intensity (``.lp`` 4th column, CSV ``intensity`` column).
     mask : path or ndarray, optional
         ``(M, N)`` image; non-zero = use. An empty mask is an error.
     dark : path, optional
@@ -732,9 +796,9 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         pixel_size_um = _check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
 
     mask_arr = _read_mask(mask, shape_img[:2]) if mask is not None else None
-    directions = positions = None
+    directions = positions = intensities = None
     if lights is not None:
-        directions, positions = _attach_lights(lights, sources, by_name)
+        directions, positions, intensities = _attach_lights(lights, sources, by_name)
     report(progress, 1.0, f"read {len(sources)} images {shape_img} {dtype}")
     log.info("capture: %d images %s %s, pixel %.4g um",
              len(sources), shape_img, dtype, pixel_size_um)
@@ -747,6 +811,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         light_directions=directions,
         light_positions_mm=positions,
         bit_depth=str(dtype),
+        light_intensities=intensities,
     )
 
 
