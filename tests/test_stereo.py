@@ -134,3 +134,77 @@ def test_paraboloid_normals_and_height_near_lights():
     h = integrate_normals(res.normals, pixel_size_um=PX).height_um
     truth = z * 1000 - np.median(z * 1000)
     assert np.abs((h - h[~inside].mean()) - (truth - truth[~inside].mean())).max() < 0.05 * 80
+
+
+# Far lights (RTI .lp files)
+
+def _dome(k, el_lo=15.0, el_hi=75.0):
+    """K far-light directions spread over a dome (golden-angle azimuths, elevations lo..hi deg)."""
+    az = np.degrees(np.arange(k) * np.pi * (3 - np.sqrt(5))) % 360
+    el = np.linspace(el_lo, el_hi, k)
+    return np.stack([_pos(a, e, 1.0) for a, e in zip(az, el)])
+
+
+def _relief(shape=(120, 150)):
+    """Height (um) of a gently rolling paint surface: slopes up to about 20 deg at 15 um pixels."""
+    r, c = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    return 40 * np.sin(2 * np.pi * c / 90) * np.cos(2 * np.pi * r / 70) + 25 * np.sin(2 * np.pi * (r + c) / 60)
+
+
+def _half_dark_albedo(shape):
+    albedo = np.full(shape, 1000.0)
+    albedo[:, : shape[1] // 2] = 150.0  # a dark and a bright half: the levels differ between lamps
+    return albedo
+
+
+def _far_capture(images, directions, intensities=None):
+    from uvps.io import Capture
+
+    return Capture(images=np.asarray(images, np.float32), files=[f"i{k:02d}.tif" for k in range(len(images))],
+                   pixel_size_um=PX, mask=None, saturation=None, light_directions=np.asarray(directions, float),
+                   light_positions_mm=None, bit_depth="float32", light_intensities=intensities)
+
+
+def test_far_lights_without_intensities_are_equal_not_reestimated_from_levels():
+    """Given directions and no intensities: E_k = 1 for every lamp and the true normals.
+
+    The old path re-estimated E_k from each image's level as if the surface were flat and facing the
+    camera; on a relief under a half-dark albedo that tilts the normals. Asking for it still does.
+    """
+    from uvps.pipeline import RunOptions, estimate_capture_lights
+    from uvps.synthetic import normals_from_height, render_images
+
+    h = _relief()
+    truth = normals_from_height(h, pixel_size_um=PX)
+    dirs = _dome(12, 25, 70)
+    images = render_images(h, _half_dark_albedo(h.shape), pixel_size_um=PX, light_directions=dirs,
+                           noise=False, dtype=None)
+    cap = _far_capture(images, dirs)
+    lights = estimate_capture_lights(cap, options=RunOptions(degree=1))
+    assert lights.source == "directions" and not lights.model.near
+    np.testing.assert_array_equal(lights.model.intensities, np.ones(12))
+    e = _err(solve_normals(cap.images, lights.model, pixel_size_um=PX).normals, truth)
+    assert np.nanmean(e) < 0.02 and np.isfinite(e).all()
+    levels = estimate_capture_lights(cap, options=RunOptions(degree=1, estimate_intensities=True))
+    assert np.ptp(levels.model.intensities) > 0.02  # the flat-surface assumption misreads the relief
+    e_levels = _err(solve_normals(cap.images, levels.model, pixel_size_um=PX).normals, truth)
+    assert np.nanmean(e_levels) > 10 * np.nanmean(e)
+
+
+def test_far_lights_use_given_intensities():
+    """Intensities from the light file (median-normalised) are used as they are."""
+    from uvps.pipeline import RunOptions, estimate_capture_lights
+    from uvps.synthetic import normals_from_height, render_images
+
+    h = _relief()
+    truth = normals_from_height(h, pixel_size_um=PX)
+    dirs = _dome(12, 25, 70)
+    E = np.linspace(0.5, 2.0, 12)[np.random.default_rng(1).permutation(12)]
+    images = render_images(h, _half_dark_albedo(h.shape), pixel_size_um=PX, light_directions=dirs,
+                           intensities=E, noise=False, dtype=None)
+    given = estimate_capture_lights(_far_capture(images, dirs, E), options=RunOptions(degree=1))
+    np.testing.assert_allclose(given.model.intensities, E / np.median(E))
+    e_given = np.nanmean(_err(solve_normals(images, given.model, pixel_size_um=PX).normals, truth))
+    equal = estimate_capture_lights(_far_capture(images, dirs), options=RunOptions(degree=1))
+    e_equal = np.nanmean(_err(solve_normals(images, equal.model, pixel_size_um=PX).normals, truth))
+    assert e_given < 0.02 < 1.0 < e_equal

@@ -21,7 +21,7 @@ from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_
 log = logging.getLogger(__name__)
 
 _CAPTURE_KEYS = {"lights", "mask", "dark", "pixel_size_um", "linearize"}
-_OPTION_KEYS = {"degree", "robust", "integration", "refine_lights", "sample_pixels"}
+_OPTION_KEYS = {"degree", "robust", "integration", "refine_lights", "sample_pixels", "estimate_intensities"}
 
 
 def _unknown(params, known, warnings):
@@ -48,7 +48,7 @@ def _options(params):
     kw = {k: params[k] for k in _OPTION_KEYS if params.get(k) is not None}
     if "degree" in kw:
         kw["degree"] = _as_int(kw["degree"], "degree")
-    for key in ("robust", "refine_lights"):
+    for key in ("robust", "refine_lights", "estimate_intensities"):
         if key in kw:
             kw[key] = _as_bool(kw[key], key)
     return RunOptions(**kw)
@@ -327,6 +327,9 @@ def _capture_args(p, *, stages=True):
         p.add_argument("--robust", action="store_true", help="outlier-resistant stereo (visible light)")
         p.add_argument("--integration", choices=["fc", "dct"], default="fc", help="height integration method")
     p.add_argument("--no-refine-lights", action="store_true", help="keep the paper's equidistant lights")
+    p.add_argument("--estimate-intensities", action="store_true",
+                   help="with --lights: each lamp's intensity from the image levels (flat surface assumed); "
+                        "default: the light file's intensity column, else equal (.lp) or from the levels (positions)")
 
 
 def _parser():
@@ -399,6 +402,7 @@ def _args_to_request(a):
             if v is not None:
                 params[k] = v
         params["refine_lights"] = not a.no_refine_lights
+        params["estimate_intensities"] = a.estimate_intensities
     if c == "run":
         if a.regions:
             params["regions"] = a.regions

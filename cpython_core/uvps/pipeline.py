@@ -39,6 +39,8 @@ class RunOptions:
     integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
     refine_lights: bool = True      # per-light refinement after the equidistant solution
     sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)
+    estimate_intensities: bool = False  # known lights: intensities from the images' levels (as if the
+    #                                     surface were flat), even over the light file's own
 
     def __post_init__(self):
         if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
@@ -95,8 +97,12 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
 
     Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
-    intensity measured from the images' levels. Known directions (an RTI ``.lp`` file) give far lights.
-    Otherwise the near-light positions are estimated from the images (:func:`uvps.lights.estimate_lights`).
+    intensity from the file when it gives them, otherwise measured from the images' levels. Known
+    directions (an RTI ``.lp`` file) give far lights with the file's intensities, or equal ones when it
+    gives none: an ``.lp`` file says nothing about intensities, and levels read as if the surface were
+    flat and facing the camera are wrong on a relief. ``options.estimate_intensities`` measures them
+    from the levels for either kind, even over the file's. Otherwise the near-light positions are
+    estimated from the images (:func:`uvps.lights.estimate_lights`).
     """
     px = capture.pixel_size_um
     report(progress, 0.0, "drop-off fits")
@@ -111,12 +117,19 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         set_common(fits, grid, common_of(P))
-        E = intensities_from_levels([f.level for f in fits], P, shape, px)
-        return LightsResult(LightModel.from_positions(P, E), fits, "positions")
+        E = capture.light_intensities   # given (median 1 like an estimate), else from the levels
+        if E is None or options.estimate_intensities:
+            E = intensities_from_levels([f.level for f in fits], P, shape, px)
+        return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions")
     if capture.light_directions is not None:
-        # far lights: no drop-off model; the fits stay relative to the stack's geometric mean
-        E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=capture.light_directions)
-        return LightsResult(LightModel.from_directions(capture.light_directions, E), fits, "directions")
+        # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
+        # Intensities: given, else equal (None); from the levels only when asked.
+        D = capture.light_directions
+        E = capture.light_intensities
+        if options.estimate_intensities:
+            E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=D)
+        return LightsResult(LightModel.from_directions(D, None if E is None else E / np.median(E)), fits,
+                            "directions")
     # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
     # and at most 360000 residuals (30000 pixels x 12 lights): the refinement's Jacobian holds
     # lights x pixels x 4 lights float64 values (plus copies in the solver), so its memory grows as K^2.
