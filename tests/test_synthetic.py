@@ -17,12 +17,17 @@ from uvps.errors import UVPSInputError
 from uvps.synthetic import (
     DARK_AREA_COLOURS,
     LIGHT_AREA_COLOURS,
+    MIXED_SHAPES,
+    NUISANCE_TOP,
     PRIMER_COLOUR,
+    PROTRUSION_GEOMETRIES,
+    Nuisances,
     SyntheticSpec,
     make_capture,
     normals_from_height,
     pixel_centres_mm,
     render_images,
+    shadow_masks,
     write_capture,
 )
 
@@ -554,3 +559,368 @@ def test_fixed_exposure_irradiance_falls_as_inverse_square_of_lamp_distance():
     ratio = fixed.images[near].astype(float).mean() / fixed.images[far].astype(float).mean()
     expect = fixed.intensities[near] * sin_el[near] / (fixed.intensities[far] * sin_el[far])
     assert abs(ratio / expect - 1) < 0.03, (ratio, expect)
+
+
+# ------------------------------------------------------------------------------------------
+# Nuisances of a real capture: each on a small capture with a known answer
+# ------------------------------------------------------------------------------------------
+
+NUIS = dict(shape=(120, 160), n_lights=6, noise=False, seed=11)
+
+
+def _same_scene(a, b):
+    """Two captures of the same scene under the same lamps (a nuisance drawn elsewhere)."""
+    np.testing.assert_array_equal(a.height_um, b.height_um)
+    np.testing.assert_array_equal(a.albedo, b.albedo)
+    np.testing.assert_array_equal(a.light_positions_mm, b.light_positions_mm)
+    np.testing.assert_array_equal(a.intensities, b.intensities)
+
+
+def test_black_level_is_the_known_offset_per_channel():
+    plain = make_capture(**NUIS)
+    black = make_capture(**NUIS, black_level=(100.0, 200.0, 300.0))
+    _same_scene(plain, black)
+    assert black.exposure == plain.exposure
+    # added before quantisation (in float32): off by one count only where x.5 rounds the
+    # other way
+    off = black.images.astype(np.int64) - plain.images - np.array([100, 200, 300])
+    assert np.abs(off).max() <= 1 and np.mean(off == 0) > 0.999
+    np.testing.assert_array_equal(black.nuisances.black_level, [100.0, 200.0, 300.0])
+    assert black.nuisances.info["black_level_counts"] == [100.0, 200.0, 300.0]
+    # with noise, a zero-albedo patch reads the black level (read noise around it)
+    albedo = np.full((60, 80, 3), 0.5)
+    albedo[20:40, 30:50] = 0.0
+    img = render_images(np.zeros((60, 80)), albedo, pixel_size_um=15.0,
+                        light_positions_mm=[_light(0, 40, 300)], rng=1, read_noise=4.0,
+                        exposure=30000.0,
+                        nuisances=Nuisances(black_level=np.array([50.0, 60.0, 70.0])))
+    patch = img[0, 20:40, 30:50].reshape(-1, 3).astype(float)
+    np.testing.assert_allclose(patch.mean(axis=0), [50, 60, 70], atol=1.0)
+    assert img[0, 0, 0].astype(float) @ [1, 0, 0] == pytest.approx(0.5 * 30000 * math.sin(
+        math.radians(40)) + 50, rel=0.02)
+    grey = make_capture(**NUIS, rgb=False, black_level=64.0)
+    grey0 = make_capture(**NUIS, rgb=False)
+    off = grey.images.astype(np.int64) - grey0.images - 64
+    assert np.abs(off).max() <= 1 and np.mean(off == 0) > 0.999
+
+
+def test_stray_light_adds_the_same_smooth_field_to_every_image():
+    plain = make_capture(**NUIS)
+    stray = make_capture(**NUIS, stray_light=0.03)
+    _same_scene(plain, stray)
+    field = stray.exposure * stray.nuisances.stray_light.astype(float)        # counts
+    scale = stray.exposure / plain.exposure              # the exposure makes room for the veil
+    assert 0.9 < scale < 1.0
+    for k in range(NUIS["n_lights"]):
+        added = stray.images[k] - plain.images[k] * scale
+        np.testing.assert_allclose(added, field, atol=1.0)
+    # its mean is 3 % of the median noise-free signal, per channel
+    median = np.median(plain.images.reshape(-1, 3), axis=0) * scale
+    info = stray.nuisances.info["stray_light"]
+    np.testing.assert_allclose(info["mean_counts"], 0.03 * median, rtol=0.05)
+    np.testing.assert_allclose(field.mean(axis=(0, 1)), info["mean_counts"], rtol=1e-4)
+    # smooth: no step between neighbours above 1 % of the mean, and not flat either
+    assert np.abs(np.diff(field, axis=0)).max() < 0.01 * field.mean()
+    assert field[..., 0].max() > 1.1 * field[..., 0].min()
+
+
+def test_vignetting_divides_out_exactly_between_two_renders():
+    plain = make_capture(**NUIS)
+    vig = make_capture(**NUIS, vignetting=0.3)
+    _same_scene(plain, vig)
+    v = vig.nuisances.vignetting.astype(float)
+    scale = vig.exposure / plain.exposure
+    expected = plain.images * (v * scale)[None, ..., None]
+    assert np.abs(vig.images - expected).max() <= 1.05     # two roundings of 0.5 count, float32
+    bright = plain.images > 5000
+    np.testing.assert_allclose(vig.images[bright] / plain.images[bright],
+                               expected[bright] / plain.images[bright], rtol=3e-4)
+    # the cos^4 profile: 1 at the optical centre, 30 % down at the half-diagonal (on average
+    # over the four corners: the centre is a little off), the same in every image
+    info = vig.nuisances.info["vignetting"]
+    cr, cc = info["centre_px"]
+    assert abs(cr - 59.5) < 5 and abs(cc - 79.5) < 5 and (cr, cc) != (59.5, 79.5)
+    corners = [v[0, 0], v[0, -1], v[-1, 0], v[-1, -1]]
+    assert np.mean(corners) == pytest.approx(0.7, abs=0.01)
+    assert v.max() == pytest.approx(1.0, abs=1e-4)
+    f = info["f_px"]
+    r2 = (np.arange(120)[:, None] - cr) ** 2 + (np.arange(160)[None, :] - cc) ** 2
+    np.testing.assert_allclose(v, 1 / (1 + r2 / f ** 2) ** 2, rtol=1e-6)
+
+
+def test_beam_exponent_scales_the_irradiance_by_cos_n_of_the_angle_off_axis():
+    m, n, px = 61, 81, 100.0                     # 6 x 8 mm under a lamp 40 mm away
+    lamp = _light(30.0, 35.0, 40.0)
+    axis = -lamp / np.linalg.norm(lamp)           # aimed at the image centre
+    plain = render_images(np.zeros((m, n)), np.ones((m, n)), pixel_size_um=px,
+                          light_positions_mm=lamp[None], noise=False, dtype=None)[0]
+    beam = render_images(np.zeros((m, n)), np.ones((m, n)), pixel_size_um=px,
+                         light_positions_mm=lamp[None], noise=False, dtype=None,
+                         nuisances=Nuisances(beam_axes=axis[None], beam_exponent=20.0))[0]
+    x, y = pixel_centres_mm((m, n), px)
+    for r, c in ((30, 40), (0, 0), (60, 80), (10, 70)):
+        ray = np.array([x[0, c], y[r, 0], 0.0]) - lamp
+        cos = ray @ axis / np.linalg.norm(ray)
+        assert beam[r, c] / plain[r, c] == pytest.approx(cos ** 20, rel=1e-12)
+    assert beam[30, 40] == pytest.approx(plain[30, 40], rel=1e-12)     # on the axis
+    assert beam[0, 0] / plain[0, 0] < 0.9                               # ~7 deg off: cos^20
+
+
+def test_beams_of_a_capture_are_aimed_within_the_error_and_recorded():
+    plain = make_capture(**NUIS)
+    beams = make_capture(**NUIS, beam_exponent=30.0, beam_aim_error_deg=5.0)
+    _same_scene(plain, beams)
+    nz, info = beams.nuisances, beams.nuisances.info["beams"]
+    pos = beams.light_positions_mm
+    to_centre = -pos / np.linalg.norm(pos, axis=1, keepdims=True)
+    err = np.degrees(np.arccos(np.clip(np.sum(nz.beam_axes * to_centre, axis=1), -1, 1)))
+    np.testing.assert_allclose(err, info["aim_error_deg"], atol=1e-6)
+    assert np.all(err <= 5.0) and err.max() > 1.0
+    np.testing.assert_allclose(info["centre_factor"], np.cos(np.radians(err)) ** 30, rtol=1e-9)
+    np.testing.assert_allclose(beams.nuisances.info["lamps"]["centre_irradiance"],
+                               beams.intensities * np.cos(np.radians(err)) ** 30, rtol=1e-9)
+    aim = np.asarray(info["aim_points_mm"])
+    np.testing.assert_allclose(aim[:, 2], 0.0, atol=1e-9)              # on the canvas plane
+    # the images are the re-rendering with those axes (the renderer agrees with the truth)
+    again = render_images(beams.height_um, beams.albedo, pixel_size_um=15.0,
+                          light_positions_mm=pos, intensities=beams.intensities, noise=False,
+                          exposure=beams.exposure, nuisances=nz)
+    np.testing.assert_array_equal(again, beams.images)
+
+
+@pytest.mark.parametrize("far", [True, False])
+def test_cast_shadow_is_zero_direct_light_behind_a_tall_step(far):
+    m, n, px, tall = 20, 200, 15.0, 150.0
+    height = np.zeros((m, n))
+    height[:, 100:110] = tall                     # a 150 um wall, 150 um thick
+    lamp = _light(0.0, 20.0, 1.0 if far else 300.0)   # low, on the +x side
+    kw = dict(light_directions=lamp[None]) if far else dict(light_positions_mm=lamp[None])
+    stray = np.full((m, n), 0.01)
+    nz = Nuisances(cast_shadows=True, stray_light=stray, black_level=np.array([0.002]))
+    img = render_images(height, np.ones((m, n)), pixel_size_um=px, noise=False, dtype=None,
+                        nuisances=nz, **kw)[0]
+    # the foot of the wall on the far (-x) side is in its shadow, out to H / tan(elevation)
+    x, _ = pixel_centres_mm((m, n), px)
+    x_wall = x[0, 100] - px / 2000.0                                     # its -x face, mm
+    xs = x[0]
+    if far:
+        rise = math.tan(math.radians(20.0))
+    else:
+        rise = lamp[2] / (lamp[0] - xs)                                  # per pixel, near lamp
+    expected = (x_wall - xs) * rise < tall / 1000.0
+    expected &= xs < x_wall
+    assert 15 < expected.sum() < 30                                     # ~27 px of 15 um
+    row = nz.shadowed[0, m // 2]
+    edge = np.flatnonzero(np.diff(expected.astype(int)))
+    near_edge = np.zeros(n, bool)
+    for e in edge:
+        near_edge[max(e - 1, 0):e + 2] = True
+    np.testing.assert_array_equal(row[~near_edge & (xs < x_wall)],
+                                  expected[~near_edge & (xs < x_wall)])
+    shaded = expected & ~near_edge
+    # zero direct light there: only the additive stray light and black level remain
+    np.testing.assert_allclose(img[m // 2, shaded], 0.01 + 0.002, rtol=1e-12)
+    lit = (xs < x_wall) & ~expected & ~near_edge
+    lit &= xs < x_wall - 0.1                                             # off the wall's foot
+    assert np.all(img[m // 2, lit] > 0.3)
+    # the function alone agrees
+    np.testing.assert_array_equal(shadow_masks(height, pixel_size_um=px, **kw)[0], nz.shadowed[0])
+
+
+def test_cast_shadows_of_a_capture_black_out_the_direct_light():
+    cap = make_capture(**NUIS, cast_shadows=True, elevation_deg=(15.0, 25.0),
+                       protrusion_density_light=400.0, protrusion_density_dark=400.0)
+    shadowed = cap.nuisances.shadowed
+    assert shadowed.shape == (6, 120, 160) and 0.002 < shadowed.mean() < 0.2
+    assert np.all(cap.images[shadowed] == 0)
+    plain = make_capture(**NUIS, elevation_deg=(15.0, 25.0), protrusion_density_light=400.0,
+                         protrusion_density_dark=400.0)
+    _same_scene(plain, cap)
+    lit = ~shadowed
+    np.testing.assert_allclose(cap.images[lit] / cap.exposure, plain.images[lit] / plain.exposure,
+                               atol=1.0 / min(cap.exposure, plain.exposure))
+    np.testing.assert_allclose(cap.nuisances.info["cast_shadows"]["shadowed_fraction"],
+                               shadowed.mean(axis=(1, 2)))
+
+
+def test_protrusion_shapes_are_in_the_truth_table_with_the_asked_widths_and_heights():
+    cap = make_capture(**CLEAN, seed=2, protrusion_shapes=MIXED_SHAPES, width_um=(40.0, 500.0),
+                       height_um=(5.0, 150.0))
+    prot, px = cap.protrusions, cap.spec.pixel_size_um
+    assert set(prot["shape"]) == set(PROTRUSION_GEOMETRIES)
+    assert prot["dark"].sum() >= 2 and prot["cluster"].max() >= 2
+    assert prot["width_um"].min() >= 40 and prot["width_um"].max() <= 500
+    assert prot["height_um"].min() >= 5 * 0.4 and prot["height_um"].max() <= 150 + 1e-9
+    np.testing.assert_array_equal(prot["crater"], prot["shape"] == "crater")
+    lab, _ = _components(cap.height_um, 1e-6)
+    at = lambda i: (int(round(prot["y_px"][i])), int(round(prot["x_px"][i])))   # noqa: E731
+    # touching clusters: 2-4 members each, all in one blob of the height map
+    for cid in range(1, prot["cluster"].max() + 1):
+        members = np.flatnonzero(prot["cluster"] == cid)
+        assert 2 <= members.size <= 4
+        assert len({lab[at(i)] for i in members}) == 1 and lab[at(members[0])] > 0
+    # a lone protrusion: one blob, the asked width, its peak as recorded; a mesa is flat on top
+    rel_w = []
+    n_mesa = 0
+    for i in np.flatnonzero(prot["cluster"] == 0):
+        comp = lab == lab[at(i)]
+        width = 2 * math.sqrt(comp.sum() / math.pi) * px
+        peak = cap.height_um[comp].max()
+        assert peak <= prot["height_um"][i] * 1.001 + 1e-4
+        if prot["width_um"][i] >= 100:
+            rel_w.append(width / prot["width_um"][i] - 1)
+            assert peak >= 0.85 * prot["height_um"][i]
+            if prot["shape"][i] == "mesa":
+                assert np.mean(cap.height_um[comp] > 0.99 * peak) > 0.12
+                n_mesa += 1
+            if prot["shape"][i] == "crater":
+                assert cap.height_um[at(i)] < 0.95 * prot["height_um"][i]
+        if prot["dark"][i]:
+            r, c = at(i)
+            rad = prot["width_um"][i] / 2 / px
+            rows, cols = np.mgrid[0:400, 0:400]
+            ring = (np.hypot(rows - r, cols - c) > 1.3 * rad + 1) & (np.hypot(rows - r, cols - c)
+                                                                  < 1.3 * rad + 3)
+            ring &= cap.height_um < 1e-6
+            if np.unique(cap.regions[ring]).size == 1:
+                assert np.all(cap.albedo[r, c] <= 1.05 * np.median(cap.albedo[ring], axis=0))
+    assert n_mesa >= 1 and len(rel_w) > 10 and np.abs(rel_w).max() < 0.1
+
+
+def test_default_protrusion_table_says_dome_or_crater_alone():
+    prot = make_capture(**CLEAN).protrusions
+    np.testing.assert_array_equal(prot["shape"], np.where(prot["crater"], "crater", "dome"))
+    assert not prot["cluster"].any() and not prot["dark"].any()
+
+
+def test_cupping_raises_island_edges_and_grooves_the_cracks():
+    flat = dict(shape=(200, 260), n_lights=3, noise=False, weave_amplitude_um=0.0, bow_um=0.0,
+                n_ridges=0, n_primer_spots=0, protrusion_density_light=0.0,
+                protrusion_density_dark=0.0)
+    cap = make_capture(**flat, cupping_um=30.0, crack_cell_mm=(1.0, 2.0))
+    h, cracks = cap.height_um, cap.nuisances.cracks
+    assert 0.01 < cracks.mean() < 0.2 and cap.nuisances.info["cupping"]["n_islands"] >= 4
+    # the level of the flat paint: the middle of the islands (the dish is ~0 there)
+    dist = ndimage.distance_transform_edt(~cracks)
+    middle = np.median(h[dist > 0.6 * dist.max()])
+    # every crack comes down to a common groove bottom cupping / 2 below the paint
+    assert h[cracks].min() == pytest.approx(middle - 15.0, abs=2.0)
+    assert np.median(h[cracks]) < middle
+    assert h.max() <= middle + 30.0 + 1.0
+    # an island is a dish: higher beside its cracks than in its middle
+    rim = h[(dist > 3) & (dist < 6)].mean()
+    assert rim > middle + 5.0
+    # protrusions erupt between the cracks
+    busy = make_capture(**{**flat, "protrusion_density_light": 300.0,
+                           "protrusion_density_dark": 300.0}, cupping_um=30.0)
+    np.testing.assert_array_equal(busy.nuisances.cracks, make_capture(
+        **flat, cupping_um=30.0).nuisances.cracks)
+    for r, c in zip(busy.protrusions["y_px"], busy.protrusions["x_px"]):
+        assert not busy.nuisances.cracks[int(round(r)), int(round(c))]
+
+
+def test_azimuth_jitter_moves_only_the_azimuths():
+    def azimuths(cap):
+        return np.degrees(np.arctan2(cap.light_positions_mm[:, 1], cap.light_positions_mm[:, 0]))
+
+    base = make_capture(**NUIS)
+    even = make_capture(**NUIS, azimuth_jitter=0.0)
+    uneven = make_capture(**NUIS, azimuth_jitter=0.45)
+    np.testing.assert_allclose(np.diff(np.unwrap(np.radians(azimuths(even)))), 2 * np.pi / 6,
+                               rtol=1e-12)
+    for cap in (even, uneven):      # same elevations and distances: the same draws
+        np.testing.assert_allclose(np.linalg.norm(cap.light_positions_mm, axis=1),
+                                   np.linalg.norm(base.light_positions_mm, axis=1), rtol=1e-12)
+        np.testing.assert_allclose(cap.light_positions_mm[:, 2], base.light_positions_mm[:, 2],
+                                   rtol=1e-12)
+    off_base = (azimuths(base) - azimuths(even) + 180) % 360 - 180
+    off_uneven = (azimuths(uneven) - azimuths(even) + 180) % 360 - 180
+    np.testing.assert_allclose(off_uneven, off_base * 0.45 / 0.25, rtol=1e-9)
+    assert np.abs(off_uneven).max() <= 0.45 * 60 and np.abs(off_uneven).max() > 0.25 * 60
+
+
+def test_weave_of_two_scales_and_wide_strokes():
+    flat = dict(shape=(256, 256), n_lights=3, noise=False, bow_um=0.0, n_ridges=0,
+                n_primer_spots=0, protrusion_density_light=0.0, protrusion_density_dark=0.0)
+    one = make_capture(**flat, weave_period_um=250.0, weave_amplitude_um=2.0)
+    two = make_capture(**flat, weave_period_um=(250.0, 800.0), weave_amplitude_um=(2.0, 5.0))
+    coarse = two.height_um.astype(float) - one.height_um
+    coarse -= coarse.mean()
+    assert np.ptp(coarse) / 2 == pytest.approx(5.0, rel=0.05)
+    spec = np.abs(np.fft.fft2(coarse))
+    fr = np.fft.fftfreq(256, d=15.0)
+    i, j = np.unravel_index(np.argmax(spec), spec.shape)
+    assert 1 / math.hypot(fr[i], fr[j]) == pytest.approx(800.0 / math.sqrt(2), rel=0.12)
+    # the first scale is the historical weave
+    np.testing.assert_array_equal(one.height_um, make_capture(
+        **flat, weave_period_um=(250.0,), weave_amplitude_um=2.0).height_um)
+    wide = make_capture(**{**flat, "n_ridges": 3}, weave_amplitude_um=0.0,
+                        ridge_width_um=(600.0, 800.0), ridge_height_um=(30.0, 40.0))
+    assert 30.0 <= np.ptp(wide.height_um) <= 40.0 + 1e-3
+    lab, count = _components(wide.height_um - wide.height_um.min(), 2.0)
+    thick = max(2 * ndimage.distance_transform_edt(np.pad(lab == k, 1)).max()
+                for k in range(1, count + 1)) * 15.0
+    assert 450.0 < thick <= 820.0
+
+
+def test_realistic_spec_and_nuisance_top():
+    spec = SyntheticSpec.realistic()
+    for values in NUISANCE_TOP.values():
+        for key, val in values.items():
+            assert getattr(spec, key) == val
+    one = SyntheticSpec.realistic(only=["vignetting"], shape=(40, 50))
+    assert one.vignetting == 0.4 and one.black_level == 0.0 and one.shape == (40, 50)
+    typical = SyntheticSpec.realistic("typical")
+    assert 0 < typical.stray_light < spec.stray_light
+    with pytest.raises(UVPSInputError, match="unknown nuisance"):
+        SyntheticSpec.realistic(only=["glare"])
+    with pytest.raises(UVPSInputError, match="level"):
+        SyntheticSpec.realistic("bottom")
+    # one nuisance alone leaves the scene and lamps as they were
+    _same_scene(make_capture(**NUIS), make_capture(**NUIS, **NUISANCE_TOP["black_level"]))
+
+
+def test_every_nuisance_at_once_renders_the_truth_and_writes_it(tmp_path):
+    cap = make_capture(SyntheticSpec.realistic(shape=(90, 120), n_lights=4, noise=False, seed=5))
+    again = render_images(cap.height_um, cap.albedo, pixel_size_um=15.0,
+                          light_positions_mm=cap.light_positions_mm, intensities=cap.intensities,
+                          noise=False, exposure=cap.exposure, nuisances=cap.nuisances)
+    np.testing.assert_array_equal(again, cap.images)
+    paths = write_capture(cap, tmp_path / "cap")
+    truth = tmp_path / "cap" / "truth"
+    names = {p.name for p in paths}
+    assert {"vignetting.tif", "stray_light_counts.tif", "shadows.tif", "cracks.tif"} <= names
+    meta = json.loads((truth / "truth.json").read_text())
+    nz = meta["nuisances"]
+    assert nz["black_level_counts"] == [500.0] * 3
+    assert nz["vignetting"]["corner_falloff"] == 0.4 and nz["beams"]["exponent"] == 30.0
+    np.testing.assert_allclose(nz["beams"]["axes"], cap.nuisances.beam_axes)
+    np.testing.assert_allclose(nz["lamps"]["positions_mm"], cap.light_positions_mm)
+    np.testing.assert_allclose(nz["lamps"]["intensities"], cap.intensities)
+    np.testing.assert_allclose(tifffile.imread(truth / "stray_light_counts.tif").mean(axis=(1, 2)),
+                               nz["stray_light"]["mean_counts"], rtol=1e-5)
+    np.testing.assert_array_equal(tifffile.imread(truth / "shadows.tif").astype(bool),
+                                  cap.nuisances.shadowed)
+    np.testing.assert_allclose(tifffile.imread(truth / "vignetting.tif"), cap.nuisances.vignetting)
+    assert meta["spec"]["protrusion_shapes"] == MIXED_SHAPES
+    with open(truth / "protrusions.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == cap.protrusions["id"].size
+    if rows:
+        assert {"shape", "cluster", "dark"} <= set(rows[0])
+        assert [r["shape"] for r in rows] == list(cap.protrusions["shape"])
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(black_level=(1.0, 2.0)), "black_level"),
+    (dict(black_level=-3.0), "black_level"),
+    (dict(vignetting=0.99), "vignetting"),
+    (dict(stray_light=-0.1), "stray_light"),
+    (dict(beam_aim_error_deg=60.0), "beam_aim_error_deg"),
+    (dict(protrusion_shapes={"blob": 1.0}), "protrusion_shapes"),
+    (dict(weave_period_um=(250.0, 800.0), weave_amplitude_um=(1.0, 2.0, 3.0)), "weave"),
+    (dict(height_um=(50.0, 5.0)), "height_um"),
+])
+def test_bad_nuisance_is_refused(overrides, match):
+    with pytest.raises(UVPSInputError, match=match):
+        make_capture(shape=(40, 50), n_lights=3, **overrides)
