@@ -136,7 +136,7 @@ def test_paraboloid_normals_and_height_near_lights():
     assert np.abs((h - h[~inside].mean()) - (truth - truth[~inside].mean())).max() < 0.05 * 80
 
 
-# Far lights (RTI .lp files)
+# Far lights (RTI .lp files) and the rank-trimmed robust option
 
 def _dome(k, el_lo=15.0, el_hi=75.0):
     """K far-light directions spread over a dome (golden-angle azimuths, elevations lo..hi deg)."""
@@ -208,3 +208,104 @@ def test_far_lights_use_given_intensities():
     equal = estimate_capture_lights(_far_capture(images, dirs), options=RunOptions(degree=1))
     e_equal = np.nanmean(_err(solve_normals(images, equal.model, pixel_size_um=PX).normals, truth))
     assert e_given < 0.02 < 1.0 < e_equal
+
+
+def _wall_shadows(h, dirs, *, wall_um, gap_um):
+    """Cast shadows of a step (a frame edge) ``wall_um`` high, ``gap_um`` beyond the right and top
+    edges of the field.
+
+    A point (x, y, z) is shadowed from far light l when the ray toward l meets the plane of the step
+    below its top.
+    """
+    M_, N_ = h.shape
+    r, c = np.mgrid[0:M_, 0:N_]
+    to_right = (N_ - c) * PX + gap_um     # um to the right step
+    to_top = (r + 1) * PX + gap_um        # um to the top step (y up = toward row -1)
+    out = np.zeros((len(dirs),) + h.shape, bool)
+    for k, (lx, ly, lz) in enumerate(dirs):
+        for dist, along in ((to_right, lx), (to_top, ly)):
+            if along > 0:
+                out[k] |= h + dist / along * lz < wall_um
+    return out
+
+
+def _trim_gain(images, dirs, truth):
+    model = LightModel.from_directions(dirs)
+    plain = np.nanmean(_err(solve_normals(images, model, pixel_size_um=PX).normals, truth))
+    trimmed = np.nanmean(_err(solve_normals(images, model, pixel_size_um=PX, robust=True).normals, truth))
+    return plain, trimmed
+
+
+def test_rank_trimmed_robust_beats_least_squares_under_cast_shadows():
+    """16 % of the samples in cast shadow (lit by ambient light only, 10-20 % per pixel): trimming the
+    darkest 25 % per pixel gives normals at least 25 % better than plain least squares (measured:
+    0.004 deg against 6.5 deg)."""
+    from uvps.synthetic import normals_from_height, render_images
+
+    h = _relief()
+    truth = normals_from_height(h, pixel_size_um=PX)
+    dirs = _dome(40)
+    albedo = _half_dark_albedo(h.shape)
+    images = render_images(h, albedo, pixel_size_um=PX, light_directions=dirs, noise=False, dtype=None)
+    shadow = _wall_shadows(h, dirs, wall_um=2500.0, gap_um=3000.0)
+    assert shadow.mean() >= 0.10
+    images = np.where(shadow, 0.05 * albedo[None], images)  # ambient: above the dark-sample cut
+    plain, trimmed = _trim_gain(images, dirs, truth)
+    assert trimmed < 0.75 * plain and trimmed < 0.02
+
+
+def test_rank_trimmed_robust_beats_least_squares_on_highlights():
+    """A narrow Blinn-Phong lobe on every sample (14 % of them over a tenth of the diffuse level):
+    trimming the brightest 10 % per pixel is at least 25 % better than plain least squares (measured:
+    2.0 deg against 7.9 deg)."""
+    from uvps.synthetic import normals_from_height, render_images
+
+    h = _relief()
+    truth = normals_from_height(h, pixel_size_um=PX).astype(float)
+    dirs = _dome(40)
+    albedo = _half_dark_albedo(h.shape)
+    diffuse = render_images(h, albedo, pixel_size_um=PX, light_directions=dirs, noise=False, dtype=None)
+    half = dirs + np.array([0.0, 0.0, 1.0])          # Blinn-Phong half vector, camera along +z
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    spec = 1000.0 * np.clip(np.einsum("ki,mni->kmn", half, truth), 0, 1) ** 150
+    spec *= diffuse > 0                               # no highlight in attached shadow
+    assert (spec > 0.1 * diffuse).mean() >= 0.10
+    plain, trimmed = _trim_gain(diffuse + spec, dirs, truth)
+    assert trimmed < 0.75 * plain
+
+
+def test_rank_trimmed_robust_is_exact_on_clean_data_and_band_independent():
+    from uvps.synthetic import normals_from_height, render_images
+
+    h = _relief()
+    truth = normals_from_height(h, pixel_size_um=PX)
+    dirs = _dome(24, 25, 75)
+    images = render_images(h, _half_dark_albedo(h.shape), pixel_size_um=PX, light_directions=dirs,
+                           noise=False, dtype=None).astype(np.float32)
+    model = LightModel.from_directions(dirs)
+    plain = solve_normals(images, model, pixel_size_um=PX)
+    a = solve_normals(images, model, pixel_size_um=PX, robust=True)
+    b = solve_normals(images, model, pixel_size_um=PX, robust=True, chunk_pixels=1111)
+    assert np.nanmean(_err(plain.normals, truth)) < 0.02
+    assert np.nanmean(_err(a.normals, truth)) < 0.02
+    np.testing.assert_allclose(a.normals, b.normals, atol=1e-6)
+    # 25th-90th percentile of 24 samples: ranks 6..21, 16 lights per pixel (more on exact ties)
+    assert np.median(a.n_used) == 16 and plain.n_used.max() == 24
+
+
+@pytest.mark.parametrize("trim", [(0.5, 0.5), (-0.1, 0.9), (0.25, 1.2), (0.9, 0.25)])
+def test_trim_must_be_increasing_fractions(trim):
+    from uvps.errors import UVPSInputError
+
+    images = np.ones((4, 5, 6), np.float32)
+    with pytest.raises(UVPSInputError, match="trim"):
+        solve_normals(images, LightModel.from_directions(_dome(4)), pixel_size_um=PX, robust=True, trim=trim)
+
+
+def test_rank_trimming_keeps_at_least_three_samples():
+    n, X, inside = _sphere()
+    far = LightModel.from_directions(_dome(4, 50, 70))
+    images = _render(n, X, far, np.full((M, N), 100.0)).astype(np.float32)
+    res = solve_normals(images, far, pixel_size_um=PX, robust=True)
+    assert res.n_used[~inside].min() == 3
+    assert np.nanmax(_err(res.normals, n)[~inside]) < 0.05

@@ -324,7 +324,9 @@ def _capture_args(p, *, stages=True):
                    help="sRGB -> linear (auto: JPEG only)")
     p.add_argument("--degree", type=int, default=4, help="Legendre degree of the drop-off fit (4)")
     if stages:
-        p.add_argument("--robust", action="store_true", help="outlier-resistant stereo (visible light)")
+        p.add_argument("--robust", action="store_true",
+                       help="rank-trimmed stereo: per pixel, leave out the darkest 25 %% and brightest 10 %% of "
+                            "samples (cast shadows, highlights; many lights)")
         p.add_argument("--integration", choices=["fc", "dct"], default="fc", help="height integration method")
     p.add_argument("--no-refine-lights", action="store_true", help="keep the paper's equidistant lights")
     p.add_argument("--estimate-intensities", action="store_true",

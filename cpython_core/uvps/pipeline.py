@@ -35,7 +35,7 @@ class RunOptions:
     """Options of the photometric-stereo stages (everything else is read from the capture)."""
 
     degree: int = 4                 # Legendre degree of the drop-off fit
-    robust: bool = False            # IRLS photometric stereo (visible light, highlights)
+    robust: bool = False            # rank-trimmed stereo: per pixel, drop the darkest 25 % and brightest 10 %
     integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
     refine_lights: bool = True      # per-light refinement after the equidistant solution
     sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)

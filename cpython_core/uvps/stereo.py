@@ -7,10 +7,12 @@ Lambertian model (paper Eq. 1; Woodham 1978), near point lights (Huang et al. 20
 For each pixel, ``b = albedo * n`` solves the weighted normal equations ``(sum w V V^T) b = sum w V I``
 on the grey (channel-mean) intensities; ``n = b / |b|``. The RGB albedo (the fluorescence colour) is
 then fitted per channel with the normal fixed. Shadowed (attached shadow or too dark) and saturated
-samples are left out per pixel; a pixel with fewer than three usable lights is NaN and counted.
-``robust=True`` adds iteratively reweighted least squares (Tukey biweight on the relative residual),
-for visible-light captures with highlights. Work proceeds in bands of rows so that memory stays
-proportional to one band, never to lights x pixels x channels in float64.
+samples are always left out per pixel; a pixel with fewer than three usable lights is NaN and counted.
+``robust=True`` is rank-trimmed least squares: each pixel keeps only its samples ranked between the
+25th and 90th percentile of its brightness (relative to each light's irradiance there), so cast
+shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
+normal; for captures with many lights (RTI domes, visible light). Work proceeds in bands of rows so
+that memory stays proportional to one band, never to lights x pixels x channels in float64.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import UVPSInputError
 from .lights import LightModel, pixel_coordinates_mm
 from .outputs import Progress, report
 
@@ -48,9 +51,28 @@ def _solve3(A, y):
     return out
 
 
+def _rank_range(K, trim):
+    """Ranks ``lo .. hi - 1`` (0 = darkest of K samples) that the trimmed solve keeps, at least 3."""
+    lo_q, hi_q = (float(t) for t in trim)
+    if not 0.0 <= lo_q < hi_q <= 1.0:
+        raise UVPSInputError(f"trim must be two fractions 0 <= low < high <= 1; got {tuple(trim)!r}")
+    lo, hi = int(np.floor(lo_q * K)), int(np.ceil(hi_q * K))
+    hi = min(K, max(hi, lo + 3))
+    return max(0, min(lo, hi - 3)), hi
+
+
+def _within_ranks(values, lo, hi):
+    """True where a sample's rank along axis 0 is in ``lo .. hi - 1`` (ties at the ends are kept).
+
+    ``np.partition`` finds the two order statistics per pixel in O(K) without a (K, P) index array.
+    """
+    part = np.partition(values, (lo, hi - 1), axis=0)
+    return (values >= part[lo]) & (values <= part[hi - 1])
+
+
 def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, saturation=None,
-                  robust=False, shadow_cos=0.05, dark_fraction=0.02, chunk_pixels=250_000,
-                  progress: Progress = None) -> StereoResult:
+                  robust=False, trim=(0.25, 0.90), shadow_cos=0.05, dark_fraction=0.02,
+                  chunk_pixels=250_000, progress: Progress = None) -> StereoResult:
     """Least-squares normals and albedo from a stack of images and their lights.
 
     Parameters
@@ -66,7 +88,13 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     saturation : float, optional
         Samples at or above this value (any channel) are left out.
     robust : bool
-        Tukey-biweight IRLS on the relative residual (three reweightings).
+        Rank-trimmed least squares: per pixel, keep only the samples ranked within ``trim`` of
+        that pixel's brightness (at least 3), then solve as usual.
+    trim : (float, float)
+        With ``robust``: the lowest and highest brightness rank kept, as fractions of the number
+        of images K (default the 25th and 90th percentile: K = 12 keeps ranks 3..10 of 0..11).
+        Brightness is the grey sample over the light's irradiance at the pixel (``|v_k(x)|``), so
+        a dim lamp is not taken for a shadow.
     shadow_cos : float
         Samples whose predicted ``n . l`` (unit vectors) is below this are treated as attached shadow.
     dark_fraction : float
@@ -78,12 +106,21 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     -------
     StereoResult
 
+    Notes
+    -----
+    Shadowed samples (darker than ``dark_fraction`` of the pixel's brightest, or whose predicted
+    ``n . l`` is below ``shadow_cos``: the attached-shadow test, after a first solve) and saturated
+    samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
+    3x3 solves per pixel, plus one ``np.partition`` along K per band with ``robust``.
+
     References
     ----------
     Woodham (1978); Salvant et al., Eq. 1 and Sec. "Calculating surface normal, depth, and albedo maps";
     Huang, Walton, Bearman, Cossairt (2015), near-light correction.
     """
     K, M, N = images.shape[:3]
+    if robust:
+        lo, hi = _rank_range(K, trim)
     C = images.shape[3] if images.ndim == 4 else 0
     normals = np.full((M, N, 3), np.nan, np.float32)
     albedo = np.full((M, N, C) if C else (M, N), np.nan, np.float32)
@@ -102,9 +139,12 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
         if saturation is not None:
             w &= ~((band >= saturation).any(axis=-1) if C else band >= saturation)
         w &= use[None]
+        vn = np.linalg.norm(V, axis=2)    # (K, P): each light's irradiance at each pixel
+        if robust:
+            w &= _within_ranks(grey / vn, lo, hi)
         w = w.astype(np.float32)
         b = None
-        for it in range(2 + (3 if robust else 0)):
+        for it in range(2):
             A = np.einsum("kp,kpi,kpj->pij", w, V, V, dtype=np.float64)
             y = np.einsum("kp,kpi,kp->pi", w, V, grey, dtype=np.float64)
             b = _solve3(A, y)
@@ -112,14 +152,8 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
             nb = np.linalg.norm(b, axis=1)
             if it == 0:
                 # attached shadow: where the light grazes or is behind the surface the sample is 0
-                vn = np.linalg.norm(V, axis=2)
                 cosv = pred / np.maximum(vn * nb[None], 1e-30)
                 w *= (cosv > shadow_cos)
-            elif robust:
-                res = (grey - pred) / np.maximum(np.abs(pred), 1e-6)
-                s = 1.4826 * np.nanmedian(np.abs(res[w > 0])) + 1e-6
-                u = res / (4.685 * s)
-                w = np.where(np.abs(u) < 1, (1 - u ** 2) ** 2, 0.0).astype(np.float32) * (w > 0)
         cnt = (w > 0).sum(axis=0)
         bad = (cnt < 3) | ~np.isfinite(b).all(axis=1)
         n_invalid += int((bad & use).sum())

@@ -27,7 +27,7 @@ def main():
     dialogs.add_capture_fields(dlg)
     dialogs.add_run_field(dlg)
     dialogs.add_light_fields(dlg)
-    dlg.checkbox("Robust (drop shadowed and saturated samples)", False)
+    dlg.checkbox("Robust (per pixel, leave out the darkest 25 % and brightest 10 %)", False)
     values = dlg.show()
     if values is not None:
         menus.normals_and_albedo(values)

@@ -27,7 +27,7 @@ def main():
     dialogs.add_capture_fields(dlg)
     dialogs.add_run_field(dlg)
     dialogs.add_light_fields(dlg)
-    dlg.checkbox("Robust (drop shadowed and saturated samples)", False)
+    dlg.checkbox("Robust (per pixel, leave out the darkest 25 % and brightest 10 %)", False)
     dlg.choice("Integration method", menus.INTEGRATION_CHOICES, menus.INTEGRATION_CHOICES[0])
     dlg.string("Regions (label TIFF, auto, or empty)", "")
     dlg.checkbox("Detect protrusions", False)
