@@ -229,3 +229,44 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
     assert r.returncode == 1 and "bins" in r.stderr.lower()
     r = uvps("wand", clicks, "-o", out, "--tolerance", "-1")
     assert r.returncode == 1 and "tolerance" in r.stderr
+
+
+def test_lp_intensity_column_is_used_and_equal_intensities_otherwise(tmp_path):
+    """Far lights from an .lp file: its 4th column gives the intensities; without it they are equal
+    (not re-estimated from the levels) unless --estimate-intensities asks for that."""
+    from uvps.synthetic import normals_from_height, render_images
+
+    r, c = np.mgrid[0:120, 0:160].astype(float)
+    h = 40 * np.sin(2 * np.pi * c / 80) * np.cos(2 * np.pi * r / 60)
+    albedo = np.where(c < 80, 150.0, 1000.0)               # a dark and a bright half
+    el = np.radians(np.linspace(30, 70, 8))
+    az = np.radians(np.arange(8) * 137.5)
+    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    E = np.array([0.6, 1.4, 0.9, 1.1, 2.0, 0.7, 1.0, 1.2])
+    images = render_images(h, albedo, pixel_size_um=PX, light_directions=dirs, intensities=E,
+                           noise=False, dtype=None).astype(np.float32)
+    names = [f"l{k}.tif" for k in range(8)]
+    for name, img in zip(names, images):
+        tifffile.imwrite(tmp_path / name, img)
+    files = [tmp_path / n for n in names]
+    lp4, lp3 = tmp_path / "with_e.lp", tmp_path / "plain.lp"
+    lp4.write_text("8\n" + "".join(f"{n} {d[0]} {d[1]} {d[2]} {e}\n" for n, d, e in zip(names, dirs, E)))
+    lp3.write_text("8\n" + "".join(f"{n} {d[0]} {d[1]} {d[2]}\n" for n, d in zip(names, dirs)))
+    truth = normals_from_height(h, pixel_size_um=PX)
+
+    def run(lp, *extra):
+        out = tmp_path / f"run_{lp.stem}{'_est' if extra else ''}"
+        res = uvps("normals", *files, "-o", out, "--lights", lp, "--pixel-size-um", PX, "--degree", "1", *extra)
+        assert res.returncode == 0, res.stderr
+        E_run = np.array([l["intensity"] for l in json.loads((out / "lights.json").read_text())["lights"]])
+        err = _angle(np.moveaxis(tifffile.imread(out / "normals.tif"), 0, -1), truth)
+        return E_run, np.nanmean(err)
+
+    E_given, err_given = run(lp4)
+    np.testing.assert_allclose(E_given, E / np.median(E), rtol=1e-5)
+    assert err_given < 0.5, err_given                     # 0.005 deg measured
+    E_equal, err_equal = run(lp3)
+    np.testing.assert_array_equal(E_equal, 1.0)
+    assert err_equal > 1.0, err_equal                     # these lamps are not equal: 24 deg
+    E_levels, _ = run(lp3, "--estimate-intensities")
+    assert np.ptp(E_levels) > 0.1
