@@ -1,0 +1,128 @@
+"""The additive term of a capture (black level, stray light): measured from the images, given, removed."""
+import json
+
+import numpy as np
+import pytest
+
+from uvps.errors import UVPSInputError
+from uvps.io import Capture
+from uvps.offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
+from uvps.pipeline import RunOptions, remove_additive
+from uvps.synthetic import make_capture
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A 600 x 800 RGB capture (9 x 12 mm), 8 lamps, no offset, and the same with a black level per
+    channel. (The cue needs several colour areas: on 300 x 400 px the error is ~3x larger.)"""
+    clean = make_capture(shape=(600, 800), n_lights=8, seed=5)
+    black = make_capture(shape=(600, 800), n_lights=8, seed=5, black_level=(300.0, 200.0, 120.0))
+    return clean, black
+
+
+def _capture(images):
+    K = images.shape[0]
+    return Capture(images=images, files=[f"u{k}.tif" for k in range(K)], pixel_size_um=15.0, mask=None,
+                   saturation=65535.0, light_directions=None, light_positions_mm=None, bit_depth="uint16")
+
+
+def test_black_level_is_measured_per_channel_within_its_standard_error(small):
+    _, black = small
+    term = estimate_additive(black.images, saturation=65535)
+    truth = np.array([300.0, 200.0, 120.0])
+    err = term.mean - truth
+    # within 4 standard errors per channel, and the grey level (what the lights see) within 0.1 % of
+    # the median signal
+    assert np.all(np.abs(err) <= 4 * term.stderr + 1.0), (term.mean, term.stderr)
+    assert abs(err.mean()) < 0.001 * term.median_signal, (term.mean, term.median_signal)
+    assert term.source == "estimated" and term.stderr.shape == (3,)
+
+
+def test_no_black_level_measures_zero(small):
+    clean, _ = small
+    term = estimate_additive(clean.images, saturation=65535)
+    assert np.all(np.abs(term.mean) <= 4 * term.stderr + 1.0), (term.mean, term.stderr)
+    assert abs(term.mean.mean()) < 0.001 * term.median_signal
+
+
+def test_the_measure_is_shift_equivariant(small):
+    """Adding 100 counts to every image adds 100 to the measured term (the cue sees only the data)."""
+    clean, _ = small
+    a = estimate_additive(clean.images, saturation=65535)
+    b = estimate_additive(clean.images.astype(np.float32) + 100.0, saturation=None)
+    assert np.allclose(b.mean - a.mean, 100.0, atol=max(2.0, 2 * float(a.stderr.max())))
+
+
+def test_stray_light_is_measured_as_its_mean():
+    """Stray light (3 % of the signal, smooth, the same in every image) is measured as a constant: its
+    mean over the field, within 20 %."""
+    cap = make_capture(shape=(600, 800), n_lights=8, seed=5, stray_light=0.03)
+    true_mean = np.asarray(cap.nuisances.info["stray_light"]["mean_counts"])
+    term = estimate_additive(cap.images, saturation=65535)
+    assert np.all(np.abs(term.mean - true_mean) < 0.2 * true_mean + 3 * term.stderr), (term.mean, true_mean)
+
+
+def test_offset_images_subtract_on_access_without_copying():
+    rng = np.random.default_rng(0)
+    im = rng.integers(100, 200, (4, 40, 50, 3)).astype(np.uint16)
+    co = np.zeros((3, 2, 2))
+    co[:, 0, 0] = [10, 20, 30]
+    co[:, 0, 1] = 5
+    co[:, 1, 1] = 3
+    term = AdditiveTerm(co, "estimated", (40, 50))
+    view = OffsetImages(im, term)
+    rr, cc = np.mgrid[0:40, 0:50]
+    full = im - term.evaluate(rr, cc)[None]
+    r, c = np.array([1, 5, 7]), np.array([3, 4, 40])
+    assert np.allclose(view[:], full, atol=1e-3)
+    assert np.allclose(view[2], full[2], atol=1e-3)
+    assert np.allclose(view[1, 3:7, 2:9], full[1, 3:7, 2:9], atol=1e-3)
+    assert np.allclose(view[1, 3, 2:9], full[1, 3, 2:9], atol=1e-3)
+    assert np.allclose(view[:, r, c], full[:, r, c], atol=1e-3)
+    assert np.allclose(np.stack(list(view)), full, atol=1e-3)
+    assert view.base is im and im.dtype == np.uint16          # the stack is untouched
+    grey = OffsetImages(im.mean(axis=-1), term)
+    assert np.allclose(grey[:, r, c], im.mean(axis=-1)[:, r, c] - term.evaluate(r, c).mean(axis=-1), atol=1e-3)
+
+
+def test_known_black_level_is_validated():
+    t = known_additive([10, 20, 30], shape=(5, 5), channels=3)
+    assert np.allclose(t.mean, [10, 20, 30]) and t.source == "black level"
+    assert np.allclose(known_additive(7, shape=(5, 5), channels=3).mean, 7)
+    with pytest.raises(UVPSInputError, match="black_level"):
+        known_additive([1, 2], shape=(5, 5), channels=3)
+    with pytest.raises(UVPSInputError, match="black_level"):
+        known_additive(-3, shape=(5, 5), channels=1)
+
+
+def test_remove_additive_uses_a_given_black_level_and_records_it(small):
+    _, black = small
+    cap, term, warnings = remove_additive(_capture(black.images), options=RunOptions(black_level=[300, 200, 120]))
+    assert term.source == "black level" and warnings == []
+    assert isinstance(cap.images, OffsetImages)
+    raw = black.images[0, 10, 10].astype(float)
+    assert np.allclose(cap.images[0, 10, 10], raw - [300, 200, 120])
+    assert json.dumps(term.to_json())                            # run.json-ready
+
+
+def test_dark_frame_or_none_removes_nothing_more(small):
+    _, black = small
+    for kw, src in ((dict(dark_given=True), "dark frame"), (dict(), "none")):
+        opts = RunOptions() if kw else RunOptions(offset="none")
+        cap, term, _ = remove_additive(_capture(black.images), options=opts, **kw)
+        assert term.source == src and term.is_zero and cap.images is black.images
+
+
+def test_mostly_pedestal_is_a_one_line_error(small):
+    clean, _ = small
+    with pytest.raises(UVPSInputError, match="mostly pedestal") as e:
+        remove_additive(_capture(clean.images), options=RunOptions(black_level=float(np.median(clean.images))))
+    assert "\n" not in str(e.value)
+
+
+def test_tiny_images_use_smaller_blocks():
+    """A 60 x 80 image has too few 16 px blocks; smaller ones are used and the error is reported."""
+    cap = make_capture(shape=(60, 80), n_lights=6, seed=1, black_level=200.0)
+    term = estimate_additive(cap.images, saturation=65535)
+    assert term.diagnostics["block_px"] < 16
+    assert np.all(np.isfinite(term.stderr)) and np.all(term.stderr > 0)
