@@ -21,7 +21,8 @@ from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_
 log = logging.getLogger(__name__)
 
 _CAPTURE_KEYS = {"lights", "mask", "dark", "pixel_size_um", "linearize"}
-_OPTION_KEYS = {"degree", "robust", "integration", "refine_lights", "sample_pixels", "estimate_intensities"}
+_OPTION_KEYS = {"degree", "robust", "integration", "refine_lights", "sample_pixels", "estimate_intensities",
+                "black_level", "offset", "offset_degree"}
 
 
 def _unknown(params, known, warnings):
@@ -51,7 +52,21 @@ def _options(params):
     for key in ("robust", "refine_lights", "estimate_intensities"):
         if key in kw:
             kw[key] = _as_bool(kw[key], key)
+    if "offset_degree" in kw:
+        kw["offset_degree"] = _as_int(kw["offset_degree"], "offset_degree")
+    if "black_level" in kw:
+        kw["black_level"] = _as_numbers(kw["black_level"], "black_level")
     return RunOptions(**kw)
+
+
+def _as_numbers(v, name):
+    """One number or a list of numbers (given as a list, or a comma-separated string)."""
+    items = v if isinstance(v, (list, tuple)) else str(v).split(",")
+    try:
+        out = [float(x) for x in items]
+    except (TypeError, ValueError):
+        raise UVPSInputError(f"{name} must be a number or comma-separated numbers; got {v!r}") from None
+    return out[0] if len(out) == 1 else out
 
 
 def _as_int(v, name):
@@ -118,12 +133,18 @@ def _lights_diag(lights):
 
 def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
     """Shared body of run / flatfield / lights / normals."""
-    from .pipeline import estimate_capture_lights, write_depth, write_flatfield, write_lights, write_stereo
+    from .pipeline import (estimate_capture_lights, remove_additive, write_depth, write_flatfield, write_lights,
+                           write_stereo)
     from .stereo import solve_normals
 
     options = _options(params)
     runlog.params.update({"options": options.__dict__, "pixel_size_um": capture.pixel_size_um,
                           "image_shape": list(capture.images.shape[1:]), "bit_depth": capture.bit_depth})
+    t0 = time.perf_counter()
+    capture, additive, warn = remove_additive(capture, options=options, dark_given=params.get("dark") is not None)
+    runlog.time("additive", t0)
+    runlog.diagnostics["additive"] = additive.to_json()
+    runlog.warnings += warn
     t0 = time.perf_counter()
     lights = estimate_capture_lights(capture, options=options, progress=_sub(progress, 0.1, 0.45))
     runlog.time("lights", t0)
@@ -329,6 +350,13 @@ def _capture_args(p, *, stages=True):
                             "samples (cast shadows, highlights; many lights)")
         p.add_argument("--integration", choices=["fc", "dct"], default="fc", help="height integration method")
     p.add_argument("--no-refine-lights", action="store_true", help="keep the paper's equidistant lights")
+    p.add_argument("--black-level", metavar="COUNTS",
+                   help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
+                        "measuring it from the images")
+    p.add_argument("--offset", choices=["auto", "none"], default="auto",
+                   help="additive term (black level, stray light): measured from the images (auto) or none")
+    p.add_argument("--offset-degree", type=int, choices=[0, 1, 2], default=0,
+                   help="0: a constant black level; 1-2: also stray light varying smoothly across the field")
     p.add_argument("--estimate-intensities", action="store_true",
                    help="with --lights: each lamp's intensity from the image levels (flat surface assumed); "
                         "default: the light file's intensity column, else equal (.lp) or from the levels (positions)")
@@ -399,7 +427,8 @@ def _args_to_request(a):
     c = a.command
     if hasattr(a, "images"):
         inputs["images"] = [str(Path(p).resolve()) for p in a.images]
-        for k in ("lights", "mask", "dark", "pixel_size_um", "linearize", "degree", "robust", "integration"):
+        for k in ("lights", "mask", "dark", "pixel_size_um", "linearize", "degree", "robust", "integration",
+                  "black_level", "offset", "offset_degree"):
             v = getattr(a, k, None)
             if v is not None:
                 params[k] = v

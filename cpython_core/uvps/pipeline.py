@@ -6,6 +6,7 @@ the file bridge.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import asdict, dataclass, field
@@ -21,6 +22,7 @@ from .integrate import integrate_normals
 from .io import Capture, sha256_file, write_imagej_tiff
 from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels,
                      pixel_coordinates_mm, sample_pixels, _model_logs)
+from .offset import OffsetImages, estimate_additive, known_additive
 from .outputs import Progress, report, write_json_atomic
 from .stereo import StereoResult
 
@@ -41,6 +43,9 @@ class RunOptions:
     sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)
     estimate_intensities: bool = False  # known lights: intensities from the images' levels (as if the
     #                                     surface were flat), even over the light file's own
+    black_level: Optional[object] = None  # known additive term in counts (one number or one per channel)
+    offset: str = "auto"            # additive term: "auto" (measured from the images) or "none"
+    offset_degree: int = 0          # 0: a constant black level; 1-2: also smooth stray light
 
     def __post_init__(self):
         if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
@@ -49,6 +54,10 @@ class RunOptions:
             raise UVPSInputError(f"integration must be 'fc' or 'dct'; got {self.integration!r}")
         if int(self.sample_pixels) < 500:
             raise UVPSInputError(f"sample_pixels must be >= 500; got {self.sample_pixels!r}")
+        if self.offset not in ("auto", "none"):
+            raise UVPSInputError(f"offset must be 'auto' or 'none'; got {self.offset!r}")
+        if self.offset_degree not in (0, 1, 2):
+            raise UVPSInputError(f"offset_degree must be 0, 1 or 2; got {self.offset_degree!r}")
 
 
 @dataclass
@@ -91,6 +100,67 @@ def input_hashes(capture: Capture) -> list:
         seen.add(p)
         out.append({"path": str(p), "sha256": sha256_file(p)})
     return out
+
+
+#: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
+#: moved the estimated lamps by 5 degrees on the benchmark captures (docs/benchmarks.md).
+OFFSET_TOLERANCE = 0.001
+#: A measured additive term smaller than this many standard errors is not subtracted.
+SIGNIFICANT = 2.0
+#: An additive term above this fraction of the median signal: the images are mostly pedestal.
+OFFSET_MAX = 0.5
+
+
+def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) -> tuple:
+    """The capture with its additive term (black level, stray light) removed, and that term.
+
+    Given black level (``options.black_level``): that. A dark frame (already subtracted on reading):
+    nothing more is removed. ``options.offset == "none"``: nothing. Otherwise the term is measured
+    from the images (:func:`uvps.offset.estimate_additive`). The images are not copied: the result's
+    ``images`` is a view that subtracts on access (:class:`uvps.offset.OffsetImages`).
+
+    Returns
+    -------
+    (Capture, AdditiveTerm, list of str)
+        The capture to use, the term, and warnings (only when the term is poorly pinned).
+    """
+    images = capture.images
+    M, N = images.shape[1:3]
+    C = images.shape[3] if images.ndim == 4 else 1
+    warnings = []
+    if options.black_level is not None:
+        term = known_additive(options.black_level, shape=(M, N), channels=C)
+    elif dark_given or options.offset == "none":
+        term = known_additive(0.0, shape=(M, N), channels=C, source="dark frame" if dark_given else "none")
+    else:
+        term = estimate_additive(images, mask=capture.mask, saturation=capture.saturation,
+                                 degree=int(options.offset_degree), dropoff_degree=int(options.degree))
+    if not np.isfinite(term.median_signal):
+        k = np.linspace(0, images.shape[0] - 1, min(4, images.shape[0])).astype(int)
+        term.median_signal = float(np.median(np.asarray(images[k, ::8, ::8], dtype=np.float32))) - float(term.mean.mean())
+    frac = float(term.mean.mean()) / max(term.median_signal, 1e-12)
+    if term.median_signal <= 0 or frac > OFFSET_MAX:
+        raise UVPSInputError(
+            f"the images are mostly pedestal: the additive term ({term.source}, {term.mean.mean():.1f} counts) is "
+            f"{100 * frac:.0f} % of the median signal; check the exposure, the black level or the dark frame")
+    if term.stderr is not None and not np.isfinite(term.stderr).all():
+        term.diagnostics["used"] = False
+    elif term.stderr is not None:
+        se = float(np.sqrt(np.mean(term.stderr ** 2)))
+        if abs(float(term.mean.mean())) < SIGNIFICANT * se:
+            # consistent with no offset: subtracting it would only add its noise (a clean capture is
+            # then processed exactly as it was before the additive term was modelled)
+            term.diagnostics["used"] = False
+            term.diagnostics["note"] = f"not significant (|c| < {SIGNIFICANT:g} standard errors): not subtracted"
+            return capture, term, warnings
+        if se > OFFSET_TOLERANCE * term.median_signal:
+            warnings.append(
+                f"the black level could only be measured to +-{se:.0f} counts ({100 * se / term.median_signal:.2f} % "
+                "of the signal; the field may hold too little dark and bright paint): estimated lamp elevations "
+                "and heights may be off; give the camera's black level or a dark frame")
+    if term.is_zero:
+        return capture, term, warnings
+    return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
 
 
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: Progress = None) -> LightsResult:
