@@ -523,6 +523,33 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
     return LightModel.from_positions(model.positions_mm, model.intensities / np.median(model.intensities))
 
 
+def _lamp_positions(th):
+    """Positions (K, 3) from rows (azimuth, elevation, log distance, ...)."""
+    az, el, D = th[:, 0], th[:, 1], np.exp(th[:, 2])
+    return D[:, None] * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+
+
+def _drop_jacobian(th, R, X, scale, h=1e-6):
+    """Jacobian of the drop-off prior ``scale * _ratio_resid`` in (azimuth, elevation, log distance,
+    log intensity) per lamp, by forward differences one lamp at a time.
+
+    Lamp k's parameters move only its own centred log drop-off ``g_k`` and, through the mean over
+    lamps, every map by ``-dg_k / K``: one single-lamp evaluation per column instead of K.
+    """
+    K = len(th)
+    P = _lamp_positions(th)
+    g = _model_logs(P, X)                                   # (K, ...) centred per lamp
+    J = np.zeros((K,) + g.shape[1:] + (4 * K,))
+    for k in range(K):
+        for j in range(3):                                  # the intensity does not enter the shape
+            tk = th[k:k + 1].copy()
+            tk[0, j] += h
+            dg = (_model_logs(_lamp_positions(tk), X)[0] - g[k]) / h
+            J[..., 4 * k + j] -= dg[None] / K
+            J[k, ..., 4 * k + j] += dg
+    return scale * J.reshape(-1, 4 * K)
+
+
 def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop, max_nfev):
     """One ``least_squares`` solve of :func:`_refine_each` on the given sample.
 
@@ -565,11 +592,7 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
                            [np.cos(el[k]) * np.cos(az[k]), -np.sin(el[k]) * np.sin(az[k]), np.cos(el[k]) * np.sin(az[k])],
                            [0.0, np.cos(el[k]), np.sin(el[k])]]) * (D / scale)
             Jp[:, 4 * k:4 * k + 3] = Jp[:, 4 * k:4 * k + 3] @ dP
-        d0 = drop(t)
-        for i in range(t.size):   # the drop-off prior is tiny: forward differences
-            tt = t.copy()
-            tt[i] += 1e-6
-            J[n_res:n_res + n_dr, i] = (drop(tt) - d0) / 1e-6
+        J[n_res:n_res + n_dr] = _drop_jacobian(th, R, X, w_drop / np.sqrt(n_dr))
         J[-1] = 0.0
         J[-1, 3::4] = 1.0 / K
         return J
@@ -580,8 +603,13 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
     lb = np.tile([-np.inf, np.radians(1.0), np.log(20.0), -2.0], K)
     ub = np.tile([np.inf, np.radians(89.9), np.log(20000.0), 2.0], K)
     c0 = float(np.sum(fun(x0) ** 2))
-    sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, bounds=(lb, ub), x_scale="jac",
+    # MINPACK's Levenberg-Marquardt (QR of the tall Jacobian, 0.05 s at 60000 x 48) instead of the
+    # bounded trust-region solver, whose exact subproblem takes an SVD of the Jacobian per iteration
+    # (1 s, 70 % of the light estimate) and whose lsmr variant needed 3x the iterations. The bounds
+    # only guard against degenerate lamps; the solution is clipped into them.
+    sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, method="lm", x_scale="jac",
                         max_nfev=max_nfev)
+    sol.x = np.clip(sol.x, lb, ub)
     history.append({"stage": "per-light", "pixels": int(sample.I.shape[1]), "iterations": int(sol.nfev),
                     "converged": bool(sol.status > 0), "cost_start": c0, "cost": float(np.sum(sol.fun ** 2))})
     P, E = unpack(sol.x)
