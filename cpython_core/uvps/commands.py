@@ -120,6 +120,10 @@ def _stage_outputs(run_dir, names):
     return out
 
 
+#: Relative uncertainty of heights from the estimated lamps beyond which a run warns.
+HEIGHT_UNCERTAINTY_WARN = 0.05
+
+
 def _lights_diag(lights):
     d = {"source": lights.source, "n_lights": int(len(lights.model.intensities))}
     if lights.estimate is not None:
@@ -128,6 +132,10 @@ def _lights_diag(lights):
         per_light = [h for h in lights.estimate.residual_history if h["stage"] == "per-light"]
         if per_light:
             d["refinement_converged"] = bool(per_light[-1]["converged"])
+        if lights.estimate.uncertainty is not None:
+            u = lights.estimate.uncertainty
+            d["height_uncertainty_relative"] = round(float(u.height_rel), 5)
+            d["direction_uncertainty_deg_max"] = round(float(np.max(u.direction_deg)), 4)
     return d
 
 
@@ -146,15 +154,22 @@ def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
     runlog.diagnostics["additive"] = additive.to_json()
     runlog.warnings += warn
     t0 = time.perf_counter()
-    lights = estimate_capture_lights(capture, options=options, progress=_sub(progress, 0.1, 0.45))
+    se = additive.stderr
+    offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
+    lights = estimate_capture_lights(capture, options=options, offset_stderr=offset_se,
+                                     progress=_sub(progress, 0.1, 0.45))
     runlog.time("lights", t0)
     runlog.diagnostics["lights"] = _lights_diag(lights)
-    if runlog.diagnostics["lights"].get("refinement_converged") is False:
-        # reported once, as a warning of the command (the CLI prints it, the bridge returns it)
-        runlog.warnings.append(
-            "the light refinement stopped at its evaluation cap before converging: the lamps' distance and "
-            "elevation may be poorly separated on this field, so heights may be scaled; for heights to "
-            "compare, give measured lamp positions (--lights)")
+    unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    if unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_WARN:
+        # a warning only when the lamps' uncertainty makes the heights uncertain beyond 5 %: it then
+        # says which cause dominates and what to do (reported once: the CLI prints it, the bridge returns it)
+        cause = ("the black level could not be measured precisely enough; give the camera's black level or a "
+                 "dark frame" if unc.height_rel_offset > unc.height_rel_noise else
+                 "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
+                 "apart; give measured lamp positions")
+        runlog.warnings.append(f"heights may be off by +-{100 * unc.height_rel:.0f} % (the estimated lamps' "
+                               f"elevations are uncertain): {cause}")
     write_lights(tmp, capture, lights)
     if "flatfield" in stages:
         t0 = time.perf_counter()

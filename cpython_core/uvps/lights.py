@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LightModel", "LightEstimate", "PixelSample", "azimuth_from_dropoff", "pixel_coordinates_mm",
     "estimate_lights", "intensities_from_levels", "sample_pixels", "photometric_residual",
+    "LightUncertainty", "light_uncertainty", "refine_intensities",
 ]
 
 
@@ -127,6 +128,7 @@ class LightEstimate:
     azimuth_polar_deg: np.ndarray
     residual_history: list = field(default_factory=list)  # dicts: stage, m_mm or iteration, cost
     equidistant: Optional[LightModel] = None  # the paper's equidistant solution before refinement
+    uncertainty: Optional["LightUncertainty"] = None
 
 
 @dataclass
@@ -315,7 +317,8 @@ def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
 
 
 def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pixel_size_um,
-                    refine=True, m_bounds=(80.0, 3000.0), progress: Progress = None) -> LightEstimate:
+                    refine=True, m_bounds=(80.0, 3000.0), offset_stderr=None,
+                    progress: Progress = None) -> LightEstimate:
     """Estimate near-light positions from the drop-off fits and the photometric residual.
 
     Parameters
@@ -334,6 +337,9 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         Refine each light's position and intensity after the equidistant solution.
     m_bounds : (float, float)
         Range of the shared distance ``m`` in mm.
+    offset_stderr : float, optional
+        Standard error (grey counts) of the additive term removed from the images, for the
+        lights' uncertainty (:func:`light_uncertainty`).
 
     Returns
     -------
@@ -407,15 +413,18 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     if refine and sample is not None:
         report(progress, 0.5, "lights: refining each light's position and intensity")
         model = _refine_each(sample, eq, R, X, history)
+    unc = None
     if sample is not None:
         model = _level(sample, model, history)
+        if refine:
+            unc = light_uncertainty(sample, model, R, X, offset_stderr=offset_stderr)
     P = model.positions_mm
     set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
         np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
     az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
     report(progress, 1.0, "lights: done")
     return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
-                         equidistant=eq)
+                         equidistant=eq, uncertainty=unc)
 
 
 _GRAZING_DEG = 3.0  # equidistant elevations fit within [2, 89.5] deg
@@ -550,6 +559,114 @@ def _drop_jacobian(th, R, X, scale, h=1e-6):
     return scale * J.reshape(-1, 4 * K)
 
 
+def _params(model: LightModel) -> np.ndarray:
+    """(K, 4) rows (azimuth, elevation, log distance, log intensity) of near lights."""
+    P = model.positions_mm
+    D = np.linalg.norm(P, axis=1)
+    return np.column_stack([np.arctan2(P[:, 1], P[:, 0]), np.arcsin(np.clip(P[:, 2] / D, -1, 1)), np.log(D),
+                            np.log(model.intensities)])
+
+
+class _Problem:
+    """The per-light refinement's residual and exact Jacobian in (azimuth, elevation, log distance,
+    log intensity) per lamp: photometric residual / sqrt(n), drop-off prior, and the mean log
+    intensity held at 0 (the overall scale is the albedo's)."""
+
+    def __init__(self, sample: PixelSample, R, X, *, w_drop, scale):
+        self.sample, self.R, self.X, self.w_drop, self.scale = sample, R, X, w_drop, scale
+        self.n_res, self.n_dr = sample.I.size, R.size
+
+    def unpack(self, t):
+        th = t.reshape(-1, 4)
+        return _lamp_positions(th), np.exp(th[:, 3])
+
+    def drop(self, t):
+        return self.w_drop * _ratio_resid(self.unpack(t)[0], self.R, self.X) / np.sqrt(self.n_dr)
+
+    def fun(self, t):
+        P, E = self.unpack(t)
+        r_ph = photometric_residual(self.sample, LightModel.from_positions(P, E))
+        return np.concatenate([r_ph / np.sqrt(self.n_res), self.drop(t), [np.mean(t.reshape(-1, 4)[:, 3])]])
+
+    def jac(self, t):
+        th = t.reshape(-1, 4)
+        K = len(th)
+        P, E = self.unpack(t)
+        n_res, n_dr = self.n_res, self.n_dr
+        J = np.empty((n_res + n_dr + 1, t.size))      # filled in place: J is ~n_res x 4K float64
+        Jp = J[:n_res]
+        _vp_residual_and_jacobian(self.sample, P, E, self.scale, out=Jp, factor=1.0 / np.sqrt(n_res))
+        # chain rule from (P / scale) to (azimuth, elevation, log distance), light by light
+        az, el = th[:, 0], th[:, 1]
+        for k in range(K):
+            D = np.exp(th[k, 2])
+            ca, sa, ce, se = np.cos(az[k]), np.sin(az[k]), np.cos(el[k]), np.sin(el[k])
+            dP = np.array([[-ce * sa, -se * ca, ce * ca], [ce * ca, -se * sa, ce * sa], [0.0, ce, se]]) * (D / self.scale)
+            Jp[:, 4 * k:4 * k + 3] = Jp[:, 4 * k:4 * k + 3] @ dP
+        J[n_res:n_res + n_dr] = _drop_jacobian(th, self.R, self.X, self.w_drop / np.sqrt(n_dr))
+        J[-1] = 0.0
+        J[-1, 3::4] = 1.0 / K
+        return J
+
+
+def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e-8, xtol=1e-8):
+    """Levenberg-Marquardt on the normal equations, with Jacobian scaling and bounds by projection.
+
+    Written here because the refinement's Jacobian is very tall and narrow (K * P rows, 4K columns:
+    360000 x 48): ``scipy.optimize.least_squares`` factorises it every iteration (an SVD in 'trf',
+    1 s; an unblocked QR in MINPACK's 'lm', 0.5-1 s), where ``J^T J`` (4K x 4K) is one BLAS call
+    (0.05 s). Steps and stopping follow MINPACK (Moré 1978): the damping is scaled by
+    ``diag(J^T J)`` (``x_scale='jac'``), raised until the cost falls, lowered by the gain ratio; it stops
+    when both the actual and the predicted relative reductions are below ``ftol`` or the scaled step
+    is below ``xtol``.
+
+    Returns
+    -------
+    (x, f, nfev, converged)
+    """
+    x = np.asarray(x0, dtype=float).copy()
+    lb = np.full(x.size, -np.inf) if lb is None else np.asarray(lb, float)
+    ub = np.full(x.size, np.inf) if ub is None else np.asarray(ub, float)
+    f = fun(x)
+    cost = float(f @ f)
+    nfev, mu, converged = 1, None, False
+    scale = None
+    while nfev < max_nfev and not converged:
+        J = jac(x)
+        A = J.T @ J
+        g = J.T @ f
+        d2 = np.diag(A).copy()
+        scale = d2 if scale is None else np.maximum(scale, d2)
+        scale = np.where(scale > 0, scale, 1.0)
+        if mu is None:
+            mu = 1e-3 * float(scale.max())
+        while nfev < max_nfev:
+            try:
+                step = -np.linalg.solve(A + mu * np.diag(scale), g)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            x_new = np.clip(x + step, lb, ub)
+            step = x_new - x
+            f_new = fun(x_new)
+            nfev += 1
+            cost_new = float(f_new @ f_new)
+            predicted = -(2 * g @ step + step @ A @ step)
+            actual = cost - cost_new
+            if cost_new < cost:
+                rho = actual / predicted if predicted > 0 else 0.0
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                small_step = np.sqrt(np.sum(scale * step ** 2)) <= xtol * (np.sqrt(np.sum(scale * x ** 2)) + xtol)
+                converged = (actual <= ftol * cost and predicted <= ftol * cost) or small_step
+                x, f, cost = x_new, f_new, cost_new
+                break
+            mu *= 4.0
+            if predicted <= ftol * cost * 1e-3:   # no step can lower the cost: at the minimum
+                converged = True
+                break
+    return x, f, nfev, converged
+
+
 def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop, max_nfev):
     """One ``least_squares`` solve of :func:`_refine_each` on the given sample.
 
@@ -557,60 +674,120 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
     valley (closer and higher) is nearly straight in these coordinates and curved in Cartesian ones.
     """
     K = len(start.intensities)
-    P0 = start.positions_mm
-    scale = np.linalg.norm(P0, axis=1).mean()
-    n_res = sample.I.size
-    n_dr = R.size
-
-    def positions(th):
-        az, el, D = th[:, 0], th[:, 1], np.exp(th[:, 2])
-        return D[:, None] * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
-
-    def unpack(t):
-        th = t.reshape(K, 4)
-        return positions(th), np.exp(th[:, 3])
-
-    def drop(t):
-        return w_drop * _ratio_resid(unpack(t)[0], R, X) / np.sqrt(n_dr)
-
-    def fun(t):
-        P, E = unpack(t)
-        r_ph = photometric_residual(sample, LightModel.from_positions(P, E))
-        return np.concatenate([r_ph / np.sqrt(n_res), drop(t), [np.mean(t.reshape(K, 4)[:, 3])]])
-
-    def jac(t):
-        th = t.reshape(K, 4)
-        P, E = unpack(t)
-        J = np.empty((n_res + n_dr + 1, t.size))      # filled in place: J is ~n_res x 4K float64
-        Jp = J[:n_res]
-        _vp_residual_and_jacobian(sample, P, E, scale, out=Jp, factor=1.0 / np.sqrt(n_res))
-        # chain rule from (P / scale) to (azimuth, elevation, log distance), light by light
-        az, el = th[:, 0], th[:, 1]
-        for k in range(K):
-            D = np.exp(th[k, 2])
-            dP = np.array([[-np.cos(el[k]) * np.sin(az[k]), -np.sin(el[k]) * np.cos(az[k]), np.cos(el[k]) * np.cos(az[k])],
-                           [np.cos(el[k]) * np.cos(az[k]), -np.sin(el[k]) * np.sin(az[k]), np.cos(el[k]) * np.sin(az[k])],
-                           [0.0, np.cos(el[k]), np.sin(el[k])]]) * (D / scale)
-            Jp[:, 4 * k:4 * k + 3] = Jp[:, 4 * k:4 * k + 3] @ dP
-        J[n_res:n_res + n_dr] = _drop_jacobian(th, R, X, w_drop / np.sqrt(n_dr))
-        J[-1] = 0.0
-        J[-1, 3::4] = 1.0 / K
-        return J
-
-    D0 = np.linalg.norm(P0, axis=1)
-    x0 = np.column_stack([np.arctan2(P0[:, 1], P0[:, 0]), np.arcsin(np.clip(P0[:, 2] / D0, -1, 1)), np.log(D0),
-                          np.log(start.intensities)]).ravel()
+    prob = _Problem(sample, R, X, w_drop=w_drop, scale=np.linalg.norm(start.positions_mm, axis=1).mean())
+    x0 = _params(start).ravel()
     lb = np.tile([-np.inf, np.radians(1.0), np.log(20.0), -2.0], K)
     ub = np.tile([np.inf, np.radians(89.9), np.log(20000.0), 2.0], K)
-    c0 = float(np.sum(fun(x0) ** 2))
-    # MINPACK's Levenberg-Marquardt (QR of the tall Jacobian, 0.05 s at 60000 x 48) instead of the
-    # bounded trust-region solver, whose exact subproblem takes an SVD of the Jacobian per iteration
-    # (1 s, 70 % of the light estimate) and whose lsmr variant needed 3x the iterations. The bounds
-    # only guard against degenerate lamps; the solution is clipped into them.
-    sol = least_squares(fun, np.clip(x0, lb + 1e-6, ub - 1e-6), jac=jac, method="lm", x_scale="jac",
-                        max_nfev=max_nfev)
-    sol.x = np.clip(sol.x, lb, ub)
-    history.append({"stage": "per-light", "pixels": int(sample.I.shape[1]), "iterations": int(sol.nfev),
-                    "converged": bool(sol.status > 0), "cost_start": c0, "cost": float(np.sum(sol.fun ** 2))})
-    P, E = unpack(sol.x)
+    c0 = float(np.sum(prob.fun(x0) ** 2))
+    x, f, nfev, converged = levenberg_marquardt(prob.fun, prob.jac, np.clip(x0, lb + 1e-6, ub - 1e-6),
+                                                lb=lb, ub=ub, max_nfev=max_nfev)
+    history.append({"stage": "per-light", "pixels": int(sample.I.shape[1]), "iterations": int(nfev),
+                    "converged": bool(converged), "cost_start": c0, "cost": float(np.sum(f ** 2))})
+    P, E = prob.unpack(x)
     return LightModel.from_positions(P, E / np.exp(np.mean(np.log(E))))
+
+
+@dataclass
+class LightUncertainty:
+    """Standard uncertainties of estimated near lights (docs/architecture.md, "Confidence").
+
+    ``direction_deg``, ``distance_mm`` and ``intensity`` are per lamp; ``height_rel`` is the relative
+    standard uncertainty of heights that follows (the shared change of the lamps' elevations, as
+    ``d log h = -mean_k d log tan(e_k)``). Each combines the residual's noise (Gauss-Newton
+    covariance, ``sigma^2 (J^T J)^-1``) and the additive term's own uncertainty carried through the
+    solution (``-(J^T J)^-1 J^T dr/dc * se_c``), which dominates on real captures.
+    """
+
+    direction_deg: np.ndarray
+    distance_mm: np.ndarray
+    intensity: np.ndarray
+    height_rel: float
+    height_rel_noise: float
+    height_rel_offset: float
+
+    def to_json(self) -> dict:
+        return {"direction_deg": [round(float(v), 4) for v in self.direction_deg],
+                "distance_mm": [round(float(v), 3) for v in self.distance_mm],
+                "intensity": [round(float(v), 5) for v in self.intensity],
+                "height_relative": round(float(self.height_rel), 5),
+                "height_relative_from_noise": round(float(self.height_rel_noise), 5),
+                "height_relative_from_offset": round(float(self.height_rel_offset), 5)}
+
+
+def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.0,
+                      offset_stderr: Optional[float] = None) -> LightUncertainty:
+    """Standard uncertainties of near lights estimated by :func:`estimate_lights`.
+
+    Parameters
+    ----------
+    sample : PixelSample
+        The photometric sample the lights were refined on (intensities with the additive term removed).
+    model : LightModel
+        The estimated lights.
+    R, X
+        The drop-off ratio maps and their points (as in the refinement).
+    offset_stderr : float, optional
+        Standard error of the removed additive term (grey counts), carried through the solution.
+    """
+    K = len(model.intensities)
+    prob = _Problem(sample, R, X, w_drop=w_drop, scale=np.linalg.norm(model.positions_mm, axis=1).mean())
+    t = _params(model).ravel()
+    f = prob.fun(t)
+    J = prob.jac(t)
+    n = f.size
+    JtJ = J.T @ J
+    cov = np.linalg.pinv(JtJ) * float(np.sum(f ** 2)) / max(n - t.size, 1)
+    th = t.reshape(K, 4)
+    el = th[:, 1]
+    w_h = np.zeros(t.size)
+    w_h[1::4] = -1.0 / (K * np.sin(el) * np.cos(el))      # d log h / d e_k (the relief scale)
+    var_noise = np.diag(cov)
+    h_noise = float(np.sqrt(max(w_h @ cov @ w_h, 0.0)))
+    shift = np.zeros(t.size)
+    if offset_stderr is not None and np.isfinite(offset_stderr) and offset_stderr > 0:
+        # d r / d c: the residual of every pixel when its samples all drop by 1 count, after its
+        # normal (times albedo) re-fits: the part of the ones vector its lights cannot explain
+        V = model.vectors(sample.X)
+        A = np.einsum("kpi,kpj->pij", V, V)
+        b1 = np.linalg.solve(A, np.einsum("kpi->pi", V)[..., None])[..., 0]
+        dr = -(1.0 - np.einsum("kpi,pi->kp", V, b1)) / sample.I.mean(axis=0)
+        df = np.zeros(n)
+        df[:prob.n_res] = dr.ravel() / np.sqrt(prob.n_res)
+        shift = -np.linalg.pinv(JtJ) @ (J.T @ df) * offset_stderr
+    h_off = float(abs(w_h @ shift))
+    var = var_noise + shift ** 2
+    cos_el = np.cos(el)
+    dir_rad = np.sqrt(var[1::4] + cos_el ** 2 * var[0::4])
+    D = np.exp(th[:, 2])
+    return LightUncertainty(np.degrees(dir_rad), D * np.sqrt(var[2::4]), np.exp(th[:, 3]) * np.sqrt(var[3::4]),
+                            float(np.hypot(h_noise, h_off)), h_noise, h_off)
+
+
+def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> np.ndarray:
+    """Relative lamp intensities (median 1) for KNOWN positions, by the photometric residual.
+
+    The levels of the images tell the intensities only if the surface is flat and facing the camera;
+    on a cupped or textured painting they are off by several per cent, which tilts every normal
+    (1.2 deg mean on a cupped benchmark capture). Here the intensities minimise paper Eq. 2's
+    residual with the positions held (variable projection, :func:`photometric_residual`).
+    """
+    P = np.asarray(positions_mm, dtype=float)
+    K = len(P)
+    E0 = np.ones(K) if intensities is None else np.asarray(intensities, dtype=float)
+    scale = np.linalg.norm(P, axis=1).mean()
+    n = sample.I.size
+
+    def fun(logE):
+        r = photometric_residual(sample, LightModel.from_positions(P, np.exp(logE)))
+        return np.concatenate([r / np.sqrt(n), [np.mean(logE)]])
+
+    def jac(logE):
+        _, Jfull = _vp_residual_and_jacobian(sample, P, np.exp(logE), scale)
+        J = np.zeros((n + 1, K))
+        J[:n] = Jfull[:, 3::4] / np.sqrt(n)
+        J[-1] = 1.0 / K
+        return J
+
+    sol = least_squares(fun, np.log(E0) - np.mean(np.log(E0)), jac=jac, method="lm", x_scale="jac")
+    E = np.exp(sol.x)
+    return E / np.median(E)

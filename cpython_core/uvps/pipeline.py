@@ -20,7 +20,7 @@ from .errors import UVPSInputError
 from .flatfield import block_grid, fit_dropoffs, flatfield, set_common
 from .integrate import integrate_normals
 from .io import Capture, sha256_file, write_imagej_tiff
-from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels,
+from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, refine_intensities,
                      pixel_coordinates_mm, sample_pixels, _model_logs)
 from .offset import OffsetImages, estimate_additive, known_additive
 from .outputs import Progress, report, write_json_atomic
@@ -163,16 +163,19 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
 
 
-def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: Progress = None) -> LightsResult:
+def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
+                            progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
 
     Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
-    intensity from the file when it gives them, otherwise measured from the images' levels. Known
+    intensity from the file when it gives them, otherwise measured from the images by the photometric
+    residual with the positions held (:func:`uvps.lights.refine_intensities`). Known
     directions (an RTI ``.lp`` file) give far lights with the file's intensities, or equal ones when it
     gives none: an ``.lp`` file says nothing about intensities, and levels read as if the surface were
     flat and facing the camera are wrong on a relief. ``options.estimate_intensities`` measures them
-    from the levels for either kind, even over the file's. Otherwise the near-light positions are
-    estimated from the images (:func:`uvps.lights.estimate_lights`).
+    from the images for either kind (far lights: from the levels), even over the file's. Otherwise
+    the near-light positions are estimated from the images (:func:`uvps.lights.estimate_lights`);
+    ``offset_stderr`` (grey counts, from :func:`remove_additive`) goes into their uncertainty.
     """
     px = capture.pixel_size_um
     report(progress, 0.0, "drop-off fits")
@@ -184,12 +187,22 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
         return lambda r, c: _model_logs(P, pixel_coordinates_mm(np.asarray(r)[:, None], np.asarray(c)[None, :],
                                                                   shape, px)).mean(axis=0)
 
+    # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
+    # and at most 150000 residuals (12500 pixels x 12 lights; as accurate as 30000 on the benchmark,
+    # docs/benchmarks.md): the refinement's Jacobian holds lights x pixels x 4 lights float64 values,
+    # so its memory and time grow as K^2.
+    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(2000, 150000 // len(fits)))
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         set_common(fits, grid, common_of(P))
-        E = capture.light_intensities   # given (median 1 like an estimate), else from the levels
+        E = capture.light_intensities   # given (median 1 like an estimate), else from the images
         if E is None or options.estimate_intensities:
+            # by the photometric residual with the positions held: the levels alone assume a flat
+            # canvas facing the camera (1.2 deg normals on a cupped capture, 0.13 deg this way)
             E = intensities_from_levels([f.level for f in fits], P, shape, px)
+            sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
+                                   pixel_size_um=px, n=min(n, 20000))
+            E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions")
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
@@ -200,14 +213,11 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, progress: 
             E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=D)
         return LightsResult(LightModel.from_directions(D, None if E is None else E / np.median(E)), fits,
                             "directions")
-    # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
-    # and at most 360000 residuals (30000 pixels x 12 lights): the refinement's Jacobian holds
-    # lights x pixels x 4 lights float64 values (plus copies in the solver), so its memory grows as K^2.
-    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(5000, 360000 // len(fits)))
     sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
                            pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
-    est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights, progress=sub)
+    est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights,
+                          offset_stderr=offset_stderr, progress=sub)
     return LightsResult(est.model, fits, "estimated", est)
 
 
@@ -219,6 +229,8 @@ def write_lights(folder: Path, capture: Capture, lights: LightsResult, *, dropof
                          for f in lights.fits]}
     if lights.estimate is not None:
         est = lights.estimate
+        if est.uncertainty is not None:
+            extra["uncertainty"] = est.uncertainty.to_json()
         extra.update({"m_mm": est.m_mm, "residual_history": est.residual_history,
                       "azimuth_polar_deg": [float(a) for a in est.azimuth_polar_deg],
                       "equidistant_positions_mm": est.equidistant.positions_mm.tolist()})
