@@ -276,3 +276,20 @@ def test_lp_intensity_column_is_used_and_equal_intensities_otherwise(tmp_path):
     assert err_equal > 1.0, err_equal                     # these lamps are not equal: 24 deg
     E_levels, _ = run(lp3, "--estimate-intensities")
     assert np.ptp(E_levels) > 0.1
+
+
+def test_lamps_that_fit_no_pixel_stop_the_run_without_heights(capture_dir, tmp_path):
+    """Lamps given at grazing incidence (0.5 mm above the canvas plane) light no pixel as the images
+    show it: one line, exit 1, nothing written. Lamps below the canvas are refused on reading."""
+    cap, folder = capture_dir
+    for z, needle in ((0.5, "no lamp model fits"), (-100.0, "z > 0")):
+        csv = tmp_path / f"lamps_{z}.csv"
+        rows = ["file,x_mm,y_mm,z_mm"] + [f"{p.name},{x:.3f},{y:.3f},{z:.3f}"
+                                          for p, (x, y, _) in zip(_images(folder), cap.light_positions_mm)]
+        csv.write_text("\n".join(rows) + "\n")
+        out = tmp_path / "out"
+        r = uvps("run", folder, "-o", out, "--lights", csv)
+        assert r.returncode == 1, r.stderr
+        err = [l for l in r.stderr.splitlines() if "error" in l]
+        assert len(err) == 1 and needle in err[0], r.stderr
+        assert not out.exists()

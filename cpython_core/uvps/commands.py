@@ -120,6 +120,9 @@ def _stage_outputs(run_dir, names):
     return out
 
 
+#: A run whose lamps leave more than this fraction of the pixels with fewer than 3 usable samples
+#: stops: no model fits the images.
+NO_MODEL_FRACTION = 0.5
 #: Relative uncertainty of heights from the estimated lamps beyond which a run warns.
 HEIGHT_UNCERTAINTY_WARN = 0.05
 
@@ -182,6 +185,13 @@ def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
                             progress=_sub(progress, 0.55, 0.85))
         runlog.time("normals", t0)
         runlog.diagnostics["normals"] = {"n_invalid": res.n_invalid, "residual_rms": res.residual_rms}
+        n_px = int(capture.mask.sum()) if capture.mask is not None else int(np.prod(capture.images.shape[1:3]))
+        if res.n_invalid > NO_MODEL_FRACTION * n_px:
+            # the lamps explain the images nowhere: no heights rather than wrong ones
+            raise UVPSInputError(
+                f"no lamp model fits these images: {100 * res.n_invalid / n_px:.0f} % of the pixels are lit by fewer "
+                f"than 3 lamps as {lights.source} (lamps with narrow beams or stray light the lamp model does not "
+                "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
         if res.n_invalid:
             runlog.warnings.append(f"{res.n_invalid} pixels had fewer than 3 usable lights (NaN)")
         write_stereo(tmp, res, capture.pixel_size_um)

@@ -527,6 +527,11 @@ def read_positions(path: PathLike) -> LightPositions:
                 f"light positions file {path}: each {name} must be 3 finite numbers;"
                 f" got shape {arr.shape}"
             )
+    for name, arr in (("z_mm", positions), ("direction z", directions)):
+        if arr is not None and np.any(arr[:, 2] <= 0):
+            k = int(np.flatnonzero(arr[:, 2] <= 0)[0])
+            raise UVPSInputError(f"light positions file {path}: light {k + 1} has {name} = {arr[k, 2]:g}; lamps "
+                                 "light the canvas from the camera's side (z > 0, toward the camera)")
     if directions is not None:
         norms = np.linalg.norm(directions, axis=1)
         if np.any(norms == 0):
