@@ -125,3 +125,23 @@ def test_uncertainty_of_the_lamps_is_reported_and_grows_with_the_offsets_uncerta
     assert err.mean() < 4 * max(u.direction_deg.mean(), 0.2)
     d = u.to_json()
     assert set(d) >= {"direction_deg", "distance_mm", "intensity", "height_relative"}
+
+
+def test_stray_light_the_model_misses_is_refused_not_reported_as_heights(tmp_path):
+    """3 % stray light (a broad veil, smooth across the field): its mean is measured, its variation is
+    not, and the lamps go tens of degrees off. The uncertainty says so, and the run stops: exit 1,
+    one line, nothing written."""
+    from uvps.commands import COMMANDS
+    from uvps.errors import UVPSInputError
+    from uvps.synthetic import write_capture
+
+    cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=10, seed=3, stray_light=0.03)
+    lr, _ = _estimate(cap)
+    assert _direction_errors(lr.model, cap.light_positions_mm).mean() > 10      # the failure is real
+    assert lr.estimate.uncertainty.height_rel > 1.0                               # and is reported
+    folder = tmp_path / "cap"
+    write_capture(cap, folder, truth=False)
+    out = tmp_path / "out"
+    with pytest.raises(UVPSInputError, match="cannot be estimated from these images") as e:
+        COMMANDS["run"]({"images": [str(folder)]}, {"pixel_size_um": PX}, out)
+    assert "\n" not in str(e.value) and not out.exists()
