@@ -5,11 +5,13 @@ Each capture is ``SyntheticSpec.realistic("top")``: every nuisance of a real cap
 its realistic range (``uvps.synthetic.NUISANCE_TOP``), among them protrusions of every kind
 (``MIXED_SHAPES``: domes, craters, mesas, irregular outlines, touching clusters, non-fluorescing
 ones; 40-500 um wide, 5-150 um high), a weave of two scales, strokes 60-1500 um wide, cupping with
-cracks, cast shadows. Detection runs either on the generator's true albedo, height and normals
-(default; ``--height-noise`` adds white noise) or, with ``--pipeline``, end to end: the capture is
-written with ``uvps.synthetic.write_capture`` and the real command ``uvps run CAPTURE -o RUN
---detect`` computes everything from the images (lights estimated), then ``protrusions.csv`` is
-scored.
+cracks, cast shadows, black level, stray light, vignetting, lamp beams. Detection runs either on
+the generator's true albedo, height and normals (default; ``--height-noise`` adds white noise) or,
+with ``--pipeline``, end to end: the capture is written with ``uvps.synthetic.write_capture`` and
+the real command ``uvps run CAPTURE -o RUN --detect --lights CAPTURE/lights_positions_mm.csv
+--black-level B`` computes everything from the images given the measured lamp positions (as the
+README advises) and the camera's black level (``--uncalibrated`` leaves both out), then
+``protrusions.csv`` is scored.
 
 Scores per capture, then the worst over the seeds: precision, recall and F1 for protrusions
 >= 60 um wide, recall above 200 um, median absolute width error (matched, >= 60 um), and recall
@@ -26,6 +28,8 @@ Example::
 from __future__ import annotations
 
 import argparse
+import ast
+import re
 import subprocess
 import sys
 import tempfile
@@ -59,21 +63,28 @@ def _detections_from_truth(cap, height_noise):
     return xy, np.sqrt(4 * props["area"] / np.pi) * px, det.rejected, elapsed
 
 
-def _detections_from_pipeline(cap, workdir: Path):
-    """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture."""
+def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool):
+    """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
+    lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
+    ``uncalibrated``."""
     capture_dir, run_dir = workdir / "capture", workdir / "run"
     write_capture(cap, capture_dir, truth=False)
     cmd = [sys.executable, "-m", "uvps", "run", str(capture_dir), "-o", str(run_dir), "--detect",
            "--pixel-size-um", str(cap.spec.pixel_size_um)]
+    if not uncalibrated:
+        black = cap.nuisances.black_level
+        cmd += ["--lights", str(capture_dir / "lights_positions_mm.csv")]
+        if black is not None:
+            cmd += ["--black-level", ",".join(f"{float(b):g}" for b in np.atleast_1d(black))]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True)
     elapsed = time.perf_counter() - t0
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
     table = read_protrusions_csv(run_dir / "protrusions.csv")
-    import json
-    rejected = json.loads((run_dir / "run.json").read_text()).get("diagnostics", {}) \
-        .get("detect", {}).get("rejected", {})
+    # the rejection counts, from the detector's log line on stderr
+    found = re.search(r"uvps\.detect: detect: .*rejected (\{[^}]*\})", done.stderr)
+    rejected = ast.literal_eval(found.group(1)) if found else {}
     return np.column_stack([table["x_px"], table["y_px"]]), table["width_um"], rejected, elapsed
 
 
@@ -112,7 +123,7 @@ def run_seed(seed, shape, args):
     if args.pipeline:
         cap = make_capture(spec)
         with tempfile.TemporaryDirectory(prefix="uvps_bench_") as tmp:
-            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp))
+            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated)
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
@@ -166,10 +177,19 @@ def main(argv=None) -> int:
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
     ap.add_argument("--pipeline", action="store_true",
-                    help="end to end through `uvps run CAPTURE -o RUN --detect` on the written capture")
+                    help="end to end through `uvps run CAPTURE -o RUN --detect --lights "
+                         "CAPTURE/lights_positions_mm.csv --black-level B` on the written capture")
+    ap.add_argument("--uncalibrated", action="store_true",
+                    help="with --pipeline: leave out --lights and --black-level (both estimated "
+                         "from the images)")
     args = ap.parse_args(argv)
-    mode = ("end to end (`uvps run --detect`, lights estimated from the images)" if args.pipeline
-            else f"true albedo, height and normals, height noise {args.height_noise} um")
+    if args.pipeline:
+        mode = ("end to end (`uvps run CAPTURE -o RUN --detect`: lamps and black level estimated "
+                "from the images)" if args.uncalibrated else "end to end (`uvps run CAPTURE -o RUN "
+                "--detect --lights CAPTURE/lights_positions_mm.csv --black-level 500`: the lamp "
+                "positions and the camera's black level given)")
+    else:
+        mode = f"true albedo, height and normals, height noise {args.height_noise} um"
     print(f"SyntheticSpec.realistic('top'), {args.shape[0]} x {args.shape[1]} px at 15 um/px, "
           f"seeds {args.seeds}; {mode}; detect_protrusions defaults.\n")
     results = [run_seed(s, args.shape, args) for s in args.seeds]

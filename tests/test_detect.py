@@ -198,3 +198,113 @@ def test_synthetic_capture_recall_and_precision():
     areas = np.bincount(det.labels.ravel())[hit[hit > 0]]
     width = np.sqrt(4 * areas / np.pi) * px
     assert np.median(np.abs(width / pr["width_um"][big][hit > 0] - 1)) < 0.15
+
+
+# --- shapes and surfaces the detector was not tuned to (uvps.synthetic.MIXED_SHAPES, NUISANCE_TOP)
+
+
+def add_profile(h, centre, width_um, px, height_um, kind):
+    """A protrusion of ``kind`` ("dome", "crater", "mesa"), ``width_um`` wide at its foot."""
+    rho = rho_map(h.shape, centre, width_um / 2 / px)
+    if kind == "mesa":                      # flat out to 0.55, then a smoothstep to the foot
+        s = np.clip((1 - rho) / 0.45, 0, 1)
+        prof = s * s * (3 - 2 * s)
+    else:
+        prof = np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.3, 0)
+        if kind == "crater":                # a caldera: the centre 0.5 below the dome, 0.4 wide
+            prof = prof - 0.5 * np.clip(1 - (rho / 0.4) ** 2, 0, None) ** 2
+    h += (height_um * prof).astype(np.float32)
+    return rho
+
+
+def width_of(labels, centre, px):
+    lab = labels[centre]
+    assert lab > 0, f"nothing detected at {centre}"
+    return eq_diameter(labels == lab) * px
+
+
+@pytest.mark.parametrize("kind", ["crater", "mesa"])
+def test_crater_and_mesa_found_by_relief_alone_with_width_within_10_percent(kind):
+    px = 15.0
+    alb, h = scene((200, 200), seed=11)
+    add_profile(h, (100, 100), 360.0, px, 70.0, kind)   # the albedo says nothing
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and list(det.source) == ["height"]
+    assert abs(width_of(det.labels, (100, 100), px) / 360.0 - 1) <= 0.10
+    if kind == "crater":                                # one protrusion, its centre inside
+        assert (det.labels[80:121, 80:121] == 1).all() or det.labels[100, 100] == 1
+
+
+def test_dark_protrusion_found_with_width_within_10_percent():
+    """A protrusion that does not fluoresce (darker than the paint) is found by its relief."""
+    px = 15.0
+    alb, h = scene((200, 200), seed=12)
+    rho = add_profile(h, (100, 100), 240.0, px, 50.0, "dome")
+    alb[rho < 1] *= 0.55
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and list(det.source) == ["height"]
+    assert abs(width_of(det.labels, (100, 100), px) / 240.0 - 1) <= 0.10
+
+
+def test_touching_pair_split_with_widths_within_10_percent():
+    """Two domes whose footprints overlap (centres 0.75 x the sum of the radii apart) are two
+    protrusions, split along the valley between them."""
+    px = 15.0
+    alb, h = scene((200, 200), seed=13)
+    w1, w2 = 300.0, 210.0
+    d = 0.75 * (w1 + w2) / 2 / px
+    c1, c2 = (100, 100 - d / 2), (100, 100 + d / 2)
+    big = np.zeros_like(h)
+    add_profile(big, c1, w1, px, 75.0, "dome")
+    small = np.zeros_like(h)
+    add_profile(small, c2, w2, px, 50.0, "dome")
+    h += np.maximum(big, small)                         # touching: the higher surface wins
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 2
+    p1, p2 = (100, int(round(c1[1]))), (100, int(round(c2[1])))
+    assert det.labels[p1] != det.labels[p2]
+    # each half misses the lens beyond the valley: widths within 10 %
+    assert abs(width_of(det.labels, p1, px) / w1 - 1) <= 0.10
+    assert abs(width_of(det.labels, p2, px) / w2 - 1) <= 0.10
+
+
+def test_unseen_two_scale_weave_measured_and_not_detected():
+    """A weave of periods the detector never saw (1100 um, 8 um high, under a 210 um one), turned
+    by 20 degrees: measured from the height's spectrum, removed, and no protrusion reported."""
+    px = 15.0
+    alb, h = scene((240, 240), seed=14)
+    yy, xx = np.mgrid[:240, :240] * px
+    u = xx * np.cos(0.35) + yy * np.sin(0.35)
+    v = -xx * np.sin(0.35) + yy * np.cos(0.35)
+    k1, k2 = 2 * np.pi / 1100.0, 2 * np.pi / 210.0
+    h += (8.0 * np.sin(k1 * u) * np.sin(k1 * v) + 2.0 * np.sin(k2 * u + 1) * np.sin(k2 * v)).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0
+    # a sin x sin weave of period P has its spectral peaks at period P / sqrt(2)
+    periods = det.diagnostics["weave_periods_um"]
+    assert any(abs(p / (1100.0 / np.sqrt(2)) - 1) < 0.1 for p in periods)
+    assert any(abs(p / (210.0 / np.sqrt(2)) - 1) < 0.1 for p in periods)
+    add_profile(h, (120, 120), 150.0, px, 30.0, "dome")     # and a protrusion on it is found
+    det2 = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det2.labels.max() == 1 and det2.labels[120, 120] == 1
+
+
+def test_rejection_table_and_counts():
+    """Every rejected candidate keeps the rule that rejected it; the counts add up."""
+    from uvps.detect import REJECTION_REASONS, REJECTION_RULES
+
+    assert [r.name for r in REJECTION_RULES] == list(REJECTION_REASONS)
+    assert all(r.quantity and r.test for r in REJECTION_RULES)
+    px = 15.0
+    alb, h = scene((200, 200), seed=15)
+    add_profile(h, (60, 60), 200.0, px, 40.0, "dome")
+    yy, xx = np.mgrid[:200, :200]
+    h += np.where(np.abs(xx - 150) < 6, 10.0 * np.cos(np.pi * (xx - 150) / 12) ** 2, 0).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    reasons = det.diagnostics["candidate_reasons"]
+    assert det.labels.max() == 1 and det.labels[60, 60] == 1
+    assert det.diagnostics["candidates"] == len(reasons) == det.labels.max() + sum(det.rejected.values())
+    for name in REJECTION_REASONS:
+        assert det.rejected[name] == int(np.sum(reasons == name))
+    assert det.rejected["ridge"] >= 1
+    assert [r["name"] for r in det.diagnostics["rejection_rules"]] == list(REJECTION_REASONS)

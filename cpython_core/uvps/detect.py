@@ -4,32 +4,32 @@ The paper (Salvant et al., "Automated Protrusion Detection") builds mask 1 from 
 plus template matching on the albedo and mask 2 from OpenCV blob detection on the height map, and
 takes their union; it under-counts and is fooled by brush-stroke ridges and bare primer. Here every
 threshold is a physical quantity measured on the data (the height noise, the weave's spectrum) or
-a stated property of a protrusion, and each cue is one function:
+a stated property of a protrusion, and each cue is one function (``docs/architecture.md``,
+"Detection cues", says what each assumes):
 
-1. **Surface** (:func:`_surface`). The height noise ``sigma`` is a robust MAD of the high-passed
-   height (second differences). The canvas weave, a few sharp peaks of the height's power
-   spectrum, is measured (periods, RMS amplitude, RMS slope) and notched out
-   (:func:`_remove_weave`).
+1. **Surface** (:func:`_surface`). The height noise is a robust MAD of the high-passed height
+   (second differences). The canvas weave, a few sharp peaks of the height's power spectrum, is
+   measured (periods, RMS amplitude, RMS slope) and subtracted (:func:`_remove_weave`).
 2. **Compact relief** (:func:`_compact_relief`). ``t = h - min(h, A(h))``, ``A`` the *diameter
-   opening* (:func:`skimage.morphology.diameter_opening`): every level set of ``h`` whose extent
-   reaches ``L = 1.3 x max_width_um`` is kept in ``A``, so ``t`` holds only what is enclosed within
-   less than ``L``: protrusions stand out, while the canvas bow, brush strokes, the cupped islands
-   and crack lips of a craquelure (all longer than ``L``) vanish. A protrusion on a slope or on
-   a ridge keeps the part of its relief above the level where it joins the long structure.
-3. **Height cue** (:func:`_height_cue`). Markers are the peaks of ``t`` above the relief threshold
-   ``max(min_dynamic_um, dynamic_k x smoothed sigma)``; two peaks are separate protrusions when the
-   saddle between them lies at least ``split_fraction`` below the lower one (``h_maxima`` of
-   ``log(t + threshold)``). A watershed of ``-t`` from the markers splits touching clusters; each
-   footprint is where ``t`` exceeds ``footprint_fraction`` of its peak. A crater's rim is one
-   ring-shaped peak (no split), and its floor stands above the surrounding paint.
+   opening*: every level set of ``h`` whose extent reaches ``L = 1.3 x max_width_um`` stays in
+   ``A``, so ``t`` holds only what is enclosed within less than ``L``: protrusions (domes, craters,
+   mesas, any outline) stand out; the canvas bow, brush strokes, cupped islands and crack lips
+   (all longer than ``L``) vanish.
+3. **Height cue** (:func:`_height_cue`, :func:`_local_footprints`). Peaks of ``t`` at least the
+   relief threshold ``max(min_dynamic_um, dynamic_k x smoothed noise)`` high, two peaks being two
+   protrusions when the saddle between them lies ``split_fraction`` below the lower one; a
+   watershed of ``-t`` from them splits touching clusters. Each footprint is then re-drawn over
+   a robust plane through its surround (a protrusion on a slope keeps its whole relief), where
+   the relief exceeds ``footprint_fraction`` of its peak.
 4. **Albedo cue** (:func:`_albedo_cue`). Brightness contrast ``L / L_bg - 1`` above
    ``albedo_contrast`` whose component matches a disc template (:func:`cv2.matchTemplate`). It
    only adds: a protrusion that does not fluoresce is found by its relief alone.
-5. **Long raised areas** (:func:`_long_areas`). What a disc top-hat (grey opening wider than
-   ``max_width_um``) raises but ``t`` does not: strokes, crack lips. They become candidates so that
-   the ``ridge`` rule counts them.
+5. **Long raised areas** (:func:`_long_areas`). What a disc top-hat raises but ``t`` does not
+   (strokes, crack lips) become candidates, so that the ``ridge`` rule counts them.
 6. **Union** (:func:`_union`) and **rejection** (:func:`_candidate_features`,
-   :func:`_apply_rules`), by the rules of :data:`REJECTION_RULES`, first match wins.
+   :func:`_apply_rules`) by the table :data:`REJECTION_RULES`, first match wins; each rejected
+   candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
+   ``Detection.rejected``.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -74,7 +74,7 @@ REJECTION_RULES = (
                   "elongation > ridge_elongation, or axis ratio < ridge_axis_ratio with a major "
                   "axis >= ridge_min_length_um, or compact fraction < ridge_compact_fraction"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
-                  "top-hat over bridge_um) at least half as deep as it is high; hole fraction: "
+                  "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
                   "crack fraction > max_crack_fraction (a piece of a cupped island's rim or of a "
                   "stroke cut off by a crack), or hole fraction > max_hole_fraction (a crater's "
@@ -82,6 +82,10 @@ REJECTION_RULES = (
     RejectionRule("too_large", "equivalent diameter", "> max_width_um"),
     RejectionRule("flat_bright", "relief (um) of a candidate found by the albedo only; mean tilt",
                   "relief < relief threshold or tilt < 1 deg: bare primer"),
+    RejectionRule("artefact", "mismatch: mean |grad height - slope of the normals| / mean |slope "
+                  "of the normals| over the footprint (with normals only)",
+                  "> max_mismatch: relief the normals do not hold is an integration artefact "
+                  "(e.g. along a crack whose walls the lamps do not light)"),
     RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt",
                   "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
                   "the weave's RMS slope), or tilt < 1 deg"),
@@ -107,12 +111,16 @@ class DetectionParams:
     split_fraction : float
         Two touching peaks are separate protrusions when the saddle between them lies at least
         this fraction of the lower peak's relief below it.
+    crest_fraction : float
+        Over a footprint's local plane, touching peaks whose saddle lies less than this fraction
+        of the lower one's relief below it are one crest (a lip or a stroke cut into bumps).
     footprint_fraction : float
-        Footprint: pixels whose compact relief exceeds this fraction of the peak's.
+        Footprint: pixels whose relief (over the local plane, else the compact relief) exceeds
+        this fraction of the peak's.
     weave_factor : float
         Spectral peaks (periods between ``weave_min_period_um`` and ``weave_max_period_um``)
-        more than this many times the median power at their frequency are the weave, measured
-        and notched out of the height. 0 disables.
+        more than this many times the median power at their frequency are the weave, fitted as
+        sinusoids and subtracted from the height. 0 disables.
     weave_min_period_um, weave_max_period_um : float
         Period band searched for the weave.
     weave_slope_k : float
@@ -142,11 +150,13 @@ class DetectionParams:
     max_crack_fraction : float
         Largest fraction of the 2-px ring around a candidate that may lie in a crack at least
         half as deep as the candidate is high (a protrusion may touch a crack, not run along it).
+    max_mismatch : float
+        With normals: largest mean departure of the height's slope from the normals' over a
+        candidate, relative to the normals' mean slope (0 for a height integrated exactly).
     albedo_grow_um : float
         How far (um) the albedo outline may extend a height footprint.
-    bridge_um : float
-        Gaps narrower than this (crack grooves) do not cut a long structure into compact pieces
-        for the compact relief.
+    crack_width_um : float
+        Cracks are grooves narrower than this (the ``crack`` rule's black top-hat).
     """
 
     min_width_um: float = 30.0
@@ -155,6 +165,7 @@ class DetectionParams:
     min_dynamic_um: float = 1.0
     dynamic_k: float = 5.0
     split_fraction: float = 0.15
+    crest_fraction: float = 0.05
     footprint_fraction: float = 0.1
     weave_factor: float = 50.0
     weave_min_period_um: float = 150.0
@@ -170,8 +181,9 @@ class DetectionParams:
     ridge_compact_fraction: float = 0.5
     max_hole_fraction: float = 0.25
     max_crack_fraction: float = 0.08
+    max_mismatch: float = 0.5
     albedo_grow_um: float = 60.0
-    bridge_um: float = 90.0
+    crack_width_um: float = 90.0
 
 
 @dataclass
@@ -193,7 +205,7 @@ class Detection:
     diagnostics : dict
         Thresholds (``relief_um``, ``slope_min``, ``length_um``), the measurements they come from
         (``noise_smoothed_um``, ``weave_periods_um``, ``weave_rms_um``, ``weave_slope_rms``,
-        ``weave_bins_notched``), counts (``candidates``, ``height_candidates``,
+        ``weave_peaks``), counts (``candidates``, ``height_candidates``,
         ``albedo_only_candidates``, ``long_candidates``), ``rejection_rules`` (the table) and
         ``candidate_labels`` ((M, N) int32, every candidate before rejection) with
         ``candidate_reasons`` (per candidate, "" = kept), for overlays.
@@ -215,13 +227,14 @@ class WeaveEstimate:
     periods_um: list
     rms_um: float = 0.0
     slope_rms: float = 0.0
-    n_bins: int = 0
+    n_peaks: int = 0
 
 
 @dataclass
 class Surface:
     """The height prepared for the cues (see :func:`_surface`)."""
 
+    raw: np.ndarray             # the height with invalid pixels filled (um)
     height: np.ndarray          # smoothed, weave removed, invalid pixels filled (um)
     relief: np.ndarray          # compact relief t >= 0 (um)
     noise_um: float
@@ -290,28 +303,6 @@ def _noise_sigma(h: np.ndarray, valid: np.ndarray) -> float:
         return 0.0
     mad = np.median(np.abs(d - np.median(d)))
     return float(1.4826 * mad / math.sqrt(6.0))
-
-
-def _periodic_smooth(u: np.ndarray) -> tuple:
-    """Moisan's periodic + smooth decomposition ``u = p + s`` (J. Math. Imaging Vis. 39, 2011).
-
-    ``p`` has no jump across the image borders when repeated, so its FFT has no edge
-    artefacts; ``s`` is smooth (it carries the border jumps). Hand-written: no library has it.
-    """
-    m, n = u.shape
-    v = np.zeros((m, n), np.float64)
-    v[0, :] = u[-1, :] - u[0, :]
-    v[-1, :] = u[0, :] - u[-1, :]
-    v[:, 0] += u[:, -1] - u[:, 0]
-    v[:, -1] += u[:, 0] - u[:, -1]
-    cy = np.cos(2 * np.pi * np.arange(m) / m)[:, None]
-    cx = np.cos(2 * np.pi * np.fft.rfftfreq(n))[None, :]
-    den = 2 * cy + 2 * cx - 4
-    den[0, 0] = 1.0
-    sv = np.fft.rfft2(v) / den
-    sv[0, 0] = 0
-    smooth = np.fft.irfft2(sv, s=(m, n))
-    return u - smooth, smooth
 
 
 def _ring_median(power: np.ndarray, ring: np.ndarray, band: np.ndarray) -> np.ndarray:
@@ -389,7 +380,7 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
         periods.append(round(px / math.hypot(fy, fx), 1))
     gy, gx = np.gradient(comp, px)
     est = WeaveEstimate(periods_um=sorted(periods), rms_um=float(np.sqrt(np.mean(comp ** 2))),
-                        slope_rms=float(np.sqrt(np.mean(gx ** 2 + gy ** 2))), n_bins=int(k))
+                        slope_rms=float(np.sqrt(np.mean(gx ** 2 + gy ** 2))), n_peaks=int(k))
     return (hs - comp).astype(np.float32), est
 
 
@@ -401,26 +392,23 @@ def _block_max(img: np.ndarray, f: int) -> np.ndarray:
     return pad.reshape(mb, f, nb, f).max(axis=(1, 3))
 
 
-def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float, bridge_px: float) -> np.ndarray:
+def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float) -> np.ndarray:
     """Relief enclosed within ``length_px``: ``hn - min(hn, A)``, A the diameter opening.
 
     The diameter opening keeps every connected level set whose bounding box reaches
     ``length_px`` (Breen and Jones 1996, via :func:`skimage.morphology.diameter_opening`), so what
     remains above it is compact: protrusions, not strokes, lips or bow. It runs on f x f block
-    maxima (f so that ``length_px / f`` is ~24 px; cost ~0.2 s for 1600 x 1200 pixels), mirrored
-    by ``length_px`` at the borders (a stroke leaving the image stays long), closed first over
-    gaps of ``bridge_px`` (a crack cutting a lip or a stroke into pieces does not make them
-    compact), and repeated back to full size: a block maximum is never below the pixels it
-    covers, so long structures stay in ``A`` to the pixel and only compact ones lose it.
+    maxima (f so that ``length_px / f`` is ~16 px; cost ~0.5 s for 1600 x 1200 pixels), mirrored
+    by ``length_px`` at the borders (a stroke leaving the image stays long), and repeated back to
+    full size: a block maximum is never below the pixels it covers, so long structures stay in
+    ``A`` to the pixel and only compact ones lose it. (Closing cracks first, so that a crack does
+    not cut a lip or a stroke into compact pieces, also joins crowded protrusions into long
+    chains; the ``crack`` rule deals with such pieces instead.)
     """
-    f = max(1, int(length_px // 24))
+    f = max(1, int(length_px // 16))
     m, n = hn.shape
     pad = int(math.ceil(length_px / f))
     coarse = cv2.copyMakeBorder(_block_max(hn, f), pad, pad, pad, pad, cv2.BORDER_REFLECT)
-    k = 2 * int(math.ceil(bridge_px / (2 * f))) + 1
-    if k > 1:
-        coarse = cv2.morphologyEx(coarse, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8),
-                                  borderType=cv2.BORDER_REFLECT)
     opened = diameter_opening(coarse, diameter_threshold=pad)[pad:-pad, pad:-pad]
     up = np.repeat(np.repeat(opened, f, axis=0), f, axis=1)[:m, :n]
     t = (hn - np.minimum(hn, up)).astype(np.float32)
@@ -442,7 +430,7 @@ def _surface(h: np.ndarray, valid: np.ndarray, px: float, p: DetectionParams) ->
         hs, noise_s = h0, noise
     hn, weave = _remove_weave(hs, px, p)
     length = 1.3 * p.max_width_um / px + 2
-    return Surface(height=hn, relief=_compact_relief(hn, valid, length, p.bridge_um / px), noise_um=noise,
+    return Surface(raw=h0, height=hn, relief=_compact_relief(hn, valid, length), noise_um=noise,
                    noise_smoothed_um=noise_s, weave=weave, length_px=length)
 
 
@@ -607,7 +595,7 @@ def _refine_group(h, hl, markers, cur, usable, reach, ring_w, p: DetectionParams
         np.maximum.at(pk, mk[mk > 0], d[mk > 0])
         lvl = np.where(np.isfinite(pk), p.footprint_fraction * pk, np.inf)
         ws = watershed(-d, mk, mask=((d >= lvl[members].min()) & usable) | (mk > 0))
-        root = _merge_by_saddle(ws, d, pk, p.split_fraction)
+        root = _merge_by_saddle(ws, d, pk, p.crest_fraction)
         ws, pk = root[ws], _root_max(pk, root)
         lvl = np.where(np.isfinite(pk), p.footprint_fraction * pk, np.inf)
         new = _seeded(ws, (ws > 0) & (d >= lvl[ws]), root[mk])
@@ -764,16 +752,18 @@ def _long_areas(surf: Surface, valid, th: Thresholds, taken: np.ndarray) -> tupl
 def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarray,
            grow_px: float) -> tuple:
     """One label image of every candidate: height footprints (1..n_h) extended by the albedo
-    pixels within ``grow_px``, then albedo-only components, then long raised areas not touching
-    either. Returns (labels, n_albedo_only, n_long)."""
+    pixels within ``grow_px``, then the albedo components touching none of them, then long
+    raised areas touching neither. Returns (labels, n_albedo_only, n_long)."""
     near = expand_labels(hl, distance=grow_px) if n_h else hl
     lab = np.where(hl > 0, hl, np.where(mask_albedo, near, 0)).astype(np.int32)
-    acomp, na = ndi.label(mask_albedo & (lab == 0), structure=np.ones((3, 3)))
+    acomp, na = ndi.label(mask_albedo, structure=np.ones((3, 3)))
+    joined = np.unique(acomp[(lab > 0) & (acomp > 0)])   # what lies beyond grow_px is dropped
+    acomp, na = ndi.label(mask_albedo & ~np.isin(acomp, joined), structure=np.ones((3, 3)))
     if na:
         lab = np.where(acomp > 0, acomp + n_h, lab).astype(np.int32)
-    free = (long_lab > 0) & (lab == 0)
-    touch = np.unique(long_lab[(long_lab > 0) & ~free])
-    keep = free & ~np.isin(long_lab, touch)
+    taken = ndi.binary_dilation(lab > 0, structure=np.ones((3, 3)))
+    touch = np.unique(long_lab[(long_lab > 0) & taken])
+    keep = (long_lab > 0) & ~np.isin(long_lab, touch)
     lcomp, nl = ndi.label(keep, structure=np.ones((3, 3)))
     if nl:
         lab = np.where(lcomp > 0, lcomp + n_h + na, lab).astype(np.int32)
@@ -783,6 +773,20 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
 # --------------------------------------------------------------------------------------------
 # Rejection
 # --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Candidates:
+    """Every candidate of :func:`_candidates`, before rejection."""
+
+    labels: np.ndarray          # (M, N) int32: 1..n_h height, then albedo-only, then long areas
+    n_h: int
+    n_albedo: int
+    n_long: int
+    height: np.ndarray          # (M, N) int32 height footprints
+    height_relief: np.ndarray   # (n_h,) relief of each height footprint over its local plane
+    mask_albedo: np.ndarray     # (M, N) bool
+    t_disc: np.ndarray          # (M, N) disc top-hat of the height (um)
 
 
 @dataclass
@@ -798,40 +802,43 @@ class CandidateFeatures:
     axis_ratio: np.ndarray      # minor / major axis (1 when not computed)
     major: np.ndarray
     hole_fraction: np.ndarray
-    tilt_deg: np.ndarray        # mean tilt (inf without normals)
     has_h: np.ndarray           # a compact peak (height cue)
     has_a: np.ndarray           # >= 20 % of its pixels from the albedo cue
     crack_fraction: np.ndarray  # of its 2-px ring in a crack at least half as deep as it is high
+    tilt_deg: np.ndarray        # mean tilt of the normals (inf without normals)
+    mismatch: np.ndarray        # height's slope off the normals' / the normals' (0 without)
 
 
 def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
-    """Largest inscribed radius per label (px): distance transform inside each label, with the
-    lines between touching labels counted as outside."""
-    inner = lab > 0
-    for axis in (0, 1):
-        a = np.diff(lab, axis=axis) != 0
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (0, 1)
-        inner &= ~np.pad(a, pad)
-        pad[axis] = (1, 0)
-        inner &= ~np.pad(a, pad)
-    edt = ndi.distance_transform_edt(inner)
-    return np.maximum(_label_max(edt, lab, n), 0.0) + 0.5
+    """Largest inscribed radius per label (px): the largest distance from one of its pixels to
+    the nearest pixel outside it (touching labels count as outside)."""
+    r_in = _label_max(ndi.distance_transform_edt(lab > 0), lab, n)
+    touching = np.zeros(n + 1, bool)
+    for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1], lab[1:])):
+        sel = (a != b) & (a > 0) & (b > 0)
+        touching[a[sel]] = touching[b[sel]] = True
+    slices = ndi.find_objects(lab)
+    for i in np.flatnonzero(touching):
+        sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in slices[i - 1])
+        r_in[i - 1] = ndi.distance_transform_edt(np.pad(lab[sl] == i, 1)).max()
+    return np.maximum(r_in, 0.5)
 
 
 def _crack_fraction(lab: np.ndarray, hn: np.ndarray, relief: np.ndarray, n: int,
-                    bridge_px: float, floor_um: float) -> np.ndarray:
-    """Per label, the fraction of the 2-px ring around it lying in a crack at least half as
-    deep as the label is high: a black top-hat (closing by a disc ``bridge_px`` wide, minus the
-    height) of at least half its relief and ``floor_um``. A protrusion may touch a crack; a piece of a cupped
-    island's rim or of a stroke crossing it is cut off by one along a whole side."""
-    k = 2 * int(math.ceil(bridge_px / 2)) + 1
+                    crack_px: float, floor_um: float) -> np.ndarray:
+    """Per label, the fraction of the 2-px ring around it lying in a crack: a groove narrower
+    than ``crack_px`` (black top-hat: closing by that disc, minus the height) at least half as
+    deep as the label is high (and ``floor_um``), below the ring's mean height (a notch between
+    touching protrusions lies above it). A protrusion may touch a crack; a piece of a cupped
+    island's rim, or of a stroke crossing it, is cut off by one along a whole side."""
+    k = 2 * int(math.ceil(crack_px / 2)) + 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     depth = cv2.morphologyEx(hn, cv2.MORPH_CLOSE, se, borderType=cv2.BORDER_REFLECT) - hn
     ring = expand_labels(lab, distance=2) * (lab == 0)
-    rel = np.concatenate([[np.inf], np.maximum(0.5 * relief, floor_um)])
+    need = np.concatenate([[np.inf], np.maximum(0.5 * relief, floor_um)])
+    below = hn < np.concatenate([[-np.inf], _label_mean(hn, ring, n)])[ring]
     total = np.bincount(ring.ravel(), minlength=n + 1)[1:n + 1]
-    hit = np.bincount(ring[(ring > 0) & (depth >= rel[ring])], minlength=n + 1)[1:n + 1]
+    hit = np.bincount(ring[(ring > 0) & (depth >= need[ring]) & below], minlength=n + 1)[1:n + 1]
     return np.where(total > 0, hit / np.maximum(total, 1), 0.0)
 
 
@@ -850,10 +857,28 @@ def _hole_area(lab: np.ndarray, n: int) -> np.ndarray:
                        minlength=n + 1)[1:n + 1]
 
 
-def _candidate_features(lab, n_h, mask_albedo, surf: Surface, t_disc, plane_relief, normals,
-                        th: Thresholds, px: float, p: DetectionParams) -> CandidateFeatures:
-    """Measure every candidate of ``lab`` (height candidates are labels 1..n_h, whose relief is
-    the one over their local plane, ``plane_relief``)."""
+def _normals_features(normals, h, lab, n, px: float) -> tuple:
+    """Per label 1..n: the mean tilt of the normals (deg) and how far the height's slope departs
+    from the normals' (mean |grad h - (p, q)| / mean |(p, q)|, with p = -nx/nz, q = -ny/nz in the
+    frame of ``docs/architecture.md``). Without normals: inf and 0."""
+    if normals is None:
+        return np.full(n, np.inf), np.zeros(n)
+    nrm = np.asarray(normals, np.float64)
+    nz = np.clip(np.where(np.isfinite(nrm[..., 2]), nrm[..., 2], 1), -1, 1)
+    tilt = _label_mean(np.degrees(np.arccos(nz)), lab, n)
+    nz = np.maximum(nz, 0.05)
+    p = np.nan_to_num(-nrm[..., 0] / nz)
+    q = np.nan_to_num(-nrm[..., 1] / nz)
+    d_row, d_col = np.gradient(h.astype(np.float64), px)
+    off = np.hypot(d_col - p, -d_row - q)            # y is up: dz/dy = -dz/d(row)
+    slope = _label_mean(np.hypot(p, q), lab, n)
+    return tilt, _label_mean(off, lab, n) / np.maximum(slope, 1e-6)
+
+
+def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds, px: float,
+                        p: DetectionParams) -> CandidateFeatures:
+    """Measure every candidate (a height candidate's relief is the one over its local plane)."""
+    lab, n_h, t_disc = cand.labels, cand.n_h, cand.t_disc
     n_lab = int(lab.max())
     area_all = np.bincount(lab.ravel(), minlength=n_lab + 1)[1:]
     lbl = np.flatnonzero(area_all) + 1
@@ -863,14 +888,14 @@ def _candidate_features(lab, n_h, mask_albedo, surf: Surface, t_disc, plane_reli
     t = surf.relief
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     is_h = lbl <= n_h
-    relief[is_h] = plane_relief[lbl[is_h] - 1]
+    relief[is_h] = cand.height_relief[lbl[is_h] - 1]
     rel_all = np.zeros(n_lab)
     rel_all[lbl - 1] = relief
-    crack = _crack_fraction(lab, surf.height, rel_all, n_lab, p.bridge_um / px, th.relief_um)[lbl - 1]
+    crack = _crack_fraction(lab, surf.height, rel_all, n_lab, p.crack_width_um / px, th.relief_um)[lbl - 1]
     relief_disc = (_label_max(t_disc, lab, n_lab) - _label_mean(t_disc, ring, n_lab))[lbl - 1]
     elong = area / (np.pi * _inscribed_radius(lab, n_lab)[lbl - 1] ** 2)
     holes = _hole_area(lab, n_lab)[lbl - 1]
-    n_alb = np.bincount(lab[mask_albedo], minlength=n_lab + 1)[lbl]
+    n_alb = np.bincount(lab[cand.mask_albedo], minlength=n_lab + 1)[lbl]
     major = np.zeros(lbl.size)
     ratio = np.ones(lbl.size)
     need = (eqd >= th.min_w) & (eqd <= th.max_w) & (elong <= p.ridge_elongation)
@@ -882,16 +907,13 @@ def _candidate_features(lab, n_h, mask_albedo, surf: Surface, t_disc, plane_reli
         pos = np.searchsorted(lbl, props["label"])
         major[pos] = props["axis_major_length"]
         ratio[pos] = props["axis_minor_length"] / np.maximum(props["axis_major_length"], 1e-9)
-    tilt = np.full(lbl.size, np.inf)
-    if normals is not None:
-        nz = np.clip(np.asarray(normals, np.float64)[..., 2], -1, 1)
-        deg = np.degrees(np.arccos(np.where(np.isfinite(nz), nz, 1)))
-        tilt = _label_mean(deg, lab, n_lab)[lbl - 1]
+    tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px)
     return CandidateFeatures(lbl=lbl, area=area, eqd=eqd, relief=relief, relief_disc=relief_disc,
                              elongation=elong, axis_ratio=ratio, major=major,
-                             hole_fraction=holes / (area + holes), tilt_deg=tilt,
+                             hole_fraction=holes / (area + holes),
                              has_h=lbl <= n_h, has_a=n_alb >= np.maximum(1, 0.2 * area),
-                             crack_fraction=crack)
+                             crack_fraction=crack, tilt_deg=tilt[lbl - 1],
+                             mismatch=mismatch[lbl - 1])
 
 
 def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> np.ndarray:
@@ -906,6 +928,7 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
                  | (~f.has_h & (f.relief_disc >= th.relief_um) & (compact < p.ridge_compact_fraction)),
         "crack": (f.hole_fraction > p.max_hole_fraction) | (f.crack_fraction > p.max_crack_fraction),
         "too_large": f.eqd > th.max_w,
+        "artefact": f.mismatch > p.max_mismatch,
         "flat_bright": flat & f.has_a & ~f.has_h,
         "weave": flat | (slope < th.slope_min),
     }
@@ -964,8 +987,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     ----------
     Salvant J. et al., "Photometric stereo by UV-induced fluorescence to detect protrusions on
     Georgia O'Keeffe's paintings", Sec. "Automated Protrusion Detection" (the two masks and
-    their union). Moisan L., "Periodic plus smooth image decomposition", J. Math. Imaging Vis.
-    39 (2011) 161-179. Breen E. J., Jones R., "Attribute openings, thinnings, and
+    their union). Breen E. J., Jones R., "Attribute openings, thinnings, and
     granulometries", Comput. Vis. Image Underst. 64 (1996) 377-389.
 
     Examples
@@ -985,41 +1007,57 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     if mask is not None:
         valid &= np.asarray(mask, bool)
     rejected = {r: 0 for r in REJECTION_REASONS}
-    empty = np.zeros((m, n), bool)
+    none = np.zeros((m, n), np.int32)
     if valid.sum() < 16:
         _report(progress, 1.0, "done: no valid pixels")
-        return Detection(np.zeros((m, n), np.int32), np.zeros(0, "<U13"), empty, empty.copy(), rejected)
+        return Detection(none, np.zeros(0, "<U13"), none > 0, none > 0, rejected)
     _report(progress, 0.0, "height: noise, weave, compact relief")
     surf = _surface(h, valid, px, p)
     th = _thresholds(surf, px, p)
+    cand = _candidates(lum, valid, surf, th, px, p, progress)
+    diag = _diagnostics(surf, th, cand, px)
+    if cand.labels.max() == 0:
+        _report(progress, 1.0, "done: no candidates")
+        return Detection(none, np.zeros(0, "<U13"), cand.mask_albedo, cand.height > 0, rejected,
+                         surf.noise_um, diag)
+    _report(progress, 0.85, "rejection")
+    feats = _candidate_features(cand, surf, normals, th, px, p)
+    reason = _apply_rules(feats, th, px, p)
+    rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
+    labels, source = _finish(cand.labels, feats, reason, (m, n))
+    diag.update(candidates=int(feats.lbl.size), candidate_labels=cand.labels,
+                candidate_reasons=reason)
+    _report(progress, 1.0, "done")
+    logger.info("detect: %d protrusions (%d candidates), rejected %s, noise %.3g um",
+                int(labels.max()), feats.lbl.size, rejected, surf.noise_um)
+    return Detection(labels=labels, source=source, mask_albedo=cand.mask_albedo,
+                     mask_height=cand.height > 0, rejected=rejected, noise_um=surf.noise_um,
+                     diagnostics=diag)
+
+
+def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: DetectionParams,
+                progress: Progress) -> Candidates:
+    """The cues and their union (module docstring, steps 3-6)."""
     _report(progress, 0.3, "height cue")
     hl, markers, n_h = _height_cue(surf.relief, th, p)
-    hl, h_relief = _local_footprints(surf.height, hl, markers, surf.relief, valid, th, p) if n_h else (hl, np.zeros(0))
+    relief = np.zeros(0)
+    if n_h:
+        hl, relief = _local_footprints(surf.height, hl, markers, surf.relief, valid, th, p)
     _report(progress, 0.5, "albedo cue")
     mask_albedo = _albedo_cue(lum, valid, px, th, p)
     long_lab, t_disc = _long_areas(surf, valid, th, hl > 0)
     _report(progress, 0.7, "union")
     lab, n_a, n_l = _union(hl, n_h, mask_albedo, long_lab, max(2.0, p.albedo_grow_um / px))
-    diag = {"relief_um": th.relief_um, "dynamic_um": th.relief_um, "slope_min": th.slope_min,
-            "length_um": surf.length_px * px, "noise_smoothed_um": surf.noise_smoothed_um,
+    return Candidates(lab, n_h, n_a, n_l, hl, relief, mask_albedo, t_disc)
+
+
+def _diagnostics(surf: Surface, th: Thresholds, cand: Candidates, px: float) -> dict:
+    """The thresholds, what they were measured from, the counts and the rejection table."""
+    return {"relief_um": th.relief_um, "dynamic_um": th.relief_um, "slope_min": th.slope_min,
+            "length_um": surf.length_px * px, "noise_um": surf.noise_um,
+            "noise_smoothed_um": surf.noise_smoothed_um,
             "weave_periods_um": surf.weave.periods_um, "weave_rms_um": surf.weave.rms_um,
-            "weave_slope_rms": surf.weave.slope_rms, "weave_bins_notched": surf.weave.n_bins,
-            "height_candidates": int(n_h), "albedo_only_candidates": int(n_a),
-            "long_candidates": int(n_l), "candidates": 0,
+            "weave_slope_rms": surf.weave.slope_rms, "weave_peaks": surf.weave.n_peaks,
+            "height_candidates": int(cand.n_h), "albedo_only_candidates": int(cand.n_albedo),
+            "long_candidates": int(cand.n_long), "candidates": 0,
             "rejection_rules": [r._asdict() for r in REJECTION_RULES]}
-    if lab.max() == 0:
-        _report(progress, 1.0, "done: no candidates")
-        return Detection(np.zeros((m, n), np.int32), np.zeros(0, "<U13"), mask_albedo, hl > 0,
-                         rejected, surf.noise_um, diag)
-    _report(progress, 0.85, "rejection")
-    feats = _candidate_features(lab, n_h, mask_albedo, surf, t_disc, h_relief, normals, th, px, p)
-    reason = _apply_rules(feats, th, px, p)
-    for name in REJECTION_REASONS:
-        rejected[name] = int(np.sum(reason == name))
-    labels, source = _finish(lab, feats, reason, (m, n))
-    diag.update(candidates=int(feats.lbl.size), candidate_labels=lab, candidate_reasons=reason)
-    _report(progress, 1.0, "done")
-    logger.info("detect: %d protrusions (%d candidates), rejected %s, noise %.3g um",
-                int(labels.max()), feats.lbl.size, rejected, surf.noise_um)
-    return Detection(labels=labels, source=source, mask_albedo=mask_albedo, mask_height=hl > 0,
-                     rejected=rejected, noise_um=surf.noise_um, diagnostics=diag)
