@@ -7,6 +7,7 @@ command-line flags into the same dictionaries.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import time
@@ -22,7 +23,7 @@ log = logging.getLogger(__name__)
 
 _CAPTURE_KEYS = {"lights", "mask", "dark", "pixel_size_um", "linearize"}
 _OPTION_KEYS = {"degree", "robust", "integration", "refine_lights", "sample_pixels", "estimate_intensities",
-                "black_level", "offset", "offset_degree"}
+                "black_level", "offset", "offset_degree", "lamp_beams"}
 
 
 def _unknown(params, known, warnings):
@@ -49,7 +50,7 @@ def _options(params):
     kw = {k: params[k] for k in _OPTION_KEYS if params.get(k) is not None}
     if "degree" in kw:
         kw["degree"] = _as_int(kw["degree"], "degree")
-    for key in ("robust", "refine_lights", "estimate_intensities"):
+    for key in ("robust", "refine_lights", "estimate_intensities", "lamp_beams"):
         if key in kw:
             kw[key] = _as_bool(kw[key], key)
     if "offset_degree" in kw:
@@ -133,6 +134,8 @@ HEIGHT_UNCERTAINTY_REFUSE = 1.0
 
 def _lights_diag(lights):
     d = {"source": lights.source, "n_lights": int(len(lights.model.intensities))}
+    if lights.beam_rms is not None:
+        d["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
     if lights.estimate is not None:
         d["m_mm"] = lights.estimate.m_mm
         d["final_cost"] = lights.estimate.residual_history[-1]["cost"] if lights.estimate.residual_history else None
@@ -167,6 +170,8 @@ def _ps_core(capture, params, run_dir, tmp, runlog, progress, *, stages):
                                      progress=_sub(progress, 0.1, 0.45))
     runlog.time("lights", t0)
     runlog.diagnostics["lights"] = _lights_diag(lights)
+    if lights.images is not None:       # known positions: the images with the lamps' beams divided out
+        capture = dataclasses.replace(capture, images=lights.images)
     unc = lights.estimate.uncertainty if lights.estimate is not None else None
     if unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_REFUSE:
         # the lamps are not determined by these images: no heights rather than meaningless ones
@@ -397,6 +402,9 @@ def _capture_args(p, *, stages=True):
                         "measuring it from the images")
     p.add_argument("--offset", choices=["auto", "none"], default="auto",
                    help="additive term (black level, stray light): measured from the images (auto) or none")
+    p.add_argument("--lamp-beams", action="store_true",
+                   help="with --lights positions: divide out each lamp's beam (narrow or mis-aimed lamps); "
+                        "also removes the canvas's large-scale shape (bow) from the heights")
     p.add_argument("--offset-degree", type=int, choices=[0, 1, 2], default=0,
                    help="0: a constant black level; 1-2: also stray light varying smoothly across the field")
     p.add_argument("--estimate-intensities", action="store_true",
@@ -476,6 +484,7 @@ def _args_to_request(a):
                 params[k] = v
         params["refine_lights"] = not a.no_refine_lights
         params["estimate_intensities"] = a.estimate_intensities
+        params["lamp_beams"] = a.lamp_beams
     if c == "run":
         if a.regions:
             params["regions"] = a.regions

@@ -24,7 +24,8 @@ from .errors import UVPSInputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BlockGrid", "DropoffFit", "block_grid", "fit_dropoffs", "set_common", "flatfield"]
+__all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "fit_dropoffs", "fit_log_grid", "set_common",
+           "flatfield"]
 
 
 @dataclass
@@ -277,3 +278,67 @@ def flatfield(image, fit: DropoffFit, *, row0=0) -> np.ndarray:
     if image.ndim == 3:
         F = F[..., None]
     return (image / F).astype(np.float32)
+
+
+class GainCorrected:
+    """A stack seen with each image divided by a smooth gain map of its own, computed on access.
+
+    ``log gain_k(row, col) = sum_ij coeffs[k, i, j] P_i(v) P_j(u)`` (Legendre, rows and columns mapped
+    to [-1, 1] as in :class:`DropoffFit`). Used for known lamp positions: what each image's drop-off
+    holds beyond the point-light model (a lamp's beam, its aim) is divided out, so that the relative
+    irradiance of the lamps at every pixel is the model's; what all images share (a common beam
+    shape, vignetting) stays and is absorbed in the albedo. The stack is never copied. Supports the
+    stages' access patterns: ``[k]``, ``[k, rows, cols]``, ``[:, rows, cols]`` with slices or ints, and
+    ``[:, r, c]`` with two index arrays of one shape.
+    """
+
+    def __init__(self, images, coeffs):
+        self.base = images
+        self.coeffs = np.asarray(coeffs, dtype=float)
+        self.shape = images.shape
+        self.ndim = images.ndim
+        self.dtype = np.dtype(np.float32)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        for k in range(self.shape[0]):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        key = key + (slice(None),) * (3 - len(key))
+        out = np.asarray(self.base[key], dtype=np.float32)
+        K, M, N = self.shape[:3]
+        kk, rk, ck = key
+        ks, rows, cols = np.arange(K)[kk], np.arange(M)[rk], np.arange(N)[ck]
+        deg = self.coeffs.shape[1] - 1
+        C = self.coeffs[np.atleast_1d(ks)]
+        Vv = L.legvander(_to_unit(np.atleast_1d(rows), M), deg)
+        Vu = L.legvander(_to_unit(np.atleast_1d(cols), N), deg)
+        if np.ndim(rows) == 1 and np.ndim(cols) == 1 and not (isinstance(rk, slice) or isinstance(ck, slice)):
+            g = np.einsum("pi,kij,pj->kp", Vv, C, Vu)                  # scattered pixels
+        else:
+            g = np.einsum("ri,kij,cj->krc", Vv, C, Vu)                 # a rectangle
+            if np.ndim(cols) == 0:
+                g = g[:, :, 0]
+            if np.ndim(rows) == 0:
+                g = g[:, 0]
+        if np.ndim(ks) == 0:
+            g = g[0]
+        f = np.exp(-g).astype(np.float32)
+        return out * (f[..., None] if self.ndim == 4 else f)
+
+
+def fit_log_grid(values, rows, cols, shape, degree) -> np.ndarray:
+    """Legendre coefficients (K, n, n) of log maps ``values`` (K, R, C) given on a separable grid."""
+    Vv, Vu = _design(rows, cols, shape, degree)
+    n = degree + 1
+    A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
+    coef = np.linalg.lstsq(A, values.reshape(len(values), -1).T, rcond=None)[0]
+    return coef.T.reshape(len(values), n, n)

@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LightModel", "LightEstimate", "PixelSample", "azimuth_from_dropoff", "pixel_coordinates_mm",
     "estimate_lights", "intensities_from_levels", "sample_pixels", "photometric_residual",
-    "LightUncertainty", "light_uncertainty", "refine_intensities",
+    "LightUncertainty", "light_uncertainty", "refine_intensities", "ratio_samples",
 ]
 
 
@@ -180,7 +180,7 @@ def _flat_log_dropoff(Lk, X):
     return -1.5 * np.log(np.einsum("...i,...i->...", V, V))
 
 
-def _ratio_samples(fits, shape, n=24):
+def ratio_samples(fits, shape, n=24):
     """The albedo-free log ratio maps ``log(I_k / G)`` on an n x n grid, each centred to mean 0."""
     M, N = shape
     rows = np.linspace(0, M - 1, n)
@@ -363,7 +363,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         raise UVPSInputError(
             "no measurable light drop-off in any image (less than 0.5 % across the field): the lights "
             "cannot be estimated from the images; pass calibrated lights with --lights")
-    rows, cols, R = _ratio_samples(fits, shape)
+    rows, cols, R = ratio_samples(fits, shape)
     X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, pixel_size_um)
     history = []
     # start: azimuth from the polar resampling of each ratio map, elevation 40 degrees

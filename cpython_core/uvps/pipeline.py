@@ -17,11 +17,11 @@ import numpy as np
 
 from . import __version__
 from .errors import UVPSInputError
-from .flatfield import block_grid, fit_dropoffs, flatfield, set_common
+from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, flatfield, set_common
 from .integrate import integrate_normals
 from .io import Capture, sha256_file, write_imagej_tiff
-from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, refine_intensities,
-                     pixel_coordinates_mm, sample_pixels, _model_logs)
+from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
+                     ratio_samples, refine_intensities, sample_pixels, _model_logs)
 from .offset import OffsetImages, estimate_additive, known_additive
 from .outputs import Progress, report, write_json_atomic
 from .stereo import StereoResult
@@ -46,6 +46,7 @@ class RunOptions:
     black_level: Optional[object] = None  # known additive term in counts (one number or one per channel)
     offset: str = "auto"            # additive term: "auto" (measured from the images) or "none"
     offset_degree: int = 0          # 0: a constant black level; 1-2: also smooth stray light
+    lamp_beams: bool = False        # known positions: divide out each lamp's beam (and the canvas's bow)
 
     def __post_init__(self):
         if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
@@ -68,6 +69,8 @@ class LightsResult:
     fits: list
     source: str                          # "estimated", "positions" or "directions"
     estimate: Optional[LightEstimate] = None
+    images: Optional[object] = None      # the stack as the lights see it (known positions: beams divided out)
+    beam_rms: Optional[float] = None     # known positions: rms of the drop-off beyond the model (log units)
 
 
 @dataclass
@@ -194,6 +197,22 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(2000, 150000 // len(fits)))
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
+        # What each image's drop-off holds beyond the point-light model of the given positions (a
+        # lamp's beam, its aim): measured from the ratio maps and reported; with lamp_beams it is
+        # divided out (a narrow lamp aimed 5 deg off tilted every normal by 1-9 deg; divided out,
+        # 0.2 deg), leaving the lamps' relative irradiance at every pixel to the model. It cannot be
+        # told from the shading of the canvas's own large-scale shape (bow), which goes with it: off
+        # by default.
+        rows, cols, R = ratio_samples(fits, shape)
+        X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, px)
+        delta = R - _model_logs(P, X) + _model_logs(P, X).mean(axis=0)
+        delta -= delta.mean(axis=0)
+        beam_rms = float(np.sqrt(np.mean(delta ** 2)))
+        if options.lamp_beams:
+            gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
+            capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
+            grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
+            fits = fit_dropoffs(grid, degree=int(options.degree))
         set_common(fits, grid, common_of(P))
         E = capture.light_intensities   # given (median 1 like an estimate), else from the images
         if E is None or options.estimate_intensities:
@@ -203,7 +222,8 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
             sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
                                    pixel_size_um=px, n=min(n, 20000))
             E = refine_intensities(sample, P, E)
-        return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions")
+        return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
+                            images=capture.images if options.lamp_beams else None, beam_rms=beam_rms)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
         # Intensities: given, else equal (None); from the levels only when asked.
@@ -227,6 +247,8 @@ def write_lights(folder: Path, capture: Capture, lights: LightsResult, *, dropof
              "source": lights.source,
              "dropoff": [{"degree": f.degree, "legendre_coeffs": f.coeffs.tolist(), "level": f.level}
                          for f in lights.fits]}
+    if lights.beam_rms is not None:
+        extra["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
     if lights.estimate is not None:
         est = lights.estimate
         if est.uncertainty is not None:
