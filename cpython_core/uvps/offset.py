@@ -290,15 +290,17 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     for ch in range(C):
         I = blk[:, ch].reshape(K, -1)[:, ok.ravel()]
         theta = np.zeros(Phi.shape[1])
-        w = np.ones(I.shape[1])
         for it in range(n_iter):
             c = Phi @ theta
             J = I - c[None]
-            if np.any(J <= 0):
+            pos = np.all(J > 0, axis=0)
+            if pos.mean() < 0.5:
                 raise UVPSInputError(
-                    "the additive term (black level, stray light) cannot be measured: the darkest paint is "
-                    "at the pedestal in some image; give the black level (black_level) or a dark frame (dark)")
-            Lj = np.log(J)
+                    "the additive term (black level, stray light) cannot be measured: most of the paint is at "
+                    "the pedestal in some image; give the black level (black_level) or a dark frame (dark)")
+            # blocks at the pedestal under some lamp (a narrow beam's dark side) carry no ratio: left out
+            w = pos.astype(float)
+            Lj = np.log(np.where(pos[None], J, 1.0))
             r = Lj - Lj.mean(axis=0)
             smooth = r - hp(r)
             h = np.exp(-smooth)
@@ -310,7 +312,7 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
                 # blocks whose log ratios vary most are shaded relief (protrusions, ridges): their
                 # shading differs between lamps in a way that correlates with brightness; leave them out
                 e = np.sum(Pr ** 2, axis=0)
-                w = (e <= np.quantile(e, keep)).astype(float)
+                w *= e <= np.quantile(e[pos], keep)
             A *= np.sqrt(w)[None, :, None]
             Pr = Pr * np.sqrt(w)[None]
             # r(c + d) ~ r - z d: solve the normal equations for d
