@@ -1,0 +1,84 @@
+#!/usr/bin/env python3
+"""Time and accuracy of the light estimate against the number of lamps (issue 8: <= 10 s up to 64).
+
+Usage::
+
+    .venv/bin/python scripts/benchmark_lights.py [--lamps 8 16 32 64] [--shape 1200 1600] [--seed 3]
+                                                 [--out-md docs/benchmarks.md]
+
+Renders a grey synthetic capture per lamp count (``uvps.synthetic.make_capture``), runs the additive
+term and the light estimate exactly as ``uvps run`` does (``remove_additive``, ``estimate_capture_lights``)
+and prints, per lamp count: the time of each, the mean and max direction error against the truth,
+the heights' relative scale error (mean log tan-elevation ratio) and the reported height uncertainty.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+from uvps.io import Capture
+from uvps.pipeline import RunOptions, estimate_capture_lights, remove_additive
+from uvps.synthetic import make_capture
+
+
+def _machine():
+    cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
+    return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, load {os.getloadavg()[0]:.1f}"
+
+
+def run(K, shape, seed):
+    cap = make_capture(shape=tuple(shape), n_lights=K, seed=seed, rgb=False)
+    c = Capture(images=cap.images, files=[f"uv_{k:02d}.tif" for k in range(K)], pixel_size_um=15.0, mask=None,
+                saturation=65535.0, light_directions=None, light_positions_mm=None, bit_depth="uint16")
+    opt = RunOptions()
+    t0 = time.perf_counter()
+    c2, term, _ = remove_additive(c, options=opt)
+    t1 = time.perf_counter()
+    se = float(np.mean(term.stderr)) if term.stderr is not None and np.all(np.isfinite(term.stderr)) else None
+    lr = estimate_capture_lights(c2, options=opt, offset_stderr=se)
+    t2 = time.perf_counter()
+    P = cap.light_positions_mm
+    D = P / np.linalg.norm(P, axis=1, keepdims=True)
+    E = lr.model.directions
+    err = np.degrees(np.arccos(np.clip(np.sum(D * E, axis=1), -1, 1)))
+
+    def tane(v):
+        return v[:, 2] / np.hypot(v[:, 0], v[:, 1])
+
+    scale = float(np.exp(np.mean(np.log(tane(E) / tane(D)))))
+    return [K, f"{t1 - t0:.1f}", f"{t2 - t1:.1f}", f"{err.mean():.2f}", f"{err.max():.2f}",
+            f"{100 * abs(1 / scale - 1):.1f}", f"{100 * lr.estimate.uncertainty.height_rel:.1f}"]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--lamps", type=int, nargs="+", default=[8, 16, 32, 64])
+    ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600])
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--out-md")
+    a = ap.parse_args(argv)
+    head = ["lamps", "additive (s)", "lights (s)", "dir. err mean (deg)", "max (deg)", "height scale err (%)",
+            "reported height unc. (%)"]
+    rows = []
+    for K in a.lamps:
+        rows.append(run(K, a.shape, a.seed))
+        print(" | ".join(map(str, rows[-1])), flush=True)
+    table = "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+                      + ["| " + " | ".join(map(str, r)) + " |" for r in rows])
+    text = (f"\n## Light estimate against the number of lamps\n\n`{' '.join(['.venv/bin/python'] + sys.argv)}` "
+            f"({datetime.date.today()}, {_machine()}); grey {a.shape[1]} x {a.shape[0]} capture of 15 um, "
+            f"seed {a.seed}:\n\n{table}\n")
+    print(text)
+    if a.out_md:
+        with open(a.out_md, "a", encoding="utf-8") as fh:
+            fh.write(text)
+
+
+if __name__ == "__main__":
+    main()
