@@ -138,8 +138,9 @@ def _pct(v):
 
 
 def print_tables(results, args):
+    timed = "`uvps run` (s)" if args.pipeline else "detection (s)"
     print("| seed | true >= 60 um | detected | precision | recall | F1 | recall > 200 um (n) | "
-          "median abs width err | median width bias | time (s) |")
+          f"median abs width err | median width bias | {timed} |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         print(f"| {r['seed']} | {r['true']} | {r['detected']} | {r['precision']:.3f} | "

@@ -82,8 +82,8 @@ REJECTION_RULES = (
     RejectionRule("too_large", "equivalent diameter", "> max_width_um"),
     RejectionRule("flat_bright", "relief (um) of a candidate found by the albedo only; mean tilt",
                   "relief < relief threshold or tilt < 1 deg: bare primer"),
-    RejectionRule("artefact", "mismatch: mean |grad height - slope of the normals| / mean |slope "
-                  "of the normals| over the footprint (with normals only)",
+    RejectionRule("artefact", "mismatch: over the footprint, mean |e - mean e| / mean |g - mean g|, "
+                  "g the normals' slope, e the height's slope minus g (with normals only)",
                   "> max_mismatch: relief the normals do not hold is an integration artefact "
                   "(e.g. along a crack whose walls the lamps do not light)"),
     RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt",
@@ -152,7 +152,8 @@ class DetectionParams:
         half as deep as the candidate is high (a protrusion may touch a crack, not run along it).
     max_mismatch : float
         With normals: largest mean departure of the height's slope from the normals' over a
-        candidate, relative to the normals' mean slope (0 for a height integrated exactly).
+        candidate (a common tilt set aside), relative to the spread of the normals' slope over
+        it (0 for a height integrated exactly).
     albedo_grow_um : float
         How far (um) the albedo outline may extend a height footprint.
     crack_width_um : float
@@ -859,20 +860,25 @@ def _hole_area(lab: np.ndarray, n: int) -> np.ndarray:
 
 def _normals_features(normals, h, lab, n, px: float) -> tuple:
     """Per label 1..n: the mean tilt of the normals (deg) and how far the height's slope departs
-    from the normals' (mean |grad h - (p, q)| / mean |(p, q)|, with p = -nx/nz, q = -ny/nz in the
-    frame of ``docs/architecture.md``). Without normals: inf and 0."""
+    from the normals' (``p = -nx/nz``, ``q = -ny/nz`` in the frame of ``docs/architecture.md``),
+    a common tilt over the label set aside: mean |e - mean e| / mean |g - mean g|, ``e`` the
+    difference of the two slopes and ``g`` the normals' slope. Without normals: inf and 0."""
     if normals is None:
         return np.full(n, np.inf), np.zeros(n)
     nrm = np.asarray(normals, np.float64)
     nz = np.clip(np.where(np.isfinite(nrm[..., 2]), nrm[..., 2], 1), -1, 1)
     tilt = _label_mean(np.degrees(np.arccos(nz)), lab, n)
     nz = np.maximum(nz, 0.05)
-    p = np.nan_to_num(-nrm[..., 0] / nz)
-    q = np.nan_to_num(-nrm[..., 1] / nz)
+    g = (np.nan_to_num(-nrm[..., 0] / nz), np.nan_to_num(-nrm[..., 1] / nz))
     d_row, d_col = np.gradient(h.astype(np.float64), px)
-    off = np.hypot(d_col - p, -d_row - q)            # y is up: dz/dy = -dz/d(row)
-    slope = _label_mean(np.hypot(p, q), lab, n)
-    return tilt, _label_mean(off, lab, n) / np.maximum(slope, 1e-6)
+    e = (d_col - g[0], -d_row - g[1])                # y is up: dz/dy = -dz/d(row)
+
+    def spread(vx, vy):
+        mx = np.concatenate([[0.0], _label_mean(vx, lab, n)])[lab]
+        my = np.concatenate([[0.0], _label_mean(vy, lab, n)])[lab]
+        return _label_mean(np.hypot(vx - mx, vy - my), lab, n)
+
+    return tilt, spread(*e) / np.maximum(spread(*g), 1e-6)
 
 
 def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds, px: float,
