@@ -164,7 +164,8 @@ def print_tables(results, args):
             total[k] = total.get(k, 0) + int(v)
     print(f"\nrejected candidates (all seeds): {total}\n")
     targets = [("F1 >= 0.93 for protrusions >= 60 um", worst["f1"] >= 0.93, f"{worst['f1']:.3f}"),
-               ("recall >= 0.97 above 200 um", worst["recall_200"] >= 0.97, f"{worst['recall_200']:.3f}"),
+               ("recall >= 0.97 above 200 um", worst["recall_200"] >= 0.97,
+                f"{worst['recall_200']:.3f}"),
                ("widths within 10 % (median)", worst["width_err"] <= 0.10, _pct(worst["width_err"]))]
     print("| target (worst seed) | measured | met? |\n|---|---|---|")
     for name, met, value in targets:

@@ -277,7 +277,8 @@ def test_unseen_two_scale_weave_measured_and_not_detected():
     u = xx * np.cos(0.35) + yy * np.sin(0.35)
     v = -xx * np.sin(0.35) + yy * np.cos(0.35)
     k1, k2 = 2 * np.pi / 1100.0, 2 * np.pi / 210.0
-    h += (8.0 * np.sin(k1 * u) * np.sin(k1 * v) + 2.0 * np.sin(k2 * u + 1) * np.sin(k2 * v)).astype(np.float32)
+    weave = 8.0 * np.sin(k1 * u) * np.sin(k1 * v) + 2.0 * np.sin(k2 * u + 1) * np.sin(k2 * v)
+    h += weave.astype(np.float32)
     det = detect_protrusions(alb, h, pixel_size_um=px)
     assert det.labels.max() == 0
     # a sin x sin weave of period P has its spectral peaks at period P / sqrt(2)
@@ -299,7 +300,8 @@ def test_rejection_table_and_counts():
     alb, h = scene((200, 200), seed=15)
     add_profile(h, (60, 60), 200.0, px, 40.0, "dome")
     yy, xx = np.mgrid[:200, :200]
-    h += np.where(np.abs(xx - 150) < 6, 10.0 * np.cos(np.pi * (xx - 150) / 12) ** 2, 0).astype(np.float32)
+    stroke = np.where(np.abs(xx - 150) < 6, 10.0 * np.cos(np.pi * (xx - 150) / 12) ** 2, 0)
+    h += stroke.astype(np.float32)            # a brush stroke across the whole field
     det = detect_protrusions(alb, h, pixel_size_um=px)
     reasons = det.diagnostics["candidate_reasons"]
     assert det.labels.max() == 1 and det.labels[60, 60] == 1
