@@ -21,6 +21,7 @@ import numpy as np
 from numpy.polynomial import legendre as L
 
 from .errors import UVPSInputError
+from .io import StackView
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +281,7 @@ def flatfield(image, fit: DropoffFit, *, row0=0) -> np.ndarray:
     return (image / F).astype(np.float32)
 
 
-class GainCorrected:
+class GainCorrected(StackView):
     """A stack seen with each image divided by a smooth gain map of its own, computed on access.
 
     ``log gain_k(row, col) = sum_ij coeffs[k, i, j] P_i(v) P_j(u)`` (Legendre, rows and columns mapped
@@ -293,29 +294,11 @@ class GainCorrected:
     """
 
     def __init__(self, images, coeffs):
-        self.base = images
+        super().__init__(images)
         self.coeffs = np.asarray(coeffs, dtype=float)
-        self.shape = images.shape
-        self.ndim = images.ndim
-        self.dtype = np.dtype(np.float32)
 
-    def __len__(self):
-        return self.shape[0]
-
-    def __iter__(self):
-        for k in range(self.shape[0]):
-            yield self[k]
-
-    def __array__(self, dtype=None, copy=None):
-        out = self[:]
-        return out if dtype is None else out.astype(dtype)
-
-    def __getitem__(self, key):
-        key = key if isinstance(key, tuple) else (key,)
-        key = key + (slice(None),) * (3 - len(key))
-        out = np.asarray(self.base[key], dtype=np.float32)
+    def correct(self, out, kk, rk, ck):
         K, M, N = self.shape[:3]
-        kk, rk, ck = key
         ks, rows, cols = np.arange(K)[kk], np.arange(M)[rk], np.arange(N)[ck]
         deg = self.coeffs.shape[1] - 1
         C = self.coeffs[np.atleast_1d(ks)]

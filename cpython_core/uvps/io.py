@@ -97,6 +97,43 @@ class Capture:
     light_intensities: Optional[np.ndarray] = None
 
 
+class StackView:
+    """A capture's stack seen through a correction computed on access (the stack is never copied).
+
+    Subclasses implement :meth:`correct`: given the float32 values indexed by ``(k, rows, cols)``
+    (each an int, a slice or an index array, as the stages use them: ``[k]``, ``[k, rows, cols]``,
+    ``[:, rows, cols]``, ``[:, r, c]`` with two index arrays of one shape), return them corrected.
+    Views nest (a gain-corrected view of an offset-corrected one).
+    """
+
+    def __init__(self, images):
+        self.base = images
+        self.shape = images.shape
+        self.ndim = images.ndim
+        self.dtype = np.dtype(np.float32)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        for k in range(self.shape[0]):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        if len(key) > 3:
+            raise IndexError(f"{type(self).__name__} takes at most (image, row, col) indices")
+        key = key + (slice(None),) * (3 - len(key))
+        return self.correct(np.asarray(self.base[key], dtype=np.float32), *key)
+
+    def correct(self, values, kk, rk, ck):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
 @dataclass
 class LightFile:
     """An RTI ``.lp`` light file: one unit direction (and optionally an intensity) per image file."""

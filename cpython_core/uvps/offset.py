@@ -42,6 +42,7 @@ import numpy as np
 from numpy.polynomial import legendre as Lg
 
 from .errors import UVPSInputError
+from .io import StackView
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ class AdditiveTerm:
         return out
 
 
-class OffsetImages:
+class OffsetImages(StackView):
     """A capture's stack seen with its additive term removed, computed on access.
 
     Indexing returns float32 ``images[key] - c`` for the pixels indexed; the stack itself is never
@@ -143,31 +144,11 @@ class OffsetImages:
     """
 
     def __init__(self, images, term: "AdditiveTerm"):
-        self.base = images
+        super().__init__(images)
         self.term = term
-        self.shape = images.shape
-        self.ndim = images.ndim
-        self.dtype = np.dtype(np.float32)
 
-    def __len__(self):
-        return self.shape[0]
-
-    def __iter__(self):
-        for k in range(self.shape[0]):
-            yield self[k]
-
-    def __array__(self, dtype=None, copy=None):
-        out = self[:]
-        return out if dtype is None else out.astype(dtype)
-
-    def __getitem__(self, key):
-        key = key if isinstance(key, tuple) else (key,)
-        key = key + (slice(None),) * (3 - len(key))
-        if len(key) > 3:
-            raise IndexError("OffsetImages takes at most (image, row, col) indices")
-        out = np.asarray(self.base[key], dtype=np.float32)
+    def correct(self, out, kk, rk, ck):
         M, N = self.shape[1:3]
-        rk, ck = key[1], key[2]
         colour = self.ndim == 4
         if self.term.coeffs.shape[1] == 1:   # a constant per channel: no coordinates needed
             c = self.term.coeffs[:, 0, 0].astype(np.float32)
