@@ -126,3 +126,24 @@ def test_tiny_images_use_smaller_blocks():
     term = estimate_additive(cap.images, saturation=65535)
     assert term.diagnostics["block_px"] < 16
     assert np.all(np.isfinite(term.stderr)) and np.all(term.stderr > 0)
+
+
+def test_a_negative_measure_is_not_added_back(small):
+    """A pedestal is never negative: an image lowered by 100 counts everywhere (clipped nowhere)
+    measures about -100, which is reported and not subtracted."""
+    clean, _ = small
+    lowered = clean.images.astype(np.float32) - 100.0
+    cap, term, warnings = remove_additive(_capture(lowered), options=RunOptions())
+    assert term.mean.mean() < -50 and term.diagnostics["used"] is False
+    assert cap.images is lowered and warnings == []
+
+
+def test_too_few_usable_blocks_is_not_measurable_and_does_not_stop_the_run(small):
+    """Every block saturated in some image: nothing to measure by; the run goes on (known lights do not
+    need the term) and, with lamps to estimate, says so once."""
+    clean, _ = small
+    images = clean.images.copy()
+    images[0, :, ::8] = 65535                       # a saturated column in every block of image 0
+    cap, term, warnings = remove_additive(_capture(images), options=RunOptions())
+    assert cap.images is images and term.is_zero and "not measurable" in term.diagnostics["note"]
+    assert len(warnings) == 1 and "could not be measured" in warnings[0]

@@ -128,7 +128,7 @@ class AdditiveTerm:
         if self.coeffs.shape[1] > 1:
             out["legendre_coeffs"] = self.coeffs.tolist()
         if self.stderr is not None:
-            out["stderr_counts"] = [round(float(v), 3) for v in self.stderr]
+            out["stderr_counts"] = [round(float(v), 3) if np.isfinite(v) else None for v in self.stderr]
         out.update(self.diagnostics)
         return out
 
@@ -250,8 +250,12 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     C = blk.shape[1]
     n_ok = int(ok.sum())
     if n_ok < 4 * (dropoff_degree + 1) ** 2:
-        raise UVPSInputError(f"only {n_ok} blocks of {block} px are lit and unsaturated in every image: too few "
-                             "to measure the black level; give it (black_level) or a dark frame (dark)")
+        # too few blocks lit and unsaturated in every image (deep shadows, highlights): not measurable,
+        # which is no reason to stop a run (known lights do not need it); the run says so
+        return AdditiveTerm(np.zeros((C, degree + 1, degree + 1)), "estimated", (M, N), np.full(C, np.nan),
+                            float("nan"), {"blocks": n_ok, "block_px": block,
+                                           "note": f"not measurable: only {n_ok} blocks lit and unsaturated "
+                                                   "in every image"})
     Vv = Lg.legvander(_unit(rows, M), dropoff_degree)
     Vu = Lg.legvander(_unit(cols, N), dropoff_degree)
     B = np.einsum("ri,cj->rcij", Vv, Vu).reshape(len(rows) * len(cols), -1)[ok.ravel()]

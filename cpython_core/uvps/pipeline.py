@@ -148,7 +148,20 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
             f"{100 * frac:.0f} % of the median signal; check the exposure, the black level or the dark frame")
     if term.stderr is not None and not np.isfinite(term.stderr).all():
         term.diagnostics["used"] = False
-    elif term.stderr is not None:
+        if capture.light_positions_mm is None and capture.light_directions is None:   # lamps to estimate
+            warnings.append(f"the black level could not be measured ({term.diagnostics.get('note', '')}); "
+                            "estimated lamp elevations and heights may be off; give the camera's black level "
+                            "or a dark frame")
+        return capture, term, warnings
+    if term.stderr is not None and float(term.mean.mean()) <= 0:
+        # a pedestal or stray light is never negative: a negative measure is the model's error
+        # (e.g. a JPEG's tone curve), not something to add back
+        term.diagnostics["used"] = False
+        term.diagnostics["note"] = "negative: not subtracted"
+        return capture, term, warnings
+    if term.stderr is not None:
+        term.diagnostics["measured_counts"] = [round(float(v), 3) for v in term.mean]
+        term.coeffs[:, 0, 0] = np.maximum(term.coeffs[:, 0, 0], 0.0)   # per channel, likewise
         se = float(np.sqrt(np.mean(term.stderr ** 2)))
         if abs(float(term.mean.mean())) < SIGNIFICANT * se:
             # consistent with no offset: subtracting it would only add its noise (a clean capture is
