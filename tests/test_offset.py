@@ -147,3 +147,17 @@ def test_too_few_usable_blocks_is_not_measurable_and_does_not_stop_the_run(small
     cap, term, warnings = remove_additive(_capture(images), options=RunOptions())
     assert cap.images is images and term.is_zero and "not measurable" in term.diagnostics["note"]
     assert len(warnings) == 1 and "could not be measured" in warnings[0]
+
+
+def test_a_masked_object_on_black_is_not_taken_for_pedestal(small):
+    """Half the field black and masked out (an object on a black ground): the median signal is taken
+    inside the mask, and an unmeasurable term is no reason to call the images pedestal."""
+    clean, _ = small
+    images = clean.images.copy()
+    images[:, :, 400:] = 0
+    mask = np.zeros(images.shape[1:3], bool)
+    mask[:, :400] = True
+    cap = _capture(images)
+    cap.mask = mask
+    out, term, _ = remove_additive(cap, options=RunOptions())
+    assert term.median_signal > 1000

@@ -435,14 +435,15 @@ def _ratio_resid(P, R, X):
     return (h - h.mean(axis=0) - R).ravel()
 
 
-def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, factor=1.0):
+def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, factor=1.0, intensities_only=False):
     """Photometric residual and its Jacobian in (P / scale, log E), by variable projection.
 
     The Jacobian is exact (Golub and Pereyra): the derivative of the residual with the per-pixel
     ``b`` held fixed, projected on the orthogonal complement of each pixel's light matrix (Kaufman's
     approximation), plus the change of ``b`` driven by the residual itself. Written out here because no library does variable projection with per-pixel 3-vectors; it turns each
     iteration of ``least_squares`` from 4K + 1 residual evaluations into one. ``out`` (K * P, 4K),
-    if given, receives the Jacobian times ``factor``.
+    if given, receives the Jacobian times ``factor``. ``intensities_only``: the (K * P, K) columns of
+    log E alone (known positions).
     """
     K = len(P)
     model = LightModel.from_positions(P, E)
@@ -453,11 +454,12 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
     mu = sample.I.mean(axis=0)
     rk = (sample.I - np.einsum("kpi,pi->kp", V, b)) / mu   # (K, Pn)
     r = rk.ravel()
-    J = (np.empty((r.size, 4 * K)) if out is None else out).reshape(K, r.size // K, 4 * K)
+    per = 1 if intensities_only else 4
+    J = (np.empty((r.size, per * K)) if out is None else out).reshape(K, r.size // K, per * K)
     h = 1e-6 * scale
     for k in range(K):
         cols = []
-        for j in range(3):
+        for j in range(0 if intensities_only else 3):
             Lp = P[k].copy()
             Lp[j] += h
             Vk = LightModel.from_positions(Lp[None], E[k:k + 1]).vectors(sample.X)[0]
@@ -471,8 +473,8 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
             c = np.einsum("pij,pj->pi", Ainv, V[k] * d[:, None] + dV * rk[k][:, None])
             col = -np.einsum("kpi,pi->kp", V, c)
             col[k] += d
-            J[:, :, 4 * k + j] = col * factor if factor != 1.0 else col
-    return r, J.reshape(r.size, 4 * K)
+            J[:, :, per * k + (per - 1 if intensities_only else j)] = col * factor if factor != 1.0 else col
+    return r, J.reshape(r.size, per * K)
 
 
 def _level(sample: PixelSample, model: LightModel, history) -> LightModel:
@@ -782,9 +784,9 @@ def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> n
         return np.concatenate([r / np.sqrt(n), [np.mean(logE)]])
 
     def jac(logE):
-        _, Jfull = _vp_residual_and_jacobian(sample, P, np.exp(logE), scale)
-        J = np.zeros((n + 1, K))
-        J[:n] = Jfull[:, 3::4] / np.sqrt(n)
+        J = np.empty((n + 1, K))
+        _vp_residual_and_jacobian(sample, P, np.exp(logE), scale, out=J[:n], factor=1.0 / np.sqrt(n),
+                                  intensities_only=True)
         J[-1] = 1.0 / K
         return J
 

@@ -41,8 +41,8 @@ class RunOptions:
     integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
     refine_lights: bool = True      # per-light refinement after the equidistant solution
     sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)
-    estimate_intensities: bool = False  # known lights: intensities from the images' levels (as if the
-    #                                     surface were flat), even over the light file's own
+    estimate_intensities: bool = False  # known lights: intensities from the images even over the light
+    #                                     file's own (positions: photometric residual; directions: levels)
     black_level: Optional[object] = None  # known additive term in counts (one number or one per channel)
     offset: str = "auto"            # additive term: "auto" (measured from the images) or "none"
     offset_degree: int = 0          # 0: a constant black level; 1-2: also smooth stray light
@@ -140,9 +140,12 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
                                  degree=int(options.offset_degree), dropoff_degree=int(options.degree))
     if not np.isfinite(term.median_signal):
         k = np.linspace(0, images.shape[0] - 1, min(4, images.shape[0])).astype(int)
-        term.median_signal = float(np.median(np.asarray(images[k, ::8, ::8], dtype=np.float32))) - float(term.mean.mean())
+        sub = np.asarray(images[k, ::8, ::8], dtype=np.float32)
+        if capture.mask is not None:                  # a masked object: its background is no signal
+            sub = sub[:, capture.mask[::8, ::8]]
+        term.median_signal = float(np.median(sub)) - float(term.mean.mean())
     frac = float(term.mean.mean()) / max(term.median_signal, 1e-12)
-    if term.median_signal <= 0 or frac > OFFSET_MAX:
+    if not term.is_zero and (term.median_signal <= 0 or frac > OFFSET_MAX):
         raise UVPSInputError(
             f"the images are mostly pedestal: the additive term ({term.source}, {term.mean.mean():.1f} counts) is "
             f"{100 * frac:.0f} % of the median signal; check the exposure, the black level or the dark frame")
@@ -218,7 +221,8 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         # by default.
         rows, cols, R = ratio_samples(fits, shape)
         X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, px)
-        delta = R - _model_logs(P, X) + _model_logs(P, X).mean(axis=0)
+        h = _model_logs(P, X)
+        delta = R - h + h.mean(axis=0)
         delta -= delta.mean(axis=0)
         beam_rms = float(np.sqrt(np.mean(delta ** 2)))
         if options.lamp_beams:
