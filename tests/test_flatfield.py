@@ -55,16 +55,14 @@ def test_set_common_completes_the_maps_normalised_to_mean_one():
         assert np.abs(F / truth - 1).max() < 3e-3
 
 
-def test_flatfield_divides_by_the_map_rgb_and_bands():
+def test_flatfield_divides_by_the_map_rgb():
     images, C = _capture(seed=2, K=3)
     grid = block_grid(images)
     fits = fit_dropoffs(grid, degree=DEG)
     rgb = np.stack([images[0], 0.5 * images[0], 0.1 * images[0]], axis=-1)
     full = flatfield(rgb, fits[0])
-    band = flatfield(rgb[100:150], fits[0], row0=100)
     F = fits[0].evaluate()
     np.testing.assert_allclose(full[..., 1], rgb[..., 1] / F, rtol=1e-5)
-    np.testing.assert_allclose(band, full[100:150], rtol=1e-6)
     assert full.dtype == np.float32
 
 

@@ -26,7 +26,7 @@ from .io import StackView
 log = logging.getLogger(__name__)
 
 __all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "fit_dropoffs", "fit_log_grid", "set_common",
-           "flatfield"]
+           "flatfield", "to_unit"]
 
 
 @dataclass
@@ -77,8 +77,8 @@ class DropoffFit:
         M, N = self.shape
         rows = np.arange(M) if rows is None else np.asarray(rows, dtype=float)
         cols = np.arange(N) if cols is None else np.asarray(cols, dtype=float)
-        v = _to_unit(rows, M)
-        u = _to_unit(cols, N)
+        v = to_unit(rows, M)
+        u = to_unit(cols, N)
         Vv = L.legvander(v, self.degree)
         Vu = L.legvander(u, self.degree)
         return self.clamp(Vv @ self.coeffs @ Vu.T)
@@ -93,8 +93,8 @@ class DropoffFit:
         return np.exp(self.log_evaluate(rows, cols))
 
 
-def _to_unit(coord, size):
-    """Pixel coordinate 0..size-1 -> [-1, 1]."""
+def to_unit(coord, size):
+    """Map pixel coordinates 0 .. size - 1 to [-1, 1], the domain of the Legendre fits."""
     return (2.0 * np.asarray(coord, dtype=float) - (size - 1)) / max(size - 1, 1)
 
 
@@ -143,7 +143,7 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
 def _design(rows, cols, shape, degree):
     """Legendre design matrices (rows, cols) on the unit square."""
     M, N = shape
-    return L.legvander(_to_unit(rows, M), degree), L.legvander(_to_unit(cols, N), degree)
+    return L.legvander(to_unit(rows, M), degree), L.legvander(to_unit(cols, N), degree)
 
 
 def _irls(A, y, n_iter):
@@ -259,22 +259,21 @@ def set_common(fits, grid: BlockGrid, log_common) -> None:
     _set_levels(fits, grid)
 
 
-def flatfield(image, fit: DropoffFit, *, row0=0) -> np.ndarray:
-    """Divide an image (or a band of rows starting at ``row0``) by its drop-off map.
+def flatfield(image, fit: DropoffFit) -> np.ndarray:
+    """Divide an image by its drop-off map.
 
     Parameters
     ----------
-    image : ndarray, (m, N) or (m, N, C)
-        Linear intensities (rows ``row0 .. row0 + m`` of the full image).
+    image : ndarray, (M, N) or (M, N, C)
+        Linear intensities.
     fit : DropoffFit
-    row0 : int
 
     Returns
     -------
     ndarray, float32
         ``image / F``: the image as if the lamp lit the whole field as it lights the average point.
     """
-    rows = np.arange(row0, row0 + image.shape[0])
+    rows = np.arange(image.shape[0])
     F = fit.evaluate(rows=rows).astype(np.float32)
     if image.ndim == 3:
         F = F[..., None]
@@ -302,8 +301,8 @@ class GainCorrected(StackView):
         ks, rows, cols = np.arange(K)[kk], np.arange(M)[rk], np.arange(N)[ck]
         deg = self.coeffs.shape[1] - 1
         C = self.coeffs[np.atleast_1d(ks)]
-        Vv = L.legvander(_to_unit(np.atleast_1d(rows), M), deg)
-        Vu = L.legvander(_to_unit(np.atleast_1d(cols), N), deg)
+        Vv = L.legvander(to_unit(np.atleast_1d(rows), M), deg)
+        Vu = L.legvander(to_unit(np.atleast_1d(cols), N), deg)
         if np.ndim(rows) == 1 and np.ndim(cols) == 1 and not (isinstance(rk, slice) or isinstance(ck, slice)):
             g = np.einsum("pi,kij,pj->kp", Vv, C, Vu)                  # scattered pixels
         else:
