@@ -4,8 +4,8 @@ import pytest
 
 from uvps.errors import UVPSInputError
 from uvps.flatfield import block_grid, fit_dropoffs, set_common
-from uvps.lights import (LightModel, azimuth_from_dropoff, estimate_lights, pixel_coordinates_mm,
-                         sample_pixels, _model_logs)
+from uvps.lights import (LightModel, azimuth_from_dropoff, estimate_lights, model_logs,
+                         pixel_coordinates_mm, sample_pixels)
 from uvps.synthetic import make_capture, render_images
 
 PX = 15.0
@@ -32,7 +32,7 @@ def test_polar_azimuth_of_a_light_of_known_azimuth(az):
     grid = block_grid(images)
     fits = fit_dropoffs(grid, degree=3)
     shape = grid.shape
-    set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
+    set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
         np.asarray(r)[:, None], np.asarray(c)[None, :], shape, PX)).mean(axis=0))
     got = azimuth_from_dropoff(fits[0])
     assert abs((got - az + 180) % 360 - 180) < 1.0

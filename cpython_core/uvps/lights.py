@@ -33,11 +33,13 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
+from numpy.polynomial import legendre as Lg
 from scipy.optimize import least_squares
+from scipy.sparse import block_diag
 from skimage.transform import warp_polar
 
 from .errors import UVPSComputeError, UVPSInputError
-from .flatfield import BlockGrid, DropoffFit
+from .flatfield import BlockGrid, DropoffFit, set_common, to_unit
 from .outputs import Progress, report
 
 log = logging.getLogger(__name__)
@@ -45,7 +47,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LightModel", "LightEstimate", "PixelSample", "azimuth_from_dropoff", "pixel_coordinates_mm",
     "estimate_lights", "intensities_from_levels", "sample_pixels", "photometric_residual",
-    "LightUncertainty", "light_uncertainty", "refine_intensities", "ratio_samples",
+    "LightUncertainty", "light_uncertainty", "refine_intensities", "ratio_samples", "model_logs",
 ]
 
 
@@ -185,16 +187,13 @@ def ratio_samples(fits, shape, n=24):
     M, N = shape
     rows = np.linspace(0, M - 1, n)
     cols = np.linspace(0, N - 1, n)
-    from numpy.polynomial import legendre as Lg
-    from .flatfield import _to_unit
-
-    Vv = Lg.legvander(_to_unit(rows, M), fits[0].degree)
-    Vu = Lg.legvander(_to_unit(cols, N), fits[0].degree)
+    Vv = Lg.legvander(to_unit(rows, M), fits[0].degree)
+    Vu = Lg.legvander(to_unit(cols, N), fits[0].degree)
     R = np.stack([Vv @ f.ratio_coeffs @ Vu.T for f in fits])
     return rows, cols, R - R.mean(axis=(1, 2), keepdims=True)
 
 
-def _model_logs(P, X):
+def model_logs(P, X):
     """Model log drop-offs of all lights on the flat canvas, each centred: (K, ...)."""
     h = np.stack([_flat_log_dropoff(Lk, X) for Lk in P])
     return h - h.mean(axis=tuple(range(1, h.ndim)), keepdims=True)
@@ -208,8 +207,6 @@ def _equidistant_positions(R, X, m, start, n_outer=3):
     problem (each light's residuals depend on its own two angles only). A few alternations converge,
     the mean being small for lights spread around the region.
     """
-    from scipy.sparse import block_diag
-
     K = len(start)
     P = np.asarray(start, dtype=float)
     az = np.arctan2(P[:, 1], P[:, 0])
@@ -224,10 +221,10 @@ def _equidistant_positions(R, X, m, start, n_outer=3):
     lb = np.ravel(np.column_stack([az - np.pi, np.full(K, np.radians(2))]))
     ub = np.ravel(np.column_stack([az + np.pi, np.full(K, np.radians(89.5))]))
     for _ in range(n_outer):
-        target = (R + _model_logs(positions(t), X).mean(axis=0)).reshape(K, -1)
+        target = (R + model_logs(positions(t), X).mean(axis=0)).reshape(K, -1)
 
         def resid(tt):
-            return (_model_logs(positions(tt), X).reshape(K, -1) - target).ravel()
+            return (model_logs(positions(tt), X).reshape(K, -1) - target).ravel()
 
         t = least_squares(resid, np.clip(t, lb + 1e-9, ub - 1e-9), bounds=(lb, ub), jac_sparsity=sparsity,
                           x_scale=0.1).x
@@ -290,12 +287,9 @@ def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=
 
 def _eval_points(fit: DropoffFit, r, c):
     """log F at scattered points (r[i], c[i])."""
-    from numpy.polynomial import legendre as Lg
-    from .flatfield import _to_unit
-
     M, N = fit.shape
-    Vv = Lg.legvander(_to_unit(r, M), fit.degree)
-    Vu = Lg.legvander(_to_unit(c, N), fit.degree)
+    Vv = Lg.legvander(to_unit(r, M), fit.degree)
+    Vu = Lg.legvander(to_unit(c, N), fit.degree)
     return fit.clamp(np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu))
 
 
@@ -354,8 +348,6 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     ``L_k`` and ``E_k`` with the drop-off misfit as a prior, first on 5000 pixels and then on the
     whole sample, each to convergence.
     """
-    from .flatfield import set_common
-
     shape = grid.shape
     K = len(fits)
     weak = [k for k, f in enumerate(fits) if f.gradient_rms * max(shape) < 0.005]
@@ -379,7 +371,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         if key not in cache:
             near = min(cache, key=lambda q: abs(np.log(q / m))) if cache else None
             P = _equidistant_positions(R, X, m, cache[near].positions_mm if near else start)
-            set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
+            set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
                 np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
             E = intensities_from_levels([f.level for f in fits], P, shape, pixel_size_um)
             cache[key] = LightModel.from_positions(P, E)
@@ -388,7 +380,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     def cost(m):
         model = equidistant(m)
         if sample is None:
-            r = (_model_logs(model.positions_mm, X) - (R + _model_logs(model.positions_mm, X).mean(axis=0))).ravel()
+            r = (model_logs(model.positions_mm, X) - (R + model_logs(model.positions_mm, X).mean(axis=0))).ravel()
         else:
             r = photometric_residual(scan_sample, model)
         c = float(np.mean(r ** 2))
@@ -419,7 +411,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         if refine:
             unc = light_uncertainty(sample, model, R, X, offset_stderr=offset_stderr)
     P = model.positions_mm
-    set_common(fits, grid, lambda r, c: _model_logs(P, pixel_coordinates_mm(
+    set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
         np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
     az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
     report(progress, 1.0, "lights: done")
@@ -431,7 +423,7 @@ _GRAZING_DEG = 3.0  # equidistant elevations fit within [2, 89.5] deg
 
 
 def _ratio_resid(P, R, X):
-    h = _model_logs(P, X)
+    h = model_logs(P, X)
     return (h - h.mean(axis=0) - R).ravel()
 
 
@@ -549,13 +541,13 @@ def _drop_jacobian(th, R, X, scale, h=1e-6):
     """
     K = len(th)
     P = _lamp_positions(th)
-    g = _model_logs(P, X)                                   # (K, ...) centred per lamp
+    g = model_logs(P, X)                                   # (K, ...) centred per lamp
     J = np.zeros((K,) + g.shape[1:] + (4 * K,))
     for k in range(K):
         for j in range(3):                                  # the intensity does not enter the shape
             tk = th[k:k + 1].copy()
             tk[0, j] += h
-            dg = (_model_logs(_lamp_positions(tk), X)[0] - g[k]) / h
+            dg = (model_logs(_lamp_positions(tk), X)[0] - g[k]) / h
             J[..., 4 * k + j] -= dg[None] / K
             J[k, ..., 4 * k + j] += dg
     return scale * J.reshape(-1, 4 * K)
@@ -793,3 +785,7 @@ def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> n
     sol = least_squares(fun, np.log(E0) - np.mean(np.log(E0)), jac=jac, method="lm", x_scale="jac")
     E = np.exp(sol.x)
     return E / np.median(E)
+
+
+# Kept until pipeline.py imports the public name; then delete it.
+_model_logs = model_logs
