@@ -27,7 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
 
+import cv2
+import imageio.v3 as iio
 import numpy as np
+import tifffile
 
 from .errors import UVPSInputError
 from .outputs import Progress, atomic_path, report
@@ -295,8 +298,6 @@ def _read_image_px(path: PathLike) -> tuple:
     px = None
     try:
         if kind == "tiff":
-            import tifffile
-
             with tifffile.TiffFile(path) as tif:
                 series = tif.series[0]
                 arr = series.asarray()
@@ -306,8 +307,6 @@ def _read_image_px(path: PathLike) -> tuple:
                 ):
                     arr = np.moveaxis(arr, 0, -1)  # planar RGB -> channels last
         elif kind == "png":
-            import cv2
-
             # OpenCV keeps 16-bit colour PNGs (Pillow would reduce them to 8 bits).
             buf = np.fromfile(path, dtype=np.uint8)
             arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
@@ -316,8 +315,6 @@ def _read_image_px(path: PathLike) -> tuple:
             if arr.ndim == 3:
                 arr = arr[..., [2, 1, 0, 3][: arr.shape[2]]] if arr.shape[2] >= 3 else arr
         else:
-            import imageio.v3 as iio
-
             arr = iio.imread(path)
     except UVPSInputError:
         raise
@@ -382,8 +379,6 @@ def read_tiff(path: PathLike) -> TiffData:
         ``(data, pixel_size_um)``; ``pixel_size_um`` is None when the file has no physical
         calibration.
     """
-    import tifffile
-
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"TIFF file {path} does not exist")
@@ -910,8 +905,6 @@ class _Stack(NamedTuple):
 
 
 def _read_stack(path: Path, progress: Progress):
-    import tifffile
-
     try:
         with tifffile.TiffFile(path) as tif:
             series = tif.series[0]
@@ -1027,8 +1020,6 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
     contiguous after it, as ImageJ's "Save As Tiff" does) rather than BigTIFF, because ImageJ
     1.x opens that layout natively but needs Bio-Formats for BigTIFF; tifffile reads both.
     """
-    import tifffile
-
     path = Path(path)
     px = _check_pixel_size(pixel_size_um)
     if unit not in ("um", "micron", "\u00b5m"):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import logging
 from dataclasses import dataclass
+from io import StringIO
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
@@ -19,6 +20,7 @@ from scipy import ndimage as ndi
 from skimage.measure import regionprops_table
 
 from .errors import UVPSInputError
+from .io import write_imagej_tiff
 from .outputs import atomic_path
 
 log = logging.getLogger(__name__)
@@ -298,9 +300,7 @@ def atomic_write_text(path, text: str) -> None:
 
 def table_to_csv_text(table: Mapping, columns: Sequence[str]) -> str:
     """CSV text of the given columns of a column table (NaN written as an empty cell)."""
-    import io
-
-    buf = io.StringIO()
+    buf = StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(columns)
     n = len(table[columns[0]]) if columns else 0
@@ -392,8 +392,6 @@ def _is_float(text: str) -> bool:
 def write_label_tiff(path, labels: np.ndarray, *, pixel_size_um: float,
                      metadata: Optional[dict] = None) -> None:
     """Write an int32 label image as an ImageJ TIFF (calibrated in um) with ``uvps.io``."""
-    from .io import write_imagej_tiff
-
     write_imagej_tiff(path, np.asarray(labels).astype(np.int32, copy=False), axes="YX",
                       pixel_size_um=pixel_size_um, metadata=metadata)
 
