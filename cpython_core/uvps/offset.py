@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 from numpy.polynomial import legendre as Lg
@@ -245,17 +245,59 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     if degree not in (0, 1, 2):
         raise UVPSInputError(f"offset degree must be 0, 1 or 2; got {degree!r}")
     if block is None:
-        block = int(max(2, min(16, np.sqrt(M * N / (8.0 * (dropoff_degree + 1) ** 2)))))
+        block = _default_block(M, N, dropoff_degree)
     blk, ok, rows, cols = _channel_blocks(images, block=block, mask=mask, saturation=saturation)
     C = blk.shape[1]
     n_ok = int(ok.sum())
     if n_ok < 4 * (dropoff_degree + 1) ** 2:
         # too few blocks lit and unsaturated in every image (deep shadows, highlights): not measurable,
         # which is no reason to stop a run (known lights do not need it); the run says so
-        return AdditiveTerm(np.zeros((C, degree + 1, degree + 1)), "estimated", (M, N), np.full(C, np.nan),
-                            float("nan"), {"blocks": n_ok, "block_px": block,
-                                           "note": f"not measurable: only {n_ok} blocks lit and unsaturated "
-                                                   "in every image"})
+        return _not_measured(C, degree, (M, N), float("nan"), n_ok, block,
+                             f"not measurable: only {n_ok} blocks lit and unsaturated in every image")
+    bases = _block_bases(rows, cols, ok, (M, N), degree=degree, dropoff_degree=dropoff_degree, tiles=tiles)
+    coeffs = np.zeros((C, degree + 1, degree + 1))
+    stderr = np.zeros(C)
+    medians = []
+    for ch in range(C):
+        I = blk[:, ch].reshape(K, -1)[:, ok.ravel()]
+        fit = _fit_channel(I, bases, n_iter=n_iter, keep=keep)
+        if fit is None:
+            # the images do not differ between lamps (no drop-off): nothing to measure c by
+            return _not_measured(C, degree, (M, N), float(np.median(I)), n_ok, block,
+                                 "not measurable: the images do not differ between lamps")
+        theta, A, Pr = fit
+        coeffs[ch] = theta.reshape(degree + 1, degree + 1)
+        stderr[ch] = _jackknife_stderr(A, Pr, bases.tile_id, tiles)
+        medians.append(float(np.median(I - (bases.Phi @ theta)[None])))
+    med = float(np.mean(medians))
+    term = AdditiveTerm(coeffs, "estimated", (M, N), stderr, med, {"blocks": n_ok, "block_px": block})
+    log.info("additive term: %s counts (+- %s), %.3f %% of the median signal", np.round(term.mean, 1),
+             np.round(stderr, 1), 100 * term.mean.mean() / med)
+    return term
+
+
+def _default_block(M, N, dropoff_degree) -> int:
+    """16 px, smaller for images under ~400 px: at least 8 blocks per Legendre coefficient."""
+    return int(max(2, min(16, np.sqrt(M * N / (8.0 * (dropoff_degree + 1) ** 2)))))
+
+
+def _not_measured(C, degree, shape, median_signal, n_blocks, block, note) -> AdditiveTerm:
+    """A zero term with a note saying why it could not be measured (no reason to stop a run)."""
+    return AdditiveTerm(np.zeros((C, degree + 1, degree + 1)), "estimated", shape, np.full(C, np.nan),
+                        median_signal, {"blocks": n_blocks, "block_px": block, "note": note})
+
+
+class _BlockBases(NamedTuple):
+    """Bases on the usable blocks (P of them): the drop-off's and ``c``'s, and the jackknife tiles."""
+
+    Q: np.ndarray  # (P, (dropoff_degree + 1)^2) orthonormal basis of the smooth part of a ratio map
+    Phi: np.ndarray  # (P, (degree + 1)^2) Legendre basis of c
+    tile_id: np.ndarray  # (P,) tile of each block, 0 .. tiles^2 - 1
+
+
+def _block_bases(rows, cols, ok, shape, *, degree, dropoff_degree, tiles) -> _BlockBases:
+    """:class:`_BlockBases` on the usable blocks ``ok`` of the grid ``rows`` x ``cols`` (block centres)."""
+    M, N = shape
     Vv = Lg.legvander(_unit(rows, M), dropoff_degree)
     Vu = Lg.legvander(_unit(cols, N), dropoff_degree)
     B = np.einsum("ri,cj->rcij", Vv, Vu).reshape(len(rows) * len(cols), -1)[ok.ravel()]
@@ -265,75 +307,81 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     Phi = np.einsum("ri,cj->rcij", Wv, Wu).reshape(len(rows) * len(cols), -1)[ok.ravel()]  # (P, n_c)
     rr, cc = np.nonzero(ok)
     tile_id = (rr * tiles // ok.shape[0]) * tiles + (cc * tiles // ok.shape[1])
+    return _BlockBases(Q, Phi, tile_id)
 
-    def hp(X):
-        return X - (X @ Q) @ Q.T
 
-    coeffs = np.zeros((C, degree + 1, degree + 1))
-    stderr = np.zeros(C)
-    medians = []
-    for ch in range(C):
-        I = blk[:, ch].reshape(K, -1)[:, ok.ravel()]
-        theta = np.zeros(Phi.shape[1])
-        for it in range(n_iter):
-            c = Phi @ theta
-            J = I - c[None]
-            pos = np.all(J > 0, axis=0)
-            if pos.mean() < 0.5:
-                raise UVPSInputError(
-                    "the additive term (black level, stray light) cannot be measured: most of the paint is at "
-                    "the pedestal in some image; give the black level (black_level) or a dark frame (dark)")
-            # blocks at the pedestal under some lamp (a narrow beam's dark side) carry no ratio: left out
-            w = pos.astype(float)
-            Lj = np.log(np.where(pos[None], J, 1.0))
-            r = Lj - Lj.mean(axis=0)
-            smooth = r - hp(r)
-            h = np.exp(-smooth)
-            h -= h.mean(axis=0)
-            z = np.exp(-Lj.mean(axis=0))[None] * h                     # d r / d c, up to sign (K, P)
-            Pr = hp(r)
-            A = np.stack([hp(z * Phi[:, j][None]) for j in range(Phi.shape[1])], axis=-1)  # (K, P, n_c)
-            if it >= 1 and keep < 1:
-                # blocks whose log ratios vary most are shaded relief (protrusions, ridges): their
-                # shading differs between lamps in a way that correlates with brightness; leave them out
-                e = np.sum(Pr ** 2, axis=0)
-                w *= e <= np.quantile(e[pos], keep)
-            A *= np.sqrt(w)[None, :, None]
-            Pr = Pr * np.sqrt(w)[None]
-            # r(c + d) ~ r - z d: solve the normal equations for d
-            AtA = np.einsum("kpi,kpj->ij", A, A)
-            Atr = np.einsum("kpi,kp->i", A, Pr)
-            if not np.all(np.isfinite(AtA)) or np.linalg.cond(AtA) > 1e12 or AtA[0, 0] <= 0:
-                # the images do not differ between lamps (no drop-off): nothing to measure c by
-                return AdditiveTerm(np.zeros((C, degree + 1, degree + 1)), "estimated", (M, N), np.full(C, np.nan),
-                                    float(np.median(I)), {"blocks": n_ok, "block_px": block,
-                                                          "note": "not measurable: the images do not differ "
-                                                                  "between lamps"})
-            d = np.linalg.solve(AtA, Atr)
-            theta = theta + d
-            if it >= 2 and np.max(np.abs(d)) < 1e-4 * max(float(np.median(I)), 1.0):
-                break
-        # jackknife over tiles of the field, linearised at the solution (the mean of c)
-        res = Pr - A @ d
-        num_t = np.array([np.einsum("kpi,kp->i", A[:, tile_id == t], Pr[:, tile_id == t])
-                          for t in range(tiles * tiles)])
-        den_t = np.array([np.einsum("kpi,kpj->ij", A[:, tile_id == t], A[:, tile_id == t])
-                          for t in range(tiles * tiles)])
-        used = [t for t in range(tiles * tiles) if np.any(tile_id == t)]
-        loo = []
-        for t in used:
-            try:
-                loo.append(np.linalg.solve(den_t.sum(0) - den_t[t], num_t.sum(0) - num_t[t])[0])
-            except np.linalg.LinAlgError:
-                continue
-        g = len(loo)
-        jack = float(np.sqrt((g - 1) / g * np.sum((np.asarray(loo) - np.mean(loo)) ** 2))) if g > 2 else np.nan
-        del res
-        coeffs[ch] = theta.reshape(degree + 1, degree + 1)
-        stderr[ch] = jack
-        medians.append(float(np.median(I - (Phi @ theta)[None])))
-    med = float(np.mean(medians))
-    term = AdditiveTerm(coeffs, "estimated", (M, N), stderr, med, {"blocks": n_ok, "block_px": block})
-    log.info("additive term: %s counts (+- %s), %.3f %% of the median signal", np.round(term.mean, 1),
-             np.round(stderr, 1), 100 * term.mean.mean() / med)
-    return term
+def _high_pass(X, Q):
+    """What the drop-off basis ``Q`` does not fit, per row of ``X``."""
+    return X - (X @ Q) @ Q.T
+
+
+def _ratio_system(J, pos, bases: _BlockBases):
+    """High-passed log-ratio maps ``Pr`` (K, P) and their derivative ``A`` (K, P, n_c) along c's basis.
+
+    ``J`` are the block means less the current ``c``; blocks not above 0 in every image (``~pos``)
+    carry no ratio.
+    """
+    Lj = np.log(np.where(pos[None], J, 1.0))
+    r = Lj - Lj.mean(axis=0)
+    Pr = _high_pass(r, bases.Q)
+    smooth = r - Pr
+    h = np.exp(-smooth)
+    h -= h.mean(axis=0)
+    z = np.exp(-Lj.mean(axis=0))[None] * h                     # d r / d c, up to sign (K, P)
+    Phi = bases.Phi
+    A = np.stack([_high_pass(z * Phi[:, j][None], bases.Q) for j in range(Phi.shape[1])], axis=-1)  # (K, P, n_c)
+    return Pr, A
+
+
+def _fit_channel(I, bases: _BlockBases, *, n_iter, keep):
+    """Gauss-Newton fit of ``c``'s coefficients to one channel's block means ``I`` (K, P).
+
+    Returns ``(theta, A, Pr)``, the coefficients and the last weighted system (for the jackknife),
+    or None when the images do not differ between lamps.
+    """
+    theta = np.zeros(bases.Phi.shape[1])
+    for it in range(n_iter):
+        c = bases.Phi @ theta
+        J = I - c[None]
+        pos = np.all(J > 0, axis=0)
+        if pos.mean() < 0.5:
+            raise UVPSInputError(
+                "the additive term (black level, stray light) cannot be measured: most of the paint is at "
+                "the pedestal in some image; give the black level (black_level) or a dark frame (dark)")
+        # blocks at the pedestal under some lamp (a narrow beam's dark side) carry no ratio: left out
+        w = pos.astype(float)
+        Pr, A = _ratio_system(J, pos, bases)
+        if it >= 1 and keep < 1:
+            # blocks whose log ratios vary most are shaded relief (protrusions, ridges): their
+            # shading differs between lamps in a way that correlates with brightness; leave them out
+            e = np.sum(Pr ** 2, axis=0)
+            w *= e <= np.quantile(e[pos], keep)
+        A *= np.sqrt(w)[None, :, None]
+        Pr = Pr * np.sqrt(w)[None]
+        # r(c + d) ~ r - z d: solve the normal equations for d
+        AtA = np.einsum("kpi,kpj->ij", A, A)
+        Atr = np.einsum("kpi,kp->i", A, Pr)
+        if not np.all(np.isfinite(AtA)) or np.linalg.cond(AtA) > 1e12 or AtA[0, 0] <= 0:
+            return None
+        d = np.linalg.solve(AtA, Atr)
+        theta = theta + d
+        if it >= 2 and np.max(np.abs(d)) < 1e-4 * max(float(np.median(I)), 1.0):
+            break
+    return theta, A, Pr
+
+
+def _jackknife_stderr(A, Pr, tile_id, tiles) -> float:
+    """Standard error of the mean of ``c`` by a jackknife over tiles, linearised at the solution."""
+    num_t = np.array([np.einsum("kpi,kp->i", A[:, tile_id == t], Pr[:, tile_id == t])
+                      for t in range(tiles * tiles)])
+    den_t = np.array([np.einsum("kpi,kpj->ij", A[:, tile_id == t], A[:, tile_id == t])
+                      for t in range(tiles * tiles)])
+    used = [t for t in range(tiles * tiles) if np.any(tile_id == t)]
+    loo = []
+    for t in used:
+        try:
+            loo.append(np.linalg.solve(den_t.sum(0) - den_t[t], num_t.sum(0) - num_t[t])[0])
+        except np.linalg.LinAlgError:
+            continue
+    g = len(loo)
+    return float(np.sqrt((g - 1) / g * np.sum((np.asarray(loo) - np.mean(loo)) ** 2))) if g > 2 else np.nan
