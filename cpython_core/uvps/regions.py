@@ -14,13 +14,23 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Union
+from typing import NamedTuple, Optional, Union
 
+import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.cluster.vq import vq
+from skimage.color import rgb2lab
+from skimage.filters.rank import majority
+from skimage.measure import label as cc_label
+from skimage.morphology import disk
+from skimage.transform import downscale_local_mean
 
 from .errors import UVPSInputError
+from .io import read_image, read_tiff
 from .measure import atomic_write_text, table_to_csv_text
+from .outputs import report
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +109,6 @@ def _check_shape(arr: np.ndarray, shape, what: str) -> None:
 
 
 def _read_array(path: Path) -> np.ndarray:
-    from .io import read_image, read_tiff
-
     if not path.is_file():
         raise UVPSInputError(f"region file {path} does not exist")
     if path.suffix.lower() in (".tif", ".tiff"):
@@ -275,8 +283,6 @@ def _srgb_encode(linear: np.ndarray) -> np.ndarray:
 
 
 def _kmeans(data: np.ndarray, k: int, seed: int):
-    import cv2
-
     cv2.setRNGSeed(int(seed))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     _, lab, centres = cv2.kmeans(data.astype(np.float32), int(k), None, criteria, 3,
@@ -286,8 +292,6 @@ def _kmeans(data: np.ndarray, k: int, seed: int):
 
 def _merge_close(centres: np.ndarray, delta_e: float) -> np.ndarray:
     """Group index per centre: average-linkage clustering of the centres cut at ``delta_e``."""
-    from scipy.cluster.hierarchy import fcluster, linkage
-
     if len(centres) < 2:
         return np.zeros(len(centres), dtype=int)
     z = linkage(centres, method="average")
@@ -331,30 +335,58 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     (nearest neighbour). It is a proposal: the user
     edits ``regions_labels.tif`` in ImageJ and loads it back with :func:`load_regions`.
     """
-    from scipy.cluster.vq import vq
-    from skimage.color import rgb2lab
-    from skimage.filters.rank import majority
-    from skimage.measure import label as cc_label
-    from skimage.morphology import disk
-    from skimage.transform import downscale_local_mean
-
-    from .outputs import report
-
     opts = options or ProposalOptions()
     if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
         raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
     if n_areas is not None and (int(n_areas) != n_areas or n_areas < 1):
         raise UVPSInputError(f"n_areas must be a positive integer or None; got {n_areas}")
+    shape, channels = _albedo_channels(albedo)
+    grey = len(channels) == 1
+    valid = _valid_pixels(channels, shape, mask)
+    # Everything but the final label map is computed on blocks of about smooth_mm / 9: block
+    # means over the valid pixels (also averaging noise and protrusions away), so a large capture
+    # never needs a full-size float copy.
+    report(progress, 0.05, "block means")
+    step = max(1, int(round(opts.smooth_mm * 1000.0 / 9.0 / pixel_size_um)))
+    blocks = _block_means(channels, valid, step)
+    scale = _albedo_scale(channels, valid)
+    report(progress, 0.15, "colour space")
+    lab = rgb2lab(_srgb_encode(blocks.rgb / scale))
+    feats = lab[..., :1] if grey else lab
+    sampled = blocks.mostly_valid if blocks.mostly_valid.any() else blocks.any_valid
+    data = _feature_sample(feats[sampled], opts.sample, seed)
+    report(progress, 0.3, "k-means")
+    centres = _colour_centres(data, n_areas, opts, seed)
+    small_lab = _nearest_centre(feats, centres, blocks.any_valid)
+    report(progress, 0.6, "smoothing")
+    radius = max(1, int(round(opts.smooth_mm * 1000.0 / 2.0 / (pixel_size_um * step))))
+    smooth = _majority_filter(small_lab, blocks.any_valid, radius)
+    min_blocks = opts.min_area_mm2 * 1e6 / (pixel_size_um * step) ** 2
+    smooth = _absorb_islands(smooth, blocks.any_valid, min_blocks)
+    smooth, n_found = _relabel_by_lightness(smooth, lab[..., 0])
+    colors = {new: np.clip(blocks.rgb[smooth == new].mean(axis=0) / scale, 0.0, 1.0)
+              for new in range(1, n_found + 1)}
+    report(progress, 0.85, "full size")
+    full = _full_size(smooth, step, shape, valid)
+    report(progress, 1.0, f"{n_found} areas")
+    log.info("proposed %d colour areas (block %d px, majority radius %d)", n_found, step, radius)
+    return RegionMap(full, {i: f"area {i}" for i in range(1, n_found + 1)}, colors)
+
+
+def _albedo_channels(albedo):
+    """Image shape (M, N) and the albedo's channels: one (grey) or three (M, N) arrays."""
     arr = np.asarray(albedo)
-    grey = arr.ndim == 2
-    if grey:
-        shape, channels = arr.shape, [arr]
-    elif arr.ndim == 3 and arr.shape[0] == 3:
-        shape, channels = arr.shape[1:], [arr[c] for c in range(3)]
-    elif arr.ndim == 3 and arr.shape[-1] == 3:
-        shape, channels = arr.shape[:2], [arr[..., c] for c in range(3)]
-    else:
-        raise UVPSInputError(f"albedo must be (M, N), (3, M, N) or (M, N, 3); got {arr.shape}")
+    if arr.ndim == 2:
+        return arr.shape, [arr]
+    if arr.ndim == 3 and arr.shape[0] == 3:
+        return arr.shape[1:], [arr[c] for c in range(3)]
+    if arr.ndim == 3 and arr.shape[-1] == 3:
+        return arr.shape[:2], [arr[..., c] for c in range(3)]
+    raise UVPSInputError(f"albedo must be (M, N), (3, M, N) or (M, N, 3); got {arr.shape}")
+
+
+def _valid_pixels(channels, shape, mask) -> np.ndarray:
+    """Pixels finite in every channel and inside ``mask``; at least one, or bad input."""
     valid = np.ones(shape, bool)
     for ch in channels:
         valid &= np.isfinite(ch)
@@ -364,80 +396,107 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
         valid &= mask.astype(bool)
     if not valid.any():
         raise UVPSInputError("propose_regions: no valid pixel (mask empty or albedo all NaN)")
-    # Everything but the final label map is computed on blocks of about smooth_mm / 9: block
-    # means over the valid pixels (also averaging noise and protrusions away), so a large capture
-    # never needs a full-size float copy.
-    report(progress, 0.05, "block means")
-    step = max(1, int(round(opts.smooth_mm * 1000.0 / 9.0 / pixel_size_um)))
+    return valid
+
+
+class _Blocks(NamedTuple):
+    """Block means of the albedo over its valid pixels."""
+
+    rgb: np.ndarray  # (R, C, 3) mean colour (grey repeated to 3 channels)
+    any_valid: np.ndarray  # (R, C) bool: the block holds a valid pixel
+    mostly_valid: np.ndarray  # (R, C) bool: more than half of the block's pixels are valid
+
+
+def _block_means(channels, valid, step) -> _Blocks:
     count = downscale_local_mean(valid.astype(np.float32), (step, step))
-    small_any = count > 0
-    small_valid = count > 0.5
+    any_valid = count > 0
     sums = [downscale_local_mean(np.where(valid, ch, 0).astype(np.float32), (step, step))
             for ch in channels]
-    small_rgb = np.stack([sm / np.where(small_any, count, 1.0) for sm in sums], axis=-1)
-    if grey:
-        small_rgb = np.repeat(small_rgb, 3, axis=-1)
-    # scale: the pixels' 99.5th percentile (as the report displays the albedo), on a subsample
+    rgb = np.stack([sm / np.where(any_valid, count, 1.0) for sm in sums], axis=-1)
+    if len(channels) == 1:
+        rgb = np.repeat(rgb, 3, axis=-1)
+    return _Blocks(rgb, any_valid, count > 0.5)
+
+
+def _albedo_scale(channels, valid) -> float:
+    """The valid pixels' 99.5th percentile (as the report displays the albedo), on a subsample."""
     sub = max(1, int(np.sqrt(valid.size / 1e6)))
     sample_px = np.stack([ch[::sub, ::sub] for ch in channels], axis=-1)[valid[::sub, ::sub]]
     scale = float(np.percentile(sample_px, 99.5)) if sample_px.size else 0.0
-    scale = scale if np.isfinite(scale) and scale > 0 else 1.0
-    report(progress, 0.15, "colour space")
-    lab = rgb2lab(_srgb_encode(small_rgb / scale))
-    feats = lab[..., :1] if grey else lab
-    data = feats[small_valid if small_valid.any() else small_any]
+    return scale if np.isfinite(scale) and scale > 0 else 1.0
+
+
+def _feature_sample(data, sample: int, seed: int) -> np.ndarray:
+    """At most ``sample`` rows of ``data``, drawn without replacement."""
     rng = np.random.default_rng(seed)
-    if len(data) > opts.sample:
-        data = data[rng.choice(len(data), opts.sample, replace=False)]
+    if len(data) > sample:
+        data = data[rng.choice(len(data), sample, replace=False)]
+    return data
+
+
+def _colour_centres(data, n_areas, opts: ProposalOptions, seed: int) -> np.ndarray:
+    """Cluster centres in Lab: ``n_areas`` of them, or when None up to ``opts.max_areas`` with
+    centres closer than ``opts.delta_e`` merged (weighted by their members)."""
     n_distinct = len(np.unique(np.round(data, 3), axis=0))
-    report(progress, 0.3, "k-means")
-    if n_areas is None:
-        k = min(opts.max_areas, n_distinct)
-        centres, assigned = _kmeans(data, k, seed)
-        groups = _merge_close(centres, opts.delta_e)
-        weights = np.bincount(assigned, minlength=k).astype(float)
-        merged = np.array([np.average(centres[groups == g], axis=0, weights=weights[groups == g])
-                           if weights[groups == g].sum() > 0 else centres[groups == g].mean(0)
-                           for g in range(groups.max() + 1)])
-        centres = merged
-    else:
-        k = min(int(n_areas), n_distinct)
-        centres, _ = _kmeans(data, k, seed)
-    # nearest centre for every (small) pixel
+    if n_areas is not None:
+        centres, _ = _kmeans(data, min(int(n_areas), n_distinct), seed)
+        return centres
+    k = min(opts.max_areas, n_distinct)
+    centres, assigned = _kmeans(data, k, seed)
+    groups = _merge_close(centres, opts.delta_e)
+    weights = np.bincount(assigned, minlength=k).astype(float)
+    return np.array([np.average(centres[groups == g], axis=0, weights=weights[groups == g])
+                     if weights[groups == g].sum() > 0 else centres[groups == g].mean(0)
+                     for g in range(groups.max() + 1)])
+
+
+def _nearest_centre(feats, centres, any_valid) -> np.ndarray:
+    """uint16 label 1.. of each block's nearest centre (0 in blocks without a valid pixel)."""
     flat = feats.reshape(-1, feats.shape[-1])
     nearest, _ = vq(flat, centres.astype(flat.dtype))
-    small_lab = (nearest + 1).reshape(feats.shape[:2]).astype(np.uint16)
-    small_lab[~small_any] = 0
-    report(progress, 0.6, "smoothing")
-    radius = max(1, int(round(opts.smooth_mm * 1000.0 / 2.0 / (pixel_size_um * step))))
-    smooth = majority(small_lab, disk(radius), mask=small_any)
-    smooth[~small_any] = 0
-    # islands below min_area join their nearest other area (hand-written fill: no library merges
-    # small label components into neighbours)
-    min_px = opts.min_area_mm2 * 1e6 / (pixel_size_um * step) ** 2
+    labels = (nearest + 1).reshape(feats.shape[:2]).astype(np.uint16)
+    labels[~any_valid] = 0
+    return labels
+
+
+def _majority_filter(labels, any_valid, radius: int) -> np.ndarray:
+    """Majority filter over a disc of ``radius`` blocks, within the blocks holding a valid pixel."""
+    smooth = majority(labels, disk(radius), mask=any_valid)
+    smooth[~any_valid] = 0
+    return smooth
+
+
+def _absorb_islands(smooth, any_valid, min_blocks: float) -> np.ndarray:
+    """Islands under ``min_blocks`` blocks join their nearest other area.
+
+    Hand-written fill: no library merges small label components into their neighbours.
+    """
     comps = cc_label(smooth, background=0, connectivity=1)
     sizes = np.bincount(comps.ravel())
-    tiny = (sizes < min_px)[comps] & (comps > 0)
-    if tiny.any() and (~tiny & small_any).any():
+    tiny = (sizes < min_blocks)[comps] & (comps > 0)
+    if tiny.any() and (~tiny & any_valid).any():
         keep = ~tiny & (smooth > 0)
         idx = ndi.distance_transform_edt(~keep, return_distances=False, return_indices=True)
         smooth = np.where(tiny, smooth[idx[0], idx[1]], smooth)
-    # relabel 1.. by decreasing lightness, dropping areas that vanished in smoothing
+    return smooth
+
+
+def _relabel_by_lightness(smooth, lightness):
+    """Labels 1.. by decreasing mean lightness, dropping areas that vanished: (labels, count)."""
     present = [int(i) for i in np.unique(smooth) if i != 0]
-    order = sorted(present, key=lambda i: -float(np.mean(lab[..., 0][smooth == i])))
+    order = sorted(present, key=lambda i: -float(np.mean(lightness[smooth == i])))
     lut = np.zeros(int(smooth.max()) + 1, np.int32)
     for new, old in enumerate(order, start=1):
         lut[old] = new
-    smooth = lut[smooth]
-    colors = {new: np.clip(small_rgb[smooth == new].mean(axis=0) / scale, 0.0, 1.0)
-              for new in range(1, len(order) + 1)}
-    report(progress, 0.85, "full size")
+    return lut[smooth], len(order)
+
+
+def _full_size(smooth, step: int, shape, valid) -> np.ndarray:
+    """The block label map scaled back to the image (nearest neighbour), 0 off the valid pixels."""
     full = np.repeat(np.repeat(smooth, step, axis=0), step, axis=1)[: shape[0], : shape[1]]
     full = full.astype(np.int32)
     full[~valid] = 0
-    report(progress, 1.0, f"{len(order)} areas")
-    log.info("proposed %d colour areas (block %d px, majority radius %d)", len(order), step, radius)
-    return RegionMap(full, {i: f"area {i}" for i in range(1, len(order) + 1)}, colors)
+    return full
 
 
 # ---------------------------------------------------------------------------------------------
