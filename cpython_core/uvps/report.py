@@ -17,13 +17,23 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from scipy import ndimage as ndi
+from skimage.measure import block_reduce
+from skimage.segmentation import find_boundaries
 
 from . import __version__
+from .compare import COLUMNS, read_comparison_csv
 from .errors import UVPSInputError
-from .measure import atomic_write_text
+from .io import read_tiff
+from .measure import atomic_write_text, read_protrusions_csv
 from .outputs import Progress, atomic_path, report
+from .regions import bin_names, load_regions, region_statistics, stats_columns, whole_image
 
 log = logging.getLogger(__name__)
+
+# matplotlib is imported inside the plotting functions, not here, so that importing this module
+# stays cheap (the commands import it at start-up of the CLI and the Fiji bridge): matplotlib costs
+# about 0.3 s that only a run drawing figures should pay.
 
 _MAX_DISPLAY_PX = 1600  # longest side of an image drawn into a figure
 
@@ -81,9 +91,6 @@ def _extent_mm(shape, px_um):
 
 def _outline(labels: np.ndarray, step: int) -> np.ndarray:
     """Protrusion outlines at display resolution (max-pooled so thin lines survive)."""
-    from skimage.measure import block_reduce
-    from skimage.segmentation import find_boundaries
-
     b = find_boundaries(labels, mode="outer")
     return block_reduce(b, (step, step), np.max) if step > 1 else b
 
@@ -247,10 +254,6 @@ def region_colours(regions, albedo: Optional[np.ndarray]) -> dict:
 
 def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> Path:
     """Albedo with the colour-area borders and numbers (to check a proposal before editing it)."""
-    from skimage.measure import block_reduce
-    from skimage.segmentation import find_boundaries
-    from scipy import ndimage as ndi
-
     step = _display_step(regions.labels.shape)
     a = _display_albedo(albedo, step)
     fig = _figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
@@ -284,8 +287,6 @@ def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> 
 
 def plot_histograms(stats, path, *, colours: Optional[dict] = None) -> Path:
     """Protrusions per cm^2 by width bin, one panel per colour area (paper Fig. 4a)."""
-    from .regions import bin_names
-
     rows = [r for r in stats.rows if r.label != "all"]
     labels = bin_names(stats.edges_um)
     k = len(rows)
@@ -382,8 +383,6 @@ def _read_json(path: Path):
 
 
 def _read_optional_tiff(path: Path):
-    from .io import read_tiff
-
     if not path.is_file():
         return None, None
     data, px = read_tiff(path)
@@ -458,32 +457,75 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     Every figure is optional; a figure whose input is missing is listed as skipped with the
     reason. PNGs and the HTML are written atomically (temporary file + ``os.replace``).
     """
-    from .compare import read_comparison_csv
-    from .measure import read_protrusions_csv
-    from .regions import load_regions, region_statistics, whole_image
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise UVPSInputError(f"run folder {run_dir} does not exist")
     figdir = run_dir / "figures"
     figdir.mkdir(exist_ok=True)
     page = _Page()
-    warn = list(warnings or [])
+    run, warn = _run_summary(run_dir, page, warnings)
+    report(progress, 0.05, "reading the run folder")
+    inputs = _read_inputs(run_dir, run, table)
 
+    report(progress, 0.15, "lights")
+    _lights_figure(page, run_dir, figdir)
+    px = inputs.pixel_size_um
+    if px is None:
+        page.skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
+        px = float("nan")
+    report(progress, 0.3, "normals and albedo")
+    _normals_and_albedo_figures(page, inputs, figdir, px)
+    protrusions = read_protrusions_csv(inputs.table_path) if inputs.table_path.is_file() else None
+    report(progress, 0.45, "height map")
+    _height_figures(page, inputs, protrusions, figdir, px, progress)
+
+    report(progress, 0.7, "statistics")
+    _area_statistics(page, run_dir, inputs, protrusions, figdir, px, regions=regions, stats=stats,
+                     bins_um=bins_um)
+    report(progress, 0.85, "comparison")
+    _comparison_section(page, run_dir, figdir, comparison)
+
+    text = _html(run_dir, run, protrusions, inputs.table_path, page, warn, title)
+    out = run_dir / "report.html"
+    atomic_write_text(out, text)
+    report(progress, 1.0, "report written")
+    log.info("report: %d figures, %d skipped", len(page.figures), len(page.skipped))
+    return out
+
+
+def _run_summary(run_dir: Path, page: _Page, warnings: Optional[list]):
+    """``run.json`` (None when missing: listed as skipped) and the warnings, its own first."""
+    warn = list(warnings or [])
     run = _read_json(run_dir / "run.json") if (run_dir / "run.json").is_file() else None
     if run is None:
         page.skipped.append(("run summary", "run.json missing"))
     elif isinstance(run.get("warnings"), list):
         warn = [str(w) for w in run["warnings"]] + warn
+    return run, warn
 
-    report(progress, 0.05, "reading the run folder")
+
+@dataclass
+class _RunInputs:
+    """The images of a run folder (None when missing), their pixel size and shape."""
+
+    normals: Optional[np.ndarray]
+    albedo: Optional[np.ndarray]
+    height: Optional[np.ndarray]
+    protrusion_labels: Optional[np.ndarray]
+    table_path: Path
+    pixel_size_um: Optional[float]
+    shape: Optional[tuple]
+
+
+def _read_inputs(run_dir: Path, run, table) -> _RunInputs:
+    """Read the run's TIFFs; the pixel size from them, else ``run.json``, else ``lights.json``."""
     normals, px_n = _read_optional_tiff(run_dir / "normals.tif")
     albedo, px_a = _read_optional_tiff(run_dir / "albedo.tif")
     height, px_h = _read_optional_tiff(run_dir / "depth.tif")
     table_path = Path(table) if table is not None else run_dir / "protrusions.csv"
     if table is not None and not table_path.is_file():
         raise UVPSInputError(f"protrusion table {table_path} does not exist")
-    plabels, px_l = _read_optional_tiff(table_path.with_name(table_path.stem + "_labels.tif"))
+    plabels, px_l = _read_optional_tiff(_labels_path(table_path))
     px = next((p for p in (px_h, px_a, px_n, px_l) if p), None)
     if px is None and run is not None:
         px = run.get("pixel_size_um") or (run.get("params") or {}).get("pixel_size_um")
@@ -492,62 +534,84 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     shape = next((a.shape[-2:] for a in (height, plabels, normals) if a is not None), None)
     if shape is None and albedo is not None:
         shape = _yxc(albedo).shape[:2]
+    return _RunInputs(normals, albedo, height, plabels, table_path, px, shape)
 
-    # figures
-    report(progress, 0.15, "lights")
+
+def _labels_path(table_path: Path) -> Path:
+    """The label TIFF beside a protrusion table: ``<stem>_labels.tif``."""
+    return table_path.with_name(table_path.stem + "_labels.tif")
+
+
+def _lights_figure(page: _Page, run_dir: Path, figdir: Path) -> None:
+    """The lamp positions from ``lights.json``."""
     if (run_dir / "lights.json").is_file():
         _figure_step(page, "lights.png", "Lamp positions seen from above (azimuth, elevation) "
                      "and the height of each lamp.", plot_lights,
                      _read_json(run_dir / "lights.json"), figdir / "lights.png")
     else:
         page.skipped.append(("lights.png", "lights.json missing"))
-    if px is None:
-        page.skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
-        px = float("nan")
+
+
+def _normals_and_albedo_figures(page: _Page, inputs: _RunInputs, figdir: Path, px: float) -> None:
+    """The normal map and the albedo, when read and calibrated."""
     images_ok = np.isfinite(px)
-    report(progress, 0.3, "normals and albedo")
-    if normals is not None and images_ok:
-        _figure_step(page, "normals.png", "Normal map (RGB encoding).", plot_normals, normals,
-                     figdir / "normals.png", pixel_size_um=px)
-    elif normals is None:
+    if inputs.normals is not None and images_ok:
+        _figure_step(page, "normals.png", "Normal map (RGB encoding).", plot_normals,
+                     inputs.normals, figdir / "normals.png", pixel_size_um=px)
+    elif inputs.normals is None:
         page.skipped.append(("normals.png", "normals.tif missing"))
-    if albedo is not None and images_ok:
-        _figure_step(page, "albedo.png", "Albedo (UV fluorescence colour).", plot_albedo, albedo,
-                     figdir / "albedo.png", pixel_size_um=px)
-    elif albedo is None:
+    if inputs.albedo is not None and images_ok:
+        _figure_step(page, "albedo.png", "Albedo (UV fluorescence colour).", plot_albedo,
+                     inputs.albedo, figdir / "albedo.png", pixel_size_um=px)
+    elif inputs.albedo is None:
         page.skipped.append(("albedo.png", "albedo.tif missing"))
 
-    table = read_protrusions_csv(table_path) if table_path.is_file() else None
-    report(progress, 0.45, "height map")
-    if height is not None and images_ok:
-        lab = None
-        if plabels is not None and plabels.shape == height.shape:
-            lab = plabels.astype(np.int64)
-        _figure_step(page, "height.png", "Height map (\u00b5m) with the detected protrusions "
-                     "outlined in red.", plot_height, height, figdir / "height.png",
-                     pixel_size_um=px, labels=lab)
-        if table is not None and len(table["width_um"]):
-            big = int(np.nanargmax(np.nan_to_num(table["area_um2"], nan=-1.0)
-                                   if np.isfinite(table["area_um2"]).any() else table["width_um"]))
-            centre, width = (table["x_px"][big], table["y_px"][big]), float(table["width_um"][big])
-            what = f"the largest protrusion (id {table['id'][big]})"
-        else:
-            r, c = np.unravel_index(np.nanargmax(np.nan_to_num(height, nan=-np.inf)), height.shape)
-            centre, width, what = (c, r), 20 * px, "the highest point (no protrusions)"
-        report(progress, 0.55, "3-D detail")
-        _figure_step(page, "detail3d.png", f"Shaded 3-D rendering of the height around {what} "
-                     "(paper Fig. 2e).", plot_detail_3d, height, figdir / "detail3d.png",
-                     pixel_size_um=px, centre_xy=centre, width_um=width)
-    elif height is None:
-        page.skipped.append(("height.png, detail3d.png", "depth.tif missing"))
 
-    # colour areas and statistics
-    report(progress, 0.7, "statistics")
-    if regions is None and shape is not None:
+def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: float,
+                    progress: Progress) -> None:
+    """The height map with the protrusions outlined, and the 3-D detail of the largest one."""
+    height = inputs.height
+    if height is None:
+        page.skipped.append(("height.png, detail3d.png", "depth.tif missing"))
+        return
+    if not np.isfinite(px):
+        return
+    lab = None
+    plabels = inputs.protrusion_labels
+    if plabels is not None and plabels.shape == height.shape:
+        lab = plabels.astype(np.int64)
+    _figure_step(page, "height.png", "Height map (\u00b5m) with the detected protrusions "
+                 "outlined in red.", plot_height, height, figdir / "height.png",
+                 pixel_size_um=px, labels=lab)
+    centre, width, what = _detail_target(height, table, px)
+    report(progress, 0.55, "3-D detail")
+    _figure_step(page, "detail3d.png", f"Shaded 3-D rendering of the height around {what} "
+                 "(paper Fig. 2e).", plot_detail_3d, height, figdir / "detail3d.png",
+                 pixel_size_um=px, centre_xy=centre, width_um=width)
+
+
+def _detail_target(height: np.ndarray, table, px: float):
+    """Centre (x_px, y_px), width (um) and description of what the 3-D detail shows: the largest
+    protrusion, else the highest point."""
+    if table is not None and len(table["width_um"]):
+        big = int(np.nanargmax(np.nan_to_num(table["area_um2"], nan=-1.0)
+                               if np.isfinite(table["area_um2"]).any() else table["width_um"]))
+        centre, width = (table["x_px"][big], table["y_px"][big]), float(table["width_um"][big])
+        return centre, width, f"the largest protrusion (id {table['id'][big]})"
+    r, c = np.unravel_index(np.nanargmax(np.nan_to_num(height, nan=-np.inf)), height.shape)
+    return (c, r), 20 * px, "the highest point (no protrusions)"
+
+
+def _area_statistics(page: _Page, run_dir: Path, inputs: _RunInputs, table, figdir: Path,
+                     px: float, *, regions, stats, bins_um) -> None:
+    """The colour-area figure, the per-area histograms and the per-area table."""
+    images_ok = np.isfinite(px)
+    albedo = inputs.albedo
+    if regions is None and inputs.shape is not None:
         if (run_dir / "regions_labels.tif").is_file():
-            regions = load_regions(run_dir / "regions_labels.tif", shape=shape)
+            regions = load_regions(run_dir / "regions_labels.tif", shape=inputs.shape)
         else:
-            regions = whole_image(shape)
+            regions = whole_image(inputs.shape)
     if regions is not None and albedo is not None and images_ok and len(regions.ids) > 1:
         _figure_step(page, "regions.png", "Colour areas (borders in yellow).", plot_regions,
                      albedo, regions, figdir / "regions.png", pixel_size_um=px)
@@ -563,7 +627,9 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
         page.skipped.append(("histograms.png", "protrusions.csv missing" if table is None
                              else "no image size or pixel size for the colour areas"))
 
-    report(progress, 0.85, "comparison")
+
+def _comparison_section(page: _Page, run_dir: Path, figdir: Path, comparison) -> None:
+    """The two-method comparison (given, else ``comparison.csv``): map, bar chart and table."""
     name_a, name_b = "a", "b"
     rows = None
     if comparison is not None:
@@ -583,17 +649,8 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     else:
         page.skipped.append(("comparison", "no comparison.csv (run the compare command)"))
 
-    text = _html(run_dir, run, table, table_path, page, warn, title)
-    out = run_dir / "report.html"
-    atomic_write_text(out, text)
-    report(progress, 1.0, "report written")
-    log.info("report: %d figures, %d skipped", len(page.figures), len(page.skipped))
-    return out
-
 
 def _stats_html(stats) -> str:
-    from .regions import stats_columns
-
     cols = stats_columns(stats)
     header = list(cols)
     rows = list(zip(*cols.values()))
@@ -603,8 +660,6 @@ def _stats_html(stats) -> str:
 
 
 def _comparison_html(rows, name_a, name_b) -> str:
-    from .compare import COLUMNS
-
     header = [c.replace("_a", f" ({name_a})").replace("_b", f" ({name_b})") for c in COLUMNS]
     body = [[r[c] for c in COLUMNS] for r in rows]
     return (f"<h2>Comparison: {html.escape(name_a)} vs {html.escape(name_b)}</h2>"
@@ -654,7 +709,7 @@ def _html(run_dir: Path, run, table, table_path: Path, page: _Page, warn: list, 
         w = np.asarray(table["width_um"], float)
         wtxt = (f"; widths {np.nanmin(w):.0f} to {np.nanmax(w):.0f} \u00b5m (median "
                 f"{np.nanmedian(w):.0f})") if n else ""
-        labels_path = table_path.with_name(table_path.stem + "_labels.tif")
+        labels_path = _labels_path(table_path)
         labels_link = f", labels: {_link(labels_path, run_dir)}" if labels_path.is_file() else ""
         parts.append(f"<p><b>{n}</b> protrusions ({e(by_src) if n else 'none'}), {craters} with "
                      f"a crater{wtxt}. Table: {_link(table_path, run_dir)}{labels_link}.</p>")
