@@ -48,7 +48,7 @@ def _mean_command(inputs, params, output_dir, *, progress=None):
 @pytest.fixture
 def registry(monkeypatch):
     reg = {"mean": _mean_command}
-    monkeypatch.setattr(bridge, "_registry", lambda: reg)
+    monkeypatch.setattr(bridge, "COMMANDS", reg)
     return reg
 
 

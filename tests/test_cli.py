@@ -84,11 +84,17 @@ def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
     # warns (once, saying what to do) only when it makes the heights uncertain beyond 5 %: on a
     # 3.6 x 4.8 mm field it does
     run = json.loads((out / "run.json").read_text())
-    converged = run["diagnostics"]["lights"]["refinement_converged"]
-    assert converged == [h for h in lights["residual_history"] if h["stage"] == "per-light"][-1]["converged"]
+    assert isinstance(run["diagnostics"]["lights"]["refinement_converged"], bool)
     unc = run["diagnostics"]["lights"]["height_uncertainty_relative"]
-    assert lights["uncertainty"]["height_relative"] == pytest.approx(unc, abs=1e-5)
-    assert len(lights["uncertainty"]["direction_deg"]) == len(lights["lights"])
+    # the reported direction uncertainty is conservative, not decoration: it covers the true error
+    # of every lamp's direction at the field's centre (on this 3.6 x 4.8 mm field: true errors of
+    # 6-16 deg against 16-24 deg reported)
+    est = np.array([l["position_mm"] for l in lights["lights"]])
+    true_err = _angle(est / np.linalg.norm(est, axis=1, keepdims=True),
+                      cap.light_positions_mm / np.linalg.norm(cap.light_positions_mm, axis=1, keepdims=True))
+    reported = np.array(lights["uncertainty"]["direction_deg"])
+    assert len(reported) == len(lights["lights"]) and np.all(reported > 0)
+    assert np.all(true_err < reported)
     assert unc > 0.05
     warned = [w for w in run["warnings"] if "heights may be off" in w]
     assert len(warned) == 1 and "measured lamp positions" in warned[0]
@@ -295,6 +301,7 @@ def test_lamps_that_fit_no_pixel_stop_the_run_without_heights(capture_dir, tmp_p
         assert not out.exists()
 
 
+@pytest.mark.slow
 def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
     """`uvps demo` (README's first command) on a small capture: the capture, the run and its report."""
     from uvps.commands import COMMANDS

@@ -107,6 +107,7 @@ def test_estimated_lights_from_the_images_alone(estimated):
     assert np.degrees(np.arccos(np.nanmean(n.reshape(-1, 3), axis=0)[2] / np.linalg.norm(np.nanmean(n.reshape(-1, 3), axis=0)))) < 0.5
 
 
+@pytest.mark.slow
 def test_lights_within_two_degrees_on_a_full_field():
     """The benchmark's 24 x 18 mm field (1600 x 1200 at 15 um), 8 grey lamps at 20-60 deg, 250-500 mm.
 

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 from . import __version__
+from .commands import COMMANDS
 from .errors import UVPSComputeError, UVPSInputError
 from .outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
 
@@ -37,10 +38,6 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 RESPONSE_NAME = "response.json"
 
-#: Parameters whose string values are file paths (resolved against the request folder).
-#: ``regions`` may also be the keyword "auto".
-PATH_PARAMS = frozenset({"lights", "mask", "dark", "regions", "labels", "masks"})
-_PATH_KEYWORDS = frozenset({"auto"})
 _REQUEST_KEYS = frozenset({"schema_version", "command", "inputs", "params", "output_dir"})
 
 
@@ -65,15 +62,16 @@ def _one_line(exc: BaseException) -> str:
     return line or type(exc).__name__
 
 
-def _resolve(value: Any, base: Path) -> Any:
-    """Resolve a path string (or a list of them) against ``base``; other values unchanged."""
+def _resolve(value: Any, base: Path, keywords=()) -> Any:
+    """Resolve a path string (or a list of them) against ``base``; other values and the
+    parameter's keywords (e.g. ``regions="auto"``) unchanged."""
     if isinstance(value, str):
-        if value in _PATH_KEYWORDS or not value:
+        if value in keywords or not value:
             return value
         p = Path(os.path.expanduser(value))
         return str(p if p.is_absolute() else (base / p))
     if isinstance(value, list):
-        return [_resolve(v, base) for v in value]
+        return [_resolve(v, base, keywords) for v in value]
     return value
 
 
@@ -85,14 +83,14 @@ def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequ
     request_path : path
         The request file.
     commands : dict, optional
-        The command registry (default ``uvps.commands.COMMANDS``); only its names are used.
+        The command registry (default ``uvps.commands.COMMANDS``).
 
     Returns
     -------
     BridgeRequest
-        Relative paths (``output_dir``, every string in ``inputs``, and the file parameters
-        ``lights``, ``mask``, ``dark``, ``regions``, ``labels``, ``masks``) resolved against the
-        request's folder.
+        Relative paths (``output_dir``, every string in ``inputs``, and the parameters the command
+        declares as files) resolved against the request's folder. Types and values are checked by
+        the command's declaration when it runs (:func:`uvps.spec.coerce`).
 
     Raises
     ------
@@ -115,7 +113,7 @@ def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequ
             f"request file {path}: schema_version must be {SCHEMA_VERSION}; got {version!r}"
         )
     if commands is None:
-        commands = _registry()
+        commands = COMMANDS
     command = raw.get("command")
     if not isinstance(command, str) or command not in commands:
         raise UVPSInputError(
@@ -135,15 +133,10 @@ def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequ
     base = path.parent.absolute()
     warnings = [f"request key '{k}' ignored (unknown)" for k in sorted(set(raw) - _REQUEST_KEYS)]
     inputs = {k: _resolve(v, base) for k, v in inputs.items()}
-    params = {k: (_resolve(v, base) if k in PATH_PARAMS else v) for k, v in params.items()}
+    files = {p.name: p.choices for p in getattr(commands[command], "params", ()) if p.type in ("path", "paths")}
+    params = {k: (_resolve(v, base, files[k]) if k in files else v) for k, v in params.items()}
     output_dir = check_output_dir(Path(_resolve(out, base)))
     return BridgeRequest(command, inputs, params, output_dir, warnings)
-
-
-def _registry() -> dict:
-    from .commands import COMMANDS
-
-    return COMMANDS
 
 
 def _jsonable(obj: Any) -> Any:
@@ -262,7 +255,7 @@ def run_bridge(request_path) -> int:
         response["warnings"] = list(request.warnings)
         for w in request.warnings:
             log.warning("%s", w)
-        func = _registry()[request.command]
+        func = COMMANDS[request.command]
         log.info("bridge: %s -> %s", request.command, request.output_dir)
         # Only PROGRESS lines may reach stdout: divert anything printed by libraries.
         with contextlib.redirect_stdout(sys.stderr), _sigterm_cancels():

@@ -1,12 +1,108 @@
-"""Command-line interface: ``uvps``. (Skeleton; filled in by commands.py.)"""
+"""Command-line interface: ``uvps COMMAND ...``, generated from the command declarations.
+
+Every sub-command's flags come from its :class:`uvps.spec.CommandSpec` (``uvps.commands.COMMANDS``);
+two more are the CLI's own: ``uvps bridge REQUEST.json`` (the Fiji side's entry, ``uvps.bridge``) and
+``uvps spec`` (the declarations as JSON for the Fiji side, or as the Markdown of docs/commands.md).
+Exit status: 0 ok, 1 bad input, 2 anything else.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
 import sys
+from pathlib import Path
+
+from . import __version__
+from .bridge import run_bridge
+from .commands import COMMANDS
+from .errors import UVPSError
+from .spec import add_parser, markdown, request_from_args, to_json
+
+log = logging.getLogger(__name__)
+
+#: Commands whose answer includes the report: the CLI prints where it is.
+_REPORTING = ("demo", "run", "stats", "report")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``uvps`` parser: one sub-command per declared command, plus ``bridge`` and ``spec``."""
+    ap = argparse.ArgumentParser(prog="uvps", description="Photometric stereo by UV-induced fluorescence "
+                                 "(lights from the images, normals, albedo, height, protrusions).")
+    ap.add_argument("--version", action="version", version=f"uvps {__version__}")
+    ap.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sp = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, spec in COMMANDS.items():
+        if name == spec.name:
+            add_parser(sp, spec)
+    p = sp.add_parser("bridge", help="the file bridge for the Fiji side: run a request.json")
+    p.add_argument("request")
+    p = sp.add_parser("spec", help="the command declarations, as JSON (Fiji side) or Markdown (docs)")
+    p.add_argument("--markdown", action="store_true", help="docs/commands.md instead of JSON")
+    return ap
+
+
+class _Bar:
+    """A tqdm progress bar on stderr driven by the progress callback (CLI only)."""
+
+    def __init__(self, name):
+        from tqdm import tqdm   # the CLI's own dependency: not imported by the library
+
+        self.bar = tqdm(total=1000, desc=name, file=sys.stderr, leave=False,
+                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}")
+
+    def __call__(self, fraction, message):
+        self.bar.n = int(1000 * fraction)
+        self.bar.set_postfix_str(message[:60], refresh=True)
+
+    def close(self):
+        self.bar.close()
+
+
+def _run_command(a) -> int:
+    spec = COMMANDS[a.command]
+    inputs, params = request_from_args(spec, a)
+    out = Path(a.output).resolve() if spec.output else None
+    bar = _Bar(a.command) if sys.stderr.isatty() else None
+    try:
+        result = spec(inputs, params, out, progress=bar)
+    except UVPSError as exc:
+        print(f"uvps {a.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+              file=sys.stderr)
+        return exc.exit_code
+    except Exception as exc:  # an unexpected failure: one line, the traceback in the log
+        log.debug("traceback", exc_info=True)
+        print(f"uvps {a.command}: internal error: {type(exc).__name__}: {exc}".splitlines()[0], file=sys.stderr)
+        return 2
+    finally:
+        if bar:
+            bar.close()
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if result.text:
+        print(result.text)
+    if out is not None:
+        print(f"uvps {a.command}: wrote {out}")
+        if a.command in _REPORTING and (out / "report.html").is_file():
+            print(f"report: {out / 'report.html'}")
+    return 0
 
 
 def main(argv=None) -> int:
-    from .commands import cli_main
+    """``uvps`` entry point; returns the exit status (0 ok, 1 bad input, 2 compute error)."""
+    a = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+    logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if a.command == "bridge":
+        return run_bridge(a.request)
+    if a.command == "spec":
+        print(markdown(COMMANDS) if a.markdown else json.dumps(to_json(COMMANDS), indent=1))
+        return 0
+    return _run_command(a)
 
-    return cli_main(sys.argv[1:] if argv is None else list(argv))
 
+#: The name the old entry point had (``uvps.commands.cli_main``).
+cli_main = main
 
 if __name__ == "__main__":
     sys.exit(main())

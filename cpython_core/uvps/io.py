@@ -65,9 +65,11 @@ class Capture:
 
     Attributes
     ----------
-    images : ndarray
-        ``(K, M, N)`` or ``(K, M, N, 3)`` float32, linear, dark-subtracted, NOT rescaled: the
-        file's own counts (uint16 -> 0..65535, uint8 -> 0..255).
+    images : ndarray or StackView
+        ``(K, M, N)`` or ``(K, M, N, 3)``, linear, dark-subtracted, NEVER rescaled: the files' own
+        counts (uint16 0..65535, uint8 0..255). Integer files keep their dtype; a dark frame or
+        sRGB linearisation gives float32. Later stages may wrap it in a lazy view that corrects on
+        access (:class:`StackView`: additive term, lamp beams) rather than copy it.
     files : list of str
         One per image; an image of a multi-page stack is ``"/path/stack.tif#k"`` with k from 1 (the
         ImageJ slice number).

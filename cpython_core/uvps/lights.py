@@ -785,7 +785,3 @@ def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> n
     sol = least_squares(fun, np.log(E0) - np.mean(np.log(E0)), jac=jac, method="lm", x_scale="jac")
     E = np.exp(sol.x)
     return E / np.median(E)
-
-
-# Kept until pipeline.py imports the public name; then delete it.
-_model_logs = model_logs

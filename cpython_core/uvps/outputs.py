@@ -43,12 +43,20 @@ class CommandResult:
     outputs: list = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    text: str = ""      # a plain-text answer the CLI prints (e.g. ``uvps info``)
 
 
 def report(progress: Progress, fraction: float, message: str) -> None:
     """Call ``progress`` if given."""
     if progress is not None:
         progress(float(min(max(fraction, 0.0), 1.0)), message)
+
+
+def sub_progress(progress: Progress, start: float, stop: float) -> Progress:
+    """A progress callback for a sub-step that covers ``[start, stop]`` of ``progress``."""
+    if progress is None:
+        return None
+    return lambda fraction, message: progress(start + (stop - start) * fraction, message)
 
 
 def check_output_dir(path) -> Path:

@@ -1,64 +1,110 @@
-"""The whole run, stage by stage: capture -> drop-off fits -> lights -> normals/albedo -> height.
+"""The whole run: capture -> additive term -> drop-off fits and lights -> normals/albedo -> height
+-> (colour areas, protrusions).
 
-Each stage is a function on arrays; the ``write_*`` functions put its results in a (temporary) run
-folder in the formats of docs/architecture.md. ``uvps.commands`` strings them together for the CLI and
-the file bridge.
+:func:`run` computes it in memory and returns a :class:`RunResult`; :func:`uvps.runfolder.write_run`
+puts that in a run folder (docs/architecture.md, "Output folder of a run"). The CLI, the file bridge,
+the benchmarks and the tests all go through these two functions.
+
+Example
+-------
+>>> from uvps.synthetic import make_capture
+>>> from uvps.pipeline import RunOptions, run
+>>> cap = make_capture(shape=(120, 160), n_lights=8, seed=1, pixel_size_um=150.0).as_capture()
+>>> res = run(cap, RunOptions(), stages=("normals", "height"))
+>>> res.stereo.normals.shape, res.height.height_um.dtype, res.lights.source
+((120, 160, 3), dtype('float32'), 'estimated')
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from . import __version__
+from .detect import DetectionParams, detect_protrusions
 from .errors import UVPSInputError
-from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, flatfield, set_common
-from .integrate import integrate_normals
-from .io import Capture, sha256_file, write_imagej_tiff
+from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, set_common
+from .integrate import IntegrationResult, integrate_normals
+from .io import Capture
 from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
-                     ratio_samples, refine_intensities, sample_pixels, _model_logs)
-from .offset import OffsetImages, estimate_additive, known_additive
-from .outputs import Progress, report, write_json_atomic
-from .stereo import StereoResult
+                     model_logs, ratio_samples, refine_intensities, sample_pixels)
+from .measure import measure_protrusions
+from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
+from .outputs import Progress, report, sub_progress
+from .regions import RegionMap, load_regions, propose_regions
+from .spec import Param, coerce_value
+from .stereo import StereoResult, solve_normals
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunOptions", "LightsResult", "estimate_capture_lights", "write_lights", "write_flatfield",
-           "write_stereo", "write_depth", "RunLog"]
+__all__ = ["OPTION_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+           "estimate_capture_lights", "find_protrusions"]
+
+#: The options of the photometric-stereo stages, declared once: the defaults and checks of
+#: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
+OPTION_PARAMS = (
+    Param("degree", "int", 4, minimum=1, maximum=8, label="Degree of the Legendre drop-off fit",
+          help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
+    Param("robust", "bool", False, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
+          help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
+               "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
+    Param("integration", "choice", "fc", choices=("fc", "dct"), label="Integration method",
+          help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
+    Param("refine_lights", "bool", True, help="refine each lamp after the paper's equidistant solution"),
+    Param("sample_pixels", "int", 30000, minimum=500, help="pixels sampled by the photometric residual (at most 1 in 16)"),
+    Param("estimate_intensities", "bool", False,
+          help="with known lights: each lamp's intensity from the images even over the light file's own"),
+    Param("black_level", "numbers", None, unit="counts", minimum=0, label="Black level",
+          help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
+               "measuring it from the images"),
+    Param("offset", "choice", "auto", choices=("auto", "none"),
+          help="additive term (black level, stray light): measured from the images (auto) or none"),
+    Param("offset_degree", "int", 0, minimum=0, maximum=2,
+          help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
+    Param("lamp_beams", "bool", False,
+          help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
+               "the canvas's large-scale shape (bow) from the heights"),
+)
+_OPTION = {p.name: p for p in OPTION_PARAMS}
+
+
+def _default(name):
+    return field(default=_OPTION[name].default)
 
 
 @dataclass
 class RunOptions:
-    """Options of the photometric-stereo stages (everything else is read from the capture)."""
+    """Options of the photometric-stereo stages (everything else is read from the capture).
 
-    degree: int = 4                 # Legendre degree of the drop-off fit
-    robust: bool = False            # rank-trimmed stereo: per pixel, drop the darkest 25 % and brightest 10 %
-    integration: str = "fc"         # "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
-    refine_lights: bool = True      # per-light refinement after the equidistant solution
-    sample_pixels: int = 30000      # pixels used by the photometric residual (at most 1 in 16)
-    estimate_intensities: bool = False  # known lights: intensities from the images even over the light
-    #                                     file's own (positions: photometric residual; directions: levels)
-    black_level: Optional[object] = None  # known additive term in counts (one number or one per channel)
-    offset: str = "auto"            # additive term: "auto" (measured from the images) or "none"
-    offset_degree: int = 0          # 0: a constant black level; 1-2: also smooth stray light
-    lamp_beams: bool = False        # known positions: divide out each lamp's beam (and the canvas's bow)
+    Each field is declared in :data:`OPTION_PARAMS` (type, default, range, help) and checked
+    against it here.
+    """
+
+    degree: int = _default("degree")
+    robust: bool = _default("robust")
+    integration: str = _default("integration")
+    refine_lights: bool = _default("refine_lights")
+    sample_pixels: int = _default("sample_pixels")
+    estimate_intensities: bool = _default("estimate_intensities")
+    black_level: Optional[object] = _default("black_level")
+    offset: str = _default("offset")
+    offset_degree: int = _default("offset_degree")
+    lamp_beams: bool = _default("lamp_beams")
 
     def __post_init__(self):
-        if not (isinstance(self.degree, (int, np.integer)) and 1 <= int(self.degree) <= 8):
-            raise UVPSInputError(f"degree must be an integer from 1 to 8; got {self.degree!r}")
-        if self.integration not in ("fc", "dct"):
-            raise UVPSInputError(f"integration must be 'fc' or 'dct'; got {self.integration!r}")
-        if int(self.sample_pixels) < 500:
-            raise UVPSInputError(f"sample_pixels must be >= 500; got {self.sample_pixels!r}")
-        if self.offset not in ("auto", "none"):
-            raise UVPSInputError(f"offset must be 'auto' or 'none'; got {self.offset!r}")
-        if self.offset_degree not in (0, 1, 2):
-            raise UVPSInputError(f"offset_degree must be 0, 1 or 2; got {self.offset_degree!r}")
+        for p in OPTION_PARAMS:
+            v = getattr(self, p.name)
+            if v is not None:
+                setattr(self, p.name, coerce_value(p, v))
+
+    @classmethod
+    def from_params(cls, params: dict) -> "RunOptions":
+        """The options among a request's (coerced) parameters; absent ones take their default."""
+        return cls(**{k: params[k] for k in _OPTION if params.get(k) is not None})
 
 
 @dataclass
@@ -74,35 +120,231 @@ class LightsResult:
 
 
 @dataclass
-class RunLog:
-    """What run.json records: parameters, inputs, timings, warnings."""
+class Protrusions:
+    """Colour areas and detected protrusions of a run (:func:`find_protrusions`)."""
 
-    command: str
-    params: dict
-    inputs: list = field(default_factory=list)
-    timings_s: dict = field(default_factory=dict)
-    warnings: list = field(default_factory=list)
+    table: dict                          # uvps.measure columns, one row per protrusion
+    labels: np.ndarray                   # (M, N) protrusion labels, id as in the table
+    regions: Optional[RegionMap]         # the colour areas (None: the whole image)
+    proposed: bool                       # the areas were proposed from the albedo (regions="auto")
+    rejected: dict                       # candidates rejected, by rule
+    noise_um: float
+
+
+@dataclass
+class RunResult:
+    """Everything one run computed (:func:`run`), before anything is written."""
+
+    capture: Capture                     # as the stages saw it (additive term removed on access)
+    options: RunOptions
+    stages: tuple
+    additive: AdditiveTerm
+    lights: LightsResult
+    stereo: Optional[StereoResult] = None
+    height: Optional[IntegrationResult] = None
+    protrusions: Optional[Protrusions] = None
     diagnostics: dict = field(default_factory=dict)
-
-    def time(self, stage, t0):
-        self.timings_s[stage] = round(time.perf_counter() - t0, 3)
-
-    def write(self, path):
-        d = asdict(self)
-        d = {"version": __version__, **d}
-        write_json_atomic(path, d)
+    warnings: list = field(default_factory=list)
+    timings_s: dict = field(default_factory=dict)
 
 
-def input_hashes(capture: Capture) -> list:
-    """SHA-256 of every input file (a stack is hashed once)."""
-    seen, out = set(), []
-    for f in capture.files:
-        p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
-        if p in seen:
-            continue
-        seen.add(p)
-        out.append({"path": str(p), "sha256": sha256_file(p)})
-    return out
+#: Stages :func:`run` knows, in order. "flatfield" computes nothing in memory: the flat-fielded
+#: images are written by :func:`uvps.runfolder.write_run` (one image at a time).
+STAGES = ("flatfield", "normals", "height", "protrusions")
+#: A run whose lamps leave more than this fraction of the pixels with fewer than 3 usable samples
+#: stops: no model fits the images.
+NO_MODEL_FRACTION = 0.5
+#: Relative standard uncertainty of heights from the estimated lamps beyond which a run warns, and
+#: beyond which it says the heights' scale is not determined. The reported uncertainty is
+#: conservative: on the benchmark's 24 x 18 mm field it was 2-6x the true height error (8-15 % for
+#: true errors of 2-4 %, docs/benchmarks.md), so the warning starts at 20 %, not on every run.
+#: Stray light the additive term misses gave 250-15000 %; a 3.6 x 4.8 mm field 140 %.
+HEIGHT_UNCERTAINTY_WARN = 0.20
+HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
+
+
+def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
+        dark_given: bool = False, regions=None, n_areas=None, detection: DetectionParams = None,
+        progress: Progress = None) -> RunResult:
+    """Run the pipeline on a capture, in memory.
+
+    Parameters
+    ----------
+    capture : Capture
+        From :func:`uvps.io.read_capture` (or :func:`uvps.synthetic.make_capture`).
+    options : RunOptions, optional
+        The photometric-stereo options (default: all defaults).
+    stages : tuple of str
+        Which of :data:`STAGES` to run; the lights always are. "height" implies "normals";
+        "protrusions" implies both.
+    dark_given : bool
+        A dark frame was subtracted on reading: no additive term is measured.
+    regions : None, "auto", path or RegionMap
+        Colour areas for the protrusions: none (the whole image), proposed from the albedo, a label
+        TIFF, or given.
+    n_areas : int, optional
+        Number of areas for ``regions="auto"`` (default: chosen from the albedo).
+    detection : DetectionParams, optional
+        Options of :func:`uvps.detect.detect_protrusions`.
+    progress : callable(fraction, message), optional
+
+    Returns
+    -------
+    RunResult
+
+    Raises
+    ------
+    UVPSInputError
+        The images are mostly pedestal, or no lamp model fits them (more than
+        :data:`NO_MODEL_FRACTION` of the pixels lit by fewer than 3 lamps).
+    """
+    options = options or RunOptions()
+    stages = _closed_stages(stages)
+    res = RunResult(capture, options, stages, additive=None, lights=None)
+    t0 = time.perf_counter()
+    capture, res.additive, warn = remove_additive(capture, options=options, dark_given=dark_given)
+    res.timings_s["additive"] = _since(t0)
+    res.diagnostics["additive"] = res.additive.to_json()
+    res.warnings += warn
+    _run_lights(res, capture, sub_progress(progress, 0.0, 0.45))
+    if "normals" in stages:
+        _run_normals(res, sub_progress(progress, 0.5, 0.85))
+    if "height" in stages:
+        t0 = time.perf_counter()
+        report(progress, 0.87, "integrating the height")
+        res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
+                                       method=options.integration, mask=res.capture.mask)
+        res.timings_s["integrate"] = _since(t0)
+        res.diagnostics["integration"] = integration_diagnostics(res.height)
+    if "protrusions" in stages:
+        t0 = time.perf_counter()
+        res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,
+                                           pixel_size_um=res.capture.pixel_size_um, regions=regions,
+                                           n_areas=n_areas, params=detection,
+                                           progress=sub_progress(progress, 0.9, 0.98))
+        res.timings_s["protrusions"] = _since(t0)
+    report(progress, 1.0, "done")
+    return res
+
+
+def _closed_stages(stages) -> tuple:
+    stages = set(stages)
+    unknown = stages - set(STAGES)
+    if unknown:
+        raise UVPSInputError(f"stages: unknown {', '.join(sorted(unknown))}; expected some of {', '.join(STAGES)}")
+    if "protrusions" in stages:
+        stages |= {"height"}
+    if "height" in stages:
+        stages |= {"normals"}
+    return tuple(s for s in STAGES if s in stages)
+
+
+def _since(t0) -> float:
+    return round(time.perf_counter() - t0, 3)
+
+
+def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
+    """The lights stage: fits, lights, their diagnostics and the heights' confidence."""
+    t0 = time.perf_counter()
+    se = res.additive.stderr
+    offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
+    res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, progress=progress)
+    res.timings_s["lights"] = _since(t0)
+    res.diagnostics["lights"] = lights_diagnostics(res.lights)
+    if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
+        capture = dataclasses.replace(capture, images=res.lights.images)
+    res.capture = capture
+    res.warnings += _height_confidence_warnings(res.lights)
+
+
+def _height_confidence_warnings(lights: LightsResult) -> list:
+    unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    if unc is None or unc.height_rel <= HEIGHT_UNCERTAINTY_WARN:
+        return []
+    if unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED:
+        # the lamps are not determined by these images: the relief's shape may still serve (protrusions
+        # show), its scale does not; said once, with what to do
+        return [f"the heights' scale is not determined by these images (uncertain by +-{100 * unc.height_rel:.0f} %: "
+                "a small field, or stray light or lamp beams the model does not hold): give measured lamp positions "
+                "(--lights), and a dark frame (--dark) if there is stray light"]
+    # a warning only when the lamps' uncertainty makes the heights clearly uncertain: it then says
+    # which cause dominates and what to do (reported once: the CLI prints it, the bridge returns it)
+    cause = ("the black level could not be measured precisely enough; give the camera's black level or a "
+             "dark frame" if unc.height_rel_offset > unc.height_rel_noise else
+             "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
+             "apart; give measured lamp positions")
+    return [f"heights may be off by +-{100 * unc.height_rel:.0f} % (the estimated lamps' elevations are uncertain): "
+            f"{cause}"]
+
+
+def _run_normals(res: RunResult, progress: Progress) -> None:
+    """Normals and albedo; stops the run when the lamps fit no pixel."""
+    t0 = time.perf_counter()
+    cap = res.capture
+    st = solve_normals(cap.images, res.lights.model, pixel_size_um=cap.pixel_size_um, mask=cap.mask,
+                       saturation=cap.saturation, robust=res.options.robust, progress=progress)
+    res.timings_s["normals"] = _since(t0)
+    res.diagnostics["normals"] = {"n_invalid": st.n_invalid, "residual_rms": st.residual_rms}
+    n_px = int(cap.mask.sum()) if cap.mask is not None else int(np.prod(cap.images.shape[1:3]))
+    if st.n_invalid > NO_MODEL_FRACTION * n_px:
+        # the lamps explain the images nowhere: no heights rather than wrong ones
+        raise UVPSInputError(
+            f"no lamp model fits these images: {100 * st.n_invalid / n_px:.0f} % of the pixels are lit by fewer "
+            f"than 3 lamps as {res.lights.source} (lamps with narrow beams or stray light the lamp model does not "
+            "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
+    if st.n_invalid:
+        res.warnings.append(f"{st.n_invalid} pixels had fewer than 3 usable lights (NaN)")
+    res.stereo = st
+
+
+def lights_diagnostics(lights: LightsResult) -> dict:
+    """What ``run.json`` says about the lights: source, count, the estimate's cost and confidence."""
+    d = {"source": lights.source, "n_lights": int(len(lights.model.intensities))}
+    if lights.beam_rms is not None:
+        d["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
+    if lights.estimate is not None:
+        d["m_mm"] = lights.estimate.m_mm
+        d["final_cost"] = lights.estimate.residual_history[-1]["cost"] if lights.estimate.residual_history else None
+        per_light = [h for h in lights.estimate.residual_history if h["stage"] == "per-light"]
+        if per_light:
+            d["refinement_converged"] = bool(per_light[-1]["converged"])
+        if lights.estimate.uncertainty is not None:
+            u = lights.estimate.uncertainty
+            d["height_uncertainty_relative"] = round(float(u.height_rel), 5)
+            d["direction_uncertainty_deg_max"] = round(float(np.max(u.direction_deg)), 4)
+    return d
+
+
+def integration_diagnostics(res: IntegrationResult) -> dict:
+    """What ``run.json`` says about the integration."""
+    return {"method": res.method, "residual_rms": res.residual_rms, "integrability": res.integrability,
+            "height_range_um": [float(np.nanmin(res.height_um)), float(np.nanmax(res.height_um))]}
+
+
+def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, regions=None, n_areas=None,
+                     seed: int = 0, params: DetectionParams = None, progress: Progress = None) -> Protrusions:
+    """Colour areas and the automated protrusions of a run (paper section 3: albedo colour + height).
+
+    ``regions``: None (the whole image), "auto" (proposed from the albedo colour,
+    :func:`uvps.regions.propose_regions`), a label TIFF path or list of mask paths
+    (:func:`uvps.regions.load_regions`), or a :class:`~uvps.regions.RegionMap`. With areas,
+    detection is restricted to them (the paper masks each area) and each protrusion gets its area.
+    """
+    proposed = isinstance(regions, str) and regions == "auto"
+    if proposed:
+        regions = propose_regions(albedo, pixel_size_um=pixel_size_um, n_areas=n_areas, seed=seed)
+    elif isinstance(regions, (list, tuple)):
+        regions = load_regions([Path(p) for p in regions], shape=height_um.shape)
+    elif isinstance(regions, (str, Path)):
+        regions = load_regions(Path(regions), shape=height_um.shape)
+    mask = regions.labels > 0 if regions is not None else None
+    det = detect_protrusions(albedo, height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
+                             params=params or DetectionParams(), progress=sub_progress(progress, 0.0, 0.85))
+    report(progress, 0.9, "measuring")
+    source = {i + 1: str(s) for i, s in enumerate(det.source)}
+    table = measure_protrusions(det.labels, albedo=albedo, height_um=height_um, pixel_size_um=pixel_size_um,
+                                regions=regions, source=source)
+    return Protrusions(table, det.labels, regions, proposed, dict(det.rejected), float(det.noise_um))
 
 
 #: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
@@ -203,7 +445,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     shape = grid.shape
 
     def common_of(P):
-        return lambda r, c: _model_logs(P, pixel_coordinates_mm(np.asarray(r)[:, None], np.asarray(c)[None, :],
+        return lambda r, c: model_logs(P, pixel_coordinates_mm(np.asarray(r)[:, None], np.asarray(c)[None, :],
                                                                   shape, px)).mean(axis=0)
 
     # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
@@ -221,7 +463,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         # by default.
         rows, cols, R = ratio_samples(fits, shape)
         X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, px)
-        h = _model_logs(P, X)
+        h = model_logs(P, X)
         delta = R - h + h.mean(axis=0)
         delta -= delta.mean(axis=0)
         beam_rms = float(np.sqrt(np.mean(delta ** 2)))
@@ -258,70 +500,3 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     return LightsResult(est.model, fits, "estimated", est)
 
 
-def write_lights(folder: Path, capture: Capture, lights: LightsResult, *, dropoff=True) -> dict:
-    """``lights.json`` (and ``dropoff.tif``, the fitted drop-off maps, at most 1024 px wide)."""
-    extra = {"pixel_size_um": capture.pixel_size_um, "image_shape": list(capture.images.shape[1:3]),
-             "source": lights.source,
-             "dropoff": [{"degree": f.degree, "legendre_coeffs": f.coeffs.tolist(), "level": f.level}
-                         for f in lights.fits]}
-    if lights.beam_rms is not None:
-        extra["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
-    if lights.estimate is not None:
-        est = lights.estimate
-        if est.uncertainty is not None:
-            extra["uncertainty"] = est.uncertainty.to_json()
-        extra.update({"m_mm": est.m_mm, "residual_history": est.residual_history,
-                      "azimuth_polar_deg": [float(a) for a in est.azimuth_polar_deg],
-                      "equidistant_positions_mm": est.equidistant.positions_mm.tolist()})
-    data = lights.model.to_json([Path(f).name for f in capture.files], extra=extra)
-    write_json_atomic(folder / "lights.json", data)
-    if dropoff:
-        M, N = capture.images.shape[1:3]
-        step = max(1, int(np.ceil(max(M, N) / 1024)))
-        rows, cols = np.arange(0, M, step), np.arange(0, N, step)
-        maps = np.stack([f.evaluate(rows, cols) for f in lights.fits]).astype(np.float32)
-        write_imagej_tiff(folder / "dropoff.tif", maps, axes="ZYX", pixel_size_um=capture.pixel_size_um * step,
-                          labels=[Path(f).name for f in capture.files],
-                          metadata={"Info": f"uvps drop-off maps (mean 1), sampled every {step} px"})
-    return data
-
-
-def write_flatfield(folder: Path, capture: Capture, lights: LightsResult, *, progress: Progress = None) -> Path:
-    """``flatfield/<name>.tif``: each image divided by its drop-off map, one float32 file per image."""
-    out = folder / "flatfield"
-    out.mkdir(exist_ok=True)
-    K = capture.images.shape[0]
-    for k, (img, fit) in enumerate(zip(capture.images, lights.fits)):
-        ff = flatfield(img, fit)
-        axes = "YX"
-        if ff.ndim == 3:
-            ff, axes = np.moveaxis(ff, -1, 0), "CYX"
-        name = Path(capture.files[k].replace("#", "_")).stem
-        write_imagej_tiff(out / f"{k:03d}_{name}.tif", ff, axes=axes, pixel_size_um=capture.pixel_size_um)
-        report(progress, (k + 1) / K, f"flat field {k + 1}/{K}")
-    return out
-
-
-def write_stereo(folder: Path, res: StereoResult, pixel_size_um: float) -> None:
-    """``normals.tif`` (3, M, N), ``albedo.tif`` ((3,) M, N) and ``gradients.tif`` (2, M, N)."""
-    from .integrate import gradients_from_normals
-
-    write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
-                      pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
-    if res.albedo.ndim == 3:
-        write_imagej_tiff(folder / "albedo.tif", np.moveaxis(res.albedo, -1, 0), axes="CYX",
-                          pixel_size_um=pixel_size_um, labels=["R", "G", "B"][:res.albedo.shape[-1]])
-    else:
-        write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
-    g = gradients_from_normals(res.normals)
-    write_imagej_tiff(folder / "gradients.tif", np.stack([g.p, g.q]), axes="CYX",
-                      pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"])
-
-
-def write_depth(folder: Path, normals, pixel_size_um: float, *, method="fc", mask=None) -> dict:
-    """``depth.tif``: height in micrometres (median 0), from the normals."""
-    res = integrate_normals(normals, pixel_size_um=pixel_size_um, method=method, mask=mask)
-    write_imagej_tiff(folder / "depth.tif", res.height_um, axes="YX", pixel_size_um=pixel_size_um,
-                      metadata={"Info": f"uvps height in micrometres ({res.method}), median 0"})
-    return {"method": res.method, "residual_rms": res.residual_rms, "integrability": res.integrability,
-            "height_range_um": [float(np.nanmin(res.height_um)), float(np.nanmax(res.height_um))]}

@@ -326,6 +326,22 @@ class SyntheticCapture:
     gain: float = 1.0
     nuisances: Nuisances = dataclasses.field(default_factory=Nuisances)
 
+    def as_capture(self, *, lights: str = "estimate"):
+        """This capture as :func:`uvps.io.read_capture` would return it from the written files.
+
+        ``lights``: "estimate" (no light file), or "positions" (the true lamp positions and
+        intensities, as a calibrated positions file gives them).
+        """
+        from .io import Capture   # io imports nothing from here; kept local as synthetic is optional
+
+        K = self.images.shape[0]
+        known = lights == "positions"
+        return Capture(images=self.images, files=[f"uv_{k:02d}.tif" for k in range(K)],
+                       pixel_size_um=self.spec.pixel_size_um, mask=None,
+                       saturation=float(np.iinfo(self.images.dtype).max) if self.images.dtype.kind == "u" else None,
+                       light_directions=None, light_positions_mm=self.light_positions_mm if known else None,
+                       bit_depth=str(self.images.dtype), light_intensities=self.intensities if known else None)
+
 
 # --------------------------------------------------------------------------------------------
 # Geometry and rendering

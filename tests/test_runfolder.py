@@ -1,0 +1,72 @@
+"""The run folder: reading it back, and `uvps info` (what a run folder holds), through the CLI and
+the bridge."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from uvps.commands import COMMANDS
+from uvps.errors import UVPSInputError
+from uvps.io import write_imagej_tiff
+from uvps.runfolder import describe, read_run
+from uvps.synthetic import make_capture, write_capture
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    cap = make_capture(shape=(160, 200), n_lights=8, seed=2)
+    d = tmp_path_factory.mktemp("info")
+    write_capture(cap, d / "cap")
+    COMMANDS["run"]({"images": [str(d / "cap")]}, {"regions": "auto"}, d / "run")
+    return d / "run"
+
+
+def test_info_describes_the_run_on_the_command_line(run_dir):
+    r = subprocess.run([sys.executable, "-m", "uvps", "info", str(run_dir)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    log = json.loads((run_dir / "run.json").read_text())
+    n = len((run_dir / "protrusions.csv").read_text().splitlines()) - 1
+    assert "made by:    uvps run" in r.stdout
+    assert "160 x 200 px x 3 channels of 15.0 um, 8 lights (estimated)" in r.stdout
+    assert f"protrusions: {n}" in r.stdout and n > 0
+    # every warning the run gave is repeated, or "none"
+    assert all(w in r.stdout for w in log["warnings"]) and (log["warnings"] or "warnings:   none" in r.stdout)
+    assert not list(run_dir.parent.glob(".run.tmp-*"))     # info writes nothing
+
+
+def test_info_through_the_bridge_returns_the_same_facts(run_dir, tmp_path):
+    req = tmp_path / "request.json"
+    req.write_text(json.dumps({"schema_version": 1, "command": "info", "inputs": {"run": str(run_dir)},
+                               "params": {}, "output_dir": str(tmp_path / "unused")}))
+    r = subprocess.run([sys.executable, "-m", "uvps", "bridge", str(req)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    resp = json.loads((tmp_path / "response.json").read_text())
+    assert resp["status"] == "ok" and resp["diagnostics"] == json.loads(json.dumps(describe(run_dir)))
+    assert resp["diagnostics"]["lights"]["source"] == "estimated"
+
+
+def test_info_on_a_folder_that_is_not_a_run(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "uvps", "info", str(tmp_path)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.strip() == f"uvps info: error: {tmp_path} is not a run folder: it has no run.json (made by " \
+                               "uvps run, lights, flatfield or normals)"
+
+
+def test_read_run_reads_channel_last_and_checks_sizes(tmp_path):
+    write_imagej_tiff(tmp_path / "albedo.tif", np.ones((3, 20, 30), np.float32), axes="CYX", pixel_size_um=15.0)
+    write_imagej_tiff(tmp_path / "depth.tif", np.zeros((20, 30), np.float32), axes="YX", pixel_size_um=15.0)
+    r = read_run(tmp_path)
+    assert r.albedo.shape == (20, 30, 3) and r.shape == (20, 30) and r.pixel_size_um == 15.0
+    with pytest.raises(UVPSInputError, match="has no normals.tif; run the 'normals' command first"):
+        read_run(tmp_path, need=("normals",))
+    write_imagej_tiff(tmp_path / "normals.tif", np.zeros((3, 21, 30), np.float32), axes="CYX", pixel_size_um=15.0)
+    with pytest.raises(UVPSInputError, match="differ in size"):
+        read_run(tmp_path)
+    (tmp_path / "normals.tif").unlink()
+    with pytest.raises(UVPSInputError, match="pixel_size_um must be a positive number; got -1"):
+        read_run(tmp_path, need=(), pixel_size_um=-1)
