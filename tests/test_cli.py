@@ -69,6 +69,7 @@ def test_run_with_calibrated_lights(capture_dir, tmp_path):
     np.testing.assert_allclose(E / E.mean(), cap.intensities / cap.intensities.mean(), rtol=0.03)
 
 
+@pytest.mark.slow
 def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
     cap, folder = capture_dir
     out = tmp_path / "run"

@@ -7,6 +7,7 @@ import tifffile
 
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
+from uvps.io import read_capture
 from uvps.pipeline import STAGES, RunOptions, run
 from uvps.runfolder import read_run, write_run
 from uvps.synthetic import make_capture, write_capture
@@ -36,9 +37,9 @@ def test_the_command_writes_exactly_what_run_computes(synthetic, tmp_path):
     """`uvps run` is read -> pipeline.run -> runfolder.write_run: the files hold the in-memory arrays."""
     write_capture(synthetic, tmp_path / "cap")
     out = tmp_path / "run"
-    result = COMMANDS["run"]({"images": [str(tmp_path / "cap")]}, {"regions": "auto"}, out)
-    from uvps.io import read_capture
-    res = run(read_capture(tmp_path / "cap"), RunOptions(), stages=STAGES, regions="auto")
+    lamps = str(tmp_path / "cap" / "lights_positions_mm.csv")
+    result = COMMANDS["run"]({"images": [str(tmp_path / "cap")]}, {"regions": "auto", "lights": lamps}, out)
+    res = run(read_capture(tmp_path / "cap", lights=lamps), RunOptions(), stages=STAGES, regions="auto")
     images = read_run(out, need=("albedo", "depth", "normals"))
     np.testing.assert_array_equal(images.normals, res.stereo.normals)
     np.testing.assert_array_equal(images.height_um, res.height.height_um)

@@ -19,7 +19,8 @@ def run_dir(tmp_path_factory):
     cap = make_capture(shape=(160, 200), n_lights=8, seed=2)
     d = tmp_path_factory.mktemp("info")
     write_capture(cap, d / "cap")
-    COMMANDS["run"]({"images": [str(d / "cap")]}, {"regions": "auto"}, d / "run")
+    COMMANDS["run"]({"images": [str(d / "cap")]}, {"regions": "auto", "lights": str(d / "cap" / "lights_positions_mm.csv")},
+                    d / "run")
     return d / "run"
 
 
@@ -30,7 +31,7 @@ def test_info_describes_the_run_on_the_command_line(run_dir):
     log = json.loads((run_dir / "run.json").read_text())
     n = len((run_dir / "protrusions.csv").read_text().splitlines()) - 1
     assert "made by:    uvps run" in r.stdout
-    assert "160 x 200 px x 3 channels of 15.0 um, 8 lights (estimated)" in r.stdout
+    assert "160 x 200 px x 3 channels of 15.0 um, 8 lights (positions)" in r.stdout
     assert f"protrusions: {n}" in r.stdout and n > 0
     # every warning the run gave is repeated, or "none"
     assert all(w in r.stdout for w in log["warnings"]) and (log["warnings"] or "warnings:   none" in r.stdout)
@@ -46,7 +47,7 @@ def test_info_through_the_bridge_returns_the_same_facts(run_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     resp = json.loads((tmp_path / "response.json").read_text())
     assert resp["status"] == "ok" and resp["diagnostics"] == json.loads(json.dumps(describe(run_dir)))
-    assert resp["diagnostics"]["lights"]["source"] == "estimated"
+    assert resp["diagnostics"]["lights"]["source"] == "positions"
 
 
 def test_info_on_a_folder_that_is_not_a_run(tmp_path):

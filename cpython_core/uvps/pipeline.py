@@ -9,10 +9,10 @@ Example
 -------
 >>> from uvps.synthetic import make_capture
 >>> from uvps.pipeline import RunOptions, run
->>> cap = make_capture(shape=(120, 160), n_lights=8, seed=1, pixel_size_um=150.0).as_capture()
+>>> cap = make_capture(shape=(120, 160), n_lights=8, seed=1).as_capture(lights="positions")
 >>> res = run(cap, RunOptions(), stages=("normals", "height"))
 >>> res.stereo.normals.shape, res.height.height_um.dtype, res.lights.source
-((120, 160, 3), dtype('float32'), 'estimated')
+((120, 160, 3), dtype('float32'), 'positions')
 """
 from __future__ import annotations
 
