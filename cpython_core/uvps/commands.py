@@ -63,10 +63,19 @@ def read_request_capture(inputs: dict, params: dict, progress=None):
                         pixel_size_um=params["pixel_size_um"], linearize=params["linearize"], progress=progress)
 
 
+#: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
+REUSE_LIGHTS = ("flatfield", "normals")
+
+
 def _capture_command(name: str, stages: tuple):
     def cmd(inputs, params, output_dir, *, progress=None):
         run_dir = check_output_dir(output_dir)
         t_all = time.perf_counter()
+        if name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
+            # step by step: the lamps of the folder's `lights` step, not a second estimate that
+            # could differ (and costs the most time)
+            params = {**params, "lights": str(run_dir / "lights.json")}
+            log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
         capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
         protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
         result = run(capture, RunOptions.from_params(params), stages=stages + (("protrusions",) if protrusions else ()),
@@ -76,6 +85,7 @@ def _capture_command(name: str, stages: tuple):
             outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
                                           progress=sub_progress(progress, 0.9, 0.95))
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        out.diagnostics["lights_file"] = params["lights"]
         if protrusions:
             out = _statistics_and_report(run_dir, result, params, out, sub_progress(progress, 0.95, 1.0))
         out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
