@@ -11,45 +11,26 @@ Usage::
 """
 import argparse
 import os
-import select
 import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests" / "imagej"))
+from xvfb_display import start_xvfb, stop_xvfb  # noqa: E402  (the test harness's Xvfb)
 IJ_JAR = "/usr/share/java/ij.jar"
 JYTHON_JAR = "/usr/share/java/jython.jar"
 
 MENU_ITEMS = ["Run Whole Pipeline", "Estimate Lights", "Flat Field", "Normals and Albedo",
               "Integrate Height", "Colour Areas", "Detect Protrusions", "Wand Count",
-              "Statistics and Report", "Compare Counts", "Relight", "UVPS Settings"]
+              "Statistics and Report", "Compare Counts", "Relight", "Run Info", "UVPS Settings"]
 
 #: Example values shown in the screenshots (ij.Prefs keys uvps.<macro key>).
 EXAMPLES = {"run": "/data/okeeffe/run1", "images": "/data/okeeffe/uv capture",
             "capture": "Folder or files", "first": "/data/okeeffe/run1/protrusions_manual.csv",
             "second": "/data/okeeffe/run1/protrusions.csv"}
-
-
-def start_xvfb():
-    read_fd, write_fd = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24",
-                             "-nolisten", "tcp"], pass_fds=(write_fd,),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    os.close(write_fd)
-    data = b""
-    deadline = time.monotonic() + 30
-    while not data.endswith(b"\n") and time.monotonic() < deadline:
-        if select.select([read_fd], [], [], 0.5)[0]:
-            chunk = os.read(read_fd, 64)
-            if not chunk:
-                break
-            data += chunk
-    os.close(read_fd)
-    return proc, ":" + data.decode().strip()
 
 
 def main(argv=None):
@@ -91,8 +72,7 @@ def main(argv=None):
             return 1
     finally:
         if xvfb is not None:
-            xvfb.terminate()
-            xvfb.wait()
+            stop_xvfb(xvfb)
         shutil.rmtree(work, ignore_errors=True)
     return 0
 

@@ -9,16 +9,16 @@ status 3, an uncaught Python exception with status 4.
 import dataclasses
 import os
 import re
-import select
 import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import List
 
 import pytest
+
+from xvfb_display import XvfbError, start_xvfb, stop_xvfb
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
@@ -113,35 +113,6 @@ def _compile(build_dir):
         pytest.fail("javac failed for tests/imagej/java:\n%s" % proc.stdout, pytrace=False)
 
 
-def _start_xvfb(log_path):
-    """Start Xvfb on a free display; return (process, ':N')."""
-    read_fd, write_fd = os.pipe()
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0",
-                                 "1280x1024x24", "-nolisten", "tcp"],
-                                pass_fds=(write_fd,), stdout=log, stderr=log,
-                                start_new_session=True)
-    os.close(write_fd)
-    data = b""
-    deadline = time.monotonic() + 30
-    try:
-        while not data.endswith(b"\n") and time.monotonic() < deadline:
-            ready, _, _ = select.select([read_fd], [], [], 0.5)
-            if ready:
-                chunk = os.read(read_fd, 64)
-                if not chunk:
-                    break
-                data += chunk
-    finally:
-        os.close(read_fd)
-    if not data.strip().isdigit():
-        proc.kill()
-        proc.wait()
-        pytest.fail("Xvfb did not report a display number: %s" % Path(log_path).read_text(
-            errors="replace")[-2000:], pytrace=False)
-    return proc, ":" + data.decode().strip()
-
-
 @pytest.fixture(scope="session")
 def imagej_env(tmp_path_factory):
     """Dependencies checked (installed when allowed), Java helpers compiled, Xvfb running."""
@@ -151,17 +122,15 @@ def imagej_env(tmp_path_factory):
     # while another session's JVM loads them would make both flaky.
     build_dir = tmp_path_factory.mktemp("ij_classes")
     _compile(build_dir)
-    xvfb, display = _start_xvfb(tmp_path_factory.mktemp("xvfb") / "xvfb.log")
+    try:
+        xvfb, display = start_xvfb(str(tmp_path_factory.mktemp("xvfb") / "xvfb.log"))
+    except XvfbError as exc:
+        pytest.fail(str(exc), pytrace=False)
     classpath = os.pathsep.join([str(IJ_JAR), str(JYTHON_JAR), str(build_dir)])
     try:
         yield ImageJEnv(java=shutil.which("java"), classpath=classpath, display=display)
     finally:
-        xvfb.terminate()
-        try:
-            xvfb.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            xvfb.kill()
-            xvfb.wait()
+        stop_xvfb(xvfb)
 
 
 def make_imagej_home(path):
