@@ -8,7 +8,10 @@ Layout written (the plugin scripts rely on it):
 - Jython library, plain ImageJ 1.x: ``<root>/plugins/jars/Lib/uvps_fiji/`` (ImageJ turns every
   ``.py`` at depth <= 2 under ``plugins/`` into a menu command, so helpers must live at depth >= 3);
 - ``<lib>/uvps_fiji/uvps_fiji.cfg``: ``python = /abs/path/to/python``, the CPython that has uvps
-  installed (read by ``uvps_fiji.bridge_logic.read_config``).
+  installed (read by ``uvps_fiji.bridge_logic.read_config``);
+- ``<lib>/uvps_fiji/commands.json``: the core's command declarations, the output of
+  ``<python> -m uvps spec`` (names, parameters, defaults, choices, help); the dialogs and requests
+  of the Fiji side are built from it (``uvps_fiji.bridge_logic.load_spec``).
 
 Each menu script adds ``IJ.getDirectory("imagej") + "jars/Lib"`` and
 ``IJ.getDirectory("plugins") + "jars/Lib"`` to ``sys.path`` before importing ``uvps_fiji``.
@@ -21,6 +24,7 @@ Usage::
 Pure CPython standard library, so that it runs before anything else is set up.
 """
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -30,6 +34,7 @@ import tempfile
 MENU_FOLDER = "UV_Photometric_Stereo"
 PACKAGE = "uvps_fiji"
 CONFIG_NAME = "uvps_fiji.cfg"
+SPEC_NAME = "commands.json"
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -78,6 +83,29 @@ def check_python(python):
     return proc.stdout.strip()
 
 
+def command_table(python):
+    """Return the JSON text of ``python -m uvps spec`` (checked), or raise InstallError."""
+    try:
+        proc = subprocess.run([python, "-m", "uvps", "spec"], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, universal_newlines=True, timeout=120)
+    except OSError as exc:
+        raise InstallError("--python %s cannot be run: %s" % (python, exc))
+    last = (proc.stderr.strip().splitlines() or ["exit status %d" % proc.returncode])[-1]
+    if proc.returncode != 0:
+        raise InstallError("%s -m uvps spec failed (%s); this uvps is too old for these plugins"
+                           % (python, last))
+    try:
+        table = json.loads(proc.stdout)
+    except ValueError as exc:
+        raise InstallError("%s -m uvps spec printed no JSON (%s)" % (python, exc))
+    if not isinstance(table, dict) or table.get("schema_version") != 1 \
+            or not isinstance(table.get("commands"), dict):
+        raise InstallError("%s -m uvps spec printed an unknown command table (schema_version %r)"
+                           % (python, table.get("schema_version") if isinstance(table, dict)
+                              else None))
+    return json.dumps(table, indent=1, sort_keys=True) + "\n"
+
+
 def source_files(source_root):
     """Return (menu scripts, library folder) found under ``source_root``."""
     menu_dir = os.path.join(source_root, "plugins", MENU_FOLDER)
@@ -120,6 +148,7 @@ def install(root, python, source_root=REPO_ROOT):
     check_root(root)
     scripts, lib_src = source_files(source_root)
     version = check_python(python)
+    spec = command_table(python)
     menu_target = os.path.join(root, "plugins", MENU_FOLDER)
     lib_target = os.path.join(library_dir(root), PACKAGE)
 
@@ -129,11 +158,13 @@ def install(root, python, source_root=REPO_ROOT):
 
     def fill_lib(tmp):
         shutil.copytree(lib_src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(
-            "*$py.class", "*.pyc", "__pycache__", CONFIG_NAME))
+            "*$py.class", "*.pyc", "__pycache__", CONFIG_NAME, SPEC_NAME))
         with open(os.path.join(tmp, CONFIG_NAME), "w") as fh:
             fh.write("# written by scripts/install_fiji.py; the CPython that runs the uvps core\n")
             fh.write("python = %s\n" % python)
             fh.write("uvps_version = %s\n" % version)
+        with open(os.path.join(tmp, SPEC_NAME), "w") as fh:
+            fh.write(spec)
 
     _replace_dir(menu_target, fill_menu)
     _replace_dir(lib_target, fill_lib)

@@ -1,5 +1,6 @@
 """scripts/install_fiji.py run as users run it (a subprocess) on Fiji-like and ImageJ-like
 folders in tmp_path, with a small source tree so the expected files are known exactly."""
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +30,7 @@ def source(tmp_path):
     (lib / "bridge_logic.py").write_text("X = 1\n")
     (lib / "bridge_logic$py.class").write_bytes(b"\xca\xfe")
     (lib / "uvps_fiji.cfg").write_text("python = /a/developer/python\n")
+    (lib / "commands.json").write_text("{}\n")  # a developer's stale table: replaced
     (lib / "widgets").mkdir()
     (lib / "widgets" / "__init__.py").write_text("Y = 2\n")
     return root
@@ -62,13 +64,37 @@ def test_fiji_layout(tmp_path, source, marker):
     lib = root / "jars" / "Lib" / "uvps_fiji"
     assert sorted(p.name for p in menu.iterdir()) == ["Run_Whole_Pipeline.py", "UVPS_Settings.py"]
     assert sorted(p.name for p in lib.iterdir()) == ["__init__.py", "bridge_logic.py",
-                                                     "uvps_fiji.cfg", "widgets"]
+                                                     "commands.json", "uvps_fiji.cfg", "widgets"]
     assert (lib / "widgets" / "__init__.py").read_text() == "Y = 2\n"
     cfg = read_cfg(lib / "uvps_fiji.cfg")
     assert cfg["python"] == sys.executable
     import uvps
     assert cfg["uvps_version"] == uvps.__version__
     assert not (root / "plugins" / "jars").exists()
+
+
+def test_the_command_table_is_the_cores_declarations(tmp_path, source):
+    """commands.json beside the library is exactly what `<python> -m uvps spec` prints."""
+    root = make_fiji(tmp_path)
+    assert run_installer(root, "--source-root", source).returncode == 0
+    table = json.loads((root / "jars" / "Lib" / "uvps_fiji" / "commands.json").read_text())
+    spec = json.loads(subprocess.run([sys.executable, "-m", "uvps", "spec"], check=True,
+                                     stdout=subprocess.PIPE, timeout=120).stdout)
+    assert table == spec
+    assert {"run", "info", "wand"} <= set(table["commands"])
+    assert table["commands"]["run"]["params"][0]["name"] == "images"
+
+
+def test_a_python_whose_uvps_has_no_spec_is_refused(tmp_path, source):
+    root = make_fiji(tmp_path)
+    fake = tmp_path / "old_python"
+    fake.write_text("#!/bin/sh\ncase \"$*\" in *spec*) echo 'invalid choice: spec' >&2; exit 2;; "
+                    "esac\nprintf 0.0.1\n")
+    fake.chmod(0o755)
+    proc = run_installer(root, "--python", fake, "--source-root", source)
+    assert proc.returncode == 1
+    assert "-m uvps spec failed (invalid choice: spec)" in proc.stderr
+    assert not (root / "jars" / "Lib" / "uvps_fiji").exists()
 
 
 def test_plain_imagej_layout_puts_library_at_depth_three(tmp_path, source):

@@ -14,6 +14,21 @@ sys.path.insert(0, str(ROOT / "jython_lib"))
 from uvps_fiji import bridge_logic as bl  # noqa: E402
 
 
+@pytest.fixture(scope="module")
+def spec_table():
+    """The core's declarations as the installer writes them (`uvps spec`)."""
+    out = subprocess.run([sys.executable, "-m", "uvps", "spec"], check=True, timeout=120,
+                         stdout=subprocess.PIPE, universal_newlines=True).stdout
+    return bl.parse_spec(out, "uvps spec")
+
+
+@pytest.fixture(autouse=True)
+def _use_spec(spec_table):
+    bl.use_spec(spec_table)
+    yield
+    bl.use_spec(None)
+
+
 # --------------------------------------------------------------------------- requests
 
 def test_build_request_has_the_documented_schema(tmp_path):
@@ -256,7 +271,9 @@ def test_library_compiles_and_runs_under_jython(tmp_path):
         "print(bl.parse_progress('PROGRESS 0.5 half')[0])\n"
         "print(bl.parse_macro_options('output=[/a b] robust')['output'])\n"
         % (str(ROOT / "jython_lib"), str(tmp_path)))
-    out = subprocess.run(["jython", "-c", script], capture_output=True, text=True, timeout=120)
+    # No commands.json in the source tree: the table comes from `$UVPS_PYTHON -m uvps spec`.
+    out = subprocess.run(["jython", "-c", script], capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ, UVPS_PYTHON=sys.executable))
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["0.5", "/a", "b"]
     for src in (ROOT / "jython_lib" / "uvps_fiji").glob("*.py"):
@@ -317,3 +334,233 @@ def test_a_real_core_run_is_accepted_with_its_outputs(tmp_path):
     response = bl.finish_call(proc.returncode, req_path, command="lights", stderr=proc.stderr)
     lights = json.loads(Path(response.file("lights.json")).read_text())
     assert len(lights["lights"]) == 6
+
+
+# --------------------------------------------------------------------------- the command table
+
+
+def test_command_table_is_read_from_the_file_or_asked_once(tmp_path, spec_table):
+    bl.use_spec(None)
+    path = tmp_path / "commands.json"
+    path.write_text(json.dumps(spec_table))
+    assert bl.load_spec(str(path)) == spec_table
+    assert bl.command_names() == sorted(spec_table["commands"])
+    bl.use_spec(None)
+    calls = []
+
+    def run(args):
+        calls.append(args)
+        return 0, json.dumps(spec_table), ""
+
+    assert bl.load_spec(str(tmp_path / "absent.json"), python="/py", run=run) == spec_table
+    assert bl.load_spec(str(tmp_path / "absent.json"), python="/py", run=run) == spec_table
+    assert calls == [["/py", "-m", "uvps", "spec"]]
+    bl.use_spec(None)
+    with pytest.raises(bl.BridgeError, match="no command table .*absent.json.*uvps spec' failed: "
+                                             "No module named uvps"):
+        bl.load_spec(str(tmp_path / "absent.json"), python="/py",
+                     run=lambda args: (1, "", "Traceback\nNo module named uvps\n"))
+    path.write_text(json.dumps({"schema_version": 2, "commands": {}}))
+    with pytest.raises(bl.BridgeError, match="schema_version 2"):
+        bl.load_spec(str(path))
+
+
+def test_commands_come_from_the_table():
+    assert "info" in bl.command_names() and "report" not in bl.command_names()
+    assert bl.param_default("run", "degree") == 4
+    with pytest.raises(bl.BridgeError, match="has no parameter 'colour'"):
+        bl.param_spec("run", "colour")
+
+
+def test_request_from_dialog_values(tmp_path):
+    lights = str(tmp_path / "l.lp")
+    inputs, params = bl.request_from_values("run", {
+        "degree": 3.0, "robust": True, "integration": "DCT Poisson (Neumann)", "regions": "automatic",
+        "detect": False, "lights": lights, "mask": "", "dark": "none", "pixel": 0.0, "run": "/r",
+        "capture": "Current stack", "images": "/a.tif;/b.tif"}, skip=("pixel_size_um",))
+    assert inputs == {"images": ["/a.tif", "/b.tif"]}
+    assert params == {"degree": 3, "robust": True, "integration": "dct", "regions": "auto",
+                      "detect": False, "lights": lights, "mask": None, "dark": None}
+    _, params = bl.request_from_values("compare", {"match": 0.0, "first": "/a.csv"})
+    assert params == {"match_radius_um": None}
+    _, params = bl.request_from_values("relight", {"azimuth": 0.0, "elevation": 15.0})
+    assert params == {"azimuth_deg": 0.0, "elevation_deg": 15.0}
+    _, params = bl.request_from_values("stats", {"bins": "50, 100,200"})
+    assert params == {"bins_um": "50, 100,200"}
+    with pytest.raises(bl.BridgeError, match="regions must be an absolute path or auto"):
+        bl.request_from_values("detect", {"regions": "labels.tif"})
+    with pytest.raises(bl.BridgeError, match="integration must be one of Frankot"):
+        bl.request_from_values("integrate", {"integration": "fft"})
+
+
+def test_response_text_is_the_commands_answer_else_its_diagnostics():
+    raw = {"schema_version": 1, "status": "ok", "command": "info", "outputs": [],
+           "diagnostics": {"n_protrusions": 7, "files": ["run.json"], "lights": {}}}
+    assert bl.response_text(bl.validate_response(raw)) == 'files: ["run.json"]\nn_protrusions: 7'
+    raw["text"] = "made by:    uvps run"
+    assert bl.response_text(bl.validate_response(raw)) == "made by:    uvps run"
+
+
+def test_request_folders_are_deleted_unless_a_failed_one_is_kept(tmp_path):
+    d = bl.make_request_dir(str(tmp_path))
+    (Path(d) / "capture.tif").write_bytes(b"x" * 10)
+    assert bl.remove_request_dir(d, failed=True, keep_failed=True) is True and os.path.isdir(d)
+    assert bl.remove_request_dir(d, failed=False, keep_failed=True) is False
+    assert not os.path.exists(d)
+    other = tmp_path / "my data"
+    other.mkdir()
+    with pytest.raises(bl.BridgeError, match="not a uvps request folder"):
+        bl.remove_request_dir(str(other))
+    assert other.is_dir()
+    cfg = tmp_path / "uvps_fiji.cfg"
+    cfg.write_text("python = /p\nkeep_failed_requests = true\n")
+    assert bl.keep_failed_requests({}, str(cfg)) is True
+    assert bl.keep_failed_requests({bl.KEEP_ENV: "0"}, str(cfg)) is False
+    assert bl.keep_failed_requests({}, str(tmp_path / "none.cfg")) is False
+
+
+# --------------------------------------------------------------------------- the dialogs
+
+
+class FakeGenericDialog(object):
+    """Records the fields a menu script adds; its Cancel makes the script stop there."""
+
+    made = []
+
+    def __init__(self, title):
+        self.title = title
+        self.fields = []
+        FakeGenericDialog.made.append(self)
+
+    def addNumericField(self, label, value, decimals, *rest):
+        self.fields.append(("number", label, value, None))
+
+    def addStringField(self, label, value, columns=0):
+        self.fields.append(("string", label, value, None))
+
+    def addDirectoryField(self, label, value, columns=0):
+        self.fields.append(("directory", label, value, None))
+
+    def addFileField(self, label, value, columns=0):
+        self.fields.append(("file", label, value, None))
+
+    def addChoice(self, label, items, value):
+        self.fields.append(("choice", label, value, list(items)))
+
+    def addCheckbox(self, label, value):
+        self.fields.append(("checkbox", label, value, None))
+
+    def addMessage(self, text):
+        pass
+
+    def addHelp(self, text):
+        self.help = text
+
+    def showDialog(self):
+        pass
+
+    def wasCanceled(self):
+        return True
+
+
+def _fake_module(name, **attrs):
+    import types
+    from unittest import mock
+
+    module = types.ModuleType(name)
+    module.__getattr__ = lambda attr: mock.MagicMock(name="%s.%s" % (name, attr))
+    module.__dict__.update(attrs)
+    return module
+
+
+@pytest.fixture
+def menu_scripts(monkeypatch):
+    """Run every menu script in CPython with fake ImageJ/Java modules (a macro is running, so
+    each field shows its built-in default); return {script: (COMMAND, [fields])}."""
+    from unittest import mock
+
+    ij = _fake_module("ij", IJ=mock.MagicMock(getDirectory=lambda key: None),
+                      Macro=mock.MagicMock(getOptions=lambda: "run=[/x]"),
+                      Prefs=mock.MagicMock())
+    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=FakeGenericDialog),
+             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
+    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
+                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
+        fakes[name] = _fake_module(name)
+    for name, module in fakes.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    for name in ("dialogs", "runner", "menus", "capture", "display"):
+        monkeypatch.delitem(sys.modules, "uvps_fiji." + name, raising=False)
+    from uvps_fiji import runner
+    monkeypatch.setattr(runner, "command_table", bl.load_spec)
+    scripts = {}
+    for path in sorted((ROOT / "plugins" / "UV_Photometric_Stereo").glob("*.py")):
+        FakeGenericDialog.made = []
+        namespace = {"__name__": "__main__", "__file__": str(path)}
+        exec(compile(path.read_text(), str(path), "exec"), namespace)
+        assert len(FakeGenericDialog.made) == 1, path.name
+        scripts[path.name] = (namespace.get("COMMAND"), FakeGenericDialog.made[0].fields)
+    for name in ("dialogs", "runner", "menus", "capture", "display"):
+        sys.modules.pop("uvps_fiji." + name, None)
+    return scripts
+
+
+#: Macro keys that recorded macros and tests/imagej use: they must keep working.
+MACRO_KEYS = ("degree robust integration regions detect lights mask dark pixel capture images run "
+              "tolerance connectivity points source label number bins first second match azimuth "
+              "elevation python").split()
+
+
+def test_dialogs_show_the_cores_defaults_choices_and_labels(menu_scripts, spec_table):
+    """Every dialog field of a declared parameter: the declared label, default and choices (in
+    Fiji's words for the integration); a dialog that disagrees with `uvps spec` fails here."""
+    keys = set()
+    checked = 0
+    for script, (command, fields) in menu_scripts.items():
+        params = {}
+        if command is not None:
+            params = {bl.param_key(p): p for p in spec_table["commands"][command]["params"]}
+        for kind, label, value, items in fields:
+            key = bl.macro_key(label)
+            keys.add(key)
+            p = params.get(key)
+            if p is None:
+                continue
+            checked += 1
+            where = "%s: field %r (%s.%s)" % (script, label, command, p["name"])
+            assert label == p["label"], where
+            default = p.get("default")
+            if p["type"] == "bool":
+                assert kind == "checkbox" and value is default, where
+            elif p["type"] == "choice":
+                words = bl.CHOICE_LABELS.get(p["name"], {})
+                assert kind == "choice", where
+                assert [next((c for c in p["choices"] if words.get(c, c) == item), None)
+                        for item in items] == p["choices"], where
+                assert next(c for c in p["choices"] if words.get(c, c) == value) == default, where
+            elif p["type"] in ("int", "float"):
+                assert kind == "number", where
+                if default is None and not p.get("required"):
+                    assert value == 0, where   # 0 = not set: the core decides
+                elif default is not None:
+                    assert value == default, where
+            else:
+                assert kind in ("string", "file", "directory"), where
+                expected = "" if default is None else ",".join("%g" % v for v in (
+                    default if isinstance(default, list) else [default]))
+                assert value == expected, where
+    assert checked >= 30
+    assert set(MACRO_KEYS) <= keys, sorted(set(MACRO_KEYS) - keys)
+    assert menu_scripts["Run_Info.py"][0] == "info"
+    assert set(c for c, _ in menu_scripts.values() if c) <= set(spec_table["commands"])
+
+
+def test_a_dialog_default_that_disagrees_with_the_core_is_refused(spec_table):
+    degree = bl.param_spec("run", "degree")
+    assert bl.dialog_field(degree)["default"] == 4
+    with pytest.raises(bl.BridgeError, match="dialog default 5 of 'degree' differs"):
+        bl.dialog_field(degree, default=5)
+    robust = bl.dialog_field(bl.param_spec("normals", "robust"))
+    assert robust["key"] == "robust" and robust["kind"] == "checkbox"
+    assert "darkest 25 % and brightest 10 %" in robust["help"]
+    assert "saturated" not in robust["label"].lower()

@@ -23,9 +23,8 @@ except NameError:  # Python 3
 
 SCHEMA_VERSION = 1
 
-#: Bridge commands of docs/architecture.md ("Commands").
-COMMANDS = ("run", "flatfield", "lights", "normals", "integrate", "relight", "detect", "wand",
-            "regions", "stats", "report", "compare", "demo")
+#: The core's command table (``python -m uvps spec``), written by scripts/install_fiji.py.
+SPEC_NAME = "commands.json"
 
 #: Environment variable naming the CPython that has uvps installed.
 PYTHON_ENV = "UVPS_PYTHON"
@@ -72,6 +71,8 @@ class Response(object):
     outputs : list of dict
         Each with at least ``name``, ``path`` and ``kind``.
     diagnostics : dict
+    text : str
+        The command's plain-text answer (e.g. ``info``), "" if it gave none.
     elapsed_s : float or None
     raw : dict
         The whole response as read.
@@ -82,6 +83,7 @@ class Response(object):
         self.command = raw.get("command")
         self.outputs = list(raw.get("outputs") or [])
         self.diagnostics = raw.get("diagnostics") or {}
+        self.text = raw.get("text") or ""
         self.elapsed_s = raw.get("elapsed_s")
         self.version = raw.get("version")
 
@@ -130,7 +132,7 @@ def build_request(command, inputs=None, params=None, output_dir=None):
     Parameters
     ----------
     command : str
-        One of :data:`COMMANDS`.
+        A command of the core's table (:func:`command_names`).
     inputs, params : dict or None
         As in the command table; ``None`` values in ``params`` are kept (they mean "default").
     output_dir : str
@@ -141,9 +143,10 @@ def build_request(command, inputs=None, params=None, output_dir=None):
     dict
         ``{"schema_version": 1, "command", "inputs", "params", "output_dir"}``.
     """
-    if command not in COMMANDS:
+    names = command_names()
+    if command not in names:
         raise BridgeError("unknown uvps command '%s'; expected one of %s"
-                          % (command, ", ".join(COMMANDS)))
+                          % (command, ", ".join(names)))
     if not isinstance(output_dir, STRING_TYPES) or not output_dir.strip():
         raise BridgeError("the run folder is empty; choose a folder for the outputs")
     if not os.path.isabs(output_dir):
@@ -160,9 +163,46 @@ def build_request(command, inputs=None, params=None, output_dir=None):
     }
 
 
-def make_request_dir(base=None, prefix="uvps-request-"):
+#: Prefix of every request folder (what :func:`remove_request_dir` agrees to delete).
+REQUEST_PREFIX = "uvps-request-"
+
+#: Environment variable that keeps the request folder of a failed call (for debugging).
+KEEP_ENV = "UVPS_KEEP_FAILED_REQUESTS"
+
+
+def make_request_dir(base=None, prefix=REQUEST_PREFIX):
     """Create and return a fresh, empty request folder (in ``base`` or the system temp folder)."""
     return tempfile.mkdtemp(prefix=prefix, dir=base)
+
+
+def keep_failed_requests(environ=None, config_path=None):
+    """Whether a failed call keeps its request folder: ``UVPS_KEEP_FAILED_REQUESTS=1`` or
+    ``keep_failed_requests = true`` in ``uvps_fiji.cfg`` (default: no, every folder is deleted)."""
+    env = os.environ if environ is None else environ
+    value = env.get(KEEP_ENV)
+    if value is None:
+        config = read_config(config_path if config_path is not None else default_config_path())
+        value = config.get("keep_failed_requests")
+    return (value or "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def remove_request_dir(request_dir, failed=False, keep_failed=False):
+    """Delete a request folder (with any stack copied into it) once its response was read.
+
+    Returns
+    -------
+    bool
+        True when the folder was kept: only a failed call with ``keep_failed`` set keeps it.
+    """
+    if not request_dir or not os.path.isdir(request_dir):
+        return False
+    if failed and keep_failed:
+        return True
+    if not os.path.basename(os.path.normpath(request_dir)).startswith(REQUEST_PREFIX):
+        raise BridgeError("refusing to delete %s: not a uvps request folder" % request_dir)
+    import shutil
+    shutil.rmtree(request_dir, True)
+    return False
 
 
 def write_request(request, request_dir):
@@ -427,6 +467,288 @@ def find_python(setting=None, environ=None, config_path=None):
     if value:
         return value, "config"
     return "python3", "default"
+
+
+# ---------------------------------------------------------------------------------------------
+# The core's command declarations (``uvps spec``): names, parameters, defaults, choices, help
+# ---------------------------------------------------------------------------------------------
+
+#: The command table once read (one per ImageJ session; :func:`use_spec` replaces it).
+_TABLE = [None]
+
+#: Fiji's words for some choice values; the request carries the core's value (e.g. ``fc``).
+CHOICE_LABELS = {"integration": {"fc": "Frankot-Chellappa (FFT)", "dct": "DCT Poisson (Neumann)"}}
+
+#: How a unit of the declarations is shown beside a number field.
+UNIT_LABELS = {"um": u"\u00b5m", "deg": "deg", "mm": "mm", "counts": "counts"}
+
+
+def default_spec_path():
+    """Return the path of ``commands.json`` beside this package (written by the installer)."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), SPEC_NAME)
+
+
+def build_spec_command(python):
+    """Return the argument list that prints the core's command table as JSON."""
+    return [python, "-m", "uvps", "spec"]
+
+
+def parse_spec(text, source):
+    """Parse and check the JSON of ``uvps spec``; ``source`` names it in error messages."""
+    try:
+        table = json.loads(text)
+    except ValueError as exc:
+        raise BridgeError("the command table from %s is not valid JSON (%s)" % (source, exc),
+                          error_type="Configuration")
+    if not isinstance(table, dict) or not isinstance(table.get("commands"), dict):
+        raise BridgeError("the command table from %s has no commands" % source,
+                          error_type="Configuration")
+    if table.get("schema_version") != SCHEMA_VERSION:
+        raise BridgeError("the command table from %s has schema_version %r; this plugin reads %d "
+                          "(reinstall with scripts/install_fiji.py)"
+                          % (source, table.get("schema_version"), SCHEMA_VERSION),
+                          error_type="Configuration")
+    return table
+
+
+def _run_subprocess(args):
+    """Run ``args`` (no shell) and return (exit_code, stdout, stderr) as text."""
+    import subprocess
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    out, err = proc.communicate()
+    if not isinstance(out, STRING_TYPES):
+        out, err = out.decode("utf-8", "replace"), err.decode("utf-8", "replace")
+    return proc.returncode, out, err
+
+
+def load_spec(path=None, python=None, run=None, reload=False):
+    """Return the core's command table (the JSON of ``uvps spec``), read once per session.
+
+    Parameters
+    ----------
+    path : str, optional
+        ``commands.json``; defaults to :func:`default_spec_path` (written by the installer).
+    python : str, optional
+        When the file is absent (running from the source tree), the table is asked once from
+        ``python -m uvps spec``; defaults to :func:`find_python`'s choice.
+    run : callable, optional
+        ``run(args) -> (exit_code, stdout, stderr)``; defaults to :mod:`subprocess`.
+    reload : bool
+        Read again even if a table was read before.
+
+    Raises
+    ------
+    BridgeError
+        ``Configuration``: neither the file nor the core could give the table.
+    """
+    if _TABLE[0] is not None and not reload:
+        return _TABLE[0]
+    path = default_spec_path() if path is None else path
+    if os.path.isfile(path):
+        fh = open(path, "r")
+        try:
+            text = fh.read()
+        finally:
+            fh.close()
+        table = parse_spec(text, path)
+    else:
+        if python is None:
+            python = find_python()[0]
+        args = build_spec_command(python)
+        try:
+            code, out, err = (run or _run_subprocess)(args)
+        except (OSError, IOError) as exc:
+            code, out, err = None, "", str(exc)
+        if code != 0:
+            raise BridgeError("no command table %s (install with scripts/install_fiji.py), and "
+                              "'%s' failed: %s" % (path, format_command(args),
+                                                   last_line(err) or "exit status %s" % code),
+                              error_type="Configuration")
+        table = parse_spec(out, format_command(args))
+    _TABLE[0] = table
+    return table
+
+
+def use_spec(table):
+    """Use ``table`` (a parsed ``uvps spec``) as the command table; ``None`` forgets it."""
+    _TABLE[0] = table
+
+
+def command_names(table=None):
+    """Return the core's command names, sorted."""
+    return sorted((table or load_spec())["commands"])
+
+
+def command_spec(command, table=None):
+    """Return the declaration of ``command``: ``{"help", "output", "params": [...]}``."""
+    commands = (table or load_spec())["commands"]
+    if command not in commands:
+        raise BridgeError("unknown uvps command '%s'; expected one of %s"
+                          % (command, ", ".join(sorted(commands))))
+    return commands[command]
+
+
+def param_spec(command, name, table=None):
+    """Return the declaration of parameter ``name`` of ``command`` (a dict, see docs/commands.md)."""
+    for param in command_spec(command, table)["params"]:
+        if param["name"] == name:
+            return param
+    raise BridgeError("the uvps command '%s' has no parameter '%s'" % (command, name))
+
+
+def param_default(command, name, table=None):
+    """Return the declared default of ``command``'s parameter ``name`` (None: not set)."""
+    return param_spec(command, name, table).get("default")
+
+
+def macro_key(label):
+    """Return ImageJ's macro key of a dialog label (first word, up to ':', lower-cased)."""
+    return label.split(" ")[0].split(":")[0].lower()
+
+
+def param_key(param):
+    """Return the macro key of a declared parameter: its label's first word, else its name."""
+    return macro_key(param.get("label") or param["name"])
+
+
+def _format_default(value):
+    if value is None:
+        return ""
+    if isinstance(value, (list, tuple)):
+        return ",".join(_format_default(v) for v in value)
+    if isinstance(value, float):
+        return "%g" % value
+    return "%s" % value
+
+
+def dialog_field(param, label=None, default=None, decimals=None):
+    """Describe the dialog field of a declared parameter (pure: ``dialogs.add_param`` shows it).
+
+    Parameters
+    ----------
+    param : dict
+        A parameter of the command table.
+    label : str, optional
+        Overrides the declared label (its macro key must stay the same).
+    default : optional
+        Only for a parameter the core declares without default (e.g. the wand's tolerance).
+    decimals : int, optional
+        Digits shown by a number field (int: 0, float: 2 unless given).
+
+    Returns
+    -------
+    dict
+        ``key``, ``kind`` (checkbox, choice, number, string, file, directory), ``label``, ``default``,
+        ``items`` (choice), ``decimals``, ``units`` (number) and ``help``.
+    """
+    label = label or param.get("label") or param["name"]
+    declared = param.get("default")
+    if default is not None and declared is not None and default != declared:
+        raise BridgeError("the dialog default %r of '%s' differs from the core's %r"
+                          % (default, param["name"], declared))
+    value = declared if declared is not None else default
+    field = {"key": macro_key(label), "label": label, "help": param.get("help", ""),
+             "name": param["name"]}
+    kind = param["type"]
+    if kind == "bool":
+        field.update(kind="checkbox", default=bool(value))
+    elif kind == "choice":
+        words = CHOICE_LABELS.get(param["name"], {})
+        items = [words.get(c, "%s" % c) for c in param["choices"]]
+        field.update(kind="choice", items=items,
+                     default=words.get(value, "%s" % value) if value is not None else items[0])
+    elif kind in ("int", "float"):
+        if decimals is None:
+            decimals = 0 if kind == "int" else 2
+        field.update(kind="number", default=value if value is not None else 0,
+                     decimals=decimals, units=UNIT_LABELS.get(param.get("unit", ""),
+                                                             param.get("unit") or None))
+    elif kind == "path":
+        # a path whose label names a folder gets a folder chooser
+        field.update(kind="directory" if "folder" in label.lower().split("(")[0] else "file",
+                     default=_format_default(value))
+    else:  # str, paths, numbers, shape: typed as text, checked by the core
+        field.update(kind="string", default=_format_default(value))
+    return field
+
+
+def value_of(param, value):
+    """Turn a dialog value into the request value of a declared parameter.
+
+    A number field of a parameter declared without default means "not set" at 0 (or less); an
+    empty text or file field is "not set"; a path may be one of the declared keywords (``auto``,
+    also written ``automatic``) or an absolute path; a choice shown in Fiji's words becomes the
+    core's value.
+    """
+    kind = param["type"]
+    if kind == "bool":
+        return bool(value)
+    if kind == "choice":
+        words = CHOICE_LABELS.get(param["name"], {})
+        for choice in param["choices"]:
+            if value == words.get(choice) or "%s" % value == "%s" % choice:
+                return choice
+        raise BridgeError("%s must be one of %s; got '%s'" % (
+            param["name"], ", ".join(words.get(c, "%s" % c) for c in param["choices"]), value))
+    if kind in ("int", "float"):
+        if isinstance(value, STRING_TYPES):
+            value = value.strip()
+            if not value:
+                return None
+            try:
+                value = float(value)
+            except ValueError:
+                raise BridgeError("%s must be a number; got '%s'" % (param["name"], value))
+        if value is None or value != value:
+            return None
+        if param.get("default") is None and value <= 0:
+            return None
+        return int(round(value)) if kind == "int" else float(value)
+    if kind == "path":
+        text = optional_path(value if isinstance(value, STRING_TYPES) else None)
+        if text is None:
+            return None
+        for choice in param.get("choices") or ():
+            if text.lower() == choice or (choice == "auto" and text.lower() == "automatic"):
+                return choice
+        if not os.path.isabs(text):
+            raise BridgeError("%s must be an absolute path%s; got '%s'" % (
+                param["name"], "".join(" or " + c for c in param.get("choices") or ()), text))
+        return os.path.normpath(text)
+    if kind == "paths":
+        return split_paths(value) or None
+    text = ("%s" % value).strip() if value is not None else ""
+    return text or None
+
+
+def request_from_values(command, values, table=None, skip=()):
+    """Return ``(inputs, params)`` of ``command`` from dialog values keyed by macro key.
+
+    Every declared parameter whose key (:func:`param_key`) is in ``values`` is converted by
+    :func:`value_of`; parameters the dialog did not show are left out (the core's defaults apply).
+    ``skip`` names parameters the caller fills itself (e.g. ``images`` from the current stack).
+    """
+    inputs, params = {}, {}
+    for param in command_spec(command, table)["params"]:
+        key = param_key(param)
+        if param["name"] in skip or key not in values:
+            continue
+        target = inputs if param.get("where") == "inputs" else params
+        target[param["name"]] = value_of(param, values[key])
+    return inputs, params
+
+
+def response_text(response):
+    """The plain-text answer of a response: its ``text``, else its diagnostics as lines."""
+    if response.text:
+        return response.text
+    lines = []
+    for key in sorted(response.diagnostics):
+        value = response.diagnostics[key]
+        if not isinstance(value, (dict, list)) or value:
+            lines.append("%s: %s" % (key, json.dumps(value, sort_keys=True)
+                                     if isinstance(value, (dict, list)) else value))
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -7,8 +7,10 @@ the run folder chosen once is offered everywhere) and saved only when a user cli
 batch macro does not change the user's defaults; a key a macro leaves out takes the built-in
 default, not the remembered value, so a macro is reproducible.
 """
-from ij import IJ, Macro, Prefs
+from ij import Macro, Prefs
 from ij.gui import GenericDialog
+
+from uvps_fiji import bridge_logic, runner
 
 PREFIX = "uvps."
 
@@ -18,10 +20,7 @@ CAPTURE_FILES = "Folder or files"
 CAPTURE_CHOICES = [CAPTURE_CURRENT, CAPTURE_FILES]
 
 
-def macro_key(label):
-    """Return ImageJ's macro key of a label (first word, up to ':', lower-cased)."""
-    key = label.split(" ")[0].split(":")[0]
-    return key.lower()
+macro_key = bridge_logic.macro_key
 
 
 class UVPSDialog(object):
@@ -39,6 +38,8 @@ class UVPSDialog(object):
         self.title = title
         self.gd = GenericDialog("uvps: " + title)
         self.fields = []
+        self.help_text = ""
+        self.field_help = []
 
     def _remember(self, label, kind, default):
         key = macro_key(label)
@@ -88,10 +89,29 @@ class UVPSDialog(object):
         self.gd.addMessage(text)
 
     def help(self, text):
-        self.gd.addHelp(text)
+        """Text shown by the dialog's Help button, above the fields' own help."""
+        self.help_text = text
+
+    def describe(self, label, text):
+        """One field's help (from the core's declaration), listed by the Help button."""
+        if text:
+            self.field_help.append((label, text))
+
+    def _add_help(self):
+        if not self.help_text and not self.field_help:
+            return
+        body = self.help_text
+        if body.startswith("<html>"):
+            body = body[len("<html>"):]
+        if body.endswith("</html>"):
+            body = body[:-len("</html>")]
+        items = "".join("<li><b>%s</b>: %s</li>" % (_html(label), _html(text))
+                        for label, text in self.field_help)
+        self.gd.addHelp("<html>%s%s</html>" % (body, "<ul>%s</ul>" % items if items else ""))
 
     def show(self):
         """Show the dialog (or read the macro options); return the values, None if cancelled."""
+        self._add_help()
         self.gd.showDialog()
         if self.gd.wasCanceled():
             return None
@@ -116,12 +136,59 @@ class UVPSDialog(object):
         return values
 
 
-def add_capture_fields(dlg, with_pixel_size=True):
+def _html(text):
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def spec_param(command, name):
+    """The core's declaration of ``command``'s parameter ``name`` (``uvps spec``)."""
+    return bridge_logic.param_spec(command, name, runner.command_table())
+
+
+def add_param(dlg, param, key=None, label=None, default=None, decimals=None):
+    """Add the field of a declared parameter: label, default, choices, unit and help all come
+    from the core's declaration (``bridge_logic.dialog_field``).
+
+    Parameters
+    ----------
+    dlg : UVPSDialog
+    param : dict or (str, str)
+        A parameter of the command table, or ``(command, name)``.
+    key : str, optional
+        The macro key the field must have (macros rely on it): a ValueError if the declared
+        label's first word gives another one.
+    label, default, decimals : optional
+        See ``bridge_logic.dialog_field`` (``default`` only where the core declares none).
+    """
+    if isinstance(param, tuple):
+        param = spec_param(*param)
+    field = bridge_logic.dialog_field(param, label=label, default=default, decimals=decimals)
+    if key is not None and field["key"] != key:
+        raise ValueError("the label '%s' of parameter %s gives the macro key '%s'; macros use '%s'"
+                         % (field["label"], param["name"], field["key"], key))
+    kind = field["kind"]
+    if kind == "checkbox":
+        dlg.checkbox(field["label"], field["default"])
+    elif kind == "choice":
+        dlg.choice(field["label"], field["items"], field["default"])
+    elif kind == "number":
+        dlg.number(field["label"], field["default"], decimals=field["decimals"],
+                   units=field["units"])
+    elif kind == "file":
+        dlg.file(field["label"], field["default"])
+    elif kind == "directory":
+        dlg.directory(field["label"], field["default"])
+    else:
+        dlg.string(field["label"], field["default"])
+    dlg.describe(field["label"], field["help"])
+    return field
+
+
+def add_capture_fields(dlg, command):
     """Fields that say where the capture comes from: keys capture, images, pixel."""
     dlg.choice("Capture source", CAPTURE_CHOICES, CAPTURE_CURRENT)
-    dlg.string("Images (folder, multi-page TIFF, or files separated by ;)", "")
-    if with_pixel_size:
-        dlg.number("Pixel size (0 = from the TIFF tags)", 0.0, decimals=3, units=u"\u00b5m")
+    add_param(dlg, (command, "images"), key="images")
+    add_param(dlg, (command, "pixel_size_um"), key="pixel", decimals=3)
 
 
 def add_run_field(dlg):
@@ -129,22 +196,10 @@ def add_run_field(dlg):
     dlg.directory("Run folder (outputs)", "")
 
 
-def add_light_fields(dlg):
+def add_light_fields(dlg, command, lights=True):
     """Optional known lights, mask, dark frame, drop-off degree: keys lights, mask, dark, degree."""
-    dlg.file("Lights file (.lp or positions; empty = estimate)", "")
-    dlg.file("Mask image (optional)", "")
-    dlg.file("Dark frame (optional)", "")
-    dlg.number("Degree of the Legendre drop-off fit", 4, decimals=0)
-
-
-def number_or_none(value):
-    """0 (or less) means "not set" for optional numbers such as the pixel size."""
-    if value is None or value != value or value <= 0:
-        return None
-    return float(value)
-
-
-def log_values(title, values):
-    """Write the values used to the Log (what ran, for the record)."""
-    parts = ["%s=%s" % (k, values[k]) for k in sorted(values)]
-    IJ.log("uvps %s: %s" % (title, " ".join(parts)))
+    if lights:
+        add_param(dlg, (command, "lights"), key="lights")
+    add_param(dlg, (command, "mask"), key="mask")
+    add_param(dlg, (command, "dark"), key="dark")
+    add_param(dlg, (command, "degree"), key="degree")

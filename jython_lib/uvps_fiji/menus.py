@@ -1,8 +1,11 @@
 """One function per menu item: dialog values -> one bridge call -> results shown (Jython 2.7).
 
 Each function takes the dict returned by ``dialogs.UVPSDialog.show()`` (keys = macro keys) and
-raises BridgeError on any failure; the menu script reports it (``runner.run_menu``). Output files
-are found by the names fixed in docs/architecture.md ("Output folder of a run").
+raises BridgeError on any failure; the menu script reports it (``runner.run_menu``). The request
+is built from the core's declarations (:func:`run_command`: every declared parameter whose macro
+key the dialog showed); a function here adds only what ImageJ itself holds (the current stack,
+point selections, ROIs) and shows the results. Output files are found by the names fixed in
+docs/architecture.md ("Output folder of a run").
 """
 import os
 
@@ -10,10 +13,7 @@ from ij import IJ
 
 from uvps_fiji import bridge_logic, capture, display, runner
 from uvps_fiji.bridge_logic import BridgeError, optional_path
-from uvps_fiji.dialogs import number_or_none
 
-INTEGRATIONS = {"Frankot-Chellappa (FFT)": "fc", "DCT Poisson (Neumann)": "dct"}
-INTEGRATION_CHOICES = ["Frankot-Chellappa (FFT)", "DCT Poisson (Neumann)"]
 AREA_SOURCES = ["ROI Manager", "Automatic", "Label image"]
 
 
@@ -34,26 +34,40 @@ def _run_file(values, name):
     return path
 
 
-def _light_params(values):
-    return {
-        "degree": int(round(values.get("degree", 4))),
-        "mask": optional_path(values.get("mask")),
-        "dark": optional_path(values.get("dark")),
-        "pixel_size_um": capture.pixel_size_of_current(values),
-    }
+def run_command(command, values, inputs=None, params=None, request_dir=None, skip=()):
+    """Run any core command from dialog values: the generic menu item.
+
+    The request holds every parameter of ``command``'s declaration whose macro key is in
+    ``values`` (``bridge_logic.request_from_values``), then ``inputs`` and ``params`` (what the
+    caller took from ImageJ; ``skip`` names declared parameters the caller fills itself). The run
+    folder is ``values["run"]``. A command's plain-text answer (``uvps info``), or for a command
+    without output files its diagnostics, goes to the Log.
+
+    Returns
+    -------
+    bridge_logic.Response
+    """
+    table = runner.command_table()
+    spec = bridge_logic.command_spec(command, table)
+    got_inputs, got_params = bridge_logic.request_from_values(command, values, table, skip=skip)
+    got_inputs.update(inputs or {})
+    got_params.update(params or {})
+    response = runner.call(command, got_inputs, got_params, run_folder(values),
+                           request_dir=request_dir)
+    if response.text or not spec.get("output"):
+        IJ.log(bridge_logic.response_text(response))
+    return response
 
 
-def _regions_param(text):
-    """Empty -> None, ``auto`` -> "auto", else an existing label TIFF."""
-    text = optional_path(text)
-    if text is None:
-        return None
-    if text.lower() in ("auto", "automatic"):
-        return "auto"
-    if not os.path.isfile(text):
-        raise BridgeError("regions label image %s does not exist (give a TIFF, auto, or nothing)"
-                          % text)
-    return text
+def _capture_call(command, values, params=None):
+    """A command on the capture (run, flatfield, lights, normals): the images and the pixel size
+    come from ImageJ when the capture is the current stack."""
+    request_dir = runner.new_request_dir()
+    inputs = capture.capture_inputs(values, request_dir)
+    extra = {"pixel_size_um": capture.pixel_size_of_current(values)}
+    extra.update(params or {})
+    return run_command(command, values, inputs, extra, request_dir,
+                       skip=("images", "pixel_size_um"))
 
 
 def _show_protrusions(response, csv_name, labels_name, run_dir, title):
@@ -68,12 +82,7 @@ def _show_protrusions(response, csv_name, labels_name, run_dir, title):
 
 def estimate_lights(values):
     """``lights``: lamp directions from the capture's drop-off (paper, figure 1b-f)."""
-    out = run_folder(values)
-    request_dir = bridge_logic.make_request_dir()
-    params = _light_params(values)
-    params["lights"] = optional_path(values.get("lights"))
-    response = runner.call("lights", capture.capture_inputs(values, request_dir), params, out,
-                           request_dir=request_dir)
+    response = _capture_call("lights", values)
     display.show_lights(response.file("lights.json"))
     display.open_image(response.file("dropoff.tif"), "dropoff")
     return response
@@ -81,24 +90,16 @@ def estimate_lights(values):
 
 def flat_field(values):
     """``flatfield``: divide each image by its Legendre drop-off fit."""
-    out = run_folder(values)
-    request_dir = bridge_logic.make_request_dir()
-    response = runner.call("flatfield", capture.capture_inputs(values, request_dir),
-                           _light_params(values), out, request_dir=request_dir)
+    response = _capture_call("flatfield", values)
     display.open_image(response.file("dropoff.tif"), "dropoff")
     # One float32 TIFF per image in <run>/flatfield/ (3 channels each for an RGB capture).
     display.open_folder_stack(response.path("flatfield"), "flatfield")
     return response
 
+
 def normals_and_albedo(values):
     """``normals``: per-pixel least squares for normals and the RGB fluorescence albedo."""
-    out = run_folder(values)
-    request_dir = bridge_logic.make_request_dir()
-    params = _light_params(values)
-    params["lights"] = optional_path(values.get("lights"))
-    params["robust"] = bool(values.get("robust"))
-    response = runner.call("normals", capture.capture_inputs(values, request_dir), params, out,
-                           request_dir=request_dir)
+    response = _capture_call("normals", values)
     display.open_image(response.file("normals.tif"), "normals")
     display.open_image(response.file("albedo.tif"), "albedo")
     return response
@@ -106,10 +107,8 @@ def normals_and_albedo(values):
 
 def integrate_height(values):
     """``integrate``: height in um from the run's normals."""
-    out = run_folder(values)
     _run_file(values, "normals.tif")
-    method = INTEGRATIONS[values.get("integration")]
-    response = runner.call("integrate", {}, {"integration": method}, out)
+    response = run_command("integrate", values)
     display.open_image(response.file("depth.tif"), "depth")
     return response
 
@@ -118,8 +117,7 @@ def detect_protrusions(values):
     """``detect``: automated protrusion detection (albedo colour + template, height blobs)."""
     out = run_folder(values)
     _run_file(values, "albedo.tif")
-    params = {"regions": _regions_param(values.get("regions"))}
-    response = runner.call("detect", {}, params, out)
+    response = run_command("detect", values)
     _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out, "Protrusions")
     return response
 
@@ -143,14 +141,10 @@ def wand_count(values):
     """``wand``: the manual method; one wand selection per click on the albedo, then counted."""
     out = run_folder(values)
     _run_file(values, "albedo.tif")
-    request_dir = bridge_logic.make_request_dir()
+    request_dir = runner.new_request_dir()
     points_path = wand_points(values, request_dir)
-    params = {
-        "tolerance": float(values.get("tolerance")),
-        "connectivity": int(values.get("connectivity")),
-        "regions": _regions_param(values.get("regions")),
-    }
-    response = runner.call("wand", {"points": points_path}, params, out, request_dir=request_dir)
+    response = run_command("wand", values, {"points": points_path}, None, request_dir,
+                           skip=("points",))
     count = _show_protrusions(response, "protrusions_manual.csv",
                               "protrusions_manual_labels.tif", out, "Manual protrusions")
     IJ.log("uvps Wand Count: %d protrusions" % count)
@@ -159,9 +153,8 @@ def wand_count(values):
 
 def colour_areas(values):
     """``regions``: colour areas from the ROI Manager, a label image, or the automatic proposal."""
-    out = run_folder(values)
     source = values.get("source")
-    request_dir = bridge_logic.make_request_dir()
+    request_dir = runner.new_request_dir()
     inputs = {}
     params = {"auto": False, "n_areas": None}
     if source == "ROI Manager":
@@ -178,19 +171,17 @@ def colour_areas(values):
             raise BridgeError("label image '%s' does not exist" % (path or ""))
         inputs["labels"] = path
     else:
-        params["auto"] = True
-        n = int(round(values.get("number") or 0))
-        params["n_areas"] = n if n > 0 else None
-    response = runner.call("regions", inputs, params, out, request_dir=request_dir)
+        params = {"auto": True}
+    skip = ("labels", "n_areas") if source != "Automatic" else ("labels",)
+    response = run_command("regions", values, inputs, params, request_dir, skip=skip)
     display.open_image(response.file("regions_labels.tif"), "regions_labels")
     display.open_table(response.file("regions.csv"), "Regions")
     return response
 
 
 def statistics_and_report(values):
-    """``report``: densities per cm^2 by width per colour area, report.html and figures."""
-    out = run_folder(values)
-    response = runner.call("report", {}, {"bins_um": float(values.get("bins"))}, out)
+    """``stats``: densities per cm^2 by width per colour area, report.html and figures."""
+    response = run_command("stats", values)
     if response.has_file("regions.csv"):
         display.open_table(response.file("regions.csv"), "Regions")
     display.show_report(response.file("report.html"), runner.is_interactive())
@@ -199,47 +190,33 @@ def statistics_and_report(values):
 
 def compare_counts(values):
     """``compare``: match two protrusion tables (e.g. manual vs automated) within a radius."""
-    out = run_folder(values)
-    paths = []
     for key in ("first", "second"):
         path = optional_path(values.get(key))
         if path is None or not os.path.isfile(path):
             raise BridgeError("protrusion table '%s' (key %s) does not exist" % (path or "", key))
-        paths.append(path)
-    response = runner.call("compare", {"a": paths[0], "b": paths[1]},
-                           {"match_radius_um": number_or_none(values.get("match"))}, out)
+    response = run_command("compare", values)
     display.open_table(response.file("comparison.csv"), "Comparison")
     return response
 
 
 def relight(values):
     """``relight``: render the run's normals and albedo under a virtual raking light."""
-    out = run_folder(values)
     _run_file(values, "normals.tif")
-    params = {"azimuth_deg": float(values.get("azimuth")),
-              "elevation_deg": float(values.get("elevation"))}
-    response = runner.call("relight", {}, params, out)
+    response = run_command("relight", values)
     display.open_image(response.file("relight.tif"),
-                       "relight az%g el%g" % (params["azimuth_deg"], params["elevation_deg"]))
+                       "relight az%g el%g" % (values.get("azimuth"), values.get("elevation")))
     return response
 
 
 def run_whole_pipeline(values):
     """``run``: capture -> lights, flat-field, normals, albedo, height (+ areas, detection)."""
     out = run_folder(values)
-    request_dir = bridge_logic.make_request_dir()
-    params = _light_params(values)
-    params["lights"] = optional_path(values.get("lights"))
-    params["robust"] = bool(values.get("robust"))
-    params["integration"] = INTEGRATIONS[values.get("integration")]
-    params["regions"] = _regions_param(values.get("regions"))
-    params["detect"] = bool(values.get("detect"))
-    response = runner.call("run", capture.capture_inputs(values, request_dir), params, out,
-                           request_dir=request_dir)
+    response = _capture_call("run", values)
     display.open_image(response.file("normals.tif"), "normals")
     display.open_image(response.file("depth.tif"), "depth")
     display.show_lights(response.file("lights.json"))
-    if params["detect"]:
+    # The core detects whenever regions are set (or detect is ticked): show what it listed.
+    if response.has_file("protrusions.csv"):
         _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out,
                           "Protrusions")
     else:

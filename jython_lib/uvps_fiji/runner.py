@@ -44,6 +44,36 @@ def python_command():
     return bridge_logic.find_python(setting, None, config_path)
 
 
+def command_table():
+    """The core's command table (``commands.json`` beside the library, else asked once from the
+    configured CPython with ``python -m uvps spec``); see ``bridge_logic.load_spec``."""
+    return bridge_logic.load_spec(
+        python=python_command()[0],
+        run=lambda args: run_process(args, timeout_s=120, on_line=None))
+
+
+#: Request folders made for the menu command now running (deleted at its end, see call).
+_PENDING = []
+
+
+def new_request_dir():
+    """A fresh request folder for one call; :func:`call` (or :func:`run_menu` if the call never
+    happens) deletes it once the response has been read."""
+    path = bridge_logic.make_request_dir()
+    _PENDING.append(path)
+    return path
+
+
+def remove_request_dir(path, failed):
+    """Delete ``path``; a failed call keeps it when ``UVPS_KEEP_FAILED_REQUESTS=1`` (or
+    ``keep_failed_requests = true`` in uvps_fiji.cfg), and the Log says where it is."""
+    if path in _PENDING:
+        _PENDING.remove(path)
+    keep = failed and bridge_logic.keep_failed_requests()
+    if bridge_logic.remove_request_dir(path, failed=failed, keep_failed=keep):
+        IJ.log("uvps: request folder kept for inspection: " + path)
+
+
 def is_interactive():
     """True when a user clicked the menu item (no macro options, no batch mode, a display)."""
     if GraphicsEnvironment.isHeadless():
@@ -153,8 +183,9 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
     output_dir : str
         The run folder (absolute).
     request_dir : str, optional
-        An existing request folder (when the caller already wrote inputs into it); a fresh one
-        is made otherwise.
+        An existing request folder (from :func:`new_request_dir`, when the caller already wrote
+        inputs into it); a fresh one is made otherwise. It is deleted once the response has been
+        read (see :func:`remove_request_dir`).
     timeout_s : float
     python : str, optional
         Overrides the configured CPython.
@@ -164,18 +195,25 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
     BridgeError
         For every failure; its message is the core's own ``error.message`` when it sent one.
     """
-    request = bridge_logic.build_request(command, inputs, params, output_dir)
     if request_dir is None:
-        request_dir = bridge_logic.make_request_dir()
-    request_path = bridge_logic.write_request(request, request_dir)
-    if python is None:
-        python = python_command()[0]
-    args = bridge_logic.build_command(python, request_path)
-    IJ.log("uvps: " + bridge_logic.format_command(args))
-    IJ.showStatus("uvps: %s..." % command)
-    # The core runs in the request folder, never in ImageJ's (arbitrary) working folder.
-    exit_code, _, stderr = run_process(args, timeout_s=timeout_s, cwd=request_dir)
-    response = bridge_logic.finish_call(exit_code, request_path, command=command, stderr=stderr)
+        request_dir = new_request_dir()
+    failed = True
+    try:
+        command_table()
+        request = bridge_logic.build_request(command, inputs, params, output_dir)
+        request_path = bridge_logic.write_request(request, request_dir)
+        if python is None:
+            python = python_command()[0]
+        args = bridge_logic.build_command(python, request_path)
+        IJ.log("uvps: " + bridge_logic.format_command(args))
+        IJ.showStatus("uvps: %s..." % command)
+        # The core runs in the request folder, never in ImageJ's (arbitrary) working folder.
+        exit_code, _, stderr = run_process(args, timeout_s=timeout_s, cwd=request_dir)
+        response = bridge_logic.finish_call(exit_code, request_path, command=command,
+                                            stderr=stderr)
+        failed = False
+    finally:
+        remove_request_dir(request_dir, failed)
     done = "uvps: %s done; core %.2f s" % (command, response.elapsed_s or 0.0)
     IJ.showStatus(done)
     IJ.log(done)
@@ -220,7 +258,9 @@ def report_error(title, exc):
 
 
 def run_menu(title, func):
-    """Run a menu script's body ``func()``; failures go through :func:`report_error`."""
+    """Run a menu script's body ``func()``; failures go through :func:`report_error`.
+
+    Request folders made for calls that never ran (an error before the call) are deleted."""
     try:
         return func()
     except PluginError:
@@ -229,6 +269,9 @@ def run_menu(title, func):
         report_error(title, exc)
     except (Exception, Throwable) as exc:  # Java exceptions are not Python Exceptions
         report_error(title, exc)
+    finally:
+        for path in list(_PENDING):
+            remove_request_dir(path, failed=True)
 
 
 def check_python(python):

@@ -21,14 +21,15 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Colour Areas"
+COMMAND = "regions"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
     dlg.choice("Source of the areas", menus.AREA_SOURCES, menus.AREA_SOURCES[0])
-    dlg.file("Label image (for source Label image)", "")
-    dlg.number("Number of automatic areas (0 = choose)", 0, decimals=0)
+    dialogs.add_param(dlg, (COMMAND, "labels"), key="label")
+    dialogs.add_param(dlg, (COMMAND, "n_areas"), key="number")
     values = dlg.show()
     if values is not None:
         menus.colour_areas(values)

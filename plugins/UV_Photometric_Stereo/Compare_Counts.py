@@ -19,14 +19,15 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Compare Counts"
+COMMAND = "compare"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.file("First protrusion table (e.g. protrusions_manual.csv)", "")
-    dlg.file("Second protrusion table (e.g. protrusions.csv)", "")
-    dlg.number("Match radius (0 = automatic)", 0, decimals=1, units=u"\u00b5m")
+    dialogs.add_param(dlg, (COMMAND, "a"), key="first")
+    dialogs.add_param(dlg, (COMMAND, "b"), key="second")
+    dialogs.add_param(dlg, (COMMAND, "match_radius_um"), key="match", decimals=1)
     values = dlg.show()
     if values is not None:
         menus.compare_counts(values)

@@ -20,12 +20,13 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Detect Protrusions"
+COMMAND = "detect"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.string("Regions (label TIFF, auto, or empty)", "")
+    dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
     values = dlg.show()
     if values is not None:
         menus.detect_protrusions(values)

@@ -21,13 +21,14 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Estimate Lights"
+COMMAND = "lights"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
-    dialogs.add_capture_fields(dlg)
+    dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
-    dialogs.add_light_fields(dlg)
+    dialogs.add_light_fields(dlg, COMMAND)
     dlg.help("<html><b>Estimate Lights</b>: each lamp's azimuth from the polar drop-off fit, and its "
              "position from the near-light model (Salvant et al., Fig. 1b-f). Leave <i>Lights file</i> "
              "empty to estimate; see docs/fiji/Estimate_Lights.md in the uvps folder.</html>")

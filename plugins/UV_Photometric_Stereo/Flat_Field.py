@@ -19,15 +19,14 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Flat Field"
+COMMAND = "flatfield"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
-    dialogs.add_capture_fields(dlg)
+    dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
-    dlg.file("Mask image (optional)", "")
-    dlg.file("Dark frame (optional)", "")
-    dlg.number("Degree of the Legendre drop-off fit", 4, decimals=0)
+    dialogs.add_light_fields(dlg, COMMAND, lights=False)
     values = dlg.show()
     if values is not None:
         menus.flat_field(values)

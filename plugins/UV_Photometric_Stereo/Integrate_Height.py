@@ -19,12 +19,13 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Integrate Height"
+COMMAND = "integrate"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.choice("Integration method", menus.INTEGRATION_CHOICES, menus.INTEGRATION_CHOICES[0])
+    dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
     values = dlg.show()
     if values is not None:
         menus.integrate_height(values)

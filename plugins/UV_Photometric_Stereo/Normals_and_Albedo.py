@@ -20,14 +20,15 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Normals and Albedo"
+COMMAND = "normals"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
-    dialogs.add_capture_fields(dlg)
+    dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
-    dialogs.add_light_fields(dlg)
-    dlg.checkbox("Robust (per pixel, leave out the darkest 25 % and brightest 10 %)", False)
+    dialogs.add_light_fields(dlg, COMMAND)
+    dialogs.add_param(dlg, (COMMAND, "robust"), key="robust")
     values = dlg.show()
     if values is not None:
         menus.normals_and_albedo(values)

@@ -19,13 +19,14 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Relight"
+COMMAND = "relight"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.number("Azimuth (from image right, counter-clockwise)", 315, decimals=1, units="deg")
-    dlg.number("Elevation (above the canvas)", 15, decimals=1, units="deg")
+    dialogs.add_param(dlg, (COMMAND, "azimuth_deg"), key="azimuth", decimals=1)
+    dialogs.add_param(dlg, (COMMAND, "elevation_deg"), key="elevation", decimals=1)
     values = dlg.show()
     if values is not None:
         menus.relight(values)

@@ -20,17 +20,18 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Run Whole Pipeline"
+COMMAND = "run"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
-    dialogs.add_capture_fields(dlg)
+    dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
-    dialogs.add_light_fields(dlg)
-    dlg.checkbox("Robust (per pixel, leave out the darkest 25 % and brightest 10 %)", False)
-    dlg.choice("Integration method", menus.INTEGRATION_CHOICES, menus.INTEGRATION_CHOICES[0])
-    dlg.string("Regions (label TIFF, auto, or empty)", "")
-    dlg.checkbox("Detect protrusions", False)
+    dialogs.add_light_fields(dlg, COMMAND)
+    dialogs.add_param(dlg, (COMMAND, "robust"), key="robust")
+    dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
+    dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
+    dialogs.add_param(dlg, (COMMAND, "detect"), key="detect")
     values = dlg.show()
     if values is not None:
         menus.run_whole_pipeline(values)

@@ -19,12 +19,13 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Statistics and Report"
+COMMAND = "stats"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.number("Bins of protrusion width", 100, decimals=1, units=u"\u00b5m")
+    dialogs.add_param(dlg, (COMMAND, "bins_um"), key="bins")
     values = dlg.show()
     if values is not None:
         menus.statistics_and_report(values)

@@ -23,15 +23,17 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
 from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Wand Count"
+COMMAND = "wand"
 
 
 def main():
     dlg = dialogs.UVPSDialog(TITLE)
     dialogs.add_run_field(dlg)
-    dlg.file("Points CSV (x_px,y_px; empty = current point selection)", "")
-    dlg.number("Tolerance (albedo units, as the wand tool)", 0.05, decimals=4)
-    dlg.choice("Connectivity", ["8", "4"], "8")
-    dlg.string("Regions (label TIFF, auto, or empty)", "")
+    dialogs.add_param(dlg, (COMMAND, "points"), key="points")
+    # The core declares no default tolerance (a required value): this is ImageJ's usual start.
+    dialogs.add_param(dlg, (COMMAND, "tolerance"), key="tolerance", default=0.05, decimals=4)
+    dialogs.add_param(dlg, (COMMAND, "connectivity"), key="connectivity")
+    dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
     values = dlg.show()
     if values is not None:
         menus.wand_count(values)
