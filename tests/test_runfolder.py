@@ -69,5 +69,16 @@ def test_read_run_reads_channel_last_and_checks_sizes(tmp_path):
     with pytest.raises(UVPSInputError, match="differ in size"):
         read_run(tmp_path)
     (tmp_path / "normals.tif").unlink()
-    with pytest.raises(UVPSInputError, match="pixel_size_um must be a positive number; got -1"):
+    with pytest.raises(UVPSInputError, match=r"pixel_size_um must be a positive number \(micrometres\); got -1"):
         read_run(tmp_path, need=(), pixel_size_um=-1)
+
+
+def test_a_new_run_folder_gets_the_usual_mode_not_0700(run_dir):
+    """The run folder is the temporary folder renamed: it must not keep mkdtemp's 0700 (others on
+    a shared museum drive could not read the results)."""
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    assert run_dir.stat().st_mode & 0o777 == 0o777 & ~mask
+    assert (run_dir / "depth.tif").stat().st_mode & 0o777 == 0o666 & ~mask

@@ -80,7 +80,7 @@ def test_cli_flags_become_the_same_request_as_the_bridge_gets(tmp_path):
 @pytest.mark.parametrize("command,params,message", [
     ("run", {"degree": 9}, "degree must be an integer from 1 to 8; got 9"),
     ("run", {"degree": 2.5}, "degree must be an integer from 1 to 8; got 2.5"),
-    ("run", {"pixel_size_um": 0}, "pixel_size_um must be a positive number; got 0"),
+    ("run", {"pixel_size_um": 0}, "pixel_size_um must be a positive number (micrometres); got 0"),
     ("run", {"pixel_size_um": "abc"}, "pixel_size_um must be a positive number"),
     ("run", {"integration": "poisson"}, "integration must be one of fc, dct; got 'poisson'"),
     ("run", {"robust": "maybe"}, "robust must be true or false; got 'maybe'"),

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+import numpy as np
+
 from . import __version__
 from .commands import COMMANDS
 from .errors import UVPSComputeError, UVPSInputError
@@ -155,15 +157,10 @@ def _jsonable(obj: Any) -> Any:
         return obj if math.isfinite(obj) else None
     if isinstance(obj, Path):
         return str(obj)
-    try:
-        import numpy as np
-
-        if isinstance(obj, np.ndarray):
-            return _jsonable(obj.tolist())
-        if isinstance(obj, np.generic):
-            return _jsonable(obj.item())
-    except ImportError:  # numpy is a dependency; kept so a broken install still answers
-        pass
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
     return str(obj)
 
 
@@ -261,7 +258,7 @@ def run_bridge(request_path) -> int:
         with contextlib.redirect_stdout(sys.stderr), _sigterm_cancels():
             result = func(request.inputs, request.params, request.output_dir, progress=progress)
         outputs, diagnostics, warnings = _outputs_of(result, request.command)
-        response.update(status="ok", outputs=outputs, diagnostics=diagnostics)
+        response.update(status="ok", outputs=outputs, diagnostics=diagnostics, text=result.text)
         response["warnings"] += warnings
         code = 0
     except UVPSInputError as exc:

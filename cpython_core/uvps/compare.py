@@ -20,7 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 from .measure import atomic_write_text, table_to_csv_text
 from .regions import UM2_PER_CM2, RegionMap
 
@@ -161,8 +161,7 @@ def compare_detections(a, b, *, regions: Optional[RegionMap], pixel_size_um: flo
     >>> c.pairs.tolist(), c.missed.tolist(), c.extra.tolist()
     ([[0, 0]], [1], [])
     """
-    if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
-        raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
+    pixel_size_um = check_pixel_size(pixel_size_um)
     if match_radius_um is not None and not (np.isfinite(match_radius_um) and match_radius_um > 0):
         raise UVPSInputError(f"match_radius_um must be a positive number or null; "
                              f"got {match_radius_um}")

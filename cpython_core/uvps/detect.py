@@ -47,7 +47,7 @@ from skimage.measure import regionprops_table
 from skimage.morphology import diameter_opening, h_maxima
 from skimage.segmentation import expand_labels, watershed
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 
 logger = logging.getLogger(__name__)
 
@@ -263,12 +263,7 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params):
     a = np.asarray(albedo)
     if not (a.shape == h.shape or (a.ndim == 3 and a.shape[:2] == h.shape and a.shape[2] in (1, 3))):
         raise UVPSInputError(f"`albedo` must be (M, N) or (M, N, 3) with (M, N) = {h.shape}; got shape {a.shape}")
-    try:
-        px = float(pixel_size_um)
-    except (TypeError, ValueError):
-        raise UVPSInputError(f"`pixel_size_um` must be a positive number; got {pixel_size_um!r}") from None
-    if not (math.isfinite(px) and px > 0):
-        raise UVPSInputError(f"`pixel_size_um` must be a positive number; got {pixel_size_um!r}")
+    px = check_pixel_size(pixel_size_um)
     if normals is not None and np.shape(normals) != h.shape + (3,):
         raise UVPSInputError(f"`normals` must be (M, N, 3) with (M, N) = {h.shape}; got shape {np.shape(normals)}")
     if mask is not None and np.shape(mask) != h.shape:

@@ -22,3 +22,23 @@ class UVPSComputeError(UVPSError, RuntimeError):
     """The computation failed on input that looked valid. Exit status 2."""
 
     exit_code = 2
+
+
+def check_pixel_size(value, name: str = "pixel_size_um") -> float:
+    """``value`` as a positive, finite pixel size in micrometres, else a one-line
+    :class:`UVPSInputError` naming ``name``: the one check of a pixel size in uvps.
+
+    >>> check_pixel_size("15")
+    15.0
+    >>> check_pixel_size(0)
+    Traceback (most recent call last):
+    ...
+    uvps.errors.UVPSInputError: pixel_size_um must be a positive number (micrometres); got 0
+    """
+    try:
+        px = float(value)
+    except (TypeError, ValueError):
+        px = float("nan")
+    if isinstance(value, bool) or not (px == px and px > 0 and px != float("inf")):
+        raise UVPSInputError(f"{name} must be a positive number (micrometres); got {value!r}")
+    return px

@@ -38,7 +38,7 @@ from typing import Optional
 import numpy as np
 import scipy.fft
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 
 logger = logging.getLogger(__name__)
 
@@ -117,20 +117,6 @@ class IntegrationResult:
 
 
 # ----------------------------------------------------------------------------- validation
-
-
-def _check_pixel_size(pixel_size_um) -> float:
-    try:
-        value = float(pixel_size_um)
-    except (TypeError, ValueError):
-        raise UVPSInputError(
-            f"pixel_size_um must be a positive number of micrometres; got {pixel_size_um!r}"
-        ) from None
-    if not np.isfinite(value) or value <= 0:
-        raise UVPSInputError(
-            f"pixel_size_um must be a positive number of micrometres; got {pixel_size_um!r}"
-        )
-    return value
 
 
 def _check_mask(mask, shape) -> Optional[np.ndarray]:
@@ -367,7 +353,7 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     >>> bool(abs(float(z[0, -1] - z[0, 0]) - 195.0) < 2.0)
     True
     """
-    pixel_size_um = _check_pixel_size(pixel_size_um)
+    pixel_size_um = check_pixel_size(pixel_size_um)
     if pad not in _PADS:
         raise UVPSInputError(f"pad must be one of {_PADS}; got {pad!r}")
     p, q, valid, n_invalid = _prepare(p, q, mask)
@@ -464,7 +450,7 @@ def dct_poisson(p, q, *, pixel_size_um, mask=None) -> IntegrationResult:
     >>> bool(np.allclose(np.diff(z, axis=1), 5.0, atol=1e-3))
     True
     """
-    pixel_size_um = _check_pixel_size(pixel_size_um)
+    pixel_size_um = check_pixel_size(pixel_size_um)
     p, q, valid, n_invalid = _prepare(p, q, mask)
     M, N = p.shape
 
@@ -525,7 +511,7 @@ def integrate_normals(
     """
     if method not in METHODS:
         raise UVPSInputError(f"method must be one of {METHODS}; got {method!r}")
-    pixel_size_um = _check_pixel_size(pixel_size_um)
+    pixel_size_um = check_pixel_size(pixel_size_um)
     grads = gradients_from_normals(normals, mask=mask)
     if grads.n_invalid:
         # NaN marks them for the solver: set to 0 there, excluded from the median/diagnostics.

@@ -32,7 +32,7 @@ import imageio.v3 as iio
 import numpy as np
 import tifffile
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 from .outputs import Progress, atomic_path, report
 
 log = logging.getLogger(__name__)
@@ -205,16 +205,6 @@ def _kind(path: Path) -> str:
 def _basename(name: str) -> str:
     # .lp files written on Windows use backslashes.
     return name.replace("\\", "/").rsplit("/", 1)[-1]
-
-
-def _check_pixel_size(value, name="pixel_size_um") -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise UVPSInputError(f"{name} must be a positive number in micrometres; got {value!r}")
-    if not math.isfinite(value) or value <= 0:
-        raise UVPSInputError(f"{name} must be a positive finite number in micrometres; got {value}")
-    return value
 
 
 def _drop_alpha(arr: np.ndarray) -> np.ndarray:
@@ -785,7 +775,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     if linearize not in ("auto", "srgb", "none"):
         raise UVPSInputError(f"linearize must be 'auto', 'srgb' or 'none'; got {linearize!r}")
     if pixel_size_um is not None:
-        pixel_size_um = _check_pixel_size(pixel_size_um)
+        pixel_size_um = check_pixel_size(pixel_size_um)
     sources, stack_path, by_name = _list_sources(images)
 
     if stack_path is not None:
@@ -832,7 +822,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
                 "uncalibrated TIFF, or a 72/96/300 dpi software default); pass --pixel-size-um "
                 "(params 'pixel_size_um')"
             )
-        pixel_size_um = _check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
+        pixel_size_um = check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
 
     mask_arr = _read_mask(mask, shape_img[:2]) if mask is not None else None
     directions = positions = intensities = None
@@ -1023,7 +1013,7 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
     1.x opens that layout natively but needs Bio-Formats for BigTIFF; tifffile reads both.
     """
     path = Path(path)
-    px = _check_pixel_size(pixel_size_um)
+    px = check_pixel_size(pixel_size_um)
     if unit not in ("um", "micron", "\u00b5m"):
         raise UVPSInputError(f"unit must be 'um' (micrometres); got {unit!r}")
     data = np.asarray(data)

@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.measure import regionprops_table
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 from .io import write_imagej_tiff
 from .outputs import atomic_path
 
@@ -251,8 +251,7 @@ def measure_protrusions(labels, *, albedo, height_um, pixel_size_um: float, regi
     """
     labels = _check_labels(labels)
     opts = options or MeasureOptions()
-    if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
-        raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
+    pixel_size_um = check_pixel_size(pixel_size_um)
     height = np.asarray(height_um, dtype=np.float64)
     if height.shape != labels.shape:
         raise UVPSInputError(f"height_um must have the labels' shape {labels.shape}; "

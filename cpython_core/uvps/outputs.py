@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional
 
+import numpy as np
+
 from .errors import UVPSInputError
 
 #: A progress callback: fraction in [0, 1] and a short message.
@@ -79,6 +81,8 @@ def atomic_output_dir(path) -> Iterator[Path]:
     """
     path = check_output_dir(path)
     tmp = Path(tempfile.mkdtemp(prefix="." + path.name + ".tmp-", dir=path.parent))
+    # mkdtemp makes 0700; a new run folder is this folder renamed, so give it a plain mkdir's mode
+    os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
     except BaseException:
@@ -100,14 +104,18 @@ def atomic_output_dir(path) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def file_mode() -> int:
     """The permission bits a plain ``open`` would give a new file (0o666 minus the umask).
 
     ``tempfile.mkstemp`` creates files 0o600; outputs get the usual mode before being renamed.
     """
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
+    return 0o666 & ~_umask()
 
 
 @contextlib.contextmanager
@@ -136,8 +144,6 @@ def write_json_atomic(path, obj: Any) -> None:
 
 
 def _json_default(obj):
-    import numpy as np
-
     if isinstance(obj, np.integer):
         return int(obj)
     if isinstance(obj, np.floating):

@@ -27,7 +27,7 @@ from skimage.measure import label as cc_label
 from skimage.morphology import disk
 from skimage.transform import downscale_local_mean
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 from .io import read_image, read_tiff
 from .measure import atomic_write_text, table_to_csv_text
 from .outputs import report
@@ -336,8 +336,7 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     edits ``regions_labels.tif`` in ImageJ and loads it back with :func:`load_regions`.
     """
     opts = options or ProposalOptions()
-    if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
-        raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
+    pixel_size_um = check_pixel_size(pixel_size_um)
     if n_areas is not None and (int(n_areas) != n_areas or n_areas < 1):
         raise UVPSInputError(f"n_areas must be a positive integer or None; got {n_areas}")
     shape, channels = _albedo_channels(albedo)
@@ -581,8 +580,7 @@ def region_statistics(table, regions: RegionMap, *, pixel_size_um: float,
     """
     if not isinstance(regions, RegionMap):
         raise UVPSInputError(f"regions must be a RegionMap; got {type(regions).__name__}")
-    if not (np.isfinite(pixel_size_um) and pixel_size_um > 0):
-        raise UVPSInputError(f"pixel_size_um must be a positive number; got {pixel_size_um}")
+    pixel_size_um = check_pixel_size(pixel_size_um)
     for c in ("x_px", "y_px", "width_um"):
         if c not in table:
             raise UVPSInputError(f"protrusion table lacks column {c}")

@@ -17,14 +17,14 @@ import numpy as np
 import tifffile
 
 from . import __version__
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_pixel_size
 from .flatfield import flatfield
 from .integrate import gradients_from_normals
 from .io import Capture, read_tiff, sha256_file, write_imagej_tiff
 from .measure import write_label_tiff, write_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, report, write_json_atomic
 from .regions import region_statistics, write_regions_csv
-from .spec import CommandSpec, Param, coerce_value
+from .spec import CommandSpec, Param
 
 #: The files of a run folder: name -> (file, kind, axes, units). One place for every file name.
 FILES = {
@@ -64,11 +64,6 @@ def output_spec(run_dir, name: str, *, axes: Optional[str] = None) -> OutputSpec
 def _tiff_dtype(path: Path) -> str:
     with tifffile.TiffFile(path) as tif:
         return str(tif.series[0].dtype)
-
-
-def check_pixel_size(value, name: str = "pixel_size_um") -> float:
-    """A positive, finite pixel size in um (the one check of it at the run folder's entry points)."""
-    return coerce_value(Param(name, "float", minimum=0, exclusive_minimum=True), value)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -159,7 +159,7 @@ def _expected(p: Param) -> str:
     if lo is not None and hi is not None:
         what += f" above {lo:g} and at most {hi:g}" if strict else f" from {lo:g} to {hi:g}"
     elif p.type == "float" and strict and lo == 0:
-        what = "a positive number"
+        what = "a positive number" + (" (micrometres)" if p.unit == "um" else "")
     elif lo is not None:
         what += f" {'>' if strict else '>='} {lo:g}"
     elif hi is not None:

@@ -37,8 +37,10 @@ from typing import Optional
 import numpy as np
 import tifffile
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .errors import UVPSInputError
+from .io import Capture, write_imagej_tiff
 from .outputs import Progress, atomic_output_dir, report, write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -332,7 +334,6 @@ class SyntheticCapture:
         ``lights``: "estimate" (no light file), or "positions" (the true lamp positions and
         intensities, as a calibrated positions file gives them).
         """
-        from .io import Capture   # io imports nothing from here; kept local as synthetic is optional
 
         K = self.images.shape[0]
         known = lights == "positions"
@@ -921,7 +922,6 @@ def _cracks(rng, shape, px, cupping_um, cell_mm):
     common ``-cupping_um / 2`` over a gaussian of 15-30 um 1/e half-width (25-50 um wide at
     half depth).
     """
-    from scipy.spatial import cKDTree
 
     m, n = shape
     lo, hi = (c * 1000.0 / px for c in cell_mm)
@@ -1709,7 +1709,6 @@ def _write_truth(capture, folder, image_names):
     folder.mkdir()
     px = float(capture.spec.pixel_size_um)
     # Truth TIFFs are ImageJ hyperstacks through the shared writer (atomic, calibrated in um).
-    from .io import write_imagej_tiff
 
     def imagej(name, data, axes, labels=None):
         write_imagej_tiff(folder / name, data, axes=axes, pixel_size_um=px, labels=labels)

@@ -129,20 +129,6 @@ def _request_dirs(result):
 # --------------------------------------------------------------------------- run info
 
 
-def _bridge_sends_text(tmp_path, run_dir):
-    """Whether this core's bridge puts a command's plain-text answer in response.json."""
-    import subprocess
-
-    req = tmp_path / "info-request"
-    req.mkdir()
-    (req / "request.json").write_text(json.dumps({"schema_version": 1, "command": "info",
-                                                  "inputs": {"run": str(run_dir)},
-                                                  "output_dir": str(run_dir)}))
-    subprocess.run([sys.executable, "-m", "uvps", "bridge", str(req / "request.json")],
-                   timeout=300, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return bool(json.loads((req / "response.json").read_text()).get("text"))
-
-
 def test_run_info_writes_the_run_folder_description_to_the_log(run_macro, reference_run,
                                                                tmp_path):
     """Run Info: one new menu script over the generic menus.run_command; the core's answer
@@ -155,10 +141,6 @@ def test_run_info_writes_the_run_folder_description_to_the_log(run_macro, refere
     assert "went on" in lines
     assert sorted(p.name for p in reference_run.iterdir()) == before
     assert not any(p.exists() for p in _request_dirs(result))
-    if not _bridge_sends_text(tmp_path, reference_run):
-        # Until the core's bridge passes CommandResult.text on, the Log gets the diagnostics.
-        assert "n_protrusions: %d" % n in lines, result.stdout
-        pytest.xfail("the core's bridge does not put CommandResult.text in response.json")
     assert "made by:    uvps run (version" in result.stdout, result.stdout
     assert "protrusions: %d" % n in lines, result.stdout
 
