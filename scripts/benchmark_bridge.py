@@ -47,14 +47,19 @@ def timed(func, *args, **kwargs):
 
 
 def make_grey_capture(shape, n_lights, seed=0):
-    """A grey near-light capture of a gently bumpy canvas, rendered by uvps.synthetic."""
+    """A grey near-light capture of a gently bumpy canvas in two paints, rendered by uvps.synthetic.
+
+    Two paints (albedo 0.7 and 0.3 in a checker of ~140 px squares), not one: ``uvps run`` measures
+    the additive term (black level) from how bright and dark paint change between lamps, which a
+    uniform canvas leaves undetermined (the run then stops).
+    """
     from uvps.synthetic import light_positions, render_images
 
     rng = np.random.default_rng(seed)
     m, n = shape
     yy, xx = np.mgrid[0:m, 0:n].astype(np.float32)
     height = (3.0 * np.sin(xx / 30.0) * np.sin(yy / 30.0)).astype(np.float32)
-    albedo = np.full(shape, 0.6, dtype=np.float32)
+    albedo = np.where(np.sin(xx / 47.0) * np.sin(yy / 39.0) > 0, 0.7, 0.3).astype(np.float32)
     pos = light_positions(rng, n_lights=n_lights, elevation_deg=(20.0, 60.0),
                           distance_mm=(250.0, 500.0))
     images = render_images(height, albedo, pixel_size_um=15.0, light_positions_mm=pos,
@@ -246,6 +251,10 @@ def main(argv=None):
     parser.add_argument("--skip-imagej", action="store_true")
     parser.add_argument("--skip-large", action="store_true")
     args = parser.parse_args(argv)
+    # the command table (uvps spec) from the python being measured, as the Fiji side asks its own
+    # python when no installed commands.json is there (a source tree): otherwise bridge_logic asks
+    # "python3", which need not have uvps
+    bridge_logic.load_spec(python=args.python)
     work = Path(tempfile.mkdtemp(prefix="uvps-bench-"))
     ij = None
     try:

@@ -1,13 +1,23 @@
 #!/usr/bin/env python
 """Accuracy, speed and memory benchmark of the photometric-stereo core.
 
-Part 1 (accuracy, synthetic captures with ground truth): light directions estimated from the images
-(refined and the paper's equidistant solution) and known lights; normals' angular error; protrusion
-heights after Frankot-Chellappa integration.
+What is measured is what users run: every result comes from :func:`uvps.pipeline.run` (in process,
+on :meth:`uvps.synthetic.SyntheticCapture.as_capture`, the capture a file read gives) or from the
+``uvps run`` command (parts 2 and 3), with the options of ``uvps run``: ``RunOptions()`` defaults
+(additive term measured, degree-4 drop-off fits, lamps refined, Frankot-Chellappa integration, not
+robust), except what a row deliberately varies, said where it does. Stage times are the run's own
+(``RunResult.timings_s``).
+
+Part 1 (accuracy, synthetic captures with ground truth): ``run(stages=("normals", "height"))`` three
+times per seed: lights estimated from the images (defaults), the paper's equidistant solution
+(``RunOptions(refine_lights=False)``), and the true lamps (``as_capture(lights="positions")``, as a
+calibrated positions file gives them); light direction error, normals' angular error, protrusion
+heights from the run's height map.
 Part 2 (``--big``, real size): a 4000 x 3000, 16-light RGB uint16 capture written as TIFFs; wall time
 and peak RSS of reading it and of ``uvps run`` (estimated and known lights), each in a fresh process.
 Part 3 (real data in /work/shared/data, skipped when absent): ``uvps run`` on the RTI and bust
-captures, and the agreement of normals from disjoint halves of the lights.
+captures, and the agreement of normals from disjoint halves of the lights (``run`` on the even-indexed
+and on the odd-indexed images with their lights, as a user with half the images would).
 
 Prints Markdown (one section per part, with the command line) and writes it to ``--out`` if given.
 This script only measures; it does not change the core.
@@ -27,16 +37,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from uvps.integrate import integrate_normals
-from uvps.io import Capture, read_capture
-from uvps.lights import LightModel
-from uvps.pipeline import RunOptions, estimate_capture_lights
-from uvps.stereo import solve_normals
+from uvps.io import read_capture
+from uvps.pipeline import RunOptions, run
 from uvps.synthetic import make_capture, write_capture
 
 DATA = Path("/work/shared/data")
@@ -168,6 +175,15 @@ def normals_error(est, truth):
     return float(a[ok].mean()), float(np.median(a[ok])), float(np.percentile(a[ok], 95)), int((~ok).sum())
 
 
+#: Part 1's runs: name -> (RunOptions, lights of the capture). Only the lights vary; the rest is
+#: what ``uvps run`` does by default.
+PART1_VARIANTS = {
+    "estimated (refined)": (RunOptions(), "estimate"),
+    "estimated (equidistant, paper)": (RunOptions(refine_lights=False), "estimate"),
+    "true lights": (RunOptions(), "positions"),
+}
+
+
 def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
     rows_l, rows_n, rows_h, rows_t = [], [], [], []
     agg = {}
@@ -176,22 +192,13 @@ def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
         cap = make_capture(shape=shape, n_lights=n_lights, seed=seed, pixel_size_um=px,
                            fixed_exposure=fixed_exposure)
         t_make = time.perf_counter() - t0
-        capture = Capture(images=cap.images.astype(np.float32), files=[f"uv_{i:02d}.tif" for i in range(n_lights)],
-                          pixel_size_um=px, mask=None, saturation=65535.0, light_directions=None,
-                          light_positions_mm=None, bit_depth="uint16")
         P = cap.light_positions_mm
         D_true = P / np.linalg.norm(P, axis=1, keepdims=True)
-        variants = {}
-        t0 = time.perf_counter()
-        variants["estimated (refined)"] = estimate_capture_lights(capture, options=RunOptions()).model
-        t_ref = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        variants["estimated (equidistant, paper)"] = estimate_capture_lights(
-            capture, options=RunOptions(refine_lights=False)).model
-        t_eq = time.perf_counter() - t0
-        variants["true lights"] = LightModel.from_positions(P, cap.intensities)
-        rows_t.append([seed, f"{t_make:.1f}", f"{t_ref:.1f}", f"{t_eq:.1f}"])
-        for name, model in variants.items():
+        t_lights = {}
+        for name, (options, lights) in PART1_VARIANTS.items():
+            res = run(cap.as_capture(lights=lights), options, stages=("normals", "height"))
+            t_lights[name] = res.timings_s["lights"]
+            model = res.lights.model
             dir_err = angle_deg(model.directions, D_true)
             pos_err = (np.linalg.norm(model.positions_mm - P, axis=1) if model.positions_mm is not None
                        else np.full(len(P), np.nan))
@@ -200,13 +207,10 @@ def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
             if name != "true lights":
                 rows_l.append([seed, name, f"{dir_err.mean():.2f}", f"{dir_err.max():.2f}",
                                f"{np.median(pos_err):.1f}", f"{np.abs(E_rel / E_true - 1).mean() * 100:.1f}"])
-            t0 = time.perf_counter()
-            res = solve_normals(capture.images, model, pixel_size_um=px, saturation=capture.saturation)
-            t_solve = time.perf_counter() - t0
-            mean, med, p95, n_nan = normals_error(res.normals, cap.normals)
-            rows_n.append([seed, name, f"{mean:.3f}", f"{med:.3f}", f"{p95:.2f}", n_nan, f"{t_solve:.1f}"])
-            depth = integrate_normals(res.normals, pixel_size_um=px, method="fc").height_um
-            pe = protrusion_errors(depth, cap.height_um, cap.protrusions, px)
+            mean, med, p95, n_nan = normals_error(res.stereo.normals, cap.normals)
+            rows_n.append([seed, name, f"{mean:.3f}", f"{med:.3f}", f"{p95:.2f}", n_nan,
+                           f"{res.timings_s['normals']:.1f}"])
+            pe = protrusion_errors(res.height.height_um, cap.height_um, cap.protrusions, px)
             rows_h.append([seed, name, pe["n"], f"{np.median(pe['rel_vs_measure']) * 100:.1f}",
                            f"{np.median(pe['rel_vs_recorded']) * 100:.1f}",
                            f"{np.median(pe['measure_vs_recorded']) * 100:.1f}"])
@@ -215,7 +219,10 @@ def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
             a["nrm"].append(mean)
             a["h_meas"].append(pe["rel_vs_measure"])
             a["h_rec"].append(pe["rel_vs_recorded"])
-        del capture, cap
+            del res
+        rows_t.append([seed, f"{t_make:.1f}", f"{t_lights['estimated (refined)']:.1f}",
+                       f"{t_lights['estimated (equidistant, paper)']:.1f}"])
+        del cap
     summary = []
     for name, a in agg.items():
         hm = np.median(np.concatenate(a["h_meas"])) * 100
@@ -242,14 +249,15 @@ def part1(shape, seeds, n_lights=12, px=15.0, fixed_exposure=False):
            "after normalising both to median 1):", "",
            md_table(["seed", "lights", "dir. err mean (deg)", "dir. err max (deg)", "pos. err median (mm)",
                      "intensity err (%)"], rows_l), "",
-           "Normals per seed:", "",
+           "Normals per seed (last column: the run's normals stage, `timings_s[\"normals\"]`):", "",
            md_table(["seed", "lights", "mean (deg)", "median (deg)", "95th pct (deg)", "NaN px",
                      "solve_normals (s)"], rows_n), "",
            "Protrusion heights per seed (median relative error, %; last column: the measure itself on the "
            "true height map vs the recorded height, for reference):", "",
            md_table(["seed", "lights", "n (>= 100 um)", "vs measure on truth", "vs recorded", "measure vs recorded"],
                     rows_h), "",
-           "Times (s): make_capture, estimate lights refined, estimate lights equidistant only:", "",
+           "Times (s): make_capture, estimate lights refined, estimate lights equidistant only (the run's "
+           "lights stage, `timings_s[\"lights\"]`):", "",
            md_table(["seed", "make_capture", "lights refined", "lights equidistant"], rows_t), ""]
     return "\n".join(txt)
 
@@ -320,17 +328,24 @@ def part2(workdir: Path, shape=(3000, 4000), n_lights=16, keep=False):
 # part 3: real captures
 # --------------------------------------------------------------------------------------------
 
+def light_subset(cap, idx):
+    """The capture of the images ``idx`` only, with their lights (what a user with those images reads)."""
+    idx = np.asarray(idx)
+    pick = lambda a: None if a is None else np.asarray(a)[idx]   # noqa: E731
+    return replace(cap, images=np.stack([np.asarray(cap.images[int(k)]) for k in idx]),
+                   files=[cap.files[int(k)] for k in idx], light_directions=pick(cap.light_directions),
+                   light_positions_mm=pick(cap.light_positions_mm), light_intensities=pick(cap.light_intensities))
+
+
 def half_agreement(images_arg, lp, px, saturation_ok=True):
-    """Normals from even- and odd-indexed lights (far lights from the .lp) vs each other and vs all."""
+    """Normals of ``run`` on the even- and odd-indexed images (far lights from the .lp) vs each other and
+    vs all of them."""
     cap = read_capture(images_arg, lights=lp, pixel_size_um=px)
-    lights = estimate_capture_lights(cap, options=RunOptions())
-    D, E = lights.model.directions, lights.model.intensities
-    K = len(D)
+    K = cap.images.shape[0]
     out = {}
     for name, idx in (("all", np.arange(K)), ("even", np.arange(0, K, 2)), ("odd", np.arange(1, K, 2))):
-        res = solve_normals(cap.images[idx], LightModel.from_directions(D[idx], E[idx]),
-                            pixel_size_um=cap.pixel_size_um, mask=cap.mask, saturation=cap.saturation)
-        out[name] = res.normals
+        sub = cap if name == "all" else light_subset(cap, idx)
+        out[name] = run(sub, RunOptions(), stages=("normals",)).stereo.normals
     valid = np.isfinite(out["all"]).all(-1) & np.isfinite(out["even"]).all(-1) & np.isfinite(out["odd"]).all(-1)
     r = {"K": K, "shape": cap.images.shape[1:3], "valid": int(valid.sum())}
     for a, b in (("even", "odd"), ("even", "all"), ("odd", "all")):
@@ -399,37 +414,37 @@ def part3(workdir: Path):
             except Exception as exc:  # report and carry on: this is a benchmark, not the core
                 rows_h.append([name, "-", "-", "-", f"failed: {exc}", "", ""])
     if bust_json is not None:
-        # the lights file keeps unit directions only: the pipeline measures each lamp's intensity
-        # from the image levels. Compare with the intensities folded into S (|S_k|).
+        # the lights file gives |S_k| as each lamp's intensity; the pipeline can also measure them from
+        # the image levels (--estimate-intensities). Compare those with the intensities folded into S.
         import tifffile
         S = np.loadtxt(bust / "S_xright_yup.txt")
         cap = read_capture([str(bust / f"image_{i + 1}.png") for i in range(3)], mask=str(bust / "mask.png"),
                            pixel_size_um=100.0, lights=str(bust_json))
-        E_pipe = estimate_capture_lights(cap, options=RunOptions()).model.intensities
+        E_pipe = run(cap, RunOptions(estimate_intensities=True), stages=()).lights.model.intensities
         E_s = np.linalg.norm(S, axis=1)
-        res = solve_normals(cap.images, LightModel.from_directions(S, E_s),
-                            pixel_size_um=100.0, mask=cap.mask, saturation=cap.saturation)
+        # the run with S's own intensities (as a light file giving them would): only the lights differ
+        res = run(replace(cap, light_intensities=E_s), RunOptions(), stages=("normals",)).stereo
         ok_s = np.isfinite(res.normals).all(-1) & cap.mask
         notes.append(f"bust_3lights: intensities measured by the pipeline from the image levels "
-                     f"{np.array2string(E_pipe / E_pipe[0], precision=3)} (relative to light 1) vs |S_k| "
-                     f"{np.array2string(E_s / E_s[0], precision=3)}. In-process `solve_normals` with S's own "
-                     f"intensities solves {ok_s.sum()} of {cap.mask.sum()} masked pixels "
+                     f"(`--estimate-intensities`) {np.array2string(E_pipe / E_pipe[0], precision=3)} (relative "
+                     f"to light 1) vs |S_k| {np.array2string(E_s / E_s[0], precision=3)}. In-process `run` with "
+                     f"S's own intensities solves {ok_s.sum()} of {cap.mask.sum()} masked pixels "
                      f"({ok_s.sum() / cap.mask.sum() * 100:.1f} %), mean nz {np.nanmean(res.normals[..., 2][ok_s]):.3f}.")
-        for run in ("run_bust_3lights", "run_bust_3lights_degree2"):
-            cli_path = workdir / run / "normals.tif"
+        for run_name in ("run_bust_3lights", "run_bust_3lights_degree2"):
+            cli_path = workdir / run_name / "normals.tif"
             if not cli_path.exists():
-                notes[-1] += f" No normals from {run[4:]}."
+                notes[-1] += f" No normals from {run_name[4:]}."
                 continue
             cli = np.moveaxis(tifffile.imread(cli_path), 0, -1)
             ang = angle_deg(cli, res.normals)
             ok = np.isfinite(ang)
-            notes[-1] += (f" The CLI's normals ({run[4:]}) differ from these by {ang[ok].mean():.2f} deg mean, "
+            notes[-1] += (f" The CLI's normals ({run_name[4:]}) differ from these by {ang[ok].mean():.2f} deg mean, "
                           f"{np.median(ang[ok]):.2f} deg median over {ok.sum()} pixels.")
     txt = ["## Part 3: real captures (/work/shared/data)", "",
            "Commands (run folders in a temp folder):", ""] + [f"    {c}" for c in cmds] + ["",
            md_table(["capture", "status", "wall (s)", "peak RSS (MiB)", "result"], rows), "",
-           "Disjoint halves of the lights (in-process: far lights from dirs.lp, intensities as the pipeline "
-           "measures them, `solve_normals` on even-indexed vs odd-indexed images); mean / median angular "
+           "Disjoint halves of the lights (in-process `run` with `RunOptions()` on all images, on the "
+           "even-indexed and on the odd-indexed ones, far lights from dirs.lp); mean / median angular "
            "difference in degrees over pixels valid in all three solutions:", "",
            md_table(["capture", "lights", "size", "valid px", "even vs odd", "even vs all", "odd vs all"], rows_h),
            ""] + notes + [""]

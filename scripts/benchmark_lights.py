@@ -7,9 +7,10 @@ Usage::
                                                  [--out-md docs/benchmarks.md]
 
 Renders a grey synthetic capture per lamp count (``uvps.synthetic.make_capture``), runs the additive
-term and the light estimate exactly as ``uvps run`` does (``remove_additive``, ``estimate_capture_lights``)
-and prints, per lamp count: the time of each, the mean and max direction error against the truth,
-the heights' relative scale error (mean log tan-elevation ratio) and the reported height uncertainty.
+term and the light estimate of ``uvps run`` (:func:`uvps.pipeline.run` with ``RunOptions()`` and no
+stage beyond the lights, on ``as_capture()``) and prints, per lamp count: the time of each (the run's
+``timings_s``), the mean and max direction error against the truth, the heights' relative scale error
+(mean log tan-elevation ratio) and the reported height uncertainty.
 """
 from __future__ import annotations
 
@@ -18,12 +19,11 @@ import datetime
 import os
 import platform
 import sys
-import time
 
 import numpy as np
 
-from uvps.io import Capture
-from uvps.pipeline import RunOptions, estimate_capture_lights, remove_additive
+from uvps import pipeline
+from uvps.pipeline import RunOptions
 from uvps.synthetic import make_capture
 
 
@@ -34,15 +34,8 @@ def _machine():
 
 def run(K, shape, seed):
     cap = make_capture(shape=tuple(shape), n_lights=K, seed=seed, rgb=False)
-    c = Capture(images=cap.images, files=[f"uv_{k:02d}.tif" for k in range(K)], pixel_size_um=15.0, mask=None,
-                saturation=65535.0, light_directions=None, light_positions_mm=None, bit_depth="uint16")
-    opt = RunOptions()
-    t0 = time.perf_counter()
-    c2, term, _ = remove_additive(c, options=opt)
-    t1 = time.perf_counter()
-    se = float(np.mean(term.stderr)) if term.stderr is not None and np.all(np.isfinite(term.stderr)) else None
-    lr = estimate_capture_lights(c2, options=opt, offset_stderr=se)
-    t2 = time.perf_counter()
+    res = pipeline.run(cap.as_capture(), RunOptions(), stages=())
+    lr = res.lights
     P = cap.light_positions_mm
     D = P / np.linalg.norm(P, axis=1, keepdims=True)
     E = lr.model.directions
@@ -52,7 +45,7 @@ def run(K, shape, seed):
         return v[:, 2] / np.hypot(v[:, 0], v[:, 1])
 
     scale = float(np.exp(np.mean(np.log(tane(E) / tane(D)))))
-    return [K, f"{t1 - t0:.1f}", f"{t2 - t1:.1f}", f"{err.mean():.2f}", f"{err.max():.2f}",
+    return [K, f"{res.timings_s['additive']:.1f}", f"{res.timings_s['lights']:.1f}", f"{err.mean():.2f}", f"{err.max():.2f}",
             f"{100 * abs(1 / scale - 1):.1f}", f"{100 * lr.estimate.uncertainty.height_rel:.1f}"]
 
 

@@ -9,6 +9,11 @@ noise level given. A detection matches a true protrusion when their centroids ar
 equivalent-circle diameters (as ``uvps.measure``). A detection is counted in the width class of
 its matched truth, an unmatched one in the class of its own width.
 
+With ``--pipeline``, end to end: the albedo and height come from :func:`uvps.pipeline.run` on the
+rendered capture with ``RunOptions()`` (what ``uvps run`` does by default), the lights estimated from
+the images or given (the true lamp positions); detection then runs with ``DetectionParams()`` on
+them as above (without colour areas; the truth's areas count the density per area).
+
 Example::
 
     .venv/bin/python scripts/benchmark_protrusions.py --seeds 0 1 2 --levels 0.3,0.01 1.0,0.03
@@ -55,19 +60,17 @@ def match(true_xy, true_w_px, det_xy):
 
 
 def pipeline_maps(cap, *, true_lights):
-    """Albedo and height as the core computes them from the rendered capture (12 lamps, noise)."""
-    from uvps.integrate import integrate_normals
-    from uvps.io import Capture
-    from uvps.pipeline import RunOptions, estimate_capture_lights
-    from uvps.stereo import solve_normals
+    """Albedo and height as ``uvps run`` computes them from the rendered capture (12 lamps, noise).
 
-    px = cap.spec.pixel_size_um
-    capture = Capture(images=cap.images.astype(np.float32), files=[f"uv_{k:02d}.tif" for k in range(len(cap.images))],
-                      pixel_size_um=px, mask=None, saturation=65535.0, light_directions=None,
-                      light_positions_mm=cap.light_positions_mm if true_lights else None, bit_depth="uint16")
-    lights = estimate_capture_lights(capture, options=RunOptions())
-    res = solve_normals(capture.images, lights.model, pixel_size_um=px, saturation=65535.0)
-    return res.albedo, integrate_normals(res.normals, pixel_size_um=px).height_um
+    :func:`uvps.pipeline.run` with ``RunOptions()`` (the defaults of ``uvps run``: additive term
+    measured, lamps refined, Frankot-Chellappa); the lights estimated from the images, or the true
+    ones as a calibrated positions file gives them (``as_capture(lights="positions")``).
+    """
+    from uvps.pipeline import RunOptions, run
+
+    res = run(cap.as_capture(lights="positions" if true_lights else "estimate"), RunOptions(),
+              stages=("normals", "height"))
+    return res.stereo.albedo, res.height.height_um
 
 
 def run_one(seed, shape, height_noise, albedo_noise, params, pipeline=None):

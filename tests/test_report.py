@@ -138,3 +138,43 @@ def test_far_lights_figure_shows_elevations(tmp_path):
     _check_png(plot_lights(lights, tmp_path / "lights.png"))
     with pytest.raises(UVPSInputError, match="no 'lights'"):
         plot_lights({"mode": "far", "lights": []}, tmp_path / "x.png")
+
+
+def _strip_calibration(path):
+    """Rewrite the run folder's image TIFFs without a pixel size (as a plain TIFF writer leaves them)."""
+    import tifffile
+
+    for name in ("albedo.tif", "depth.tif", "normals.tif"):
+        tifffile.imwrite(path / name, tifffile.imread(path / name), photometric="minisblack")
+
+
+def test_uncalibrated_tiffs_take_the_pixel_size_from_run_json(tmp_path):
+    """TIFFs without a pixel size: the report takes it from run.json and draws every figure."""
+    _run_folder(tmp_path)
+    _strip_calibration(tmp_path)
+    (tmp_path / "protrusions_labels.tif").unlink()   # nor from the labels
+    (tmp_path / "lights.json").unlink()              # nor from lights.json
+    text = write_report(tmp_path).read_text()
+    figs = {p.name for p in (tmp_path / "figures").glob("*.png")}
+    assert {"normals.png", "albedo.png", "height.png", "detail3d.png", "histograms.png"} <= figs
+    assert "image figures" not in text
+
+
+def test_no_pixel_size_anywhere_skips_the_image_figures(tmp_path):
+    """No pixel size in the TIFFs, run.json or lights.json: the report is written without the image
+    figures and says why (no error)."""
+    _run_folder(tmp_path, lights=False)
+    _strip_calibration(tmp_path)
+    (tmp_path / "protrusions_labels.tif").unlink()
+    (tmp_path / "run.json").unlink()
+    text = write_report(tmp_path).read_text()
+    assert not list((tmp_path / "figures").glob("*.png"))
+    assert "image figures: no pixel size" in text
+    assert "<b>3</b> protrusions" in text
+
+
+def test_images_of_different_sizes_are_refused(tmp_path):
+    _run_folder(tmp_path)
+    write_imagej_tiff(tmp_path / "depth.tif", np.zeros((10, 12), np.float32), axes="YX", pixel_size_um=PX)
+    with pytest.raises(UVPSInputError, match="differ in size"):
+        write_report(tmp_path)

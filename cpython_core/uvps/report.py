@@ -28,6 +28,7 @@ from .io import read_tiff
 from .measure import atomic_write_text, read_protrusions_csv
 from .outputs import Progress, atomic_path, report
 from .regions import bin_names, load_regions, region_statistics, stats_columns, whole_image
+from .runfolder import read_run
 
 log = logging.getLogger(__name__)
 
@@ -518,23 +519,31 @@ class _RunInputs:
 
 
 def _read_inputs(run_dir: Path, run, table) -> _RunInputs:
-    """Read the run's TIFFs; the pixel size from them, else ``run.json``, else ``lights.json``."""
-    normals, px_n = _read_optional_tiff(run_dir / "normals.tif")
-    albedo, px_a = _read_optional_tiff(run_dir / "albedo.tif")
-    height, px_h = _read_optional_tiff(run_dir / "depth.tif")
+    """Read the run's images (:func:`uvps.runfolder.read_run`: its file names and layout) and the
+    protrusion labels; the pixel size from the TIFFs, else ``run.json``, else ``lights.json``.
+
+    A folder whose TIFFs carry no pixel size is still read: its images give the shape and the
+    table's areas, and the image figures are skipped when no pixel size is found at all.
+    """
     table_path = Path(table) if table is not None else run_dir / "protrusions.csv"
     if table is not None and not table_path.is_file():
         raise UVPSInputError(f"protrusion table {table_path} does not exist")
     plabels, px_l = _read_optional_tiff(_labels_path(table_path))
-    px = next((p for p in (px_h, px_a, px_n, px_l) if p), None)
-    if px is None and run is not None:
-        px = run.get("pixel_size_um") or (run.get("params") or {}).get("pixel_size_um")
-    if px is None and (run_dir / "lights.json").is_file():
-        px = _read_json(run_dir / "lights.json").get("pixel_size_um")
-    shape = next((a.shape[-2:] for a in (height, plabels, normals) if a is not None), None)
-    if shape is None and albedo is not None:
-        shape = _yxc(albedo).shape[:2]
-    return _RunInputs(normals, albedo, height, plabels, table_path, px, shape)
+    try:
+        images = read_run(run_dir, need=())
+        px = images.pixel_size_um
+    except UVPSInputError:
+        # no pixel size in the TIFFs (read_run requires one): read the arrays with a placeholder,
+        # unused, and look for the pixel size elsewhere. Any other error (sizes that differ) is
+        # raised again by this second read.
+        images = read_run(run_dir, need=(), pixel_size_um=1.0)
+        px = px_l or None
+        if px is None and run is not None:
+            px = run.get("pixel_size_um") or (run.get("params") or {}).get("pixel_size_um")
+        if px is None and (run_dir / "lights.json").is_file():
+            px = _read_json(run_dir / "lights.json").get("pixel_size_um")
+    shape = images.shape if images.shape is not None else (plabels.shape[-2:] if plabels is not None else None)
+    return _RunInputs(images.normals, images.albedo, images.height_um, plabels, table_path, px, shape)
 
 
 def _labels_path(table_path: Path) -> Path:
