@@ -20,7 +20,6 @@ Usage::
 """
 import argparse
 import os
-import select
 import shutil
 import subprocess
 import sys
@@ -33,8 +32,10 @@ import tifffile
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "jython_lib"))
+sys.path.insert(0, str(REPO / "tests" / "imagej"))
 
 from uvps_fiji import bridge_logic  # noqa: E402
+from xvfb_display import start_xvfb, stop_xvfb  # noqa: E402  (the test harness's Xvfb)
 
 IJ_JAR = "/usr/share/java/ij.jar"
 JYTHON_JAR = "/usr/share/java/jython.jar"
@@ -115,25 +116,6 @@ def bench_large(args, work):
     return rows, stack
 
 
-def _start_xvfb():
-    read_fd, write_fd = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1280x1024x24",
-                             "-nolisten", "tcp"], pass_fds=(write_fd,),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    os.close(write_fd)
-    data = b""
-    deadline = time.monotonic() + 30
-    while not data.endswith(b"\n") and time.monotonic() < deadline:
-        if select.select([read_fd], [], [], 0.5)[0]:
-            chunk = os.read(read_fd, 64)
-            if not chunk:
-                break
-            data += chunk
-    os.close(read_fd)
-    return proc, ":" + data.decode().strip()
-
-
 class ImageJ(object):
     """The real ImageJ 1.x with uvps installed, under a private Xvfb (the test harness's
     launcher, in test mode: a dialog or a Python exception ends the JVM with an error)."""
@@ -150,11 +132,10 @@ class ImageJ(object):
         (self.home / "plugins").mkdir(parents=True)
         subprocess.run([args.python, str(REPO / "scripts" / "install_fiji.py"), str(self.home),
                         "--python", args.python], check=True, stdout=subprocess.DEVNULL)
-        self.xvfb, self.display = _start_xvfb()
+        self.xvfb, self.display = start_xvfb()
 
     def close(self):
-        self.xvfb.terminate()
-        self.xvfb.wait()
+        stop_xvfb(self.xvfb)
 
     def macro(self, text, timeout=7200):
         """Run a batch macro; return (wall seconds, stdout = ImageJ's Log)."""
