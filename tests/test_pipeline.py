@@ -50,6 +50,9 @@ def test_the_command_writes_exactly_what_run_computes(synthetic, tmp_path):
     # run.json records the whole request, with the defaults that applied
     log = json.loads((out / "run.json").read_text())
     assert log["params"]["degree"] == 4 and log["params"]["regions"] == "auto"
+    # run.json holds the detection's counts and rejections, as the response does
+    assert log["diagnostics"]["detect"] == json.loads(json.dumps(result.diagnostics["detect"]))
+    assert sum(log["diagnostics"]["detect"]["rejected"].values()) > 0
     assert "detect" in result.diagnostics and "stats" in result.diagnostics
 
 

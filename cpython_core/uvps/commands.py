@@ -98,9 +98,7 @@ def _capture_command(name: str, stages: tuple):
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
-    """``run`` with colour areas or detection: the detection's diagnostics, statistics and the report."""
-    prot = result.protrusions
-    out.diagnostics["detect"] = protrusion_commands.detect_diagnostics(prot, result.capture.pixel_size_um)
+    """``run`` with colour areas or detection: statistics and the report from the run folder."""
     r = protrusion_commands.SPEC_STATS({}, {"bins_um": params["bins_um"]}, run_dir, progress=progress)
     out.outputs += r.outputs
     out.diagnostics["stats"] = r.diagnostics

@@ -223,6 +223,7 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
                                            n_areas=n_areas, params=detection,
                                            progress=sub_progress(progress, 0.9, 0.98))
         res.timings_s["protrusions"] = _since(t0)
+        res.diagnostics["detect"] = protrusion_diagnostics(res.protrusions, res.capture.pixel_size_um)
     report(progress, 1.0, "done")
     return res
 
@@ -319,6 +320,16 @@ def integration_diagnostics(res: IntegrationResult) -> dict:
     """What ``run.json`` says about the integration."""
     return {"method": res.method, "residual_rms": res.residual_rms, "integrability": res.integrability,
             "height_range_um": [float(np.nanmin(res.height_um)), float(np.nanmax(res.height_um))]}
+
+
+def protrusion_diagnostics(prot: Protrusions, pixel_size_um: float) -> dict:
+    """What ``run.json`` and ``detect`` report of a detection: counts by cue, rejections by rule."""
+    src, n = np.unique(np.asarray(prot.table["source"], dtype=str), return_counts=True)
+    return {"n_protrusions": int(len(prot.table["id"])), "by_source": {str(s): int(c) for s, c in zip(src, n)},
+            "n_craters": int(np.sum(prot.table["crater"])), "rejected": dict(prot.rejected),
+            "noise_um": float(prot.noise_um) if np.isfinite(prot.noise_um) else None,
+            "n_areas": len(prot.regions.ids) if prot.regions is not None else None,
+            "pixel_size_um": pixel_size_um}
 
 
 def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, regions=None, n_areas=None,

@@ -21,7 +21,7 @@ from .detect import DetectionParams
 from .errors import UVPSInputError
 from .measure import empty_table, measure_protrusions, read_protrusions_csv, write_label_tiff, write_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, sub_progress
-from .pipeline import find_protrusions
+from .pipeline import find_protrusions, protrusion_diagnostics
 from .regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
 from .report import plot_comparison_map, write_report
 from .runfolder import output_spec, read_run, write_protrusions
@@ -59,21 +59,6 @@ def _connectivity(value: str):
     return int(value) if value.isdigit() else value
 
 
-def _source_counts(table) -> dict:
-    src, n = np.unique(np.asarray(table["source"], dtype=str), return_counts=True)
-    return {str(s): int(c) for s, c in zip(src, n)}
-
-
-def detect_diagnostics(prot, pixel_size_um: float) -> dict:
-    """What ``detect`` (and ``run`` with detection) reports: counts by cue and rejections by rule."""
-    table = prot.table
-    return {"n_protrusions": int(len(table["id"])), "by_source": _source_counts(table),
-            "n_craters": int(np.sum(table["crater"])), "rejected": dict(prot.rejected),
-            "noise_um": float(prot.noise_um) if np.isfinite(prot.noise_um) else None,
-            "n_areas": len(prot.regions.ids) if prot.regions is not None else None,
-            "pixel_size_um": pixel_size_um}
-
-
 # ---------------------------------------------------------------------------------------------
 # commands
 
@@ -98,7 +83,7 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
         names = write_protrusions(tmp, prot, images.pixel_size_um)
     outputs = [output_spec(run_dir, n) for n in names]
     report(progress, 1.0, f"{len(prot.table['id'])} protrusions")
-    return CommandResult(outputs, detect_diagnostics(prot, images.pixel_size_um), [])
+    return CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
 
 
 def _cmd_wand(inputs: dict, params: dict, output_dir, *,
