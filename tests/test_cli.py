@@ -300,20 +300,3 @@ def test_lamps_that_fit_no_pixel_stop_the_run_without_heights(capture_dir, tmp_p
         err = [l for l in r.stderr.splitlines() if "error" in l]
         assert len(err) == 1 and needle in err[0], r.stderr
         assert not out.exists()
-
-
-@pytest.mark.slow
-def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
-    """`uvps demo` (README's first command) on a small capture: the capture, the run and its report."""
-    from uvps.commands import COMMANDS
-
-    out = tmp_path / "demo"
-    result = COMMANDS["demo"]({}, {"shape": (300, 400), "n_lights": 8}, out)
-    for f in ("capture", "normals.tif", "depth.tif", "lights.json", "run.json", "protrusions.csv", "report.html"):
-        assert (out / f).exists(), f
-    run = json.loads((out / "run.json").read_text())
-    assert run["diagnostics"]["additive"]["source"] == "estimated" and run["timings_s"]["lights"] > 0
-    with tifffile.TiffFile(out / "depth.tif") as t:
-        xres = t.pages[0].tags["XResolution"].value
-        assert abs(xres[1] / xres[0] - 30.0) < 1e-6          # the demo's 30 um pixel: an 18 x 24 mm field at full size
-    assert len(result.diagnostics["truth_light_positions_mm"]) == 8

@@ -71,20 +71,3 @@ def test_unknown_stage_and_bad_options_are_refused(synthetic):
         run(synthetic.as_capture(), stages=("heights",))
     with pytest.raises(UVPSInputError, match="integration must be one of fc, dct"):
         RunOptions(integration="poisson")
-
-
-@pytest.mark.slow
-def test_step_by_step_reuses_the_folders_lamps_and_matches_the_whole_run(synthetic, tmp_path):
-    """`lights` then `normals` into one run folder: the normals step takes the folder's lights.json
-    (no second estimate) and gives the normals `run` gives."""
-    write_capture(synthetic, tmp_path / "cap")
-    images = {"images": [str(tmp_path / "cap")]}
-    whole, steps = tmp_path / "whole", tmp_path / "steps"
-    COMMANDS["run"](images, {}, whole)
-    COMMANDS["lights"](images, {}, steps)
-    res = COMMANDS["normals"](images, {}, steps)
-    assert res.diagnostics["lights_file"] == str(steps / "lights.json")
-    assert res.diagnostics["lights"]["source"] == "positions"          # read, not estimated again
-    a = read_run(whole, need=("normals",)).normals
-    b = read_run(steps, need=("normals",)).normals
-    assert np.nanmax(np.abs(a - b)) < 1e-5             # equal to float32 precision

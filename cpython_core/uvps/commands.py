@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 
 from . import protrusion_commands, runfolder
-from .detect import DetectionParams
-from .errors import UVPSInputError
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress

@@ -1,0 +1,57 @@
+"""The commands (uvps.commands): the registry, step by step against the whole run, the demo."""
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from uvps import commands, protrusion_commands, runfolder
+from uvps.commands import COMMANDS
+from uvps.runfolder import read_run
+from uvps.synthetic import make_capture, write_capture
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    return make_capture(shape=(200, 260), n_lights=8, seed=7)
+
+
+def test_every_declared_command_is_registered_once_by_name_and_alias():
+    declared = [s for specs in commands.MODULES for s in specs]
+    assert len({s.name for s in declared}) == len(declared)
+    for s in declared:
+        assert COMMANDS[s.name] is s and all(COMMANDS[a] is s for a in s.aliases)
+    assert {"run", "lights", "normals", "detect", "wand", "stats", "report", "info"} <= set(COMMANDS)
+    assert COMMANDS["info"] in runfolder.SPECS and COMMANDS["detect"] in protrusion_commands.SPECS
+
+
+@pytest.mark.slow
+def test_step_by_step_reuses_the_folders_lamps_and_matches_the_whole_run(synthetic, tmp_path):
+    """`lights` then `normals` into one run folder: the normals step takes the folder's lights.json
+    (no second estimate) and gives the normals `run` gives."""
+    write_capture(synthetic, tmp_path / "cap")
+    images = {"images": [str(tmp_path / "cap")]}
+    whole, steps = tmp_path / "whole", tmp_path / "steps"
+    COMMANDS["run"](images, {}, whole)
+    COMMANDS["lights"](images, {}, steps)
+    res = COMMANDS["normals"](images, {}, steps)
+    assert res.diagnostics["lights_file"] == str(steps / "lights.json")
+    assert res.diagnostics["lights"]["source"] == "positions"          # read, not estimated again
+    a = read_run(whole, need=("normals",)).normals
+    b = read_run(steps, need=("normals",)).normals
+    assert np.nanmax(np.abs(a - b)) < 1e-5             # equal to float32 precision
+
+
+@pytest.mark.slow
+def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
+    """`uvps demo` (README's first command) on a small capture: the capture, the run and its report."""
+    out = tmp_path / "demo"
+    result = COMMANDS["demo"]({}, {"shape": (300, 400), "n_lights": 8}, out)
+    for f in ("capture", "normals.tif", "depth.tif", "lights.json", "run.json", "protrusions.csv", "report.html"):
+        assert (out / f).exists(), f
+    run = json.loads((out / "run.json").read_text())
+    assert run["diagnostics"]["additive"]["source"] == "estimated" and run["timings_s"]["lights"] > 0
+    with tifffile.TiffFile(out / "depth.tif") as t:
+        xres = t.pages[0].tags["XResolution"].value
+        assert abs(xres[1] / xres[0] - 30.0) < 1e-6          # the demo's 30 um pixel: an 18 x 24 mm field at full size
+    assert len(result.diagnostics["truth_light_positions_mm"]) == 8
