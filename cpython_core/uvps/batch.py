@@ -39,7 +39,7 @@ from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
 from .pipeline import OPTION_PARAMS
-from .regions import UM2_PER_CM2, read_region_names
+from .regions import UM2_PER_CM2, load_regions, read_region_names
 from .spec import CommandSpec, Param
 
 log = logging.getLogger(__name__)
@@ -531,6 +531,11 @@ def read_layout(path, jobs) -> dict:
 def _tile_regions(run_dir: Path, shape) -> tuple:
     """``(labels (M, N), {label: name})`` of a tile's run folder; the whole tile when it has none."""
     labels_tif = run_dir / "regions_labels.tif"
+    given = json.loads((run_dir / REQUEST_RECORD).read_text(encoding="utf-8"))["params"].get("regions")
+    if not labels_tif.is_file() and given not in (None, "auto") and Path(given).is_file():
+        # a label TIFF given to run is not copied into the run folder: read it (names beside it)
+        regions = load_regions(Path(given), shape=shape)
+        return regions.labels.astype(np.int64), dict(regions.names)
     if labels_tif.is_file():
         labels = np.asarray(read_tiff(labels_tif)[0]).astype(np.int64)
         names = read_region_names(run_dir / "regions.csv") if (run_dir / "regions.csv").is_file() else {}
