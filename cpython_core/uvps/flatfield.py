@@ -22,6 +22,7 @@ from numpy.polynomial import legendre as L
 
 from .errors import UVPSInputError
 from .io import StackView
+from .offset import block_means
 
 log = logging.getLogger(__name__)
 
@@ -123,14 +124,16 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
         mblk = mask[r0:r0 + R * b, c0:c0 + C * b].reshape(R, b, C, b).all(axis=(1, 3))
         valid &= mblk[None]
     for k in range(K):
-        img = images[k, r0:r0 + R * b, c0:c0 + C * b]
+        img = np.asarray(images[k, r0:r0 + R * b, c0:c0 + C * b])
+        means = block_means(img, b)
         if img.ndim == 3:
             sat_px = (img >= saturation).any(axis=-1) if saturation is not None else None
-            img = img.mean(axis=-1)
+            means = means.mean(axis=-1)
+            img = img.mean(axis=-1, dtype=np.float32)
         else:
             sat_px = img >= saturation if saturation is not None else None
         blk = img.reshape(R, b, C, b)
-        values[k] = blk.mean(axis=(1, 3), dtype=np.float64)
+        values[k] = means
         # a block is unusable when any of its pixels is dark (shadow) or saturated
         valid[k] &= blk.min(axis=(1, 3)) > 0
         if sat_px is not None:

@@ -177,6 +177,19 @@ def known_additive(value, *, shape, channels, source="black level", median_signa
     return AdditiveTerm(v.reshape(-1, 1, 1).copy(), source, tuple(shape), None, median_signal)
 
 
+def block_means(img, block: int) -> np.ndarray:
+    """Means of ``block`` x ``block`` blocks of an (R * block, Cb * block[, C]) image, in float64.
+
+    Rows first (one contiguous sum over ``block`` rows, then over columns): the same values as
+    ``img.reshape(R, block, Cb, block, C).mean(axis=(1, 3))`` (exactly for integer images, to
+    float64 rounding otherwise) in a sixth of the time (0.05 s instead of 0.3 s for 4000 x 3000 RGB).
+    """
+    R, Cb = img.shape[0] // block, img.shape[1] // block
+    tail = img.shape[2:]
+    rows = img.reshape(R, block, -1).sum(axis=1, dtype=np.float64)
+    return rows.reshape((R, Cb, block) + tail).sum(axis=2) / (block * block)
+
+
 def _channel_blocks(images, *, block, mask, saturation):
     """Per-channel block means (K, C, R, Cb) and the blocks usable in every image (R, Cb)."""
     K, M, N = images.shape[:3]
@@ -187,8 +200,8 @@ def _channel_blocks(images, *, block, mask, saturation):
     ok = np.ones((R, Cb), bool)
     for k in range(K):
         img = np.asarray(images[k, r0:r0 + R * block, c0:c0 + Cb * block])
+        out[k] = np.moveaxis(block_means(img, block), -1, 0).reshape(C, R, Cb)
         img = img.reshape(R, block, Cb, block, C)
-        out[k] = np.moveaxis(img.mean(axis=(1, 3), dtype=np.float64), -1, 0)
         if saturation is not None:
             ok &= ~(img >= saturation).any(axis=(1, 3, 4))
         ok &= img.min(axis=(1, 3, 4)) > 0
