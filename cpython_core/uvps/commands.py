@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from . import batch, protrusion_commands, runfolder
+from . import batch, changes, protrusion_commands, runfolder
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
@@ -198,7 +198,7 @@ cmd_run, cmd_flatfield, cmd_lights, cmd_normals, cmd_integrate, cmd_relight, cmd
 
 #: The modules that declare commands (a ``SPECS`` tuple each). A command added to one of them is
 #: registered; a new module is added here.
-MODULES = (SPECS, protrusion_commands.SPECS, runfolder.SPECS, batch.SPECS)
+MODULES = (SPECS, protrusion_commands.SPECS, runfolder.SPECS, batch.SPECS, changes.SPECS)
 
 
 def _registry() -> dict:

@@ -1,0 +1,208 @@
+"""uvps changes (issue 10): registration on a known transform, matching with known changes, the
+unchanged pair, bad inputs, the output contract; and the generator's later capture."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from uvps import cli
+from uvps.changes import COLUMNS, classify_changes, register
+from uvps.commands import COMMANDS
+from uvps.io import read_tiff, write_imagej_tiff
+from uvps.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture
+
+SPEC = SyntheticSpec(shape=(300, 400), n_lights=8, protrusion_density_light=150.0,
+                     protrusion_density_dark=30.0, seed=0)
+POSE = dict(shift_px=(40.0, -25.0), rotation_deg=2.5, scale=1.015)
+
+
+def _field_error(T_true, T_est, shape):
+    yy, xx = np.mgrid[0:shape[0]:10, 0:shape[1]:10]
+    p = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)])
+    e = (np.asarray(T_true) @ p)[:2] - (np.asarray(T_est) @ p)[:2]
+    return float(np.sqrt(np.mean(np.sum(e * e, axis=0))))
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return make_capture_pair(SPEC, LaterSpec(seed=3, new_per_cm2=40.0, grown_fraction=0.3, **POSE))
+
+
+@pytest.fixture(scope="module")
+def same():
+    return make_capture_pair(SPEC, LaterSpec.unchanged(seed=4, **POSE))
+
+
+def _truth_run(folder, cap, px):
+    """A run folder from a capture's truth (albedo, height, protrusion table): the changes logic
+    without the detection's own errors."""
+    folder.mkdir()
+    write_imagej_tiff(folder / "albedo.tif", np.moveaxis(cap.albedo, -1, 0), axes="CYX", pixel_size_um=px)
+    write_imagej_tiff(folder / "depth.tif", cap.height_um, axes="YX", pixel_size_um=px)
+    t = cap.protrusions
+    with open(folder / "protrusions.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
+        for i in range(t["id"].size):
+            w.writerow([int(t["id"][i]), t["x_px"][i], t["y_px"][i], t["width_um"][i], t["height_um"][i]])
+    return folder
+
+
+# ------------------------------------------------------------------------------------------------
+# the generator
+
+
+def test_pair_truth_is_consistent(pair):
+    T = similarity_matrix(SPEC.shape, **POSE)
+    np.testing.assert_allclose(pair.b_to_a, T)
+    assert pair.b.spec.pixel_size_um == pytest.approx(15.0 * 1.015)
+    c = pair.changes
+    both = (c["id_a"] > 0) & (c["id_b"] > 0)
+    xy_b = np.column_stack([c["x_px_b"][both], c["y_px_b"][both], np.ones(both.sum())])
+    np.testing.assert_allclose((xy_b @ T.T)[:, :2], np.column_stack([c["x_px_a"][both], c["y_px_a"][both]]),
+                               atol=1e-6)
+    assert set(c["status"]) >= {"unchanged", "grown", "new"}
+    g = c["status"] == "grown"
+    assert np.all(c["width_um_b"][g] >= 1.19 * c["width_um_a"][g])
+    assert np.all(np.isnan(c["width_um_b"][c["status"] == "gone"]))
+
+
+def test_unchanged_pair_has_no_changes_and_the_same_a(pair, same):
+    assert set(same.changes["status"]) == {"unchanged"}
+    np.testing.assert_array_equal(pair.a.images, same.a.images)   # one A for every later capture
+
+
+# ------------------------------------------------------------------------------------------------
+# registration
+
+
+def test_register_known_transform(pair):
+    reg = register(pair.a.albedo, pair.b.albedo)
+    assert reg.model == "similarity"
+    assert reg.matches >= 50
+    assert _field_error(pair.b_to_a, reg.b_to_a, SPEC.shape) < 0.1
+    assert reg.scale == pytest.approx(1.015, abs=1e-3)
+    assert reg.rotation_deg == pytest.approx(2.5, abs=0.02)
+
+
+def test_register_refuses_two_different_regions(pair):
+    other = make_capture_pair(SPEC, LaterSpec.unchanged(seed=4), seed=99)
+    with pytest.raises(ValueError, match="too few"):
+        register(pair.a.albedo, other.b.albedo)
+
+
+# ------------------------------------------------------------------------------------------------
+# the command on run folders made from the truth
+
+
+@pytest.fixture(scope="module")
+def truth_runs(pair, same, tmp_path_factory):
+    d = tmp_path_factory.mktemp("truth_runs")
+    return {"a": _truth_run(d / "a", pair.a, 15.0), "b": _truth_run(d / "b", pair.b, 15.0 * 1.015),
+            "same": _truth_run(d / "same", same.b, 15.0 * 1.015), "root": d}
+
+
+def _read_changes(out):
+    with open(out / "changes.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_changes_known_changes_and_output_contract(pair, truth_runs):
+    out = truth_runs["root"] / "out"
+    assert cli.main(["changes", str(truth_runs["a"]), str(truth_runs["b"]), "-o", str(out)]) == 0
+    reg = json.loads((out / "registration.json").read_text())
+    assert {"b_to_a", "model", "matches", "rms_px"} <= set(reg)
+    assert np.shape(reg["b_to_a"]) == (3, 3)
+    assert _field_error(pair.b_to_a, reg["b_to_a"], SPEC.shape) < 0.1
+    with open(out / "changes.csv", newline="") as fh:
+        assert tuple(next(csv.reader(fh))) == COLUMNS
+    rows = _read_changes(out)
+    change, px = read_tiff(out / "height_change.tif")
+    assert change.shape == SPEC.shape and px == pytest.approx(15.0)
+    run = json.loads((out / "run.json").read_text())
+    assert run["command"] == "changes" and run["diagnostics"]["pixel_size"]["rescaled"]
+    assert any("pixel sizes differ" in w for w in run["warnings"])
+    assert (out / "report.html").is_file() and (out / "figures" / "changes_height.png").is_file()
+    # every true status among the rows found, by A's id (B's for new ones)
+    t = pair.changes
+    truth_by_a = {int(i): s for i, s in zip(t["id_a"], t["status"]) if i > 0}
+    truth_by_b = {int(i): s for i, s in zip(t["id_b"], t["status"]) if i > 0}
+    agree = 0
+    for r in rows:
+        true = truth_by_a[int(r["id_a"])] if r["id_a"] else truth_by_b[int(r["id_b"])]
+        found = r["status"]
+        agree += found == true or (true == "grown" and found == "unchanged")   # small growths
+        assert not (true == "unchanged" and found != "unchanged"), r
+        if found in ("new", "gone"):
+            assert (r["id_a"] == "") == (found == "new") and (r["id_b"] == "") == (found == "gone")
+    statuses = [r["status"] for r in rows]
+    assert statuses.count("new") >= 0.8 * sum(s == "new" for s in truth_by_b.values() if s == "new") - 1
+    assert statuses.count("grown") >= 3
+    assert agree == len(rows)
+
+
+def test_unchanged_pair_flags_nothing(truth_runs):
+    out = truth_runs["root"] / "out_same"
+    assert cli.main(["changes", str(truth_runs["a"]), str(truth_runs["same"]), "-o", str(out)]) == 0
+    rows = _read_changes(out)
+    assert len(rows) > 20
+    assert all(r["status"] == "unchanged" for r in rows)
+
+
+# ------------------------------------------------------------------------------------------------
+# bad input
+
+
+def test_different_regions_one_line_exit_1(pair, truth_runs, tmp_path, capsys):
+    other = make_capture_pair(SPEC, LaterSpec.unchanged(seed=4), seed=99)
+    b = _truth_run(tmp_path / "other", other.a, 15.0)
+    out = tmp_path / "out"
+    assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len([line for line in err if "too few" in line]) == 1
+    assert not out.exists()                 # nothing written, no alignment invented
+
+
+def test_run_without_detection_names_the_file(truth_runs, tmp_path, capsys):
+    b = tmp_path / "nodetect"
+    b.mkdir()
+    for f in ("albedo.tif", "depth.tif"):
+        (b / f).write_bytes((truth_runs["b"] / f).read_bytes())
+    assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "protrusions.csv" in err and str(b) in err
+
+
+def test_classify_noise_floor_decides_grown():
+    a = {"id": np.array([1, 2]), "x_px": np.array([50.0, 150.0]), "y_px": np.array([50.0, 50.0]),
+         "width_um": np.array([150.0, 150.0]), "height_um": np.array([40.0, 40.0])}
+    b = dict(a, width_um=np.array([153.0, 190.0]), height_um=np.array([41.0, 40.0]))
+    rows, _, left = classify_changes(a, b, np.eye(3), shape_a=(100, 200), shape_b=(100, 200),
+                                     pixel_size_um=15.0)
+    assert rows["status"].tolist() == ["unchanged", "grown"]
+    assert rows["d_width_um"].tolist() == pytest.approx([3.0, 40.0])
+    assert left == {"a": 0, "b": 0}
+
+
+# ------------------------------------------------------------------------------------------------
+# end to end: the pipeline's runs (known lights) of the changed pair
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_end_to_end_with_detection(pair, tmp_path):
+    runs = {}
+    for name, cap in (("a", pair.a), ("b", pair.b)):
+        write_capture(cap, tmp_path / f"cap_{name}", truth=False)
+        runs[name] = tmp_path / f"run_{name}"
+        COMMANDS["run"]({"images": [str(tmp_path / f"cap_{name}")]},
+                        {"lights": str(tmp_path / f"cap_{name}" / "lights_positions_mm.csv"), "detect": True},
+                        runs[name])
+    out = tmp_path / "out"
+    res = COMMANDS["changes"]({"run_a": str(runs["a"]), "run_b": str(runs["b"])}, {}, out)
+    assert res.diagnostics["registration"]["rms_px"] < 0.3
+    reg = json.loads((out / "registration.json").read_text())
+    assert _field_error(pair.b_to_a, reg["b_to_a"], SPEC.shape) < 0.3
+    counts = res.diagnostics["counts"]
+    assert counts["new"] >= 3 and counts["grown"] >= 2
+    assert "registration:" in res.text
