@@ -20,6 +20,7 @@ import hashlib
 import json
 import logging
 import math
+import mmap
 import os
 import re
 import warnings
@@ -137,6 +138,115 @@ class StackView:
 
     def correct(self, values, kk, rk, ck):  # pragma: no cover - abstract
         raise NotImplementedError
+
+
+class MappedStack:
+    """K image files of one shape and dtype seen as one ``(K, M, N[, C])`` stack, never loaded whole.
+
+    Each file is memory-mapped read-only (uncompressed TIFFs: :func:`tifffile.memmap`); indexing
+    returns a copy in the files' dtype, as indexing an array would (``[k]``, ``[k, rows, cols]``,
+    ``[:, rows, cols]`` with slices or ints, ``[:, r, c]`` with two index arrays of one shape), then
+    tells the kernel that this process no longer needs the pages it touched: they stay in the page
+    cache (a second pass reads them from memory) but not in the process's resident set, so a stack
+    larger than the memory can be processed band by band, and peak memory is that of the bands.
+    """
+
+    def __init__(self, maps):
+        self.maps = list(maps)
+        self.shape = (len(self.maps),) + tuple(self.maps[0].shape)
+        self.ndim = len(self.shape)
+        self.dtype = self.maps[0].dtype
+        self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        for k in range(self.shape[0]):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        if any(k is Ellipsis or k is None for k in key):
+            return np.asarray(self)[key]
+        kk, rest = key[0], key[1:]
+        if isinstance(kk, (int, np.integer)):
+            return self._take(int(kk), rest)
+        ks = np.arange(self.shape[0])[kk]
+        parts = [self._take(int(k), rest) for k in ks]
+        if not parts:
+            return np.empty((0,) + self.shape[1:], self.dtype)[(slice(None),) + rest]
+        return np.stack(parts)
+
+    def _take(self, k, rest):
+        m = self.maps[k]
+        out = np.array(m[rest], copy=True)
+        release(m)
+        return out
+
+
+def release(arr) -> None:
+    """Drop a memory-mapped array's pages from this process's resident set (they stay cached)."""
+    mm = getattr(arr, "_mmap", None)
+    if mm is not None and hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        with contextlib.suppress(OSError, ValueError):
+            mm.madvise(mmap.MADV_DONTNEED)
+
+
+def _map_tiff(path: Path):
+    """A one-image uncompressed TIFF memory-mapped as ``(M, N)`` or ``(M, N, 3)`` and its pixel size
+    in um (or None); None for anything else (compressed, planar, several pages, not a TIFF)."""
+    if _kind(path) != "tiff":
+        return None
+    with contextlib.suppress(Exception):
+        with tifffile.TiffFile(path) as tif:
+            series = tif.series[0]
+            if series.dataoffset is None or len(tif.pages) != 1:
+                return None
+            axes = series.axes.upper()
+            px = _tiff_pixel_size_um(tif)
+        if axes not in ("YX", "YXS"):
+            return None
+        arr = tifffile.memmap(path, mode="r")
+        if arr.ndim == 3 and arr.shape[2] == 4:
+            arr = arr[..., :3]
+        return arr, px
+    return None
+
+
+def _map_files(sources: list, progress: Progress, *, check_px: bool):
+    """The files as a :class:`MappedStack` (-> (stack, dtype, pixel size or None)), or None when one
+    of them cannot be mapped (compressed, planar, not a TIFF) or is not integer."""
+    first = _map_tiff(sources[0].path)
+    if first is None or not np.issubdtype(first[0].dtype, np.integer):
+        return None
+    maps, tag_px = [], first[1]
+    shape, dtype = first[0].shape, first[0].dtype
+    for i, src in enumerate(sources):
+        got = first if i == 0 else _map_tiff(src.path)
+        if got is None:
+            return None
+        arr, px = got
+        if (check_px and tag_px is not None and px is not None
+                and not math.isclose(px, tag_px, rel_tol=1e-4)):
+            raise UVPSInputError(
+                f"image {src.path} has pixel size {px:.6g} um in its TIFF tags;"
+                f" expected {tag_px:.6g} um like {sources[0].path.name}"
+            )
+        if arr.shape != shape or arr.dtype != dtype:
+            raise UVPSInputError(
+                f"image {src.path} is {arr.shape} {arr.dtype};"
+                f" expected {shape} {dtype} like {sources[0].path.name}"
+            )
+        _check_image(arr, str(src.path))
+        release(arr)
+        maps.append(arr)
+        report(progress, (i + 1) / (len(sources) + 1), f"mapped {src.path.name}")
+    return MappedStack(maps), dtype, tag_px
 
 
 @dataclass
@@ -723,7 +833,7 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
 
 
 def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=None,
-                 linearize: str = "auto", progress: Progress = None) -> Capture:
+                 linearize: str = "auto", memory_map: bool = True, progress: Progress = None) -> Capture:
     """Read a capture (K images, one per light) into one stack (no rescaling).
 
     Parameters
@@ -753,6 +863,10 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         scientific cameras: pass "srgb" if yours are sRGB-encoded), "srgb" to every integer
         image, "none" to none. The result stays in the file's range (a linearised JPEG is in
         0..255 linear counts). Float images are never linearised.
+    memory_map : bool
+        Files that are uncompressed one-image TIFFs of an integer type, with nothing to convert (no
+        sRGB, no dark frame), are memory-mapped instead of read (:class:`MappedStack`): the stages
+        read them band by band and the capture may be larger than the memory. False: read whole.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -791,8 +905,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
             f"images: photometric stereo needs at least 3 images; got {len(sources)} from {what}"
         )
     if stack_path is None:
-        arr, dtype, tag_px = _read_files(sources, linearize, progress,
-                                         check_px=pixel_size_um is None, keep_dtype=dark is None)
+        arr, dtype, tag_px = _read_files(sources, linearize, progress, check_px=pixel_size_um is None,
+                                         keep_dtype=dark is None, memory_map=memory_map)
     elif _needs_linearize(first_kind, dtype, linearize):
         for k in range(arr.shape[0]):
             srgb_to_linear(arr[k], _saturation_of(dtype), out=arr[k])
@@ -851,7 +965,7 @@ def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
 
 
 def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: bool = True,
-                keep_dtype: bool = False):
+                keep_dtype: bool = False, memory_map: bool = False):
     """Fill a preallocated stack file by file; -> (stack, dtype, pixel size or None).
 
     The stack is float32, or, with ``keep_dtype`` and integer files that need no conversion (no
@@ -861,6 +975,10 @@ def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: 
     The pixel size comes from the first file's tags; a later file with another calibration is
     an error (a mixed capture) when ``check_px`` (no explicit pixel size was given).
     """
+    if memory_map and keep_dtype and not any(_needs_linearize(_kind(s.path), np.uint16, linearize) for s in sources):
+        mapped = _map_files(sources, progress, check_px=check_px)
+        if mapped is not None:
+            return mapped
     k = len(sources)
     first, tag_px = _read_image_px(sources[0].path)
     dtype, shape = first.dtype, first.shape

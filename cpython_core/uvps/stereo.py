@@ -134,7 +134,7 @@ def _within_ranks(values, lo, hi):
 
 def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, saturation=None,
                   robust=False, trim=(0.25, 0.90), shadow_cos=0.05, dark_fraction=0.02,
-                  chunk_pixels=CHUNK_PIXELS, workers=None, progress: Progress = None) -> StereoResult:
+                  chunk_pixels=None, workers=None, progress: Progress = None) -> StereoResult:
     """Least-squares normals and albedo from a stack of images and their lights.
 
     Parameters
@@ -161,8 +161,8 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
         Samples whose predicted ``n . l`` (unit vectors) is below this are treated as attached shadow.
     dark_fraction : float
         Samples darker than this fraction of the pixel's brightest sample are left out (shadow).
-    chunk_pixels : int
-        Pixels per band: each band in flight holds about ``K * chunk_pixels * (4 C + 40)`` bytes.
+    chunk_pixels : int, optional
+        Pixels per band (default :data:`CHUNK_PIXELS`): each band in flight holds about ``K * chunk_pixels * (4 C + 40)`` bytes.
     workers : int, optional
         Bands solved at once, in threads (default: the CPUs available, at most 4; 1: in this thread).
         The result does not depend on it.
@@ -188,7 +188,7 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     C = images.shape[3] if images.ndim == 4 else 0
     out = _Outputs(np.full((M, N, 3), np.nan, np.float32),
                    np.full((M, N, C) if C else (M, N), np.nan, np.float32), np.zeros((M, N), np.uint8))
-    rows_per = max(1, int(chunk_pixels) // N)
+    rows_per = max(1, int(chunk_pixels or CHUNK_PIXELS) // N)
     bands = [(r0, min(M, r0 + rows_per)) for r0 in range(0, M, rows_per)]
 
     def one(band):

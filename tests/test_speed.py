@@ -1,0 +1,97 @@
+"""The fast paths give the straightforward results: the normals kernel against a per-pixel
+``np.linalg.lstsq``, memory-mapped captures processed in tiny bands against the in-memory path."""
+import numpy as np
+import pytest
+
+from uvps.io import MappedStack, read_capture
+from uvps.lights import LightModel, pixel_coordinates_mm
+from uvps.pipeline import RunOptions, run
+from uvps.stereo import solve_normals
+from uvps.synthetic import make_capture, write_capture
+
+M, N, PX = 40, 56, 20.0
+
+
+def _lights(near):
+    rng = np.random.default_rng(3)
+    az = np.radians(np.arange(8) * 45 + rng.uniform(-10, 10, 8))
+    el = np.radians(rng.uniform(40, 65, 8))
+    P = 200 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    E = rng.uniform(0.8, 1.2, 8)
+    return LightModel.from_positions(P, E) if near else LightModel.from_directions(P, E)
+
+
+def _scene(model):
+    """Normals within 25 deg of +z, RGB albedo, every sample lit: I_kc = albedo_c n . v_k (float32)."""
+    rng = np.random.default_rng(0)
+    t = np.radians(rng.uniform(0, 25, (M, N)))
+    p = rng.uniform(0, 2 * np.pi, (M, N))
+    n = np.dstack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+    albedo = rng.uniform(500, 3000, (M, N, 3))
+    r, c = np.mgrid[0:M, 0:N]
+    V = np.broadcast_to(model.vectors(pixel_coordinates_mm(r, c, (M, N), PX)), (8, M, N, 3))
+    shade = np.einsum("kmni,mni->kmn", V, n)
+    assert shade.min() > 0.2
+    return (shade[..., None] * albedo).astype(np.float32), V
+
+
+@pytest.mark.parametrize("near", [True, False])
+def test_normals_kernel_equals_per_pixel_lstsq(near):
+    model = _lights(near)
+    images, V = _scene(model)
+    res = solve_normals(images, model, pixel_size_um=PX, chunk_pixels=333)
+    assert (res.n_used == 8).all()
+    grey = images.astype(np.float64).mean(axis=-1)
+    for i in range(0, M, 3):
+        for j in range(0, N, 5):
+            b = np.linalg.lstsq(V[:, i, j], grey[:, i, j], rcond=None)[0]
+            n_ref = b / np.linalg.norm(b)
+            np.testing.assert_allclose(res.normals[i, j], n_ref, atol=1e-5)
+            s = V[:, i, j] @ n_ref
+            alb = np.linalg.lstsq(s[:, None], images[:, i, j].astype(np.float64), rcond=None)[0][0]
+            np.testing.assert_allclose(res.albedo[i, j], alb, rtol=1e-5)
+
+
+def test_normals_do_not_depend_on_bands_or_threads():
+    model = _lights(True)
+    images, _ = _scene(model)
+    a = solve_normals(images, model, pixel_size_um=PX, workers=1, chunk_pixels=10 ** 6)
+    b = solve_normals(images, model, pixel_size_um=PX, workers=3, chunk_pixels=97)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    np.testing.assert_array_equal(a.albedo, b.albedo)
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    cap = make_capture(shape=(90, 120), n_lights=8, seed=2, pixel_size_um=30.0)
+    out = tmp_path_factory.mktemp("cap") / "capture"
+    write_capture(cap, out, truth=False)
+    return out
+
+
+def test_mapped_stack_indexes_like_an_array(folder):
+    mapped = read_capture(folder).images
+    whole = read_capture(folder, memory_map=False).images
+    assert isinstance(mapped, MappedStack) and isinstance(whole, np.ndarray)
+    assert mapped.shape == whole.shape and mapped.dtype == whole.dtype
+    r, c = np.array([0, 5, 89]), np.array([3, 119, 7])
+    for key in (2, (slice(None), slice(10, 20)), (3, slice(0, 90, 8), slice(1, 50)), (slice(None), r, c),
+                (np.array([0, 3]), slice(None, None, 8), slice(None, None, 8)), (slice(2, 5), 7, slice(None))):
+        np.testing.assert_array_equal(mapped[key], whole[key])
+    np.testing.assert_array_equal(np.asarray(mapped), whole)
+
+
+def test_band_path_gives_the_in_memory_results(folder, monkeypatch):
+    """A memory-mapped capture through bands of 97 pixels = the capture read whole, in one band."""
+    import uvps.stereo
+
+    opts = RunOptions(estimate_intensities=True)    # the lamps' intensities from the images too
+    lights = folder / "lights_positions_mm.csv"
+    whole = run(read_capture(folder, lights=lights, memory_map=False), opts, stages=("normals", "height"))
+    monkeypatch.setattr(uvps.stereo, "CHUNK_PIXELS", 97)
+    banded = run(read_capture(folder, lights=lights), opts, stages=("normals", "height"))
+    np.testing.assert_array_equal(banded.lights.model.intensities, whole.lights.model.intensities)
+    np.testing.assert_allclose(banded.lights.model.positions_mm, whole.lights.model.positions_mm, rtol=1e-9)
+    np.testing.assert_array_equal(banded.stereo.normals, whole.stereo.normals)
+    np.testing.assert_array_equal(banded.stereo.albedo, whole.stereo.albedo)
+    np.testing.assert_array_equal(banded.height.height_um, whole.height.height_um)
