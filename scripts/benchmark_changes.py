@@ -194,12 +194,21 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/uvps_bench_changes")
     ap.add_argument("--append", default=None, help="append the results to this Markdown file")
     ap.add_argument("--repeatability-only", action="store_true")
+    ap.add_argument("--pairs", type=int, default=3, help="at most this many pairs of each kind")
     args = ap.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
+    changed = []
+    if not args.repeatability_only:
+        for i, later in enumerate(CHANGED[:args.pairs]):
+            name = f"changed{i}"
+            truth = make_pair(work, name, later)
+            out, secs = run_changes(work, name)
+            changed.append((name, truth, out, secs))
+            print(name, "done", round(secs, 1), "s", flush=True)
     unchanged = []
-    for i, later in enumerate(UNCHANGED):
+    for i, later in enumerate(UNCHANGED[:args.pairs]):
         name = f"unchanged{i}"
         truth = make_pair(work, name, later)
         out, secs = run_changes(work, name)
@@ -209,7 +218,7 @@ def main(argv=None) -> int:
         print(name, "done", round(secs, 1), "s", flush=True)
     rep = repeatability([u["rows"] for u in unchanged])
     lines = ["", "## Monitoring over time (`uvps changes`, issue 10)", "",
-             f"`.venv/bin/python scripts/benchmark_changes.py{' --repeatability-only' if args.repeatability_only else ''}`"
+             f"`.venv/bin/python scripts/benchmark_changes.py {' '.join(argv if argv is not None else sys.argv[1:])}`"
              f" ({time.strftime('%Y-%m-%d')}): synthetic pairs of {SHAPE[1]} x {SHAPE[0]} px of 15 um "
              "(`make_capture_pair`, one A, later captures B from another camera pose and other lamps), each "
              "capture through `uvps run --detect` with the lamps estimated from the images, then "
@@ -226,10 +235,7 @@ def main(argv=None) -> int:
         lines += ["", "| pair | pose (shift px, rot deg, scale) | model | matches | rms_px (reported) | "
                   "registration error px (true) | new F1 (P / R, n) | grown F1 (P / R, n) | flagged changed "
                   "(unchanged pair) | changes time s |", "|---|---|---|---|---|---|---|---|---|---|"]
-        for i, later in enumerate(CHANGED):
-            name = f"changed{i}"
-            truth = make_pair(work, name, later)
-            out, secs = run_changes(work, name)
+        for name, truth, out, secs in changed:
             reg = json.loads((out / "registration.json").read_text())
             s = score_changed(_rows(out), truth, SHAPE)
             inf = truth["info"]

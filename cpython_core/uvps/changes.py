@@ -636,12 +636,12 @@ def _marks(ax, rows, pos, step, px_um, shape):
 
 def write_changes_report(folder: Path, res: dict) -> Path:
     """``report.html`` and ``figures/changes_*.png`` of :func:`compute_changes`'s result."""
-    from .report import _CSS, _display_albedo, _display_step, _extent_mm, _figure, _table_html, save_figure
+    from .report import _CSS, _display_albedo, _display_step, _extent_mm, _figure, _table_html, save_figure  # noqa: E501
 
     a, b, reg, lev = res["a"], res["b"], res["registration"], res["levelling"]
     rows, pos, px = res["rows"], res["positions_a"], a.pixel_size_um
     shape = a.height.shape
-    step = _display_step(shape)
+    step = max(_display_step(shape), int(np.ceil(max(shape) / 800)))   # figures of ~800 px: fast
     ext = _extent_mm(shape, px)
     figdir = folder / "figures"
     alb_b = b.albedo if b.albedo.ndim == 2 else b.albedo

@@ -1,0 +1,38 @@
+"""Compare Captures: two captures of one region at two dates (uvps changes).
+
+Registers the later run folder (B) onto the earlier one (A) from the albedo, levels the heights
+and gives every protrusion its status (new, grown, shrunk, unchanged, gone). Writes
+registration.json, changes.csv, height_change.tif, report.html and run.json into the output
+folder; the summary goes to the Log and the height change (um, A's frame) opens.
+
+Macro: run("Compare Captures", "earlier=[/data/2019/run] later=[/data/2024/run] run=[/data/changes]");
+"""
+import os
+import sys
+
+from ij import IJ
+
+sys.dont_write_bytecode = True
+for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
+    _lib = os.path.join(_root or "", "jars", "Lib")
+    if _root and os.path.isdir(_lib) and _lib not in sys.path:
+        sys.path.insert(0, _lib)
+
+from uvps_fiji import dialogs, display, menus, runner
+
+TITLE = "Compare Captures"
+COMMAND = "changes"
+
+
+def main():
+    dlg = dialogs.UVPSDialog(TITLE)
+    dialogs.add_param(dlg, (COMMAND, "run_a"), key="earlier")
+    dialogs.add_param(dlg, (COMMAND, "run_b"), key="later")
+    dialogs.add_run_field(dlg)
+    values = dlg.show()
+    if values is not None:
+        response = menus.run_command(COMMAND, values)
+        display.open_image(response.file("height_change.tif"), "height change (um)")
+
+
+runner.run_menu(TITLE, main)

@@ -1,0 +1,73 @@
+"""Compare Captures (uvps changes, issue 10) from a batch macro in a real ImageJ."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from conftest import PYTHON_EXCEPTION_STATUS
+
+pytestmark = pytest.mark.imagej
+
+TIMEOUT = 600
+
+
+def q(path):
+    return "[%s]" % path
+
+
+def _truth_run(folder, cap, px):
+    """A run folder from a synthetic capture's truth (albedo, height, protrusions): no pipeline."""
+    from uvps.io import write_imagej_tiff
+
+    folder.mkdir()
+    write_imagej_tiff(folder / "albedo.tif", np.moveaxis(cap.albedo, -1, 0), axes="CYX", pixel_size_um=px)
+    write_imagej_tiff(folder / "depth.tif", cap.height_um, axes="YX", pixel_size_um=px)
+    t = cap.protrusions
+    with open(folder / "protrusions.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
+        for i in range(t["id"].size):
+            w.writerow([int(t["id"][i]), t["x_px"][i], t["y_px"][i], t["width_um"][i], t["height_um"][i]])
+    return folder
+
+
+@pytest.fixture(scope="module")
+def two_dates(tmp_path_factory):
+    from uvps.synthetic import LaterSpec, make_capture_pair
+
+    d = tmp_path_factory.mktemp("two dates")
+    pair = make_capture_pair(shape=(300, 400), n_lights=4, protrusion_density_light=150.0,
+                             later=LaterSpec(seed=3, shift_px=(30.0, 20.0), rotation_deg=2.0, scale=1.0,
+                                             new_per_cm2=40.0))
+    return _truth_run(d / "run 2019", pair.a, 15.0), _truth_run(d / "run 2024", pair.b, 15.0)
+
+
+def test_compare_captures_from_a_batch_macro(run_macro, two_dates, tmp_path):
+    a, b = two_dates
+    out = tmp_path / "changes out"
+    result = run_macro('run("Compare Captures", "earlier=%s later=%s run=%s");\n'
+                       'print("title: " + getTitle());\nprint("went on");\n' % (q(a), q(b), q(out)),
+                       timeout=TIMEOUT).check()
+    lines = result.stdout.splitlines()
+    assert "went on" in lines
+    assert "title: height change (um)" in lines
+    assert any(line.startswith("registration: similarity") for line in lines), result.stdout
+    for name in ("registration.json", "changes.csv", "height_change.tif", "report.html", "run.json"):
+        assert (out / name).is_file(), name
+    reg = json.loads((out / "registration.json").read_text())
+    assert reg["model"] == "similarity" and reg["rms_px"] < 0.3
+
+
+def test_compare_captures_on_a_run_without_detection_fails_with_the_core_message(run_macro, two_dates,
+                                                                                 tmp_path):
+    a, _ = two_dates
+    b = tmp_path / "no detection"
+    b.mkdir()
+    for f in ("albedo.tif", "depth.tif"):
+        (b / f).write_bytes((a / f).read_bytes())
+    result = run_macro('run("Compare Captures", "earlier=%s later=%s run=%s");\n'
+                       % (q(a), q(b), q(tmp_path / "out")), timeout=TIMEOUT)
+    assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stdout + result.stderr
+    assert "uvps Compare Captures failed (UVPSInputError)" in result.stdout
+    assert "has no protrusions.csv" in result.stdout
