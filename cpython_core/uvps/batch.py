@@ -306,7 +306,7 @@ class _Cluster:
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})
-        self.info = {"scheduler": info.get("address"), "local": client is not None and scheduler is None,
+        self.info = {"scheduler": info.get("address"), "local": bool(self.own) and not scheduler,
                      "workers": len(workers), "threads": sum(w.get("nthreads", 0) for w in workers.values())}
 
     def close(self):
