@@ -29,12 +29,12 @@ CAPTURE_PARAMS = (
     Param("images", "paths", where="inputs", positional=True, required=True,
           label="Images (folder, multi-page TIFF, or files separated by ;)",
           help="image files, a folder, or one multi-page TIFF"),
-    Param("lights", "path", label="Lights file (.lp or positions; empty = estimate)", help="RTI .lp (directions) or positions file (.csv/.json, mm); "
+    Param("lights", "path", label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)", help="RTI .lp (directions) or positions file (.csv/.json, mm); "
           "default: estimated from the images"),
-    Param("mask", "path", label="Mask image (optional)", help="mask image (non-zero = use)"),
-    Param("dark", "path", label="Dark frame (optional)", help="a frame with the UV lamp off (or the camera's dark frame), "
+    Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
+    Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
           "subtracted from every image"),
-    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size (0 = from the TIFF tags)",
+    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size on the painting (0 = from the image file)",
           help="pixel size on the painting (default: from the TIFF tags)"),
     Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
           help="sRGB -> linear (auto: JPEG only)"),
@@ -42,7 +42,7 @@ CAPTURE_PARAMS = (
 _LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
 #: ``run`` adds the protrusion stages.
 PROTRUSION_PARAMS = (
-    Param("regions", "path", choices=("auto",), label="Regions (colour-area label TIFF, auto, or empty)",
+    Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
           help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
                "and the report"),
     Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),

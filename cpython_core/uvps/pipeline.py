@@ -47,7 +47,7 @@ __all__ = ["OPTION_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunRes
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
 #: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
 OPTION_PARAMS = (
-    Param("degree", "int", 4, minimum=1, maximum=8, label="Degree of the Legendre drop-off fit",
+    Param("degree", "int", 4, minimum=1, maximum=8, label="Degree of the lamps' drop-off fit (4 suits most captures)",
           help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
     Param("robust", "bool", False, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
           help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "

@@ -298,14 +298,14 @@ SPEC_STATS = CommandSpec("stats", "per-area statistics and report.html", _cmd_st
                                        "else protrusions_manual.csv)"), _PX))
 SPECS = (
     CommandSpec("detect", "automated protrusion detection on a run folder", _cmd_detect, params=(
-        Param("regions", "path", choices=("auto",), label="Regions (label TIFF, auto, or empty)", help="colour-area label TIFF, or 'auto' (proposed from the "
+        Param("regions", "path", choices=("auto",), label="Regions: colour areas (auto = from the colours, a label image, or empty = the run's own)", help="colour-area label TIFF, or 'auto' (proposed from the "
               "albedo); default: the run's regions_labels.tif, else the whole image"),
         _N_AREAS, _SEED, _PX) + _DETECTION),
     CommandSpec("wand", "the manual method: ImageJ's wand at given points", _cmd_wand, params=(
         Param("points", "path", where="inputs", positional=True, required=True,
               label="Points CSV (x_px,y_px; empty = current point selection)",
               help="CSV with x_px,y_px (ImageJ's point export works)"),
-        Param("tolerance", "float", required=True, minimum=0, label="Tolerance (albedo units, as the wand tool)",
+        Param("tolerance", "float", required=True, minimum=0, label="Tolerance (albedo units, as ImageJ's wand tool)",
               help="wand tolerance (albedo units, as ImageJ's)"),
         Param("connectivity", "choice", "8", choices=("8", "4", "legacy"), label="Connectivity",
               help="8-connected, 4-connected, or ImageJ's 'Legacy' mode"),
