@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 
+import distributed   # a dependency of uvps (pyproject.toml): no skip if it is missing
 import numpy as np
 import pytest
 import tifffile
@@ -20,7 +21,6 @@ from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
 from uvps.synthetic import make_capture, write_capture
 
-distributed = pytest.importorskip("distributed")
 
 LAMPS = "lights_positions_mm.csv"          # written by write_capture into each capture folder
 PARAMS = {"lights": LAMPS, "regions": "auto"}
@@ -123,6 +123,7 @@ def test_a_corrupted_capture_fails_alone_with_its_message(captures, client, tmp_
     assert complete(out2 / "cap2", changed, res_params(out2, "cap2")) == (False, "uv_00.tif changed")
 
 
+@pytest.mark.slow
 def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path):
     """One worker process killed (SIGKILL) while a capture is being written: the nanny starts a new
     worker, the scheduler runs the task again, every run folder is whole, no temporary is left."""
@@ -223,6 +224,7 @@ def test_inputs_folders_lists_and_names(captures, tmp_path):
         run_batch([captures], tmp_path / "out", {"lights": "nolamps.csv"})
 
 
+@pytest.mark.slow
 def test_the_command_line_on_the_default_local_cluster(captures, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(captures / "cap1", tmp_path / "caps" / "cap1")

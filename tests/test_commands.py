@@ -55,3 +55,26 @@ def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
         xres = t.pages[0].tags["XResolution"].value
         assert abs(xres[1] / xres[0] - 30.0) < 1e-6          # the demo's 30 um pixel: an 18 x 24 mm field at full size
     assert len(result.diagnostics["truth_light_positions_mm"]) == 8
+
+
+def test_run_with_a_label_tiff_counts_in_those_areas(synthetic, tmp_path):
+    """`run --regions labels.tif`: the run folder records the given areas (regions_labels.tif and
+    regions.csv with their names), so statistics count per area, not over the whole image."""
+    from uvps.io import write_imagej_tiff
+
+    write_capture(synthetic, tmp_path / "cap")
+    labels = np.zeros(synthetic.height_um.shape, np.uint8)
+    labels[:, :130], labels[:, 130:] = 1, 2
+    write_imagej_tiff(tmp_path / "areas.tif", labels, axes="YX", pixel_size_um=synthetic.spec.pixel_size_um)
+    (tmp_path / "areas_names.csv").write_text("label,name\n1,left\n2,right\n")
+    out = tmp_path / "run"
+    COMMANDS["run"]({"images": [str(tmp_path / "cap")]},
+                    {"regions": str(tmp_path / "areas.tif"), "lights": str(tmp_path / "cap" / "lights_positions_mm.csv")},
+                    out)
+    np.testing.assert_array_equal(tifffile.imread(out / "regions_labels.tif"), labels)
+    rows = (out / "regions.csv").read_text().splitlines()
+    assert rows[1].split(",")[1] == "left" and rows[2].split(",")[1] == "right", rows[:3]
+    table = (out / "protrusions.csv").read_text().splitlines()
+    header = table[0].split(",")
+    in_area = [r.split(",")[header.index("region")] for r in table[1:]]
+    assert set(in_area) <= {"1", "2", "left", "right"} and len(in_area) > 0

@@ -38,7 +38,7 @@ from .errors import UVPSComputeError, UVPSError, UVPSInputError
 from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
-from .pipeline import OPTION_PARAMS
+from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS
 from .regions import UM2_PER_CM2, load_regions, read_region_names
 from .spec import CommandSpec, Param
 
@@ -735,11 +735,6 @@ BATCH_PARAMS = (
 
 
 def _batch_spec() -> CommandSpec:
-    # run's parameter groups are declared in uvps.commands, which registers this module's SPECS:
-    # they are taken when the registry asks for SPECS (see __getattr__), so that either module may be
-    # imported first (a Dask worker imports this one first)
-    from .commands import CAPTURE_PARAMS, PROTRUSION_PARAMS
-
     params = BATCH_PARAMS[:1] + tuple(p for p in CAPTURE_PARAMS if p.name != "images") + OPTION_PARAMS \
         + PROTRUSION_PARAMS + BATCH_PARAMS[1:]
     return CommandSpec(
@@ -753,9 +748,4 @@ def _batch_spec() -> CommandSpec:
                     "--mosaic also painting_protrusions.csv and painting_regions.csv (docs/batch.md).")
 
 
-def __getattr__(name):
-    if name == "SPECS":
-        specs = (_batch_spec(),)
-        globals()["SPECS"] = specs
-        return specs
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+SPECS = (_batch_spec(),)

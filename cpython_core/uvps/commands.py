@@ -17,38 +17,14 @@ from . import batch, changes, protrusion_commands, runfolder
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
-from .pipeline import OPTION_PARAMS, RunOptions, integration_diagnostics, run
+from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
 from .relight import relight
 from .spec import CommandSpec, Param
 from .synthetic import make_capture, write_capture
 
 log = logging.getLogger(__name__)
 
-#: Where the capture comes from: shared by run, flatfield, lights and normals.
-CAPTURE_PARAMS = (
-    Param("images", "paths", where="inputs", positional=True, required=True,
-          label="Images (folder, multi-page TIFF, or files separated by ;)",
-          help="image files, a folder, or one multi-page TIFF"),
-    Param("lights", "path", label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)", help="RTI .lp (directions) or positions file (.csv/.json, mm); "
-          "default: estimated from the images"),
-    Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
-    Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
-          "subtracted from every image"),
-    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size on the painting (0 = from the image file)",
-          help="pixel size on the painting (default: from the TIFF tags)"),
-    Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
-          help="sRGB -> linear (auto: JPEG only)"),
-)
 _LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
-#: ``run`` adds the protrusion stages.
-PROTRUSION_PARAMS = (
-    Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
-          help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
-               "and the report"),
-    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),
-    Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
-    Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
-)
 
 
 def read_request_capture(inputs: dict, params: dict, progress=None):

@@ -41,7 +41,7 @@ from .stereo import StereoResult, solve_normals
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OPTION_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+__all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "estimate_capture_lights", "find_protrusions"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
@@ -69,6 +69,31 @@ OPTION_PARAMS = (
           help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
                "the canvas's large-scale shape (bow) from the heights"),
 )
+#: Where the capture comes from: shared by run, flatfield, lights and normals.
+CAPTURE_PARAMS = (
+    Param("images", "paths", where="inputs", positional=True, required=True,
+          label="Images (folder, multi-page TIFF, or files separated by ;)",
+          help="image files, a folder, or one multi-page TIFF"),
+    Param("lights", "path", label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)", help="RTI .lp (directions) or positions file (.csv/.json, mm); "
+          "default: estimated from the images"),
+    Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
+    Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
+          "subtracted from every image"),
+    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size on the painting (0 = from the image file)",
+          help="pixel size on the painting (default: from the TIFF tags)"),
+    Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
+          help="sRGB -> linear (auto: JPEG only)"),
+)
+#: ``run`` adds the protrusion stages.
+PROTRUSION_PARAMS = (
+    Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
+          help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
+               "and the report"),
+    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),
+    Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
+    Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
+)
+
 _OPTION = {p.name: p for p in OPTION_PARAMS}
 
 

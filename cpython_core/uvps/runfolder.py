@@ -212,13 +212,14 @@ def write_height(folder: Path, height_um, pixel_size_um: float, method: str) -> 
 
 
 def write_protrusions(folder: Path, prot, pixel_size_um: float, *, bins_um=100.0) -> list:
-    """``protrusions.csv``, ``protrusions_labels.tif`` and, with colour areas, ``regions_labels.tif``
-    and ``regions.csv`` (their names and densities). Returns the names written."""
+    """``protrusions.csv``, ``protrusions_labels.tif`` and, with colour areas (proposed or given),
+    ``regions_labels.tif`` and ``regions.csv`` (their names and densities): the run folder records
+    the areas it counted in, so statistics and the report use them. Returns the names written."""
     write_protrusions_csv(folder / "protrusions.csv", prot.table)
     write_label_tiff(folder / "protrusions_labels.tif", prot.labels, pixel_size_um=pixel_size_um,
                      metadata={"Info": "uvps detect: protrusion labels (0 = background; id as in protrusions.csv)"})
     names = ["protrusions", "protrusions_labels"]
-    if prot.regions is not None and prot.proposed:
+    if prot.regions is not None:
         write_label_tiff(folder / "regions_labels.tif", prot.regions.labels, pixel_size_um=pixel_size_um,
                          metadata={"Info": "uvps: colour areas (0 = none; names in regions.csv)"})
         stats = region_statistics(prot.table, prot.regions, pixel_size_um=pixel_size_um, bins_um=bins_um)
