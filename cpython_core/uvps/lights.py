@@ -40,7 +40,7 @@ from skimage.transform import warp_polar
 
 from .errors import UVPSComputeError, UVPSInputError
 from .flatfield import BlockGrid, DropoffFit, set_common, to_unit
-from .outputs import Progress, report
+from .outputs import Progress, report, sub_progress
 
 log = logging.getLogger(__name__)
 
@@ -391,24 +391,35 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         history.append({"stage": "equidistant", "m_mm": float(m), "cost": c, "grazing_lights": n_grazing})
         return c * (1 + n_grazing)
 
-    report(progress, 0.05, "lights: scanning the shared distance m")
+    report(progress, 0.02, "lights: scanning the shared distance m")
     grid_m = np.geomspace(m_bounds[0], m_bounds[1], 9)
-    costs = [cost(m) for m in grid_m]
+    costs = []
+    for j, m_j in enumerate(grid_m):
+        costs.append(cost(m_j))
+        report(progress, 0.02 + 0.33 * (j + 1) / len(grid_m), f"lights: scanning m {j + 1}/{len(grid_m)}")
     i = int(np.argmin(costs))
     lo, hi = grid_m[max(i - 1, 0)], grid_m[min(i + 1, len(grid_m) - 1)]
-    report(progress, 0.3, "lights: refining m (paper Eq. 2)")
-    sol = least_squares(lambda t: [np.sqrt(cost(float(np.exp(t[0]))))], [np.log(grid_m[i])],
+    report(progress, 0.35, "lights: refining m (paper Eq. 2)")
+    n_eval = [0]
+
+    def cost_refining(t):
+        n_eval[0] += 1
+        report(progress, 0.35 + 0.15 * min(n_eval[0] / 12, 1.0), f"lights: refining m ({n_eval[0]})")
+        return [np.sqrt(cost(float(np.exp(t[0]))))]
+
+    sol = least_squares(cost_refining, [np.log(grid_m[i])],
                         bounds=([np.log(lo)], [np.log(hi) + 1e-9]), diff_step=1e-3, max_nfev=10)
     m = float(np.exp(sol.x[0]))
     eq = equidistant(m)
     model = eq
     if refine and sample is not None:
         report(progress, 0.5, "lights: refining each light's position and intensity")
-        model = _refine_each(sample, eq, R, X, history)
+        model = _refine_each(sample, eq, R, X, history, progress=sub_progress(progress, 0.5, 0.92))
     unc = None
     if sample is not None:
         model = _level(sample, model, history)
         if refine:
+            report(progress, 0.93, "lights: their uncertainty")
             unc = light_uncertainty(sample, model, R, X, offset_stderr=offset_stderr)
     P = model.positions_mm
     set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
@@ -500,7 +511,7 @@ def _subset(sample: PixelSample, n: int) -> PixelSample:
 
 
 def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=1.0,
-                 stages=((5000, 60), (None, 40))):
+                 stages=((5000, 60), (None, 40)), progress: Progress = None):
     """All positions and log-intensities by least squares on the photometric + drop-off residuals.
 
     The drop-off term is a weak prior: a bowed canvas biases it (its shading is smooth and different
@@ -518,12 +529,25 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
     the solver only crawls along it.
     """
     model = start
-    for n, max_nfev in stages:
+    # each stage's share of the bar: its evaluations times its pixels (an evaluation costs ~ pixels)
+    work = [max_nfev * min(n or sample.I.shape[1], sample.I.shape[1]) for n, max_nfev in stages]
+    done = 0.0
+    for (n, max_nfev), w in zip(stages, work):
         sub = sample if n is None or n >= sample.I.shape[1] else _subset(sample, n)
-        model = _refine_lsq(sub, model, R, X, history, w_drop=w_drop, max_nfev=max_nfev)
+        part = sub_progress(progress, done / sum(work), (done + w) / sum(work))
+        done += w
+        model = _refine_lsq(sub, model, R, X, history, w_drop=w_drop, max_nfev=max_nfev,
+                            callback=_evaluations(part, max_nfev, sub.I.shape[1]))
         if sub is sample:
             break
     return LightModel.from_positions(model.positions_mm, model.intensities / np.median(model.intensities))
+
+
+def _evaluations(progress: Progress, max_nfev: int, pixels: int):
+    """A :func:`levenberg_marquardt` callback reporting evaluations as a fraction of ``max_nfev``."""
+    if progress is None:
+        return None
+    return lambda nfev: progress(nfev / max_nfev, f"lights: refining on {pixels} px, evaluation {nfev}")
 
 
 def _lamp_positions(th):
@@ -603,7 +627,7 @@ class _Problem:
         return J
 
 
-def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e-8, xtol=1e-8):
+def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e-8, xtol=1e-8, callback=None):
     """Levenberg-Marquardt on the normal equations, with Jacobian scaling and bounds by projection.
 
     Written here because the refinement's Jacobian is very tall and narrow (K * P rows, 4K columns:
@@ -613,6 +637,8 @@ def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e
     ``diag(J^T J)`` (``x_scale='jac'``), raised until the cost falls, lowered by the gain ratio; it stops
     when both the actual and the predicted relative reductions are below ``ftol`` or the scaled step
     is below ``xtol``.
+
+    ``callback(nfev)``, if given, is called after every evaluation (progress).
 
     Returns
     -------
@@ -644,6 +670,8 @@ def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e
             step = x_new - x
             f_new = fun(x_new)
             nfev += 1
+            if callback is not None:
+                callback(nfev)
             cost_new = float(f_new @ f_new)
             predicted = -(2 * g @ step + step @ A @ step)
             actual = cost - cost_new
@@ -661,7 +689,7 @@ def levenberg_marquardt(fun, jac, x0, *, lb=None, ub=None, max_nfev=100, ftol=1e
     return x, f, nfev, converged
 
 
-def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop, max_nfev):
+def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop, max_nfev, callback=None):
     """One ``least_squares`` solve of :func:`_refine_each` on the given sample.
 
     Each light is parametrised by azimuth, elevation, log distance and log intensity: the shallow
@@ -674,7 +702,7 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
     ub = np.tile([np.inf, np.radians(89.9), np.log(20000.0), 2.0], K)
     c0 = float(np.sum(prob.fun(x0) ** 2))
     x, f, nfev, converged = levenberg_marquardt(prob.fun, prob.jac, np.clip(x0, lb + 1e-6, ub - 1e-6),
-                                                lb=lb, ub=ub, max_nfev=max_nfev)
+                                                lb=lb, ub=ub, max_nfev=max_nfev, callback=callback)
     history.append({"stage": "per-light", "pixels": int(sample.I.shape[1]), "iterations": int(nfev),
                     "converged": bool(converged), "cost_start": c0, "cost": float(np.sum(f ** 2))})
     P, E = prob.unpack(x)
