@@ -43,17 +43,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _Bar:
-    """A tqdm progress bar on stderr driven by the progress callback (CLI only)."""
+    """A tqdm progress bar on stderr driven by the progress callback (CLI only).
+
+    The bar never moves back (a sub-step may start below where the last one ended), and the time
+    left is the elapsed time scaled by the fraction still to do (the stages report fractions in
+    proportion to their measured time). Redrawn at most every 0.2 s.
+    """
 
     def __init__(self, name):
         from tqdm import tqdm   # the CLI's own dependency: not imported by the library
 
-        self.bar = tqdm(total=1000, desc=name, file=sys.stderr, leave=False,
+        self.bar = tqdm(total=1000, desc=name, file=sys.stderr, leave=False, mininterval=0.2, smoothing=0,
                         bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}")
 
     def __call__(self, fraction, message):
-        self.bar.n = int(1000 * fraction)
-        self.bar.set_postfix_str(message[:60], refresh=True)
+        n = min(1000, int(1000 * fraction))
+        if n > self.bar.n:
+            self.bar.update(n - self.bar.n)
+        self.bar.set_postfix_str(message[:60], refresh=False)
 
     def close(self):
         self.bar.close()
