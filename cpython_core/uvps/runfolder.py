@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -175,19 +176,25 @@ def write_lights(folder: Path, capture: Capture, lights) -> dict:
     return data
 
 
-def write_flatfield(folder: Path, capture: Capture, lights, *, progress: Progress = None) -> Path:
-    """``flatfield/<k>_<name>.tif``: each image divided by its drop-off map, one float32 file each."""
+def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2, progress: Progress = None) -> Path:
+    """``flatfield/<k>_<name>.tif``: each image divided by its drop-off map, one float32 file each.
+
+    One image at a time per worker (``workers`` threads: numpy and the file writes release the GIL),
+    so memory holds ``workers`` images, never the stack.
+    """
     out = folder / "flatfield"
     out.mkdir(exist_ok=True)
     K = capture.images.shape[0]
-    for k, (img, fit) in enumerate(zip(capture.images, lights.fits)):
-        ff = flatfield(img, fit)
-        axes = "YX"
-        if ff.ndim == 3:
-            ff, axes = np.moveaxis(ff, -1, 0), "CYX"
+
+    def one(k):
+        ff = flatfield(capture.images[k], lights.fits[k], channels_first=True)
         name = Path(capture.files[k].replace("#", "_")).stem
-        write_imagej_tiff(out / f"{k:03d}_{name}.tif", ff, axes=axes, pixel_size_um=capture.pixel_size_um)
-        report(progress, (k + 1) / K, f"flat field {k + 1}/{K}")
+        write_imagej_tiff(out / f"{k:03d}_{name}.tif", ff, axes="CYX" if ff.ndim == 3 else "YX",
+                          pixel_size_um=capture.pixel_size_um)
+
+    with ThreadPoolExecutor(max(1, int(workers))) as pool:
+        for i, _ in enumerate(pool.map(one, range(K))):
+            report(progress, (i + 1) / K, f"flat field {i + 1}/{K}")
     return out
 
 
