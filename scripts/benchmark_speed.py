@@ -1,0 +1,223 @@
+"""Speed and memory of a whole run against the time to merely read the stack (issue 9).
+
+Makes (once, cached in ``--work``) a synthetic capture with :func:`uvps.synthetic.make_capture`
+(default 4000 x 3000, 16 lights, RGB uint16 TIFFs, one file per light), then measures, each in a
+fresh process whose peak resident memory is taken from ``os.wait4``'s rusage:
+
+- reading the stack with tifffile alone (``tifffile.imread`` of each file into one preallocated
+  array): the floor every run is compared with;
+- ``uvps run FOLDER -o OUT`` (lights estimated, flat-field, normals, albedo, height), its stages
+  from ``run.json``'s ``timings_s``;
+- the same with ``--regions auto`` (colour areas, detection, statistics, report);
+- ``uvps demo`` (its default 600 x 800 capture, 12 lights);
+
+and optionally (``--profile``) a cProfile of :func:`uvps.pipeline.run` in this process, whose top
+lines go with the table. The table is printed and, with ``--md PATH`` (default
+docs/benchmarks.md), inserted at the top of that file under its title, with the machine (cores,
+RAM, load) and the command line.
+
+Example::
+
+    .venv/bin/python scripts/benchmark_speed.py                      # 4000 x 3000 x 16, ~5 min
+    .venv/bin/python scripts/benchmark_speed.py --shape 750 1000 --no-md --profile
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "cpython_core"))   # the code of this tree (also for --profile)
+UVPS = [sys.executable, "-m", "uvps.cli"]
+
+
+@dataclass
+class Measure:
+    name: str
+    wall_s: float
+    maxrss_gib: float
+    returncode: int
+    inner_s: float = float("nan")     # time measured inside the child (reading only)
+    stages: dict = None
+    load_before: str = ""
+    stderr_tail: str = ""
+
+
+def load_line() -> str:
+    a, b, c = os.getloadavg()
+    return f"{a:.2f} / {b:.2f} / {c:.2f}"
+
+
+def machine() -> str:
+    cpu = "?"
+    with open("/proc/cpuinfo", encoding="utf-8") as fh:
+        for line in fh:
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    with open("/proc/meminfo", encoding="utf-8") as fh:
+        mem_kb = int(fh.readline().split()[1])
+    return f"{os.cpu_count()} cores ({cpu}), {mem_kb / 2 ** 20:.1f} GiB RAM"
+
+
+def make(folder: Path, shape, n_lights: int, seed: int) -> float:
+    """The synthetic capture in ``folder`` (made once); returns the raw stack's size in bytes."""
+    import numpy as np
+    import tifffile
+
+    files = sorted(folder.glob("uv_*.tif"))
+    if len(files) != n_lights:
+        from uvps.synthetic import make_capture, write_capture
+
+        t0 = time.perf_counter()
+        cap = make_capture(shape=tuple(shape), n_lights=n_lights, seed=seed)
+        print(f"made {shape} x {n_lights} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        write_capture(cap, folder, truth=False)
+        del cap
+        files = sorted(folder.glob("uv_*.tif"))
+    with tifffile.TiffFile(files[0]) as tif:
+        page = tif.pages[0]
+        return float(np.prod(page.shape) * np.dtype(page.dtype).itemsize * len(files))
+
+
+def run_child(name: str, cmd: list, env=None) -> Measure:
+    """Run ``cmd``; its wall time and peak RSS (this child only, from ``os.wait4``)."""
+    load = load_line()
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO)
+    # read the pipes before waiting (a full pipe would block the child); wait4 gives its rusage
+    out, err = p.stdout.read(), p.stderr.read()
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    p.returncode = os.waitstatus_to_exitcode(status)
+    m = Measure(name, wall, ru.ru_maxrss / 2 ** 20, p.returncode, load_before=load,
+                stderr_tail=err.decode(errors="replace")[-400:])
+    for line in out.decode(errors="replace").splitlines():
+        if line.startswith("READ_S "):
+            m.inner_s = float(line.split()[1])
+    return m
+
+
+READ_CODE = """
+import sys, time, glob, numpy as np, tifffile
+files = sorted(glob.glob(sys.argv[1] + '/uv_*.tif'))
+t0 = time.perf_counter()
+first = tifffile.imread(files[0])
+stack = np.empty((len(files),) + first.shape, first.dtype)
+stack[0] = first
+for k, f in enumerate(files[1:], 1):
+    stack[k] = tifffile.imread(f)
+print('READ_S', time.perf_counter() - t0)
+"""
+
+
+def profile_run(folder: Path, top: int) -> str:
+    """cProfile of read_capture + pipeline.run (the default stages) in this process: the top lines."""
+    from uvps.io import read_capture
+    from uvps.pipeline import RunOptions, run
+
+    pr = cProfile.Profile()
+    pr.enable()
+    cap = read_capture(folder)
+    res = run(cap, RunOptions())
+    pr.disable()
+    s = io.StringIO()
+    pstats.Stats(pr, stream=s).sort_stats("tottime").print_stats(top)
+    lines = [ln for ln in s.getvalue().splitlines() if ln.strip()]
+    start = next(i for i, ln in enumerate(lines) if ln.lstrip().startswith("ncalls"))
+    head = [ln for ln in lines[:start] if "function calls" in ln]
+    return "\n".join(head + lines[start:start + top + 1]) + "\n\nstages (s): " + json.dumps(res.timings_s)
+
+
+def table(ms: list, read_s: float, raw: float) -> str:
+    rows = ["| process | status | wall (s) | / read | peak RSS (GiB) | / raw stack | stages (s, run.json) | load before |",
+            "|---|---|---|---|---|---|---|---|"]
+    for m in ms:
+        st = ", ".join(f"{k} {v:.1f}" for k, v in (m.stages or {}).items())
+        status = "ok" if m.returncode == 0 else f"exit {m.returncode}"
+        rows.append(f"| {m.name} | {status} | {m.wall_s:.1f} | {m.wall_s / read_s:.1f} | {m.maxrss_gib:.2f} | "
+                    f"{m.maxrss_gib * 2 ** 30 / raw:.2f} | {st} | {m.load_before} |")
+    return "\n".join(rows)
+
+
+def insert_section(md: Path, text: str) -> None:
+    """``text`` right under the file's title (newest section first), the rest kept."""
+    old = md.read_text(encoding="utf-8") if md.exists() else "# Benchmarks\n"
+    head, sep, rest = old.partition("\n")
+    md.write_text(head + "\n\n" + text.rstrip() + "\n" + sep + rest, encoding="utf-8")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--shape", type=int, nargs=2, default=(3000, 4000), metavar=("ROWS", "COLS"))
+    ap.add_argument("--lights", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/uvps_speed"))
+    ap.add_argument("--md", type=Path, default=REPO / "docs" / "benchmarks.md")
+    ap.add_argument("--no-md", action="store_true", help="print only")
+    ap.add_argument("--profile", action="store_true", help="also cProfile pipeline.run in this process")
+    ap.add_argument("--top", type=int, default=25, help="profile lines kept")
+    ap.add_argument("--skip", nargs="*", default=(), choices=("run", "regions", "demo"))
+    ap.add_argument("--title", default="Speed and memory of a whole run (issue 9)")
+    ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
+    a = ap.parse_args(argv)
+    M, N = a.shape
+    folder = a.work / f"capture_{M}x{N}x{a.lights}_s{a.seed}"
+    a.work.mkdir(parents=True, exist_ok=True)
+    raw = make(folder, (M, N), a.lights, a.seed)
+    env = dict(os.environ, PYTHONPATH=str(REPO / "cpython_core"))
+    ms = []
+    # twice: the first warms the page cache (every later process reads from it too)
+    for _ in range(2):
+        rd = run_child("read the stack with tifffile", [sys.executable, "-c", READ_CODE, str(folder)], env)
+    ms.append(rd)
+    read_s = rd.inner_s
+    runs = {"run": ("uvps run", []), "regions": ("uvps run --regions auto", ["--regions", "auto"])}
+    for key, (name, extra) in runs.items():
+        if key in a.skip:
+            continue
+        out = a.work / f"out_{key}_{M}x{N}"
+        m = run_child(name, UVPS + ["run", str(folder), "-o", str(out)] + extra, env)
+        if (out / "run.json").exists():
+            m.stages = json.loads((out / "run.json").read_text()).get("timings_s", {})
+        ms.append(m)
+    if "demo" not in a.skip:
+        ms.append(run_child("uvps demo (600 x 800, 12 lights)", UVPS + ["demo", "-o", str(a.work / "demo")], env))
+    prof = profile_run(folder, a.top) if a.profile else ""
+    tab = table(ms, read_s, raw)
+    for m in ms:
+        if m.returncode:
+            print(f"{m.name}: exit {m.returncode}: {m.stderr_tail}", file=sys.stderr)
+    cmd = " ".join(shlex.quote(x) for x in [".venv/bin/python", "scripts/benchmark_speed.py"] + list(argv or sys.argv[1:]))
+    when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    text = [f"## {a.title}", "",
+            f"{when}; {machine()}; load average {load_line()} (1/5/15 min) at the end; `{cmd}`.",
+            f"Capture: `make_capture(shape=({M}, {N}), n_lights={a.lights}, seed={a.seed})`, {a.lights} uncompressed "
+            f"RGB uint16 TIFFs (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile "
+            f"took {read_s:.2f} s (inside the process; '/ read' divides each wall time by it, the process's "
+            "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4).", "",
+            tab, ""]
+    if a.note:
+        text += [a.note, ""]
+    if prof:
+        text += ["cProfile of read_capture + pipeline.run (default stages, in one process), by own time:", "",
+                 "```", prof, "```", ""]
+    text = "\n".join(text)
+    print(text)
+    if not a.no_md:
+        insert_section(a.md, text)
+    return 0 if all(m.returncode == 0 for m in ms) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
