@@ -194,7 +194,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/uvps_bench_changes")
     ap.add_argument("--append", default=None, help="append the results to this Markdown file")
     ap.add_argument("--repeatability-only", action="store_true")
-    ap.add_argument("--pairs", type=int, default=3, help="at most this many pairs of each kind")
+    ap.add_argument("--pairs", type=int, default=2, help="at most this many changed pairs")
+    ap.add_argument("--unchanged-pairs", type=int, default=3, help="at most this many unchanged pairs")
     args = ap.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -208,7 +209,7 @@ def main(argv=None) -> int:
             changed.append((name, truth, out, secs))
             print(name, "done", round(secs, 1), "s", flush=True)
     unchanged = []
-    for i, later in enumerate(UNCHANGED[:args.pairs]):
+    for i, later in enumerate(UNCHANGED[:args.unchanged_pairs]):
         name = f"unchanged{i}"
         truth = make_pair(work, name, later)
         out, secs = run_changes(work, name)
