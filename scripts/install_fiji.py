@@ -13,6 +13,14 @@ Layout written (the plugin scripts rely on it):
   ``<python> -m uvps spec`` (names, parameters, defaults, choices, help); the dialogs and requests
   of the Fiji side are built from it (``uvps_fiji.bridge_logic.load_spec``).
 
+- plain ImageJ 1.x only: ``<root>/plugins/jars/uvps_jython_interpreter.jar``, the ``Jython``
+  interpreter class that ImageJ 1.x needs to run ``.py`` menu items (compiled here from
+  ``jython_lib/uvps_fiji/imagej1/Jython.java`` with ``javac``), and a copy of ``jython.jar``
+  (Debian: ``apt install jython``). Without them plain ImageJ offers to download Jython in a modal
+  dialog, which hangs offline and in ``-batch`` runs. Fiji ships Jython: nothing is added.
+  When ``javac`` or a ``jython.jar`` is missing, the installer says what to install (one line)
+  and installs the rest.
+
 Each menu script adds ``IJ.getDirectory("imagej") + "jars/Lib"`` and
 ``IJ.getDirectory("plugins") + "jars/Lib"`` to ``sys.path`` before importing ``uvps_fiji``.
 
@@ -20,6 +28,7 @@ Usage::
 
     python scripts/install_fiji.py /path/to/Fiji.app [--python /path/to/python]
     python scripts/install_fiji.py /path/to/Fiji.app --uninstall
+    python scripts/install_fiji.py /path/to/ImageJ [--jython-jar /usr/share/java/jython.jar]
 
 Pure CPython standard library, so that it runs before anything else is set up.
 """
@@ -30,12 +39,21 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import zipfile
 
 MENU_FOLDER = "UV_Photometric_Stereo"
 PACKAGE = "uvps_fiji"
 CONFIG_NAME = "uvps_fiji.cfg"
 SPEC_NAME = "commands.json"
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: The interpreter jar written into plain ImageJ's plugins/jars/ (with jython.jar beside it).
+INTERPRETER_JAR = "uvps_jython_interpreter.jar"
+JYTHON_COPY = "jython.jar"
+DEBIAN_JARS = {"jython": "/usr/share/java/jython.jar", "ij": "/usr/share/java/ij.jar"}
+INTERPRETER_HINT = ("plain ImageJ needs a Jython interpreter to run the .py menu items: install a "
+                    "JDK and Jython (Debian: apt install default-jdk-headless jython) and run this "
+                    "installer again, or (online) put Jython.jar from "
+                    "https://imagej.net/ij/plugins/jython/ into %s")
 
 
 class InstallError(Exception):
@@ -158,7 +176,7 @@ def install(root, python, source_root=REPO_ROOT):
 
     def fill_lib(tmp):
         shutil.copytree(lib_src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(
-            "*$py.class", "*.pyc", "__pycache__", CONFIG_NAME, SPEC_NAME))
+            "*$py.class", "*.pyc", "__pycache__", CONFIG_NAME, SPEC_NAME, "imagej1"))
         with open(os.path.join(tmp, CONFIG_NAME), "w") as fh:
             fh.write("# written by scripts/install_fiji.py; the CPython that runs the uvps core\n")
             fh.write("python = %s\n" % python)
@@ -169,6 +187,102 @@ def install(root, python, source_root=REPO_ROOT):
     _replace_dir(menu_target, fill_menu)
     _replace_dir(lib_target, fill_lib)
     return [menu_target, lib_target]
+
+
+def _has_class(jar, name):
+    try:
+        with zipfile.ZipFile(jar) as zf:
+            return name in zf.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+def _jars(folder):
+    if not os.path.isdir(folder):
+        return []
+    return sorted(os.path.join(folder, n) for n in os.listdir(folder) if n.endswith(".jar"))
+
+
+def find_jar(root, kind, given=None):
+    """The ``jython`` or ``ij`` jar: ``given``, else one in the ImageJ folder, else Debian's."""
+    if given:
+        if not os.path.isfile(given):
+            raise InstallError("--%s-jar %s does not exist" % (kind, given))
+        return os.path.abspath(given)
+    folders = [os.path.join(root, "plugins", "jars"), os.path.join(root, "jars"), root]
+    for folder in folders:
+        for jar in _jars(folder):
+            name = os.path.basename(jar).lower()
+            if name.startswith(kind) and name != INTERPRETER_JAR:
+                if kind == "ij" and not _has_class(jar, "ij/ImageJ.class"):
+                    continue
+                if kind == "jython" and not _has_class(jar, "org/python/util/PythonInterpreter.class"):
+                    continue
+                return jar
+    return DEBIAN_JARS[kind] if os.path.isfile(DEBIAN_JARS[kind]) else None
+
+
+def interpreter_present(root):
+    """Whether plain ImageJ in ``root`` already has a ``Jython`` plugin class (a downloaded
+    Jython.jar, or ours)."""
+    for folder in (os.path.join(root, "plugins"), os.path.join(root, "plugins", "jars")):
+        for jar in _jars(folder):
+            if os.path.basename(jar) != INTERPRETER_JAR and _has_class(jar, "Jython.class"):
+                return jar
+    return None
+
+
+def install_interpreter(root, source_root=REPO_ROOT, jython_jar=None, ij_jar=None, javac=None):
+    """Give plain ImageJ 1.x in ``root`` the ``Jython`` class that runs ``.py`` menu items.
+
+    Returns
+    -------
+    (list of str, str)
+        The files written and a one-line note for the user (what was done, or what to install).
+    """
+    plugins_jars = os.path.join(root, "plugins", "jars")
+    present = interpreter_present(root)
+    if present:
+        return [], "Jython interpreter already present: %s" % present
+    jython = find_jar(root, "jython", jython_jar)
+    ij = find_jar(root, "ij", ij_jar)
+    javac = javac or shutil.which("javac")
+    missing = [what for what, have in (("javac", javac), ("jython.jar", jython), ("ij.jar", ij))
+               if not have]
+    if missing:
+        return [], "not found: %s; %s" % (", ".join(missing), INTERPRETER_HINT % plugins_jars)
+    source = os.path.join(source_root, "jython_lib", PACKAGE, "imagej1", "Jython.java")
+    if not os.path.isfile(source):
+        return [], "no %s; %s" % (source, INTERPRETER_HINT % plugins_jars)
+    build = tempfile.mkdtemp(prefix="uvps-jython-")
+    try:
+        base = [javac, "-nowarn", "-encoding", "UTF-8", "-d", build,
+                "-cp", os.pathsep.join([ij, jython])]
+        proc = None
+        for release in (["--release", "8"], []):
+            proc = subprocess.run(base + release + [source], stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, universal_newlines=True, timeout=300)
+            if proc.returncode == 0:
+                break
+        if proc.returncode != 0:
+            raise InstallError("javac failed on %s: %s" % (source, proc.stdout.strip()[-500:]))
+        if not os.path.isdir(plugins_jars):
+            os.makedirs(plugins_jars)
+        written = []
+        target = os.path.join(plugins_jars, INTERPRETER_JAR)
+        with zipfile.ZipFile(target + ".part", "w", zipfile.ZIP_DEFLATED) as zf:
+            for name in sorted(os.listdir(build)):
+                zf.write(os.path.join(build, name), name)
+        os.replace(target + ".part", target)
+        written.append(target)
+        if os.path.dirname(os.path.abspath(jython)) != os.path.abspath(plugins_jars):
+            copy = os.path.join(plugins_jars, JYTHON_COPY)
+            shutil.copyfile(jython, copy + ".part")
+            os.replace(copy + ".part", copy)
+            written.append(copy)
+    finally:
+        shutil.rmtree(build, ignore_errors=True)
+    return written, "Jython interpreter for plain ImageJ installed (jython from %s)" % jython
 
 
 def uninstall(root):
@@ -182,6 +296,13 @@ def uninstall(root):
         if os.path.isdir(path):
             shutil.rmtree(path)
             removed.append(path)
+    interpreter = os.path.join(root, "plugins", "jars", INTERPRETER_JAR)
+    if os.path.isfile(interpreter):
+        # the jython.jar copy came with it (a Jython.jar the user put there is left alone)
+        for path in (interpreter, os.path.join(root, "plugins", "jars", JYTHON_COPY)):
+            if os.path.isfile(path):
+                os.remove(path)
+                removed.append(path)
     return removed
 
 
@@ -193,6 +314,12 @@ def main(argv=None):
                         help="CPython with uvps installed (default: this interpreter, %(default)s)")
     parser.add_argument("--uninstall", action="store_true",
                         help="remove the uvps menu commands and library instead")
+    parser.add_argument("--jython-jar", help="plain ImageJ: the jython.jar to use (default: one "
+                        "in the ImageJ folder, else %s)" % DEBIAN_JARS["jython"])
+    parser.add_argument("--ij-jar", help="plain ImageJ: the ij.jar to compile against (default: "
+                        "the ImageJ folder's, else %s)" % DEBIAN_JARS["ij"])
+    parser.add_argument("--no-interpreter", action="store_true",
+                        help="plain ImageJ: do not install the Jython interpreter")
     parser.add_argument("--source-root", default=REPO_ROOT, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     try:
@@ -210,6 +337,15 @@ def main(argv=None):
             python = os.path.abspath(python)
             for path in install(args.root, python, source_root=args.source_root):
                 print("installed %s" % path)
+            root = os.path.abspath(args.root)
+            if is_fiji(root):
+                print("Fiji ships Jython: no interpreter needed")
+            elif not args.no_interpreter:
+                written, note = install_interpreter(root, args.source_root, args.jython_jar,
+                                                    args.ij_jar)
+                for path in written:
+                    print("installed %s" % path)
+                print(note)
             print("uvps core runs with %s; restart Fiji/ImageJ to see "
                   "Plugins > UV Photometric Stereo" % python)
     except (InstallError, OSError) as exc:

@@ -151,3 +151,51 @@ def test_bad_folders_are_refused(tmp_path, source, layout, message):
     proc = run_installer(root, "--source-root", source)
     assert proc.returncode == 1
     assert message in proc.stderr
+
+
+# --------------------------------------------------------------------------- plain ImageJ's Jython
+
+REPO = INSTALLER.parent.parent
+HAVE_JDK = (subprocess.run(["sh", "-c", "command -v javac"], stdout=subprocess.PIPE).returncode == 0
+            and Path("/usr/share/java/jython.jar").is_file()
+            and Path("/usr/share/java/ij.jar").is_file())
+
+
+@pytest.mark.skipif(not HAVE_JDK, reason="needs javac and Debian's jython.jar and ij.jar")
+def test_plain_imagej_gets_a_jython_interpreter_and_uninstall_takes_it_back(tmp_path):
+    import zipfile
+
+    root = tmp_path / "ImageJ"
+    (root / "plugins" / "jars").mkdir(parents=True)
+    (root / "plugins" / "jars" / "user.jar").write_bytes(b"not ours")
+    proc = run_installer(root, "--python", sys.executable)
+    assert proc.returncode == 0, proc.stderr
+    jars = root / "plugins" / "jars"
+    assert "Jython.class" in zipfile.ZipFile(jars / "uvps_jython_interpreter.jar").namelist()
+    assert (jars / "jython.jar").stat().st_size == Path("/usr/share/java/jython.jar").stat().st_size
+    assert "Jython interpreter for plain ImageJ installed" in proc.stdout
+    assert not (jars / "Lib" / "uvps_fiji" / "imagej1").exists()
+    # a second install replaces ours (it is not a Jython.jar the user put there)
+    assert "already present" not in run_installer(root, "--python", sys.executable).stdout
+    proc = run_installer(root, "--uninstall")
+    assert proc.returncode == 0
+    assert sorted(p.name for p in jars.glob("*.jar")) == ["user.jar"]
+
+
+def test_without_javac_the_installer_says_what_to_install(tmp_path):
+    root = tmp_path / "ImageJ"
+    (root / "plugins").mkdir(parents=True)
+    proc = subprocess.run([sys.executable, str(INSTALLER), str(root), "--python", sys.executable],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, universal_newlines=True,
+                          timeout=120, env={"PATH": str(tmp_path / "empty")})
+    assert proc.returncode == 0, proc.stderr
+    assert "not found: javac" in proc.stdout
+    assert "apt install default-jdk-headless jython" in proc.stdout
+    assert not (root / "plugins" / "jars" / "uvps_jython_interpreter.jar").exists()
+
+
+def test_fiji_gets_no_interpreter(tmp_path, source):
+    root = make_fiji(tmp_path)
+    proc = run_installer(root, "--source-root", source)
+    assert proc.returncode == 0 and "Fiji ships Jython" in proc.stdout
+    assert not (root / "plugins" / "jars").exists()

@@ -480,7 +480,7 @@ def menu_scripts(monkeypatch):
     from unittest import mock
 
     ij = _fake_module("ij", IJ=mock.MagicMock(getDirectory=lambda key: None),
-                      Macro=mock.MagicMock(getOptions=lambda: "run=[/x]"),
+                      Macro=mock.MagicMock(getOptions=lambda: " "),
                       Prefs=mock.MagicMock())
     fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=FakeGenericDialog),
              "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
@@ -508,7 +508,7 @@ def menu_scripts(monkeypatch):
 #: Macro keys that recorded macros and tests/imagej use: they must keep working.
 MACRO_KEYS = ("degree robust integration regions detect lights mask dark pixel capture images run "
               "tolerance connectivity points source label number bins first second match azimuth "
-              "elevation python").split()
+              "elevation python sensitivity smallest units channels").split()
 
 
 def test_dialogs_show_the_cores_defaults_choices_and_labels(menu_scripts, spec_table):
@@ -528,7 +528,7 @@ def test_dialogs_show_the_cores_defaults_choices_and_labels(menu_scripts, spec_t
                 continue
             checked += 1
             where = "%s: field %r (%s.%s)" % (script, label, command, p["name"])
-            assert label == p["label"], where
+            assert label == bl.param_label(p), where
             default = p.get("default")
             if p["type"] == "bool":
                 assert kind == "checkbox" and value is default, where
@@ -564,3 +564,145 @@ def test_a_dialog_default_that_disagrees_with_the_core_is_refused(spec_table):
     assert robust["key"] == "robust" and robust["kind"] == "checkbox"
     assert "darkest 25 % and brightest 10 %" in robust["help"]
     assert "saturated" not in robust["label"].lower()
+
+
+# --------------------------------------------------------------------------- the user's words
+
+def test_cli_flags_become_dialog_fields():
+    text = ("give measured lamp positions (--lights), and a dark frame (--dark) if there is "
+            "stray light; pass --pixel-size-um or --lights-x")
+    assert bl.user_words(text, "run") == (
+        'give measured lamp positions (field "Lights file"), and a dark frame (field "Dark '
+        'frame") if there is stray light; pass the field "Pixel size on the painting" or --lights-x')
+
+
+def test_warning_lines_name_the_menu_item_and_the_field():
+    response = bl.Response({"warnings": ["heights may be off (--lights)",
+                                         "request key 'x' ignored (unknown)"]})
+    lines = bl.warning_lines(response, "normals")
+    assert lines[0] == 'uvps Normals and Albedo warning: heights may be off (field "Lights file")'
+    assert [bl.affects_result(w) for w in response.warnings] == [True, False]
+
+
+def test_detection_counts_in_the_log():
+    diag = {"n_protrusions": 6, "noise_um": 0.05,
+            "rejected": {"weave": 4, "flat_bright": 9, "too_small": 7, "crack": 0}}
+    lines = bl.diagnostic_lines("detect", diag)
+    assert lines[0] == ("uvps Detect Protrusions detection: 26 candidates, 6 protrusions kept, "
+                        "20 rejected: 9 bright but flat (bare primer) (flat_bright), 7 narrower "
+                        "than the smallest width (too_small), 4 canvas weave (weave)")
+    assert "height noise 0.05 um" in lines[1]
+    # run nests them under "detect"; none kept says how to find more
+    lines = bl.diagnostic_lines("run", {"detect": {"n_protrusions": 0, "rejected": {}}})
+    assert lines[0].endswith("0 candidates, 0 protrusions kept, 0 rejected")
+    assert "lower Sensitivity" in lines[-1]
+
+
+def test_lights_lines_say_where_the_lamps_came_from():
+    reused = {"lights": {"source": "positions", "n_lights": 8}, "lights_file": "/r/lights.json"}
+    assert bl.diagnostic_lines("normals", reused) == [
+        "uvps Normals and Albedo lights: 8 lamps from the run folder's /r/lights.json (not "
+        "estimated again; give a Lights file to use others)"]
+    assert "as given" in bl.diagnostic_lines("normals", reused, user_gave_lights=True)[0]
+    est = {"lights": {"source": "estimated", "n_lights": 12, "refinement_converged": False,
+                      "height_uncertainty_relative": 0.25}}
+    assert bl.diagnostic_lines("run", est) == [
+        "uvps Run Whole Pipeline lights: 12 lamps estimated from the images; the lamp "
+        "refinement stopped before converging; heights uncertain by +-25 %"]
+
+
+# --------------------------------------------------------------------------- macro keys, exit
+
+def test_unknown_macro_keys_are_named_with_the_valid_ones():
+    keys = ["run", "azimuth", "elevation"]
+    assert bl.unknown_macro_keys("run=[/a b] azimut=45 elevation=15", keys) == ["azimut"]
+    assert bl.unknown_macro_keys("run=[/a b=c] azimuth=4 ", keys) == []
+    assert bl.unknown_keys_message("Relight", ["azimut"], keys) == (
+        "unknown macro key 'azimut' for Relight; the valid keys are: azimuth, elevation, run")
+
+
+@pytest.mark.parametrize("command,env,expected", [
+    ("ij.ImageJ -ijpath /x -batch m.ijm", {}, True),
+    ("ij.ImageJ -ijpath /x", {}, False),
+    ("org.scijava.Main", {"UVPS_EXIT_ON_ERROR": "1"}, True),
+    ("ij.ImageJ -batch m.ijm", {"UVPS_EXIT_ON_ERROR": "0"}, False),
+    (None, {}, False),
+])
+def test_exit_on_failure_only_in_batch_runs(command, env, expected):
+    assert bl.exit_on_failure(command, env) is expected
+
+
+# --------------------------------------------------------------------------- the current stack
+
+SEQ = ["uv_%02d.tif:%s" % (i, c) for i in range(8) for c in ("Red", "Green", "Blue")]
+
+
+def test_an_rgb_sequence_of_grey_slices_is_refused_with_the_way_out():
+    assert bl.looks_like_rgb_sequence(SEQ)
+    assert not bl.looks_like_rgb_sequence(["uv_%02d.tif" % i for i in range(24)])
+    with pytest.raises(bl.BridgeError, match=r"Stack to Hyperstack, channels=3"):
+        bl.stack_layout("seq", 24, 1, 16, SEQ)
+
+
+@pytest.mark.parametrize("args,kw,lamps,channels,regroup", [
+    ((24, 1, 16, SEQ), {"lamps_hint": 8}, 8, 3, True),              # the lights file says so
+    ((24, 1, 16, SEQ), {"choice": bl.CHANNELS_RGB}, 8, 3, True),    # the user says so
+    ((24, 1, 16, SEQ), {"choice": bl.CHANNELS_GREY}, 24, 1, False),
+    ((24, 1, 16, SEQ), {"lamps_hint": 24}, 24, 1, False),
+    ((24, 3, 16, None), {}, 8, 3, False),                           # composite
+    ((8, 1, 24, None), {}, 8, 3, False),                            # RGB stack
+    ((12, 1, 16, ["a%d" % i for i in range(12)]), {}, 12, 1, False),
+])
+def test_stack_layout(args, kw, lamps, channels, regroup):
+    got = bl.stack_layout("s", *args, **kw)
+    assert (got["lamps"], got["channels"], got["regroup"]) == (lamps, channels, regroup)
+
+
+def test_lights_file_count(tmp_path):
+    lp = tmp_path / "a.lp"
+    lp.write_text("3\na.tif 0 0 1\nb.tif 0 1 0\nc.tif 1 0 0\n")
+    js = tmp_path / "lights.json"
+    js.write_text(json.dumps({"lights": [{}, {}]}))
+    csv = tmp_path / "p.csv"
+    csv.write_text("x_mm,y_mm,z_mm\n1,2,3\n4,5,6\n")
+    assert [bl.lights_file_count(str(p)) for p in (lp, js, csv)] == [3, 2, 2]
+    assert bl.lights_file_count(str(tmp_path / "none.lp")) is None
+
+
+# --------------------------------------------------------------------------- wand points
+
+def test_points_files_in_pixels_and_in_um():
+    pts, unit = bl.read_points_text("x_px,y_px\n10,20\n30.5,40\n")
+    assert pts == [(10.0, 20.0), (30.5, 40.0)] and unit == "px"
+    measure = " \tArea\tMean\tX\tY\n1\t0.1\t5\t450\t600\n2\t0.1\t5\t3000\t150\n"
+    pts, unit = bl.read_points_text(measure)
+    assert pts == [(450.0, 600.0), (3000.0, 150.0)] and unit == ""
+    # automatic: they fit the 320 x 240 image only in um (15 um pixels)
+    px, used = bl.points_in_pixels(pts, unit, bl.UNITS_AUTO, 320, 240, 15.0)
+    assert used == "um" and px == [(30.0, 40.0), (200.0, 10.0)]
+    assert bl.points_in_pixels([(5, 6)], "", bl.UNITS_AUTO, 320, 240, 15.0) == ([(5, 6)], "pixels")
+    assert bl.points_in_pixels([(30, 60)], "", bl.UNITS_CALIBRATED, 320, 240, 15.0)[0] == [(2.0, 4.0)]
+    assert bl.read_points_text("1 2\n3 4\n") == ([(1.0, 2.0), (3.0, 4.0)], "")
+    with pytest.raises(bl.BridgeError, match="no x, y columns"):
+        bl.read_points_text("a,b\n1,2\n")
+
+
+def test_repeated_clicks_are_listed_with_the_earlier_click():
+    pts = [(1, 1), (2, 2), (3, 3), (4, 4)]
+    assert bl.repeated_clicks(pts, [5, 5, 0, 7]) == [(2, (2, 2), 1), (3, (3, 3), None)]
+
+
+def test_detection_settings_and_browse_buttons_come_with_fields(spec_table):
+    sens = bl.dialog_field(bl.param_spec("detect", "dynamic_k"))
+    width = bl.dialog_field(bl.param_spec("detect", "min_width_um"))
+    assert (sens["key"], sens["default"]) == ("sensitivity", 5.0)
+    assert (width["key"], width["default"], width["units"]) == ("smallest", 30.0, u"\u00b5m")
+    inputs, params = bl.request_from_values("detect", {"sensitivity": 3.0, "smallest": 50.0,
+                                                       "regions": ""})
+    assert params == {"dynamic_k": 3.0, "min_width_um": 50.0, "regions": None}
+    # every path field has a Browse button (a file or folder chooser)
+    assert bl.dialog_field(bl.param_spec("run", "images"))["kind"] == "directory"
+    for command, spec in spec_table["commands"].items():
+        for param in spec["params"]:
+            if param["type"] in ("path", "paths"):
+                assert bl.dialog_field(param)["kind"] in ("file", "directory"), param

@@ -84,6 +84,7 @@ class Response(object):
         self.outputs = list(raw.get("outputs") or [])
         self.diagnostics = raw.get("diagnostics") or {}
         self.text = raw.get("text") or ""
+        self.warnings = [w for w in (raw.get("warnings") or []) if w]
         self.elapsed_s = raw.get("elapsed_s")
         self.version = raw.get("version")
 
@@ -606,9 +607,23 @@ def macro_key(label):
     return label.split(" ")[0].split(":")[0].lower()
 
 
+#: Dialog labels of parameters the core declares without one (its label, if any, is for the
+#: command line's help): the first word is the macro key (``sensitivity=5 smallest=30``).
+FIELD_LABELS = {
+    "dynamic_k": "Sensitivity: relief threshold in multiples of the height noise "
+                 "(lower finds more, e.g. 3; higher fewer, e.g. 8)",
+    "min_width_um": "Smallest width of a protrusion",
+}
+
+
+def param_label(param):
+    """The dialog label of a declared parameter: :data:`FIELD_LABELS`, its label, else its name."""
+    return FIELD_LABELS.get(param["name"]) or param.get("label") or param["name"]
+
+
 def param_key(param):
-    """Return the macro key of a declared parameter: its label's first word, else its name."""
-    return macro_key(param.get("label") or param["name"])
+    """Return the macro key of a declared parameter: its dialog label's first word."""
+    return macro_key(param_label(param))
 
 
 def _format_default(value):
@@ -641,7 +656,7 @@ def dialog_field(param, label=None, default=None, decimals=None):
         ``key``, ``kind`` (checkbox, choice, number, string, file, directory), ``label``, ``default``,
         ``items`` (choice), ``decimals``, ``units`` (number) and ``help``.
     """
-    label = label or param.get("label") or param["name"]
+    label = label or param_label(param)
     declared = param.get("default")
     if default is not None and declared is not None and default != declared:
         raise BridgeError("the dialog default %r of '%s' differs from the core's %r"
@@ -667,6 +682,10 @@ def dialog_field(param, label=None, default=None, decimals=None):
         # a path whose label names a folder gets a folder chooser
         field.update(kind="directory" if "folder" in label.lower().split("(")[0] else "file",
                      default=_format_default(value))
+    elif kind == "paths":
+        # a folder of images (the usual capture) is browsed for; a multi-page TIFF or files
+        # separated by ; are typed (or dropped) into the field
+        field.update(kind="directory", default=_format_default(value))
     else:  # str, paths, numbers, shape: typed as text, checked by the core
         field.update(kind="string", default=_format_default(value))
     return field
@@ -887,3 +906,420 @@ def points_csv_text(points):
         lines.append("%r,%r" % (float(x), float(y)))
     return "\n".join(lines) + "\n"
 
+
+
+# ---------------------------------------------------------------------------------------------
+# What the core says, in the words of the menu user
+# ---------------------------------------------------------------------------------------------
+
+#: The menu item that runs each core command (the Log names it).
+MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfield": "Flat Field",
+               "normals": "Normals and Albedo", "integrate": "Integrate Height",
+               "regions": "Colour Areas", "detect": "Detect Protrusions", "wand": "Wand Count",
+               "stats": "Statistics and Report", "compare": "Compare Counts",
+               "relight": "Relight", "info": "Run Info"}
+
+#: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
+REJECTION_WORDS = {"too_small": "narrower than the smallest width",
+                   "too_large": "wider than the largest width",
+                   "ridge": "ridges and brush strokes", "crack": "crack edges and cupped rims",
+                   "flat_bright": "bright but flat (bare primer)",
+                   "artefact": "height artefacts the normals do not show",
+                   "weave": "canvas weave"}
+
+
+def cli_flag(name):
+    """The command line's flag of a parameter: ``pixel_size_um`` -> ``--pixel-size-um``."""
+    return "--" + name.replace("_", "-")
+
+
+def field_names(command=None, table=None):
+    """``{flag: dialog field}`` for every parameter shown in a dialog (one with a label).
+
+    ``command``'s own parameters win over another command's of the same name; bool flags also
+    get their ``--no-`` form.
+    """
+    commands = (table or load_spec())["commands"]
+    order = sorted(commands)
+    if command in commands:
+        order.remove(command)
+        order.append(command)
+    names = {}
+    for name in order:
+        for param in commands[name]["params"]:
+            if not (param.get("label") or param["name"] in FIELD_LABELS):
+                continue
+            field = param_label(param).split(" (")[0].split(":")[0].strip()
+            names[cli_flag(param["name"])] = field
+            if param["type"] == "bool":
+                names["--no-" + param["name"].replace("_", "-")] = field
+    return names
+
+
+def user_words(text, command=None, table=None):
+    """Rewrite a core message for the menu user: a CLI flag becomes the dialog field.
+
+    ``"give measured lamp positions (--lights)"`` -> ``give measured lamp positions (field
+    "Lights file")``; ``"pass --pixel-size-um"`` -> ``pass the field "Pixel size"``. Flags
+    without a dialog field stay as they are.
+    """
+    import re
+    names = field_names(command, table)
+
+    def swap(match):
+        field = names.get(match.group(2))
+        if field is None:
+            return match.group(0)
+        return '%sfield "%s"' % ("(" if match.group(1) else "the ", field)
+
+    return re.sub(r"(\()?(--[a-z][a-z0-9-]*)(?![a-z0-9-])", swap, text or "")
+
+
+def affects_result(warning):
+    """Whether a core warning is about the result (shown in a window when interactive), not
+    about the request (an ignored key)."""
+    return not warning.startswith("request key")
+
+
+def warning_lines(response, command, table=None):
+    """The Log lines of a response's warnings: ``uvps <menu item> warning: <text>``."""
+    title = MENU_TITLES.get(command, command)
+    return ["uvps %s warning: %s" % (title, user_words(w, command, table))
+            for w in getattr(response, "warnings", [])]
+
+
+def _count_text(counts, words):
+    parts = []
+    for name, count in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])):
+        if count:
+            parts.append("%d %s (%s)" % (count, words.get(name, name), name))
+    return ", ".join(parts)
+
+
+def detection_lines(diag):
+    """Detection's candidate and rejection counts (``detect``'s diagnostics) as Log lines."""
+    if not isinstance(diag, dict) or "n_protrusions" not in diag:
+        return []
+    kept = int(diag["n_protrusions"])
+    rejected = dict((k, int(v)) for k, v in (diag.get("rejected") or {}).items())
+    n_rejected = sum(rejected.values())
+    line = "detection: %d candidates, %d protrusions kept, %d rejected" % (
+        kept + n_rejected, kept, n_rejected)
+    if n_rejected:
+        line += ": " + _count_text(rejected, REJECTION_WORDS)
+    lines = [line]
+    if diag.get("noise_um") is not None:
+        lines.append("detection: height noise %.3g um (the Sensitivity multiplies it)"
+                     % diag["noise_um"])
+    if kept == 0:
+        lines.append("detection: no protrusion kept; a lower Sensitivity or a smaller Smallest "
+                     "width (Detect Protrusions) finds more")
+    return lines
+
+
+def lights_lines(diag, lights_file=None, user_gave_lights=False):
+    """Where the lamps came from (``lights`` diagnostics of a response) as Log lines."""
+    if not isinstance(diag, dict) or not diag.get("source"):
+        return []
+    n = diag.get("n_lights")
+    lamps = "%s lamps" % n if n is not None else "the lamps"
+    if lights_file and not user_gave_lights:
+        return ["lights: %s from the run folder's %s (not estimated again; give a Lights file "
+                "to use others)" % (lamps, lights_file)]
+    if diag["source"] == "estimated":
+        line = "lights: %s estimated from the images" % lamps
+        if diag.get("refinement_converged") is False:
+            line += "; the lamp refinement stopped before converging"
+        rel = diag.get("height_uncertainty_relative")
+        if rel is not None:
+            line += "; heights uncertain by +-%.0f %%" % (100.0 * rel)
+        return [line]
+    return ["lights: %s as given (%s)" % (lamps, lights_file or diag["source"])]
+
+
+def diagnostic_lines(command, diagnostics, user_gave_lights=False):
+    """The Log lines of a response's diagnostics that a user acts on: where the lamps came
+    from, detection's candidates and rejections, the wand's clicks."""
+    d = diagnostics or {}
+    lines = []
+    if isinstance(d.get("lights"), dict):
+        lines += lights_lines(d["lights"], d.get("lights_file"), user_gave_lights)
+    elif command == "lights":
+        lines += lights_lines(d, d.get("lights_file"), user_gave_lights)
+    lines += detection_lines(d.get("detect") if command == "run" else d)
+    if command == "wand" and "n_points" in d:
+        lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
+    title = MENU_TITLES.get(command, command)
+    return ["uvps %s %s" % (title, line) for line in lines]
+
+
+# ---------------------------------------------------------------------------------------------
+# Macro options and batch runs
+# ---------------------------------------------------------------------------------------------
+
+def unknown_macro_keys(options, keys):
+    """The keys of macro ``options`` that the dialog does not have (sorted)."""
+    known = set(keys)
+    return sorted(k for k in parse_macro_options(options) if k and k not in known)
+
+
+def unknown_keys_message(title, unknown, keys):
+    return ("unknown macro key%s %s for %s; the valid keys are: %s"
+            % ("s" if len(unknown) > 1 else "", ", ".join("'%s'" % k for k in unknown), title,
+               ", ".join(sorted(keys))))
+
+
+#: Environment variable: 1 = a failed menu item ends ImageJ with status 1, 0 = never.
+EXIT_ENV = "UVPS_EXIT_ON_ERROR"
+
+#: The JVM status of ``ImageJ -batch`` after a failed menu item.
+FAILURE_EXIT_STATUS = 1
+
+
+def exit_on_failure(java_command, environ=None):
+    """Whether a failed menu item should end ImageJ with a non-zero status.
+
+    Yes when ImageJ was started with ``-batch`` (``java_command``: the JVM's
+    ``sun.java.command``), where ImageJ would otherwise exit 0 after a failed item; never in
+    an interactive session or an embedding JVM (PyImageJ). ``UVPS_EXIT_ON_ERROR=1``/``0``
+    decides instead.
+    """
+    env = os.environ if environ is None else environ
+    value = (env.get(EXIT_ENV) or "").strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    return "-batch" in (java_command or "").split()
+
+
+# ---------------------------------------------------------------------------------------------
+# The current stack: lamps, channels
+# ---------------------------------------------------------------------------------------------
+
+#: Choices of the ``channels`` field of the capture dialogs.
+CHANNELS_AUTO = "Automatic"
+CHANNELS_GREY = "1 (grey)"
+CHANNELS_RGB = "3 (R, G, B per lamp)"
+CHANNEL_CHOICES = [CHANNELS_AUTO, CHANNELS_GREY, CHANNELS_RGB]
+
+
+def lights_file_count(path):
+    """The number of lamps a lights file lists (``.lp``, ``.json``, ``.csv``), or None."""
+    if not path or not os.path.isfile(path):
+        return None
+    try:
+        fh = open(path, "r")
+        try:
+            text = fh.read()
+        finally:
+            fh.close()
+        if path.lower().endswith(".json"):
+            data = json.loads(text)
+            lights = data.get("lights") if isinstance(data, dict) else data
+            return len(lights) if isinstance(lights, list) else None
+        rows = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
+        if path.lower().endswith(".lp"):
+            return int(rows[0].split()[0])
+        count = 0
+        for row in rows:
+            try:
+                float(row.replace(";", ",").replace("\t", ",").split(",")[-1])
+                count += 1
+            except ValueError:
+                pass
+        return count or None
+    except (ValueError, IndexError, IOError, OSError):
+        return None
+
+
+def looks_like_rgb_sequence(labels):
+    """Whether slice labels come in R, G, B triples of one file each (``uv_00.tif:Red``, ...),
+    as *File > Import > Image Sequence* gives for RGB files."""
+    labels = list(labels or [])
+    if len(labels) < 3 or len(labels) % 3:
+        return False
+    prefixes = []
+    for i in range(0, len(labels), 3):
+        triple = [lb or "" for lb in labels[i:i + 3]]
+        if not all(":" in lb for lb in triple):
+            return False
+        heads = set(lb.rsplit(":", 1)[0] for lb in triple)
+        if len(heads) != 1:
+            return False
+        prefixes.append(heads.pop())
+    return len(set(prefixes)) == len(prefixes)
+
+
+def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint=None,
+                 hint_source="", choice=CHANNELS_AUTO):
+    """How an open stack maps to lamps and colour channels.
+
+    Parameters
+    ----------
+    title : str
+    n_images : int
+        All planes of the stack (``getStackSize``).
+    n_channels : int
+        Its channels (3 for a composite of R, G, B; 1 for a plain stack).
+    bit_depth : int
+        8, 16, 32, or 24 for RGB.
+    labels : list of str, optional
+        Slice labels (to recognise an RGB image sequence opened as grey slices).
+    lamps_hint : int, optional
+        Lamps a lights file lists (``hint_source`` names it).
+    choice : str
+        The dialog's *Channels per lamp* (:data:`CHANNEL_CHOICES`).
+
+    Returns
+    -------
+    dict
+        ``lamps``, ``channels``, ``regroup`` (True: grey slices to be written as a hyperstack of
+        3 channels) and ``why``.
+
+    Raises
+    ------
+    BridgeError
+        A grey stack that looks like R, G, B slices of an RGB sequence, with nothing to say so.
+    """
+    if bit_depth == 24:
+        return {"lamps": n_images, "channels": 3, "regroup": False, "why": "RGB image"}
+    if n_channels == 3:
+        return {"lamps": n_images // 3, "channels": 3, "regroup": False,
+                "why": "3 channels (composite or hyperstack)"}
+    if n_channels != 1:
+        raise BridgeError("the stack '%s' has %d channels; a capture has 1 (grey) or 3 (R, G, B) "
+                          "per lamp" % (title, n_channels))
+    triples = n_images % 3 == 0 and n_images >= 9
+    if choice == CHANNELS_RGB:
+        if n_images % 3:
+            raise BridgeError("the stack '%s' has %d slices, not a multiple of 3: it cannot be "
+                              "R, G, B per lamp" % (title, n_images))
+        return {"lamps": n_images // 3, "channels": 3, "regroup": True,
+                "why": "Channels per lamp = 3"}
+    if choice == CHANNELS_GREY:
+        return {"lamps": n_images, "channels": 1, "regroup": False, "why": "Channels per lamp = 1"}
+    if triples and lamps_hint == n_images // 3:
+        return {"lamps": n_images // 3, "channels": 3, "regroup": True,
+                "why": "%s lists %d lamps" % (hint_source or "the lights file", lamps_hint)}
+    if lamps_hint != n_images and triples and looks_like_rgb_sequence(labels):
+        raise BridgeError(
+            "the stack '%s' holds %d grey slices that are the R, G, B of %d RGB images (an RGB "
+            "image sequence): make it a hyperstack first with Image > Hyperstacks > Stack to "
+            "Hyperstack, channels=3 (order xyczt), or set Channels per lamp to 3 (to use them "
+            "as %d grey images, set it to 1)" % (title, n_images, n_images // 3, n_images))
+    return {"lamps": n_images, "channels": 1, "regroup": False, "why": "grey stack"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Wand points: pixels or calibrated units
+# ---------------------------------------------------------------------------------------------
+
+#: Choices of the wand's ``units`` field.
+UNITS_AUTO = "Automatic"
+UNITS_PIXELS = "Pixels"
+UNITS_CALIBRATED = "Calibrated (um, as Analyze > Measure)"
+UNITS_CHOICES = [UNITS_AUTO, UNITS_PIXELS, UNITS_CALIBRATED]
+
+
+def read_points_text(text):
+    """Read clicks from a points file: CSV or tab-separated, with a header (``x_px``/``y_px``,
+    ``x_um``/``y_um``, ImageJ's ``X``/``Y``) or none (x, y in the first two columns).
+
+    Returns
+    -------
+    (list of (float, float), str)
+        The points and the unit the header names: ``px``, ``um`` or ``""`` (not said).
+    """
+    rows = [ln for ln in (text or "").replace("\r", "\n").split("\n") if ln.strip()]
+    if not rows:
+        return [], ""
+
+    def cells(line):
+        sep = "\t" if "\t" in line else ("," if "," in line else None)
+        return [c.strip().strip('"') for c in (line.split(sep) if sep else line.split())]
+
+    head = cells(rows[0])
+    ix, iy, unit = 0, 1, ""
+    try:
+        [float(c) for c in head[:2]]
+        body = rows
+    except ValueError:
+        body = rows[1:]
+        low = [c.lower() for c in head]
+        for xs, ys, u in ((("x_px",), ("y_px",), "px"), (("x_um", "x_mm"), ("y_um", "y_mm"), "um"),
+                          (("x",), ("y",), "")):
+            found = [i for i, c in enumerate(low) if c in xs], [i for i, c in enumerate(low) if c in ys]
+            if found[0] and found[1]:
+                ix, iy, unit = found[0][0], found[1][0], u
+                break
+        else:
+            raise BridgeError("the points file has no x, y columns (header: %s)" % ", ".join(head))
+    points = []
+    for line in body:
+        c = cells(line)
+        try:
+            points.append((float(c[ix]), float(c[iy])))
+        except (ValueError, IndexError):
+            raise BridgeError("the points file has a row without two numbers: '%s'" % line.strip())
+    return points, unit
+
+
+def points_in_pixels(points, header_unit, choice, width, height, pixel_size_um):
+    """Turn clicks into pixel coordinates.
+
+    ``choice`` (:data:`UNITS_CHOICES`): pixels, the image's calibrated units (um: divided by
+    ``pixel_size_um``), or automatic: the header's unit if it names one, else pixels unless some
+    point lies outside the image in pixels while all lie inside it in um.
+
+    Returns
+    -------
+    (list of (float, float), str)
+        The points in pixels and ``"pixels"`` or ``"um"`` (what they were read as).
+    """
+    def inside(pts):
+        return all(0 <= x < width and 0 <= y < height for x, y in pts)
+
+    def to_px(pts):
+        if not pixel_size_um:
+            raise BridgeError("the points are in um but the albedo has no pixel size; give the "
+                              "pixel size or points in pixels")
+        return [(x / pixel_size_um, y / pixel_size_um) for x, y in pts]
+
+    if choice == UNITS_PIXELS:
+        return list(points), "pixels"
+    if choice == UNITS_CALIBRATED or header_unit == "um":
+        return to_px(points), "um"
+    if header_unit == "px" or inside(points) or not pixel_size_um:
+        return list(points), "pixels"
+    converted = to_px(points)
+    if inside(converted):
+        return converted, "um"
+    return list(points), "pixels"
+
+
+def repeated_clicks(points, labels_at):
+    """Clicks that fell inside an earlier click's selection (or on no valid pixel).
+
+    Parameters
+    ----------
+    points : list of (x, y)
+    labels_at : list of int
+        The protrusion label under each click (0: none).
+
+    Returns
+    -------
+    list of (int, (x, y), int or None)
+        ``(click number, position, earlier click number)``, 1-based; ``None`` when the click
+        selected nothing.
+    """
+    first = {}
+    out = []
+    for i, (pt, label) in enumerate(zip(points, labels_at)):
+        if label <= 0:
+            out.append((i + 1, pt, None))
+        elif label in first:
+            out.append((i + 1, pt, first[label]))
+        else:
+            first[label] = i + 1
+    return out

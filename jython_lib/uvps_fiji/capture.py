@@ -56,8 +56,27 @@ def write_stack(imp, path):
     return path
 
 
-def current_stack_input(request_dir):
-    """Return ``inputs["images"]`` for the current image: its file or a copy in the request folder."""
+def _lamps_hint(values):
+    """Lamps a lights file names: the dialog's *Lights file*, else the run folder's lights.json
+    (which later steps reuse). Returns (count or None, where)."""
+    path = bridge_logic.optional_path(values.get("lights"))
+    if path is None and values.get("run"):
+        path = os.path.join(values.get("run"), "lights.json")
+    count = bridge_logic.lights_file_count(path)
+    return count, (os.path.basename(path) if count else "")
+
+
+def _slice_labels(imp):
+    stack = imp.getStack()
+    return [stack.getSliceLabel(i + 1) or "" for i in range(stack.getSize())]
+
+
+def current_stack_input(request_dir, values=None):
+    """Return ``inputs["images"]`` for the current image: its file or a copy in the request
+    folder. The stack's lamps, channels and bit depth are logged first; a grey stack holding the
+    R, G, B slices of RGB images is written as a 3-channel hyperstack (or refused, see
+    ``bridge_logic.stack_layout``)."""
+    values = values or {}
     imp = WindowManager.getCurrentImage()
     if imp is None:
         raise BridgeError("no image is open; open the capture as a stack, or choose "
@@ -66,23 +85,44 @@ def current_stack_input(request_dir):
     if n < 2:
         raise BridgeError("the current image '%s' has 1 slice; photometric stereo needs a stack "
                           "with one image per light" % imp.getTitle())
+    hint, hint_source = _lamps_hint(values)
+    layout = bridge_logic.stack_layout(
+        imp.getTitle(), n, imp.getNChannels(), imp.getBitDepth(), _slice_labels(imp), hint,
+        hint_source, values.get("channels") or bridge_logic.CHANNELS_AUTO)
+    depth = "8-bit RGB" if imp.getBitDepth() == 24 else "%d-bit" % imp.getBitDepth()
+    IJ.log("uvps: current stack '%s': %d lamps, %d channel%s, %s, %d x %d pixels (%s)"
+           % (imp.getTitle(), layout["lamps"], layout["channels"],
+              "s" if layout["channels"] > 1 else "", depth, imp.getWidth(), imp.getHeight(),
+              layout["why"]))
+    if layout["lamps"] < 3:
+        raise BridgeError("the current stack '%s' holds %d lamps; photometric stereo needs at "
+                          "least 3" % (imp.getTitle(), layout["lamps"]))
     saved = _saved_path(imp)
-    path = bridge_logic.stack_source(saved, imp.changes, n,
-                                     _file_slices(saved) if saved else None)
+    path = None
+    if not layout["regroup"]:
+        path = bridge_logic.stack_source(saved, imp.changes, n,
+                                         _file_slices(saved) if saved else None)
     if path is None:
         path = bridge_logic.stack_request_path(request_dir, imp.getTitle())
         IJ.showStatus("uvps: writing %s (%d images)..." % (imp.getTitle(), n))
         start = time.time()
-        write_stack(imp, path)
+        target = imp
+        if layout["regroup"]:
+            # the same pixels (no copy) seen as 3 channels x lamps: written as a hyperstack
+            target = ImagePlus(imp.getTitle(), imp.getStack())
+            target.setCalibration(imp.getCalibration())
+            target.setDimensions(3, layout["lamps"], 1)
+            target.setOpenAsHyperStack(True)
+        write_stack(target, path)
         IJ.log("uvps: wrote the stack '%s' (%d images) in %.2f s"
                % (imp.getTitle(), n, time.time() - start))
     return [path]
 
 
 def capture_inputs(values, request_dir):
-    """Build ``{"images": [...]}`` from the capture fields (keys capture, images)."""
+    """Build ``{"images": [...]}`` from the capture fields (keys capture, images, channels)."""
     if values.get("capture") == CAPTURE_CURRENT:
-        images = current_stack_input(request_dir)
+        images = current_stack_input(request_dir, values)
     else:
         images = bridge_logic.images_input(values.get("images"))
     IJ.log("uvps: capture " + "; ".join(images))

@@ -11,8 +11,30 @@ from ij import Macro, Prefs
 from ij.gui import GenericDialog
 
 from uvps_fiji import bridge_logic, runner
+from uvps_fiji.bridge_logic import BridgeError
 
 PREFIX = "uvps."
+
+#: Where the menu items' pages are (the Help button names the page of its item).
+DOCS_URL = "docs/fiji/index.md"
+
+
+def doc_page(title):
+    """The page of a menu item in the uvps folder: ``docs/fiji/Estimate_Lights.md``."""
+    return "docs/fiji/%s.md" % title.replace(" ", "_")
+
+
+def doc_help(title, doc):
+    """The Help text of a menu item from its script's docstring: the paragraphs before the
+    ``Macro:`` example, then the example."""
+    paragraphs = [" ".join(p.split()) for p in (doc or "").strip().split("\n\n") if p.strip()]
+    body = ["<b>%s</b>" % _html(title)]
+    for text in paragraphs:
+        if text.startswith("Macro:"):
+            body.append("<p>Macro: <tt>%s</tt></p>" % _html(text[len("Macro:"):].strip()))
+        else:
+            body.append("<p>%s</p>" % _html(text))
+    return "".join(body)
 
 #: Choices of the ``capture`` field.
 CAPTURE_CURRENT = "Current stack"
@@ -34,11 +56,11 @@ class UVPSDialog(object):
     >>> values["degree"]
     """
 
-    def __init__(self, title):
+    def __init__(self, title, doc=None):
         self.title = title
         self.gd = GenericDialog("uvps: " + title)
         self.fields = []
-        self.help_text = ""
+        self.help_text = doc_help(title, doc) if doc else ""
         self.field_help = []
 
     def _remember(self, label, kind, default):
@@ -98,19 +120,32 @@ class UVPSDialog(object):
             self.field_help.append((label, text))
 
     def _add_help(self):
-        if not self.help_text and not self.field_help:
-            return
-        body = self.help_text
+        body = self.help_text or "<b>%s</b>" % _html(self.title)
         if body.startswith("<html>"):
             body = body[len("<html>"):]
         if body.endswith("</html>"):
             body = body[:-len("</html>")]
         items = "".join("<li><b>%s</b>: %s</li>" % (_html(label), _html(text))
                         for label, text in self.field_help)
-        self.gd.addHelp("<html>%s%s</html>" % (body, "<ul>%s</ul>" % items if items else ""))
+        self.gd.addHelp("<html>%s%s<p>More: <tt>%s</tt> in the uvps folder (%s).</p></html>"
+                        % (body, "<ul>%s</ul>" % items if items else "", doc_page(self.title),
+                           DOCS_URL))
+
+    def check_macro_keys(self):
+        """A macro key this dialog does not have is an error naming it and the valid keys (a
+        misspelt key would otherwise be ignored and its default used)."""
+        options = Macro.getOptions()
+        if options is None:
+            return
+        keys = [k for k, _ in self.fields]
+        unknown = bridge_logic.unknown_macro_keys(options, keys)
+        if unknown:
+            raise BridgeError(bridge_logic.unknown_keys_message(self.title, unknown, keys),
+                              error_type="MacroOptions")
 
     def show(self):
         """Show the dialog (or read the macro options); return the values, None if cancelled."""
+        self.check_macro_keys()
         self._add_help()
         self.gd.showDialog()
         if self.gd.wasCanceled():
@@ -185,15 +220,25 @@ def add_param(dlg, param, key=None, label=None, default=None, decimals=None):
 
 
 def add_capture_fields(dlg, command):
-    """Fields that say where the capture comes from: keys capture, images, pixel."""
+    """Fields that say where the capture comes from: keys capture, images, channels, pixel."""
     dlg.choice("Capture source", CAPTURE_CHOICES, CAPTURE_CURRENT)
+    dlg.describe("Capture source", "the open image stack (one image per lamp; an RGB stack, a "
+                 "composite of 3 channels or a grey stack), or the images on disk")
     add_param(dlg, (command, "images"), key="images")
+    dlg.choice("Channels per lamp (current stack)", bridge_logic.CHANNEL_CHOICES,
+               bridge_logic.CHANNELS_AUTO)
+    dlg.describe("Channels per lamp (current stack)",
+                 "Automatic: an RGB image or a 3-channel composite is colour, a grey stack is one "
+                 "slice per lamp unless a lights file lists a third as many lamps. 3: a grey stack "
+                 "from File > Import > Image Sequence of RGB files holds R, G, B of each lamp")
     add_param(dlg, (command, "pixel_size_um"), key="pixel", decimals=3)
 
 
 def add_run_field(dlg):
     """The run folder (key ``run``), shared by every menu item."""
     dlg.directory("Run folder (outputs)", "")
+    dlg.describe("Run folder (outputs)", "the folder of this capture's results; every menu item "
+                 "reads the earlier steps' files from it and writes its own there")
 
 
 def add_light_fields(dlg, command, lights=True):
@@ -203,3 +248,12 @@ def add_light_fields(dlg, command, lights=True):
     add_param(dlg, (command, "mask"), key="mask")
     add_param(dlg, (command, "dark"), key="dark")
     add_param(dlg, (command, "degree"), key="degree")
+
+
+def add_units_field(dlg):
+    """The unit of the wand's points file (key ``units``)."""
+    dlg.choice("Units of the points file", bridge_logic.UNITS_CHOICES, bridge_logic.UNITS_AUTO)
+    dlg.describe("Units of the points file",
+                 "Pixels (x_px, y_px; File > Save As > XY Coordinates), or the image's calibrated "
+                 "units (um, as Analyze > Measure exports X, Y on a calibrated image). Automatic: "
+                 "the column names say it, else um when the points only fit the image in um")

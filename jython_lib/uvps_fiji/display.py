@@ -11,7 +11,7 @@ import os
 
 from java.awt import Color
 
-from ij import IJ, WindowManager
+from ij import IJ, ImagePlus, WindowManager
 from ij.gui import OvalRoi, Overlay, Plot, PolygonRoi, Roi, Wand
 from ij.measure import ResultsTable
 from ij.plugin.frame import RoiManager
@@ -129,8 +129,10 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, name="protrusion
     return rois
 
 
-def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrusions"):
-    """Open ``protrusions.csv`` as a table, its outlines in the ROI Manager and on the albedo.
+def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrusions",
+                     images=()):
+    """Open ``protrusions.csv`` as a table, its outlines in the ROI Manager and as an overlay on
+    the albedo and ``images`` (e.g. the height map; their other overlay items stay).
 
     Returns
     -------
@@ -146,12 +148,18 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     rois = protrusion_rois(table, labels_imp, name=title)
     manager = RoiManager.getInstance() or RoiManager()
     replace_rois(manager, title + " ")
-    overlay = Overlay()
     for roi in rois:
         manager.addRoi(roi)
-        overlay.add(roi)
-    if albedo_imp is not None:
-        albedo_imp.setOverlay(overlay)
+    for imp in [albedo_imp] + list(images):
+        if imp is None:
+            continue
+        overlay = imp.getOverlay() or Overlay()
+        for i in reversed(range(overlay.size())):
+            if (overlay.get(i).getName() or "").startswith(title + " "):
+                overlay.remove(i)
+        for roi in rois:
+            overlay.add(roi.clone())
+        imp.setOverlay(overlay)
     IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
     return table.size()
 
@@ -241,3 +249,157 @@ def image_size(path):
     if not infos:
         raise BridgeError("cannot read the TIFF header of %s" % path)
     return infos[0].width, infos[0].height
+
+
+def show_warnings(title, lines):
+    """Show warnings in a non-modal text window (never a modal dialog: a batch run would hang);
+    an earlier window of the same item is replaced."""
+    from ij.text import TextWindow
+    name = "uvps warnings: " + title
+    old = WindowManager.getWindow(name)
+    if old is not None:
+        old.dispose()
+    TextWindow(name, "\n".join(lines), 700, 200)
+
+
+# ---------------------------------------------------------------------------------------------
+# Height, albedo and the wand's image as a person looks at them (display only: files unchanged)
+# ---------------------------------------------------------------------------------------------
+
+#: matplotlib's viridis at 0, 1/8, ..., 1: the LUT built when ImageJ has no "mpl-viridis".
+VIRIDIS = [(68, 1, 84), (71, 45, 123), (59, 82, 139), (44, 114, 142), (33, 145, 140),
+           (40, 174, 128), (94, 201, 98), (173, 220, 48), (253, 231, 37)]
+
+MICRONS = u"\u00b5m"
+
+
+def viridis_lut():
+    """ImageJ's ``mpl-viridis`` LUT (Fiji's luts/ folder) if present, else viridis interpolated
+    from :data:`VIRIDIS`: perceptually uniform, readable in grey and by colour-blind people."""
+    from jarray import array
+    from ij.process import LUT
+    luts = IJ.getDirectory("luts")
+    path = os.path.join(luts, "mpl-viridis.lut") if luts else None
+    if path and os.path.isfile(path):
+        from ij.plugin import LutLoader
+        lut = LutLoader.openLut(path)
+        if lut is not None:
+            return lut
+    reds, greens, blues = [], [], []
+    for i in range(256):
+        t = i / 255.0 * (len(VIRIDIS) - 1)
+        k = min(int(t), len(VIRIDIS) - 2)
+        f = t - k
+        a, b = VIRIDIS[k], VIRIDIS[k + 1]
+        rgb = [int(round(a[c] + f * (b[c] - a[c]))) for c in range(3)]
+        for out, v in zip((reds, greens, blues), rgb):
+            out.append(v - 256 if v > 127 else v)
+    return LUT(array(reds, "b"), array(greens, "b"), array(blues, "b"))
+
+
+def show_height(path, title="depth"):
+    """Open the height map with its value unit (um), a viridis LUT and a calibration bar (an
+    overlay, so the pixel values stay the heights)."""
+    imp = open_image(path, title, show=False)
+    imp.getCalibration().setValueUnit(MICRONS)
+    imp.setLut(viridis_lut())
+    imp.resetDisplayRange()
+    _show_replacing(imp)
+    IJ.run(imp, "Calibration Bar...", "location=[Upper Right] fill=White label=Black number=5 "
+           "decimal=1 font=12 zoom=1 overlay")
+    for i in range(imp.getOverlay().size() if imp.getOverlay() is not None else 0):
+        imp.getOverlay().get(i).setName("calibration bar")
+    return imp
+
+
+def _sample_top(processors, fraction=0.995, n=200000):
+    """The ``fraction`` quantile of the finite values of ``processors`` (a sample of them)."""
+    values = []
+    for ip in processors:
+        pixels = ip.getPixels()
+        step = max(1, len(pixels) * len(processors) // n)
+        values.extend(v for v in pixels[::step] if v == v)
+    if not values:
+        return 1.0
+    values.sort()
+    return values[min(len(values) - 1, int(fraction * len(values)))] or 1.0
+
+
+def albedo_rgb(float_imp, title="albedo"):
+    """The colour a person sees: the 3 float channels of ``albedo.tif`` as one RGB image, all
+    channels scaled by one factor (99.5 % of the values below white). Display only."""
+    from ij.process import ColorProcessor
+    stack = float_imp.getStack()
+    if stack.getSize() != 3:
+        return float_imp
+    channels = [stack.getProcessor(i + 1) for i in range(3)]
+    top = _sample_top(channels)
+    planes = []
+    for ip in channels:
+        ip = ip.duplicate()
+        ip.setMinAndMax(0.0, top)
+        planes.append(ip.convertToByte(True).getPixels())
+    cp = ColorProcessor(float_imp.getWidth(), float_imp.getHeight())
+    cp.setRGB(planes[0], planes[1], planes[2])
+    imp = ImagePlus(title, cp)
+    imp.setCalibration(float_imp.getCalibration())
+    imp.setProperty("Info", "uvps: albedo.tif shown as RGB (R, G, B scaled by 255 / %g for "
+                    "display; the values are in the file)" % top)
+    return imp
+
+
+def show_albedo(path, title="albedo"):
+    """Open ``albedo.tif`` as an RGB image (display only; the file keeps its float values)."""
+    imp = albedo_rgb(open_image(path, title, show=False), title)
+    _show_replacing(imp)
+    return imp
+
+
+def wand_image(albedo_path, title="albedo (R+G+B)/3"):
+    """The grey image the wand works on: (R + G + B) / 3 of the float albedo (ImageJ's own wand
+    on an RGB image uses the same mean), calibrated like the albedo."""
+    from ij.process import Blitter
+    imp = open_image(albedo_path, show=False)
+    stack = imp.getStack()
+    grey = stack.getProcessor(1).duplicate().convertToFloat()
+    for i in range(2, stack.getSize() + 1):
+        grey.copyBits(stack.getProcessor(i).convertToFloat(), 0, 0, Blitter.ADD)
+    grey.multiply(1.0 / stack.getSize())
+    grey.resetMinAndMax()
+    out = ImagePlus(title, grey)
+    out.setCalibration(imp.getCalibration())
+    return out
+
+
+def show_wand_image(albedo_path, title="albedo (R+G+B)/3"):
+    imp = wand_image(albedo_path, title)
+    _show_replacing(imp)
+    IJ.log("uvps: '%s' is the grey image the wand works on: use ImageJ's wand tool on it with "
+           "the same tolerance to check a selection by hand" % title)
+    return imp
+
+
+def image_geometry(path):
+    """(width, height, pixel size in um or None) of an image file."""
+    imp = IJ.openImage(path)
+    if imp is None:
+        raise BridgeError("ImageJ cannot open %s" % path)
+    cal = imp.getCalibration()
+    factor = {"micron": 1.0, "microns": 1.0, MICRONS: 1.0, "um": 1.0, "mm": 1000.0,
+              "nm": 0.001}.get((cal.getUnit() or "").lower())
+    size = cal.pixelWidth * factor if factor is not None and cal.scaled() else None
+    return imp.getWidth(), imp.getHeight(), size
+
+
+def values_at(path, points):
+    """The pixel values of a (label) image at points (x, y) in pixels; 0 outside."""
+    imp = IJ.openImage(path)
+    if imp is None:
+        raise BridgeError("ImageJ cannot open %s" % path)
+    ip = imp.getProcessor()
+    out = []
+    for x, y in points:
+        xi, yi = int(math.floor(x)), int(math.floor(y))
+        inside = 0 <= xi < ip.getWidth() and 0 <= yi < ip.getHeight()
+        out.append(int(round(ip.getPixelValue(xi, yi))) if inside else 0)
+    return out

@@ -56,7 +56,23 @@ def run_command(command, values, inputs=None, params=None, request_dir=None, ski
                            request_dir=request_dir)
     if response.text or not spec.get("output"):
         IJ.log(bridge_logic.response_text(response))
+    report_response(command, response, table,
+                    user_gave_lights=bool(optional_path(values.get("lights"))))
     return response
+
+
+def report_response(command, response, table=None, user_gave_lights=False):
+    """The response's warnings and diagnostics in the Log, in the menu user's words; warnings
+    that change the result also in a (non-modal) window when a user clicked the menu item."""
+    for line in bridge_logic.diagnostic_lines(command, response.diagnostics, user_gave_lights):
+        IJ.log(line)
+    lines = bridge_logic.warning_lines(response, command, table)
+    for line in lines:
+        IJ.log(line)
+    serious = [line for line, w in zip(lines, response.warnings)
+               if bridge_logic.affects_result(w)]
+    if serious and runner.is_interactive():
+        display.show_warnings(bridge_logic.MENU_TITLES.get(command, command), serious)
 
 
 def _capture_call(command, values, params=None):
@@ -71,13 +87,18 @@ def _capture_call(command, values, params=None):
 
 
 def _show_protrusions(response, csv_name, labels_name, run_dir, title):
-    """Open the protrusion table, its ROIs, and the albedo with the outlines as overlay."""
-    albedo = None
+    """Open the protrusion table, its ROIs, and the albedo (RGB) and the height map with the
+    outlines as overlay."""
+    albedo = height = None
     albedo_path = os.path.join(run_dir, "albedo.tif")
     if os.path.isfile(albedo_path):
-        albedo = display.open_image(albedo_path, "albedo")
+        albedo = display.show_albedo(albedo_path, "albedo")
+    height_path = os.path.join(run_dir, "depth.tif")
+    if os.path.isfile(height_path):
+        height = display.show_height(height_path, "depth")
     labels = response.file(labels_name) if response.has_file(labels_name) else None
-    return display.show_protrusions(response.file(csv_name), labels, albedo, title)
+    return display.show_protrusions(response.file(csv_name), labels, albedo, title,
+                                    images=[height])
 
 
 def estimate_lights(values):
@@ -101,7 +122,7 @@ def normals_and_albedo(values):
     """``normals``: per-pixel least squares for normals and the RGB fluorescence albedo."""
     response = _capture_call("normals", values)
     display.open_image(response.file("normals.tif"), "normals")
-    display.open_image(response.file("albedo.tif"), "albedo")
+    display.show_albedo(response.file("albedo.tif"), "albedo")
     return response
 
 
@@ -109,7 +130,7 @@ def integrate_height(values):
     """``integrate``: height in um from the run's normals."""
     _run_file(values, "normals.tif")
     response = run_command("integrate", values)
-    display.open_image(response.file("depth.tif"), "depth")
+    display.show_height(response.file("depth.tif"), "depth")
     return response
 
 
@@ -122,31 +143,65 @@ def detect_protrusions(values):
     return response
 
 
-def wand_points(values, request_dir):
-    """The wand's clicks: the ``points`` CSV option, else the current point selection / ROI
-    Manager points, written to the request folder."""
+def wand_points(values, request_dir, albedo_path):
+    """The wand's clicks in pixels, written to the request folder: the ``points`` file (pixels,
+    or um as *Analyze > Measure* exports them: key ``units``), else the current point selection
+    / ROI Manager points (pixels)."""
     path = optional_path(values.get("points"))
     if path is not None:
         if not os.path.isfile(path):
             raise BridgeError("points file %s does not exist" % path)
-        return path  # the core reads and checks it (CSV, tab-separated or ImageJ XY)
-    points = capture.point_selection()
-    if not points:
-        raise BridgeError("no points: click the protrusions with the multi-point tool (or add "
-                          "points to the ROI Manager), or give a CSV with x_px,y_px (key points=)")
-    return capture.write_points(points, request_dir)
+        fh = open(path, "r")
+        try:
+            points, header_unit = bridge_logic.read_points_text(fh.read())
+        finally:
+            fh.close()
+        if not points:
+            raise BridgeError("the points file %s lists no points" % path)
+        where = "file %s" % path
+    else:
+        points, header_unit = capture.point_selection(), "px"
+        if not points:
+            raise BridgeError("no points: click the protrusions with the multi-point tool (or "
+                              "add points to the ROI Manager), or give a CSV with x_px,y_px "
+                              "(key points=)")
+        where = "point selection"
+    width, height, pixel_um = display.image_geometry(albedo_path)
+    pixels, unit = bridge_logic.points_in_pixels(
+        points, header_unit, values.get("units") or bridge_logic.UNITS_AUTO, width, height,
+        pixel_um)
+    IJ.log("uvps Wand Count: %d clicks from the %s, read in %s%s" % (
+        len(points), where, unit,
+        " (divided by the albedo's pixel size %g um)" % pixel_um if unit == "um" else ""))
+    return capture.write_points(pixels, request_dir), pixels
 
 
 def wand_count(values):
-    """``wand``: the manual method; one wand selection per click on the albedo, then counted."""
+    """``wand``: the manual method; one wand selection per click on the albedo, then counted.
+    Clicks inside an earlier click's selection are listed in the Log; the grey (R+G+B)/3 image
+    the wand works on opens as ``albedo (R+G+B)/3`` for wanding by hand."""
     out = run_folder(values)
-    _run_file(values, "albedo.tif")
+    albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
-    points_path = wand_points(values, request_dir)
+    points_path, pixels = wand_points(values, request_dir, albedo_path)
     response = run_command("wand", values, {"points": points_path}, None, request_dir,
                            skip=("points",))
+    labels_path = response.file("protrusions_manual_labels.tif")
+    labels = display.values_at(labels_path, pixels)
+    for number, (x, y), earlier in bridge_logic.repeated_clicks(pixels, labels):
+        if earlier is None:
+            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px selected nothing (no valid "
+                   "albedo there)" % (number, x, y))
+        else:
+            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of "
+                   "click %d: counted once" % (number, x, y, earlier))
+    repeated = len(bridge_logic.repeated_clicks(pixels, labels))
+    if repeated:
+        IJ.log("uvps Wand Count: %d of %d clicks added no protrusion (listed above); ImageJ's "
+               "own wand would keep each as a selection" % (repeated, len(pixels)))
     count = _show_protrusions(response, "protrusions_manual.csv",
                               "protrusions_manual_labels.tif", out, "Manual protrusions")
+    display.show_wand_image(albedo_path)
     IJ.log("uvps Wand Count: %d protrusions" % count)
     return response
 
@@ -213,14 +268,14 @@ def run_whole_pipeline(values):
     out = run_folder(values)
     response = _capture_call("run", values)
     display.open_image(response.file("normals.tif"), "normals")
-    display.open_image(response.file("depth.tif"), "depth")
     display.show_lights(response.file("lights.json"))
     # The core detects whenever regions are set (or detect is ticked): show what it listed.
     if response.has_file("protrusions.csv"):
         _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out,
                           "Protrusions")
     else:
-        display.open_image(response.file("albedo.tif"), "albedo")
+        display.show_height(response.file("depth.tif"), "depth")
+        display.show_albedo(response.file("albedo.tif"), "albedo")
     if response.has_file("report.html"):
         display.show_report(response.file("report.html"), runner.is_interactive())
     IJ.log("uvps Run Whole Pipeline: outputs in " + out)

@@ -253,6 +253,13 @@ def report_error(title, exc):
         # Stop the calling macro: without this, ImageJ would run its next line after a Python
         # exception in a menu command (tried with ImageJ 1.53t -batch).
         Interpreter.abort()
+    if not interactive and System.getProperty("uvps.test") is None and IJ.getInstance() is None \
+            and bridge_logic.exit_on_failure(System.getProperty("sun.java.command")):
+        # Plain `ImageJ -batch` exits 0 after an aborted macro: end it with a failure status so a
+        # script can tell (an interactive session or PyImageJ is never ended; the test harness
+        # has its own status, see tests/imagej/README.md).
+        System.out.flush()
+        System.exit(bridge_logic.FAILURE_EXIT_STATUS)
     if not interactive:
         raise PluginError(line)
 

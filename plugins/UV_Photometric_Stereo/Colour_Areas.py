@@ -25,9 +25,12 @@ COMMAND = "regions"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dlg.choice("Source of the areas", menus.AREA_SOURCES, menus.AREA_SOURCES[0])
+    dlg.describe("Source of the areas", "ROI Manager: one area selection per colour area (later "
+                 "ones on top); Automatic: proposed from the albedo's colours; Label image: a "
+                 "TIFF whose pixel values number the areas (0 = none)")
     dialogs.add_param(dlg, (COMMAND, "labels"), key="label")
     dialogs.add_param(dlg, (COMMAND, "n_areas"), key="number")
     values = dlg.show()

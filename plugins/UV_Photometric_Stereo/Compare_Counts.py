@@ -23,7 +23,7 @@ COMMAND = "compare"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "a"), key="first")
     dialogs.add_param(dlg, (COMMAND, "b"), key="second")

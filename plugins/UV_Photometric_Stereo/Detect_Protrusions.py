@@ -4,7 +4,11 @@ Needs albedo, normals and depth in the run folder. Opens a "Protrusions" table, 
 protrusion in the ROI Manager and the outlines as an overlay on the albedo; writes
 protrusions.csv and protrusions_labels.tif.
 
-Macro: run("Detect Protrusions", "run=[/data/run] regions=auto");
+Sensitivity: a candidate must rise this many times the height noise above its surround (the Log
+gives the noise, the candidates and why each rejected one was rejected); Smallest width: narrower
+candidates are left out.
+
+Macro: run("Detect Protrusions", "run=[/data/run] regions=auto sensitivity=5 smallest=30");
 """
 import os
 import sys
@@ -24,9 +28,11 @@ COMMAND = "detect"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
+    dialogs.add_param(dlg, (COMMAND, "dynamic_k"), key="sensitivity", decimals=1)
+    dialogs.add_param(dlg, (COMMAND, "min_width_um"), key="smallest", decimals=0)
     values = dlg.show()
     if values is not None:
         menus.detect_protrusions(values)

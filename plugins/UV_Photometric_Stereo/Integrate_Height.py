@@ -23,7 +23,7 @@ COMMAND = "integrate"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
     values = dlg.show()

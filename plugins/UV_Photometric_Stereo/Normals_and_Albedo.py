@@ -24,7 +24,7 @@ COMMAND = "normals"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
     dialogs.add_light_fields(dlg, COMMAND)

@@ -23,7 +23,7 @@ COMMAND = "relight"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "azimuth_deg"), key="azimuth", decimals=1)
     dialogs.add_param(dlg, (COMMAND, "elevation_deg"), key="elevation", decimals=1)

@@ -21,7 +21,7 @@ COMMAND = "info"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_param(dlg, (COMMAND, "run"), key="run")
     values = dlg.show()
     if values is not None:

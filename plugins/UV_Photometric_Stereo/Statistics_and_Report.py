@@ -23,7 +23,7 @@ COMMAND = "stats"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "bins_um"), key="bins")
     values = dlg.show()

@@ -26,9 +26,13 @@ TITLE = "UVPS Settings"
 def main():
     previous = Prefs.get(runner.PYTHON_PREF, "")
     python, source = runner.python_command()
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dlg.message("Now: %s (from %s)" % (python, source))
     dlg.file("Python with uvps installed (empty = automatic)", "")
+    dlg.describe("Python with uvps installed (empty = automatic)",
+                 "the CPython program that runs the uvps core (e.g. /opt/uvps/.venv/bin/python); "
+                 "empty: the UVPS_PYTHON environment variable, else the one the installer wrote "
+                 "into uvps_fiji.cfg, else python3")
     values = dlg.show()
     if values is not None:
         text = menus.settings(values, previous)

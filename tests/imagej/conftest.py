@@ -22,7 +22,9 @@ from xvfb_display import XvfbError, start_xvfb, stop_xvfb
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
-JAVA_SOURCES = sorted((HERE / "java").glob("*.java"))
+#: The test launcher, and the Jython interpreter class that install_fiji.py installs in plain ImageJ.
+JAVA_SOURCES = sorted((HERE / "java").glob("*.java")) + [
+    REPO / "jython_lib" / "uvps_fiji" / "imagej1" / "Jython.java"]
 DEPS_SCRIPT = REPO / "scripts" / "install_imagej_deps.sh"
 INSTALLER = REPO / "scripts" / "install_fiji.py"
 IJ_JAR = Path(os.environ.get("UVPS_IJ_JAR", "/usr/share/java/ij.jar"))
@@ -150,7 +152,9 @@ def bare_imagej_home(tmp_path):
 def imagej_home(tmp_path):
     """A fresh ImageJ folder with uvps installed by ``scripts/install_fiji.py`` (this python)."""
     home = make_imagej_home(tmp_path / "ImageJ")
-    proc = subprocess.run([sys.executable, str(INSTALLER), str(home), "--python", sys.executable],
+    # The interpreter class is on the harness's classpath (test_install_fiji tests installing it).
+    proc = subprocess.run([sys.executable, str(INSTALLER), str(home), "--python", sys.executable,
+                           "--no-interpreter"],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           universal_newlines=True, timeout=300)
     if proc.returncode != 0:
@@ -160,29 +164,34 @@ def imagej_home(tmp_path):
 
 @pytest.fixture
 def run_macro(imagej_env, tmp_path, request):
-    """Return ``run_macro(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None)``.
+    """Return ``run_macro(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None,
+    plain=False, env=None)``.
 
     Runs ``macro_text`` in a fresh ImageJ JVM (``-batch``) and returns a MacroResult. ``home``
     defaults to this test's ``imagej_home`` (uvps installed). With ``screenshot_dir`` every dialog
     is saved there as ``<title>.png`` and confirmed with OK instead of halting the JVM. On
-    timeout the whole process group is killed and the test fails.
+    timeout the whole process group is killed and the test fails. ``plain=True`` runs ImageJ as
+    a user would (main class ``ij.ImageJ``, no ``-Duvps.test``: no dialog guard, no status 4);
+    ``env`` adds environment variables.
     """
     counter = [0]
     user_home = tmp_path / "user_home"
     user_home.mkdir(exist_ok=True)
 
-    def _run(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None):
+    def _run(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None,
+             plain=False, env=None):
         if home is None:
             home = request.getfixturevalue("imagej_home")
         counter[0] += 1
         macro = tmp_path / ("macro_%d.ijm" % counter[0])
         macro.write_text(macro_text, encoding="utf-8")
-        cmd = [imagej_env.java, "-Duvps.test=1", "-Duser.home=%s" % user_home]
+        cmd = [imagej_env.java] + ([] if plain else ["-Duvps.test=1"])
+        cmd.append("-Duser.home=%s" % user_home)
         if screenshot_dir is not None:
             cmd.append("-Duvps.screenshot.dir=%s" % Path(screenshot_dir).resolve())
-        cmd += ["-cp", imagej_env.classpath, "UvpsTestLauncher",
+        cmd += ["-cp", imagej_env.classpath, "ij.ImageJ" if plain else "UvpsTestLauncher",
                 "-ijpath", str(Path(home).resolve()), "-batch", str(macro), arg]
-        env = dict(os.environ, DISPLAY=imagej_env.display)
+        env = dict(os.environ, DISPLAY=imagej_env.display, **(env or {}))
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 env=env, cwd=str(tmp_path), start_new_session=True,
                                 universal_newlines=True)

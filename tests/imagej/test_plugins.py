@@ -84,12 +84,31 @@ def test_settings_rejects_a_python_without_uvps(run_macro, tmp_path):
 def _assert_same_image(path_a, path_b, atol):
     a, b = tifffile.imread(str(path_a)), tifffile.imread(str(path_b))
     assert a.shape == b.shape
-    np.testing.assert_allclose(a, b, atol=atol, equal_nan=True)
+    # rtol: float32 albedos of ~3.5e4 counts differ by their last bit (4e-3) between two runs
+    np.testing.assert_allclose(a, b, atol=atol, rtol=1e-6, equal_nan=True)
 
 
-def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run, tmp_path):
+#: A menu command that prints what only a person sees of the open height map and albedo.
+PROBE = """from ij import IJ, WindowManager
+depth = WindowManager.getImage("depth")
+lut = depth.getProcessor().getLut()
+print("depth unit %s" % depth.getCalibration().getValueUnit().encode("ascii", "replace"))
+print("depth lut %d,%d,%d %d,%d,%d" % (lut.getRed(0), lut.getGreen(0), lut.getBlue(0),
+                                       lut.getRed(255), lut.getGreen(255), lut.getBlue(255)))
+names = [depth.getOverlay().get(i).getName() for i in range(depth.getOverlay().size())]
+print("depth overlay %d protrusions, bar %s" % (
+    len([n for n in names if n and n.startswith("Protrusions ")]), "calibration bar" in names))
+print("albedo type %d" % WindowManager.getImage("albedo").getType())
+"""
+
+
+def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run, tmp_path,
+                                           imagej_home, write_plugin):
     """Regions set, detect not ticked: the core detects anyway, and the protrusions it listed
-    are shown (table, ROIs, overlay)."""
+    are shown (table, ROIs, overlay on the RGB albedo and on the height map, which has its value
+    unit, a viridis LUT and a calibration bar); the core's warnings and detection counts are in
+    the Log in the dialog's words."""
+    write_plugin(imagej_home, "Test/Probe_Display.py", PROBE)
     out = tmp_path / "run folder"
     result = run_macro(
         'run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s degree=4 '
@@ -100,15 +119,35 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
         'selectImage("albedo");\n'
         'print("overlay " + Overlay.size);\n'
         'getPixelSize(unit, pw, ph);\n'
-        'print("pixel " + unit + " " + pw);\n' % (q(capture_dir), q(out)),
+        'print("pixel " + unit + " " + pw);\n'
+        'run("Probe Display");\n' % (q(capture_dir), q(out)),
         timeout=TIMEOUT).check()
     lines = _log_lines(result)
+    # What the core said reaches the Log, in the dialog's words (no CLI flag).
+    diag = json.loads((out / "run.json").read_text()).get("diagnostics", {}).get("detect", {})
+    kept = len(_read_csv(out / "protrusions.csv"))
+    candidates = [ln for ln in lines
+                  if ln.startswith("uvps Run Whole Pipeline detection: ") and "candidates" in ln]
+    assert len(candidates) == 1, lines
+    assert "%d protrusions kept" % kept in candidates[0]
+    if diag:
+        assert "%d candidates" % (kept + sum(diag["rejected"].values())) in candidates[0]
+    assert any(ln.startswith("uvps Run Whole Pipeline lights: 8 lamps estimated from the images")
+               for ln in lines), lines
+    warnings = [ln for ln in lines if ln.startswith("uvps Run Whole Pipeline warning: ")]
+    assert warnings and all("--" not in ln for ln in warnings), warnings
+    assert any('field "Lights file"' in ln for ln in warnings), warnings
+    # The height map and the albedo as a person sees them (the files are unchanged: below).
+    assert "depth unit ?m" in lines or "depth unit um" in lines, lines
+    assert "depth lut 68,1,84 253,231,37" in lines            # viridis, dark purple to yellow
+    assert "albedo type 4" in lines                             # ImagePlus.COLOR_RGB
     for name in ("normals.tif", "albedo.tif", "depth.tif", "lights.json", "protrusions.csv",
                  "regions_labels.tif", "run.json"):
         assert (out / name).is_file(), name
     n = len(_read_csv(out / "protrusions.csv"))
     assert n > 0
     assert "rois %d" % n in lines and "rows %d" % n in lines and "overlay %d" % n in lines
+    assert "depth overlay %d protrusions, bar True" % n in lines
     assert "lights %d" % N_LIGHTS in lines
     assert any(line.split() in (["pixel", unit, "15"] for unit in ("micron", "microns", u"\u00b5m"))
                for line in lines), lines
@@ -170,7 +209,8 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
          ["depth.tif"]),
         ('Colour Areas', 'run=%s source=Automatic number=0' % q(out),
          ["regions_labels.tif", "regions.csv"]),
-        ('Detect Protrusions', 'run=%s regions=%s' % (q(out), q(out / "regions_labels.tif")),
+        ('Detect Protrusions', 'run=%s regions=%s sensitivity=5 smallest=30'
+         % (q(out), q(out / "regions_labels.tif")),
          ["protrusions.csv", "protrusions_labels.tif"]),
         ('Wand Count', 'run=%s points=%s tolerance=0.05 connectivity=8' % (q(out), q(points)),
          ["protrusions_manual.csv", "protrusions_manual_labels.tif"]),
@@ -190,6 +230,12 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
         for name in files:
             assert (out / name).exists(), (cmd, name)
     assert "tables %d %d" % (N_LIGHTS, len(_read_csv(out / "comparison.csv"))) in lines
+    # Steps after Estimate Lights reuse its lamps, and say so.
+    for title in ("Flat Field", "Normals and Albedo"):
+        assert ("uvps %s lights: %d lamps from the run folder's %s (not estimated again; give a "
+                "Lights file to use others)" % (title, N_LIGHTS, out / "lights.json")) in lines
+    assert any(ln.startswith("uvps Detect Protrusions detection: ") and "candidates" in ln
+               for ln in lines), lines
     lights = json.loads((out / "lights.json").read_text())
     assert len(lights["lights"]) == N_LIGHTS
     assert tifffile.imread(str(out / "relight.tif")).shape[-2:] == SHAPE
@@ -407,3 +453,132 @@ def test_a_saved_stack_is_passed_by_its_file(run_macro, grey_capture_dir, tmp_pa
                        % (path, q(out)), timeout=TIMEOUT).check()
     assert "uvps: capture %s" % path in _log_lines(result)
     assert len(json.loads((out / "lights.json").read_text())["lights"]) == N_LIGHTS
+
+
+def _rgb_sequence_macro(capture_dir):
+    """Open the RGB capture as File > Import > Image Sequence does: R, G, B as grey slices."""
+    return 'File.openSequence("%s/", " filter=uv_");\nrename("seq");\n' % capture_dir
+
+
+def test_an_rgb_image_sequence_as_grey_slices_is_refused_with_the_way_out(run_macro, capture_dir,
+                                                                           tmp_path):
+    """36 grey slices from 12 RGB files are not 36 lamps: refused before any long work."""
+    result = run_macro(_rgb_sequence_macro(capture_dir) + 'print("slices " + nSlices);\n'
+                       'run("Normals and Albedo", "capture=[Current stack] run=%s");\n'
+                       % q(tmp_path / "run"), timeout=TIMEOUT)
+    assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stdout + result.stderr
+    assert "slices %d" % (3 * N_LIGHTS) in result.stdout
+    assert ("holds %d grey slices that are the R, G, B of %d RGB images" % (3 * N_LIGHTS, N_LIGHTS)
+            in result.stdout)
+    assert "Image > Hyperstacks > Stack to Hyperstack, channels=3" in result.stdout
+    assert " -m uvps bridge " not in result.stdout            # the core never started
+
+
+def test_the_current_stack_as_rgb_sequence_composite_or_rgb(run_macro, capture_dir, tmp_path):
+    """The shapes users get from ImageJ give the albedo of the folder itself (known lamps)."""
+    from uvps.commands import COMMANDS
+
+    lp = capture_dir / "lights.lp"
+    direct = tmp_path / "direct"
+    COMMANDS["normals"]({"images": [str(capture_dir)]}, {"lights": str(lp)}, direct)
+    opts = 'capture=[Current stack] lights=%s run=%s' % (q(lp), "%s")
+    macro = _rgb_sequence_macro(capture_dir)
+    # 1. the user says 3 channels; 2. the lights file lists a third as many lamps
+    macro += ('run("Normals and Albedo", "%s channels=[3 (R, G, B per lamp)]");\n'
+              % (opts % q(tmp_path / "said")))
+    macro += 'selectImage("seq");\nrun("Normals and Albedo", "%s");\n' % (opts % q(tmp_path / "lp"))
+    # 3. a composite (Stack to Hyperstack, channels=3); 4. an RGB stack
+    macro += ('selectImage("seq");\nrun("Stack to Hyperstack...", "order=xyczt(default) channels=3 '
+              'slices=%d frames=1 display=Composite");\n' % N_LIGHTS)
+    macro += 'run("Normals and Albedo", "%s");\n' % (opts % q(tmp_path / "composite"))
+    macro += ('selectImage("seq");\nrun("RGB Color", "slices keep");\nrename("rgb");\n'
+              'run("Normals and Albedo", "%s");\n' % (opts % q(tmp_path / "rgb")))
+    result = run_macro(macro, timeout=TIMEOUT).check()
+    stacks = [ln for ln in _log_lines(result) if ln.startswith("uvps: current stack ")]
+    assert stacks == [
+        "uvps: current stack 'seq': 8 lamps, 3 channels, 16-bit, 320 x 240 pixels "
+        "(Channels per lamp = 3)",
+        "uvps: current stack 'seq': 8 lamps, 3 channels, 16-bit, 320 x 240 pixels "
+        "(lights.lp lists 8 lamps)",
+        "uvps: current stack 'seq': 8 lamps, 3 channels, 16-bit, 320 x 240 pixels "
+        "(3 channels (composite or hyperstack))",
+        "uvps: current stack 'rgb': 8 lamps, 3 channels, 8-bit RGB, 320 x 240 pixels "
+        "(RGB image)"], stacks
+    for name in ("said", "lp", "composite"):
+        _assert_same_image(tmp_path / name / "albedo.tif", direct / "albedo.tif", atol=1e-6)
+    assert tifffile.imread(str(tmp_path / "rgb" / "albedo.tif")).shape == (3,) + SHAPE
+
+
+def test_a_misspelt_macro_key_is_an_error_naming_the_valid_keys(run_macro, tmp_path):
+    result = run_macro('run("Relight", "run=%s azimut=45");\nprint("went on");\n'
+                       % q(tmp_path / "run"))
+    assert result.returncode == PYTHON_EXCEPTION_STATUS, result.stdout + result.stderr
+    assert ("uvps Relight failed (MacroOptions): unknown macro key 'azimut' for Relight; the "
+            "valid keys are: azimuth, elevation, run") in result.stdout
+    assert "went on" not in result.stdout
+
+
+def test_plain_imagej_batch_exits_non_zero_after_a_failed_item(run_macro, tmp_path):
+    """`java -cp ij.jar:jython.jar:<Jython class> ij.ImageJ -batch macro.ijm`, as a user runs
+    it: ImageJ itself exits 0 after the aborted macro (UVPS_EXIT_ON_ERROR=0 shows it); the
+    menu item makes it exit 1."""
+    macro = 'run("Relight", "run=%s azimuth=45");\nprint("went on");\n' % q(tmp_path / "none")
+    result = run_macro(macro, plain=True, timeout=TIMEOUT)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "uvps Relight failed (BridgeError): " in result.stdout
+    assert "went on" not in result.stdout
+    result = run_macro(macro, plain=True, env={"UVPS_EXIT_ON_ERROR": "0"}, timeout=TIMEOUT)
+    assert result.returncode == 0 and "went on" not in result.stdout, result.stdout
+
+
+def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_run, tmp_path):
+    """Points as Analyze > Measure exports them on the calibrated albedo (um), one click inside
+    an earlier click's selection: it is reported by number and position; the grey (R+G+B)/3
+    image the wand uses opens for wanding by hand."""
+    run, clicked = truth_run
+    px = 15.0
+    xs = [float(r["x_px"]) for r in clicked] + [float(clicked[0]["x_px"]) + 1.0]
+    ys = [float(r["y_px"]) for r in clicked] + [float(clicked[0]["y_px"])]
+    points = tmp_path / "Results.csv"
+    points.write_text(" ,Area,Mean,X,Y\n" + "".join(
+        "%d,0.1,5,%.3f,%.3f\n" % (i + 1, (x + 0.5) * px, (y + 0.5) * px)
+        for i, (x, y) in enumerate(zip(xs, ys))))
+    ix, iy = int(xs[1]), int(ys[1])
+    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
+                       'selectImage("albedo (R+G+B)/3");\n'
+                       'print("grey " + bitDepth() + " " + d2s(getPixel(%d, %d), 6));\n'
+                       % (q(run), q(points), ix, iy), timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    assert ("uvps Wand Count: %d clicks from the file %s, read in um (divided by the albedo's "
+            "pixel size 15 um)" % (len(xs), points)) in lines, lines
+    assert ("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of click 1: "
+            "counted once" % (len(xs), xs[-1] + 0.5, ys[-1] + 0.5)) in lines, lines
+    assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
+    _check_manual(run, clicked)
+    albedo = tifffile.imread(str(run / "albedo.tif")).astype(np.float64)
+    grey = [ln for ln in lines if ln.startswith("grey ")]
+    assert grey and grey[0].split()[1] == "32"
+    assert abs(float(grey[0].split()[2]) - albedo[:, iy, ix].mean()) < 1e-5
+
+
+def test_plain_imagej_runs_the_menu_items_offline(imagej_env, tmp_path):
+    """`java -jar ij.jar -batch` (nothing else on the classpath, no network) on a folder filled by
+    scripts/install_fiji.py: its Jython interpreter runs the .py menu items."""
+    import os
+    import subprocess
+
+    from conftest import INSTALLER, IJ_JAR, make_imagej_home
+
+    home = make_imagej_home(tmp_path / "ImageJ")
+    subprocess.run([sys.executable, str(INSTALLER), str(home), "--python", sys.executable],
+                   check=True, timeout=300, stdout=subprocess.PIPE)
+    macro = tmp_path / "settings.ijm"
+    macro.write_text('run("UVPS Settings", "python=%s");\nprint("went on");\n' % q(sys.executable))
+    proc = subprocess.run([imagej_env.java, "-Duser.home=%s" % tmp_path, "-jar", str(IJ_JAR),
+                           "-ijpath", str(home), "-batch", str(macro)],
+                          env=dict(os.environ, DISPLAY=imagej_env.display), cwd=str(tmp_path),
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          universal_newlines=True, timeout=120, start_new_session=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "uvps Settings: %s has uvps" % sys.executable in proc.stdout
+    assert "went on" in proc.stdout.splitlines()

@@ -1,6 +1,8 @@
-// Test-only stand-in for the "Jython" plugin that ImageJ 1.x looks up (IJ.runPlugIn("Jython", ""))
-// to run .py menu commands and scripts; Fiji ships its own, Debian's imagej does not (without it
-// ImageJ opens a modal "download Jython?" dialog). Macro_Runner.runPython(script, arg) passes the
+// The "Jython" plugin that plain ImageJ 1.x looks up (IJ.runPlugIn("Jython", "")) to run .py menu
+// commands and scripts; Fiji ships its own, Debian's imagej does not (without it ImageJ opens a
+// modal "download Jython?" dialog, which hangs offline and in -batch runs). scripts/install_fiji.py
+// compiles it into <ImageJ>/plugins/jars/uvps_jython_interpreter.jar beside a copy of jython.jar;
+// the real-ImageJ tests compile it onto their classpath. Macro_Runner.runPython(script, arg) passes the
 // file's text; the path comes from Macro_Runner.getFilePath().
 //
 // Each run gets a fresh org.python.util.PythonInterpreter with sys.argv = [path, arg], __file__ and
