@@ -38,6 +38,7 @@ from .errors import UVPSComputeError, UVPSError, UVPSInputError
 from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
+from .capture_commands import cmd_run
 from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS
 from .regions import UM2_PER_CM2, load_regions, read_region_names
 from .spec import CommandSpec, Param
@@ -126,8 +127,7 @@ def list_captures(items) -> list:
 
 
 def _run_param_names() -> tuple:
-    from .commands import SPECS_BY_NAME
-    return tuple(p.name for p in SPECS_BY_NAME["run"].params if p.where == "params")
+    return tuple(p.name for p in cmd_run.params if p.where == "params")
 
 
 def make_jobs(folders, params: dict) -> list:
@@ -243,8 +243,6 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
     Returns a JSON-ready record: capture, folder, status (done, skipped, failed), error,
     n_protrusions, areas, elapsed_s, warnings.
     """
-    from .commands import COMMANDS
-
     t0 = time.perf_counter()
     folder, out_dir = Path(folder), Path(out_dir)
     target = out_dir / name
@@ -256,7 +254,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
             record["status"] = "skipped"
         else:
             log.info("%s: running (%s)", name, why)
-            result = COMMANDS["run"]({"images": [str(folder)]}, params, tmp)
+            result = cmd_run({"images": [str(folder)]}, params, tmp)
             write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
                                                      "params": _jsonable(params), "files": _side_files(params)})
             _swap_into_place(tmp, target)

@@ -43,6 +43,7 @@ from .io import read_tiff, sha256_file, write_imagej_tiff
 from .measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, write_json_atomic
 from .regions import UM2_PER_CM2, bin_edges, bin_names
+from .report import CSS, display_albedo, display_step, extent_mm, figure, save_figure, table_html
 from .runfolder import FILES, RunLog, read_run
 from .spec import CommandSpec, Param
 
@@ -627,8 +628,7 @@ _MARK = {"new": ("#1a9641", "o"), "grown": ("#d7191c", "o"), "shrunk": ("#fdae61
 
 
 def _marks(ax, rows, pos, step, px_um, shape):
-    from .report import _extent_mm
-    ext = _extent_mm(shape, px_um)
+    ext = extent_mm(shape, px_um)
     for s, (colour, marker) in _MARK.items():
         sel = rows["status"] == s
         if sel.any():
@@ -640,52 +640,75 @@ def _marks(ax, rows, pos, step, px_um, shape):
 
 def write_changes_report(folder: Path, res: dict) -> Path:
     """``report.html`` and ``figures/changes_*.png`` of :func:`compute_changes`'s result."""
-    from .report import _CSS, _display_albedo, _display_step, _extent_mm, _figure, _table_html, save_figure  # noqa: E501
+    shape = res["a"].height.shape
+    step = max(display_step(shape), int(np.ceil(max(shape) / 800)))   # figures of ~800 px: fast
+    _dates_figure(folder / "figures" / "changes_dates.png", res, step)
+    _height_change_figure(folder / "figures" / "changes_height.png", res, step)
+    _registration_figure(folder / "figures" / "changes_registration.png", res, step)
+    path = folder / "report.html"
+    atomic_write_text(path, _report_page(res))
+    return path
 
-    a, b, reg, lev = res["a"], res["b"], res["registration"], res["levelling"]
-    rows, pos, px = res["rows"], res["positions_a"], a.pixel_size_um
-    shape = a.height.shape
-    step = max(_display_step(shape), int(np.ceil(max(shape) / 800)))   # figures of ~800 px: fast
-    ext = _extent_mm(shape, px)
-    figdir = folder / "figures"
-    alb_b = b.albedo if b.albedo.ndim == 2 else b.albedo
-    b_in_a = (warp_to_a(alb_b.astype(np.float32), reg.b_to_a, shape, interpolation=cv2.INTER_LINEAR,
-                        fill=float("nan")))
-    fig = _figure((12, 5.2))
+
+def _dates_figure(path: Path, res: dict, step: int) -> None:
+    """The two dates side by side (B warped into A's frame), protrusions marked by status."""
+    a, b, reg = res["a"], res["b"], res["registration"]
+    rows, pos, px, shape = res["rows"], res["positions_a"], a.pixel_size_um, a.height.shape
+    ext = extent_mm(shape, px)
+    b_in_a = warp_to_a(b.albedo.astype(np.float32), reg.b_to_a, shape, interpolation=cv2.INTER_LINEAR,
+                       fill=float("nan"))
+    fig = figure((12, 5.2))
     for i, (img, title) in enumerate(((a.albedo, "A (earlier)"), (b_in_a, "B (later), in A's frame"))):
         ax = fig.add_subplot(1, 2, i + 1)
-        ax.imshow(_display_albedo(img, step), extent=ext)
+        ax.imshow(display_albedo(img, step), extent=ext)
         _marks(ax, rows, pos, step, px, shape)
         ax.set_title(title)
         ax.set_xlabel("x (mm)")
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="upper right", fontsize=8)
-    save_figure(fig, figdir / "changes_dates.png")
-    fig = _figure((8, 6))
+    save_figure(fig, path)
+
+
+def _height_change_figure(path: Path, res: dict, step: int) -> None:
+    """The levelled height change B - A in um, protrusions marked by status."""
+    a, lev = res["a"], res["levelling"]
+    rows, pos, px, shape = res["rows"], res["positions_a"], a.pixel_size_um, a.height.shape
+    fig = figure((8, 6))
     ax = fig.add_subplot(1, 1, 1)
     ch = lev.change_um[::step, ::step]
     lim = float(np.nanpercentile(np.abs(ch), 99.5)) if np.isfinite(ch).any() else 1.0
-    im = ax.imshow(ch, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=ext)
+    im = ax.imshow(ch, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent_mm(shape, px))
     _marks(ax, rows, pos, step, px, shape)
     fig.colorbar(im, ax=ax, label="height change B - A (um)")
     ax.set_title("height change (levelled)")
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="upper right", fontsize=8)
-    save_figure(fig, figdir / "changes_height.png")
-    fig = _figure((12, 4.8))
+    save_figure(fig, path)
+
+
+def _registration_figure(path: Path, res: dict, step: int) -> None:
+    """The smooth difference the levelling removed, and the registration's residual per tile."""
+    a, reg, lev = res["a"], res["registration"], res["levelling"]
+    px = a.pixel_size_um
+    ext = extent_mm(a.height.shape, px)
+    fig = figure((12, 4.8))
     ax = fig.add_subplot(1, 2, 1)
     im = ax.imshow(lev.smooth_um[::step, ::step], cmap="viridis", extent=ext)
     fig.colorbar(im, ax=ax, label="um")
     ax.set_title("smooth difference removed (levelling)")
     ax = fig.add_subplot(1, 2, 2)
-    ax.imshow(_display_albedo(a.albedo, step), extent=ext, alpha=0.5)
+    ax.imshow(display_albedo(a.albedo, step), extent=ext, alpha=0.5)
     if reg.tiles:
         t = np.array(reg.tiles)
         ax.quiver(ext[0] + t[:, 0] * px / 1000, ext[3] - t[:, 1] * px / 1000, t[:, 2], -t[:, 3],
                   color="r", angles="xy", scale_units="xy", scale=1000.0 / (100.0 * px))
     ax.set_title(f"registration residual per tile (x100), rms {reg.rms_px:.3f} px")
-    save_figure(fig, figdir / "changes_registration.png")
+    save_figure(fig, path)
 
+
+def _report_page(res: dict) -> str:
+    """The HTML of the report: the dates, the height change, per-area tables, the registration."""
+    a, b, reg, lev = res["a"], res["b"], res["registration"], res["levelling"]
     d = res["diagnostics"]
     reg_rows = [("model (chosen by BIC)", reg.model), ("consistent matches", reg.matches),
                 ("candidate matches", reg.candidates), ("residual rms (tiles)", f"{reg.rms_px:.3f} px"),
@@ -706,8 +729,8 @@ def write_changes_report(folder: Path, res: dict) -> Path:
     floor_rows = [[f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", s_w, s_h, n]
                   for lo, hi, s_w, s_h, n in NOISE_FLOOR]
     warn = "".join(f"<p class='warn'>{html.escape(w)}</p>" for w in res["warnings"])
-    page = f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>uvps changes</title>
-<style>{_CSS}</style></head><body>
+    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>uvps changes</title>
+<style>{CSS}</style></head><body>
 <h1>Changes between two captures</h1>
 <p>A (earlier): <code>{html.escape(str(a.path))}</code><br>B (later): <code>{html.escape(str(b.path))}</code><br>
 uvps {__version__}; per protrusion: <a href="changes.csv">changes.csv</a>; registration:
@@ -716,20 +739,17 @@ uvps {__version__}; per protrusion: <a href="changes.csv">changes.csv</a>; regis
 <h2>The two dates</h2><figure><img src="figures/changes_dates.png"></figure>
 <h2>Height change</h2><figure><img src="figures/changes_height.png"></figure>
 <h2>Change per colour area</h2>
-{_table_html(["area", "area (cm^2)"] + list(STATUSES) + ["new per cm^2"], area_rows)}
+{table_html(["area", "area (cm^2)"] + list(STATUSES) + ["new per cm^2"], area_rows)}
 <h3>Grown / matched, by width class (um)</h3>
-{_table_html(["area"] + classes, growth_rows)}
+{table_html(["area"] + classes, growth_rows)}
 <p>A protrusion counts as grown (shrunk) when its width or height changed by more than
 {d['sigma_factor']:g} x the measurement's repeatability at its size:</p>
-{_table_html(["width (um)", "sigma width (um)", "sigma height (um)", "pairs measured"], floor_rows)}
+{table_html(["width (um)", "sigma width (um)", "sigma height (um)", "pairs measured"], floor_rows)}
 <h2>Registration</h2>
-{_table_html(["", ""], reg_rows)}
+{table_html(["", ""], reg_rows)}
 <figure><img src="figures/changes_registration.png"></figure>
 </body></html>
 """
-    path = folder / "report.html"
-    atomic_write_text(path, page)
-    return path
 
 
 # ------------------------------------------------------------------------------------------------

@@ -108,8 +108,5 @@ def main(argv=None) -> int:
     return _run_command(a)
 
 
-#: The name the old entry point had (``uvps.commands.cli_main``).
-cli_main = main
-
 if __name__ == "__main__":
     sys.exit(main())

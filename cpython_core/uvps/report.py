@@ -43,7 +43,7 @@ _MAX_DISPLAY_PX = 1600  # longest side of an image drawn into a figure
 # helpers
 
 
-def _figure(figsize, layout="constrained"):
+def figure(figsize, layout="constrained"):
     # Figure objects without pyplot: no global state, always the Agg canvas. Image figures pass
     # layout=None (a fixed margin): the constrained layout costs a second draw.
     from matplotlib.figure import Figure
@@ -63,7 +63,7 @@ def save_figure(fig, path) -> Path:
     return path
 
 
-def _display_step(shape) -> int:
+def display_step(shape) -> int:
     return max(1, int(np.ceil(max(shape[:2]) / _MAX_DISPLAY_PX)))
 
 
@@ -75,7 +75,7 @@ def _yxc(img: np.ndarray) -> np.ndarray:
     return img
 
 
-def _display_albedo(albedo: np.ndarray, step: int = 1) -> np.ndarray:
+def display_albedo(albedo: np.ndarray, step: int = 1) -> np.ndarray:
     """Every ``step``-th pixel of the albedo as (M', N[, 3]) in 0..1 (99.5th percentile = 1)."""
     a = _yxc(albedo)[::step, ::step].astype(np.float64)
     finite = a[np.isfinite(a)]
@@ -83,7 +83,7 @@ def _display_albedo(albedo: np.ndarray, step: int = 1) -> np.ndarray:
     return np.clip(np.nan_to_num(a / (scale or 1.0)), 0.0, 1.0)
 
 
-def _extent_mm(shape, px_um):
+def extent_mm(shape, px_um):
     """imshow extent in mm from the image centre (x right, y up: architecture frame)."""
     m, n = shape[:2]
     px = px_um / 1000.0
@@ -114,7 +114,7 @@ def plot_lights(lights: dict, path) -> Path:
     az = np.array([float(e.get("azimuth_deg", np.nan)) for e in entries])
     el = np.array([float(e.get("elevation_deg", np.nan)) for e in entries])
     pos = [e.get("position_mm") for e in entries]
-    fig = _figure((9, 4.2))
+    fig = figure((9, 4.2))
     ax = fig.add_subplot(1, 2, 1, projection="polar")
     ax.scatter(np.radians(az), 90.0 - el, c=el, cmap="viridis", vmin=0, vmax=90, s=60,
                edgecolors="k")
@@ -144,11 +144,11 @@ def plot_lights(lights: dict, path) -> Path:
 def plot_normals(normals: np.ndarray, path, *, pixel_size_um: float) -> Path:
     """Normal map in the usual RGB encoding ``(n + 1) / 2`` (x red, y green, z blue)."""
     n = _yxc(normals)
-    step = _display_step(n.shape)
+    step = display_step(n.shape)
     rgb = np.clip((np.nan_to_num(n[::step, ::step]) + 1.0) / 2.0, 0, 1)
-    fig = _figure((7, 7 * n.shape[0] / n.shape[1] + 0.6), layout=None)
+    fig = figure((7, 7 * n.shape[0] / n.shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
-    ax.imshow(rgb, extent=_extent_mm(n.shape, pixel_size_um), interpolation="nearest")
+    ax.imshow(rgb, extent=extent_mm(n.shape, pixel_size_um), interpolation="nearest")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title("normal map, RGB = (n + 1) / 2")
@@ -158,10 +158,10 @@ def plot_normals(normals: np.ndarray, path, *, pixel_size_um: float) -> Path:
 def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float) -> Path:
     """Albedo (fluorescence colour), scaled by its 99.5th percentile."""
     shape = _yxc(albedo).shape
-    a = _display_albedo(albedo, _display_step(shape))
-    fig = _figure((7, 7 * shape[0] / shape[1] + 0.6), layout=None)
+    a = display_albedo(albedo, display_step(shape))
+    fig = figure((7, 7 * shape[0] / shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
-    ax.imshow(a, cmap="gray", vmin=0, vmax=1, extent=_extent_mm(shape, pixel_size_um),
+    ax.imshow(a, cmap="gray", vmin=0, vmax=1, extent=extent_mm(shape, pixel_size_um),
               interpolation="nearest")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
@@ -172,13 +172,13 @@ def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float) -> Path:
 def plot_height(height_um: np.ndarray, path, *, pixel_size_um: float,
                 labels: Optional[np.ndarray] = None) -> Path:
     """Height map (um) with the protrusion outlines in red (``find_boundaries``)."""
-    step = _display_step(height_um.shape)
+    step = display_step(height_um.shape)
     h = height_um[::step, ::step]
     finite = h[np.isfinite(h)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
-    fig = _figure((7.6, 7 * h.shape[0] / h.shape[1] + 0.6), layout=None)
+    fig = figure((7.6, 7 * h.shape[0] / h.shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
-    ext = _extent_mm(height_um.shape, pixel_size_um)
+    ext = extent_mm(height_um.shape, pixel_size_um)
     im = ax.imshow(h, cmap="viridis", vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
     fig.colorbar(im, ax=ax, label="height (\u00b5m)", shrink=0.8)
     title = "height map"
@@ -222,7 +222,7 @@ def plot_detail_3d(height_um: np.ndarray, path, *, pixel_size_um: float, centre_
     ls = LightSource(azdeg=315, altdeg=45)
     rgb = ls.shade(z, cmap=cm.copper, vert_exag=vert_exag, blend_mode="soft",
                    dx=pixel_size_um * stride, dy=pixel_size_um * stride)
-    fig = _figure((7, 5.5), layout=None)
+    fig = figure((7, 5.5), layout=None)
     ax = fig.add_subplot(projection="3d")
     ax.plot_surface(x, y, z, facecolors=rgb, rstride=1, cstride=1, linewidth=0,
                     antialiased=False, shade=False)
@@ -239,8 +239,8 @@ def region_colours(regions, albedo: Optional[np.ndarray]) -> dict:
 
     cols = dict(getattr(regions, "colors", {}) or {})
     if albedo is not None:
-        step = _display_step(regions.labels.shape)
-        a = _display_albedo(albedo, step)
+        step = display_step(regions.labels.shape)
+        a = display_albedo(albedo, step)
         if a.ndim == 2:
             a = np.repeat(a[..., None], 3, axis=-1)
         small = regions.labels[::step, ::step]
@@ -255,11 +255,11 @@ def region_colours(regions, albedo: Optional[np.ndarray]) -> dict:
 
 def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> Path:
     """Albedo with the colour-area borders and numbers (to check a proposal before editing it)."""
-    step = _display_step(regions.labels.shape)
-    a = _display_albedo(albedo, step)
-    fig = _figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
+    step = display_step(regions.labels.shape)
+    a = display_albedo(albedo, step)
+    fig = figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
-    ext = _extent_mm(regions.labels.shape, pixel_size_um)
+    ext = extent_mm(regions.labels.shape, pixel_size_um)
     ax.imshow(a, cmap="gray", vmin=0, vmax=1, extent=ext, interpolation="nearest")
     edge = find_boundaries(regions.labels, mode="inner")
     if step > 1:
@@ -293,7 +293,7 @@ def plot_histograms(stats, path, *, colours: Optional[dict] = None) -> Path:
     k = len(rows)
     ncols = min(4, max(k, 1))
     nrows = int(np.ceil(k / ncols)) if k else 1
-    fig = _figure((3.2 * ncols, 2.6 * nrows + 0.4))
+    fig = figure((3.2 * ncols, 2.6 * nrows + 0.4))
     axes = fig.subplots(nrows, ncols, squeeze=False, sharey=True)
     x = np.arange(len(labels))
     for ax, r in zip(axes.ravel(), rows):
@@ -316,7 +316,7 @@ def plot_comparison(rows: list, path, *, name_a: str = "a", name_b: str = "b") -
     x = np.arange(len(rows))
     da = [float(r["density_a"] or "nan") for r in rows]
     db = [float(r["density_b"] or "nan") for r in rows]
-    fig = _figure((max(5, 0.9 * len(rows) + 2), 3.8))
+    fig = figure((max(5, 0.9 * len(rows) + 2), 3.8))
     ax = fig.add_subplot()
     ax.bar(x - 0.2, da, 0.4, label=name_a)
     ax.bar(x + 0.2, db, 0.4, label=name_b)
@@ -337,10 +337,10 @@ def plot_comparison_map(albedo: np.ndarray, a: dict, b: dict, comparison, path, 
     from matplotlib.patches import Circle
 
     m, n = _yxc(albedo).shape[:2]
-    img = _display_albedo(albedo, _display_step((m, n)))
-    fig = _figure((7, 7 * m / n + 0.6), layout=None)
+    img = display_albedo(albedo, display_step((m, n)))
+    fig = figure((7, 7 * m / n + 0.6), layout=None)
     ax = fig.add_subplot()
-    ext = _extent_mm((m, n), pixel_size_um)
+    ext = extent_mm((m, n), pixel_size_um)
     ax.imshow(img, cmap="gray", vmin=0, vmax=1, extent=ext,
               interpolation="nearest")
     to_mm = pixel_size_um / 1000.0
@@ -390,7 +390,7 @@ def _read_optional_tiff(path: Path):
     return np.asarray(data), px
 
 
-def _table_html(header, rows) -> str:
+def table_html(header, rows) -> str:
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(v))}</td>" for v in row) + "</tr>"
                    for row in rows)
@@ -414,7 +414,7 @@ def _figure_step(page: _Page, name: str, caption: str, fn, *args, **kwargs) -> N
     page.figures.append((name, caption))
 
 
-_CSS = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em;color:#222}
+CSS = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:0.5em 0;font-size:0.9em}
 td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}th{background:#eee}
 td:first-child,th:first-child{text-align:left}figure{margin:1em 0}img{max-width:100%}
@@ -664,7 +664,7 @@ def _stats_html(stats) -> str:
     header = list(cols)
     rows = list(zip(*cols.values()))
     note = f"<p>{stats.outside} protrusions lie in no colour area.</p>" if stats.outside else ""
-    return ("<h2>Protrusions per colour area</h2>" + _table_html(header, rows) + note
+    return ("<h2>Protrusions per colour area</h2>" + table_html(header, rows) + note
             + '<p>Table: <a href="regions.csv">regions.csv</a></p>')
 
 
@@ -674,7 +674,7 @@ def _comparison_html(rows, name_a, name_b) -> str:
     return (f"<h2>Comparison: {html.escape(name_a)} vs {html.escape(name_b)}</h2>"
             "<p>matched = pairs one-to-one within the match radius; missed = in "
             f"{html.escape(name_a)} only; extra = in {html.escape(name_b)} only.</p>"
-            + _table_html(header, body)
+            + table_html(header, body)
             + '<p>Table: <a href="comparison.csv">comparison.csv</a></p>')
 
 
@@ -697,12 +697,12 @@ def _html(run_dir: Path, run, table, table_path: Path, page: _Page, warn: list, 
     e = html.escape
     title = title or f"uvps report: {run_dir.name}"
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title>"
-             f"<style>{_CSS}</style></head><body><h1>{e(title)}</h1>",
+             f"<style>{CSS}</style></head><body><h1>{e(title)}</h1>",
              f"<p>uvps {e(__version__)}, written "
              f"{datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}.</p>"]
     parts.append("<h2>Run summary</h2>")
     if run is not None:
-        parts.append(_table_html(["parameter", "value"], _summary_rows(run)))
+        parts.append(table_html(["parameter", "value"], _summary_rows(run)))
         if isinstance(run.get("params"), dict):
             others = {k: v for k, v in run.items() if k not in ("params", "warnings")}
             if others:

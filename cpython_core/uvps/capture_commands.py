@@ -1,0 +1,171 @@
+"""The capture commands (run, flatfield, lights, normals) and integrate, relight, demo: each declared
+once, as a :class:`uvps.spec.CommandSpec` beside its function (registered by :mod:`uvps.commands`).
+
+A spec is called as ``spec(inputs, params, output_dir, progress=None)`` and returns a
+:class:`~uvps.outputs.CommandResult` (docs/architecture.md, "Commands").
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from . import protrusion_commands, runfolder
+from .integrate import integrate_normals
+from .io import read_capture, write_imagej_tiff
+from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
+from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
+from .relight import relight
+from .spec import CommandSpec, Param
+from .synthetic import make_capture, write_capture
+
+log = logging.getLogger(__name__)
+
+_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
+
+
+def read_request_capture(inputs: dict, params: dict, progress=None):
+    """The capture a request names (``inputs.images`` and the capture parameters)."""
+    images = inputs["images"]
+    if len(images) == 1:
+        images = images[0]
+    return read_capture(images, lights=params["lights"], mask=params["mask"], dark=params["dark"],
+                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"], progress=progress)
+
+
+#: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
+REUSE_LIGHTS = ("flatfield", "normals")
+
+
+def _capture_command(name: str, stages: tuple):
+    def cmd(inputs, params, output_dir, *, progress=None):
+        run_dir = check_output_dir(output_dir)
+        t_all = time.perf_counter()
+        if name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
+            # step by step: the lamps of the folder's `lights` step, not a second estimate that
+            # could differ (and costs the most time)
+            params = {**params, "lights": str(run_dir / "lights.json")}
+            log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
+        capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
+        protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
+        result = run(capture, RunOptions.from_params(params), stages=stages + (("protrusions",) if protrusions else ()),
+                     dark_given=params["dark"] is not None, regions=params.get("regions"),
+                     n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
+        with atomic_output_dir(run_dir) as tmp:
+            outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
+                                          progress=sub_progress(progress, 0.9, 0.95))
+        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        out.diagnostics["lights_file"] = params["lights"]
+        if protrusions:
+            out = _statistics_and_report(run_dir, result, params, out, sub_progress(progress, 0.95, 1.0))
+        out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
+        report(progress, 1.0, f"{name}: done")
+        return out
+
+    cmd.__name__ = f"cmd_{name}"
+    cmd.__doc__ = f"``{name}``: read a capture and write {', '.join(stages) or 'the lights'} into the run folder."
+    return cmd
+
+
+def _statistics_and_report(run_dir, result, params, out, progress):
+    """``run`` with colour areas or detection: statistics and the report from the run folder."""
+    r = protrusion_commands.SPEC_STATS({}, {"bins_um": params["bins_um"]}, run_dir, progress=progress)
+    out.outputs += r.outputs
+    out.diagnostics["stats"] = r.diagnostics
+    out.warnings += r.warnings
+    return out
+
+
+def _cmd_integrate(inputs, params, output_dir, *, progress=None):
+    """``integrate``: height in um from ``<run>/normals.tif``."""
+    run_dir = check_output_dir(output_dir)
+    images = runfolder.read_run(run_dir, need=("normals",), pixel_size_um=params["pixel_size_um"])
+    report(progress, 0.2, "integrating")
+    res = integrate_normals(images.normals, pixel_size_um=images.pixel_size_um, method=params["integration"])
+    with atomic_output_dir(run_dir) as tmp:
+        runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method)
+    report(progress, 1.0, "integrate: done")
+    return CommandResult([runfolder.output_spec(run_dir, "depth")], integration_diagnostics(res), [])
+
+
+def _cmd_relight(inputs, params, output_dir, *, progress=None):
+    """``relight``: the surface under a virtual raking light (``azimuth_deg``, ``elevation_deg``)."""
+    run_dir = check_output_dir(output_dir)
+    warnings = []
+    images = runfolder.read_run(run_dir, need=("normals",), pixel_size_um=params["pixel_size_um"])
+    albedo = images.albedo
+    if albedo is None:
+        warnings.append("no albedo.tif: relit with a uniform albedo")
+        albedo = np.ones(images.normals.shape[:2], np.float32)
+    img = relight(images.normals, albedo, azimuth_deg=params["azimuth_deg"], elevation_deg=params["elevation_deg"],
+                  ambient=params["ambient"])
+    axes = "CYX" if img.ndim == 3 else "YX"
+    with atomic_output_dir(run_dir) as tmp:
+        write_imagej_tiff(tmp / "relight.tif", np.moveaxis(img, -1, 0) if img.ndim == 3 else img, axes=axes,
+                          pixel_size_um=images.pixel_size_um)
+    return CommandResult([OutputSpec("relight", str(run_dir / "relight.tif"), kind="image", axes=axes,
+                                     dtype="float32", units="counts")],
+                         {"azimuth_deg": params["azimuth_deg"], "elevation_deg": params["elevation_deg"]}, warnings)
+
+
+#: The demo's pixel: 600 x 800 px of 30 um show the 18 x 24 mm field a real capture has (the lamps'
+#: distance and elevation are told apart by the field's size, not its pixels; at 15 um the 9 x 12 mm
+#: crop leaves heights uncertain by ~25 % and the light estimate crawls along its valley).
+DEMO_PIXEL_UM = 30.0
+
+
+def _cmd_demo(inputs, params, output_dir, *, progress=None):
+    """``demo``: a synthetic capture written to ``<run>/capture/`` and the whole run on it."""
+    run_dir = check_output_dir(output_dir)
+    report(progress, 0.0, "demo: making a synthetic capture")
+    cap = make_capture(shape=tuple(params["shape"]), n_lights=params["n_lights"], seed=params["seed"],
+                       pixel_size_um=params["pixel_size_um"])
+    run_dir.mkdir(exist_ok=True)
+    cap_dir = run_dir / "capture"
+    write_capture(cap, cap_dir)
+    images = sorted(cap_dir.glob("uv_*.tif"))
+    # the colour areas are proposed from the albedo, as a user would accept them (the truth stays unread)
+    result = SPECS_BY_NAME["run"]({"images": [str(p) for p in images]}, {"regions": "auto", "bins_um": 100.0},
+                                  run_dir, progress=sub_progress(progress, 0.05, 1.0))
+    result.outputs.insert(0, OutputSpec("capture", str(cap_dir), kind="folder"))
+    result.diagnostics["truth_light_positions_mm"] = cap.light_positions_mm.tolist()
+    return result
+
+
+_PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
+                     help="pixel size (default: the run's TIFF calibration)")
+_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
+
+SPECS = (
+    CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
+                params=CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS,
+                description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
+                            "detect also colour areas, protrusions, statistics and report.html."),
+    CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),
+                params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
+    CommandSpec("lights", "light directions and positions", _capture_command("lights", ()),
+                params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
+    CommandSpec("normals", "normals, albedo and gradients", _capture_command("normals", ("normals",)),
+                params=CAPTURE_PARAMS + OPTION_PARAMS),
+    CommandSpec("integrate", "height from <run>/normals.tif", _cmd_integrate,
+                params=tuple(p for p in _STEREO if p.name == "integration") + (_PX_OVERRIDE,)),
+    CommandSpec("relight", "render under a virtual raking light", _cmd_relight, params=(
+        Param("azimuth_deg", "float", 315.0, unit="deg", label="Azimuth (from image right, counter-clockwise)", help="the light's azimuth, "
+              "counter-clockwise from +x (right)"),
+        Param("elevation_deg", "float", 15.0, unit="deg", minimum=0, exclusive_minimum=True, maximum=90,
+              label="Elevation (above the canvas)", help="the light's elevation above the canvas"),
+        Param("ambient", "float", 0.0, minimum=0, help="ambient term added to the shading"),
+        _PX_OVERRIDE)),
+    CommandSpec("demo", "a synthetic capture and the whole run on it", _cmd_demo, output="folder",
+                output_default="uvps_demo", params=(
+                    Param("shape", "shape", (600, 800), help="rows and columns of the synthetic capture"),
+                    Param("n_lights", "int", 12, minimum=3, help="number of lamps"),
+                    Param("seed", "int", 0, help="random seed of the synthetic painting"),
+                    Param("pixel_size_um", "float", DEMO_PIXEL_UM, minimum=0, exclusive_minimum=True, unit="um",
+                          help="pixel size of the synthetic capture"))),
+)
+SPECS_BY_NAME = {s.name: s for s in SPECS}
+# the commands as callables that check their request first (``cmd_run(inputs, params, run_dir)``)
+cmd_run, cmd_flatfield, cmd_lights, cmd_normals, cmd_integrate, cmd_relight, cmd_demo = (
+    SPECS_BY_NAME[n] for n in ("run", "flatfield", "lights", "normals", "integrate", "relight", "demo"))
