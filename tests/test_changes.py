@@ -9,8 +9,9 @@ import pytest
 from uvps import cli
 from uvps.changes import COLUMNS, classify_changes, register
 from uvps.commands import COMMANDS
-from uvps.io import read_tiff, write_imagej_tiff
-from uvps.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture
+from uvps.io import read_tiff
+from uvps.synthetic import (LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture,
+                             write_truth_run)
 
 SPEC = SyntheticSpec(shape=(300, 400), n_lights=8, protrusion_density_light=150.0,
                      protrusion_density_dark=30.0, seed=0)
@@ -35,18 +36,7 @@ def same():
 
 
 def _truth_run(folder, cap, px):
-    """A run folder from a capture's truth (albedo, height, protrusion table): the changes logic
-    without the detection's own errors."""
-    folder.mkdir()
-    write_imagej_tiff(folder / "albedo.tif", np.moveaxis(cap.albedo, -1, 0), axes="CYX", pixel_size_um=px)
-    write_imagej_tiff(folder / "depth.tif", cap.height_um, axes="YX", pixel_size_um=px)
-    t = cap.protrusions
-    with open(folder / "protrusions.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
-        for i in range(t["id"].size):
-            w.writerow([int(t["id"][i]), t["x_px"][i], t["y_px"][i], t["width_um"][i], t["height_um"][i]])
-    return folder
+    return write_truth_run(cap, folder, pixel_size_um=px)
 
 
 # ------------------------------------------------------------------------------------------------

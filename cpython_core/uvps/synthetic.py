@@ -1643,6 +1643,25 @@ def _checked_overrides(overrides):
 # --------------------------------------------------------------------------------------------
 
 
+def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) -> Path:
+    """A run folder made of the capture's truth: ``albedo.tif``, ``depth.tif`` and ``protrusions.csv``
+    (id, x_px, y_px, width_um, height_um), as ``uvps run --detect`` would write them with no error
+    of its own: for testing what reads run folders (``changes``, ``stats``) apart from the pipeline.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True)
+    px = capture.spec.pixel_size_um if pixel_size_um is None else float(pixel_size_um)
+    write_imagej_tiff(folder / "albedo.tif", np.moveaxis(capture.albedo, -1, 0), axes="CYX", pixel_size_um=px)
+    write_imagej_tiff(folder / "depth.tif", capture.height_um, axes="YX", pixel_size_um=px)
+    t = capture.protrusions
+    with open(folder / "protrusions.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
+        for i in range(t["id"].size):
+            w.writerow([int(t["id"][i]), t["x_px"][i], t["y_px"][i], t["width_um"][i], t["height_um"][i]])
+    return folder
+
+
 def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> list:
     """Write a capture as a folder of 16-bit TIFFs, light files and (optionally) ground truth.
 

@@ -1,11 +1,10 @@
 """Compare Captures (uvps changes, issue 10) from a batch macro in a real ImageJ."""
-import csv
 import json
 
-import numpy as np
 import pytest
 
 from conftest import PYTHON_EXCEPTION_STATUS
+from uvps.synthetic import write_truth_run
 
 pytestmark = pytest.mark.imagej
 
@@ -17,19 +16,7 @@ def q(path):
 
 
 def _truth_run(folder, cap, px):
-    """A run folder from a synthetic capture's truth (albedo, height, protrusions): no pipeline."""
-    from uvps.io import write_imagej_tiff
-
-    folder.mkdir()
-    write_imagej_tiff(folder / "albedo.tif", np.moveaxis(cap.albedo, -1, 0), axes="CYX", pixel_size_um=px)
-    write_imagej_tiff(folder / "depth.tif", cap.height_um, axes="YX", pixel_size_um=px)
-    t = cap.protrusions
-    with open(folder / "protrusions.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
-        for i in range(t["id"].size):
-            w.writerow([int(t["id"][i]), t["x_px"][i], t["y_px"][i], t["width_um"][i], t["height_um"][i]])
-    return folder
+    return write_truth_run(cap, folder, pixel_size_um=px)
 
 
 @pytest.fixture(scope="module")
