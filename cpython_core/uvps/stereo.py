@@ -12,7 +12,8 @@ samples are always left out per pixel; a pixel with fewer than three usable ligh
 25th and 90th percentile of its brightness (relative to each light's irradiance there), so cast
 shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
 normal; for captures with many lights (RTI domes, visible light). Work proceeds in bands of rows so
-that memory stays proportional to one band, never to lights x pixels x channels in float64.
+that memory stays proportional to one band (the stack may be memory-mapped, :class:`uvps.io.MappedStack`);
+each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels`).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from .errors import UVPSInputError
@@ -44,73 +46,165 @@ class StereoResult:
     residual_rms: float        # rms relative residual over solved pixels
 
 
-#: Pixels per band of :func:`solve_normals` (measured on 4000 x 3000 x 16 RGB: 65536 is as fast as
-#: 250000 and holds 4x less; below ~16000 the per-band Python overhead shows).
+#: Pixels per band of :func:`solve_normals`: a band in flight holds its samples as float32
+#: (K x 65536 x C x 4 bytes: 12.6 MB for 16 RGB images); smaller bands add per-band overhead.
 CHUNK_PIXELS = 65536
 
 
-def _solve_sym3(A, y):
-    """Closed-form solve of symmetric 3x3 systems, one per pixel, in float64.
+@numba.njit(nogil=True, cache=True, fastmath=False)
+def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fraction, shadow_cos, lo, hi,
+                  normals, albedo, n_used):  # pragma: no cover - compiled
+    """Normals, albedo and lights used of the P pixels of ``band`` (K, P, C) float32, written into
+    ``normals`` (P, 3), ``albedo`` (P, C, or P, 1 for grey) and ``n_used`` (P,).
 
-    ``A`` is (6, P): the entries 00, 01, 02, 11, 12, 22; ``y`` is (3, P). Returns (3, P); a system
-    whose determinant is below ``1e-12 * trace^3`` (fewer than 3 independent lights) gives NaN.
-    Cofactors (Cramer's rule) instead of a batched LU: the same to 1e-12 relative on the
-    well-conditioned systems of photometric stereo, and ~20x faster than ``np.linalg.solve`` on
-    (P, 3, 3) stacks.
+    One pass over the samples, everything per pixel in registers: no (K, P) temporaries. Samples and
+    products are float32 (as the images), sums and the 3 x 3 solve float64. ``colour``: the albedo
+    per channel with the normal fixed (else ``|b|``); ``xs``, ``ys``: each pixel's position in mm
+    (float32); ``L`` (K, 3) and ``E`` (K,) near lamps, or ``dirs`` (K, 3) far ones (times E) when
+    not ``near``; ``sat`` <= 0: no saturation test; ``hi`` > 0: keep brightness ranks lo .. hi - 1.
+    Returns (sum of squared relative residuals, their count, invalid pixels inside ``use``).
     """
-    a, b, c, d, e, f = A
-    c00 = d * f - e * e
-    c01 = c * e - b * f
-    c02 = b * e - c * d
-    c11 = a * f - c * c
-    c12 = b * c - a * e
-    c22 = a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    tr = a + d + f
-    good = np.abs(det) > 1e-12 * np.maximum(tr ** 3, 1e-30)
-    inv = np.divide(1.0, det, out=np.full_like(det, np.nan), where=good)
-    y0, y1, y2 = y
-    return np.stack([(c00 * y0 + c01 * y1 + c02 * y2) * inv,
-                     (c01 * y0 + c11 * y1 + c12 * y2) * inv,
-                     (c02 * y0 + c12 * y1 + c22 * y2) * inv])
-
-
-def _normal_equations(w, V, I):
-    """``A = sum_k w V V^T`` (6, P) and ``y = sum_k w V I`` (3, P), accumulated in float64.
-
-    ``w``, ``I`` are (K, P) float32, ``V`` is (K, 3, P) float32. One light at a time, so that no
-    (K, P, 3) float64 temporary exists: the products are float32, their sums float64.
-    """
-    P = w.shape[1]
-    A = np.zeros((6, P))
-    y = np.zeros((3, P))
-    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-    for k in range(w.shape[0]):
-        wv = V[k] * w[k]                      # (3, P) float32
-        for j, (p, q) in enumerate(pairs):
-            A[j] += wv[p] * V[k, q]
-        wi = w[k] * I[k]
-        for i in range(3):
-            y[i] += V[k, i] * wi
-    return A, y
-
-
-def _light_vectors(lights: LightModel, r0: int, r1: int, shape, pixel_size_um) -> np.ndarray:
-    """Light vectors of rows ``r0:r1`` as (K, 3, P) float32 (far lights: broadcast, no copy)."""
-    M, N = shape
-    K = len(lights.intensities)
-    P = (r1 - r0) * N
-    if not lights.near:
-        v = (lights.directions * lights.intensities[:, None]).astype(np.float32)
-        return np.broadcast_to(v[:, :, None], (K, 3, P))
-    rr, cc = np.mgrid[r0:r1, 0:N]
-    X = pixel_coordinates_mm(rr.ravel(), cc.ravel(), shape, pixel_size_um).astype(np.float32).T   # (3, P)
-    V = np.empty((K, 3, P), np.float32)
-    for k, (Lk, Ek) in enumerate(zip(lights.positions_mm, lights.intensities)):
-        D = Lk.astype(np.float32)[:, None] - X                     # (3, P)
-        d2 = np.einsum("ip,ip->p", D, D)
-        np.multiply(D, np.float32(Ek * np.dot(Lk, Lk)) / (d2 * np.sqrt(d2)), out=V[k])
-    return V
+    K, P, C = band.shape
+    grey = np.empty(K, np.float32)
+    bright = np.empty(K, np.float32)
+    V = np.empty((K, 3), np.float32)
+    vn = np.empty(K, np.float32)
+    w = np.empty(K, np.float32)
+    pred = np.empty(K, np.float32)
+    ratio = np.empty(K, np.float32)
+    num = np.empty(max(C, 1))
+    fC = np.float32(C)
+    f_dark = np.float32(dark_fraction)
+    f_shadow = np.float32(shadow_cos)
+    sq_sum = 0.0
+    sq_n = 0
+    n_bad = 0
+    for p in range(P):
+        gmax = np.float32(-np.inf)
+        for k in range(K):
+            g = band[k, p, 0]
+            br = g
+            for c in range(1, C):
+                v = band[k, p, c]
+                g += v
+                if v > br:
+                    br = v
+            g = g / fC
+            grey[k] = g
+            bright[k] = br
+            if g > gmax:
+                gmax = g
+        for k in range(K):
+            if near:
+                d0 = np.float32(L[k, 0]) - xs[p]
+                d1 = np.float32(L[k, 1]) - ys[p]
+                d2_ = np.float32(L[k, 2])
+                dd = d0 * d0 + d1 * d1 + d2_ * d2_
+                f = np.float32(E[k] * (L[k, 0] ** 2 + L[k, 1] ** 2 + L[k, 2] ** 2)) / (dd * np.sqrt(dd))
+                V[k, 0] = d0 * f
+                V[k, 1] = d1 * f
+                V[k, 2] = d2_ * f
+            else:
+                V[k, 0] = dirs[k, 0]
+                V[k, 1] = dirs[k, 1]
+                V[k, 2] = dirs[k, 2]
+            vn[k] = np.sqrt(V[k, 0] * V[k, 0] + V[k, 1] * V[k, 1] + V[k, 2] * V[k, 2])
+        thr = f_dark * gmax
+        for k in range(K):
+            ok = grey[k] > thr and grey[k] > 0 and use[p]
+            if sat > 0 and bright[k] >= sat:
+                ok = False
+            w[k] = 1.0 if ok else 0.0
+        if hi > 0:
+            for k in range(K):
+                ratio[k] = grey[k] / vn[k]
+            srt = np.sort(ratio)
+            a_lo = srt[lo]
+            a_hi = srt[hi - 1]
+            for k in range(K):
+                if not (ratio[k] >= a_lo and ratio[k] <= a_hi):
+                    w[k] = 0.0
+        b0 = b1 = b2 = np.nan
+        nb = np.nan
+        for it in range(2):
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            y0 = y1 = y2 = 0.0
+            for k in range(K):
+                if w[k] == 0.0:
+                    continue
+                v0, v1, v2 = V[k, 0], V[k, 1], V[k, 2]
+                a00 += v0 * v0
+                a01 += v0 * v1
+                a02 += v0 * v2
+                a11 += v1 * v1
+                a12 += v1 * v2
+                a22 += v2 * v2
+                y0 += v0 * grey[k]
+                y1 += v1 * grey[k]
+                y2 += v2 * grey[k]
+            c00 = a11 * a22 - a12 * a12
+            c01 = a02 * a12 - a01 * a22
+            c02 = a01 * a12 - a02 * a11
+            c11 = a00 * a22 - a02 * a02
+            c12 = a01 * a02 - a00 * a12
+            c22 = a00 * a11 - a01 * a01
+            det = a00 * c00 + a01 * c01 + a02 * c02
+            tr = a00 + a11 + a22
+            if abs(det) > 1e-12 * max(tr ** 3, 1e-30):
+                inv = 1.0 / det
+                b0 = (c00 * y0 + c01 * y1 + c02 * y2) * inv
+                b1 = (c01 * y0 + c11 * y1 + c12 * y2) * inv
+                b2 = (c02 * y0 + c12 * y1 + c22 * y2) * inv
+            else:
+                b0 = b1 = b2 = np.nan
+            f0, f1, f2 = np.float32(b0), np.float32(b1), np.float32(b2)
+            nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            for k in range(K):
+                pred[k] = V[k, 0] * f0 + V[k, 1] * f1 + V[k, 2] * f2
+            if it == 0:
+                nbf = np.float32(nb)
+                for k in range(K):
+                    if not (pred[k] > f_shadow * max(vn[k] * nbf, np.float32(1e-30))):
+                        w[k] = 0.0
+        cnt = 0
+        for k in range(K):
+            if w[k] != 0.0:
+                cnt += 1
+        n_used[p] = min(cnt, 255)
+        bad = cnt < 3 or not (np.isfinite(b0) and np.isfinite(b1) and np.isfinite(b2))
+        if bad and use[p]:
+            n_bad += 1
+        if bad or not use[p]:
+            continue
+        n0, n1, n2 = np.float32(b0 / nb), np.float32(b1 / nb), np.float32(b2 / nb)
+        normals[p, 0] = n0
+        normals[p, 1] = n1
+        normals[p, 2] = n2
+        gsum = 0.0
+        e2 = 0.0
+        for k in range(K):
+            gsum += grey[k]
+            if w[k] != 0.0:
+                r = np.float64(grey[k] - pred[k])
+                e2 += r * r
+                sq_n += 1
+        scale = max(gsum / K, 1e-12)
+        sq_sum += e2 / (scale * scale)
+        if not colour:
+            albedo[p, 0] = nb
+            continue
+        den = 0.0
+        num[:] = 0.0
+        for k in range(K):
+            if w[k] == 0.0:
+                continue
+            ws = V[k, 0] * n0 + V[k, 1] * n1 + V[k, 2] * n2     # shading with the normal fixed
+            den += np.float64(ws) * np.float64(ws)
+            for c in range(C):
+                num[c] += ws * band[k, p, c]
+        for c in range(C):
+            albedo[p, c] = num[c] / den if den > 0 else np.nan
+    return sq_sum, sq_n, n_bad
 
 
 def _rank_range(K, trim):
@@ -121,15 +215,6 @@ def _rank_range(K, trim):
     lo, hi = int(np.floor(lo_q * K)), int(np.ceil(hi_q * K))
     hi = min(K, max(hi, lo + 3))
     return max(0, min(lo, hi - 3)), hi
-
-
-def _within_ranks(values, lo, hi):
-    """True where a sample's rank along axis 0 is in ``lo .. hi - 1`` (ties at the ends are kept).
-
-    ``np.partition`` finds the two order statistics per pixel in O(K) without a (K, P) index array.
-    """
-    part = np.partition(values, (lo, hi - 1), axis=0)
-    return (values >= part[lo]) & (values <= part[hi - 1])
 
 
 def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, saturation=None,
@@ -176,7 +261,10 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     Shadowed samples (darker than ``dark_fraction`` of the pixel's brightest, or whose predicted
     ``n . l`` is below ``shadow_cos``: the attached-shadow test, after a first solve) and saturated
     samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
-    3x3 solves per pixel, plus one ``np.partition`` along K per band with ``robust``.
+    closed-form 3x3 solves per pixel and one pass over the samples, in a compiled kernel
+    (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.4 s for 4000 x 3000 x
+    16 RGB on 2 cores, against 46 s for the numpy version with (K, P, 3) float64 temporaries and
+    10-19 s for a float32 numpy version (docs/benchmarks.md). ``robust`` sorts the K samples.
 
     References
     ----------
@@ -237,66 +325,29 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
                 dark_fraction) -> tuple:
     """Solve rows ``r0:r1`` into ``out``; -> (sum of squared relative residuals, their count, invalid pixels).
 
-    (K, P) arrays are float32; per-pixel sums and the 3x3 solves are float64. numpy releases the GIL
-    in its loops, so bands run in parallel threads.
+    The band is read and converted to float32 here; :func:`_solve_pixels` (compiled, GIL released)
+    does the rest, so bands run in parallel threads.
     """
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 0
     P = (r1 - r0) * N
-    band = np.asarray(images[:, r0:r1], dtype=np.float32).reshape((K, P, C) if C else (K, P))
-    if C:
-        # channel by channel: a reduction over a last axis of 3 is numpy's slowest loop (the same
-        # float32 sums in the same order as band.mean(axis=-1))
-        grey = band[..., 0].copy()
-        brightest = grey.copy()
-        for c in range(1, C):
-            grey += band[..., c]
-            np.maximum(brightest, band[..., c], out=brightest)
-        grey /= np.float32(C)
-    else:
-        grey = brightest = band
-    V = _light_vectors(lights, r0, r1, (M, N), pixel_size_um)                # (K, 3, P) float32
-    use = np.ones(P, bool) if mask is None else np.asarray(mask[r0:r1]).ravel()
-    w = (grey > dark_fraction * grey.max(axis=0, keepdims=True)) & (grey > 0)
-    if saturation is not None:
-        w &= brightest < saturation
-    w &= use[None]
-    vn = np.sqrt(np.einsum("kip,kip->kp", V, V))   # (K, P): each light's irradiance at each pixel
-    if ranks is not None:
-        w &= _within_ranks(grey / vn, *ranks)
-    w = w.astype(np.float32)
-    for it in range(2):
-        b = _solve_sym3(*_normal_equations(w, V, grey))                      # (3, P) float64
-        bf = b.astype(np.float32)
-        pred = V[:, 0] * bf[0] + V[:, 1] * bf[1] + V[:, 2] * bf[2]         # (K, P) float32
-        nb = np.sqrt(np.einsum("ip,ip->p", b, b))
-        if it == 0:
-            # attached shadow: where the light grazes or is behind the surface the sample is 0
-            with np.errstate(invalid="ignore"):
-                w *= pred > shadow_cos * np.maximum(vn * nb.astype(np.float32), np.float32(1e-30))
-    cnt = np.count_nonzero(w, axis=0)
-    bad = (cnt < 3) | ~np.isfinite(b).all(axis=0)
-    good = ~bad & use
-    n = (b / np.where(nb > 0, nb, np.nan)).astype(np.float32)
-    n[:, ~good] = np.nan
-    r = (grey - pred)[:, good] * w[:, good]
-    scale = np.maximum(grey[:, good].mean(axis=0, dtype=np.float64), 1e-12)
-    sq = float(np.sum(np.einsum("kp,kp->p", r, r, dtype=np.float64) / scale ** 2))
-    out.normals[r0:r1] = n.T.reshape(r1 - r0, N, 3)
-    out.n_used[r0:r1] = np.minimum(cnt, 255).reshape(r1 - r0, N)
-    if C:
-        nf = np.nan_to_num(n)
-        ws = w * (V[:, 0] * nf[0] + V[:, 1] * nf[1] + V[:, 2] * nf[2])   # weighted shading, normal fixed
-        num = np.zeros((P, C))
-        for k in range(K):
-            num += ws[k][:, None] * band[k]
-        den = np.einsum("kp,kp->p", ws, ws, dtype=np.float64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            alb = num / np.where(den > 0, den, np.nan)[:, None]
-        alb[~good] = np.nan
-        out.albedo[r0:r1] = alb.reshape(r1 - r0, N, C)
-    else:
-        a = nb.copy()
-        a[~good] = np.nan
-        out.albedo[r0:r1] = a.reshape(r1 - r0, N)
-    return sq, int(np.count_nonzero(w[:, good])), int(np.count_nonzero(bad & use))
+    band = np.asarray(images[:, r0:r1], dtype=np.float32).reshape(K, P, max(C, 1))
+    X = pixel_coordinates_mm(np.arange(r0, r1)[:, None], np.arange(N)[None, :], (M, N), pixel_size_um)
+    xs = X[..., 0].astype(np.float32).ravel()
+    ys = X[..., 1].astype(np.float32).ravel()
+    use = np.ones(P, bool) if mask is None else np.ascontiguousarray(np.asarray(mask[r0:r1]).ravel(), dtype=bool)
+    near = lights.near
+    L = lights.positions_mm if near else np.zeros((K, 3))
+    dirs = (lights.directions * lights.intensities[:, None]).astype(np.float32)
+    lo, hi = ranks if ranks is not None else (0, 0)
+    normals = np.full((P, 3), np.nan, np.float32)
+    albedo = np.full((P, max(C, 1)), np.nan, np.float32)
+    n_used = np.zeros(P, np.uint8)
+    res = _solve_pixels(band, bool(C), np.ascontiguousarray(L, dtype=np.float64),
+                        np.ascontiguousarray(lights.intensities, dtype=np.float64), dirs, near, xs, ys, use,
+                        np.float32(saturation) if saturation is not None else np.float32(0), float(dark_fraction),
+                        float(shadow_cos), int(lo), int(hi), normals, albedo, n_used)
+    out.normals[r0:r1] = normals.reshape(r1 - r0, N, 3)
+    out.albedo[r0:r1] = albedo.reshape((r1 - r0, N, C) if C else (r1 - r0, N))
+    out.n_used[r0:r1] = n_used.reshape(r1 - r0, N)
+    return float(res[0]), int(res[1]), int(res[2])
