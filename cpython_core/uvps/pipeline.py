@@ -226,17 +226,19 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     options = options or RunOptions()
     stages = _closed_stages(stages)
     res = RunResult(capture, options, stages, additive=None, lights=None)
+    span = _progress_spans(stages)
     t0 = time.perf_counter()
+    report(progress, 0.0, "additive term")
     capture, res.additive, warn = remove_additive(capture, options=options, dark_given=dark_given)
     res.timings_s["additive"] = _since(t0)
     res.diagnostics["additive"] = res.additive.to_json()
     res.warnings += warn
-    _run_lights(res, capture, sub_progress(progress, 0.0, 0.45))
+    _run_lights(res, capture, sub_progress(progress, *span["lights"]))
     if "normals" in stages:
-        _run_normals(res, sub_progress(progress, 0.5, 0.85))
+        _run_normals(res, sub_progress(progress, *span["normals"]))
     if "height" in stages:
         t0 = time.perf_counter()
-        report(progress, 0.87, "integrating the height")
+        report(progress, span["height"][0], "integrating the height")
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
                                        method=options.integration, mask=res.capture.mask)
         res.timings_s["integrate"] = _since(t0)
@@ -246,11 +248,27 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,
                                            pixel_size_um=res.capture.pixel_size_um, regions=regions,
                                            n_areas=n_areas, params=detection,
-                                           progress=sub_progress(progress, 0.9, 0.98))
+                                           progress=sub_progress(progress, *span["protrusions"]))
         res.timings_s["protrusions"] = _since(t0)
         res.diagnostics["detect"] = protrusion_diagnostics(res.protrusions, res.capture.pixel_size_um)
     report(progress, 1.0, "done")
     return res
+
+
+#: Relative time of each step, for the progress bar's fractions (and so its estimate of the time
+#: left): measured on 4000 x 3000 x 16 RGB with estimated lamps (docs/benchmarks.md, issue 9).
+_STEP_WEIGHTS = {"additive": 1.5, "lights": 12.0, "normals": 2.5, "height": 2.0, "protrusions": 18.0}
+
+
+def _progress_spans(stages) -> dict:
+    """(start, stop) fraction of each step that runs, in proportion to :data:`_STEP_WEIGHTS`."""
+    steps = ["additive", "lights"] + [s for s in stages if s in _STEP_WEIGHTS]
+    total = sum(_STEP_WEIGHTS[s] for s in steps)
+    spans, at = {}, 0.0
+    for s in steps:
+        spans[s] = (at / total, (at + _STEP_WEIGHTS[s]) / total)
+        at += _STEP_WEIGHTS[s]
+    return spans
 
 
 def _closed_stages(stages) -> tuple:
