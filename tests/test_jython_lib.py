@@ -650,6 +650,7 @@ def test_an_rgb_sequence_of_grey_slices_is_refused_with_the_way_out():
     ((24, 1, 16, SEQ), {"choice": bl.CHANNELS_GREY}, 24, 1, False),
     ((24, 1, 16, SEQ), {"lamps_hint": 24}, 24, 1, False),
     ((24, 3, 16, None), {}, 8, 3, False),                           # composite
+    ((8, 8, 16, None), {}, 8, 1, False),                            # 8 channels, one per lamp
     ((8, 1, 24, None), {}, 8, 3, False),                            # RGB stack
     ((12, 1, 16, ["a%d" % i for i in range(12)]), {}, 12, 1, False),
 ])

@@ -917,7 +917,7 @@ MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfi
                "normals": "Normals and Albedo", "integrate": "Integrate Height",
                "regions": "Colour Areas", "detect": "Detect Protrusions", "wand": "Wand Count",
                "stats": "Statistics and Report", "compare": "Compare Counts",
-               "relight": "Relight", "info": "Run Info"}
+               "relight": "Relight", "info": "Run Info", "changes": "Compare Captures"}
 
 #: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
 REJECTION_WORDS = {"too_small": "narrower than the smallest width",
@@ -1184,6 +1184,11 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
     """
     if bit_depth == 24:
         return {"lamps": n_images, "channels": 3, "regroup": False, "why": "RGB image"}
+    if n_channels > 1 and n_images == n_channels:
+        # only channels (no slices or frames): one grey image per lamp, as ImageJ opens a
+        # stack saved without hyperstack axes (3 alone would be one RGB lamp: no stereo)
+        return {"lamps": n_images, "channels": 1, "regroup": False,
+                "why": "%d channels, one image per lamp" % n_channels}
     if n_channels == 3:
         return {"lamps": n_images // 3, "channels": 3, "regroup": False,
                 "why": "3 channels (composite or hyperstack)"}

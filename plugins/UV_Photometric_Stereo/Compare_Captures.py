@@ -25,7 +25,7 @@ COMMAND = "changes"
 
 
 def main():
-    dlg = dialogs.UVPSDialog(TITLE)
+    dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_param(dlg, (COMMAND, "run_a"), key="earlier")
     dialogs.add_param(dlg, (COMMAND, "run_b"), key="later")
     dialogs.add_run_field(dlg)
