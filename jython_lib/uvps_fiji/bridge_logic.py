@@ -610,8 +610,7 @@ def macro_key(label):
 #: Dialog labels of parameters the core declares without one (its label, if any, is for the
 #: command line's help): the first word is the macro key (``sensitivity=5 smallest=30``).
 FIELD_LABELS = {
-    "dynamic_k": "Sensitivity: relief threshold in multiples of the height noise "
-                 "(lower finds more, e.g. 3; higher fewer, e.g. 8)",
+    "dynamic_k": "Sensitivity (relief / height noise; lower finds more)",
     "min_width_um": "Smallest width of a protrusion",
 }
 
