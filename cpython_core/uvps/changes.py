@@ -34,6 +34,7 @@ from typing import Optional
 
 import cv2
 import numpy as np
+from skimage.registration import phase_cross_correlation
 from scipy import ndimage
 
 from . import __version__
@@ -42,7 +43,7 @@ from .errors import UVPSComputeError, UVPSInputError
 from .io import read_tiff, sha256_file, write_imagej_tiff
 from .measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, write_json_atomic
-from .regions import UM2_PER_CM2, bin_edges, bin_names
+from .regions import UM2_PER_CM2, bin_edges, bin_names, read_region_names
 from .report import CSS, display_albedo, display_step, extent_mm, figure, save_figure, table_html
 from .runfolder import FILES, RunLog, read_run
 from .spec import CommandSpec, Param
@@ -343,7 +344,6 @@ def warp_to_a(image: np.ndarray, b_to_a: np.ndarray, shape_a, *, interpolation=c
 
 
 def _tile_residual(sa, sb, T, grid=4):
-    from skimage.registration import phase_cross_correlation
 
     warped = warp_to_a(sb, T, sa.shape, interpolation=cv2.INTER_CUBIC)
     valid = _overlap_mask(T, sb.shape, sa.shape, erode=4)
@@ -787,11 +787,7 @@ def _read_dated_run(path, what: str) -> _Run:
         regions = np.asarray(read_tiff(reg_path)[0]).astype(np.int32)
         csv_path = path / FILES["regions"][0]
         if csv_path.is_file():
-            import csv
-            with open(csv_path, newline="", encoding="utf-8") as fh:
-                for r in csv.DictReader(fh):
-                    if r.get("label", "").isdigit():
-                        names[int(r["label"])] = r.get("name", r["label"])
+            names = read_region_names(csv_path)
     return _Run(path, images.albedo, images.height_um, read_protrusions_csv(table_path),
                 images.pixel_size_um, labels, regions, names)
 
