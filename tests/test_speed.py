@@ -95,3 +95,17 @@ def test_band_path_gives_the_in_memory_results(folder, monkeypatch):
     np.testing.assert_array_equal(banded.stereo.normals, whole.stereo.normals)
     np.testing.assert_array_equal(banded.stereo.albedo, whole.stereo.albedo)
     np.testing.assert_array_equal(banded.height.height_um, whole.height.height_um)
+
+
+def test_run_progress_advances_band_by_band(folder, monkeypatch):
+    """The run's progress never goes back and moves within the normals (one report per band)."""
+    import uvps.stereo
+
+    monkeypatch.setattr(uvps.stereo, "CHUNK_PIXELS", 1200)     # 10 rows of 120: 9 bands
+    seen = []
+    run(read_capture(folder, lights=folder / "lights_positions_mm.csv"), RunOptions(), stages=("normals", "height"),
+        progress=lambda f, m: seen.append((f, m)))
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    normals = [f for f, m in seen if m.startswith("normals: rows")]
+    assert len(normals) == 9 and len(set(normals)) == 9
