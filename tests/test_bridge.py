@@ -37,7 +37,7 @@ def _mean_command(inputs, params, output_dir, *, progress=None):
         if params.get("fail") == "crash":
             (tmp / "mean.tif").write_bytes(b"half")
             raise ZeroDivisionError("boom")
-        write_imagej_tiff(tmp / "mean.tif", cap.images.mean(axis=0), axes="YX",
+        write_imagej_tiff(tmp / "mean.tif", np.asarray(cap.images).mean(axis=0), axes="YX",
                           pixel_size_um=cap.pixel_size_um)
     print("a stray print from a library")
     out = OutputSpec("mean", str(output_dir / "mean.tif"), axes="YX", dtype="float32", units="counts")
