@@ -161,3 +161,18 @@ def test_a_masked_object_on_black_is_not_taken_for_pedestal(small):
     cap.mask = mask
     out, term, _ = remove_additive(cap, options=RunOptions())
     assert term.median_signal > 1000
+
+
+def test_one_paint_is_not_measurable_and_the_run_goes_on_with_a_warning():
+    """A field of one paint has no colour areas to cancel: the fit of c runs away. That is "not
+    measurable" (estimated lamps: a warning saying what to give), not "mostly pedestal" (the images
+    are at 28000 counts)."""
+    from uvps.synthetic import render_images
+
+    cap = make_capture(shape=(240, 320), n_lights=8, seed=2)
+    imgs = render_images(cap.height_um, np.full(cap.height_um.shape + (3,), 0.7), pixel_size_um=15.0,
+                         light_positions_mm=cap.light_positions_mm, noise=True, dtype=np.uint16)
+    term = estimate_additive(imgs, saturation=65535)
+    assert term.is_zero and "too few paints" in term.diagnostics["note"]
+    _, term, warnings = remove_additive(_capture(imgs), options=RunOptions())
+    assert len(warnings) == 1 and "could not be measured" in warnings[0] and "dark frame" in warnings[0]

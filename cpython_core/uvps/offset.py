@@ -274,10 +274,10 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     for ch in range(C):
         I = blk[:, ch].reshape(K, -1)[:, ok.ravel()]
         fit = _fit_channel(I, bases, n_iter=n_iter, keep=keep)
-        if fit is None:
-            # the images do not differ between lamps (no drop-off): nothing to measure c by
+        if fit is None or isinstance(fit, str):
+            # the images do not differ between lamps (no drop-off), or nothing else pins c
             return _not_measured(C, degree, (M, N), float(np.median(I)), n_ok, block,
-                                 "not measurable: the images do not differ between lamps")
+                                 fit or "not measurable: the images do not differ between lamps")
         theta, A, Pr = fit
         coeffs[ch] = theta.reshape(degree + 1, degree + 1)
         stderr[ch] = _jackknife_stderr(A, Pr, bases.tile_id, tiles)
@@ -350,17 +350,22 @@ def _fit_channel(I, bases: _BlockBases, *, n_iter, keep):
     """Gauss-Newton fit of ``c``'s coefficients to one channel's block means ``I`` (K, P).
 
     Returns ``(theta, A, Pr)``, the coefficients and the last weighted system (for the jackknife),
-    or None when the images do not differ between lamps.
+    None when the images do not differ between lamps, or a note when the fit runs away (nothing in
+    the images pins ``c``).
     """
     theta = np.zeros(bases.Phi.shape[1])
     for it in range(n_iter):
         c = bases.Phi @ theta
         J = I - c[None]
         pos = np.all(J > 0, axis=0)
-        if pos.mean() < 0.5:
+        if pos.mean() < 0.5 and it == 0:
             raise UVPSInputError(
                 "the additive term (black level, stray light) cannot be measured: most of the paint is at "
                 "the pedestal in some image; give the black level (black_level) or a dark frame (dark)")
+        if pos.mean() < 0.5:
+            # the fit ran away above the images: nothing in them pins c (one paint: no colour
+            # areas to cancel); not measurable, which is no reason to stop a run
+            return "not measurable: the field holds too few paints of different brightness"
         # blocks at the pedestal under some lamp (a narrow beam's dark side) carry no ratio: left out
         w = pos.astype(float)
         Pr, A = _ratio_system(J, pos, bases)
