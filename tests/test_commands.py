@@ -40,6 +40,9 @@ def test_step_by_step_reuses_the_folders_lamps_and_matches_the_whole_run(synthet
     a = read_run(whole, need=("normals",)).normals
     b = read_run(steps, need=("normals",)).normals
     assert np.nanmax(np.abs(a - b)) < 1e-5             # equal to float32 precision
+    # asked to, the normals step estimates the lamps again
+    again = COMMANDS["normals"](images, {"lights": "estimate"}, steps)
+    assert again.diagnostics["lights"]["source"] == "estimated"
 
 
 @pytest.mark.slow

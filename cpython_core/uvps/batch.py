@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 #: Parameters of ``run`` that name a file: one file for every capture when it exists, else looked
 #: up by its name in each capture folder (``lights_positions_mm.csv`` beside each capture's images).
 PER_CAPTURE_FILES = ("lights", "mask", "dark", "regions")
+#: Keywords these parameters take instead of a file (from the run command's declaration).
+_KEYWORDS = {p.name: p.choices for p in CAPTURE_PARAMS + PROTRUSION_PARAMS if p.name in PER_CAPTURE_FILES}
 #: What a batch writes beside the run folders.
 SUMMARY, BATCH_JSON = "batch_summary.csv", "batch.json"
 PAINTING_PROTRUSIONS, PAINTING_REGIONS = "painting_protrusions.csv", "painting_regions.csv"
@@ -139,7 +141,7 @@ def make_jobs(folders, params: dict) -> list:
         p, error = dict(run_params), None
         for key in PER_CAPTURE_FILES:
             value = p.get(key)
-            if not isinstance(value, str) or (key == "regions" and value == "auto"):
+            if not isinstance(value, str) or value in _KEYWORDS.get(key, ()):
                 continue
             if Path(value).is_file():
                 p[key] = str(Path(value).resolve())

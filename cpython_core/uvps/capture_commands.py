@@ -30,7 +30,8 @@ def read_request_capture(inputs: dict, params: dict, progress=None):
     images = inputs["images"]
     if len(images) == 1:
         images = images[0]
-    return read_capture(images, lights=params["lights"], mask=params["mask"], dark=params["dark"],
+    lights = None if params["lights"] == "estimate" else params["lights"]
+    return read_capture(images, lights=lights, mask=params["mask"], dark=params["dark"],
                         pixel_size_um=params["pixel_size_um"], linearize=params["linearize"], progress=progress)
 
 

@@ -74,8 +74,11 @@ CAPTURE_PARAMS = (
     Param("images", "paths", where="inputs", positional=True, required=True,
           label="Images (folder, multi-page TIFF, or files separated by ;)",
           help="image files, a folder, or one multi-page TIFF"),
-    Param("lights", "path", label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)", help="RTI .lp (directions) or positions file (.csv/.json, mm); "
-          "default: estimated from the images"),
+    Param("lights", "path", choices=("estimate",),
+          label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)",
+          help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
+               "the run folder has lights.json; default: the run folder's lights.json for flatfield and normals, "
+               "else estimated"),
     Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
     Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
           "subtracted from every image"),
