@@ -54,6 +54,7 @@ def _rows(path):
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_three_captures_run_as_uvps_run_then_a_rerun_skips_them(captures, client, tmp_path):
     out = tmp_path / "out"
     t0 = time.perf_counter()
@@ -95,6 +96,7 @@ def res_params(out, name):
     return json.loads((out / name / "batch_request.json").read_text())["params"]
 
 
+@pytest.mark.slow
 def test_a_corrupted_capture_fails_alone_with_its_message(captures, client, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(captures / "cap1", bad)
@@ -171,6 +173,7 @@ def mosaic(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_a_mosaic_counts_each_protrusion_of_the_overlap_once(mosaic, client, tmp_path):
     whole = tmp_path / "whole"
     COMMANDS["run"]({"images": [str(mosaic / "whole")]}, {**PARAMS, "lights": str(mosaic / "whole" / LAMPS)}, whole)

@@ -215,6 +215,7 @@ def test_subprocess_integrate_round_trip(tmp_path, method):
     assert resp["elapsed_s"] > 0 and isinstance(resp["diagnostics"], dict)
 
 
+@pytest.mark.slow
 def test_subprocess_input_errors_exit_1_and_leave_run_folder(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "notes.txt").write_text("mine")

@@ -180,6 +180,7 @@ def test_classify_noise_floor_decides_grown():
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
+@pytest.mark.slow
 def test_end_to_end_with_detection(pair, tmp_path):
     runs = {}
     for name, cap in (("a", pair.a), ("b", pair.b)):

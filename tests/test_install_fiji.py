@@ -162,6 +162,7 @@ HAVE_JDK = (subprocess.run(["sh", "-c", "command -v javac"], stdout=subprocess.P
 
 
 @pytest.mark.skipif(not HAVE_JDK, reason="needs javac and Debian's jython.jar and ij.jar")
+@pytest.mark.slow
 def test_plain_imagej_gets_a_jython_interpreter_and_uninstall_takes_it_back(tmp_path):
     import zipfile
 

@@ -258,6 +258,7 @@ def test_points_csv_text():
 # --------------------------------------------------------------------------- Jython
 
 @pytest.mark.skipif(shutil.which("jython") is None, reason="Debian's jython is not installed")
+@pytest.mark.slow
 def test_library_compiles_and_runs_under_jython(tmp_path):
     """The pure logic must also run under Jython 2.7 (ImageJ's interpreter)."""
     script = (
@@ -281,6 +282,7 @@ def test_library_compiles_and_runs_under_jython(tmp_path):
 
 
 @pytest.mark.skipif(shutil.which("jython") is None, reason="Debian's jython is not installed")
+@pytest.mark.slow
 def test_every_jython_source_compiles_under_jython_2_7():
     """Menu scripts and the ImageJ-side modules are Jython 2.7 code: compile (not run) them."""
     sources = sorted((ROOT / "jython_lib" / "uvps_fiji").glob("*.py"))
@@ -319,6 +321,7 @@ def test_an_error_of_the_real_core_reaches_the_fiji_side(tmp_path):
     assert "points" in info.value.message and info.value.exit_code == 1
 
 
+@pytest.mark.slow
 def test_a_real_core_run_is_accepted_with_its_outputs(tmp_path):
     from uvps.synthetic import make_capture, write_capture
 
