@@ -472,10 +472,13 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
             term.diagnostics["note"] = f"not significant (|c| < {SIGNIFICANT:g} standard errors): not subtracted"
             return capture, term, warnings
         if se > OFFSET_TOLERANCE * term.median_signal:
+            lamps_given = capture.light_positions_mm is not None or capture.light_directions is not None
+            effect = ("normals of dark paint may be tilted" if lamps_given else
+                      "estimated lamp elevations and heights may be off")
             warnings.append(
-                f"the black level could only be measured to +-{se:.0f} counts ({100 * se / term.median_signal:.2f} % "
-                "of the signal; the field may hold too little dark and bright paint): estimated lamp elevations "
-                "and heights may be off; give the camera's black level or a dark frame")
+                f"the black level could only be measured to +-{se:.2g} counts ({100 * se / term.median_signal:.2f} % "
+                f"of the signal; the field may hold too little dark and bright paint): {effect}; give the camera's "
+                "black level or a dark frame")
     if term.is_zero:
         return capture, term, warnings
     return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
