@@ -264,6 +264,11 @@ def _cmd_compare(inputs: dict, params: dict, output_dir, *,
 
 
 
+#: The detection settings a Fiji dialog shows, in a conservator's words (the first word is the macro key).
+_DETECTION_LABELS = {"dynamic_k": "Sensitivity (relief / height noise; lower finds more)",
+                     "min_width_um": "Smallest width of a protrusion"}
+
+
 def _detection_params() -> tuple:
     """Every field of :class:`uvps.detect.DetectionParams` as a parameter of ``detect`` (type and
     default from the dataclass, help from its numpydoc Attributes section)."""
@@ -277,7 +282,7 @@ def _detection_params() -> tuple:
     for f in dataclasses.fields(DetectionParams):
         kind = {bool: "bool", int: "int", float: "float"}.get(type(f.default), "float")
         out.append(Param(f.name, kind, f.default, help=helps.get(f.name, "detection option"),
-                         unit="um" if f.name.endswith("_um") else ""))
+                         unit="um" if f.name.endswith("_um") else "", label=_DETECTION_LABELS.get(f.name, "")))
     return tuple(out)
 
 

@@ -607,12 +607,11 @@ def macro_key(label):
     return label.split(" ")[0].split(":")[0].lower()
 
 
-#: Dialog labels of parameters the core declares without one (its label, if any, is for the
-#: command line's help): the first word is the macro key (``sensitivity=5 smallest=30``).
-FIELD_LABELS = {
-    "dynamic_k": "Sensitivity (relief / height noise; lower finds more)",
-    "min_width_um": "Smallest width of a protrusion",
-}
+#: Dialog labels the Fiji side would give parameters the core declares without one (the first word
+#: is the macro key). Empty: the core's declarations hold every label the dialogs use, e.g.
+#: detect's ``dynamic_k`` "Sensitivity ..." (``sensitivity=5``) and ``min_width_um`` "Smallest ..."
+#: (``smallest=30``).
+FIELD_LABELS = {}
 
 
 def param_label(param):
