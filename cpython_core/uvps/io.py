@@ -66,11 +66,13 @@ class Capture:
 
     Attributes
     ----------
-    images : ndarray or StackView
+    images : ndarray or LazyStack
         ``(K, M, N)`` or ``(K, M, N, 3)``, linear, dark-subtracted, NEVER rescaled: the files' own
         counts (uint16 0..65535, uint8 0..255). Integer files keep their dtype; a dark frame or
-        sRGB linearisation gives float32. Later stages may wrap it in a lazy view that corrects on
-        access (:class:`StackView`: additive term, lamp beams) rather than copy it.
+        sRGB linearisation gives float32. A folder of uncompressed TIFFs is memory-mapped
+        (:class:`MappedStack`), and later stages may wrap the stack in a view that corrects on
+        access (:class:`StackView`: additive term, lamp beams): index it, or ``np.asarray`` it for
+        the whole stack in memory.
     files : list of str
         One per image; an image of a multi-page stack is ``"/path/stack.tif#k"`` with k from 1 (the
         ImageJ slice number).
@@ -103,7 +105,24 @@ class Capture:
     light_intensities: Optional[np.ndarray] = None
 
 
-class StackView:
+class LazyStack:
+    """A ``(K, M, N[, C])`` stack that yields arrays only when indexed (``shape``, ``ndim``,
+    ``dtype`` set by subclasses, which implement ``__getitem__``): iteration gives one image at a
+    time and ``np.asarray`` the whole stack."""
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        for k in range(self.shape[0]):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
+class StackView(LazyStack):
     """A capture's stack seen through a correction computed on access (the stack is never copied).
 
     Subclasses implement :meth:`correct`: given the float32 values indexed by ``(k, rows, cols)``
@@ -118,17 +137,6 @@ class StackView:
         self.ndim = images.ndim
         self.dtype = np.dtype(np.float32)
 
-    def __len__(self):
-        return self.shape[0]
-
-    def __iter__(self):
-        for k in range(self.shape[0]):
-            yield self[k]
-
-    def __array__(self, dtype=None, copy=None):
-        out = self[:]
-        return out if dtype is None else out.astype(dtype)
-
     def __getitem__(self, key):
         key = key if isinstance(key, tuple) else (key,)
         if len(key) > 3:
@@ -140,7 +148,7 @@ class StackView:
         raise NotImplementedError
 
 
-class MappedStack:
+class MappedStack(LazyStack):
     """K image files of one shape and dtype seen as one ``(K, M, N[, C])`` stack, never loaded whole.
 
     Each file is memory-mapped read-only (uncompressed TIFFs: :func:`tifffile.memmap`); indexing
@@ -157,17 +165,6 @@ class MappedStack:
         self.ndim = len(self.shape)
         self.dtype = self.maps[0].dtype
         self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
-
-    def __len__(self):
-        return self.shape[0]
-
-    def __iter__(self):
-        for k in range(self.shape[0]):
-            yield self[k]
-
-    def __array__(self, dtype=None, copy=None):
-        out = self[:]
-        return out if dtype is None else out.astype(dtype)
 
     def __getitem__(self, key):
         key = key if isinstance(key, tuple) else (key,)

@@ -206,7 +206,7 @@ def _cmd_stats(inputs: dict, params: dict, output_dir, *,
     with atomic_output_dir(run_dir) as tmp:
         stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,
                                params["bins_um"], warnings, table_path)
-    html = write_report(run_dir, stats=stats, regions=regions, warnings=list(warnings),
+    html = write_report(run_dir, stats=stats, regions=regions, warnings=list(warnings), images=images,
                         table=table_path, progress=sub_progress(progress, 0.1, 1.0))
     figures = sorted((run_dir / "figures").glob("*.png"))
     outputs = [OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2"),

@@ -422,7 +422,7 @@ td:first-child,th:first-child{text-align:left}figure{margin:1em 0}img{max-width:
 
 
 def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None, comparison=None,
-                 warnings: Optional[list] = None, title: Optional[str] = None,
+                 warnings: Optional[list] = None, title: Optional[str] = None, images=None,
                  progress: Progress = None) -> Path:
     """Write ``report.html`` and ``figures/*.png`` for a run folder.
 
@@ -446,6 +446,8 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     warnings : list of str, optional
         Warnings to list (besides those in ``run.json``).
     title : str, optional
+    images : RunImages, optional
+        The run folder's images when the caller has read them already (:func:`uvps.runfolder.read_run`).
     progress : callable(fraction, message), optional
 
     Returns
@@ -466,7 +468,7 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     page = _Page()
     run, warn = _run_summary(run_dir, page, warnings)
     report(progress, 0.05, "reading the run folder")
-    inputs = _read_inputs(run_dir, run, table)
+    inputs = _read_inputs(run_dir, run, table, images)
 
     report(progress, 0.15, "lights")
     _lights_figure(page, run_dir, figdir)
@@ -518,7 +520,7 @@ class _RunInputs:
     shape: Optional[tuple]
 
 
-def _read_inputs(run_dir: Path, run, table) -> _RunInputs:
+def _read_inputs(run_dir: Path, run, table, images=None) -> _RunInputs:
     """Read the run's images (:func:`uvps.runfolder.read_run`: its file names and layout) and the
     protrusion labels; the pixel size from the TIFFs, else ``run.json``, else ``lights.json``.
 
@@ -529,14 +531,10 @@ def _read_inputs(run_dir: Path, run, table) -> _RunInputs:
     if table is not None and not table_path.is_file():
         raise UVPSInputError(f"protrusion table {table_path} does not exist")
     plabels, px_l = _read_optional_tiff(_labels_path(table_path))
-    try:
-        images = read_run(run_dir, need=())
-        px = images.pixel_size_um
-    except UVPSInputError:
-        # no pixel size in the TIFFs (read_run requires one): read the arrays with a placeholder,
-        # unused, and look for the pixel size elsewhere. Any other error (sizes that differ) is
-        # raised again by this second read.
-        images = read_run(run_dir, need=(), pixel_size_um=1.0)
+    if images is None:
+        images = read_run(run_dir, need=(), require_pixel_size=False)
+    px = images.pixel_size_um
+    if px is None:      # no pixel size in the TIFFs: the labels', run.json's or lights.json's
         px = px_l or None
         if px is None and run is not None:
             px = run.get("pixel_size_um") or (run.get("params") or {}).get("pixel_size_um")

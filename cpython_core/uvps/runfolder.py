@@ -257,7 +257,8 @@ def _channels_last(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
-def read_run(run_dir: Path, *, need=("albedo", "depth"), pixel_size_um=None) -> RunImages:
+def read_run(run_dir: Path, *, need=("albedo", "depth"), pixel_size_um=None,
+             require_pixel_size: bool = True) -> RunImages:
     """Read ``albedo.tif``, ``depth.tif`` and ``normals.tif`` of a run folder, once.
 
     Parameters
@@ -268,6 +269,9 @@ def read_run(run_dir: Path, *, need=("albedo", "depth"), pixel_size_um=None) -> 
         UVPSInputError naming the command that makes it.
     pixel_size_um : float, optional
         Overrides the TIFFs' calibration (required when they have none).
+    require_pixel_size : bool
+        False: a folder whose TIFFs carry no pixel size is read with ``pixel_size_um`` None (the
+        report finds it elsewhere) instead of raising.
     """
     run_dir = Path(run_dir)
     out, px_found = {}, []
@@ -294,7 +298,7 @@ def read_run(run_dir: Path, *, need=("albedo", "depth"), pixel_size_um=None) -> 
         px = check_pixel_size(pixel_size_um)
     elif px_found:
         px = float(px_found[0])
-    elif shapes:
+    elif shapes and require_pixel_size:
         raise UVPSInputError(f"{run_dir}: no pixel size in the TIFFs; give pixel_size_um")
     else:
         px = None
