@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from . import protrusion_commands, runfolder
+from .runfolder import RunImages
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
@@ -70,8 +71,12 @@ def _capture_command(name: str, stages: tuple):
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
-    """``run`` with colour areas or detection: statistics and the report from the run folder."""
-    r = protrusion_commands.SPEC_STATS({}, {"bins_um": params["bins_um"]}, run_dir, progress=progress)
+    """``run`` with colour areas or detection: statistics and the report, from the arrays in memory
+    (the files just written hold the same float32 values)."""
+    st = result.stereo
+    images = RunImages(st.albedo, result.height.height_um, st.normals, result.capture.pixel_size_um,
+                       result.height.height_um.shape)
+    r = protrusion_commands.statistics_and_report(run_dir, images, bins_um=params["bins_um"], progress=progress)
     out.outputs += r.outputs
     out.diagnostics["stats"] = r.diagnostics
     out.warnings += r.warnings

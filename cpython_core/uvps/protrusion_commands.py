@@ -24,8 +24,8 @@ from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, rep
 from .pipeline import find_protrusions, protrusion_diagnostics
 from .regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
 from .report import plot_comparison_map, write_report
-from .runfolder import output_spec, read_run, write_protrusions
-from .spec import CommandSpec, Param
+from .runfolder import RunImages, output_spec, read_run, write_protrusions
+from .spec import CommandSpec, Param, coerce
 from .wand import read_seeds, wand_select
 
 log = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ def _cmd_regions(inputs: dict, params: dict, output_dir, *,
 
 
 def _cmd_stats(inputs: dict, params: dict, output_dir, *,
-              progress: Progress = None) -> CommandResult:
+              progress: Progress = None, images: Optional[RunImages] = None) -> CommandResult:
     """Per-area statistics (``regions.csv``) and the report (``report.html``, ``figures/``).
 
     ``regions``: a label TIFF, default the run's ``regions_labels.tif``, else the whole image;
@@ -194,7 +194,8 @@ def _cmd_stats(inputs: dict, params: dict, output_dir, *,
     else:
         raise UVPSInputError(f"run folder {run_dir} has no protrusions.csv; run the 'detect' or "
                              "'wand' command first")
-    images = read_run(run_dir, need=(), pixel_size_um=params["pixel_size_um"])
+    if images is None:
+        images = read_run(run_dir, need=(), pixel_size_um=params["pixel_size_um"])
     if images.shape is None:
         raise UVPSInputError(f"run folder {run_dir} has no albedo.tif or depth.tif to size the "
                              "colour areas")
@@ -219,6 +220,13 @@ def _cmd_stats(inputs: dict, params: dict, output_dir, *,
                                    "table": str(table_path),
                                    "edges_um": [float(e) if np.isfinite(e) else None
                                                 for e in stats.edges_um]}, warnings)
+
+
+def statistics_and_report(run_dir, images: RunImages, *, bins_um=100.0, progress: Progress = None):
+    """``stats`` on a run folder whose images the caller holds in memory (``run`` with detection has
+    just written them): the same command, without reading the TIFFs back."""
+    _, params, _ = coerce(SPEC_STATS, {}, {"bins_um": bins_um})
+    return _cmd_stats({}, params, Path(run_dir), progress=progress, images=images)
 
 
 def _cmd_compare(inputs: dict, params: dict, output_dir, *,
