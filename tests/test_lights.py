@@ -131,6 +131,29 @@ def test_lights_within_two_degrees_on_a_full_field():
     assert [h["pixels"] for h in per_light] == [5000, 30000] and per_light[-1]["converged"]
 
 
+def test_refinement_normal_equations_match_finite_differences():
+    """The per-light refinement's J^T J and J^T f, built without J from the variable-projection
+    structure and the drop-off prior's, against those of a central-difference Jacobian of the same
+    residual (photometric, drop-off prior and mean log intensity), at lamps that leave large residuals."""
+    from uvps.lights import PixelSample, _params, _Problem
+
+    rng = np.random.default_rng(0)
+    K, n = 6, 50
+    P = np.column_stack([rng.uniform(-200, 200, K), rng.uniform(-200, 200, K), rng.uniform(150, 300, K)])
+    E = rng.uniform(0.8, 1.2, K)
+    X = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-10, 10, n), np.zeros(n)])
+    sample = PixelSample(rng.uniform(0.5, 1.5, (K, n)), X, None, None)
+    Xg = pixel_coordinates_mm(np.linspace(0, 99, 5)[:, None], np.linspace(0, 149, 6)[None, :], (100, 150), 100.0)
+    R = rng.normal(0, 0.05, (K, 5, 6))
+    R -= R.mean(axis=(1, 2), keepdims=True)
+    prob = _Problem(sample, R, Xg, w_drop=0.7)
+    t0 = _params(LightModel.from_positions(P, E)).ravel() + rng.normal(0, 0.01, 4 * K)
+    Jn = np.column_stack([(prob.fun(t0 + h) - prob.fun(t0 - h)) / 2e-6 for h in np.eye(t0.size) * 1e-6])
+    JtJ, Jtf = prob.normal_equations(t0)
+    assert np.abs(JtJ - Jn.T @ Jn).max() < 1e-7 * np.abs(Jn.T @ Jn).max()
+    assert np.abs(Jtf - Jn.T @ prob.fun(t0)).max() < 1e-7 * np.abs(Jn.T @ prob.fun(t0)).max()
+
+
 def test_variable_projection_jacobian_matches_finite_differences():
     """The photometric residual's Jacobian (with Golub-Pereyra's second term) against central differences,
     at random lamps and intensities that the lights do not explain (large residuals)."""

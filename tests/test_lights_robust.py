@@ -82,12 +82,15 @@ def test_levenberg_marquardt_matches_scipy():
     def jac(p):
         return np.column_stack([np.exp(-p[1] * t), -p[0] * t * np.exp(-p[1] * t), np.sin(3 * t)])
 
-    x, f, nfev, ok = levenberg_marquardt(fun, jac, np.array([1.0, 0.5, 0.0]), max_nfev=100)
+    def normal_equations(p):
+        return jac(p).T @ jac(p), jac(p).T @ fun(p)
+
+    x, f, nfev, ok = levenberg_marquardt(fun, normal_equations, np.array([1.0, 0.5, 0.0]), max_nfev=100)
     ref = least_squares(fun, [1.0, 0.5, 0.0], jac=jac, method="lm").x
     assert ok and nfev < 100
     assert np.allclose(x, ref, rtol=1e-6, atol=1e-8)
     # bounds by projection: the solution at a bound when the optimum is beyond it
-    xb, *_ = levenberg_marquardt(fun, jac, np.array([1.0, 0.5, 0.0]), lb=[-np.inf, -np.inf, -np.inf],
+    xb, *_ = levenberg_marquardt(fun, normal_equations, np.array([1.0, 0.5, 0.0]), lb=[-np.inf, -np.inf, -np.inf],
                                  ub=[np.inf, np.inf, 0.2], max_nfev=100)
     assert xb[2] == pytest.approx(0.2)
 
