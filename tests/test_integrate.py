@@ -266,3 +266,105 @@ def test_bad_input_raises_clear_error(call, match):
     n = normals_from_gradients(p, p)
     with pytest.raises(UVPSInputError, match=match):
         call(p, n)
+
+
+def _mirrored(p, q):
+    """The gradients' (2M, 2N) even extension of the height, float64 (frankot_chellappa's notes)."""
+    M, N = p.shape
+    gc = np.empty((2 * M, 2 * N))
+    gc[:M, :N], gc[:M, N:] = p, -p[:, ::-1]
+    gc[M:] = gc[M - 1::-1]
+    gr = np.empty((2 * M, 2 * N))
+    gr[:M, :N], gr[:M, N:] = -q, -q[:, ::-1]
+    gr[M:] = -gr[M - 1::-1]
+    return gc, gr
+
+
+def _fc_fft64(p, q, *, half_spectrum):
+    """Frankot-Chellappa on the mirrored field by FFT in float64: the real part of the full inverse
+    transform, or (``half_spectrum``) the irfft2 of the non-negative column frequencies, as uvps
+    computed it before the cosine-transform form."""
+    import scipy.fft
+
+    M, N = p.shape
+    gc, gr = _mirrored(p.astype(np.float64), q.astype(np.float64))
+    fwd, inv, colfreq = ((scipy.fft.rfft2, lambda Z: scipy.fft.irfft2(Z, s=(2 * M, 2 * N)), scipy.fft.rfftfreq)
+                         if half_spectrum else (scipy.fft.fft2, lambda Z: scipy.fft.ifft2(Z).real, scipy.fft.fftfreq))
+    wc = 2 * np.pi * colfreq(2 * N)[None, :]
+    wr = 2 * np.pi * scipy.fft.fftfreq(2 * M)[:, None]
+    denom = wc ** 2 + wr ** 2
+    denom[0, 0] = 1
+    Z = (-1j * wc * fwd(gc) - 1j * wr * fwd(gr)) / denom
+    Z[0, 0] = 0
+    return inv(Z)[:M, :N]
+
+
+def _row_nyquist_term(q):
+    """What the irfft2 of the half spectrum adds to the full transform's real part: the rows'
+    Nyquist frequency (-1)^r, whose column spectrum the half spectrum takes as Hermitian."""
+    import scipy.fft
+
+    M, N = q.shape
+    sign = (-1.0) ** np.arange(M)
+    D = scipy.fft.dct(2 * (sign[:, None] * -q.astype(np.float64)).sum(axis=0), type=2)
+    k = np.arange(1, N)
+    wc = np.pi * k / N
+    S = (D[1:] * np.pi / (np.pi ** 2 + wc ** 2)) @ np.sin(np.pi * k[:, None] * (np.arange(N)[None, :] + 0.5) / N)
+    return -sign[:, None] * S[None, :] / (2 * M * N)
+
+
+@pytest.mark.parametrize("shape", [(40, 56), (33, 47), (2, 5), (7, 2)])
+def test_fc_equals_the_fft_of_the_mirrored_field_in_float64(shape):
+    """The cosine-transform form is the mirrored field's FFT projection (float32 against float64);
+    the earlier irfft2 form is that plus its row-Nyquist term, and nothing else. Worst case for
+    float32: white-noise gradients (no smooth surface to hide the rounding)."""
+    rng = np.random.default_rng(7)
+    p, q = rng.normal(size=(2,) + shape).astype(np.float32)
+    new = frankot_chellappa(p, q, pixel_size_um=1.0).height_um
+    full = _fc_fft64(p, q, half_spectrum=False)
+    np.testing.assert_allclose(new, full - np.median(full), rtol=0, atol=1e-6 * np.ptp(full))
+    earlier = _fc_fft64(p, q, half_spectrum=True)
+    np.testing.assert_allclose(earlier, full + _row_nyquist_term(q), rtol=0, atol=1e-12 * np.ptp(full))
+
+
+def test_fc_on_a_relief_equals_the_earlier_float64_result():
+    """On a relief (dome, tilt and noise, 1 % of the normals NaN) the height equals the earlier
+    float64 irfft2 result within float32 precision once its row-Nyquist term is set aside, and
+    the term itself is below 1e-4 of the height range."""
+    z, p, q = sphere_dome((90, 120))
+    rng = np.random.default_rng(2)
+    p = p + 0.3 + rng.normal(0, 0.05, p.shape)
+    q = q - 0.1 + rng.normal(0, 0.05, q.shape)
+    n = normals_from_gradients(p, q)
+    n[rng.random(p.shape) < 0.01] = np.nan
+    res = integrate_normals(n, pixel_size_um=1.0, method="fc")
+    g = gradients_from_normals(n)
+    earlier = _fc_fft64(g.p, g.q, half_spectrum=True) - _row_nyquist_term(g.q)
+    earlier -= np.median(earlier[~g.invalid])
+    np.testing.assert_allclose(res.height_um, earlier, rtol=0, atol=1e-6 * np.ptp(earlier))
+    assert np.abs(_row_nyquist_term(g.q)).max() < 1e-4 * np.ptp(earlier)
+
+
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_bands_change_nothing(method, monkeypatch):
+    """Gradients, heights and diagnostics computed in bands of one row = in one band."""
+    import uvps.integrate
+
+    z, p, q = sphere_dome((30, 41))
+    rng = np.random.default_rng(4)
+    n = normals_from_gradients(p + rng.normal(0, 0.1, p.shape), q + rng.normal(0, 0.1, q.shape))
+    n[3, 4] = np.nan
+    n[5, 6] = (0.999, 0, -0.01)                              # steep: clamped
+    mask = np.ones(p.shape, bool)
+    mask[:, :3] = False
+    whole = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=mask)
+    g_whole = gradients_from_normals(n, mask=mask)
+    monkeypatch.setattr(uvps.integrate, "BAND_PIXELS", 1)
+    banded = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=mask)
+    g = gradients_from_normals(n, mask=mask)
+    for a, b in ((g.p, g_whole.p), (g.q, g_whole.q), (g.invalid, g_whole.invalid),
+                 (banded.height_um, whole.height_um)):
+        np.testing.assert_array_equal(a, b)
+    assert (g.n_invalid, g.n_clamped) == (g_whole.n_invalid, g_whole.n_clamped) == (1, 1)
+    assert banded.residual_rms == pytest.approx(whole.residual_rms, rel=1e-12)
+    assert banded.integrability == pytest.approx(whole.integrability, rel=1e-12)
