@@ -11,6 +11,7 @@ import tifffile
 from uvps.errors import UVPSInputError
 from uvps.io import (
     Capture,
+    imagej_tiff_writer,
     read_capture,
     read_lp,
     read_positions,
@@ -426,17 +427,49 @@ def test_write_imagej_tiff_rejects_bad_arguments(tmp_path):
 def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
     p = tmp_path / "keep.tif"
     p.write_bytes(b"old")
+    # a failure while the data are being filled (a band that cannot be computed, a full disk)
+    with pytest.raises(OSError, match="disk full"):
+        with imagej_tiff_writer(p, (4, 2), np.float32, axes="YX", pixel_size_um=1) as out:
+            out.write(slice(0, 2), 1.0)
+            raise OSError("disk full")
+    assert p.read_bytes() == b"old"
+    assert [f.name for f in tmp_path.iterdir()] == ["keep.tif"]
 
-    def half_write(path, data, **kw):
+    # a failure while the file is created
+    def half_write(path, **kw):
         with open(path, "wb") as fh:
             fh.write(b"partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(tifffile, "imwrite", half_write)
+    monkeypatch.setattr(tifffile, "memmap", half_write)
     with pytest.raises(OSError, match="disk full"):
         write_imagej_tiff(p, np.ones((2, 2), np.float32), axes="YX", pixel_size_um=1)
     assert p.read_bytes() == b"old"
     assert [f.name for f in tmp_path.iterdir()] == ["keep.tif"]
+
+
+def test_tiff_written_band_by_band_equals_the_array(tmp_path, monkeypatch):
+    """Writing in bands of a few rows (from a strided view, cast on the way) gives the file that
+    holds the array; above LARGE_TIFF_BYTES the file is in ImageJ's one-IFD large-file layout."""
+    import uvps.io
+
+    rng = np.random.default_rng(1)
+    normals = rng.normal(size=(37, 23, 3))                      # float64, channels last
+    monkeypatch.setattr(uvps.io, "BAND_BYTES", 5 * 23 * 4)     # 5 rows per band
+    write_imagej_tiff(tmp_path / "n.tif", np.moveaxis(normals, -1, 0), axes="CYX", pixel_size_um=15,
+                      labels=["nx", "ny", "nz"])
+    with tifffile.TiffFile(tmp_path / "n.tif") as tif:
+        assert tif.series[0].axes == "CYX" and tif.imagej_metadata["Labels"] == ["nx", "ny", "nz"]
+        np.testing.assert_array_equal(tif.asarray(), np.moveaxis(normals, -1, 0).astype(np.float32))
+        assert len(tif.pages) == 3
+    monkeypatch.setattr(uvps.io, "LARGE_TIFF_BYTES", 1000)
+    stack = rng.integers(0, 4000, size=(4, 2, 19, 17)).astype(np.uint16)
+    write_imagej_tiff(tmp_path / "big.tif", stack, axes="ZCYX", pixel_size_um=2)
+    with tifffile.TiffFile(tmp_path / "big.tif") as tif:
+        assert len(tif.pages) == 1 and tif.imagej_metadata["images"] == 8      # one IFD
+        assert tif.series[0].axes == "ZCYX"
+        np.testing.assert_array_equal(tif.asarray(), stack)
+    np.testing.assert_array_equal(tifffile.memmap(tmp_path / "big.tif", mode="r"), stack)   # contiguous
 
 
 def test_truncated_tiff_is_input_error(tmp_path):

@@ -1068,27 +1068,139 @@ def _read_stack(path: Path, progress: Progress):
 # writing
 
 
-def _imagej_dtype(data: np.ndarray) -> np.ndarray:
-    """Cast to a type ImageJ hyperstacks hold (uint8, uint16, float32).
+def _imagej_dtype(data: np.ndarray) -> np.dtype:
+    """The type ImageJ hyperstacks hold (uint8, uint16, float32) that ``data`` is written as.
 
     ImageJ has no int32/uint32 images (tifffile refuses them with ``imagej=True``): integer
     label images are written uint16 when all values fit in 0..65535, else float32 (exact up to
     2**24 labels).
     """
     if data.dtype == np.bool_:
-        return data.astype(np.uint8)
+        return np.dtype(np.uint8)
     if data.dtype in (np.uint8, np.uint16, np.float32):
-        return data
+        return data.dtype
     if np.issubdtype(data.dtype, np.integer):
         lo, hi = (int(data.min()), int(data.max())) if data.size else (0, 0)
         if lo >= 0 and hi <= 65535:
-            return data.astype(np.uint16)
+            return np.dtype(np.uint16)
         if abs(lo) > 2**24 or abs(hi) > 2**24:
             raise UVPSInputError(f"integer image values {lo}..{hi} do not fit float32 exactly")
-        return data.astype(np.float32)
+        return np.dtype(np.float32)
     if np.issubdtype(data.dtype, np.floating):
-        return data.astype(np.float32)
+        return np.dtype(np.float32)
     raise UVPSInputError(f"cannot write {data.dtype} data as an ImageJ TIFF")
+
+
+def _check_imagej_axes(axes: str, shape: tuple) -> str:
+    axes = str(axes).upper()
+    if len(axes) != len(shape):
+        raise UVPSInputError(
+            f"axes {axes!r} has {len(axes)} letters for data of shape {tuple(shape)}"
+        )
+    it = iter(_IMAGEJ_AXES)
+    if not axes.endswith("YX") and not axes.endswith("YXS") or not all(a in it for a in axes):
+        raise UVPSInputError(
+            f"axes {axes!r} must be a subsequence of ImageJ's 'TZCYXS' ending in YX"
+        )
+    return axes
+
+
+#: Bytes copied into a TIFF being written before its pages are released (see :class:`TiffBands`).
+BAND_BYTES = 1 << 26
+
+
+class TiffBands:
+    """The image data of a TIFF being written (:func:`imagej_tiff_writer`), filled band by band.
+
+    ``array`` is the file's data memory-mapped read-write, in the file's layout (e.g. ``(C, M, N)``);
+    :meth:`write` copies values into it and then drops the written pages from the process's resident
+    set: they stay in the page cache and reach the disk as any write does, so a file larger than the
+    memory is written with the memory of one band.
+    """
+
+    def __init__(self, array: np.ndarray, axes: str):
+        self.array = array
+        self.shape = array.shape
+        self.dtype = array.dtype
+        self.axes = axes
+
+    def write(self, key, values) -> None:
+        """``array[key] = values`` (cast to the file's type), then release the pages."""
+        self.array[key] = values
+        release(self.array)
+
+    def put(self, index: tuple, plane) -> None:
+        """Copy one plane (``(M, N)``, or ``(M, N, S)`` for RGB samples) to the plane at ``index``
+        (the indices of the axes before Y), :data:`BAND_BYTES` at a time: ``plane`` may be any
+        array (a strided view, another dtype) and is never copied whole."""
+        index = tuple(index) if isinstance(index, (tuple, list)) else (index,)
+        M = plane.shape[0]
+        row_bytes = max(1, int(np.prod(plane.shape[1:])) * self.dtype.itemsize)
+        step = max(1, BAND_BYTES // row_bytes)
+        for r0 in range(0, M, step):
+            rows = slice(r0, min(M, r0 + step))
+            self.write(index + (rows,), plane[rows])
+
+
+@contextlib.contextmanager
+def imagej_tiff_writer(path: PathLike, shape, dtype, *, axes: str, pixel_size_um: float,
+                       unit: str = "um", labels: Optional[Sequence[str]] = None,
+                       metadata: Optional[dict] = None):
+    """Create an ImageJ hyperstack TIFF of ``shape`` and ``dtype`` and yield its data to fill
+    (:class:`TiffBands`); the file is written to a temporary file and renamed into place when the
+    block ends without an exception (removed otherwise).
+
+    Parameters are those of :func:`write_imagej_tiff`; ``dtype`` is one ImageJ holds (uint8,
+    uint16, float32). The data are uncompressed and contiguous, so tifffile, ImageJ and
+    :func:`read_capture` (memory-mapped) read the file. Above :data:`LARGE_TIFF_BYTES` the file is
+    in ImageJ's own large-file layout (one IFD, the data contiguous after it: what ImageJ's "Save
+    As Tiff" writes and ImageJ 1.x opens natively; BigTIFF would need Bio-Formats); tifffile reads
+    both.
+    """
+    path = Path(path)
+    px = check_pixel_size(pixel_size_um)
+    if unit not in ("um", "micron", "\u00b5m"):
+        raise UVPSInputError(f"unit must be 'um' (micrometres); got {unit!r}")
+    shape = tuple(int(n) for n in shape)
+    axes = _check_imagej_axes(axes, shape)
+    dtype = np.dtype(dtype)
+    if dtype not in (np.uint8, np.uint16, np.float32):
+        raise UVPSInputError(f"ImageJ TIFFs hold uint8, uint16 or float32; got {dtype}")
+    meta = {"axes": axes, "unit": "micron"}
+    if labels is not None:
+        labels = [str(s) for s in labels]
+        nplanes = int(np.prod([n for a, n in zip(axes, shape) if a in "TZC"] or [1]))
+        nc = shape[axes.index("C")] if "C" in axes else 1
+        if len(labels) == nc and nplanes != nc:
+            labels = labels * (nplanes // nc)  # ImageJ plane order: C fastest, then Z, then T
+        if len(labels) != nplanes:
+            raise UVPSInputError(
+                f"labels: got {len(labels)}; expected one per channel ({nc})"
+                f" or per plane ({nplanes})"
+            )
+        meta["Labels"] = labels
+    if metadata:
+        meta.update(metadata)
+    if not path.parent.is_dir():
+        raise UVPSInputError(f"output folder {path.parent} does not exist")
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        large = nbytes > LARGE_TIFF_BYTES
+        if large:
+            log.info("%s: %.2f GB, ImageJ large-file layout", path, nbytes / 2**30)
+            warnings.filterwarnings("ignore", message=".*truncating ImageJ file")
+        arr = tifffile.memmap(
+            tmp, shape=shape, dtype=dtype, imagej=True, resolution=(1.0 / px, 1.0 / px),
+            metadata=meta, photometric="rgb" if axes.endswith("S") else "minisblack",
+            truncate=large,
+        )
+        bands = TiffBands(arr, axes)
+        del arr
+        try:
+            yield bands
+        finally:
+            # unmapped here (the last reference): the data are in the page cache, as after write()
+            bands.array = None
 
 
 def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size_um: float,
@@ -1102,7 +1214,8 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
         Output file; written to a temporary file in the same folder, then renamed into place.
     data : ndarray
         float32, uint16 or uint8 (bool -> uint8, float64 -> float32; int32 labels -> uint16 if
-        they fit, else float32: ImageJ has no 32-bit integer images).
+        they fit, else float32: ImageJ has no 32-bit integer images). Any layout: a strided view
+        (``np.moveaxis(normals, -1, 0)``) is written as it is, band by band, never copied whole.
     axes : str
         One letter per dimension, a subsequence of ImageJ's ``TZCYXS`` ending in ``YX``:
         ``"YX"``, ``"CYX"`` (channels), ``"ZYX"`` (a stack of K images), ``"ZCYX"``.
@@ -1125,51 +1238,18 @@ def write_imagej_tiff(path: PathLike, data: np.ndarray, *, axes: str, pixel_size
     -----
     Files above about 3.9 GB are written in ImageJ's own large-file layout (one IFD, the data
     contiguous after it, as ImageJ's "Save As Tiff" does) rather than BigTIFF, because ImageJ
-    1.x opens that layout natively but needs Bio-Formats for BigTIFF; tifffile reads both.
+    1.x opens that layout natively but needs Bio-Formats for BigTIFF; tifffile reads both
+    (:func:`imagej_tiff_writer`). Memory: one band of :data:`BAND_BYTES` beyond ``data``.
     """
-    path = Path(path)
-    px = check_pixel_size(pixel_size_um)
-    if unit not in ("um", "micron", "\u00b5m"):
-        raise UVPSInputError(f"unit must be 'um' (micrometres); got {unit!r}")
     data = np.asarray(data)
-    axes = str(axes).upper()
-    if len(axes) != data.ndim:
-        raise UVPSInputError(
-            f"axes {axes!r} has {len(axes)} letters for data of shape {data.shape}"
-        )
-    it = iter(_IMAGEJ_AXES)
-    if not axes.endswith("YX") and not axes.endswith("YXS") or not all(a in it for a in axes):
-        raise UVPSInputError(
-            f"axes {axes!r} must be a subsequence of ImageJ's 'TZCYXS' ending in YX"
-        )
-    data = _imagej_dtype(data)
-    meta = {"axes": axes, "unit": "micron"}
-    if labels is not None:
-        labels = [str(s) for s in labels]
-        nplanes = int(np.prod([n for a, n in zip(axes, data.shape) if a in "TZC"] or [1]))
-        nc = data.shape[axes.index("C")] if "C" in axes else 1
-        if len(labels) == nc and nplanes != nc:
-            labels = labels * (nplanes // nc)  # ImageJ plane order: C fastest, then Z, then T
-        if len(labels) != nplanes:
-            raise UVPSInputError(
-                f"labels: got {len(labels)}; expected one per channel ({nc})"
-                f" or per plane ({nplanes})"
-            )
-        meta["Labels"] = labels
-    if metadata:
-        meta.update(metadata)
-    if not path.parent.is_dir():
-        raise UVPSInputError(f"output folder {path.parent} does not exist")
-    with atomic_path(path) as tmp, warnings.catch_warnings():
-        if data.nbytes > LARGE_TIFF_BYTES:
-            # Expected: above 4 GB tifffile writes ImageJ's one-IFD layout and says so.
-            log.info("%s: %.2f GB, ImageJ large-file layout", path, data.nbytes / 2**30)
-            warnings.filterwarnings("ignore", message=".*truncating ImageJ file")
-        tifffile.imwrite(
-            tmp, data, imagej=True, resolution=(1.0 / px, 1.0 / px), metadata=meta,
-            photometric="rgb" if axes.endswith("S") else "minisblack",
-        )
-    return path
+    axes = _check_imagej_axes(axes, data.shape)
+    dtype = _imagej_dtype(data)
+    n_lead = axes.index("Y")
+    with imagej_tiff_writer(path, data.shape, dtype, axes=axes, pixel_size_um=pixel_size_um, unit=unit,
+                            labels=labels, metadata=metadata) as out:
+        for index in np.ndindex(*data.shape[:n_lead]):
+            out.put(index, data[index])
+    return Path(path)
 
 
 def sha256_file(path: PathLike, *, chunk_bytes: int = 1 << 20) -> str:
