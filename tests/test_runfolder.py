@@ -82,3 +82,38 @@ def test_a_new_run_folder_gets_the_usual_mode_not_0700(run_dir):
     os.umask(mask)
     assert run_dir.stat().st_mode & 0o777 == 0o777 & ~mask
     assert (run_dir / "depth.tif").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_outputs_written_band_by_band_hold_the_whole_arrays(run_dir, tmp_path, monkeypatch):
+    """Flat-fielded images written in bands of 7 rows from a memory-mapped capture hold each image
+    divided by its drop-off map computed whole; normals, albedo and gradients written in bands of 5
+    rows hold the run's arrays."""
+    import tifffile
+
+    import uvps.io
+    import uvps.runfolder
+    from uvps.flatfield import flatfield
+    from uvps.integrate import gradients_from_normals
+    from uvps.io import MappedStack, read_capture
+    from uvps.pipeline import RunOptions, run
+    from uvps.runfolder import write_flatfield, write_stereo
+
+    cap_dir = run_dir.parent / "cap"
+    cap = read_capture(cap_dir, lights=cap_dir / "lights_positions_mm.csv")
+    assert isinstance(cap.images, MappedStack)
+    res = run(cap, RunOptions(), stages=("flatfield", "normals"))
+    K, M, N, C = cap.images.shape
+    monkeypatch.setattr(uvps.runfolder, "BAND_BYTES", 7 * N * C * 4)
+    write_flatfield(tmp_path, res.capture, res.lights)
+    files = sorted((tmp_path / "flatfield").glob("*.tif"))
+    assert len(files) == K
+    for k, f in enumerate(files):
+        whole = flatfield(np.asarray(res.capture.images[k]), res.lights.fits[k], channels_first=True)
+        np.testing.assert_array_equal(tifffile.imread(f), whole)
+    monkeypatch.setattr(uvps.io, "BAND_BYTES", 5 * N * 4)
+    write_stereo(tmp_path, res.stereo, cap.pixel_size_um)
+    st = res.stereo
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "normals.tif"), np.moveaxis(st.normals, -1, 0))
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "albedo.tif"), np.moveaxis(st.albedo, -1, 0))
+    g = gradients_from_normals(st.normals)
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "gradients.tif"), np.stack([g.p, g.q]))

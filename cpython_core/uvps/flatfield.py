@@ -279,17 +279,20 @@ def set_common(fits, grid: BlockGrid, log_common) -> None:
     _set_levels(fits, grid)
 
 
-def flatfield(image, fit: DropoffFit, *, channels_first: bool = False) -> np.ndarray:
-    """Divide an image by its drop-off map.
+def flatfield(image, fit: DropoffFit, *, channels_first: bool = False, row0: int = 0) -> np.ndarray:
+    """Divide an image (or a band of its rows) by its drop-off map.
 
     Parameters
     ----------
     image : ndarray, (M, N) or (M, N, C)
-        Linear intensities.
+        Linear intensities: the whole fitted image, or the band of its rows starting at ``row0``.
     fit : DropoffFit
     channels_first : bool
         Return a colour image as (C, M, N) (the layout of the written ImageJ hyperstack) instead
         of (M, N, C), without an intermediate copy.
+    row0 : int
+        The first row of ``image`` in the fitted image (0: the whole image). Band by band gives
+        the values of the whole image.
 
     Returns
     -------
@@ -303,8 +306,12 @@ def flatfield(image, fit: DropoffFit, *, channels_first: bool = False) -> np.nda
     relative), as the result is float32 anyway; no (M, N) or (M, N, C) float64 temporary is made
     (0.3 s -> 0.05 s per 4000 x 3000 map).
     """
-    M, N = image.shape[:2]
-    Vv, Vu = _design(np.arange(M), np.arange(N), (M, N), fit.degree)
+    M, N = fit.shape
+    rows = image.shape[0]
+    if image.shape[1] != N or not 0 <= row0 <= M - rows:
+        raise UVPSInputError(f"flatfield: rows {row0}..{row0 + rows} x {image.shape[1]} columns are not a band of "
+                             f"the fitted {M} x {N} image")
+    Vv, Vu = _design(np.arange(row0, row0 + rows), np.arange(N), (M, N), fit.degree)
     F = (Vv @ fit.coeffs).astype(np.float32) @ Vu.T.astype(np.float32)
     if fit.log_bounds is not None:
         np.clip(F, *fit.log_bounds, out=F)

@@ -21,7 +21,7 @@ from . import __version__
 from .errors import UVPSInputError, check_pixel_size
 from .flatfield import flatfield
 from .integrate import gradients_from_normals
-from .io import Capture, read_tiff, sha256_file, write_imagej_tiff
+from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
 from .measure import write_label_tiff, write_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, report, write_json_atomic
 from .regions import region_statistics, write_regions_csv
@@ -180,18 +180,25 @@ def write_lights(folder: Path, capture: Capture, lights) -> dict:
 def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2, progress: Progress = None) -> Path:
     """``flatfield/<k>_<name>.tif``: each image divided by its drop-off map, one float32 file each.
 
-    One image at a time per worker (``workers`` threads: numpy and the file writes release the GIL),
-    so memory holds ``workers`` images, never the stack.
+    Each file is filled band by band (:data:`uvps.io.BAND_BYTES` of output at a time) as it is read, one
+    image per worker (``workers`` threads: numpy and the file writes release the GIL), so memory holds
+    ``workers`` bands, never an image (a 10000 x 8000 RGB one is 0.96 GB as float32).
     """
     out = folder / "flatfield"
     out.mkdir(exist_ok=True)
-    K = capture.images.shape[0]
+    K, M, N = capture.images.shape[:3]
+    C = capture.images.shape[3] if capture.images.ndim == 4 else 0
+    shape, axes = ((C, M, N), "CYX") if C else ((M, N), "YX")
+    step = max(1, BAND_BYTES // (N * max(C, 1) * 4))
 
     def one(k):
-        ff = flatfield(capture.images[k], lights.fits[k], channels_first=True)
         name = Path(capture.files[k].replace("#", "_")).stem
-        write_imagej_tiff(out / f"{k:03d}_{name}.tif", ff, axes="CYX" if ff.ndim == 3 else "YX",
-                          pixel_size_um=capture.pixel_size_um)
+        with imagej_tiff_writer(out / f"{k:03d}_{name}.tif", shape, np.float32, axes=axes,
+                                pixel_size_um=capture.pixel_size_um) as tif:
+            for r0 in range(0, M, step):
+                rows = slice(r0, min(M, r0 + step))
+                ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=r0)
+                tif.write((slice(None), rows) if C else rows, ff)
 
     with ThreadPoolExecutor(max(1, int(workers))) as pool:
         for i, _ in enumerate(pool.map(one, range(K))):
@@ -200,7 +207,9 @@ def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2,
 
 
 def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
-    """``normals.tif`` (3, M, N), ``albedo.tif`` ((C,) M, N) and ``gradients.tif`` (2, M, N)."""
+    """``normals.tif`` (3, M, N), ``albedo.tif`` ((C,) M, N) and ``gradients.tif`` (2, M, N).
+
+    The channel-last arrays are written channel-first band by band (never transposed whole)."""
     write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
                       pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
     if res.albedo.ndim == 3:
@@ -209,8 +218,10 @@ def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
     else:
         write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
     g = gradients_from_normals(res.normals)
-    write_imagej_tiff(folder / "gradients.tif", np.stack([g.p, g.q]), axes="CYX",
-                      pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"])
+    with imagej_tiff_writer(folder / "gradients.tif", (2,) + g.p.shape, np.float32, axes="CYX",
+                            pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"]) as tif:
+        tif.put(0, g.p)
+        tif.put(1, g.q)
 
 
 def write_height(folder: Path, height_um, pixel_size_um: float, method: str) -> None:
