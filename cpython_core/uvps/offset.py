@@ -200,7 +200,8 @@ def _channel_blocks(images, *, block, mask, saturation):
     ok = np.ones((R, Cb), bool)
     for k in range(K):
         img = np.asarray(images[k, r0:r0 + R * block, c0:c0 + Cb * block])
-        out[k] = np.moveaxis(block_means(img, block), -1, 0).reshape(C, R, Cb)
+        means = block_means(img, block)                       # (R, Cb) grey, (R, Cb, C) colour
+        out[k] = np.moveaxis(means, -1, 0) if means.ndim == 3 else means[None]
         img = img.reshape(R, block, Cb, block, C)
         if saturation is not None:
             ok &= ~(img >= saturation).any(axis=(1, 3, 4))
