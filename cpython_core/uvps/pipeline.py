@@ -189,6 +189,9 @@ NO_MODEL_FRACTION = 0.5
 #: Stray light the additive term misses gave 250-15000 %; a 3.6 x 4.8 mm field 140 %.
 HEIGHT_UNCERTAINTY_WARN = 0.20
 HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
+#: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
+#: also at most one pixel in 16 and at least 2000 pixels): docs/benchmarks.md.
+MAX_RESIDUALS = 150000
 
 
 def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
@@ -512,7 +515,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     # and at most 150000 residuals (12500 pixels x 12 lights; as accurate as 30000 on the benchmark,
     # docs/benchmarks.md): the refinement's Jacobian holds lights x pixels x 4 lights float64 values,
     # so its memory and time grow as K^2.
-    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(2000, 150000 // len(fits)))
+    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(2000, MAX_RESIDUALS // len(fits)))
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         # What each image's drop-off holds beyond the point-light model of the given positions (a
