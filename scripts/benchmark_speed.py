@@ -1,11 +1,14 @@
 """Speed and memory of a whole run against the time to merely read the stack (issue 9).
 
 Makes (once, cached in ``--work``) a synthetic capture with :func:`uvps.synthetic.make_capture`
-(default 4000 x 3000, 16 lights, RGB uint16 TIFFs, one file per light), then measures, each in a
-fresh process whose peak resident memory is taken from ``os.wait4``'s rusage:
+(default 4000 x 3000, 16 lights, RGB uint16 TIFFs, one file per light) or, with ``--tile``, with
+:func:`make_tiled` (the same generator in tiles and bands, for a capture it cannot hold in memory),
+then measures, each in a fresh process whose peak resident memory is taken from ``os.wait4``'s
+rusage:
 
 - reading the stack with tifffile alone (``tifffile.imread`` of each file into one preallocated
-  array): the floor every run is compared with;
+  array; file by file into one image buffer when the stack exceeds a quarter of the memory): the
+  floor every run is compared with;
 - ``uvps run FOLDER -o OUT`` (lights estimated, flat-field, normals, albedo, height), its stages
   from ``run.json``'s ``timings_s``;
 - the same with ``--regions auto`` (colour areas, detection, statistics, report);
@@ -20,6 +23,8 @@ Example::
 
     .venv/bin/python scripts/benchmark_speed.py                      # 4000 x 3000 x 16, ~5 min
     .venv/bin/python scripts/benchmark_speed.py --shape 750 1000 --no-md --profile
+    # 10000 x 8000 x 16 RGB (7.2 GiB raw, made in tiles), the run alone:
+    .venv/bin/python scripts/benchmark_speed.py --shape 8000 10000 --tile 2000 2500 --skip regions demo --no-md
 """
 from __future__ import annotations
 
@@ -70,7 +75,7 @@ def machine() -> str:
     return f"{os.cpu_count()} cores ({cpu}), {mem_kb / 2 ** 20:.1f} GiB RAM"
 
 
-def make(folder: Path, shape, n_lights: int, seed: int) -> float:
+def make(folder: Path, shape, n_lights: int, seed: int, tile=None) -> float:
     """The synthetic capture in ``folder`` (made once); returns the raw stack's size in bytes."""
     import numpy as np
     import tifffile
@@ -80,14 +85,123 @@ def make(folder: Path, shape, n_lights: int, seed: int) -> float:
         from uvps.synthetic import make_capture, write_capture
 
         t0 = time.perf_counter()
-        cap = make_capture(shape=tuple(shape), n_lights=n_lights, seed=seed)
+        if tile:
+            make_tiled(folder, tuple(shape), n_lights, seed, tuple(tile))
+        else:
+            cap = make_capture(shape=tuple(shape), n_lights=n_lights, seed=seed)
+            write_capture(cap, folder, truth=False)
+            del cap
         print(f"made {shape} x {n_lights} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-        write_capture(cap, folder, truth=False)
-        del cap
         files = sorted(folder.glob("uv_*.tif"))
     with tifffile.TiffFile(files[0]) as tif:
         page = tif.pages[0]
         return float(np.prod(page.shape) * np.dtype(page.dtype).itemsize * len(files))
+
+
+def render_band(height, albedo, r0: int, r1: int, *, pixel_size_um, light_positions_mm, intensities, **kw):
+    """``synthetic.render_images`` of rows ``r0:r1`` of a field lit by lamps at ``light_positions_mm``
+    from the whole field's centre: the band with one row each side (the normals' central differences),
+    the lamps moved by the band's offset from the field's centre and their intensities scaled by
+    ``|L|^2 / |L - offset|^2`` (render_images' inverse square is relative to the centre it is given)."""
+    import numpy as np
+    from uvps.synthetic import render_images
+
+    M = height.shape[0]
+    h0, h1 = max(0, r0 - 1), min(M, r1 + 1)
+    dy = ((M - 1) / 2.0 - h0 - (h1 - h0 - 1) / 2.0) * pixel_size_um / 1000.0    # the band's centre, mm
+    P = np.asarray(light_positions_mm, float)
+    L = P - np.array([0.0, dy, 0.0])
+    E = np.asarray(intensities, float) * np.sum(P ** 2, axis=1) / np.sum(L ** 2, axis=1)
+    out = render_images(height[h0:h1], albedo[h0:h1], pixel_size_um=pixel_size_um, light_positions_mm=L,
+                        intensities=E, **kw)
+    return out[:, r0 - h0:r1 - h0]
+
+
+def make_tiled(folder: Path, shape, n_lights: int, seed: int, tile, band_rows: int = 200) -> None:
+    """A capture too large for :func:`uvps.synthetic.make_capture` to hold (it needs about 270 bytes
+    a pixel: 22 GB for 10000 x 8000), made with the same generator in pieces.
+
+    The painting: ``make_capture`` of each ``tile`` (rows, cols) with its own seed (``seed * 1000 +
+    tile index``) and no bow, put side by side (their colour areas, ridges and weave meet at the
+    seams, which show as lines of relief), plus one bow over the whole field drawn as
+    ``make_capture`` draws it (a quadratic of ``SyntheticSpec.bow_um`` peak to valley). The lamps:
+    ``synthetic.light_positions`` and the intensity drift with ``SyntheticSpec``'s defaults. The
+    images: ``synthetic.render_images`` band by band (``band_rows`` rows plus one row each side for
+    the normals' central differences), each band's lamps moved by the band's offset from the image
+    centre and its intensities scaled by ``|L|^2 / |L - offset|^2``, so that every pixel sees the
+    lamps of the whole field; the exposure puts the brightest noise-free sample at
+    ``exposure_fraction`` of 65535 (a first, noise-free pass); photon and read noise from one
+    random stream per band. Written as ``write_capture`` writes (16-bit RGB TIFFs, one per lamp,
+    the pixel size in their tags, ``lights_positions_mm.csv``) straight into memory-mapped files.
+    Peak memory about the painting's float32 height and albedo (16 bytes a pixel) plus one tile.
+    """
+    import csv
+    import shutil
+
+    import numpy as np
+    import tifffile
+    from uvps.io import release
+    from uvps.synthetic import SyntheticSpec, light_positions, make_capture, pixel_centres_mm
+
+    spec = SyntheticSpec()
+    M, N = shape
+    px = float(spec.pixel_size_um)
+    tm, tn = (min(M, int(tile[0])), min(N, int(tile[1])))
+    height = np.empty((M, N), np.float32)
+    albedo = np.empty((M, N, 3), np.float32)
+    for i, r0 in enumerate(range(0, M, tm)):
+        for j, c0 in enumerate(range(0, N, tn)):
+            r1, c1 = min(M, r0 + tm), min(N, c0 + tn)
+            t = make_capture(shape=(r1 - r0, c1 - c0), n_lights=3, seed=seed * 1000 + i * 100 + j, noise=False,
+                             bow_um=0.0)
+            height[r0:r1, c0:c1] = t.height_um
+            albedo[r0:r1, c0:c1] = t.albedo
+            del t
+    rng = np.random.default_rng(seed)
+    x, y = pixel_centres_mm((M, N), px)
+    xn, yn = x / np.abs(x).max(), y / np.abs(y).max()
+    a, b, c = rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(-0.3, 0.3)
+    corners = [-(a * u * u + b * v * v + c * u * v) for u in (-1, 0, 1) for v in (-1, 0, 1)]
+    lo, span = min(corners), max(corners) - min(corners)     # the quadratic's range over the field
+    for r0 in range(0, M, 1000):
+        bow = -(a * xn ** 2 + b * yn[r0:r0 + 1000] ** 2 + c * xn * yn[r0:r0 + 1000])
+        height[r0:r0 + 1000] += (spec.bow_um * (bow - lo) / span).astype(np.float32)
+    positions = light_positions(rng, n_lights=n_lights, elevation_deg=spec.elevation_deg,
+                                distance_mm=spec.distance_mm, azimuth_jitter=spec.azimuth_jitter)
+    intensities = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, n_lights)
+
+    def band(r0, r1, **kw):
+        return render_band(height, albedo, r0, r1, pixel_size_um=px, light_positions_mm=positions,
+                           intensities=intensities, **kw)
+
+    # the exposure from a noise-free float64 pass (bands of 64 rows: 16 x 66 x N x 3 float64 each)
+    peak = max(float(band(r0, min(M, r0 + 64), noise=False, dtype=None, exposure=1.0).max())
+               for r0 in range(0, M, 64))
+    bands = [(r0, min(M, r0 + band_rows)) for r0 in range(0, M, band_rows)]
+    exposure = spec.exposure_fraction * 65535.0 / peak
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    names = [f"uv_{k:02d}.tif" for k in range(n_lights)]
+    maps = [tifffile.memmap(tmp / nm, shape=(M, N, 3), dtype=np.uint16, photometric="rgb",
+                            resolution=(1 / px, 1 / px), resolutionunit="NONE",
+                            description="ImageJ=1.54f\nunit=micron\n", metadata=None) for nm in names]
+    for i, (r0, r1) in enumerate(bands):
+        imgs = band(r0, r1, rng=np.random.default_rng((seed, i)), noise=spec.noise, gain=65535.0 / spec.full_well_e,
+                    read_noise=spec.read_noise, exposure=exposure, dtype=np.uint16)
+        for k, mm in enumerate(maps):
+            mm[r0:r1] = imgs[k]
+            release(mm)
+    for mm in maps:
+        mm.flush()
+    del maps
+    with open(tmp / "lights_positions_mm.csv", "w", newline="", encoding="utf-8") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(["file", "x_mm", "y_mm", "z_mm"])
+        for nm, pos in zip(names, positions):
+            wr.writerow([nm] + [f"{v:.6f}" for v in pos])
+    shutil.rmtree(folder, ignore_errors=True)
+    tmp.rename(folder)
 
 
 def run_child(name: str, cmd: list, env=None) -> Measure:
@@ -117,6 +231,18 @@ stack = np.empty((len(files),) + first.shape, first.dtype)
 stack[0] = first
 for k, f in enumerate(files[1:], 1):
     stack[k] = tifffile.imread(f)
+print('READ_S', time.perf_counter() - t0)
+"""
+
+#: Reading a stack larger than a quarter of the memory: each file into one reused image buffer (the
+#: same bytes read, without holding the stack).
+READ_EACH_CODE = """
+import sys, time, glob, numpy as np, tifffile
+files = sorted(glob.glob(sys.argv[1] + '/uv_*.tif'))
+t0 = time.perf_counter()
+buf = tifffile.imread(files[0])
+for f in files[1:]:
+    tifffile.imread(f, out=buf)
 print('READ_S', time.perf_counter() - t0)
 """
 
@@ -168,18 +294,25 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", action="store_true", help="also cProfile pipeline.run in this process")
     ap.add_argument("--top", type=int, default=25, help="profile lines kept")
     ap.add_argument("--skip", nargs="*", default=(), choices=("run", "regions", "demo"))
+    ap.add_argument("--tile", type=int, nargs=2, metavar=("ROWS", "COLS"),
+                    help="make the capture's painting in tiles of this size and render it in bands (make_tiled): "
+                         "for captures make_capture cannot hold, e.g. --shape 8000 10000 --tile 2000 2500")
     ap.add_argument("--title", default="Speed and memory of a whole run (issue 9)")
     ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
     a = ap.parse_args(argv)
     M, N = a.shape
-    folder = a.work / f"capture_{M}x{N}x{a.lights}_s{a.seed}"
+    folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
-    raw = make(folder, (M, N), a.lights, a.seed)
+    raw = make(folder, (M, N), a.lights, a.seed, a.tile)
+    with open("/proc/meminfo", encoding="utf-8") as fh:
+        each = raw > int(fh.readline().split()[1]) * 1024 / 4
+    read_code, read_how = ((READ_EACH_CODE, "file by file into one image buffer") if each else
+                           (READ_CODE, "into one preallocated array"))
     env = dict(os.environ, PYTHONPATH=str(REPO / "cpython_core"))
     ms = []
     # four times, the fastest kept: the first warms the page cache (every later process reads from it
     # too), and a read of 0.3-0.9 s varies with what else runs; the floor is the fastest
-    reads = [run_child("read the stack with tifffile", [sys.executable, "-c", READ_CODE, str(folder)], env)
+    reads = [run_child("read the stack with tifffile", [sys.executable, "-c", read_code, str(folder)], env)
              for _ in range(4)]
     rd = min(reads[1:], key=lambda m: m.inner_s)
     ms.append(rd)
@@ -202,10 +335,13 @@ def main(argv=None) -> int:
             print(f"{m.name}: exit {m.returncode}: {m.stderr_tail}", file=sys.stderr)
     cmd = " ".join(shlex.quote(x) for x in [".venv/bin/python", "scripts/benchmark_speed.py"] + list(argv or sys.argv[1:]))
     when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    made = (f"`make_tiled(folder, ({M}, {N}), {a.lights}, seed={a.seed}, tile=({a.tile[0]}, {a.tile[1]}))` (make_capture's "
+            "painting in tiles, rendered in bands: see its docstring)" if a.tile else
+            f"`make_capture(shape=({M}, {N}), n_lights={a.lights}, seed={a.seed})`")
     text = [f"## {a.title}", "",
             f"{when}; {machine()}; load average {load_line()} (1/5/15 min) at the end; `{cmd}`.",
-            f"Capture: `make_capture(shape=({M}, {N}), n_lights={a.lights}, seed={a.seed})`, {a.lights} uncompressed "
-            f"RGB uint16 TIFFs (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile "
+            f"Capture: {made}, {a.lights} uncompressed "
+            f"RGB uint16 TIFFs (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
             f"took {read_s:.2f} s (the fastest of 3 warm reads, inside the process; '/ read' divides each wall time by it, the process's "
             "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4).", "",
             tab, ""]
