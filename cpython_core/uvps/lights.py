@@ -528,7 +528,7 @@ def _subset(sample: PixelSample, n: int) -> PixelSample:
 
 
 def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_drop=1.0,
-                 stages=((5000, 60), (None, 40)), progress: Progress = None):
+                 stages=None, progress: Progress = None):
     """All positions and log-intensities by least squares on the photometric + drop-off residuals.
 
     The drop-off term is a weak prior: a bowed canvas biases it (its shading is smooth and different
@@ -540,12 +540,14 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
     such a sample: with 5000 pixels and 25 evaluations the lamps stopped ~20 % too close and the
     directions 6.6 deg off on the benchmark; with 30000 pixels to convergence, 0.5-0.6 deg
     (docs/benchmarks.md). ``stages`` ((pixels, max_nfev), ...) first solves on a subset (cheap, reaches
-    the valley), then on the whole sample (None). Each stage stops at scipy's default tolerances (a
+    the valley; :func:`first_stage_pixels` by default), then on the whole sample (None). Each stage stops at scipy's default tolerances (a
     looser ``ftol`` = 1e-5 stopped an 8-light capture 7 deg off) or after ``max_nfev`` evaluations: on
     a field too small for the near-light geometry to resolve the valley (under ~1 cm at 15 um/px)
     the solver only crawls along it.
     """
     model = start
+    if stages is None:
+        stages = ((first_stage_pixels(len(start.intensities)), 60), (None, 40))
     # each stage's share of the bar: its evaluations times its pixels (an evaluation costs ~ pixels)
     work = [max_nfev * min(n or sample.I.shape[1], sample.I.shape[1]) for n, max_nfev in stages]
     done = 0.0
@@ -558,6 +560,16 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, w_dro
         if sub is sample:
             break
     return LightModel.from_positions(model.positions_mm, model.intensities / np.median(model.intensities))
+
+
+#: Residuals (lamps x pixels) of the refinement's first stage: it only has to reach the valley, and an
+#: evaluation costs lamps x pixels, so more lamps take fewer pixels (5000 up to 12 lamps, as before).
+FIRST_STAGE_RESIDUALS = 60000
+
+
+def first_stage_pixels(n_lamps: int) -> int:
+    """Pixels of the refinement's first stage for ``n_lamps`` lamps (:data:`FIRST_STAGE_RESIDUALS`)."""
+    return int(min(5000, max(1000, FIRST_STAGE_RESIDUALS // max(n_lamps, 1))))
 
 
 def _evaluations(progress: Progress, max_nfev: int, pixels: int):

@@ -190,8 +190,13 @@ NO_MODEL_FRACTION = 0.5
 HEIGHT_UNCERTAINTY_WARN = 0.20
 HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
-#: also at most one pixel in 16 and at least 2000 pixels): docs/benchmarks.md.
-MAX_RESIDUALS = 150000
+#: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
+#: 64 lamps, 30000 at 12): worst direction error over seeds 3-5 at 8-64 lamps 0.58-1.17 deg, where
+#: 150000 gave 1.45-3.0 (docs/benchmarks.md, "Light estimate against the number of lamps"); an
+#: evaluation costs lamps x pixels since the refinement's normal equations are built without J.
+MAX_RESIDUALS = 600000
+#: The same for known positions, whose intensities alone are refined (their results unchanged).
+KNOWN_POSITIONS_RESIDUALS = 150000
 
 
 def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
@@ -512,10 +517,10 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                                                                   shape, px)).mean(axis=0)
 
     # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
-    # and at most 150000 residuals (12500 pixels x 12 lights; as accurate as 30000 on the benchmark,
-    # docs/benchmarks.md): the refinement's Jacobian holds lights x pixels x 4 lights float64 values,
-    # so its memory and time grow as K^2.
-    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16), max(2000, MAX_RESIDUALS // len(fits)))
+    # and at most MAX_RESIDUALS residuals (lamps x pixels: an evaluation's cost)
+    n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16))
+    n_known = min(n, max(2000, KNOWN_POSITIONS_RESIDUALS // len(fits)), 20000)
+    n = min(n, max(2000, MAX_RESIDUALS // len(fits)))
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         # What each image's drop-off holds beyond the point-light model of the given positions (a
@@ -542,7 +547,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
             # canvas facing the camera (1.2 deg normals on a cupped capture, 0.13 deg this way)
             E = intensities_from_levels([f.level for f in fits], P, shape, px)
             sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
-                                   pixel_size_um=px, n=min(n, 20000))
+                                   pixel_size_um=px, n=n_known)
             E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
                             images=capture.images if options.lamp_beams else None, beam_rms=beam_rms)
