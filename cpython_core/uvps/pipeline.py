@@ -195,6 +195,12 @@ HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: 150000 gave 1.45-3.0 (docs/benchmarks.md, "Light estimate against the number of lamps"); an
 #: evaluation costs lamps x pixels since the refinement's normal equations are built without J.
 MAX_RESIDUALS = 600000
+#: Relative RMS photometric residual (of the sample's mean intensity) beyond which lamps estimated from
+#: the images explain nothing and the run stops: a Lambertian capture under point lamps leaves ~0.5 %
+#: (benchmark captures: 0.57 % clean, 1.6 % with every nuisance at the top of its range); a real
+#: gilded icon under visible-light RTI (JPEG) left 28 % with lamps 52 deg off and a reported height
+#: uncertainty of 0.8 %: the Jacobian's confidence means nothing when the model does not fit.
+MAX_LAMP_RESIDUAL = 0.05
 #: The same for known positions, whose intensities alone are refined (their results unchanged).
 KNOWN_POSITIONS_RESIDUALS = 150000
 
@@ -232,7 +238,8 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     ------
     UVPSInputError
         The images are mostly pedestal, or no lamp model fits them (more than
-        :data:`NO_MODEL_FRACTION` of the pixels lit by fewer than 3 lamps).
+        :data:`NO_MODEL_FRACTION` of the pixels lit by fewer than 3 lamps, or lamps estimated from
+        the images leave more than :data:`MAX_LAMP_RESIDUAL` of the signal unexplained).
     """
     options = options or RunOptions()
     stages = _closed_stages(stages)
@@ -305,11 +312,26 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
     offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
     res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, progress=progress)
     res.timings_s["lights"] = _since(t0)
+    _check_lamp_residual(res.lights)
     res.diagnostics["lights"] = lights_diagnostics(res.lights)
     if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
     res.warnings += _height_confidence_warnings(res.lights)
+
+
+def _check_lamp_residual(lights: LightsResult) -> None:
+    """Stop when lamps estimated from the images leave most of them unexplained (:data:`MAX_LAMP_RESIDUAL`)."""
+    est = lights.estimate
+    if est is None or not est.residual_history:
+        return
+    rms = float(np.sqrt(est.residual_history[-1]["cost"]))
+    if rms > MAX_LAMP_RESIDUAL:
+        raise UVPSInputError(
+            f"no lamp model fits these images: the lamps estimated from them leave {100 * rms:.0f} % of the signal "
+            "unexplained (a Lambertian capture under point lamps leaves about 1 %: glossy or gilded paint, a tone "
+            "curve, or lights that are not point lamps?); give the lights (--lights: measured positions, or an RTI "
+            ".lp file's directions)")
 
 
 def _height_confidence_warnings(lights: LightsResult) -> list:
