@@ -187,3 +187,25 @@ def test_many_lamps_are_estimated_within_a_degree_on_their_capped_sample():
     assert stages[-1]["converged"]
     err = _direction_errors(lr.model, cap.light_positions_mm)
     assert err.mean() < 1.0 and err.max() < 2.0, err
+
+
+def test_lamp_beams_are_reported_by_the_azimuths_disagreement():
+    """Narrow lamps aimed off the centre (NUISANCE_TOP beams) tilt each drop-off and not the shading: the
+    azimuths read from the two part (15.6 deg here, lamps 26 deg off) and the run says so, once, naming
+    the cause; on the same capture without beams they agree within 0.3 deg and the run says nothing."""
+    from uvps import pipeline
+    from uvps.synthetic import NUISANCE_TOP
+
+    for beams in (False, True):
+        cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=12, seed=0,
+                           **(NUISANCE_TOP["beams"] if beams else {}))
+        res = pipeline.run(_capture(cap), RunOptions(), stages=())
+        worst = res.diagnostics["lights"]["azimuth_disagreement_deg_max"]
+        warned = [w for w in res.warnings if "azimuths" in w]
+        err = _direction_errors(res.lights.model, cap.light_positions_mm).mean()
+        if beams:
+            assert worst > pipeline.AZIMUTH_DISAGREEMENT_WARN_DEG and err > 10, (worst, err)
+            assert len(warned) == 1 and "beam" in warned[0] and "measured lamp positions" in warned[0]
+            assert len(res.warnings) == 1          # it replaces the generic height-uncertainty warning
+        else:
+            assert worst < 1.0 and err < 1.5 and not warned, (worst, err, res.warnings)
