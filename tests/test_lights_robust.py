@@ -82,8 +82,8 @@ def test_levenberg_marquardt_matches_scipy():
     def jac(p):
         return np.column_stack([np.exp(-p[1] * t), -p[0] * t * np.exp(-p[1] * t), np.sin(3 * t)])
 
-    def normal_equations(p):
-        return jac(p).T @ jac(p), jac(p).T @ fun(p)
+    def normal_equations(p, f):
+        return jac(p).T @ jac(p), jac(p).T @ f
 
     x, f, nfev, ok = levenberg_marquardt(fun, normal_equations, np.array([1.0, 0.5, 0.0]), max_nfev=100)
     ref = least_squares(fun, [1.0, 0.5, 0.0], jac=jac, method="lm").x

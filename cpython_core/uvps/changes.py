@@ -344,7 +344,6 @@ def warp_to_a(image: np.ndarray, b_to_a: np.ndarray, shape_a, *, interpolation=c
 
 
 def _tile_residual(sa, sb, T, grid=4):
-
     warped = warp_to_a(sb, T, sa.shape, interpolation=cv2.INTER_CUBIC)
     valid = _overlap_mask(T, sb.shape, sa.shape, erode=4)
     m, n = sa.shape

@@ -272,7 +272,7 @@ def _prepare(p, q, mask, *, copy: bool = True) -> tuple[np.ndarray, np.ndarray, 
     """
     p, q = _check_gradients(p, q)
     mask = _check_mask(mask, p.shape)
-    p = p.astype(np.float32, copy=copy)  # a copy: the caller's arrays are never modified
+    p = p.astype(np.float32, copy=copy)
     q = q.astype(np.float32, copy=copy)
     valid = np.isfinite(p)
     valid &= np.isfinite(q)
@@ -372,7 +372,8 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     implicitly extended by even mirror symmetry into a ``(2M, 2N)`` tile: ``p`` is mirrored with
     a sign flip across the vertical borders (odd in x) and without across the horizontal ones
     (even in y), and ``q`` the other way round, so the extended field is integrable and
-    periodic; the result is cropped back to ``(M, N)``. Where the slope at a border is not zero
+    periodic; that tile is never built: its transform is computed from the ``(M, N)`` field by
+    cosine and sine transforms (``_fc_mirrored``). Where the slope at a border is not zero
     the extended surface has a kink there, which the spectral derivative resolves with a small
     ringing: the height error is of order 0.1-0.2 pixel x the border slope at the border and
     decays inward (a pixel-to-pixel ripple of the local slope of about ``slope / (pi d)`` at

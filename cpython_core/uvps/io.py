@@ -1118,11 +1118,9 @@ class TiffBands:
     memory is written with the memory of one band.
     """
 
-    def __init__(self, array: np.ndarray, axes: str):
+    def __init__(self, array: np.ndarray):
         self.array = array
-        self.shape = array.shape
         self.dtype = array.dtype
-        self.axes = axes
 
     def write(self, key, values) -> None:
         """``array[key] = values`` (cast to the file's type), then release the pages."""
@@ -1194,7 +1192,7 @@ def imagej_tiff_writer(path: PathLike, shape, dtype, *, axes: str, pixel_size_um
             metadata=meta, photometric="rgb" if axes.endswith("S") else "minisblack",
             truncate=large,
         )
-        bands = TiffBands(arr, axes)
+        bands = TiffBands(arr)
         del arr
         try:
             yield bands

@@ -217,16 +217,6 @@ def _equidistant_positions(R, X, m, start, n_outer=3):
     def params(t):
         return np.column_stack([t[0::2], t[1::2], np.full(K, np.log(m))])
 
-    def jac_blocks(tt):
-        L, along = _lamp_axes(params(tt))
-        u = L[:, None, :] - Xf[None]
-        d2 = np.einsum("kpi,kpi->kp", u, u)
-        J = np.empty((K, len(Xf), 2))
-        for j in range(2):
-            dg = -3.0 * np.einsum("kpi,ki->kp", u, along[j]) / d2
-            J[..., j] = dg - dg.mean(axis=1, keepdims=True)
-        return J
-
     t = np.ravel(np.column_stack([az, el]))
     lb = np.ravel(np.column_stack([az - np.pi, np.full(K, np.radians(2))]))
     ub = np.ravel(np.column_stack([az + np.pi, np.full(K, np.radians(89.5))]))
@@ -236,12 +226,12 @@ def _equidistant_positions(R, X, m, start, n_outer=3):
         def resid(tt):
             return (model_logs(_lamp_positions(params(tt)), X).reshape(K, -1) - target).ravel()
 
-        def normal_equations(tt):
-            J = jac_blocks(tt)
+        def normal_equations(tt, f):
+            J = _dropoff_derivatives(params(tt), Xf, 2)[1]       # azimuth and elevation: (K, points, 2)
             JtJ = np.zeros((2 * K, 2 * K))
             for k, blk in enumerate(np.einsum("kpi,kpj->kij", J, J)):
                 JtJ[2 * k:2 * k + 2, 2 * k:2 * k + 2] = blk
-            return JtJ, np.einsum("kpi,kp->ki", J, resid(tt).reshape(K, -1)).ravel()
+            return JtJ, np.einsum("kpi,kp->ki", J, f.reshape(K, -1)).ravel()
 
         t, *_ = levenberg_marquardt(resid, normal_equations, np.clip(t, lb + 1e-9, ub - 1e-9), lb=lb, ub=ub,
                                     max_nfev=200, ftol=1e-12, xtol=1e-10)
@@ -362,8 +352,8 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     elevations are fitted to the drop-off ratio maps, the normals solved in closed form, and the
     residual evaluated on the pixel sample; ``m`` is scanned on a log grid and then refined with
     ``scipy.optimize.least_squares``. The per-light refinement minimises the same residual over all
-    ``L_k`` and ``E_k`` with the drop-off misfit as a prior, first on 5000 pixels and then on the
-    whole sample, each to convergence.
+    ``L_k`` and ``E_k`` with the drop-off misfit as a prior, first on a subset (:func:`first_stage_pixels`,
+    the prior at full weight), then on the whole sample (at :data:`FINAL_DROP_WEIGHT`), each to convergence.
     """
     shape = grid.shape
     K = len(fits)
@@ -437,9 +427,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         model = _level(sample, model, history)
         if refine:
             report(progress, 0.93, "lights: their uncertainty")
-            # the covariance of the objective last minimised (its drop-off prior's weight)
-            w_last = next((h["drop_weight"] for h in reversed(history) if h["stage"] == "per-light"), 1.0)
-            unc = light_uncertainty(sample, model, R, X, w_drop=w_last, offset_stderr=offset_stderr)
+            unc = light_uncertainty(sample, model, R, X, w_drop=_last_drop_weight(history), offset_stderr=offset_stderr)
     P = model.positions_mm
     set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
         np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
@@ -447,6 +435,11 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     report(progress, 1.0, "lights: done")
     return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
                          equidistant=eq, uncertainty=unc)
+
+
+def _last_drop_weight(history) -> float:
+    """The drop-off prior's weight in the objective last minimised (the covariance is that objective's)."""
+    return next((h["drop_weight"] for h in reversed(history) if h["stage"] == "per-light"), 1.0)
 
 
 _GRAZING_DEG = 3.0  # equidistant elevations fit within [2, 89.5] deg
@@ -541,9 +534,10 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, stage
     thousands of textured pixels tells it from the truth. The optimiser must run to convergence on
     such a sample: with 5000 pixels and 25 evaluations the lamps stopped ~20 % too close and the
     directions 6.6 deg off on the benchmark; with 30000 pixels to convergence, 0.5-0.6 deg
-    (docs/benchmarks.md). ``stages`` ((pixels, max_nfev, drop-off prior weight), ...) first solves on a subset (cheap, reaches
-    the valley; :func:`first_stage_pixels` by default), then on the whole sample (None). Each stage stops at scipy's default tolerances (a
-    looser ``ftol`` = 1e-5 stopped an 8-light capture 7 deg off) or after ``max_nfev`` evaluations: on
+    (docs/benchmarks.md). ``stages`` ((pixels, max_nfev, drop-off prior weight), ...) first solves on a
+    subset (cheap, reaches the valley; :func:`first_stage_pixels` by default), then on the whole
+    sample (None). Each stage stops at MINPACK's tolerances (a looser ``ftol`` = 1e-5 stopped an
+    8-light capture 7 deg off) or after ``max_nfev`` evaluations: on
     a field too small for the near-light geometry to resolve the valley (under ~1 cm at 15 um/px)
     the solver only crawls along it.
     """
@@ -682,23 +676,35 @@ def _add_blocks(M, blocks):
         M[4 * k:4 * k + 4, 4 * k:4 * k + 4] += blk
 
 
+def _dropoff_derivatives(th, Xf, n):
+    """Lamp positions and the derivatives of each lamp's centred log drop-off ``-3 log |L - X|`` at the
+    points Xf (P, 3) along its first ``n`` of (azimuth, elevation, log distance): (K, P, n).
+
+    Analytic: along ``dL = a``, ``dg = -3 (u.a) / |u|^2`` with ``u = L - X``, centred over the points.
+    """
+    L, along = _lamp_axes(th)
+    u = L[:, None, :] - Xf[None]
+    d2 = np.einsum("kpi,kpi->kp", u, u)
+    out = np.empty((len(th), len(Xf), n))
+    for j in range(n):
+        dg = -3.0 * np.einsum("kpi,ki->kp", u, along[j]) / d2
+        out[..., j] = dg - dg.mean(axis=1, keepdims=True)
+    return L, out
+
+
 def _drop_normal_equations(th, R, X, scale):
     """``J^T J`` and ``J^T f`` of the drop-off prior ``f = scale * _ratio_resid`` in the same parameters.
 
-    Lamp k's parameters move only its own centred log drop-off ``g_k`` (analytic: ``dg_k = -3 (u.a) /
-    |u|^2``, centred) and, through the mean over lamps, every map by ``-dg_k / K``; so ``J^T J =
+    Lamp k's parameters move only its own centred log drop-off ``g_k`` (:func:`_dropoff_derivatives`)
+    and, through the mean over lamps, every map by ``-dg_k / K``; so ``J^T J =
     scale^2 (diag_k(G_k^T G_k) - G^T G / K)`` with ``G`` the (points x 4K) matrix of the ``dg`` (none
     for the intensity, which does not enter the shape).
     """
     K = len(th)
     Xf = X.reshape(-1, 3)
-    L, along = _lamp_axes(th)
-    u = L[:, None, :] - Xf[None]
-    d2 = np.einsum("kpi,kpi->kp", u, u)
+    L, dg = _dropoff_derivatives(th, Xf, 3)
     G = np.zeros((len(Xf), K, 4))
-    for j, a in enumerate(along):
-        dg = -3.0 * np.einsum("kpi,ki->kp", u, a) / d2
-        G[:, :, j] = (dg - dg.mean(axis=1, keepdims=True)).T
+    G[:, :, :3] = dg.transpose(1, 0, 2)
     f = scale * _ratio_resid(L, R, X).reshape(K, -1)
     Jtf = scale * np.einsum("xkj,kx->kj", G, f - f.mean(axis=0)).ravel()
     G = G.reshape(len(Xf), 4 * K)
@@ -742,8 +748,9 @@ class _Problem:
         _, e, JtJ, Jtr = _vp_normal_equations(self.sample, t.reshape(-1, 4))
         return e / np.sqrt(self.n_res), JtJ / self.n_res, Jtr / self.n_res
 
-    def normal_equations(self, t):
-        """``(J^T J, J^T f)`` of :meth:`fun`, without forming J (:func:`levenberg_marquardt`)."""
+    def normal_equations(self, t, f=None):
+        """``(J^T J, J^T f)`` of :meth:`fun`, without forming J (:func:`levenberg_marquardt`; ``f`` is
+        not needed: the residual comes with the normal equations)."""
         th = t.reshape(-1, 4)
         K = len(th)
         _, JtJ, Jtf = self.photometric_terms(t)
@@ -759,14 +766,14 @@ def levenberg_marquardt(fun, normal_equations, x0, *, lb=None, ub=None, max_nfev
                         callback=None):
     """Levenberg-Marquardt on the normal equations, with Jacobian scaling and bounds by projection.
 
-    ``normal_equations(x)`` returns ``(J^T J, J^T f)`` at x. Written here because the refinement's
-    Jacobian is very tall and narrow (K * P rows, 4K columns: 150000 x 256 at 64 lamps) and its
-    normal equations have a structure that gives them without it (:func:`_vp_normal_equations`):
-    ``scipy.optimize.least_squares`` needs J itself and factorises it every iteration (an SVD in 'trf';
-    an unblocked QR in MINPACK's 'lm'). Steps and stopping follow MINPACK (Moré 1978): the damping is scaled by
-    ``diag(J^T J)`` (``x_scale='jac'``), raised until the cost falls, lowered by the gain ratio; it stops
-    when both the actual and the predicted relative reductions are below ``ftol`` or the scaled step
-    is below ``xtol``.
+    ``normal_equations(x, f)`` returns ``(J^T J, J^T f)`` at x, whose residual ``f = fun(x)`` it is
+    given. Written here because the refinement's Jacobian is very tall and narrow (K * P rows, 4K
+    columns: 600000 x 256 at 64 lamps) and its normal equations have a structure that gives them
+    without it (:func:`_vp_normal_equations`): ``scipy.optimize.least_squares`` needs J itself and
+    factorises it every iteration (an SVD in 'trf'; an unblocked QR in MINPACK's 'lm'). Steps and
+    stopping follow MINPACK (Moré 1978): the damping is scaled by ``diag(J^T J)`` (``x_scale='jac'``),
+    raised until the cost falls, lowered by the gain ratio; it stops when both the actual and the
+    predicted relative reductions are below ``ftol`` or the scaled step is below ``xtol``.
 
     ``callback(nfev)``, if given, is called after every evaluation (progress).
 
@@ -782,7 +789,7 @@ def levenberg_marquardt(fun, normal_equations, x0, *, lb=None, ub=None, max_nfev
     nfev, mu, converged = 1, None, False
     scale = None
     while nfev < max_nfev and not converged:
-        A, g = normal_equations(x)
+        A, g = normal_equations(x, f)
         d2 = np.diag(A).copy()
         scale = d2 if scale is None else np.maximum(scale, d2)
         scale = np.where(scale > 0, scale, 1.0)

@@ -192,8 +192,9 @@ HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
 #: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
 #: 64 lamps, 30000 at 12): worst direction error over seeds 3-5 at 8-64 lamps 0.58-1.17 deg, where
-#: 150000 gave 1.45-3.0 (both with the drop-off prior at full weight) (docs/benchmarks.md, "Light estimate against the number of lamps"); an
-#: evaluation costs lamps x pixels since the refinement's normal equations are built without J.
+#: 150000 gave 1.45-3.0, both with the drop-off prior at full weight (docs/benchmarks.md, "Light
+#: estimate against the number of lamps"); an evaluation costs lamps x pixels since the refinement's
+#: normal equations are built without J.
 MAX_RESIDUALS = 600000
 #: Relative RMS photometric residual (of the sample's mean intensity) beyond which lamps estimated from
 #: the images explain nothing and the run stops: a Lambertian capture under point lamps leaves ~0.5 %
@@ -323,13 +324,7 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
     if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
-    # one warning: heights whose scale is not determined say so (and name a dark frame for stray
-    # light); else the azimuths' disagreement names its cause (a lamp's beam) where the heights'
-    # uncertainty would give a generic one or, on beams, none (it missed 2 of 3 beam captures)
-    confidence = _height_confidence_warnings(res.lights)
-    unc = res.lights.estimate.uncertainty if res.lights.estimate is not None else None
-    undetermined = unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED
-    res.warnings += confidence if undetermined else (azimuth_warning or confidence)
+    res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
 
 
 def _azimuth_warnings(lights: LightsResult, diagnostics: dict) -> list:
@@ -370,11 +365,18 @@ def _check_lamp_residual(lights: LightsResult) -> None:
             ".lp file's directions)")
 
 
-def _height_confidence_warnings(lights: LightsResult) -> list:
+def _height_confidence_warnings(lights: LightsResult, azimuth_warning=()) -> list:
+    """The run's one warning on its estimated lamps: heights whose scale is not determined say so (and
+    name a dark frame for stray light); else the azimuths' disagreement (:func:`_azimuth_warnings`)
+    names its cause, a lamp's beam, where the heights' uncertainty would give a generic one or, on
+    beams, none (it missed 2 of 3 beam captures); else the uncertainty beyond 20 %."""
     unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    undetermined = unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED
+    if azimuth_warning and not undetermined:
+        return list(azimuth_warning)
     if unc is None or unc.height_rel <= HEIGHT_UNCERTAINTY_WARN:
         return []
-    if unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED:
+    if undetermined:
         # the lamps are not determined by these images: the relief's shape may still serve (protrusions
         # show), its scale does not; said once, with what to do
         return [f"the heights' scale is not determined by these images (uncertain by +-{100 * unc.height_rel:.0f} %: "

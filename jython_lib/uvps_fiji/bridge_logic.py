@@ -607,16 +607,10 @@ def macro_key(label):
     return label.split(" ")[0].split(":")[0].lower()
 
 
-#: Dialog labels the Fiji side would give parameters the core declares without one (the first word
-#: is the macro key). Empty: the core's declarations hold every label the dialogs use, e.g.
-#: detect's ``dynamic_k`` "Sensitivity ..." (``sensitivity=5``) and ``min_width_um`` "Smallest ..."
-#: (``smallest=30``).
-FIELD_LABELS = {}
-
-
 def param_label(param):
-    """The dialog label of a declared parameter: :data:`FIELD_LABELS`, its label, else its name."""
-    return FIELD_LABELS.get(param["name"]) or param.get("label") or param["name"]
+    """The dialog label of a declared parameter: its label in the core's declaration (every label
+    the dialogs use is declared there, e.g. detect's ``dynamic_k`` "Sensitivity ..."), else its name."""
+    return param.get("label") or param["name"]
 
 
 def param_key(param):
@@ -945,7 +939,7 @@ def field_names(command=None, table=None):
     names = {}
     for name in order:
         for param in commands[name]["params"]:
-            if not (param.get("label") or param["name"] in FIELD_LABELS):
+            if not param.get("label"):
                 continue
             field = param_label(param).split(" (")[0].split(":")[0].strip()
             names[cli_flag(param["name"])] = field
