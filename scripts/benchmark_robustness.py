@@ -8,8 +8,10 @@ scored against the generator's truth. Nothing of the pipeline is assembled by ha
 
 Rows: ``none`` (no nuisance), every nuisance of :data:`uvps.synthetic.NUISANCE_TOP` alone at the top of
 its range, and ``all`` (:meth:`SyntheticSpec.realistic` with ``level="top"``). Each row is run for every
-seed, lamp count and lights mode: ``estimated`` (no ``--lights``) and ``calibrated`` (``--lights`` with a
-positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth). With detection on (the default) the run
+seed, lamp count and lights mode: ``estimated`` (no ``--lights``), ``calibrated`` (``--lights`` with a
+positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth) and ``dark`` (lamps estimated, with
+``--dark`` a frame taken with the lamp off: :func:`uvps.synthetic.render_dark_frame`, the remedy the
+run's warnings name for stray light). With detection on (the default) the run
 gets ``--regions`` with the true colour areas (``truth/regions.tif``).
 
 Metrics per run:
@@ -66,7 +68,7 @@ from benchmark_protrusions import match, summarise  # noqa: E402  (detection mat
 from uvps.synthetic import NUISANCE_TOP, SyntheticSpec, make_capture, write_capture  # noqa: E402
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["all"]
-MODES = ("estimated", "calibrated")
+MODES = ("estimated", "calibrated", "dark")
 SCHEMA = 1
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
@@ -191,7 +193,9 @@ def score_run(run_dir: Path, cap, *, detect: bool) -> dict:
         out["additive_counts"] = meas.tolist()
         out["additive_source"] = add.get("source")
         out["additive_stderr_counts"] = add.get("stderr_counts")
-        if meas.size == truth_add.size or meas.size == 1 or truth_add.size == 1:
+        if add.get("source") == "dark frame":
+            pass                         # nothing measured: the dark frame was subtracted on reading
+        elif meas.size == truth_add.size or meas.size == 1 or truth_add.size == 1:
             out["additive_err_counts"] = float(np.abs(meas.mean() - truth_add.mean()))
     out["warnings"] = list(rj.get("warnings", []))
     out["n_warnings"] = len(out["warnings"])
@@ -277,7 +281,7 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
     spec = spec_for(row, shape=config["shape"], pixel_size_um=config["pixel_size_um"], seed=seed, n_lights=lamps)
     cap = make_capture(spec)
     t_make = time.perf_counter() - t0
-    write_capture(cap, cap_dir)
+    write_capture(cap, cap_dir, dark_frame="dark" in todo)
     lights_csv = workdir / "captures" / f"{key}__lights_truth.csv"
     write_positions_csv(cap, lights_csv)
     regions_tif = cap_dir / "truth" / "regions.tif"
@@ -290,6 +294,9 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
             if mode == "calibrated":
                 params["lights"] = str(lights_csv)
                 argv += ["--lights", str(lights_csv)]
+            if mode == "dark":
+                params["dark"] = str(cap_dir / "dark" / "dark.tif")
+                argv += ["--dark", params["dark"]]
             if config["detect"]:
                 params["regions"] = str(regions_tif)
                 argv += ["--regions", str(regions_tif)]
@@ -547,8 +554,8 @@ def main(argv=None) -> int:
         f"`uvps run` on synthetic captures of {N} x {M} px at {args.pixel_size_um:g} um "
         f"({N * args.pixel_size_um / 1000:g} x {M * args.pixel_size_um / 1000:g} mm), seeds "
         f"{' '.join(map(str, args.seeds))}; each nuisance of `NUISANCE_TOP` alone at the top of its range, "
-        "then all of them (`all`), and none. lights: `estimated` (no --lights) or `calibrated` (--lights with "
-        "the true positions). "
+        "then all of them (`all`), and none. lights: `estimated` (no --lights), `calibrated` (--lights with "
+        "the true positions) or `dark` (estimated, with --dark a frame taken with the lamp off). "
         + ("Detection with --regions (the true colour areas). " if config["detect"] else "No detection (--no-detect). ")
         + "Each cell: the worst value over seeds (the mean in brackets); **x**: misses its target. "
         "Lights: angle between the run's lights.json direction and the true one, mean / max over lamps; "

@@ -209,3 +209,32 @@ def test_lamp_beams_are_reported_by_the_azimuths_disagreement():
             assert len(res.warnings) == 1          # it replaces the generic height-uncertainty warning
         else:
             assert worst < 1.0 and err < 1.5 and not warned, (worst, err, res.warnings)
+
+
+def test_a_dark_frame_removes_stray_light_and_black_level_and_the_lamps_come_right(tmp_path):
+    """The remedy the stray-light warning names, on the same files: with the frame taken with the
+    lamp off (--dark) the lamps are within 1.5 deg and the run says nothing; without it they are
+    tens of degrees off and the run says the heights' scale is not determined."""
+    import json
+
+    from uvps.commands import COMMANDS
+    from uvps.synthetic import write_capture
+
+    cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=10, seed=3, stray_light=0.03, black_level=300.0)
+    folder = tmp_path / "cap"
+    write_capture(cap, folder, truth=False, dark_frame=True)
+    dark = folder / "dark" / "dark.tif"
+    runs = {}
+    for name, params in (("dark", {"pixel_size_um": PX, "dark": str(dark)}), ("plain", {"pixel_size_um": PX})):
+        out = tmp_path / name
+        result = COMMANDS["run"]({"images": [str(folder)]}, params, out)
+        lights = json.loads((out / "lights.json").read_text())["lights"]
+        d = np.array([lamp["direction"] for lamp in lights])
+        truth = cap.light_positions_mm / np.linalg.norm(cap.light_positions_mm, axis=1, keepdims=True)
+        err = np.degrees(np.arccos(np.clip(np.sum(d * truth, axis=1), -1, 1)))
+        runs[name] = (err.mean(), result.warnings, json.loads((out / "run.json").read_text()))
+    err, warnings, rj = runs["dark"]
+    assert err < 1.5 and warnings == [], (err, warnings)
+    assert rj["diagnostics"]["additive"]["source"] == "dark frame"
+    err, warnings, _ = runs["plain"]
+    assert err > 10 and any("not determined" in w for w in warnings), (err, warnings)

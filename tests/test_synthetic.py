@@ -924,3 +924,24 @@ def test_every_nuisance_at_once_renders_the_truth_and_writes_it(tmp_path):
 def test_bad_nuisance_is_refused(overrides, match):
     with pytest.raises(UVPSInputError, match=match):
         make_capture(shape=(40, 50), n_lights=3, **overrides)
+
+
+def test_dark_frame_holds_the_black_level_and_stray_light_and_is_written_apart(tmp_path):
+    """render_dark_frame: what a frame with the lamp off reads (black level + stray light + noise);
+    write_capture puts it in dark/ so that the folder's images stay the lamps' ones."""
+    from uvps.io import read_capture
+    from uvps.synthetic import render_dark_frame, write_capture
+
+    cap = make_capture(**{**NUIS, "noise": True}, stray_light=0.03, black_level=(100.0, 200.0, 300.0))
+    dark = render_dark_frame(cap)
+    assert dark.dtype == cap.images.dtype and dark.shape == cap.images.shape[1:]
+    expected = cap.exposure * cap.nuisances.stray_light.astype(float) + [100.0, 200.0, 300.0]
+    diff = dark - expected
+    assert np.abs(diff.mean(axis=(0, 1))).max() < 0.5                     # unbiased
+    noise = np.sqrt(cap.gain * expected.mean() + cap.spec.read_noise ** 2)
+    assert 0.8 * noise < diff.std() < 1.3 * noise                         # one frame's noise
+    np.testing.assert_array_equal(render_dark_frame(cap), dark)           # its own stream: reproducible
+    written = write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
+    assert tmp_path / "cap" / "dark" / "dark.tif" in written
+    c = read_capture(tmp_path / "cap", pixel_size_um=15.0)
+    assert c.images.shape == cap.images.shape                            # the dark frame is not an image

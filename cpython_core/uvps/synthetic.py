@@ -1579,6 +1579,39 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
                             spec=spec, exposure=float(exposure), gain=float(gain), nuisances=nz)
 
 
+def render_dark_frame(capture: SyntheticCapture) -> np.ndarray:
+    """The frame a user takes with the UV lamp off: the capture's stray light and black level.
+
+    ``run``'s ``dark`` parameter subtracts such a frame from every image. It holds what is the
+    same in every image without the lamp: the black level and the stray light, as
+    :func:`render_images` adds them (``stray_light`` stands for room light and a lamp's
+    visible leak here; veiling glare of the lamp's own fluorescence would vanish with the lamp,
+    and is not in a real dark frame), with the capture's photon and read noise drawn from a
+    stream of its own (one frame, not an average: its noise is then common to every corrected
+    image).
+
+    Returns
+    -------
+    (M, N) or (M, N, C) array of the images' dtype.
+    """
+    spec, nz = capture.spec, capture.nuisances
+    shape = capture.images.shape[1:]
+    counts = np.zeros(shape, dtype=np.float32)
+    if nz.stray_light is not None:
+        stray = capture.exposure * np.asarray(nz.stray_light, dtype=np.float32)
+        counts += stray if stray.ndim == counts.ndim else stray[..., None]
+    if spec.noise:
+        counts = _add_noise(counts, _substream(spec.seed, "dark frame"), gain=capture.gain,
+                            read_noise=spec.read_noise)
+    if nz.black_level is not None:
+        black = np.asarray(nz.black_level, dtype=np.float32)
+        counts += black if counts.ndim == 3 else black[0]
+    info = np.iinfo(capture.images.dtype) if capture.images.dtype.kind in "ui" else None
+    if info is not None:
+        counts = np.clip(np.rint(counts), info.min, info.max)
+    return counts.astype(capture.images.dtype)
+
+
 def _lamp_and_lens_nuisances(spec, nz, positions, intensities, shape):
     """Black level, vignetting and beams of ``spec`` into ``nz`` (and the lamps' truth)."""
     channels = 3 if spec.rgb else 1
@@ -1662,7 +1695,7 @@ def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) ->
     return folder
 
 
-def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> list:
+def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark_frame: bool = False) -> list:
     """Write a capture as a folder of 16-bit TIFFs, light files and (optionally) ground truth.
 
     Parameters
@@ -1672,6 +1705,9 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> l
         Created if missing (its parent must exist); files are moved in atomically.
     truth : bool
         Also write ``truth/``.
+    dark_frame : bool
+        Also write ``dark/dark.tif`` (:func:`render_dark_frame`), for ``run``'s ``dark``
+        parameter (in a folder of its own, so that the folder's images stay the lamps' ones).
 
     Returns
     -------
@@ -1719,6 +1755,13 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True) -> l
             for name, d in zip(names, directions):
                 fh.write(f"{name} {d[0]:.8f} {d[1]:.8f} {d[2]:.8f}\n")
         written += ["lights_positions_mm.csv", "lights.lp"]
+        if dark_frame:
+            (tmp / "dark").mkdir()
+            dark = render_dark_frame(capture)
+            tifffile.imwrite(tmp / "dark" / "dark.tif", dark, photometric="rgb" if dark.ndim == 3 else "minisblack",
+                             resolution=(1 / px, 1 / px), resolutionunit="NONE",
+                             description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+            written.append("dark/dark.tif")
         if truth:
             written += _write_truth(capture, tmp / "truth", names)
     return [folder / w for w in written]
