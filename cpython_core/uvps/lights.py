@@ -175,14 +175,27 @@ def azimuth_from_dropoff(fit: DropoffFit, *, n_angles=360, size=256) -> float:
     return float(np.degrees(-screen) % 360.0)
 
 
-def ratio_samples(fits, shape, n=24):
-    """The albedo-free log ratio maps ``log(I_k / G)`` on an n x n grid, each centred to mean 0."""
+#: Total Legendre degree of the ratio maps the lamps are fitted to (the drop-off fits have
+#: ``--degree``, 4 by default). A lamp's drop-off over the field is nearly a plane and a bowl; the
+#: relief's large-scale shading (cupped paint, strokes, crowded protrusions) spreads over every
+#: degree. Worst mean direction error over seeds 0-2 (12 lamps, RGB) at total degree 4 / 3: cupping
+#: 1.76 / 1.37 deg, strokes 1.42 / 1.45, cast shadows 1.21 / 1.24, every other row within 0.03;
+#: clean grey captures (seeds 3-5) of 8 lamps 1.31 / 1.45, 12-64 lamps within 0.01; worst case
+#: over all 1.76 / 1.45 (docs/benchmarks.md). Degree 2 left cupping at 1.49 (seed 0).
+PRIOR_DEGREE = 3
+
+
+def ratio_samples(fits, shape, n=24, max_degree=None):
+    """The albedo-free log ratio maps ``log(I_k / G)`` on an n x n grid, each centred to mean 0;
+    with ``max_degree``, only the fits' terms of total Legendre degree up to it."""
     M, N = shape
     rows = np.linspace(0, M - 1, n)
     cols = np.linspace(0, N - 1, n)
     Vv = Lg.legvander(to_unit(rows, M), fits[0].degree)
     Vu = Lg.legvander(to_unit(cols, N), fits[0].degree)
-    R = np.stack([Vv @ f.ratio_coeffs @ Vu.T for f in fits])
+    i, j = np.indices(fits[0].ratio_coeffs.shape)
+    keep = (i + j <= max_degree) if max_degree is not None else np.ones(i.shape, bool)
+    R = np.stack([Vv @ (f.ratio_coeffs * keep) @ Vu.T for f in fits])
     return rows, cols, R - R.mean(axis=(1, 2), keepdims=True)
 
 
@@ -362,7 +375,7 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         raise UVPSInputError(
             "no measurable light drop-off in any image (less than 0.5 % across the field): the lights "
             "cannot be estimated from the images; pass calibrated lights with --lights")
-    rows, cols, R = ratio_samples(fits, shape)
+    rows, cols, R = ratio_samples(fits, shape, max_degree=PRIOR_DEGREE)
     X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, pixel_size_um)
     history = []
     # start: azimuth from the polar resampling of each ratio map, elevation 40 degrees
