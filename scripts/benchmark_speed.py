@@ -204,6 +204,35 @@ def make_tiled(folder: Path, shape, n_lights: int, seed: int, tile, band_rows: i
     tmp.rename(folder)
 
 
+def compressed_copy(folder: Path) -> Path:
+    """The capture's images re-written Deflate-compressed (tags and light files kept), made once."""
+    import shutil
+
+    import tifffile
+
+    out = folder.with_name(folder.name + "_deflate")
+    files = sorted(folder.glob("uv_*.tif"))
+    if len(sorted(out.glob("uv_*.tif"))) != len(files):
+        tmp = folder.with_name(folder.name + "_deflate.part")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        for f in files:
+            with tifffile.TiffFile(f) as tif:
+                page = tif.pages[0]
+                res = (page.tags["XResolution"].value, page.tags["YResolution"].value)
+                desc = page.description
+                data = page.asarray()
+            tifffile.imwrite(tmp / f.name, data, compression="zlib", photometric="rgb" if data.ndim == 3 else "minisblack",
+                             resolution=(res[0][0] / res[0][1], res[1][0] / res[1][1]), resolutionunit="NONE",
+                             description=desc, metadata=None)
+        for f in folder.iterdir():
+            if f.is_file() and not f.name.startswith("uv_"):
+                shutil.copy2(f, tmp / f.name)
+        shutil.rmtree(out, ignore_errors=True)
+        tmp.rename(out)
+    return out
+
+
 def run_child(name: str, cmd: list, env=None) -> Measure:
     """Run ``cmd``; its wall time and peak RSS (this child only, from ``os.wait4``)."""
     load = load_line()
@@ -297,6 +326,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tile", type=int, nargs=2, metavar=("ROWS", "COLS"),
                     help="make the capture's painting in tiles of this size and render it in bands (make_tiled): "
                          "for captures make_capture cannot hold, e.g. --shape 8000 10000 --tile 2000 2500")
+    ap.add_argument("--compress", action="store_true",
+                    help="the capture's TIFFs re-written Deflate-compressed (as raw converters write them)")
+    ap.add_argument("--scratch-above", type=int, default=None, metavar="BYTES",
+                    help="UVPS_SCRATCH_ABOVE_BYTES for the runs (compressed stacks above it go to scratch files)")
     ap.add_argument("--title", default="Speed and memory of a whole run (issue 9)")
     ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
     a = ap.parse_args(argv)
@@ -304,11 +337,15 @@ def main(argv=None) -> int:
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
     raw = make(folder, (M, N), a.lights, a.seed, a.tile)
+    if a.compress:
+        folder = compressed_copy(folder)
     with open("/proc/meminfo", encoding="utf-8") as fh:
         each = raw > int(fh.readline().split()[1]) * 1024 / 4
     read_code, read_how = ((READ_EACH_CODE, "file by file into one image buffer") if each else
                            (READ_CODE, "into one preallocated array"))
     env = dict(os.environ, PYTHONPATH=str(REPO / "cpython_core"))
+    if a.scratch_above is not None:
+        env["UVPS_SCRATCH_ABOVE_BYTES"] = str(a.scratch_above)
     ms = []
     # four times, the fastest kept: the first warms the page cache (every later process reads from it
     # too), and a read of 0.3-0.9 s varies with what else runs; the floor is the fastest
@@ -340,7 +377,7 @@ def main(argv=None) -> int:
             f"`make_capture(shape=({M}, {N}), n_lights={a.lights}, seed={a.seed})`")
     text = [f"## {a.title}", "",
             f"{when}; {machine()}; load average {load_line()} (1/5/15 min) at the end; `{cmd}`.",
-            f"Capture: {made}, {a.lights} uncompressed "
+            f"Capture: {made}, {a.lights} {'Deflate-compressed' if a.compress else 'uncompressed'} "
             f"RGB uint16 TIFFs (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
             f"took {read_s:.2f} s (the fastest of 3 warm reads, inside the process; '/ read' divides each wall time by it, the process's "
             "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4).", "",

@@ -109,3 +109,36 @@ def test_run_progress_advances_band_by_band(folder, monkeypatch):
     assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
     normals = [f for f, m in seen if m.startswith("normals: rows")]
     assert len(normals) == 9 and len(set(normals)) == 9
+
+
+def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(folder, tmp_path, monkeypatch):
+    """Compressed TIFFs (Deflate, as raw converters write them) cannot be memory-mapped: above
+    io.SCRATCH_ABOVE_BYTES (0 here) they are decoded once into unlinked scratch files in TMPDIR and
+    mapped there: the same counts as the files, the same run, and nothing left in TMPDIR."""
+    import tempfile
+
+    import tifffile
+
+    import uvps.io
+
+    packed = tmp_path / "packed"
+    packed.mkdir()
+    for f in sorted(folder.glob("uv_*.tif")):
+        tifffile.imwrite(packed / f.name, tifffile.imread(f), compression="zlib", photometric="rgb",
+                         resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
+                         description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+    (packed / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    small = read_capture(packed)                              # a small stack stays in memory
+    assert isinstance(small.images, np.ndarray)
+    monkeypatch.setattr(uvps.io, "SCRATCH_ABOVE_BYTES", 0)
+    cap = read_capture(packed, lights=packed / "lights_positions_mm.csv")
+    assert isinstance(cap.images, MappedStack)
+    assert list(scratch.iterdir()) == []                     # unlinked once mapped
+    plain = read_capture(folder, lights=folder / "lights_positions_mm.csv", memory_map=False)
+    np.testing.assert_array_equal(np.asarray(cap.images), plain.images)
+    a = run(cap, RunOptions(), stages=("normals",))
+    b = run(plain, RunOptions(), stages=("normals",))
+    np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)

@@ -215,16 +215,87 @@ def _map_tiff(path: Path):
     return None
 
 
-def _map_files(sources: list, progress: Progress, *, check_px: bool):
+#: Compressed TIFFs whose stack is larger than this (bytes; None: the environment variable
+#: ``UVPS_SCRATCH_ABOVE_BYTES`` if set, else a quarter of the physical memory) are decoded once into
+#: scratch files and memory-mapped (:func:`_scratch_tiff`), not held in memory.
+SCRATCH_ABOVE_BYTES: Optional[int] = None
+
+
+def _scratch_tiff(path: Path):
+    """A one-image integer TIFF that cannot be mapped (compressed: LZW, Deflate... as raw converters
+    write them) decoded into an unlinked scratch file in the temporary folder (``TMPDIR``) and
+    memory-mapped there, as :func:`_map_tiff` returns it; None for anything else.
+
+    The file is unlinked as soon as it is mapped: the mapping keeps its data, and the disk space is
+    freed when the stack is, even if the process is killed. Decoded by tifffile straight into the
+    map (``imread(..., out=)``), strip by strip: the process never holds the image.
+    """
+    import tempfile
+
+    if _kind(path) != "tiff":
+        return None
+    with contextlib.suppress(Exception):
+        with tifffile.TiffFile(path) as tif:
+            series = tif.series[0]
+            if len(tif.pages) != 1 or series.axes.upper() not in ("YX", "YXS"):
+                return None
+            shape, dtype, px = tuple(series.shape), np.dtype(series.dtype), _tiff_pixel_size_um(tif)
+        if not np.issubdtype(dtype, np.integer):
+            return None
+        fd, name = tempfile.mkstemp(prefix="uvps-scratch-", suffix=".raw")
+        try:
+            os.close(fd)
+            arr = np.memmap(name, dtype=dtype, mode="w+", shape=shape)
+        finally:
+            os.unlink(name)
+        tifffile.imread(path, out=arr)
+        if arr.ndim == 3 and arr.shape[2] == 4:
+            arr = arr[..., :3]
+        return arr, px
+    return None
+
+
+def _scratch_wanted(sources: list) -> bool:
+    """Whether the files' stack is large enough to go to scratch files (:data:`SCRATCH_ABOVE_BYTES`)
+    and the temporary folder has room for it."""
+    import shutil
+    import tempfile
+
+    limit = SCRATCH_ABOVE_BYTES
+    env = os.environ.get("UVPS_SCRATCH_ABOVE_BYTES")
+    if limit is None and env:
+        try:
+            limit = int(env)
+        except ValueError:
+            raise UVPSInputError(f"UVPS_SCRATCH_ABOVE_BYTES must be a whole number of bytes; got {env!r}") from None
+    with contextlib.suppress(Exception):
+        with tifffile.TiffFile(sources[0].path) as tif:
+            nbytes = len(sources) * int(np.prod(tif.series[0].shape)) * np.dtype(tif.series[0].dtype).itemsize
+        if limit is None:
+            limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 4
+        if nbytes <= limit:
+            return False
+        free = shutil.disk_usage(tempfile.gettempdir()).free
+        if free < 1.1 * nbytes:
+            log.info("the compressed stack (%.1f GB) is read into memory: the temporary folder %s has "
+                     "%.1f GB free", nbytes / 1e9, tempfile.gettempdir(), free / 1e9)
+            return False
+        return True
+    return False
+
+
+def _map_files(sources: list, progress: Progress, *, check_px: bool, mapper=None):
     """The files as a :class:`MappedStack` (-> (stack, dtype, pixel size or None)), or None when one
-    of them cannot be mapped (compressed, planar, not a TIFF) or is not integer."""
-    first = _map_tiff(sources[0].path)
+    of them cannot be mapped (compressed, planar, not a TIFF) or is not integer. ``mapper`` (default
+    :func:`_map_tiff`) maps one file."""
+    mapper = _map_tiff if mapper is None else mapper
+    first = mapper(sources[0].path)
     if first is None or not np.issubdtype(first[0].dtype, np.integer):
         return None
     maps, tag_px = [], first[1]
     shape, dtype = first[0].shape, first[0].dtype
     for i, src in enumerate(sources):
-        got = first if i == 0 else _map_tiff(src.path)
+        got = first if i == 0 else mapper(src.path)
         if got is None:
             return None
         arr, px = got
@@ -863,7 +934,10 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     memory_map : bool
         Files that are uncompressed one-image TIFFs of an integer type, with nothing to convert (no
         sRGB, no dark frame), are memory-mapped instead of read (:class:`MappedStack`): the stages
-        read them band by band and the capture may be larger than the memory. False: read whole.
+        read them band by band and the capture may be larger than the memory. Compressed ones
+        whose stack is larger than a quarter of the memory (:data:`SCRATCH_ABOVE_BYTES`) are
+        decoded once into scratch files in the temporary folder (``TMPDIR``, which needs the
+        stack's size free) and mapped there. False: read whole.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -974,6 +1048,8 @@ def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: 
     """
     if memory_map and keep_dtype and not any(_needs_linearize(_kind(s.path), np.uint16, linearize) for s in sources):
         mapped = _map_files(sources, progress, check_px=check_px)
+        if mapped is None and _scratch_wanted(sources):
+            mapped = _map_files(sources, progress, check_px=check_px, mapper=_scratch_tiff)
         if mapped is not None:
             return mapped
     k = len(sources)
