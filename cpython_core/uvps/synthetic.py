@@ -1739,9 +1739,7 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark
     with atomic_output_dir(folder) as tmp:
         written = []
         for name, img in zip(names, capture.images):
-            tifffile.imwrite(tmp / name, img, photometric="rgb" if img.ndim == 3 else "minisblack",
-                             resolution=(1 / px, 1 / px), resolutionunit="NONE",
-                             description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+            _write_camera_tiff(tmp / name, img, px)
             written.append(name)
         pos = capture.light_positions_mm
         with open(tmp / "lights_positions_mm.csv", "w", newline="", encoding="utf-8") as fh:
@@ -1757,14 +1755,18 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark
         written += ["lights_positions_mm.csv", "lights.lp"]
         if dark_frame:
             (tmp / "dark").mkdir()
-            dark = render_dark_frame(capture)
-            tifffile.imwrite(tmp / "dark" / "dark.tif", dark, photometric="rgb" if dark.ndim == 3 else "minisblack",
-                             resolution=(1 / px, 1 / px), resolutionunit="NONE",
-                             description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+            _write_camera_tiff(tmp / "dark" / "dark.tif", render_dark_frame(capture), px)
             written.append("dark/dark.tif")
         if truth:
             written += _write_truth(capture, tmp / "truth", names)
     return [folder / w for w in written]
+
+
+def _write_camera_tiff(path, img, px):
+    """One image as a camera converter writes it (interleaved RGB or grey), calibrated in um."""
+    tifffile.imwrite(path, img, photometric="rgb" if img.ndim == 3 else "minisblack",
+                     resolution=(1 / px, 1 / px), resolutionunit="NONE",
+                     description="ImageJ=1.54f\nunit=micron\n", metadata=None)
 
 
 def _write_truth(capture, folder, image_names):
