@@ -178,3 +178,39 @@ def test_variable_projection_jacobian_matches_finite_differences():
     np.testing.assert_allclose(JE, J[:, 3::4], rtol=1e-12, atol=1e-15)
     Jn = np.column_stack([(f(t0 + h) - f(t0 - h)) / 2e-6 for h in np.eye(t0.size) * 1e-6])
     assert np.abs(J - Jn).max() < 1e-5 * np.abs(Jn).max()
+
+
+def test_integrability_correction_undoes_a_non_gbr_distortion_of_the_lamps():
+    """Normals of a textured height field, solved under lamps distorted by A = [[Q, t], [0, 1]]
+    (a rotation and shears of x, y, and x, y shifted by t z: the part of the linear ambiguity that
+    integrability removes), are A^-T n; the correction finds A and gives back the true lamps."""
+    from scipy.ndimage import gaussian_filter
+
+    from uvps.lights import integrability_correction
+
+    rng = np.random.default_rng(5)
+    h = gaussian_filter(rng.standard_normal((320, 300)), 3) * 0.08 + gaussian_filter(rng.standard_normal((320, 300)), 12)
+    dhdx = np.gradient(h, axis=1)
+    dhdy = -np.gradient(h, axis=0)                                   # y up
+    n = np.dstack([-dhdx, -dhdy, np.ones_like(h)])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    az = np.radians(np.arange(12) * 30.0 + 7)
+    el = np.radians(rng.uniform(25, 55, 12))
+    P = 350 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    A0 = np.eye(3)
+    A0[:2, :2] = [[1.04, 0.015], [-0.02, 0.97]]
+    A0[:2, 2] = (0.03, -0.02)
+    wrong = LightModel.from_positions(P @ A0.T)
+    n_wrong = n @ np.linalg.inv(A0)                                  # rows: (A0^-T n)^T = n^T A0^-1
+    n_wrong /= np.linalg.norm(n_wrong, axis=2, keepdims=True)
+    before = np.degrees(np.arccos(np.clip(np.sum(wrong.directions * P / np.linalg.norm(P, axis=1, keepdims=True), 1), -1, 1)))
+    history = []
+    fixed = integrability_correction(wrong, n_wrong, history)
+    truth = P / np.linalg.norm(P, axis=1, keepdims=True)
+    after = np.degrees(np.arccos(np.clip(np.sum(fixed.directions * truth, axis=1), -1, 1)))
+    assert before.mean() > 1.0
+    assert after.max() < 0.1 * before.mean(), (before.mean(), after.max())
+    assert history[0]["stage"] == "integrability" and history[0]["curl_rms_after"] < 0.2 * history[0]["curl_rms_before"]
+    # integrable normals are left as they are (up to the finite differences)
+    same = integrability_correction(LightModel.from_positions(P), n)
+    assert np.abs(same.positions_mm - P).max() < 1e-3 * 350

@@ -624,7 +624,31 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                            pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
     est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights,
-                          offset_stderr=offset_stderr, progress=sub)
+                          offset_stderr=offset_stderr, normals_of=_central_normals(capture), progress=sub)
     return LightsResult(est.model, fits, "estimated", est)
+
+
+#: The central patch whose normals the estimated lamps are made integrable on
+#: (:func:`uvps.lights.integrability_correction`): at most 1024 pixels a side and this many samples
+#: (lamps x pixels; 64 lamps: 433 pixels, 6.5 mm at 15 um), the whole image when smaller. The patch
+#: only needs texture: its curl, not the field's geometry, carries the correction.
+INTEGRABILITY_SAMPLES = 12_000_000
+
+
+def _central_normals(capture: Capture):
+    """``normals_of(model)`` for :func:`uvps.lights.estimate_lights`: the normals of a central patch
+    (:data:`INTEGRABILITY_SAMPLES`) solved under ``model``. The patch has the image's centre (equal
+    margins), so the lamps' positions hold for it as they are."""
+    K, M, N = capture.images.shape[:3]
+    side = int(min(1024, np.sqrt(INTEGRABILITY_SAMPLES / K)))
+    r0, c0 = max(0, (M - side) // 2), max(0, (N - side) // 2)
+    rows, cols = slice(r0, M - r0), slice(c0, N - c0)
+
+    def normals_of(model):
+        mask = None if capture.mask is None else capture.mask[rows, cols]
+        images = capture.images[:, rows, cols]
+        return solve_normals(images, model, pixel_size_um=capture.pixel_size_um, mask=mask,
+                             saturation=capture.saturation).normals
+    return normals_of
 
 
