@@ -18,6 +18,9 @@ Three steps, after Salvant et al. (Fig. 1b-e) and Huang et al. (2015):
 3. **Per-light refinement** (beyond the paper): every light's position and intensity, by the same
    residual plus the drop-off residual as a prior, solved to convergence on tens of thousands of
    pixels. Lamps drift as they warm up and a hand-placed lamp is never exactly equidistant.
+4. **Azimuths from integrability** (beyond the paper): the lamps turned so that the normals they
+   give are a height field's (:func:`integrability_correction`): the prior's flat canvas lets a
+   bowed one shear the azimuths.
 
 The trap: over a field of a few cm with the lamp tens of cm away, the drop-off gradient
 ``3 cos(e) / |L|`` barely separates distance from elevation, and a bowed canvas biases it. The
@@ -372,6 +375,8 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
     ``scipy.optimize.least_squares``. The per-light refinement minimises the same residual over all
     ``L_k`` and ``E_k`` with the drop-off misfit as a prior, first on a subset (:func:`first_stage_pixels`,
     the prior at full weight), then on the whole sample (at :data:`FINAL_DROP_WEIGHT`), each to convergence.
+    With ``normals_of`` the lamps' azimuths are then those that make the normals integrable
+    (:func:`integrability_correction`).
     """
     shape = grid.shape
     K = len(fits)
