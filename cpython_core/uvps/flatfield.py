@@ -73,21 +73,27 @@ class DropoffFit:
     ratio_coeffs: Optional[np.ndarray] = None  # fit of log(I_k / geometric mean of the stack)
     log_bounds: Optional[tuple] = None  # log F is clamped to the range it takes where it was fitted
 
-    def log_evaluate(self, rows=None, cols=None) -> np.ndarray:
-        """log F at the given pixel rows and columns (a separable grid)."""
+    def log_evaluate(self, rows=None, cols=None, *, dtype=np.float64) -> np.ndarray:
+        """log F at the given pixel rows and columns (a separable grid).
+
+        ``dtype=np.float32``: one (rows, n) x (n, cols) float32 product (the (rows, n) factor in
+        float64), clamped in place: it differs from the float64 map by float32 rounding, and makes
+        no (rows, cols) float64 temporary (what :func:`flatfield` needs, band by band).
+        """
         M, N = self.shape
         rows = np.arange(M) if rows is None else np.asarray(rows, dtype=float)
         cols = np.arange(N) if cols is None else np.asarray(cols, dtype=float)
-        v = to_unit(rows, M)
-        u = to_unit(cols, N)
-        Vv = L.legvander(v, self.degree)
-        Vu = L.legvander(u, self.degree)
-        return self.clamp(Vv @ self.coeffs @ Vu.T)
+        Vv = L.legvander(to_unit(rows, M), self.degree)
+        Vu = L.legvander(to_unit(cols, N), self.degree)
+        if np.dtype(dtype) == np.float64:
+            return self.clamp(Vv @ self.coeffs @ Vu.T)
+        logF = (Vv @ self.coeffs).astype(dtype) @ Vu.T.astype(dtype)
+        return self.clamp(logF, out=logF)
 
-    def clamp(self, logF):
+    def clamp(self, logF, *, out=None):
         """Clamp log F to the range it takes over the fitted (lit, unmasked) blocks: a polynomial
         extrapolated beyond a masked object would otherwise explode."""
-        return logF if self.log_bounds is None else np.clip(logF, *self.log_bounds)
+        return logF if self.log_bounds is None else np.clip(logF, *self.log_bounds, out=out)
 
     def evaluate(self, rows=None, cols=None) -> np.ndarray:
         """The drop-off map F (mean 1 over the full image) at the given rows and columns."""
@@ -301,20 +307,16 @@ def flatfield(image, fit: DropoffFit, *, channels_first: bool = False, row0: int
 
     Notes
     -----
-    ``log F`` is one (M, n) x (n, N) float32 product (the (M, n) factor in float64), clamped and
-    exponentiated in place: the map differs from a float64 one by float32 rounding (< 4e-7
-    relative), as the result is float32 anyway; no (M, N) or (M, N, C) float64 temporary is made
-    (0.3 s -> 0.05 s per 4000 x 3000 map).
+    ``log F`` is :meth:`DropoffFit.log_evaluate` in float32, exponentiated in place: the map differs
+    from a float64 one by float32 rounding (< 4e-7 relative), as the result is float32 anyway; no
+    (M, N) or (M, N, C) float64 temporary is made (0.3 s -> 0.05 s per 4000 x 3000 map).
     """
     M, N = fit.shape
     rows = image.shape[0]
     if image.shape[1] != N or not 0 <= row0 <= M - rows:
         raise UVPSInputError(f"flatfield: rows {row0}..{row0 + rows} x {image.shape[1]} columns are not a band of "
                              f"the fitted {M} x {N} image")
-    Vv, Vu = _design(np.arange(row0, row0 + rows), np.arange(N), (M, N), fit.degree)
-    F = (Vv @ fit.coeffs).astype(np.float32) @ Vu.T.astype(np.float32)
-    if fit.log_bounds is not None:
-        np.clip(F, *fit.log_bounds, out=F)
+    F = fit.log_evaluate(np.arange(row0, row0 + rows), dtype=np.float32)
     np.exp(F, out=F)
     if image.ndim == 2:
         return np.divide(image, F, dtype=np.float32)

@@ -39,6 +39,7 @@ import numpy as np
 import scipy.fft
 
 from .errors import UVPSInputError, check_pixel_size
+from .outputs import row_bands
 
 logger = logging.getLogger(__name__)
 
@@ -229,8 +230,7 @@ BAND_PIXELS = 1 << 20
 
 def _bands(M: int, N: int):
     """Row slices of about :data:`BAND_PIXELS` pixels covering ``M`` rows of ``N`` pixels."""
-    step = max(1, BAND_PIXELS // max(N, 1))
-    return [slice(r0, min(M, r0 + step)) for r0 in range(0, M, step)]
+    return row_bands(M, N, BAND_PIXELS)
 
 
 def _gradients_band(normals, mask, max_slope, p, q, invalid) -> int:

@@ -34,7 +34,7 @@ import numpy as np
 import tifffile
 
 from .errors import UVPSInputError, check_pixel_size
-from .outputs import Progress, atomic_path, report
+from .outputs import Progress, atomic_path, report, row_bands
 
 log = logging.getLogger(__name__)
 
@@ -1208,11 +1208,7 @@ class TiffBands:
         (the indices of the axes before Y), :data:`BAND_BYTES` at a time: ``plane`` may be any
         array (a strided view, another dtype) and is never copied whole."""
         index = tuple(index) if isinstance(index, (tuple, list)) else (index,)
-        M = plane.shape[0]
-        row_bytes = max(1, int(np.prod(plane.shape[1:])) * self.dtype.itemsize)
-        step = max(1, BAND_BYTES // row_bytes)
-        for r0 in range(0, M, step):
-            rows = slice(r0, min(M, r0 + step))
+        for rows in row_bands(plane.shape[0], int(np.prod(plane.shape[1:])) * self.dtype.itemsize, BAND_BYTES):
             self.write(index + (rows,), plane[rows])
 
 

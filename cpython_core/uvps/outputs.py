@@ -153,3 +153,10 @@ def _json_default(obj):
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def row_bands(n_rows: int, row_cost: int, budget: int) -> list:
+    """Row slices covering ``n_rows`` rows, each of at most ``budget`` (at least one row), a row
+    costing ``row_cost`` (pixels or bytes): how every band-by-band step cuts an image."""
+    step = max(1, int(budget) // max(int(row_cost), 1))
+    return [slice(r0, min(n_rows, r0 + step)) for r0 in range(0, n_rows, step)]

@@ -23,7 +23,7 @@ from .flatfield import flatfield
 from .integrate import gradients_from_normals
 from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
 from .measure import write_label_tiff, write_protrusions_csv
-from .outputs import CommandResult, OutputSpec, Progress, report, write_json_atomic
+from .outputs import CommandResult, OutputSpec, Progress, report, row_bands, write_json_atomic
 from .regions import region_statistics, write_regions_csv
 from .spec import CommandSpec, Param
 
@@ -189,15 +189,13 @@ def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2,
     K, M, N = capture.images.shape[:3]
     C = capture.images.shape[3] if capture.images.ndim == 4 else 0
     shape, axes = ((C, M, N), "CYX") if C else ((M, N), "YX")
-    step = max(1, BAND_BYTES // (N * max(C, 1) * 4))
 
     def one(k):
         name = Path(capture.files[k].replace("#", "_")).stem
         with imagej_tiff_writer(out / f"{k:03d}_{name}.tif", shape, np.float32, axes=axes,
                                 pixel_size_um=capture.pixel_size_um) as tif:
-            for r0 in range(0, M, step):
-                rows = slice(r0, min(M, r0 + step))
-                ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=r0)
+            for rows in row_bands(M, N * max(C, 1) * 4, BAND_BYTES):
+                ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=rows.start)
                 tif.write((slice(None), rows) if C else rows, ff)
 
     with ThreadPoolExecutor(max(1, int(workers))) as pool:
