@@ -343,3 +343,26 @@ def test_images_no_lamp_model_explains_stop_the_run_with_estimated_lamps(capture
     assert not out.exists()
     ok = uvps("run", folder, "-o", tmp_path / "clean", "--pixel-size-um", PX)
     assert ok.returncode == 0, ok.stderr
+
+
+def test_the_command_runs_with_one_blas_thread_unless_told_otherwise(monkeypatch):
+    """The console script (uvps._entry) sets OPENBLAS/MKL_NUM_THREADS=1 before numpy loads in a
+    fresh process, and keeps a value the user set."""
+    import subprocess
+    import sys
+
+    import uvps.cli
+    from uvps import _entry
+
+    seen = {}
+    monkeypatch.setattr(uvps.cli, "main", lambda argv=None: seen.update(
+        {k: __import__("os").environ.get(k) for k in _entry.BLAS_THREAD_VARIABLES}) or 0)
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")
+    assert _entry.main([]) == 0
+    assert seen == {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "3"}
+    # in a fresh process the entry point runs before numpy is imported (OpenBLAS reads the variable
+    # when numpy loads it)
+    out = subprocess.run([sys.executable, "-c", "import sys, uvps._entry; print('numpy' in sys.modules)"],
+                         capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

@@ -1,0 +1,20 @@
+"""The ``uvps`` command's entry point: one BLAS thread unless the user chose otherwise.
+
+uvps runs its own threads (the normals kernel's bands, the run folder's writers, Dask workers), and
+OpenBLAS's threads on top of them made the additive term's products of a 10000 x 8000 capture take
+72 s instead of 18 s on 2 cores (docs/benchmarks.md). BLAS reads its thread count when numpy is
+first imported, so it is set here, before anything imports numpy; a value already in the
+environment is kept. Library users (``import uvps``) are not affected.
+"""
+import os
+
+#: Environment variables set to "1" when absent.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def main(argv=None):
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+    from .cli import main as cli_main
+
+    return cli_main(argv)
