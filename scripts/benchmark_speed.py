@@ -43,7 +43,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "cpython_core"))   # the code of this tree (also for --profile)
-UVPS = [sys.executable, "-m", "uvps.cli"]
+UVPS = [sys.executable, "-m", "uvps"]   # the command as installed (uvps._entry: its BLAS threads)
 
 
 @dataclass
