@@ -290,3 +290,34 @@ def test_subprocess_sigterm_cancels_cleanly(tmp_path):
     assert resp["error"]["type"] == "Cancelled" and resp["status"] == "error"
     assert _snapshot(tmp_path / "run") == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "request.json", "response.json", "run"]
+
+
+def test_a_cancellation_inside_compiled_code_is_reported_as_cancelled():
+    """SIGTERM's Cancelled raised while a numba function runs comes out as a SystemError chain
+    (seen with the block statistics kernel); the bridge finds it and answers Cancelled."""
+    import os
+    import signal
+    import threading
+
+    import numpy as np
+
+    from uvps.bridge import Cancelled, _cancellation_in
+    from uvps.offset import block_stats
+
+    def handler(signum, frame):
+        raise Cancelled("cancelled: the bridge received SIGTERM")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    img = np.ones((1500, 2000, 3), np.uint16)
+    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    try:
+        timer.start()
+        with pytest.raises(BaseException) as info:
+            for _ in range(100000):
+                block_stats(img, 42, 65535)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGTERM, old)
+    found = _cancellation_in(info.value)
+    assert isinstance(found, Cancelled), repr(info.value)
+    assert _cancellation_in(ValueError("other")) is None

@@ -267,6 +267,7 @@ def run_bridge(request_path) -> int:
         log.error("%s: %s", type(exc).__name__, _one_line(exc))
     except Exception as exc:  # noqa: BLE001 - the bridge must answer whatever happened
         code = 2
+        exc = _cancellation_in(exc) or exc
         response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
         if isinstance(exc, Cancelled):
             log.error("%s", _one_line(exc))
@@ -275,6 +276,19 @@ def run_bridge(request_path) -> int:
     response["elapsed_s"] = round(time.monotonic() - t0, 3)
     _write_response(request_path.parent / RESPONSE_NAME, response)
     return code
+
+
+def _cancellation_in(exc: BaseException):
+    """The :class:`Cancelled` that ``exc`` wraps, if any: SIGTERM's handler raises it wherever the
+    command is, and when that is inside a compiled (numba) function the interpreter reports a
+    ``SystemError`` ("returned a result with an exception set") with the Cancelled down its chain."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, Cancelled):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _write_response(path: Path, response: dict) -> None:
