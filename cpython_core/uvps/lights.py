@@ -527,10 +527,9 @@ def integrability_correction(model: LightModel, normals, history=None) -> LightM
     if history is not None:
         before = float(np.sqrt(np.mean(c0[ok] ** 2)))
         after = float(np.sqrt(np.mean((c0[ok] + G[ok] @ theta) ** 2)))
-        moved = np.degrees(np.arccos(np.clip(np.sum(out.directions * model.directions, axis=1), -1, 1)))
         history.append({"stage": "integrability", "rotation_deg": float(np.degrees(r)), "shear": [float(s1), float(s2)],
                         "tilt": [float(tx), float(ty)], "curl_rms_before": before, "curl_rms_after": after,
-                        "pixels": int(ok.sum()), "moved_deg_max": float(moved.max())})
+                        "pixels": int(ok.sum())})
     return out
 
 
