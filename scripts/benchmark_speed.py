@@ -322,7 +322,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-md", action="store_true", help="print only")
     ap.add_argument("--profile", action="store_true", help="also cProfile pipeline.run in this process")
     ap.add_argument("--top", type=int, default=25, help="profile lines kept")
-    ap.add_argument("--skip", nargs="*", default=(), choices=("run", "regions", "demo"))
+    ap.add_argument("--skip", nargs="*", default=(), choices=("run", "zarr", "regions", "demo"))
     ap.add_argument("--tile", type=int, nargs=2, metavar=("ROWS", "COLS"),
                     help="make the capture's painting in tiles of this size and render it in bands (make_tiled): "
                          "for captures make_capture cannot hold, e.g. --shape 8000 10000 --tile 2000 2500")
@@ -354,7 +354,8 @@ def main(argv=None) -> int:
     rd = min(reads[1:], key=lambda m: m.inner_s)
     ms.append(rd)
     read_s = rd.inner_s
-    runs = {"run": ("uvps run", []), "regions": ("uvps run --regions auto", ["--regions", "auto"])}
+    runs = {"run": ("uvps run", []), "zarr": ("uvps run --ome-zarr", ["--ome-zarr"]),
+            "regions": ("uvps run --regions auto", ["--regions", "auto"])}
     for key, (name, extra) in runs.items():
         if key in a.skip:
             continue

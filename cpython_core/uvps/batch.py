@@ -39,7 +39,7 @@ from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
 from .capture_commands import cmd_run
-from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS
+from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS
 from .regions import UM2_PER_CM2, load_regions, read_region_names
 from .spec import CommandSpec, Param
 
@@ -736,7 +736,7 @@ BATCH_PARAMS = (
 
 def _batch_spec() -> CommandSpec:
     params = BATCH_PARAMS[:1] + tuple(p for p in CAPTURE_PARAMS if p.name != "images") + OPTION_PARAMS \
-        + PROTRUSION_PARAMS + BATCH_PARAMS[1:]
+        + PROTRUSION_PARAMS + OUTPUT_PARAMS + BATCH_PARAMS[1:]
     return CommandSpec(
         "batch", "many captures, each as uvps run, on a Dask cluster; summary and mosaics", _cmd_batch,
         params=params, output="batch folder",

@@ -16,7 +16,7 @@ from .runfolder import RunImages
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
-from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
+from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
 from .relight import relight
 from .spec import CommandSpec, Param
 from .synthetic import make_capture, write_capture
@@ -145,7 +145,7 @@ _STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
-                params=CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS,
+                params=CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
                 description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
                             "detect also colour areas, protrusions, statistics and report.html."),
     CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),

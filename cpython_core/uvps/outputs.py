@@ -92,6 +92,9 @@ def atomic_output_dir(path) -> Iterator[Path]:
         os.replace(tmp, path)
         return
     try:
+        stores = [p for p in tmp.iterdir() if p.is_dir() and p.name.endswith(STORE_SUFFIXES)]
+        for src in stores:
+            replace_dir(src, path / src.name)
         for src in sorted(tmp.rglob("*")):
             rel = src.relative_to(tmp)
             dst = path / rel
@@ -102,6 +105,30 @@ def atomic_output_dir(path) -> Iterator[Path]:
                 os.replace(src, dst)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+#: Folders that are one output each (a zarr store): replaced whole, never merged file by file (a
+#: store merged into an older one would keep the old store's chunks that the new one did not write).
+STORE_SUFFIXES = (".zarr",)
+
+
+def replace_dir(src: Path, dst: Path) -> None:
+    """Move the folder ``src`` to ``dst`` (same file system), replacing an existing ``dst`` whole.
+
+    The old ``dst`` is renamed aside first and removed after the new one is in place: a reader
+    sees the old store or the new one, or (for the instant between the two renames) none, never a
+    mixture of the two.
+    """
+    src, dst = Path(src), Path(dst)
+    os.chmod(src, 0o777 & ~_umask())
+    if not dst.exists():
+        os.replace(src, dst)
+        return
+    old = Path(tempfile.mkdtemp(prefix="." + dst.name + ".old-", dir=dst.parent))
+    os.rmdir(old)
+    os.replace(dst, old)
+    os.replace(src, dst)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def _umask() -> int:

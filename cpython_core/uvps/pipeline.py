@@ -41,7 +41,7 @@ from .stereo import StereoResult, solve_normals
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+__all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "estimate_capture_lights", "find_protrusions"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
@@ -95,6 +95,13 @@ PROTRUSION_PARAMS = (
     Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),
     Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
     Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
+)
+
+#: What ``run`` writes beyond the ImageJ TIFFs.
+OUTPUT_PARAMS = (
+    Param("ome_zarr", "bool", False, label="Also write OME-Zarr image pyramids",
+          help="also write depth, normals and albedo (with the label images) as OME-Zarr pyramids "
+               "(OME-NGFF 0.4), for napari, BigDataViewer/MoBIE and web viewers of whole paintings"),
 )
 
 _OPTION = {p.name: p for p in OPTION_PARAMS}

@@ -23,6 +23,7 @@ from .flatfield import flatfield
 from .integrate import gradients_from_normals
 from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
 from .measure import write_label_tiff, write_protrusions_csv
+from .omezarr import write_ome_zarr
 from .outputs import CommandResult, OutputSpec, Progress, report, row_bands, write_json_atomic
 from .regions import region_statistics, write_regions_csv
 from .spec import CommandSpec, Param
@@ -45,6 +46,9 @@ FILES = {
     "run": ("run.json", "json", None, None),
     "report": ("report.html", "html", None, None),
     "comparison": ("comparison.csv", "table", None, "cm^-2"),
+    "depth_zarr": ("depth.ome.zarr", "folder", "YX", "um"),
+    "normals_zarr": ("normals.ome.zarr", "folder", "CYX", "1"),
+    "albedo_zarr": ("albedo.ome.zarr", "folder", None, "counts"),
 }
 #: The command that writes each image a later command needs (for the "run X first" message).
 MADE_BY = {"albedo": "normals", "normals": "normals", "depth": "integrate"}
@@ -132,6 +136,10 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     if result.protrusions is not None:
         names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
                                    bins_um=params.get("bins_um") or 100.0)
+    if params.get("ome_zarr") and (result.stereo is not None or result.height is not None):
+        # from the TIFFs just written (memory-mapped): the stores hold the same float32 values
+        stores = write_ome_zarr(folder, pixel_size_um=cap.pixel_size_um)
+        names += [s.name.split(".")[0] + "_zarr" for s in stores]
     log = RunLog(command, dict(params), warnings=list(warnings) + list(result.warnings))
     log.inputs = input_hashes(cap)
     log.params.update({**asdict(result.options), "pixel_size_um": cap.pixel_size_um,
