@@ -366,3 +366,45 @@ def test_the_command_runs_with_one_blas_thread_unless_told_otherwise(monkeypatch
     out = subprocess.run([sys.executable, "-c", "import sys, uvps._entry; print('numpy' in sys.modules)"],
                          capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_ctrl_c_ends_with_one_line_exit_130_and_no_partial_output(tmp_path):
+    """A real SIGINT to a running `uvps run`: the shell's status 130, one line, no run folder."""
+    import signal
+    import time
+
+    cap = make_capture(shape=(900, 1200), n_lights=12, seed=1)
+    write_capture(cap, tmp_path / "cap")
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "uvps", "run", str(tmp_path / "cap"), "-o", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(3.0)          # imports and reading done (~1.5 s): inside the light estimate (~4 s)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == f"uvps run: interrupted; {out} holds no partial file"
+    assert "Traceback" not in err and not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap"]
+
+
+def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_an_internal_error(monkeypatch, tmp_path, capsys):
+    """numba reports a KeyboardInterrupt raised in its kernel as a SystemError wrapping it."""
+    import dataclasses
+
+    def kernel(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("<numba kernel> returned a result with an exception set") from exc
+
+    spec = dataclasses.replace(cli.COMMANDS["info"], run=kernel)
+    monkeypatch.setitem(cli.COMMANDS, "info", spec)
+    assert cli.main(["info", str(tmp_path)]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "uvps info: interrupted"
+    def failing(*args, **kwargs):
+        raise SystemError("a real internal error")
+
+    monkeypatch.setitem(cli.COMMANDS, "info", dataclasses.replace(spec, run=failing))
+    assert cli.main(["info", str(tmp_path)]) == 2
+    assert "internal error: SystemError: a real internal error" in capsys.readouterr().err

@@ -77,7 +77,13 @@ def _run_command(a) -> int:
         print(f"uvps {a.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
               file=sys.stderr)
         return exc.exit_code
+    except KeyboardInterrupt:
+        return _interrupted(a, out)
     except Exception as exc:  # an unexpected failure: one line, the traceback in the log
+        if _in_chain(exc, KeyboardInterrupt):
+            # Ctrl-C inside a compiled (numba) kernel surfaces as a SystemError ("returned a result
+            # with an exception set") with the KeyboardInterrupt down its chain
+            return _interrupted(a, out)
         log.debug("traceback", exc_info=True)
         print(f"uvps {a.command}: internal error: {type(exc).__name__}: {exc}".splitlines()[0], file=sys.stderr)
         return 2
@@ -93,6 +99,25 @@ def _run_command(a) -> int:
         if a.command in _REPORTING and (out / "report.html").is_file():
             print(f"report: {out / 'report.html'}")
     return 0
+
+
+def _in_chain(exc: BaseException, kind) -> bool:
+    """Whether ``exc`` or an exception down its ``__cause__``/``__context__`` chain is a ``kind``."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, kind):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _interrupted(a, out) -> int:
+    """Ctrl-C: one line and exit status 130 (128 + SIGINT), as a shell reports it. Every output file is
+    written under a temporary name and moved into place whole, so ``out`` holds no partial file."""
+    where = f"; {out} holds no partial file" if out is not None else ""
+    print(f"uvps {a.command}: interrupted{where}", file=sys.stderr)
+    return 130
 
 
 def main(argv=None) -> int:
