@@ -32,6 +32,7 @@ import argparse
 import cProfile
 import io
 import json
+import math
 import os
 import pstats
 import shlex
@@ -233,6 +234,49 @@ def compressed_copy(folder: Path) -> Path:
     return out
 
 
+def stack_copy(folder: Path, *, compress: bool) -> Path:
+    """The capture's images as ONE multi-page RGB TIFF (``<folder>_stack[_deflate]/stack.tif``, the
+    first file's calibration kept), written page by page, made once; returns the stack's path."""
+    import shutil
+
+    import tifffile
+
+    files = sorted(folder.glob("uv_*.tif"))
+    out = folder.with_name(folder.name + "_stack" + ("_deflate" if compress else ""))
+    path = out / "stack.tif"
+    if not path.is_file():
+        tmp = out.with_name(out.name + ".part")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        with tifffile.TiffFile(files[0]) as tif:
+            page = tif.pages[0]
+            res = (page.tags["XResolution"].value, page.tags["YResolution"].value)
+            desc, shape, dtype = page.description, page.shape, page.dtype
+        tifffile.imwrite(tmp / "stack.tif", (tifffile.imread(f) for f in files), shape=(len(files),) + shape,
+                         dtype=dtype, photometric="rgb", compression="zlib" if compress else None,
+                         resolution=(res[0][0] / res[0][1], res[1][0] / res[1][1]), resolutionunit="NONE",
+                         description=desc, metadata=None, bigtiff=len(files) * math.prod(shape) * 2 > 2 ** 31)
+        shutil.rmtree(out, ignore_errors=True)
+        tmp.rename(out)
+    return path
+
+
+#: Reading a one-file stack: into one preallocated array, page by page (a stack above a quarter of
+#: the memory: each page into one reused buffer).
+READ_STACK_CODE = """
+import sys, time, numpy as np, tifffile
+each = sys.argv[2] == '1'
+t0 = time.perf_counter()
+with tifffile.TiffFile(sys.argv[1]) as tif:
+    pages = tif.pages
+    buf = np.empty(pages[0].shape, pages[0].dtype)
+    stack = None if each else np.empty((len(pages),) + pages[0].shape, pages[0].dtype)
+    for k, page in enumerate(pages):
+        page.asarray(out=buf if each else stack[k])
+print('READ_S', time.perf_counter() - t0)
+"""
+
+
 def run_child(name: str, cmd: list, env=None) -> Measure:
     """Run ``cmd``; its wall time and peak RSS (this child only, from ``os.wait4``)."""
     load = load_line()
@@ -328,6 +372,8 @@ def main(argv=None) -> int:
                          "for captures make_capture cannot hold, e.g. --shape 8000 10000 --tile 2000 2500")
     ap.add_argument("--compress", action="store_true",
                     help="the capture's TIFFs re-written Deflate-compressed (as raw converters write them)")
+    ap.add_argument("--stack", action="store_true",
+                    help="the capture as ONE multi-page RGB TIFF (with --compress: Deflate) instead of a folder")
     ap.add_argument("--scratch-above", type=int, default=None, metavar="BYTES",
                     help="UVPS_SCRATCH_ABOVE_BYTES for the runs (compressed stacks above it go to scratch files)")
     ap.add_argument("--title", default="Speed and memory of a whole run (issue 9)")
@@ -337,7 +383,9 @@ def main(argv=None) -> int:
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
     raw = make(folder, (M, N), a.lights, a.seed, a.tile)
-    if a.compress:
+    if a.stack:
+        folder = stack_copy(folder, compress=a.compress)
+    elif a.compress:
         folder = compressed_copy(folder)
     with open("/proc/meminfo", encoding="utf-8") as fh:
         each = raw > int(fh.readline().split()[1]) * 1024 / 4
@@ -349,8 +397,9 @@ def main(argv=None) -> int:
     ms = []
     # four times, the fastest kept: the first warms the page cache (every later process reads from it
     # too), and a read of 0.3-0.9 s varies with what else runs; the floor is the fastest
-    reads = [run_child("read the stack with tifffile", [sys.executable, "-c", read_code, str(folder)], env)
-             for _ in range(4)]
+    read_cmd = ([sys.executable, "-c", READ_STACK_CODE, str(folder), "1" if each else "0"] if a.stack else
+                [sys.executable, "-c", read_code, str(folder)])
+    reads = [run_child("read the stack with tifffile", read_cmd, env) for _ in range(4)]
     rd = min(reads[1:], key=lambda m: m.inner_s)
     ms.append(rd)
     read_s = rd.inner_s
@@ -379,7 +428,7 @@ def main(argv=None) -> int:
     text = [f"## {a.title}", "",
             f"{when}; {machine()}; load average {load_line()} (1/5/15 min) at the end; `{cmd}`.",
             f"Capture: {made}, {a.lights} {'Deflate-compressed' if a.compress else 'uncompressed'} "
-            f"RGB uint16 TIFFs (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
+            f"RGB uint16 {'pages of one multi-page TIFF' if a.stack else 'TIFFs'} (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
             f"took {read_s:.2f} s (the fastest of 3 warm reads, inside the process; '/ read' divides each wall time by it, the process's "
             "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4).", "",
             tab, ""]

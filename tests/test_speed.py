@@ -142,3 +142,48 @@ def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(fol
     a = run(cap, RunOptions(), stages=("normals",))
     b = run(plain, RunOptions(), stages=("normals",))
     np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
+
+
+@pytest.mark.parametrize("layout", ["ZCYX", "KYXS", "deflate", "deflate-small"])
+def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_path, monkeypatch, layout):
+    """One multi-page TIFF (ImageJ hyperstack with planar or interleaved colour, or a Deflate-compressed
+    stack above io.SCRATCH_ABOVE_BYTES, decoded into a scratch file, or under it, read whole) is seen as a MappedStack in its own dtype, as a folder of
+    files is: the same counts and the same normals as the files read whole; nothing left in TMPDIR."""
+    import tempfile
+
+    import tifffile
+
+    import uvps.io
+    from uvps.io import write_imagej_tiff
+
+    files = sorted(folder.glob("uv_*.tif"))
+    data = np.stack([tifffile.imread(f) for f in files])           # (K, M, N, 3) uint16
+    stack = tmp_path / "stack.tif"
+    if layout == "ZCYX":
+        write_imagej_tiff(stack, np.moveaxis(data, -1, 1), axes="ZCYX", pixel_size_um=30.0)
+    else:   # a plain multi-page RGB TIFF (interleaved samples), uncompressed or Deflate
+        tifffile.imwrite(stack, data, photometric="rgb", compression="zlib" if "deflate" in layout else None,
+                         resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
+                         description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+        # "deflate-small": under the threshold, read whole, but still views in uint16, no float32 copy
+        monkeypatch.setattr(uvps.io, "SCRATCH_ABOVE_BYTES", 0 if layout == "deflate" else 10 ** 12)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    lp = tmp_path / "lamps.csv"
+    lp.write_text("\n".join(["file,x_mm,y_mm,z_mm"] + [
+        f"stack.tif#{i + 1}," + ",".join(line.split(",")[1:4])
+        for i, line in enumerate((folder / "lights_positions_mm.csv").read_text().splitlines()[1:])]) + "\n")
+    cap = read_capture(stack, lights=lp)
+    assert isinstance(cap.images, MappedStack) and cap.images.dtype == np.uint16
+    assert cap.images.shape == data.shape and list(scratch.iterdir()) == []
+    np.testing.assert_array_equal(np.asarray(cap.images), data)
+    np.testing.assert_array_equal(cap.images[3, 10:20, 5:9], data[3, 10:20, 5:9])
+    plain = read_capture(folder, lights=folder / "lights_positions_mm.csv", memory_map=False)
+    np.testing.assert_array_equal(cap.light_positions_mm, plain.light_positions_mm)
+    a = run(cap, RunOptions(), stages=("normals",))
+    b = run(plain, RunOptions(), stages=("normals",))
+    np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
+    # without mapping (memory_map=False) the same stack is read whole into float32, as before
+    whole = read_capture(stack, lights=lp, memory_map=False)
+    assert isinstance(whole.images, np.ndarray) and whole.images.dtype == np.float32
