@@ -863,12 +863,19 @@ def _stack_layout(shape: tuple, axes: str, path: Path) -> tuple:
 def _check_image(arr: np.ndarray, label: str) -> None:
     if arr.size == 0:
         raise UVPSInputError(f"image {label} is empty")
+    sat = _saturation_of(arr.dtype)
+    if np.issubdtype(arr.dtype, np.integer):
+        # about 64 rows decide for any usable image (a pixel above 0 and one below saturation; an
+        # integer has no NaN): the two full passes cost 0.1 s per 22 MP RGB image, 1.6 s of a
+        # 16-image capture's reading, and touch every page of a mapped file
+        rows = arr[::max(1, arr.shape[0] // 64)]
+        if rows.max() > 0 and (sat is None or rows.min() < sat):
+            return
     mx = arr.max()
     if not np.isfinite(mx) or not np.isfinite(arr.min()):
         raise UVPSInputError(f"image {label} contains NaN or infinite values")
     if mx <= 0:
         raise UVPSInputError(f"image {label} is all black (no pixel above 0)")
-    sat = _saturation_of(arr.dtype)
     if sat is not None and arr.min() >= sat:
         raise UVPSInputError(f"image {label} is fully saturated (every pixel at {int(sat)})")
 
