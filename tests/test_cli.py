@@ -59,7 +59,7 @@ def test_run_with_calibrated_lights(capture_dir, tmp_path):
     albedo = tifffile.imread(out / "albedo.tif")
     assert albedo.shape == (3, 240, 320)
     assert tifffile.imread(out / "gradients.tif").shape == (2, 240, 320)
-    assert len(list((out / "flatfield").glob("*.tif"))) == 8
+    assert not (out / "flatfield").exists()      # only with --flatfield-images (below), or `uvps flatfield`
     run = json.loads((out / "run.json").read_text())
     assert {i["sha256"] for i in run["inputs"]} == {hashlib.sha256(p.read_bytes()).hexdigest() for p in _images(folder)}
     assert set(run["timings_s"]) >= {"lights", "normals", "integrate"}
@@ -68,6 +68,26 @@ def test_run_with_calibrated_lights(capture_dir, tmp_path):
     np.testing.assert_allclose([l["position_mm"] for l in lights["lights"]], cap.light_positions_mm, rtol=1e-5)
     E = np.array([l["intensity"] for l in lights["lights"]])
     np.testing.assert_allclose(E / E.mean(), cap.intensities / cap.intensities.mean(), rtol=0.03)
+
+
+def test_flatfield_images_with_the_flag_or_later_from_the_run_folder_are_the_same(capture_dir, tmp_path):
+    """`run` writes flatfield/ only with --flatfield-images; `uvps flatfield` into a run folder without
+    them writes the same files from the run's lights.json."""
+    cap, folder = capture_dir
+    lamps = folder / "lights_positions_mm.csv"
+    r = uvps("run", folder, "-o", tmp_path / "with", "--lights", lamps, "--flatfield-images")
+    assert r.returncode == 0, r.stderr
+    with_flag = sorted((tmp_path / "with" / "flatfield").glob("*.tif"))
+    assert len(with_flag) == 8
+    r = uvps("run", folder, "-o", tmp_path / "later", "--lights", lamps)
+    assert r.returncode == 0 and not (tmp_path / "later" / "flatfield").exists()
+    r = uvps("flatfield", folder, "-o", tmp_path / "later")
+    assert r.returncode == 0, r.stderr
+    later = sorted((tmp_path / "later" / "flatfield").glob("*.tif"))
+    assert [p.name for p in later] == [p.name for p in with_flag]
+    for a, b in zip(with_flag, later):
+        np.testing.assert_array_equal(tifffile.imread(a), tifffile.imread(b))
+    assert json.loads((tmp_path / "with" / "run.json").read_text())["params"]["flatfield_images"] is True
 
 
 @pytest.mark.slow

@@ -97,8 +97,12 @@ PROTRUSION_PARAMS = (
     Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
 )
 
-#: What ``run`` writes beyond the ImageJ TIFFs.
+#: What ``run`` writes beyond its results (normals, albedo, gradients, height, lights, drop-off maps).
 OUTPUT_PARAMS = (
+    Param("flatfield_images", "bool", False, label="Also write the flat-fielded images",
+          help="also write flatfield/: each image divided by its drop-off fit, one float32 TIFF per image "
+               "(twice the capture's size on disk; `uvps flatfield CAPTURE -o RUN` writes them later from the "
+               "run's lights.json)"),
     Param("ome_zarr", "bool", False, label="Also write OME-Zarr image pyramids",
           help="also write depth, normals and albedo (with the label images) as OME-Zarr pyramids "
                "(OME-NGFF 0.4), for napari, BigDataViewer/MoBIE and web viewers of whole paintings"),
