@@ -350,7 +350,7 @@ class SyntheticCapture:
 
 
 def normals_from_height(height_um, *, pixel_size_um) -> np.ndarray:
-    """Unit normals of a height map by central differences.
+    """Unit normals of a height map by fourth-order central differences.
 
     Parameters
     ----------
@@ -363,7 +363,19 @@ def normals_from_height(height_um, *, pixel_size_um) -> np.ndarray:
     -------
     normals : (M, N, 3) float32
         ``n = (-p, -q, 1) / sqrt(1 + p^2 + q^2)`` with ``p = dz/dx``, ``q = dz/dy`` (y up, so
-        ``q = -dz/d(row) / pixel size``). One-sided differences on the border.
+        ``q = -dz/d(row) / pixel size``). Fourth-order central differences, ``(-z[i+2] + 8 z[i+1]
+        - 8 z[i-1] + z[i-2]) / 12``, two pixels in from the border; second-order ones (``np.gradient``)
+        on the two outer rows and columns.
+
+    Notes
+    -----
+    The normals are those of the continuous surface the height map samples. The plain central
+    difference ``(z[i+1] - z[i-1]) / 2`` is the derivative of that surface smoothed over two pixels
+    (frequency response ``sin(w) / w``): on a protrusion 100 um wide at 15 um per pixel (w ~ 0.45
+    rad/pixel) it makes the slopes 3.4 % shallow, and every height integrated from those normals
+    came out ~2.5 % low against the height map, also with the true lamps (docs/benchmarks.md,
+    session 7). The fourth-order difference (response ``(8 sin w - sin 2w) / 6w``) is within 0.13 %
+    there.
     """
     h = np.asarray(height_um, dtype=np.float64)
     if h.ndim != 2 or min(h.shape) < 2:
@@ -374,8 +386,24 @@ def normals_from_height(height_um, *, pixel_size_um) -> np.ndarray:
     return _normals64(h, float(pixel_size_um)).astype(np.float32)
 
 
+def _derivative4(h, axis: int, spacing: float) -> np.ndarray:
+    """d h / d axis by fourth-order central differences (second order on the two outer lines)."""
+    d = np.gradient(h, spacing, axis=axis)
+    if h.shape[axis] >= 5:
+        def take(a, b):
+            idx = [slice(None)] * h.ndim
+            idx[axis] = slice(a, b)
+            return h[tuple(idx)]
+        n = h.shape[axis]
+        inner = [slice(None)] * h.ndim
+        inner[axis] = slice(2, n - 2)
+        d[tuple(inner)] = (take(0, n - 4) - 8.0 * take(1, n - 3) + 8.0 * take(3, n - 1) - take(4, n)) / (12.0 * spacing)
+    return d
+
+
 def _normals64(h, pixel_size_um):
-    d_row, d_col = np.gradient(h, pixel_size_um)
+    d_row = _derivative4(h, 0, pixel_size_um)
+    d_col = _derivative4(h, 1, pixel_size_um)
     p = d_col
     q = -d_row                                   # y is up: rows grow downward
     norm = np.sqrt(1.0 + p * p + q * q)
