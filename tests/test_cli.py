@@ -88,6 +88,13 @@ def test_flatfield_images_with_the_flag_or_later_from_the_run_folder_are_the_sam
     for a, b in zip(with_flag, later):
         np.testing.assert_array_equal(tifffile.imread(a), tifffile.imread(b))
     assert json.loads((tmp_path / "with" / "run.json").read_text())["params"]["flatfield_images"] is True
+    # a run without the flags removes the flat-fielded images and OME-Zarr stores of an earlier run
+    r = uvps("run", folder, "-o", tmp_path / "with", "--lights", lamps, "--flatfield-images", "--ome-zarr")
+    assert r.returncode == 0 and (tmp_path / "with" / "depth.ome.zarr").is_dir()
+    r = uvps("run", folder, "-o", tmp_path / "with", "--lights", lamps)
+    assert r.returncode == 0, r.stderr
+    left = sorted(p.name for p in (tmp_path / "with").iterdir())
+    assert "flatfield" not in left and not [n for n in left if n.endswith(".zarr")] and "depth.tif" in left
 
 
 @pytest.mark.slow

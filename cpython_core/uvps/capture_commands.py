@@ -62,6 +62,8 @@ def _capture_command(name: str, stages: tuple):
         with atomic_output_dir(run_dir) as tmp:
             outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
                                           progress=sub_progress(progress, 0.9, 0.95))
+        if name == "run":
+            _remove_stale(run_dir, {o.name for o in outputs})
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
         out.diagnostics["lights_file"] = params["lights"]
         if protrusions:
@@ -73,6 +75,21 @@ def _capture_command(name: str, stages: tuple):
     cmd.__name__ = f"cmd_{name}"
     cmd.__doc__ = f"``{name}``: read a capture and write {', '.join(stages) or 'the lights'} into the run folder."
     return cmd
+
+
+#: Outputs of an earlier run that a new ``run`` removes when it does not write them itself (they were
+#: made under the earlier run's lamps and would no longer match the folder's results).
+OPTIONAL_OUTPUTS = ("flatfield", "depth_zarr", "normals_zarr", "albedo_zarr")
+
+
+def _remove_stale(run_dir, written: set) -> None:
+    import shutil
+
+    for name in OPTIONAL_OUTPUTS:
+        path = run_dir / runfolder.FILES[name][0]
+        if name not in written and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+            log.info("removed %s of an earlier run (this run did not write it)", path)
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
