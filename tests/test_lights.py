@@ -154,6 +154,25 @@ def test_refinement_normal_equations_match_finite_differences():
     assert np.abs(Jtf - Jn.T @ prob.fun(t0)).max() < 1e-7 * np.abs(Jn.T @ prob.fun(t0)).max()
 
 
+def test_compiled_normal_equations_equal_the_numpy_statement():
+    """lights._vp_normal_equations (compiled per-pixel work, threads over pixel bands) gives the
+    numpy statement's residual, e, J^T J and J^T r to rounding, whatever the number of threads."""
+    from uvps.lights import PixelSample, _params, _vp_normal_equations, _vp_normal_equations_numpy
+
+    rng = np.random.default_rng(4)
+    K, n = 7, 301
+    P = np.column_stack([rng.uniform(-250, 250, K), rng.uniform(-250, 250, K), rng.uniform(100, 300, K)])
+    X = np.column_stack([rng.uniform(-12, 12, n), rng.uniform(-9, 9, n), rng.normal(0, 0.02, n)])
+    sample = PixelSample(rng.uniform(0.2, 2.0, (K, n)), X, None, None)
+    th = _params(LightModel.from_positions(P, rng.uniform(0.7, 1.3, K)))
+    want = _vp_normal_equations_numpy(sample, th)
+    for workers in (1, 3):
+        got = _vp_normal_equations(sample, th, workers=workers)
+        for g, w in zip(got, want):
+            assert g.shape == w.shape
+            np.testing.assert_allclose(g, w, rtol=0, atol=1e-12 * np.abs(w).max())
+
+
 def test_variable_projection_jacobian_matches_finite_differences():
     """The photometric residual's Jacobian (with Golub-Pereyra's second term) against central differences,
     at random lamps and intensities that the lights do not explain (large residuals)."""
