@@ -32,7 +32,7 @@ import numpy as np
 
 from . import __version__
 from .commands import COMMANDS
-from .errors import UVPSComputeError, UVPSInputError
+from .errors import UVPSComputeError, UVPSInputError, in_chain
 from .outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -282,13 +282,7 @@ def _cancellation_in(exc: BaseException):
     """The :class:`Cancelled` that ``exc`` wraps, if any: SIGTERM's handler raises it wherever the
     command is, and when that is inside a compiled (numba) function the interpreter reports a
     ``SystemError`` ("returned a result with an exception set") with the Cancelled down its chain."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, Cancelled):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return None
+    return in_chain(exc, Cancelled)
 
 
 def _write_response(path: Path, response: dict) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 from . import __version__
 from .bridge import run_bridge
 from .commands import COMMANDS
-from .errors import UVPSError
+from .errors import UVPSError, in_chain
 from .spec import add_parser, markdown, request_from_args, to_json
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ def _run_command(a) -> int:
     except KeyboardInterrupt:
         return _interrupted(a, out)
     except Exception as exc:  # an unexpected failure: one line, the traceback in the log
-        if _in_chain(exc, KeyboardInterrupt):
+        if in_chain(exc, KeyboardInterrupt) is not None:
             # Ctrl-C inside a compiled (numba) kernel surfaces as a SystemError ("returned a result
             # with an exception set") with the KeyboardInterrupt down its chain
             return _interrupted(a, out)
@@ -99,17 +99,6 @@ def _run_command(a) -> int:
         if a.command in _REPORTING and (out / "report.html").is_file():
             print(f"report: {out / 'report.html'}")
     return 0
-
-
-def _in_chain(exc: BaseException, kind) -> bool:
-    """Whether ``exc`` or an exception down its ``__cause__``/``__context__`` chain is a ``kind``."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, kind):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def _interrupted(a, out) -> int:

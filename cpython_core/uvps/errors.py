@@ -24,6 +24,30 @@ class UVPSComputeError(UVPSError, RuntimeError):
     exit_code = 2
 
 
+def in_chain(exc: BaseException, kind):
+    """The exception of type ``kind`` that ``exc`` is or wraps (down its ``__cause__`` /
+    ``__context__`` chain), else None. A signal's exception raised inside a compiled (numba) kernel
+    reaches Python as a ``SystemError`` ("returned a result with an exception set") with it down
+    the chain: the CLI's Ctrl-C and the bridge's cancellation look for it there.
+
+    >>> try:
+    ...     try:
+    ...         raise KeyboardInterrupt
+    ...     except KeyboardInterrupt as inner:
+    ...         raise SystemError("kernel") from inner
+    ... except SystemError as exc:
+    ...     type(in_chain(exc, KeyboardInterrupt)).__name__, in_chain(exc, ValueError)
+    ('KeyboardInterrupt', None)
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, kind):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def check_pixel_size(value, name: str = "pixel_size_um") -> float:
     """``value`` as a positive, finite pixel size in micrometres, else a one-line
     :class:`UVPSInputError` naming ``name``: the one check of a pixel size in uvps.
