@@ -144,7 +144,7 @@ def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(fol
     np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
 
 
-@pytest.mark.parametrize("layout", ["ZCYX", "KYXS", "deflate", "deflate-small"])
+@pytest.mark.parametrize("layout", ["ZCYX", "KYXS", "deflate", "deflate-small", "big-endian"])
 def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_path, monkeypatch, layout):
     """One multi-page TIFF (ImageJ hyperstack with planar or interleaved colour, or a Deflate-compressed
     stack above io.SCRATCH_ABOVE_BYTES, decoded into a scratch file, or under it, read whole) is seen as a MappedStack in its own dtype, as a folder of
@@ -161,6 +161,9 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
     stack = tmp_path / "stack.tif"
     if layout == "ZCYX":
         write_imagej_tiff(stack, np.moveaxis(data, -1, 1), axes="ZCYX", pixel_size_um=30.0)
+    elif layout == "big-endian":    # as ImageJ saves a stack: Motorola byte order
+        tifffile.imwrite(stack, np.moveaxis(data, -1, 1), byteorder=">", imagej=True,
+                         resolution=(1 / 30.0, 1 / 30.0), metadata={"axes": "ZCYX", "unit": "micron"})
     else:   # a plain multi-page RGB TIFF (interleaved samples), uncompressed or Deflate
         tifffile.imwrite(stack, data, photometric="rgb", compression="zlib" if "deflate" in layout else None,
                          resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
@@ -175,7 +178,8 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
         f"stack.tif#{i + 1}," + ",".join(line.split(",")[1:4])
         for i, line in enumerate((folder / "lights_positions_mm.csv").read_text().splitlines()[1:])]) + "\n")
     cap = read_capture(stack, lights=lp)
-    assert isinstance(cap.images, MappedStack) and cap.images.dtype == np.uint16
+    assert isinstance(cap.images, MappedStack) and cap.images.dtype == np.dtype("=u2")
+    assert cap.images[0].dtype.isnative and cap.bit_depth == "uint16"
     assert cap.images.shape == data.shape and list(scratch.iterdir()) == []
     np.testing.assert_array_equal(np.asarray(cap.images), data)
     np.testing.assert_array_equal(cap.images[3, 10:20, 5:9], data[3, 10:20, 5:9])
@@ -187,3 +191,24 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
     # without mapping (memory_map=False) the same stack is read whole into float32, as before
     whole = read_capture(stack, lights=lp, memory_map=False)
     assert isinstance(whole.images, np.ndarray) and whole.images.dtype == np.float32
+
+
+def test_a_folder_of_big_endian_tiffs_as_imagej_saves_them_is_mapped_and_runs(folder, tmp_path):
+    """ImageJ saves TIFFs in Motorola (big-endian) byte order; mapped as they are, the compiled kernels
+    refused them (numba: unsupported array dtype >u2). The mapped stack hands out native copies."""
+    import tifffile
+
+    be = tmp_path / "be"
+    be.mkdir()
+    for f in sorted(folder.glob("uv_*.tif")):
+        tifffile.imwrite(be / f.name, tifffile.imread(f), byteorder=">", photometric="rgb",
+                         resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
+                         description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+    (be / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
+    cap = read_capture(be, lights=be / "lights_positions_mm.csv")
+    assert isinstance(cap.images, MappedStack) and cap.images.maps[0].dtype == np.dtype(">u2")
+    assert cap.images[2, 5:9].dtype.isnative and cap.bit_depth == "uint16"
+    plain = read_capture(folder, lights=folder / "lights_positions_mm.csv", memory_map=False)
+    a = run(cap, RunOptions(), stages=("normals",))
+    b = run(plain, RunOptions(), stages=("normals",))
+    np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)

@@ -163,7 +163,9 @@ class MappedStack(LazyStack):
         self.maps = list(maps)
         self.shape = (len(self.maps),) + tuple(self.maps[0].shape)
         self.ndim = len(self.shape)
-        self.dtype = self.maps[0].dtype
+        # in this machine's byte order: ImageJ writes big-endian TIFFs, which compiled kernels cannot
+        # read; each indexed copy is converted as it is made
+        self.dtype = self.maps[0].dtype.newbyteorder("=")
         self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
 
     def __getitem__(self, key):
@@ -181,7 +183,7 @@ class MappedStack(LazyStack):
 
     def _take(self, k, rest):
         m = self.maps[k]
-        out = np.array(m[rest], copy=True)
+        out = np.array(m[rest], dtype=self.dtype, copy=True)
         release(m)
         return out
 
@@ -307,7 +309,7 @@ def _map_files(sources: list, progress: Progress, *, check_px: bool, mapper=None
         release(arr)
         maps.append(arr)
         report(progress, (i + 1) / (len(sources) + 1), f"mapped {src.path.name}")
-    return MappedStack(maps), dtype, tag_px
+    return MappedStack(maps), np.dtype(dtype).newbyteorder("="), tag_px
 
 
 @dataclass
@@ -1156,7 +1158,7 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False):
             out[i] = view
         labels.append(label)
         report(progress, (i + 1) / (k + 1), f"read {label}")
-    return _Stack(MappedStack(views) if lazy else out, dtype), labels, "tiff", tag_px
+    return _Stack(MappedStack(views) if lazy else out, np.dtype(dtype).newbyteorder("=")), labels, "tiff", tag_px
 
 
 def _decode_to_scratch(path: Path, shape, dtype) -> np.memmap:
