@@ -111,23 +111,29 @@ def test_run_progress_advances_band_by_band(folder, monkeypatch):
     assert len(normals) == 9 and len(set(normals)) == 9
 
 
+def _rewritten(folder, out, **tiff_options):
+    """The capture's images re-written into ``out`` with ``tiff_options`` (compression, byte order),
+    the calibration and the lamp file kept."""
+    import tifffile
+
+    out.mkdir()
+    for f in sorted(folder.glob("uv_*.tif")):
+        tifffile.imwrite(out / f.name, tifffile.imread(f), photometric="rgb", resolution=(1 / 30.0, 1 / 30.0),
+                         resolutionunit="NONE", description="ImageJ=1.54f\nunit=micron\n", metadata=None,
+                         **tiff_options)
+    (out / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
+    return out
+
+
 def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(folder, tmp_path, monkeypatch):
     """Compressed TIFFs (Deflate, as raw converters write them) cannot be memory-mapped: above
     io.SCRATCH_ABOVE_BYTES (0 here) they are decoded once into unlinked scratch files in TMPDIR and
     mapped there: the same counts as the files, the same run, and nothing left in TMPDIR."""
     import tempfile
 
-    import tifffile
-
     import uvps.io
 
-    packed = tmp_path / "packed"
-    packed.mkdir()
-    for f in sorted(folder.glob("uv_*.tif")):
-        tifffile.imwrite(packed / f.name, tifffile.imread(f), compression="zlib", photometric="rgb",
-                         resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
-                         description="ImageJ=1.54f\nunit=micron\n", metadata=None)
-    (packed / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
+    packed = _rewritten(folder, tmp_path / "packed", compression="zlib")
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
@@ -196,15 +202,7 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
 def test_a_folder_of_big_endian_tiffs_as_imagej_saves_them_is_mapped_and_runs(folder, tmp_path):
     """ImageJ saves TIFFs in Motorola (big-endian) byte order; mapped as they are, the compiled kernels
     refused them (numba: unsupported array dtype >u2). The mapped stack hands out native copies."""
-    import tifffile
-
-    be = tmp_path / "be"
-    be.mkdir()
-    for f in sorted(folder.glob("uv_*.tif")):
-        tifffile.imwrite(be / f.name, tifffile.imread(f), byteorder=">", photometric="rgb",
-                         resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
-                         description="ImageJ=1.54f\nunit=micron\n", metadata=None)
-    (be / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
+    be = _rewritten(folder, tmp_path / "be", byteorder=">")
     cap = read_capture(be, lights=be / "lights_positions_mm.csv")
     assert isinstance(cap.images, MappedStack) and cap.images.maps[0].dtype == np.dtype(">u2")
     assert cap.images[2, 5:9].dtype.isnative and cap.bit_depth == "uint16"
