@@ -15,7 +15,6 @@ from ome_zarr_models.v04.image import Image
 from ome_zarr_models.v04.image_label import ImageLabel
 
 from uvps import omezarr
-from uvps.commands import COMMANDS
 from uvps.io import write_imagej_tiff
 from uvps.synthetic import make_capture, write_capture
 
