@@ -99,11 +99,11 @@ PROTRUSION_PARAMS = (
 
 #: What ``run`` writes beyond its results (normals, albedo, gradients, height, lights, drop-off maps).
 OUTPUT_PARAMS = (
-    Param("flatfield_images", "bool", False, label="Also write the flat-fielded images",
+    Param("flatfield_images", "bool", False, label="Flatfield images: also write them (twice the capture's size)",
           help="also write flatfield/: each image divided by its drop-off fit, one float32 TIFF per image "
                "(twice the capture's size on disk; `uvps flatfield CAPTURE -o RUN` writes them later from the "
                "run's lights.json)"),
-    Param("ome_zarr", "bool", False, label="Also write OME-Zarr image pyramids",
+    Param("ome_zarr", "bool", False, label="Zarr: also write OME-Zarr image pyramids (napari, BigDataViewer)",
           help="also write depth, normals and albedo (with the label images) as OME-Zarr pyramids "
                "(OME-NGFF 0.4), for napari, BigDataViewer/MoBIE and web viewers of whole paintings"),
 )

@@ -5,6 +5,7 @@ Opens the normals, the height, the lamps' top view and the albedo (with protrusi
 detection ran); everything is written into the run folder (run.json records the parameters).
 
 Macro: run("Run Whole Pipeline", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4 integration=[Frankot-Chellappa (FFT)] regions=auto detect");
+(add "flatfield" to also write the flat-fielded images, "zarr" for OME-Zarr pyramids of the results)
 """
 import os
 import sys
@@ -32,6 +33,8 @@ def main():
     dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
     dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
     dialogs.add_param(dlg, (COMMAND, "detect"), key="detect")
+    dialogs.add_param(dlg, (COMMAND, "flatfield_images"), key="flatfield")
+    dialogs.add_param(dlg, (COMMAND, "ome_zarr"), key="zarr")
     values = dlg.show()
     if values is not None:
         menus.run_whole_pipeline(values)

@@ -102,6 +102,19 @@ print("albedo type %d" % WindowManager.getImage("albedo").getType())
 """
 
 
+def test_whole_pipeline_writes_flatfield_images_and_ome_zarr_when_ticked(run_macro, capture_dir, tmp_path):
+    """The dialog's "flatfield" and "zarr" boxes reach the core: flatfield/ and the OME-Zarr stores
+    are written, and run.json records both."""
+    out = tmp_path / "run"
+    run_macro('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s degree=4 flatfield zarr");\n'
+              % (q(capture_dir), q(out)), timeout=TIMEOUT).check()
+    assert len(list((out / "flatfield").glob("*.tif"))) == N_LIGHTS
+    assert sorted(p.name for p in out.glob("*.ome.zarr")) == ["albedo.ome.zarr", "depth.ome.zarr",
+                                                             "normals.ome.zarr"]
+    params = json.loads((out / "run.json").read_text())["params"]
+    assert params["ome_zarr"] is True and params["flatfield_images"] is True
+
+
 def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run, tmp_path,
                                            imagej_home, write_plugin):
     """Regions set, detect not ticked: the core detects anyway, and the protrusions it listed
