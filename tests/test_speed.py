@@ -116,11 +116,11 @@ def _rewritten(folder, out, **tiff_options):
     the calibration and the lamp file kept."""
     import tifffile
 
+    from uvps.synthetic import _write_camera_tiff
+
     out.mkdir()
     for f in sorted(folder.glob("uv_*.tif")):
-        tifffile.imwrite(out / f.name, tifffile.imread(f), photometric="rgb", resolution=(1 / 30.0, 1 / 30.0),
-                         resolutionunit="NONE", description="ImageJ=1.54f\nunit=micron\n", metadata=None,
-                         **tiff_options)
+        _write_camera_tiff(out / f.name, tifffile.imread(f), 30.0, **tiff_options)
     (out / "lights_positions_mm.csv").write_bytes((folder / "lights_positions_mm.csv").read_bytes())
     return out
 

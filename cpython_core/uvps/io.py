@@ -230,7 +230,7 @@ def _scratch_tiff(path: Path):
 
     The file is unlinked as soon as it is mapped: the mapping keeps its data, and the disk space is
     freed when the stack is, even if the process is killed. Decoded by tifffile straight into the
-    map (``imread(..., out=)``), strip by strip: the process never holds the image.
+    map (:func:`_decode_to_scratch`): the process never holds the image.
     """
     if _kind(path) != "tiff":
         return None
@@ -242,8 +242,7 @@ def _scratch_tiff(path: Path):
             shape, dtype, px = tuple(series.shape), np.dtype(series.dtype), _tiff_pixel_size_um(tif)
         if not np.issubdtype(dtype, np.integer):
             return None
-        arr = _scratch_array(shape, dtype)
-        tifffile.imread(path, out=arr)
+        arr = _decode_to_scratch(path, shape, dtype)
         if arr.ndim == 3 and arr.shape[2] == 4:
             arr = arr[..., :3]
         return arr, px
@@ -1162,7 +1161,7 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False):
 
 
 def _decode_to_scratch(path: Path, shape, dtype) -> np.memmap:
-    """A compressed multi-page TIFF decoded page by page into a scratch array (:func:`_scratch_array`),
+    """A compressed TIFF decoded page by page into a scratch array (:func:`_scratch_array`),
     each page's memory released from this process as it is written (decoding the whole series at
     once kept every decoded page resident: 1.26x the stack at peak instead of 0.9x)."""
     raw = _scratch_array(shape, dtype)

@@ -857,10 +857,7 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers: int = 2):
             list(pool.map(lambda i: _vp_rows(*args, edges[i], edges[i + 1]), range(len(edges) - 1)))
     else:
         _vp_rows(*args, 0, n)
-    JtJ = Zq @ Zq.T
-    JtJ -= Zu @ Zu.T
-    _add_blocks(JtJ, np.einsum("kjp,klp->kjl", e, e))
-    return r, e, 0.5 * (JtJ + JtJ.T), np.einsum("kjp,kp->kj", e, r).ravel()
+    return _assemble(r, e, Zq, Zu)
 
 
 def _vp_normal_equations_numpy(sample: PixelSample, th):
@@ -901,6 +898,12 @@ def _vp_normal_equations_numpy(sample: PixelSample, th):
 
     Zq = whitened(r[:, None, None, :] * W)
     Zu = whitened(e[:, :, None, :] * V[:, None])
+    return _assemble(r, e, Zq, Zu)
+
+
+def _assemble(r, e, Zq, Zu):
+    """``(r, e, J^T J, J^T r)`` from the residual, ``e`` and the whitened rows of
+    :func:`_vp_normal_equations_numpy`'s statement: ``J^T J = Zq Zq^T - Zu Zu^T + diag_k(e e^T)``."""
     JtJ = Zq @ Zq.T
     JtJ -= Zu @ Zu.T
     _add_blocks(JtJ, np.einsum("kjp,klp->kjl", e, e))
