@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from .errors import UVPSInputError
 from .io import Capture, write_imagej_tiff
+from .irradiance import irradiance
 from .outputs import Progress, atomic_output_dir, report, write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -414,32 +415,13 @@ def pixel_centres_mm(shape, pixel_size_um):
 
 def _shading(normals, height_um, pixel_size_um, positions, directions, intensities, *,
              beam_axes=None, beam_exponent=0.0, shadowed=None):
-    """Yield, per light, ``E_k * fall-off * max(0, n . l) [* beam] [* lit]`` as (M, N) float64."""
-    nx, ny, nz = (normals[..., i].astype(np.float64) for i in range(3))
-    if directions is not None:
-        for k, (e, d) in enumerate(zip(intensities, directions)):
-            s = e * np.maximum(nx * d[0] + ny * d[1] + nz * d[2], 0.0)
-            if shadowed is not None:
-                s[shadowed[k]] = 0.0
-            yield s
-        return
+    """Yield, per light, ``E_k * fall-off * max(0, n . l) [* beam] [* lit]`` as (M, N) float64
+    (:func:`uvps.irradiance.irradiance`)."""
     x, y = pixel_centres_mm(height_um.shape, pixel_size_um)
     z = np.asarray(height_um, dtype=np.float64) / 1000.0
-    for k, (e, lk) in enumerate(zip(intensities, positions)):
-        dx = lk[0] - x
-        dy = lk[1] - y
-        dz = lk[2] - z
-        dist2 = dx * dx + dy * dy + dz * dz
-        inv = 1.0 / np.sqrt(dist2)
-        cos = (nx * dx + ny * dy + nz * dz) * inv
-        s = e * (float(lk @ lk) / dist2) * np.maximum(cos, 0.0)
-        if beam_axes is not None:
-            a = beam_axes[k]
-            # the ray from the lamp to the point is -(dx, dy, dz)
-            s *= np.maximum(-(a[0] * dx + a[1] * dy + a[2] * dz) * inv, 0.0) ** beam_exponent
-        if shadowed is not None:
-            s[shadowed[k]] = 0.0
-        yield s
+    return irradiance(normals, x, y, z, intensities=intensities, positions_mm=positions,
+                      directions=directions, beam_axes=beam_axes, beam_exponent=beam_exponent,
+                      shadowed=shadowed)
 
 
 def shadow_masks(height_um, *, pixel_size_um, light_positions_mm=None, light_directions=None,
