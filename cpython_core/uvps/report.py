@@ -153,8 +153,8 @@ def plot_lights(lights: dict, path) -> Path:
     else:
         ax2.bar(idx, el, color="tab:blue")
         ax2.set_ylabel("elevation (\u00b0)")
-        ax2.set_title(f"elevation of each lamp: {sig(np.nanmin(el), 2)}\u2013{sig(np.nanmax(el), 2)}"
-                      "\u00b0 (far lights: no position)", fontsize=9)
+        ax2.set_title(f"elevation of each lamp (far lights): "
+                      f"{sig(np.nanmin(el), 2)}\u2013{sig(np.nanmax(el), 2)}\u00b0", fontsize=9)
     ax2.set_xlabel("lamp")
     ax2.xaxis.set_major_locator(MaxNLocator(nbins=min(k_all, 12), integer=True))
     ax2.set_xlim(0.4, k_all + 0.6)
@@ -281,13 +281,26 @@ def _nice_at_most(x: float) -> float:
     return float(max(m * k for m in (1, 2, 5) if m * k <= x))
 
 
+def _border_plane(x, y, z) -> np.ndarray:
+    """The least-squares plane through the outer sixth of a patch on each side (the paint around
+    the protrusion), evaluated over the patch: subtracted, the protrusion stands on level ground."""
+    m, n = z.shape
+    b = max(1, min(m, n) // 6)
+    ring = np.ones((m, n), bool)
+    ring[b:m - b, b:n - b] = False
+    a = np.column_stack([x[ring], y[ring], np.ones(int(ring.sum()))])
+    coef = np.linalg.lstsq(a, z[ring], rcond=None)[0]
+    return coef[0] * x + coef[1] * y + coef[2]
+
+
 def plot_detail_3d(height_um: np.ndarray, path, *, pixel_size_um: float, centre_xy,
                    width_um: float, what: str = "", relative: bool = False) -> Path:
     """Shaded 3-D rendering of the height around one protrusion (paper Fig. 2e), in um.
 
     A square of 3 x its width (at least 32 pixels) around ``centre_xy`` = (x_px, y_px), drawn
     with ``plot_surface`` coloured by :class:`matplotlib.colors.LightSource` hill shading (light
-    from the upper left, 315 deg, 45 deg elevation). The vertical axis is stretched by a round
+    from the upper left, 315 deg, 45 deg elevation), the plane through the patch's border (the
+    paint around it) subtracted so that the protrusion stands level. The vertical axis is stretched by a round
     factor (1, 2, 5, 10, ...) so that the relief fills about half the width, and the title states
     it; heights are drawn without a unit when ``relative``.
     """
@@ -308,6 +321,7 @@ def plot_detail_3d(height_um: np.ndarray, path, *, pixel_size_um: float, centre_
     rows = (np.arange(r0, r1, stride) - cy) * pixel_size_um
     cols = (np.arange(c0, c1, stride) - cx) * pixel_size_um
     x, y = np.meshgrid(cols, -rows)  # y up
+    z = z - _border_plane(x, y, z)
     span_xy = max(np.ptp(cols), np.ptp(rows), pixel_size_um)
     span_z = max(float(np.ptp(z)), 1e-9)
     fig = figure((7, 5.5), layout=None)
@@ -331,7 +345,9 @@ def plot_detail_3d(height_um: np.ndarray, path, *, pixel_size_um: float, centre_
     ax.set_zlabel("relative height" if relative else "height (\u00b5m)")
     from matplotlib.ticker import MaxNLocator
 
-    ax.zaxis.set_major_locator(MaxNLocator(nbins=max(2, int(6 * box_z)), prune=None))
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=4))
+    ax.zaxis.set_major_locator(MaxNLocator(nbins=max(2, int(6 * box_z))))
     head = what or "detail"
     scale = ("vertical scale relative (heights not in \u00b5m)" if relative else
              "true scale (no vertical exaggeration)" if exag == 1 else
@@ -548,14 +564,14 @@ ul.sure{margin-top:0}.def{font-size:0.92em}
 vertical-align:-0.1em}
 code.hash{font-size:0.8em;word-break:break-all}table.prov td,table.prov th{text-align:left}
 table.lt td:nth-child(2){text-align:left}
-.tcap{font-size:0.92em;color:#333;margin:0.2em 0 1em;max-width:900px}
+.tcap{font-size:0.92em;color:#333;margin:0.2em 0 1em;max-width:900px}.tblock{margin-bottom:0.5em}
 @page{margin:14mm 12mm}
 @media print{body{max-width:none;margin:0;padding:0;font-size:10pt}
 *{-webkit-print-color-adjust:exact;print-color-adjust:exact}
 figure,table,.tcap{break-inside:avoid}h2,h3{break-after:avoid}
 img{max-width:170mm;max-height:200mm}a{color:inherit;text-decoration:none}
 thead{display:table-header-group}tr{break-inside:avoid}
-section.appendix{break-before:page}#summary{border:1px solid #999}}"""
+#methods{break-before:page}.tblock{break-inside:avoid}#summary{border:1px solid #999}}"""
 
 
 def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None, comparison=None,
@@ -759,8 +775,9 @@ def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: fl
     centre, width_um, what = _detail_target(height, table, px)
     report(progress, 0.55, "3-D detail")
     _figure_step(page, "detail3d.png", f"{what[0].upper() + what[1:]} in 3-D, hill-shaded "
-                 "(light from the upper left; as the paper's Fig. 2e); distances in \u00b5m from "
-                 "its centre, the vertical stretch stated in the title.", plot_detail_3d, height,
+                 "(light from the upper left; as the paper's Fig. 2e), on the plane through the "
+                 "paint around it; distances in \u00b5m from its centre, the vertical stretch "
+                 "stated in the title.", plot_detail_3d, height,
                  figdir / "detail3d.png", pixel_size_um=px, centre_xy=centre, width_um=width_um,
                  what=what, relative=rel)
 
@@ -869,11 +886,11 @@ def _comparison_html(rows, name_a, name_b) -> str:
     header = ["Colour area", Raw("Area (cm\u00b2)"), Raw(f"Count, {a}"), Raw(f"Count, {b}"),
               Raw(f"Per cm\u00b2, {a}"), Raw(f"Per cm\u00b2, {b}"), "Matched",
               Raw(f"Missed by {b}"), Raw(f"Only in {b}")]
-    return (f"<h3>Table 4. Two methods: {a} and {b}</h3>"
+    return (f"<div class='tblock'><h3>Table 4. Two methods: {a} and {b}</h3>"
             + text_table(header, body, cls="num")
             + f"<p class='tcap'>Matched: pairs one-to-one within the match radius; missed: in "
             f"{a} only; only in {b}: not in {a}. All rows: "
-            "<a href='comparison.csv'>comparison.csv</a>.</p>")
+            "<a href='comparison.csv'>comparison.csv</a>.</p></div>")
 
 
 def _link(path: Path, run_dir: Path) -> str:
@@ -944,30 +961,30 @@ def _tables_html(run_dir, facts, table, table_path, regions, stats, colours, com
         names_note = ("Area names are the <code>name</code> column of "
                       "<a href='regions.csv'>regions.csv</a>: edit them there and run "
                       f"<code>uvps stats {e(run_dir.name)}</code> to redraw this report with them.")
-        out.append("<h3>Table 1. Protrusions per colour area</h3>"
+        out.append("<div class='tblock'><h3>Table 1. Protrusions per colour area</h3>"
                    + area_table_html(stats, colours)
                    + "<p class='tcap'>Density = protrusions / area; \u00b1 its standard error "
                    "from the count (Poisson: \u221an / area). "
                    + (f"{stats.outside} protrusions lie in no colour area. " if stats.outside else "")
-                   + names_note + "</p>")
-        out.append("<h3>Table 2. Protrusions per cm\u00b2 by width</h3>"
+                   + names_note + "</p></div>")
+        out.append("<div class='tblock'><h3>Table 2. Protrusions per cm\u00b2 by width</h3>"
                    + width_table_html(stats)
                    + "<p class='tcap'>Per cm\u00b2 of each colour area, by width (\u00b5m); the "
                    "count in brackets"
                    + (f"; the numbers of Figure {fignum['histograms.png']}"
                       if "histograms.png" in fignum else "")
-                   + ". Every bin: <a href='regions.csv'>regions.csv</a>.</p>")
+                   + ". Every bin: <a href='regions.csv'>regions.csv</a>.</p></div>")
     if table is not None and len(table["width_um"]):
         names = dict(regions.names) if regions is not None else {}
         n = min(10, len(table["width_um"]))
-        out.append(f"<h3>Table 3. The {n} widest protrusions</h3>"
+        out.append(f"<div class='tblock'><h3>Table 3. The {n} widest protrusions</h3>"
                    + largest_table_html(table, facts, names, n)
                    + "<p class='tcap'>No. = the protrusion's number in "
                    f"{_link(table_path, run_dir)} and its label in "
                    f"<code>{e(_labels_path(table_path).name)}</code>; x, y of its centre from the "
                    "image's top-left corner (as ImageJ shows a calibrated image)"
                    + ("" if facts.relative else "; height = summit above a plane through the "
-                      "paint around it") + ".</p>")
+                      "paint around it") + ".</p></div>")
     out.append(comparison_html)
     out.append("</section>")
     return "\n".join(out)

@@ -258,15 +258,23 @@ def _where_sentence(stats, names_editable: bool) -> str:
     if len(areas) < 2:
         return ""
     by = sorted(areas, key=lambda r: -r.density_per_cm2)
-    top = by[:3]
+    top = [r for r in by if r.count > 0][:3]
+    if not top:
+        return "<p><b>Where:</b> no protrusion in any colour area.</p>"
 
     def one(r):
         return (f"<b>{e(r.name)}</b> ({density_pm(r.density_per_cm2, poisson_se(r.count, r.area_cm2))}"
                 " per cm\u00b2)")
 
     s = "Densest: " + ", ".join(one(r) for r in top)
-    s += "; least dense: " + one(by[-1]) + "."
-    s += (" (\u00b1: standard error from the count.)")
+    empty = [r for r in areas if r.count == 0]
+    if empty:
+        names = [f"<b>{e(r.name)}</b>" for r in empty]
+        s += "; none in " + (", ".join(names) if len(names) <= 4
+                             else ", ".join(names[:3]) + f" and {len(names) - 3} more areas")
+    elif by[-1] not in top:
+        s += "; least dense: " + one(by[-1])
+    s += ". (\u00b1: standard error from the count.)"
     return f"<p><b>Where:</b> {s}</p>"
 
 
