@@ -960,7 +960,7 @@ def _tables_html(run_dir, facts, table, table_path, regions, stats, colours, com
     if stats is not None:
         names_note = ("Area names are the <code>name</code> column of "
                       "<a href='regions.csv'>regions.csv</a>: edit them there and run "
-                      f"<code>uvps stats {e(run_dir.name)}</code> to redraw this report with them.")
+                      f"<code>uvps stats -o {e(run_dir.name)}</code> to redraw this report with them.")
         out.append("<div class='tblock'><h3>Table 1. Protrusions per colour area</h3>"
                    + area_table_html(stats, colours)
                    + "<p class='tcap'>Density = protrusions / area; \u00b1 its standard error "
