@@ -375,3 +375,20 @@ def test_height_colour_bar_says_where_it_clips(tmp_path, monkeypatch):
     assert "clipped" in label and "all heights" in label
     assert height_fmt(height.max()) in label     # the real top: the 40 um dome on its tilt
     assert "beyond the bar" in sc.words()
+
+
+def test_manual_and_automated_counts_are_compared_when_both_exist(tmp_path):
+    """protrusions_manual.csv (the wand) beside protrusions.csv, no comparison.csv: the report
+    compares them (map, densities, table) without writing comparison.csv."""
+    table = _run_folder(tmp_path)
+    manual = {k: np.asarray(v)[:2] for k, v in table.items()}    # the wand found two of three
+    write_protrusions_csv(tmp_path / "protrusions_manual.csv", manual)
+    text = write_report(tmp_path).read_text()
+    linked = set(re.findall(r"src='figures/([a-z_0-9]+)\.png'", text))
+    assert {"comparison_map", "comparison"} <= linked
+    visible = _visible_text(text)
+    assert "Table 4. Two methods: manual (wand) and automated" in visible
+    # every manual one matched, one automated extra
+    row = re.search(r"all areas [\d.]+ (\d+) (\d+) [\d.]+ [\d.]+ (\d+) (\d+) (\d+)", visible)
+    assert row and row.groups() == ("2", "3", "2", "0", "1"), visible[-2000:]
+    assert not (tmp_path / "comparison.csv").exists()
