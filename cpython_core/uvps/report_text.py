@@ -258,7 +258,7 @@ def _where_sentence(stats, names_editable: bool) -> str:
     if len(areas) < 2:
         return ""
     by = sorted(areas, key=lambda r: -r.density_per_cm2)
-    top = [r for r in by if r.count > 0][:3]
+    top = [r for r in by if r.count > 0][:min(3, len(areas) - 1)]
     if not top:
         return "<p><b>Where:</b> no protrusion in any colour area.</p>"
 
