@@ -392,3 +392,42 @@ def test_manual_and_automated_counts_are_compared_when_both_exist(tmp_path):
     row = re.search(r"all areas [\d.]+ (\d+) (\d+) [\d.]+ [\d.]+ (\d+) (\d+) (\d+)", visible)
     assert row and row.groups() == ("2", "3", "2", "0", "1"), visible[-2000:]
     assert not (tmp_path / "comparison.csv").exists()
+
+
+@pytest.mark.slow
+def test_pdf_printed_by_a_headless_browser(tmp_path):
+    """`print_pdf` with the browser on PATH (Debian's chromium when installed): a PDF of the report
+    beside it; without one, the one-line message saying what to install."""
+    import shutil
+
+    from uvps.report import PDF_BROWSERS, print_pdf
+
+    _named_run_folder(tmp_path)
+    html_path = write_report(tmp_path)
+    if any(shutil.which(b) for b in PDF_BROWSERS):
+        pdf = print_pdf(html_path)
+        assert pdf == tmp_path / "report.pdf"
+        data = pdf.read_bytes()
+        assert data[:5] == b"%PDF-" and len(data) > 20000          # the figures are in it
+        assert len(re.findall(rb"/Type\s*/Page\b", data)) >= 3
+    else:
+        with pytest.raises(UVPSInputError, match="apt-get install chromium"):
+            print_pdf(html_path)
+    assert not list(tmp_path.glob(".report.pdf*"))
+
+
+def test_pdf_without_a_browser_says_what_to_do(tmp_path, monkeypatch):
+    from uvps.report import print_pdf
+
+    _run_folder(tmp_path)
+    html_path = write_report(tmp_path)
+    monkeypatch.setenv("PATH", str(tmp_path / "no-browsers-here"))
+    with pytest.raises(UVPSInputError, match=r"^pdf: no Chromium or Chrome on PATH.*apt-get install chromium"):
+        print_pdf(html_path)
+    # a browser that prints nothing: one line, and no PDF left behind
+    fake = tmp_path / "chromium"
+    fake.write_text("#!/bin/sh\nexit 3\n")
+    fake.chmod(0o755)
+    with pytest.raises(UVPSInputError, match=r"printed no PDF of report.html \(exit 3\)"):
+        print_pdf(html_path, browser=str(fake))
+    assert not (tmp_path / "report.pdf").exists() and not list(tmp_path.glob(".report.pdf*"))

@@ -12,7 +12,11 @@ import dataclasses
 import html
 import json
 import logging
+import os
 import re
+import shutil
+import subprocess
+import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -659,6 +663,47 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     atomic_write_text(out, text)
     report(progress, 1.0, "report written")
     log.info("report: %d figures, %d skipped", len(page.figures), len(page.skipped))
+    return out
+
+
+#: Browsers whose headless mode prints a page to PDF, tried in this order (Debian's ``chromium``
+#: first). None is downloaded: one must be installed (``apt-get install chromium``).
+PDF_BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+
+
+def print_pdf(html_path, *, browser: Optional[str] = None, timeout_s: float = 300.0) -> Path:
+    """Print ``report.html`` to ``report.pdf`` beside it with a headless Chromium or Chrome.
+
+    The browser lays the page out with the report's print styles (the default paper of the
+    browser's locale, A4 or Letter; figures and tables never split), so the PDF holds the same
+    text, searchable, as the HTML. ``browser``: its executable; default the first of
+    :data:`PDF_BROWSERS` on ``PATH``. The PDF is written atomically; a browser that is missing,
+    fails or prints no PDF is a one-line :class:`~uvps.errors.UVPSInputError` saying what to do.
+    """
+    html_path = Path(html_path)
+    exe = browser or next((w for w in map(shutil.which, PDF_BROWSERS) if w), None)
+    if exe is None:
+        raise UVPSInputError("pdf: no Chromium or Chrome on PATH to print report.html; install "
+                             "Debian's chromium (apt-get install chromium), or open report.html "
+                             "in a browser and print it to PDF")
+    out = html_path.with_suffix(".pdf")
+    with tempfile.TemporaryDirectory(prefix="uvps-browser-") as profile, \
+            atomic_path(out, suffix=".pdf") as tmp:
+        cmd = [exe, "--headless", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+               "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}",
+               "--no-pdf-header-footer", f"--print-to-pdf={tmp}", html_path.resolve().as_uri()]
+        if hasattr(os, "geteuid") and os.geteuid() == 0:
+            cmd.insert(2, "--no-sandbox")          # Chromium refuses to run as root with its sandbox
+        log.info("printing the report: %s", " ".join(cmd))
+        try:
+            proc = subprocess.run(cmd, capture_output=True, timeout=timeout_s, check=False)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise UVPSInputError(f"pdf: {Path(exe).name} could not print {html_path.name} "
+                                 f"({type(exc).__name__}); open it in a browser and print it to "
+                                 "PDF") from None
+        if proc.returncode != 0 or tmp.read_bytes()[:5] != b"%PDF-":
+            raise UVPSInputError(f"pdf: {Path(exe).name} printed no PDF of {html_path.name} (exit "
+                                 f"{proc.returncode}); open it in a browser and print it to PDF")
     return out
 
 
