@@ -190,6 +190,7 @@ def _visible_text(fragment: str) -> str:
     import html as _html
 
     text = re.sub(r"<style>.*?</style>", " ", fragment, flags=re.S)
+    text = re.sub(r"</?(?:code|b|i|span|a)\b[^>]*>", "", text)     # inline: no space
     return " ".join(_html.unescape(re.sub(r"<[^>]+>", " ", text)).split())
 
 
@@ -431,3 +432,24 @@ def test_pdf_without_a_browser_says_what_to_do(tmp_path, monkeypatch):
     with pytest.raises(UVPSInputError, match=r"printed no PDF of report.html \(exit 3\)"):
         print_pdf(html_path, browser=str(fake))
     assert not (tmp_path / "report.pdf").exists() and not list(tmp_path.glob(".report.pdf*"))
+
+
+def test_lamps_from_a_calibration_folder_name_its_route(tmp_path):
+    """A run with --calibration CAL (contract B): the summary names the folder and how it measured
+    the lamps; no scale uncertainty from an estimate is claimed."""
+    cal = tmp_path / "cal_2024"
+    cal.mkdir()
+    (cal / "calibration.json").write_text(json.dumps({"format": "uvps-calibration", "version": 1,
+                                                      "route": "spheres"}))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    _named_run_folder(run_dir, relief={"scale": "absolute", "lamps": "calibration", "reason": ""})
+    run = json.loads((run_dir / "run.json").read_text())
+    run["params"]["calibration"] = str(cal)
+    del run["diagnostics"]["lights"]["height_uncertainty_relative"]
+    (run_dir / "run.json").write_text(json.dumps(run))
+    summary = _visible_text(re.search(r"<section id='summary'>(.*?)</section>",
+                                      write_report(run_dir).read_text(), re.S).group(1))
+    assert "Lamps: from a calibration folder (uvps calibrate) (cal_2024: reference spheres " \
+           "photographed under each lamp)" in summary
+    assert "scale set by the given lamps" in summary

@@ -9,6 +9,7 @@ so "41", not "41.06438896"). Nothing here computes a result: it only reads and w
 from __future__ import annotations
 
 import html
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,11 +32,16 @@ REJECTION_WORDS = {
 
 #: How the lamps were known (run.json ``relief.lamps``, else ``diagnostics.lights.source``).
 LAMP_ROUTES = {
-    "calibration": "from a calibration folder (reference spheres photographed with the same lamps)",
+    "calibration": "from a calibration folder (uvps calibrate)",
     "positions": "from measured lamp positions",
     "directions": "from given lamp directions (far lights: no fall-off across the field)",
     "estimated": "estimated from the images alone (no reference sphere, no measured positions)",
 }
+
+#: How a calibration folder measured the lamps (``calibration.json`` ``route``).
+CALIBRATION_ROUTES = {"spheres": "reference spheres photographed under each lamp",
+                      "positions": "measured lamp positions", "dome": "the dome's known geometry",
+                      "lp": "a light-position (.lp) file"}
 
 #: The protrusion table's ``source`` values, in words.
 SOURCE_WORDS = {"albedo+height": "by fluorescence and relief", "height": "by relief alone",
@@ -284,12 +290,26 @@ def _lamps_item(f: Facts) -> str:
     given = f.params.get("calibration") or f.params.get("lights")
     s = f"Lamps: {words}"
     if given and route != "estimated":
-        s += f" (<code>{e(Path(str(given)).name)}</code>)"
+        s += f" (<code>{e(Path(str(given)).name)}</code>"
+        cal_route = _calibration_route(f.params.get("calibration"))
+        s += f": {e(CALIBRATION_ROUTES.get(cal_route, cal_route))})" if cal_route else ")"
     n_l = len(f.lights.get("lights") or [])
     u = (f.diagnostics.get("lights") or {}).get("direction_uncertainty_deg_max")
     if u is not None:
         s += f"; each lamp's direction within {sig(u, 2)}\u00b0 (standard uncertainty, largest of {n_l})"
     return s + "."
+
+
+def _calibration_route(cal) -> str:
+    """The ``route`` of a calibration folder's ``calibration.json`` ("" when it cannot be read:
+    the folder may have moved since the run)."""
+    if not cal:
+        return ""
+    try:
+        info = json.loads((Path(str(cal)) / "calibration.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return ""
+    return str(info.get("route") or "") if isinstance(info, dict) else ""
 
 
 def _heights_item(f: Facts) -> str:
