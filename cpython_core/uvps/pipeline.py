@@ -42,6 +42,7 @@ from .stereo import StereoResult, solve_normals
 log = logging.getLogger(__name__)
 
 __all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+           "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
@@ -61,8 +62,10 @@ OPTION_PARAMS = (
     Param("black_level", "numbers", None, unit="counts", minimum=0, label="Black level",
           help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
                "measuring it from the images"),
-    Param("offset", "choice", "auto", choices=("auto", "none"),
-          help="additive term (black level, stray light): measured from the images (auto) or none"),
+    Param("offset", "choice", "auto", choices=("auto", "measure", "none"),
+          help="additive term (black level, stray light) when none is given (black_level, dark, a raw file's "
+               "levels): auto measures it from the images of more than 8 bits and subtracts it where the fit pins "
+               "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
     Param("offset_degree", "int", 0, minimum=0, maximum=2,
           help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
     Param("lamp_beams", "bool", False,
@@ -185,6 +188,7 @@ class RunResult:
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     timings_s: dict = field(default_factory=dict)
+    relief: dict = field(default_factory=dict)   # run.json "relief" (:func:`relief_of_lights`)
 
 
 #: Stages :func:`run` knows, in order. "flatfield" computes nothing in memory: the flat-fielded
@@ -339,7 +343,46 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
     if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
+    res.relief = relief_of_lights(res.lights)
     res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
+
+
+#: Lamps estimated from the images pin the relief's scale when the heights' relative uncertainty
+#: (:class:`uvps.lights.LightUncertainty`: noise, additive term and the bas-relief direction's misfit)
+#: is at most this; beyond it the run's relief is *relative* (docs/architecture.md, "Relief scale").
+RELATIVE_RELIEF_ABOVE = 0.10
+
+
+def relief_of_lights(lights: LightsResult) -> dict:
+    """``run.json``'s ``relief``: whether the heights have a scale in micrometres, and why.
+
+    Known lamps (positions, directions, a calibration) pin the lamps' elevation and so the relief's
+    depth scale: "absolute". Lamps estimated from the images pin it only as far as the images do
+    (the near-light remnant of the bas-relief ambiguity, :mod:`uvps.lights`): "absolute" when the
+    heights' uncertainty that follows is at most :data:`RELATIVE_RELIEF_ABOVE`, else "relative"
+    (normals, albedo, counts and widths hold; heights are a shape without a scale).
+    """
+    lamps = {"estimated": "estimated", "positions": "positions", "directions": "directions"}.get(
+        lights.source, str(lights.source))
+    if lights.source != "estimated":
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were given ({lamps}), which fixes their elevation and so the heights' "
+                          "scale"}
+    unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    if unc is None:
+        return {"scale": "relative", "lamps": lamps,
+                "reason": "the lamps were estimated from the images and their elevation's uncertainty could not be "
+                          "measured, so the heights have no scale; calibrate the lamps (uvps calibrate, "
+                          "--calibration) or give their positions (--lights)"}
+    pct = 100 * float(unc.height_rel)
+    if unc.height_rel <= RELATIVE_RELIEF_ABOVE:
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were estimated from the images, which pin their elevation: heights uncertain "
+                          f"by +-{pct:.1f} %"}
+    return {"scale": "relative", "lamps": lamps,
+            "reason": f"the lamps were estimated from the images, which do not pin their elevation (heights "
+                      f"uncertain by +-{pct:.0f} %): the relief's shape holds, its scale in micrometres does not; "
+                      "calibrate the lamps (uvps calibrate, --calibration) or give their positions (--lights)"}
 
 
 def _azimuth_warnings(lights: LightsResult, diagnostics: dict) -> list:
@@ -486,6 +529,8 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
     return Protrusions(table, det.labels, regions, proposed, dict(det.rejected), float(det.noise_um))
 
 
+#: Input bit depths on which the additive term is not measured by default (``offset="auto"``).
+EIGHT_BIT = ("uint8", "int8")
 #: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
 #: moved the estimated lamps by 5 degrees on the benchmark captures (docs/benchmarks.md).
 OFFSET_TOLERANCE = 0.001
@@ -498,9 +543,11 @@ OFFSET_MAX = 0.5
 def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) -> tuple:
     """The capture with its additive term (black level, stray light) removed, and that term.
 
-    Given black level (``options.black_level``): that. A dark frame (already subtracted on reading):
-    nothing more is removed. ``options.offset == "none"``: nothing. Otherwise the term is measured
-    from the images (:func:`uvps.offset.estimate_additive`). The images are not copied: the result's
+    A given term beats a measured one. Given black level (``options.black_level``): that. A dark frame
+    (already subtracted on reading): nothing more is removed. ``options.offset == "none"``: nothing;
+    ``"auto"`` on 8-bit input (:data:`EIGHT_BIT`: a linearised JPEG's tone curve is no pedestal):
+    nothing. Otherwise the term is measured from the images (:func:`uvps.offset.estimate_additive`)
+    and subtracted only when it lies more than :data:`SIGNIFICANT` standard errors above 0. The images are not copied: the result's
     ``images`` is a view that subtracts on access (:class:`uvps.offset.OffsetImages`).
 
     Returns
@@ -516,6 +563,13 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         term = known_additive(options.black_level, shape=(M, N), channels=C)
     elif dark_given or options.offset == "none":
         term = known_additive(0.0, shape=(M, N), channels=C, source="dark frame" if dark_given else "none")
+    elif options.offset == "auto" and capture.bit_depth in EIGHT_BIT:
+        # 8-bit files (linearised JPEGs above all) carry a tone curve's remnant, not a pedestal: on a
+        # real RTI capture of a canvas a term measured as 5 % of the signal and subtracted set the two
+        # halves of the lamps' normals 3.16 deg apart, 2.40 with none (docs/benchmarks.md)
+        term = known_additive(0.0, shape=(M, N), channels=C, source="none")
+        term.diagnostics["note"] = (f"{capture.bit_depth} input: not measured (offset=measure to measure it, or give "
+                                    "black_level or a dark frame)")
     else:
         term = estimate_additive(images, mask=capture.mask, saturation=capture.saturation,
                                  degree=int(options.offset_degree), dropoff_degree=int(options.degree))
