@@ -1085,6 +1085,10 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
     return LightModel.from_positions(P, E / np.exp(np.mean(np.log(E))))
 
 
+#: Coverage factor of the heights' expanded uncertainty (:attr:`LightUncertainty.height_rel_95`).
+COVERAGE_FACTOR = 2.0
+
+
 @dataclass
 class LightUncertainty:
     """Standard uncertainties of estimated near lights (docs/architecture.md, "Confidence").
@@ -1093,7 +1097,10 @@ class LightUncertainty:
     standard uncertainty of heights that follows (the shared change of the lamps' elevations, as
     ``d log h = -mean_k d log tan(e_k)``). Each combines the residual's noise (Gauss-Newton
     covariance, ``sigma^2 (J^T J)^-1``) and the additive term's own uncertainty carried through the
-    solution (``-(J^T J)^-1 J^T dr/dc * se_c``), which dominates on real captures.
+    solution (``-(J^T J)^-1 J^T dr/dc * se_c``). ``height_rel`` also holds ``height_rel_misfit``,
+    what the lamp model leaves out (a bow, beams, cupping) moving the lamps along the bas-relief
+    direction (:func:`_tile_misfit`), which the noise term does not see: it dominates wherever the
+    estimated lamps are far off.
     """
 
     direction_deg: np.ndarray
@@ -1104,8 +1111,14 @@ class LightUncertainty:
     height_rel_offset: float
     height_rel_misfit: float = 0.0
 
+    @property
+    def height_rel_95(self) -> float:
+        """The heights' expanded relative uncertainty, coverage factor 2 (about 95 %; GUM 6.2)."""
+        return COVERAGE_FACTOR * float(self.height_rel)
+
     def to_json(self) -> dict:
         return {"direction_deg": [round(float(v), 4) for v in self.direction_deg],
+                "height_relative_95": round(self.height_rel_95, 5),
                 "distance_mm": [round(float(v), 3) for v in self.distance_mm],
                 "intensity": [round(float(v), 5) for v in self.intensity],
                 "height_relative": round(float(self.height_rel), 5),
@@ -1155,7 +1168,10 @@ def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.
         shift = -np.linalg.pinv(JtJ) @ np.einsum("kjp,kp->kj", e, dr).ravel() * offset_stderr
     h_off = float(abs(w_h @ shift))
     Hinv = np.linalg.pinv(JtJ)
-    h_misfit = _tile_misfit(sample, th, Hinv, w_h, prob.n_res)
+    # the misfit's spatial scale is unknown (a bow: the field; cupping: a few mm): the largest over
+    # tilings of 4, 8 and 16 tiles a side
+    misfits = [_tile_misfit(sample, th, Hinv, w_h, prob.n_res, tiles=n) for n in MISFIT_TILES]
+    h_misfit = float(np.nanmax(misfits)) if np.any(np.isfinite(misfits)) else 0.0
     var = var_noise + shift ** 2
     cos_el = np.cos(el)
     dir_rad = np.sqrt(var[1::4] + cos_el ** 2 * var[0::4])
@@ -1165,11 +1181,11 @@ def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.
                             total, h_noise, h_off, h_misfit)
 
 
-#: Tiles a side of the field for the heights' misfit term (:func:`_tile_misfit`).
-MISFIT_TILES = 8
+#: Tilings of the field (tiles a side) for the heights' misfit term (:func:`_tile_misfit`).
+MISFIT_TILES = (4, 8, 16)
 
 
-def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = MISFIT_TILES) -> float:
+def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = 8) -> float:
     """Relative height uncertainty from what the lamp model leaves out, by tiles of the field.
 
     The noise term assumes independent residuals; what the model leaves out (a bowed canvas's

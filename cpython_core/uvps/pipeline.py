@@ -197,15 +197,9 @@ STAGES = ("flatfield", "normals", "height", "protrusions")
 #: A run whose lamps leave more than this fraction of the pixels with fewer than 3 usable samples
 #: stops: no model fits the images.
 NO_MODEL_FRACTION = 0.5
-#: Relative standard uncertainty of heights from the estimated lamps beyond which a run warns, and
-#: beyond which it says the heights' scale is not determined. The reported uncertainty is the noise
-#: part only: the bias the canvas's own shape gives the lamps' elevation is not in it. On the
-#: corrected generator (session 7, docs/benchmarks.md) it read 2.3-9.8 % where the heights were off
-#: by 1.3-8.2 %, with no order between the two (the demo's seeds: 6.7 % reported for 1.3 % off, 3.8 %
-#: for 6.3 %), so a warning at 5 % would say nothing about the run it is printed on; it starts at 20 %
-#: and flags what is undetermined: stray light the additive term misses gave 250-15000 %, a
-#: 3.6 x 4.8 mm field 140 %.
-HEIGHT_UNCERTAINTY_WARN = 0.20
+#: Relative standard uncertainty of heights from the estimated lamps beyond which the run says the
+#: heights' scale is not determined by the images (stray light the additive term misses, a small
+#: field); between :data:`RELATIVE_RELIEF_ABOVE` (expanded, 95 %) and this the heights are relative.
 HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
 #: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
@@ -347,10 +341,11 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
     res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
 
 
-#: Lamps estimated from the images pin the relief's scale when the heights' relative uncertainty
-#: (:class:`uvps.lights.LightUncertainty`: noise, additive term and the bas-relief direction's misfit)
-#: is at most this; beyond it the run's relief is *relative* (docs/architecture.md, "Relief scale").
-RELATIVE_RELIEF_ABOVE = 0.10
+#: Lamps estimated from the images pin the relief's scale when the heights' expanded uncertainty
+#: (:attr:`uvps.lights.LightUncertainty.height_rel_95`: noise, additive term and the lamp model's
+#: misfit along the bas-relief direction, coverage factor 2) is at most this; beyond it the run's relief
+#: is *relative* (docs/architecture.md, "Relief scale").
+RELATIVE_RELIEF_ABOVE = 0.20
 
 
 def relief_of_lights(lights: LightsResult) -> dict:
@@ -374,15 +369,15 @@ def relief_of_lights(lights: LightsResult) -> dict:
                 "reason": "the lamps were estimated from the images and their elevation's uncertainty could not be "
                           "measured, so the heights have no scale; calibrate the lamps (uvps calibrate, "
                           "--calibration) or give their positions (--lights)"}
-    pct = 100 * float(unc.height_rel)
-    if unc.height_rel <= RELATIVE_RELIEF_ABOVE:
+    pct = 100 * unc.height_rel_95
+    if unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
         return {"scale": "absolute", "lamps": lamps,
                 "reason": f"the lamps were estimated from the images, which pin their elevation: heights uncertain "
-                          f"by +-{pct:.1f} %"}
+                          f"by +-{pct:.0f} % (95 %)"}
     return {"scale": "relative", "lamps": lamps,
             "reason": f"the lamps were estimated from the images, which do not pin their elevation (heights "
-                      f"uncertain by +-{pct:.0f} %): the relief's shape holds, its scale in micrometres does not; "
-                      "calibrate the lamps (uvps calibrate, --calibration) or give their positions (--lights)"}
+                      f"uncertain by +-{pct:.0f} %, 95 %): the relief's shape holds, its scale in micrometres does "
+                      "not; calibrate the lamps (uvps calibrate, --calibration) or give their positions (--lights)"}
 
 
 def _azimuth_warnings(lights: LightsResult, diagnostics: dict) -> list:
@@ -425,28 +420,29 @@ def _check_lamp_residual(lights: LightsResult) -> None:
 def _height_confidence_warnings(lights: LightsResult, azimuth_warning=()) -> list:
     """The run's one warning on its estimated lamps: heights whose scale is not determined say so (and
     name a dark frame for stray light); else the azimuths' disagreement (:func:`_azimuth_warnings`)
-    names its cause, a lamp's beam, where the heights' uncertainty would give a generic one or, on
-    beams, none (it missed 2 of 3 beam captures); else the uncertainty beyond 20 %."""
+    names its cause, a lamp's beam; else a relative relief (:func:`relief_of_lights`) says that the
+    heights carry no micrometres, naming the cause that dominates and what to do."""
     unc = lights.estimate.uncertainty if lights.estimate is not None else None
     undetermined = unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED
     if azimuth_warning and not undetermined:
         return list(azimuth_warning)
-    if unc is None or unc.height_rel <= HEIGHT_UNCERTAINTY_WARN:
+    if unc is None or unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
         return []
     if undetermined:
         # the lamps are not determined by these images: the relief's shape may still serve (protrusions
         # show), its scale does not; said once, with what to do
         return [f"the heights' scale is not determined by these images (uncertain by +-{100 * unc.height_rel:.0f} %: "
-                "a small field, or stray light or lamp beams the model does not hold): give measured lamp positions "
-                "(--lights), and a dark frame (--dark) if there is stray light"]
-    # a warning only when the lamps' uncertainty makes the heights clearly uncertain: it then says
-    # which cause dominates and what to do (reported once: the CLI prints it, the bridge returns it)
-    cause = ("the black level could not be measured precisely enough; give the camera's black level or a "
-             "dark frame" if unc.height_rel_offset > unc.height_rel_noise else
-             "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
-             "apart; give measured lamp positions")
-    return [f"heights may be off by +-{100 * unc.height_rel:.0f} % (the estimated lamps' elevations are uncertain): "
-            f"{cause}"]
+                "a small field, or stray light or lamp beams the model does not hold): heights are relative; give "
+                "measured lamp positions (--lights) or a calibration, and a dark frame (--dark) if there is stray light"]
+    parts = {"offset": unc.height_rel_offset, "noise": unc.height_rel_noise, "misfit": unc.height_rel_misfit}
+    cause = {"offset": "the black level could not be measured precisely enough; give the camera's black level or a "
+                       "dark frame",
+             "noise": "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
+                      "apart; give measured lamp positions (--lights) or a calibration",
+             "misfit": "the canvas's shape or the lamps' beams move the estimated lamps' elevation; give measured "
+                       "lamp positions (--lights) or a calibration"}[max(parts, key=parts.get)]
+    return [f"heights are relative, not micrometres (uncertain by +-{100 * unc.height_rel_95:.0f} % at 95 %: the "
+            f"images do not pin the estimated lamps' elevation): {cause}"]
 
 
 def _run_normals(res: RunResult, progress: Progress) -> None:
@@ -483,6 +479,8 @@ def lights_diagnostics(lights: LightsResult) -> dict:
         if lights.estimate.uncertainty is not None:
             u = lights.estimate.uncertainty
             d["height_uncertainty_relative"] = round(float(u.height_rel), 5)
+            d["height_uncertainty_relative_95"] = round(float(u.height_rel_95), 5)
+            d["height_uncertainty_from_misfit"] = round(float(u.height_rel_misfit), 5)
             d["direction_uncertainty_deg_max"] = round(float(np.max(u.direction_deg)), 4)
     return d
 
