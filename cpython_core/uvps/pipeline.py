@@ -269,6 +269,8 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     capture, res.additive, warn = remove_additive(capture, options=options, dark_given=dark_given)
     res.timings_s["additive"] = _since(t0)
     res.diagnostics["additive"] = res.additive.to_json()
+    if getattr(capture, "raw", None) is not None:
+        res.diagnostics["raw"] = capture.raw
     res.warnings += warn
     _run_lights(res, capture, sub_progress(progress, *span["lights"]))
     if "normals" in stages:
@@ -542,7 +544,8 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     """The capture with its additive term (black level, stray light) removed, and that term.
 
     A given term beats a measured one. Given black level (``options.black_level``): that. A dark frame
-    (already subtracted on reading): nothing more is removed. ``options.offset == "none"``: nothing;
+    (already subtracted on reading), or camera raw files (their metadata's black level subtracted on
+    reading, :func:`uvps.io.read_raw`): nothing more is removed. ``options.offset == "none"``: nothing;
     ``"auto"`` on 8-bit input (:data:`EIGHT_BIT`: a linearised JPEG's tone curve is no pedestal):
     nothing. Otherwise the term is measured from the images (:func:`uvps.offset.estimate_additive`)
     and subtracted only when it lies more than :data:`SIGNIFICANT` standard errors above 0. The images are not copied: the result's
@@ -561,6 +564,11 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         term = known_additive(options.black_level, shape=(M, N), channels=C)
     elif dark_given or options.offset == "none":
         term = known_additive(0.0, shape=(M, N), channels=C, source="dark frame" if dark_given else "none")
+    elif getattr(capture, "raw", None) is not None:
+        # camera raw files: LibRaw subtracted the black level of their metadata on reading
+        term = known_additive(0.0, shape=(M, N), channels=C, source="raw metadata")
+        term.diagnostics["raw_black_level"] = [lv["black_level"] for lv in capture.raw["levels"]]
+        term.diagnostics["raw_white_level"] = [lv["white_level"] for lv in capture.raw["levels"]]
     elif options.offset == "auto" and capture.bit_depth in EIGHT_BIT:
         # 8-bit files (linearised JPEGs above all) carry a tone curve's remnant, not a pedestal: on a
         # real RTI capture of a canvas a term measured as 5 % of the signal and subtracted set the two
