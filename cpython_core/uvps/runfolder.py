@@ -446,7 +446,10 @@ def info_text(info: dict) -> str:
         lines.append(f"relief:     RELATIVE: heights have no scale in micrometres ({relief['reason']})")
     elif relief.get("lamps"):
         lines.append(f"relief:     absolute (lamps: {relief['lamps']})")
-    if "height_uncertainty_relative" in info["lights"]:
+    if "height_uncertainty_relative_95" in info["lights"]:
+        lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative_95']:.1f} % "
+                     "(95 %, from the estimated lamps)")
+    elif "height_uncertainty_relative" in info["lights"]:
         lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative']:.1f} % "
                      "(from the estimated lamps)")
     if "n_protrusions" in info:
