@@ -24,7 +24,7 @@ from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, rep
 from .pipeline import find_protrusions, protrusion_diagnostics
 from .regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
 from .report import plot_comparison_map, print_pdf, write_report
-from .runfolder import RunImages, output_spec, read_run, write_protrusions
+from .runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
 from .spec import CommandSpec, Param, coerce
 from .wand import read_seeds, wand_select
 
@@ -80,7 +80,7 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
                             regions=regions, params=det_params, progress=sub_progress(progress, 0.1, 0.9))
     prot.proposed = proposed
     with atomic_output_dir(run_dir) as tmp:
-        names = write_protrusions(tmp, prot, images.pixel_size_um)
+        names = write_protrusions(tmp, prot, images.pixel_size_um, relief=relief_in(run_dir))
     outputs = [output_spec(run_dir, n) for n in names]
     report(progress, 1.0, f"{len(prot.table['id'])} protrusions")
     return CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
@@ -105,7 +105,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     table = measure_protrusions(labels, albedo=images.albedo, height_um=images.height_um,
                                 pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
     with atomic_output_dir(run_dir) as tmp:
-        write_protrusions_csv(tmp / "protrusions_manual.csv", table)
+        write_protrusions_csv(tmp / "protrusions_manual.csv", table, relative=is_relative(relief_in(run_dir)))
         _write_labels(tmp / "protrusions_manual_labels.tif", labels, images.pixel_size_um,
                       "uvps wand: manual protrusion labels (id as in protrusions_manual.csv)")
     report(progress, 1.0, f"{len(table['id'])} protrusions")
