@@ -13,11 +13,16 @@ A is the earlier run folder, B the later one; each made by ``uvps run`` with det
    difference (block medians off the protrusions, smoothed; a canvas relaxing, the integration's
    low-frequency error) is removed and reported, and the two dates' height scales are matched
    on the common relief (the estimated lamps leave the heights' scale uncertain by a few %).
+0. **The dates' scales**: each run's ``run.json`` (its lamps, calibration and relief scale) is
+   recorded (:func:`date_record`); a relative relief (lamps not pinned) refuses height growth
+   (:func:`check_height_scales`) unless ``widths_only``.
 3. **Matching** one to one (:func:`uvps.compare.match_protrusions`) of A's protrusions with B's
-   mapped into A's frame. Status ``new``, ``gone``, or for a pair ``grown`` / ``shrunk`` when the
-   change of width or height exceeds ``sigma_factor`` x the measurement's repeatability at that
-   size (:data:`NOISE_FLOOR`), else ``unchanged``. Protrusions outside the common field are left
-   out (counted in ``run.json``).
+   mapped into A's frame; then neighbours that ``merged`` or ``split``; what is left alone is
+   ``new`` or ``gone``. A pair is ``grown`` / ``shrunk`` when its change of width or height
+   exceeds ``sigma_factor`` x that change's standard uncertainty (:func:`change_uncertainty`:
+   :data:`NOISE_MODEL` fitted to unchanged pairs, scaled by :func:`pair_inflation` when this
+   pair repeats worse), else ``unchanged``. Protrusions that either date does not see whole are
+   left out (counted in ``run.json``).
 
 Outputs (the contract of issue 10; ``docs/monitoring.md``): ``registration.json``,
 ``changes.csv`` (:data:`COLUMNS`), ``height_change.tif`` (A's frame, um), ``report.html`` with
@@ -93,8 +98,8 @@ class NoiseModel:
 
 #: Fitted by ``.venv/bin/python scripts/benchmark_changes.py --fit-noise`` on the unchanged pairs
 #: with the camera moved (3 seeds; docs/benchmarks.md, "Monitoring over time").
-NOISE_MODEL = NoiseModel(width_px=0.17, width_rel=0.012, peak=0.35, height_rel=0.006, surface=1.0,
-                         n=0, source="initial")
+NOISE_MODEL = NoiseModel(width_px=0.130, width_rel=0.0, peak=0.635, height_rel=0.0014, surface=1.33, n=476,
+                         source="476 protrusions of 3 moved unchanged pairs (clean scenes), trimmed at 4 sd")
 
 
 def change_uncertainty(width_a, width_b, height_a, height_b, *, pixel_size_um_a: float,
@@ -1096,8 +1101,11 @@ def _hashes(run: _Run) -> list:
 
 def compute_changes(run_a, run_b, *, sigma_factor=4.0, match_radius_um=None, min_matches=25,
                     level_mm=1.0, match_height_scale=True, bins_um=100.0, widths_only=False,
-                    progress: Progress = None):
+                    registration: Optional[Registration] = None, progress: Progress = None):
     """Everything ``uvps changes`` computes, in memory (see the module docstring).
+
+    ``registration``: B onto A as an earlier call found it (the same two runs), to decide again
+    with other options without registering again.
 
     Returns a dict: ``a``, ``b`` (the runs read), ``registration``, ``levelling``, ``rows``,
     ``positions_a``, ``common`` (A's pixels both dates see), ``areas``, ``diagnostics``,
@@ -1115,9 +1123,9 @@ def compute_changes(run_a, run_b, *, sigma_factor=4.0, match_radius_um=None, min
         warnings.append("--widths-only: heights not compared although both runs have an absolute relief")
     timings["read"] = round(time.perf_counter() - t0, 3)
     t = time.perf_counter()
-    reg = register(a.albedo, b.albedo, min_matches=min_matches, exclude_a=_footprints(a.labels),
-                   exclude_b=_footprints(b.labels),
-                   progress=lambda f, msg: report(progress, 0.05 + 0.45 * f, msg))
+    reg = registration or register(a.albedo, b.albedo, min_matches=min_matches, exclude_a=_footprints(a.labels),
+                                   exclude_b=_footprints(b.labels),
+                                   progress=lambda f, msg: report(progress, 0.05 + 0.45 * f, msg))
     timings["registration"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     ratio = b.pixel_size_um / a.pixel_size_um
