@@ -797,7 +797,7 @@ def area_table(rows: dict, regions_a, names: dict, common: np.ndarray, pixel_siz
 
 #: Colour and marker of each status in the figures (colour-blind-safe where it matters: grown red,
 #: new green filled, gone blue dashed, unchanged grey).
-_MARK = {"unchanged": ("#9a9a9a", "o"), "shrunk": ("#fdae61", "s"), "gone": ("#2c7bb6", "x"),
+_MARK = {"unchanged": ("#f4f4f4", "o"), "shrunk": ("#fdae61", "s"), "gone": ("#2c7bb6", "x"),
          "merged": ("#7b3294", "D"), "split": ("#c51b7d", "D"), "grown": ("#d7191c", "o"),
          "new": ("#1a9641", "o")}
 
@@ -828,9 +828,9 @@ def _change_map_figure(path: Path, res: dict, step: int) -> None:
     grey = display_albedo(a.albedo, step)
     if grey.ndim == 3:
         grey = grey.mean(axis=2)
-    fig = figure((10, 10 * shape[0] / shape[1] + 0.6))
+    fig = figure((10, 8 * shape[0] / shape[1] + 0.8))
     ax = fig.add_subplot(1, 1, 1)
-    ax.imshow(0.35 + 0.4 * grey, cmap="gray", vmin=0, vmax=1, extent=ext)
+    ax.imshow(0.15 + 0.45 * grey, cmap="gray", vmin=0, vmax=1, extent=ext)
     width = np.where(np.isfinite(rows["width_um_a"]), rows["width_um_a"], rows["width_um_b"])
     handles = []
     for s in ("unchanged", "shrunk", "merged", "split", "gone", "grown", "new"):
@@ -848,7 +848,8 @@ def _change_map_figure(path: Path, res: dict, step: int) -> None:
             alpha=0.85 if filled else 1.0, linewidths=0.8 if s == "unchanged" else 1.6,
             linestyles="--" if s == "gone" else "-"))
         handles.append(Line2D([], [], marker="o", linestyle="none", markersize=9,
-                              markerfacecolor=colour if filled else "none", markeredgecolor=colour,
+                              markerfacecolor=colour if filled else "none",
+                              markeredgecolor="#777777" if s == "unchanged" else colour,
                               markeredgewidth=1.6, label=f"{s} ({sel.size})"))
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
