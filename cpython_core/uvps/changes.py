@@ -125,7 +125,7 @@ def change_uncertainty(width_a, width_b, height_a, height_b, *, pixel_size_um_a:
     return sd_w, sd_h
 
 
-def pair_inflation(z, *, cut: float = 3.0, floor: float = 1.0) -> float:
+def pair_inflation(z, *, cut: float = 2.5, floor: float = 1.0) -> float:
     """How much noisier this pair's changes are than the model says: the robust sd of the
     z-scores of the pairs that look unchanged (iterated: those within ``cut`` x the current
     scale; 1.4826 x the median of |z| about zero), never below ``floor``. The changes that grew
@@ -535,7 +535,7 @@ def _inside(xy, shape, margin):
 
 def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_a, shape_b,
                      pixel_size_um: float, pixel_size_um_b: Optional[float] = None, height_scale: float = 1.0,
-                     sigma_factor: float = 4.0, match_radius_um: Optional[float] = None,
+                     sigma_factor: float = 4.5, match_radius_um: Optional[float] = None,
                      regions_a: Optional[np.ndarray] = None, change_um: Optional[np.ndarray] = None,
                      off_protrusions: Optional[np.ndarray] = None, model: NoiseModel = NOISE_MODEL,
                      heights: bool = True, adapt: bool = True):
@@ -1100,7 +1100,7 @@ def _hashes(run: _Run) -> list:
             for n in ("albedo", "depth", "protrusions")]
 
 
-def compute_changes(run_a, run_b, *, sigma_factor=4.0, match_radius_um=None, min_matches=25,
+def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min_matches=25,
                     level_mm=1.0, match_height_scale=True, bins_um=100.0, widths_only=False,
                     registration: Optional[Registration] = None, progress: Progress = None):
     """Everything ``uvps changes`` computes, in memory (see the module docstring).
@@ -1238,7 +1238,7 @@ SPECS = (
                           label="Earlier run folder (A)", help="run folder of the earlier capture (with detection)"),
                     Param("run_b", "path", where="inputs", positional=True, required=True,
                           label="Later run folder (B)", help="run folder of the later capture (with detection)"),
-                    Param("sigma_factor", "float", 4.0, minimum=0, exclusive_minimum=True,
+                    Param("sigma_factor", "float", 4.5, minimum=0, exclusive_minimum=True,
                           label="Significance (x the uncertainty)",
                           help="a change of width or height counts beyond this many standard uncertainties "
                                "of that change (changes.csv d_width_sd_um, d_height_sd_um)"),
