@@ -96,8 +96,9 @@ class NoiseModel:
     source: str = ""
 
 
-#: Fitted by ``.venv/bin/python scripts/benchmark_changes.py --fit-noise`` on the unchanged pairs
-#: with the camera moved (3 seeds; docs/benchmarks.md, "Monitoring over time").
+#: Fitted by ``.venv/bin/python scripts/benchmark_changes.py --variants clean --kinds moved --fit-noise``
+#: on the unchanged pairs with the camera moved and the lamps placed again (3 seeds, the true lamp
+#: positions; docs/benchmarks.md, "Monitoring over time").
 NOISE_MODEL = NoiseModel(width_px=0.130, width_rel=0.0, peak=0.635, height_rel=0.0014, surface=1.33, n=476,
                          source="476 protrusions of 3 moved unchanged pairs (clean scenes), trimmed at 4 sd")
 
