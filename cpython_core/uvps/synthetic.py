@@ -2148,8 +2148,12 @@ def _render_view(height, albedo, regions, spec, px, rng, world_like):
                                 distance_mm=spec.distance_mm, azimuth_jitter=spec.azimuth_jitter)
     intensities = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, spec.n_lights)
     nz = Nuisances()
+    # the spec's lamp and lens nuisances (black level, vignetting, beams; none by default), the
+    # same camera and lamp models at both dates
+    _lamp_and_lens_nuisances(spec, nz, positions, intensities, height.shape)
     amax = albedo if albedo.ndim == 2 else albedo.max(axis=2)
-    peak = _peak(_shading(normals, height, px, positions, None, intensities), amax, nz)
+    peak = _peak(_shading(normals, height, px, positions, None, intensities, beam_axes=nz.beam_axes,
+                          beam_exponent=nz.beam_exponent), amax, nz)
     exposure = spec.exposure_fraction * 65535.0 / peak
     gain = 65535.0 / spec.full_well_e
     images = render_images(height, albedo, pixel_size_um=px, light_positions_mm=positions,
@@ -2172,8 +2176,10 @@ def make_capture_pair(spec: Optional[SyntheticSpec] = None, later: Optional[Late
     Parameters
     ----------
     spec : SyntheticSpec, optional
-        The scene and camera of A (its ``shape`` and ``pixel_size_um``); the nuisances of a
-        real capture are not drawn (both views are clean renders with photon and read noise).
+        The scene and camera of A (its ``shape`` and ``pixel_size_um``). Of the nuisances of a
+        real capture, the canvas bow (``bow_um``), black level, vignetting and lamp beams are
+        drawn (the same camera and lamp models at both dates, the lamps placed again); stray
+        light, cast shadows and cracks are not.
     later : LaterSpec, optional
         How B differs (default :class:`LaterSpec()`; :meth:`LaterSpec.unchanged` for the
         repeatability pair).
