@@ -73,6 +73,12 @@ REJECTION_RULES = (
                   "surround, for raised areas without a compact peak)",
                   "elongation > ridge_elongation, or axis ratio < ridge_axis_ratio with a major "
                   "axis >= ridge_min_length_um, or compact fraction < ridge_compact_fraction"),
+    RejectionRule("stroke", "on a long structure (the disc top-hat exceeds the compact relief under "
+                  "it by the relief threshold and a quarter of its relief), without the albedo's "
+                  "glow: flank slope relief / (width / 2)",
+                  "< stroke_slope_k x the median flank slope of the bumps on long structures "
+                  "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
+                  "of a brush stroke"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
                   "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
@@ -144,6 +150,10 @@ class DetectionParams:
     ridge_compact_fraction : float
         A raised area without a compact peak whose relief within ``L`` is below this fraction of
         its relief over the surround is part of a long structure (stroke, crack lip).
+    stroke_slope_k : float
+        A bump on a long structure (a stroke's ripple, piled end or crossing) that does not glow
+        is kept only when its flank slope exceeds this many times the median flank slope of the
+        bumps on long structures in the image (the strokes' own statistics). 0 disables.
     max_hole_fraction : float
         Largest fraction of a candidate's filled outline that may lie below its footprint
         level (cupped island rims enclose their dish).
@@ -180,6 +190,7 @@ class DetectionParams:
     ridge_axis_ratio: float = 0.4
     ridge_min_length_um: float = 150.0
     ridge_compact_fraction: float = 0.5
+    stroke_slope_k: float = 3.0
     max_hole_fraction: float = 0.25
     max_crack_fraction: float = 0.08
     max_mismatch: float = 0.5
@@ -803,6 +814,7 @@ class CandidateFeatures:
     has_h: np.ndarray           # a compact peak (height cue)
     has_a: np.ndarray           # >= 20 % of its pixels from the albedo cue
     crack_fraction: np.ndarray  # of its 2-px ring in a crack at least half as deep as it is high
+    under: np.ndarray           # mean relief of a long structure under it (disc top-hat - t), um
     tilt_deg: np.ndarray        # mean tilt of the normals (inf without normals)
     mismatch: np.ndarray        # height's slope off the normals' / the normals' (0 without)
 
@@ -912,7 +924,8 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
         major[pos] = props["axis_major_length"]
         ratio[pos] = props["axis_minor_length"] / np.maximum(props["axis_major_length"], 1e-9)
     tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px)
-    return CandidateFeatures(lbl=lbl, area=area, eqd=eqd, relief=relief, relief_disc=relief_disc,
+    under = _label_mean(t_disc - t, lab, n_lab)[lbl - 1]
+    return CandidateFeatures(under=under, lbl=lbl, area=area, eqd=eqd, relief=relief, relief_disc=relief_disc,
                              elongation=elong, axis_ratio=ratio, major=major,
                              hole_fraction=holes / (area + holes),
                              has_h=lbl <= n_h, has_a=n_alb >= np.maximum(1, 0.2 * area),
@@ -920,16 +933,31 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
                              mismatch=mismatch[lbl - 1])
 
 
+def _stroke_slope(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> tuple:
+    """The strokes' own statistics: which candidates are bumps on a long structure (a compact
+    peak with a long structure under it at least the relief threshold and a quarter of its
+    relief high, no albedo glow), and the least flank slope a protrusion among them must have:
+    ``stroke_slope_k`` x their median flank slope (inf-free: 0 with fewer than 8 of them, then
+    no candidate is tested). Returns (on_long mask, least slope)."""
+    slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
+    on_long = f.has_h & ~f.has_a & (f.under >= np.maximum(th.relief_um, 0.25 * f.relief))
+    if p.stroke_slope_k <= 0 or on_long.sum() < 8:
+        return on_long, 0.0
+    return on_long, float(p.stroke_slope_k * np.median(slope[on_long]))
+
+
 def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> np.ndarray:
     """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept)."""
     flat = (f.relief < th.relief_um) | (f.tilt_deg < 1.0)
     compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
     slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
+    on_long, stroke_min = _stroke_slope(f, th, px, p)
     tests = {
         "too_small": f.eqd < th.min_w,
         "ridge": (f.elongation > p.ridge_elongation)
                  | ((f.axis_ratio < p.ridge_axis_ratio) & (f.major * px >= p.ridge_min_length_um))
                  | (~f.has_h & (f.relief_disc >= th.relief_um) & (compact < p.ridge_compact_fraction)),
+        "stroke": on_long & (slope < stroke_min),
         "crack": (f.hole_fraction > p.max_hole_fraction) | (f.crack_fraction > p.max_crack_fraction),
         "too_large": f.eqd > th.max_w,
         "artefact": f.mismatch > p.max_mismatch,
@@ -1028,8 +1056,10 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     reason = _apply_rules(feats, th, px, p)
     rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
     labels, source = _finish(cand.labels, feats, reason, h.shape)
+    on_long, stroke_min = _stroke_slope(feats, th, px, p)
     diag.update(candidates=int(feats.lbl.size), candidate_labels=cand.labels,
-                candidate_reasons=reason)
+                candidate_reasons=reason, stroke_bumps=int(on_long.sum()),
+                stroke_slope_min=stroke_min)
     _report(progress, 1.0, "done")
     logger.info("detect: %d protrusions (%d candidates), rejected %s, noise %.3g um",
                 int(labels.max()), feats.lbl.size, rejected, surf.noise_um)

@@ -99,6 +99,8 @@ class Nuisances:
         The cast-shadow masks; computed by the renderer when ``cast_shadows`` and None.
     cracks : (M, N) bool array or None
         Truth only (the renderer ignores it): the crack grooves, whose relief is in the height.
+    strokes : (M, N) float32 array or None
+        Truth only: the brush strokes' relief (um), part of the height; set with impasto.
     info : dict
         How they were drawn (JSON-ready), written to ``truth.json`` by :func:`write_capture`.
     """
@@ -111,6 +113,7 @@ class Nuisances:
     cast_shadows: bool = False
     shadowed: Optional[np.ndarray] = None
     cracks: Optional[np.ndarray] = None
+    strokes: Optional[np.ndarray] = None
     info: dict = dataclasses.field(default_factory=dict)
 
 
@@ -1668,6 +1671,8 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     n_spots = round(spec.primer_density * area_cm2) if spec.n_primer_spots is None else int(spec.n_primer_spots)
     height += _primer_spots(rng, (m, n), px, n_spots, albedo, occupied)
     nz = Nuisances()
+    if _Impasto.of(spec).rng is not None or spec.on_stroke_fraction > 0:
+        nz.strokes = ridge_layer.astype(np.float32)
     if spec.cupping_um > 0:
         layer, nz.cracks, nz.info["cupping"] = _cracks(_substream(spec.seed, "cracks"), (m, n),
                                                        px, spec.cupping_um, spec.crack_cell_mm)
