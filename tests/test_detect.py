@@ -385,3 +385,13 @@ def test_weave_fit_recovers_two_sinusoids():
     assert np.abs(comp - data).max() < 0.2
     np.testing.assert_allclose(coef @ gram @ coef / (m * n), np.mean(comp.astype(np.float64) ** 2),
                                rtol=1e-4)
+
+
+def test_fill_holes_and_distance_match_scipy():
+    from scipy import ndimage as ndi
+    from uvps.detect import _edt, _fill_holes
+    rng = np.random.default_rng(3)
+    for level in (-0.3, 0.0, 0.3):
+        mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
+        np.testing.assert_array_equal(_fill_holes(mask), ndi.binary_fill_holes(mask))
+        np.testing.assert_allclose(_edt(mask), ndi.distance_transform_edt(mask), atol=1e-4)

@@ -629,11 +629,35 @@ def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray
     return np.where(seeded[parts], ws, 0).astype(np.int32)
 
 
+@numba.njit(nogil=True, cache=True)
+def _median(x):  # pragma: no cover - compiled
+    """``np.median`` compiled: called ~10 times per footprint, where numpy's own overhead of
+    ~0.1 ms per call was 13 % of detection at 4000 x 3000."""
+    return np.median(x)
+
+
+def _edt(mask: np.ndarray) -> np.ndarray:
+    """Euclidean distance of each True pixel to the nearest False one (float32): OpenCV's exact
+    transform (``DIST_MASK_PRECISE``), the values of ``scipy.ndimage.distance_transform_edt``
+    at a fraction of its cost; scipy's when there is no False pixel."""
+    if mask.all():
+        return ndi.distance_transform_edt(mask).astype(np.float32)
+    return cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``scipy.ndimage.binary_fill_holes`` (4-connected background) by labelling the background
+    once instead of propagating from the border (15x faster at 4000 x 3000)."""
+    bg, _ = ndi.label(~mask)
+    edge = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))
+    return mask | ~np.isin(bg, edge[edge > 0]) & (bg > 0)
+
+
 def _robust_plane(rows, cols, values):
     """Least-squares plane ``a + b row + c col`` refitted without the samples beyond 2.5 robust
     sigmas (a neighbouring bump or a crack in the surround); a constant (median) with fewer than
     8 samples. Returns a callable of (rows, cols)."""
-    med = float(np.median(values)) if len(values) else 0.0
+    med = float(_median(values)) if len(values) else 0.0
     if len(values) < 8:
         return lambda r, c: np.full(np.shape(r), med)
     a = np.column_stack([np.ones(len(values)), rows, cols])
@@ -644,8 +668,8 @@ def _robust_plane(rows, cols, values):
             break
         coef, *_ = np.linalg.lstsq(a[keep], values[keep], rcond=None)
         res = values - a @ coef
-        centre = np.median(res[keep])
-        spread = 1.4826 * np.median(np.abs(res[keep] - centre)) + 1e-6
+        centre = _median(res[keep])
+        spread = 1.4826 * _median(np.abs(res[keep] - centre)) + 1e-6
         new = np.abs(res - centre) <= 2.5 * spread
         if np.array_equal(new, keep):
             break
@@ -696,13 +720,13 @@ def _refine_group(h, hl, markers, cur, usable, reach, ring_w, p: DetectionParams
     size = int(max(members.max(), markers.max())) + 1
     near = np.zeros(h.shape, np.int32)
     for lab_id in members:
-        near[(ndi.distance_transform_edt(mk != lab_id) <= reach[lab_id]) & (near == 0)] = lab_id
+        near[(_edt(mk != lab_id) <= reach[lab_id]) & (near == 0)] = lab_id
     rr, cc = np.mgrid[:h.shape[0], :h.shape[1]]
     compact = hl * np.isin(hl, members)
     closed = np.zeros(size, bool)
     closed[members] = True
     for _ in range(2):
-        dist = ndi.distance_transform_edt(~cur)
+        dist = _edt(~cur)
         ring = (dist > 0) & (dist <= ring_w) & usable
         d = h - _robust_plane(rr[ring], cc[ring], h[ring])(rr, cc)
         pk = np.full(size, -np.inf)
@@ -940,7 +964,7 @@ def _grow_labels(lab: np.ndarray, distance: float) -> np.ndarray:
 def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
     """Largest inscribed radius per label (px): the largest distance from one of its pixels to
     the nearest pixel outside it (touching labels count as outside)."""
-    r_in = _label_max(ndi.distance_transform_edt(lab > 0), lab, n)
+    r_in = _label_max(_edt(lab > 0), lab, n)
     touching = np.zeros(n + 1, bool)
     for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1], lab[1:])):
         sel = (a != b) & (a > 0) & (b > 0)
@@ -948,7 +972,7 @@ def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
     slices = ndi.find_objects(lab)
     for i in np.flatnonzero(touching):
         sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in slices[i - 1])
-        r_in[i - 1] = ndi.distance_transform_edt(np.pad(lab[sl] == i, 1)).max()
+        r_in[i - 1] = _edt(np.pad(lab[sl] == i, 1)).max()
     return np.maximum(r_in, 0.5)
 
 
@@ -972,7 +996,7 @@ def _crack_fraction(lab: np.ndarray, hn: np.ndarray, relief: np.ndarray, n: int,
 
 def _hole_area(lab: np.ndarray, n: int) -> np.ndarray:
     """Area (px) of the holes each label encloses on its own (holes bordered by one label)."""
-    holes, k = ndi.label(ndi.binary_fill_holes(lab > 0) & (lab == 0))
+    holes, k = ndi.label(_fill_holes(lab > 0) & (lab == 0))
     if not k:
         return np.zeros(n)
     rim = ndi.grey_dilation(holes, size=(3, 3)) * (lab > 0)   # label-pixels next to each hole
@@ -1098,7 +1122,7 @@ def _finish(lab, f: CandidateFeatures, reason, shape) -> tuple:
     lut = np.zeros(int(lab.max()) + 1, np.int32)
     lut[f.lbl[ok]] = np.arange(1, int(ok.sum()) + 1, dtype=np.int32)
     labels = lut[lab]
-    holes, n_holes = ndi.label(ndi.binary_fill_holes(labels > 0) & (labels == 0))
+    holes, n_holes = ndi.label(_fill_holes(labels > 0) & (labels == 0))
     for k, sl in enumerate(ndi.find_objects(holes)):     # each hole from the labels around it
         sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in sl)
         inside = holes[sl] == k + 1
