@@ -26,7 +26,11 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    only adds: a protrusion that does not fluoresce is found by its relief alone.
 5. **Long raised areas** (:func:`_long_areas`). What a disc top-hat raises but ``t`` does not
    (strokes, crack lips) become candidates, so that the ``ridge`` rule counts them.
-6. **Union** (:func:`_union`) and **rejection** (:func:`_candidate_features`,
+6. **The strokes' own statistics** (:func:`_stroke_slope`). Compact peaks with a long structure
+   under them (a stroke's ripples, piled ends and crossings, or a protrusion on a stroke) and
+   no albedo glow; their median flank slope, measured per image, sets the least slope of a
+   protrusion among them (``stroke_slope_k`` times it; the ``stroke`` rule).
+7. **Union** (:func:`_union`) and **rejection** (:func:`_candidate_features`,
    :func:`_apply_rules`) by the table :data:`REJECTION_RULES`, first match wins; each rejected
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
    ``Detection.rejected``.
