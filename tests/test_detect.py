@@ -395,3 +395,11 @@ def test_fill_holes_and_distance_match_scipy():
         mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
         np.testing.assert_array_equal(_fill_holes(mask), ndi.binary_fill_holes(mask))
         np.testing.assert_allclose(_edt(mask), ndi.distance_transform_edt(mask), atol=1e-4)
+
+
+def test_median_matches_numpy():
+    from uvps.detect import _median
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 50):
+        x = rng.normal(size=n)
+        assert _median(x) == np.median(x)

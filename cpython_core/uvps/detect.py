@@ -633,11 +633,12 @@ def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray
     return np.where(seeded[parts], ws, 0).astype(np.int32)
 
 
-@numba.njit(nogil=True, cache=True)
-def _median(x):  # pragma: no cover - compiled
-    """``np.median`` compiled: called ~10 times per footprint, where numpy's own overhead of
-    ~0.1 ms per call was 13 % of detection at 4000 x 3000."""
-    return np.median(x)
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D array by ``np.partition`` (the same value): called ~10 times per
+    footprint, where ``np.median``'s own overhead was 13 % of detection at 4000 x 3000."""
+    n = x.size
+    part = np.partition(x, [(n - 1) // 2, n // 2])
+    return 0.5 * (part[(n - 1) // 2] + part[n // 2])
 
 
 def _edt(mask: np.ndarray) -> np.ndarray:
