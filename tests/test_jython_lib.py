@@ -710,3 +710,29 @@ def test_detection_settings_and_browse_buttons_come_with_fields(spec_table):
         for param in spec["params"]:
             if param["type"] in ("path", "paths"):
                 assert bl.dialog_field(param)["kind"] in ("file", "directory"), param
+
+
+def test_pixel_sizes_are_checked_naming_where_they_came_from():
+    where = 'the field "Pixel size on the painting"'
+    assert bl.check_pixel_size(30.0, where) == 30.0
+    assert bl.check_pixel_size(0, where) is None and bl.check_pixel_size("", where) is None
+    for bad, words in ((0.1, "(0.1 mm = 100 um)"), (-100, "a pixel size is positive"),
+                       (25400.0, "300 dpi = 84.7 um"), ("abc", "not a number")):
+        with pytest.raises(bl.BridgeError) as info:
+            bl.check_pixel_size(bad, where)
+        assert info.value.message.startswith(where + " holds ") and words in info.value.message
+
+
+def test_a_negative_number_in_a_field_without_default_is_refused_not_dropped():
+    param = bl.param_spec("wand", "pixel_size_um")
+    assert bl.value_of(param, 0) is None
+    with pytest.raises(bl.BridgeError, match="must be positive"):
+        bl.value_of(param, -100)
+
+
+def test_core_messages_lose_their_cli_flags_in_fiji():
+    text = ("pixel size unknown: the images carry no physical resolution; pass --pixel-size-um "
+            "(params 'pixel_size_um')")
+    assert bl.user_words(text, "run") == (
+        'pixel size unknown: the images carry no physical resolution; pass the field '
+        '"Pixel size on the painting"')

@@ -190,6 +190,18 @@ def test_propose_bad_input():
         propose_regions(np.ones((2, 5, 5)), pixel_size_um=15.0)
 
 
+def test_propose_refuses_a_pixel_size_that_makes_the_image_smaller_than_an_area():
+    """0.1 typed as mm into the um field: 320 px of 0.1 um are 0.032 mm, one smoothing block;
+    a one-line message naming the pixel size, not a scipy error from the clustering."""
+    alb, _ = _patches()
+    with pytest.raises(UVPSInputError) as info:
+        propose_regions(alb, pixel_size_um=0.1)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("pixel_size_um 0.1 makes the 320 x 240 px image 0.032 mm wide")
+    assert "micrometres" in message
+
+
 def test_statistics_reject_an_area_without_pixels():
     regions = _two_areas()
     regions.names[3] = "ghost"

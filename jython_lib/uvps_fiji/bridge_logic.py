@@ -618,6 +618,51 @@ def param_key(param):
     return macro_key(param_label(param))
 
 
+def field_name(param):
+    """The name a user sees for a declared parameter's dialog field: its label before any
+    ``(...)`` or ``:`` (``Pixel size on the painting``)."""
+    return param_label(param).split(" (")[0].split(":")[0].strip()
+
+
+def not_set_words(param):
+    """What a field left at 0 means, from its label's ``(0 = ...)`` (else "not set")."""
+    label = param_label(param)
+    if "(0 = " in label:
+        return label.split("(0 = ", 1)[1].split(")")[0]
+    return "not set"
+
+
+#: Pixel sizes (um) the capture menu items accept: a photograph of a painting (the paper's is
+#: about 30 um per pixel; a macro lens at 1:1 about 4 um). Outside, the value is almost surely
+#: in another unit (0.1 typed as mm, a dpi, an inch), refused before the core runs.
+PIXEL_SIZE_RANGE_UM = (1.0, 1000.0)
+
+
+def check_pixel_size(value, where):
+    """A pixel size (um) from a dialog field or an image's calibration, checked before the core
+    runs: ``None`` (0 or empty: not given) or a plausible size; BridgeError naming ``where``
+    (``the field "Pixel size on the painting"``) otherwise.
+    """
+    if value is None or value == "":
+        return None
+    try:
+        size = float(value)
+    except (TypeError, ValueError):
+        raise BridgeError("%s holds '%s', not a number of micrometres" % (where, value))
+    if size != size or size == 0:
+        return None
+    low, high = PIXEL_SIZE_RANGE_UM
+    if size < 0:
+        raise BridgeError("%s holds %g um; a pixel size is positive (0 = from the image file)"
+                          % (where, size))
+    if size < low or size > high:
+        hint = (" (0.1 mm = 100 um)" if size < low else
+                " (a size in nm or a dpi? 300 dpi = 84.7 um)")
+        raise BridgeError("%s holds %g um, not a pixel size on a painting (%g-%g um); give it in "
+                          "micrometres%s" % (where, size, low, high, hint))
+    return size
+
+
 def _format_default(value):
     if value is None:
         return ""
@@ -713,6 +758,10 @@ def value_of(param, value):
         if value is None or value != value:
             return None
         if param.get("default") is None and value <= 0:
+            if value < 0 and param.get("minimum") is not None and param["minimum"] >= 0:
+                # 0 means "not set"; a negative value is a typing mistake, never dropped silently
+                raise BridgeError('the field "%s" holds %g; it must be positive (0 = %s)' % (
+                    field_name(param), value, not_set_words(param)))
             return None
         return int(round(value)) if kind == "int" else float(value)
     if kind == "path":
@@ -941,7 +990,7 @@ def field_names(command=None, table=None):
         for param in commands[name]["params"]:
             if not param.get("label"):
                 continue
-            field = param_label(param).split(" (")[0].split(":")[0].strip()
+            field = field_name(param)
             names[cli_flag(param["name"])] = field
             if param["type"] == "bool":
                 names["--no-" + param["name"].replace("_", "-")] = field
@@ -964,7 +1013,8 @@ def user_words(text, command=None, table=None):
             return match.group(0)
         return '%sfield "%s"' % ("(" if match.group(1) else "the ", field)
 
-    return re.sub(r"(\()?(--[a-z][a-z0-9-]*)(?![a-z0-9-])", swap, text or "")
+    text = re.sub(r" \(params '[a-z0-9_]+'\)", "", text or "")
+    return re.sub(r"(\()?(--[a-z][a-z0-9-]*)(?![a-z0-9-])", swap, text)
 
 
 def affects_result(warning):

@@ -78,9 +78,13 @@ def report_response(command, response, table=None, user_gave_lights=False):
 def _capture_call(command, values, params=None):
     """A command on the capture (run, flatfield, lights, normals): the images and the pixel size
     come from ImageJ when the capture is the current stack."""
+    table = runner.command_table()
+    field = 'the field "%s"' % bridge_logic.field_name(
+        bridge_logic.param_spec(command, "pixel_size_um", table))
+    # checked before the stack is copied and the core started
+    extra = {"pixel_size_um": capture.pixel_size_of_current(values, field)}
     request_dir = runner.new_request_dir()
     inputs = capture.capture_inputs(values, request_dir)
-    extra = {"pixel_size_um": capture.pixel_size_of_current(values)}
     extra.update(params or {})
     return run_command(command, values, inputs, extra, request_dir,
                        skip=("images", "pixel_size_um"))

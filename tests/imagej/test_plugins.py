@@ -595,3 +595,39 @@ def test_plain_imagej_runs_the_menu_items_offline(imagej_env, tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "uvps Settings: %s has uvps" % sys.executable in proc.stdout
     assert "went on" in proc.stdout.splitlines()
+
+
+def test_a_request_refused_before_it_runs_leaves_no_request_folder(run_macro, capture_dir, tmp_path):
+    """An RGB image sequence as grey slices is refused before the core starts: the request folder
+    made for it is deleted, also in a plain `ImageJ -batch` (which ends the JVM with status 1)."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    macro = (_rgb_sequence_macro(capture_dir) +
+             'run("Normals and Albedo", "capture=[Current stack] run=%s");\n' % q(tmp_path / "run"))
+    for plain in (False, True):
+        result = run_macro(macro, plain=plain, env={"TMPDIR": str(temp)}, timeout=TIMEOUT)
+        assert result.returncode in (1, PYTHON_EXCEPTION_STATUS), result.stdout + result.stderr
+        assert "grey slices that are the R, G, B" in result.stdout
+        assert sorted(p.name for p in temp.glob("uvps-request-*")) == [], plain
+
+
+@pytest.mark.parametrize("typed,words", [
+    ("0.1", "holds 0.1 um, not a pixel size on a painting (1-1000 um); give it in micrometres "
+            "(0.1 mm = 100 um)"),
+    ("-100", "holds -100 um; a pixel size is positive (0 = from the image file)")])
+def test_an_implausible_pixel_size_is_refused_naming_the_field(run_macro, capture_dir, tmp_path,
+                                                              typed, words):
+    """0.1 (mm typed into the um field) crashed the core; -100 was dropped and the core then
+    asked for a CLI flag. Both are refused before the core starts, naming the dialog field, and
+    a user's macro (not the test harness) gets one Log line, no Python or Java stack trace."""
+    out = tmp_path / "run"
+    result = run_macro('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s '
+                       'pixel=%s regions=auto");\nprint("went on");\n' % (q(capture_dir), q(out), typed),
+                       plain=True, env={"UVPS_EXIT_ON_ERROR": "0"}, timeout=TIMEOUT)
+    assert ('uvps Run Whole Pipeline failed (BridgeError): the field "Pixel size on the painting" '
+            + words) in result.stdout, result.stdout + result.stderr
+    assert "went on" not in result.stdout
+    assert " -m uvps bridge " not in result.stdout            # the core never started
+    assert not out.exists()
+    for trace in ("Traceback", "Exception in", "PluginError", "\tat "):
+        assert trace not in result.stdout + result.stderr, trace
