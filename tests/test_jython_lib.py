@@ -675,20 +675,18 @@ def test_lights_file_count(tmp_path):
 
 # --------------------------------------------------------------------------- wand points
 
-def test_points_files_in_pixels_and_in_um():
-    pts, unit = bl.read_points_text("x_px,y_px\n10,20\n30.5,40\n")
-    assert pts == [(10.0, 20.0), (30.5, 40.0)] and unit == "px"
-    measure = " \tArea\tMean\tX\tY\n1\t0.1\t5\t450\t600\n2\t0.1\t5\t3000\t150\n"
-    pts, unit = bl.read_points_text(measure)
-    assert pts == [(450.0, 600.0), (3000.0, 150.0)] and unit == ""
-    # automatic: they fit the 320 x 240 image only in um (15 um pixels)
-    px, used = bl.points_in_pixels(pts, unit, bl.UNITS_AUTO, 320, 240, 15.0)
-    assert used == "um" and px == [(30.0, 40.0), (200.0, 10.0)]
-    assert bl.points_in_pixels([(5, 6)], "", bl.UNITS_AUTO, 320, 240, 15.0) == ([(5, 6)], "pixels")
-    assert bl.points_in_pixels([(30, 60)], "", bl.UNITS_CALIBRATED, 320, 240, 15.0)[0] == [(2.0, 4.0)]
-    assert bl.read_points_text("1 2\n3 4\n") == ([(1.0, 2.0), (3.0, 4.0)], "")
-    with pytest.raises(bl.BridgeError, match="no x, y columns"):
-        bl.read_points_text("a,b\n1,2\n")
+def test_the_clicks_line_says_the_unit_the_core_read():
+    diag = {"n_points": 3, "points_unit": "mm", "points_unit_said": True, "pixel_size_um": 15.0}
+    assert bl.clicks_line(diag, "the file /a.csv") == (
+        "3 clicks from the file /a.csv, read in mm (the albedo's pixel size is 15 um) "
+        "as the file's header says")
+    assert bl.clicks_line({"n_points": 2, "points_unit": "px"}, "the point selection") == (
+        "2 clicks from the point selection, read in pixels")
+
+
+def test_fiji_has_no_points_parser_of_its_own():
+    """The core's wand.read_seed_file is the one parser (Fiji's read x_mm as um, 1000x off)."""
+    assert not hasattr(bl, "read_points_text") and not hasattr(bl, "points_in_pixels")
 
 
 def test_repeated_clicks_are_listed_with_the_earlier_click():

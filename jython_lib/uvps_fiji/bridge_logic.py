@@ -478,7 +478,9 @@ def find_python(setting=None, environ=None, config_path=None):
 _TABLE = [None]
 
 #: Fiji's words for some choice values; the request carries the core's value (e.g. ``fc``).
-CHOICE_LABELS = {"integration": {"fc": "Frankot-Chellappa (FFT)", "dct": "DCT Poisson (Neumann)"}}
+CHOICE_LABELS = {"integration": {"fc": "Frankot-Chellappa (FFT)", "dct": "DCT Poisson (Neumann)"},
+                 "points_unit": {"auto": "Automatic", "px": "Pixels",
+                                 "um": "Calibrated (um, as Analyze > Measure)"}}
 
 #: How a unit of the declarations is shown beside a number field.
 UNIT_LABELS = {"um": u"\u00b5m", "deg": "deg", "mm": "mm", "counts": "counts"}
@@ -1259,90 +1261,29 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
 
 
 # ---------------------------------------------------------------------------------------------
-# Wand points: pixels or calibrated units
+# Wand clicks (the core reads the points file: uvps.wand.read_seed_file)
 # ---------------------------------------------------------------------------------------------
 
-#: Choices of the wand's ``units`` field.
-UNITS_AUTO = "Automatic"
-UNITS_PIXELS = "Pixels"
-UNITS_CALIBRATED = "Calibrated (um, as Analyze > Measure)"
-UNITS_CHOICES = [UNITS_AUTO, UNITS_PIXELS, UNITS_CALIBRATED]
+#: What the core's ``points_unit`` of the wand means, in words.
+UNIT_WORDS = {"px": "pixels", "um": "um", "mm": "mm"}
 
 
-def read_points_text(text):
-    """Read clicks from a points file: CSV or tab-separated, with a header (``x_px``/``y_px``,
-    ``x_um``/``y_um``, ImageJ's ``X``/``Y``) or none (x, y in the first two columns).
-
-    Returns
-    -------
-    (list of (float, float), str)
-        The points and the unit the header names: ``px``, ``um`` or ``""`` (not said).
-    """
-    rows = [ln for ln in (text or "").replace("\r", "\n").split("\n") if ln.strip()]
-    if not rows:
-        return [], ""
-
-    def cells(line):
-        sep = "\t" if "\t" in line else ("," if "," in line else None)
-        return [c.strip().strip('"') for c in (line.split(sep) if sep else line.split())]
-
-    head = cells(rows[0])
-    ix, iy, unit = 0, 1, ""
-    try:
-        [float(c) for c in head[:2]]
-        body = rows
-    except ValueError:
-        body = rows[1:]
-        low = [c.lower() for c in head]
-        for xs, ys, u in ((("x_px",), ("y_px",), "px"), (("x_um", "x_mm"), ("y_um", "y_mm"), "um"),
-                          (("x",), ("y",), "")):
-            found = [i for i, c in enumerate(low) if c in xs], [i for i, c in enumerate(low) if c in ys]
-            if found[0] and found[1]:
-                ix, iy, unit = found[0][0], found[1][0], u
-                break
+def clicks_line(diag, where, automatic=True):
+    """One Log line on the wand's clicks from its diagnostics: how many, from where, read in
+    which unit (and divided by which pixel size)."""
+    unit = diag.get("points_unit") or "px"
+    line = "%d clicks from %s, read in %s" % (diag.get("n_points", 0), where,
+                                              UNIT_WORDS.get(unit, unit))
+    if unit != "px" and diag.get("pixel_size_um"):
+        line += " (the albedo's pixel size is %g um)" % diag["pixel_size_um"]
+    if unit != "px":
+        if diag.get("points_unit_said"):
+            line += " as the file's header says"
+        elif automatic:
+            line += ": its X, Y fit the image only in um"
         else:
-            raise BridgeError("the points file has no x, y columns (header: %s)" % ", ".join(head))
-    points = []
-    for line in body:
-        c = cells(line)
-        try:
-            points.append((float(c[ix]), float(c[iy])))
-        except (ValueError, IndexError):
-            raise BridgeError("the points file has a row without two numbers: '%s'" % line.strip())
-    return points, unit
-
-
-def points_in_pixels(points, header_unit, choice, width, height, pixel_size_um):
-    """Turn clicks into pixel coordinates.
-
-    ``choice`` (:data:`UNITS_CHOICES`): pixels, the image's calibrated units (um: divided by
-    ``pixel_size_um``), or automatic: the header's unit if it names one, else pixels unless some
-    point lies outside the image in pixels while all lie inside it in um.
-
-    Returns
-    -------
-    (list of (float, float), str)
-        The points in pixels and ``"pixels"`` or ``"um"`` (what they were read as).
-    """
-    def inside(pts):
-        return all(0 <= x < width and 0 <= y < height for x, y in pts)
-
-    def to_px(pts):
-        if not pixel_size_um:
-            raise BridgeError("the points are in um but the albedo has no pixel size; give the "
-                              "pixel size or points in pixels")
-        return [(x / pixel_size_um, y / pixel_size_um) for x, y in pts]
-
-    if choice == UNITS_PIXELS:
-        return list(points), "pixels"
-    if choice == UNITS_CALIBRATED or header_unit == "um":
-        return to_px(points), "um"
-    if header_unit == "px" or inside(points) or not pixel_size_um:
-        return list(points), "pixels"
-    converted = to_px(points)
-    if inside(converted):
-        return converted, "um"
-    return list(points), "pixels"
+            line += " as the field \"Units of the points file\" says"
+    return line
 
 
 def repeated_clicks(points, labels_at):

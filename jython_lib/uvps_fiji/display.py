@@ -379,18 +379,6 @@ def show_wand_image(albedo_path, title="albedo (R+G+B)/3"):
     return imp
 
 
-def image_geometry(path):
-    """(width, height, pixel size in um or None) of an image file."""
-    imp = IJ.openImage(path)
-    if imp is None:
-        raise BridgeError("ImageJ cannot open %s" % path)
-    cal = imp.getCalibration()
-    factor = {"micron": 1.0, "microns": 1.0, MICRONS: 1.0, "um": 1.0, "mm": 1000.0,
-              "nm": 0.001}.get((cal.getUnit() or "").lower())
-    size = cal.pixelWidth * factor if factor is not None and cal.scaled() else None
-    return imp.getWidth(), imp.getHeight(), size
-
-
 def values_at(path, points):
     """The pixel values of a (label) image at points (x, y) in pixels; 0 outside."""
     imp = IJ.openImage(path)

@@ -147,37 +147,21 @@ def detect_protrusions(values):
     return response
 
 
-def wand_points(values, request_dir, albedo_path):
-    """The wand's clicks in pixels, written to the request folder: the ``points`` file (pixels,
-    or um as *Analyze > Measure* exports them: key ``units``), else the current point selection
-    / ROI Manager points (pixels)."""
+def wand_points(values, request_dir):
+    """The wand's clicks: the ``points`` file as the user gave it (the core reads it, in the unit
+    its header names: ``wand.read_seed_file``), else the current point selection / ROI Manager
+    points, written in pixels to the request folder."""
     path = optional_path(values.get("points"))
     if path is not None:
         if not os.path.isfile(path):
             raise BridgeError("points file %s does not exist" % path)
-        fh = open(path, "r")
-        try:
-            points, header_unit = bridge_logic.read_points_text(fh.read())
-        finally:
-            fh.close()
-        if not points:
-            raise BridgeError("the points file %s lists no points" % path)
-        where = "file %s" % path
-    else:
-        points, header_unit = capture.point_selection(), "px"
-        if not points:
-            raise BridgeError("no points: click the protrusions with the multi-point tool (or "
-                              "add points to the ROI Manager), or give a CSV with x_px,y_px "
-                              "(key points=)")
-        where = "point selection"
-    width, height, pixel_um = display.image_geometry(albedo_path)
-    pixels, unit = bridge_logic.points_in_pixels(
-        points, header_unit, values.get("units") or bridge_logic.UNITS_AUTO, width, height,
-        pixel_um)
-    IJ.log("uvps Wand Count: %d clicks from the %s, read in %s%s" % (
-        len(points), where, unit,
-        " (divided by the albedo's pixel size %g um)" % pixel_um if unit == "um" else ""))
-    return capture.write_points(pixels, request_dir), pixels
+        return path, "the file %s" % path
+    points = capture.point_selection()
+    if not points:
+        raise BridgeError("no points: click the protrusions with the multi-point tool (or "
+                          "add points to the ROI Manager), or give a CSV with x_px,y_px "
+                          "(key points=)")
+    return capture.write_points(points, request_dir), "the point selection"
 
 
 def wand_count(values):
@@ -187,22 +171,26 @@ def wand_count(values):
     out = run_folder(values)
     albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
-    points_path, pixels = wand_points(values, request_dir, albedo_path)
+    points_path, where = wand_points(values, request_dir)
     response = run_command("wand", values, {"points": points_path}, None, request_dir,
                            skip=("points",))
+    diag = response.diagnostics
+    pixels = [tuple(p) for p in diag.get("points_px") or []]
+    IJ.log("uvps Wand Count: %s" % bridge_logic.clicks_line(
+        diag, where, automatic=values.get("units") in (None, "", "Automatic")))
     labels_path = response.file("protrusions_manual_labels.tif")
     labels = display.values_at(labels_path, pixels)
-    for number, (x, y), earlier in bridge_logic.repeated_clicks(pixels, labels):
+    repeated = bridge_logic.repeated_clicks(pixels, labels)
+    for number, (x, y), earlier in repeated:
         if earlier is None:
-            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px selected nothing (no valid "
+            IJ.log("uvps Wand Count: click %d at (%d, %d) px selected nothing (no valid "
                    "albedo there)" % (number, x, y))
         else:
-            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of "
+            IJ.log("uvps Wand Count: click %d at (%d, %d) px is inside the selection of "
                    "click %d: counted once" % (number, x, y, earlier))
-    repeated = len(bridge_logic.repeated_clicks(pixels, labels))
     if repeated:
         IJ.log("uvps Wand Count: %d of %d clicks added no protrusion (listed above); ImageJ's "
-               "own wand would keep each as a selection" % (repeated, len(pixels)))
+               "own wand would keep each as a selection" % (len(repeated), len(pixels)))
     count = _show_protrusions(response, "protrusions_manual.csv",
                               "protrusions_manual_labels.tif", out, "Manual protrusions")
     display.show_wand_image(albedo_path)

@@ -387,6 +387,21 @@ def test_wand_count_from_a_points_csv(run_macro, truth_run, tmp_path):
     _check_manual(run, clicked)
 
 
+def test_wand_points_in_mm_are_read_by_the_cores_parser(run_macro, truth_run, tmp_path):
+    """x_mm, y_mm are millimetres (Fiji's own parser read them as um: 1000x off, outside the
+    image); the core's wand.read_seed_file reads them, the same as the CLI."""
+    run, clicked = truth_run
+    points = tmp_path / "clicks mm.csv"
+    points.write_text("x_mm,y_mm\n" + "".join(
+        "%.6f,%.6f\n" % ((float(r["x_px"]) + 0.5) * 0.015, (float(r["y_px"]) + 0.5) * 0.015)
+        for r in clicked))
+    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
+                       % (q(run), q(points)), timeout=TIMEOUT).check()
+    assert ("uvps Wand Count: %d clicks from the file %s, read in mm (the albedo's pixel size is "
+            "15 um) as the file's header says" % (len(clicked), points)) in _log_lines(result)
+    _check_manual(run, clicked)
+
+
 def test_wand_count_without_points_fails_clearly(run_macro, truth_run):
     run, _ = truth_run
     result = run_macro('run("Wand Count", "run=%s tolerance=0.05 connectivity=8");\n' % q(run),
@@ -562,10 +577,10 @@ def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_r
                        'print("grey " + bitDepth() + " " + d2s(getPixel(%d, %d), 6));\n'
                        % (q(run), q(points), ix, iy), timeout=TIMEOUT).check()
     lines = _log_lines(result)
-    assert ("uvps Wand Count: %d clicks from the file %s, read in um (divided by the albedo's "
-            "pixel size 15 um)" % (len(xs), points)) in lines, lines
-    assert ("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of click 1: "
-            "counted once" % (len(xs), xs[-1] + 0.5, ys[-1] + 0.5)) in lines, lines
+    assert ("uvps Wand Count: %d clicks from the file %s, read in um (the albedo's pixel size is "
+            "15 um): its X, Y fit the image only in um" % (len(xs), points)) in lines, lines
+    assert ("uvps Wand Count: click %d at (%d, %d) px is inside the selection of click 1: "
+            "counted once" % (len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))) in lines, lines
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     _check_manual(run, clicked)
     albedo = tifffile.imread(str(run / "albedo.tif")).astype(np.float64)
