@@ -601,6 +601,14 @@ def test_detection_counts_in_the_log():
     assert "lower Sensitivity" in lines[-1]
 
 
+def test_run_info_diagnostics_give_no_detection_counts_of_their_own():
+    """Run Info's diagnostics hold the table's row count only: no "104 candidates, 104 kept,
+    0 rejected" where the run had 321 candidates (its text says the run's counts)."""
+    info = {"n_protrusions": 104, "detection": {"candidates": 321, "kept": 104,
+                                                "rejected": {"ridge": 217}}}
+    assert bl.diagnostic_lines("info", info) == []
+
+
 def test_lights_lines_say_where_the_lamps_came_from():
     reused = {"lights": {"source": "positions", "n_lights": 8}, "lights_file": "/r/lights.json"}
     assert bl.diagnostic_lines("normals", reused) == [

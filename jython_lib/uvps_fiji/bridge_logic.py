@@ -1090,7 +1090,10 @@ def diagnostic_lines(command, diagnostics, user_gave_lights=False):
         lines += lights_lines(d["lights"], d.get("lights_file"), user_gave_lights)
     elif command == "lights":
         lines += lights_lines(d, d.get("lights_file"), user_gave_lights)
-    lines += detection_lines(d.get("detect") if command == "run" else d)
+    # `info`'s answer says the counts of the run itself (its text); its n_protrusions alone
+    # must not read as "N candidates, N kept, 0 rejected"
+    if command in ("run", "detect"):
+        lines += detection_lines(d.get("detect") if command == "run" else d)
     if command == "wand" and "n_points" in d:
         lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
     title = MENU_TITLES.get(command, command)

@@ -194,7 +194,12 @@ def test_run_info_writes_the_run_folder_description_to_the_log(run_macro, refere
     assert sorted(p.name for p in reference_run.iterdir()) == before
     assert not any(p.exists() for p in _request_dirs(result))
     assert "made by:    uvps run (version" in result.stdout, result.stdout
-    assert "protrusions: %d" % n in lines, result.stdout
+    # The run's own counts, once (not "N candidates, N kept, 0 rejected" from the row count).
+    rejected = sum(json.loads((reference_run / "run.json").read_text())["diagnostics"]["detect"]
+                   ["rejected"].values())
+    assert ("protrusions: %d kept of %d candidates (%d rejected by the detection's rules)"
+            % (n, n + rejected, rejected)) in lines, result.stdout
+    assert not [ln for ln in lines if "detection:" in ln], result.stdout
 
 
 def test_run_info_on_a_folder_that_is_no_run_fails_with_the_core_message(run_macro, tmp_path):
