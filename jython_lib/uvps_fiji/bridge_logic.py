@@ -955,6 +955,39 @@ def points_csv_text(points):
 # What the core says, in the words of the menu user
 # ---------------------------------------------------------------------------------------------
 
+# ---------------------------------------------------------------------------------------------
+# Names of a run's windows, and its relief scale
+# ---------------------------------------------------------------------------------------------
+
+def run_title(name, run_dir):
+    """The title of a window, table or ROI set of one run: ``"albedo - region1"`` (the run
+    folder's name), so that two runs' results never share a title."""
+    label = os.path.basename(os.path.normpath(run_dir or "")) or "run"
+    return "%s - %s" % (name, label)
+
+
+def relief_scale(run_dir):
+    """``"absolute"`` or ``"relative"``: the ``relief.scale`` of the run folder's run.json
+    (``"relative"`` when the lamps' elevation, hence the height scale, is not pinned by known
+    geometry). A missing file, key or unreadable run.json is ``"absolute"`` (older folders)."""
+    try:
+        fh = open(os.path.join(run_dir, "run.json"), "r")
+        try:
+            log = json.load(fh)
+        finally:
+            fh.close()
+    except (IOError, OSError, ValueError):
+        return "absolute"
+    relief = log.get("relief") if isinstance(log, dict) else None
+    scale = relief.get("scale") if isinstance(relief, dict) else None
+    return "relative" if scale == "relative" else "absolute"
+
+
+#: How the height map is named and labelled: (window name, value unit, bar label).
+HEIGHT_WORDS = {"absolute": ("height (um)", u"\u00b5m", u"height (\u00b5m)"),
+                "relative": ("relative height", "relative", "relative height (no unit)")}
+
+
 #: The menu item that runs each core command (the Log names it).
 MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfield": "Flat Field",
                "normals": "Normals and Albedo", "integrate": "Integrate Height",

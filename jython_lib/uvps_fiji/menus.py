@@ -90,43 +90,63 @@ def _capture_call(command, values, params=None):
                        skip=("images", "pixel_size_um"))
 
 
+def titled(name, run_dir):
+    """The title of one of the run's windows or tables: ``"albedo - region1"``."""
+    return bridge_logic.run_title(name, run_dir)
+
+
+def show_height(path, run_dir):
+    """The height map titled ``height (um) - <run>`` (``relative height - <run>`` when the
+    run's height scale is relative), its unit on the colour bar."""
+    scale = bridge_logic.relief_scale(run_dir)
+    return display.show_height(path, titled(bridge_logic.HEIGHT_WORDS[scale][0], run_dir), scale)
+
+
 def _show_protrusions(response, csv_name, labels_name, run_dir, title):
     """Open the protrusion table, its ROIs, and the albedo (RGB) and the height map with the
-    outlines as overlay."""
+    outlines as overlay; the table and the ROIs are named by ``title`` and the run."""
     albedo = height = None
     albedo_path = os.path.join(run_dir, "albedo.tif")
     if os.path.isfile(albedo_path):
-        albedo = display.show_albedo(albedo_path, "albedo")
+        albedo = display.show_albedo(albedo_path, titled("albedo", run_dir))
     height_path = os.path.join(run_dir, "depth.tif")
     if os.path.isfile(height_path):
-        height = display.show_height(height_path, "depth")
+        height = show_height(height_path, run_dir)
     labels = response.file(labels_name) if response.has_file(labels_name) else None
-    return display.show_protrusions(response.file(csv_name), labels, albedo, title,
-                                    images=[height])
+    return display.show_protrusions(response.file(csv_name), labels, albedo,
+                                    titled(title, run_dir), images=[height])
+
+
+def _show_lights(response, run_dir):
+    display.show_lights(response.file("lights.json"), titled("Lights (top view)", run_dir),
+                        titled("Lights", run_dir))
 
 
 def estimate_lights(values):
     """``lights``: lamp directions from the capture's drop-off (paper, figure 1b-f)."""
     response = _capture_call("lights", values)
-    display.show_lights(response.file("lights.json"))
-    display.open_image(response.file("dropoff.tif"), "dropoff")
+    out = run_folder(values)
+    _show_lights(response, out)
+    display.open_image(response.file("dropoff.tif"), titled("dropoff", out))
     return response
 
 
 def flat_field(values):
     """``flatfield``: divide each image by its Legendre drop-off fit."""
     response = _capture_call("flatfield", values)
-    display.open_image(response.file("dropoff.tif"), "dropoff")
+    out = run_folder(values)
+    display.open_image(response.file("dropoff.tif"), titled("dropoff", out))
     # One float32 TIFF per image in <run>/flatfield/ (3 channels each for an RGB capture).
-    display.open_folder_stack(response.path("flatfield"), "flatfield")
+    display.open_folder_stack(response.path("flatfield"), titled("flatfield", out))
     return response
 
 
 def normals_and_albedo(values):
     """``normals``: per-pixel least squares for normals and the RGB fluorescence albedo."""
     response = _capture_call("normals", values)
-    display.open_image(response.file("normals.tif"), "normals")
-    display.show_albedo(response.file("albedo.tif"), "albedo")
+    out = run_folder(values)
+    display.show_normals(response.file("normals.tif"), titled("normals", out))
+    display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     return response
 
 
@@ -134,7 +154,7 @@ def integrate_height(values):
     """``integrate``: height in um from the run's normals."""
     _run_file(values, "normals.tif")
     response = run_command("integrate", values)
-    display.show_height(response.file("depth.tif"), "depth")
+    show_height(response.file("depth.tif"), run_folder(values))
     return response
 
 
@@ -193,7 +213,7 @@ def wand_count(values):
                "own wand would keep each as a selection" % (len(repeated), len(pixels)))
     count = _show_protrusions(response, "protrusions_manual.csv",
                               "protrusions_manual_labels.tif", out, "Manual protrusions")
-    display.show_wand_image(albedo_path)
+    display.show_wand_image(albedo_path, titled("albedo (R+G+B)/3", out))
     IJ.log("uvps Wand Count: %d protrusions" % count)
     return response
 
@@ -221,8 +241,9 @@ def colour_areas(values):
         params = {"auto": True}
     skip = ("labels", "n_areas") if source != "Automatic" else ("labels",)
     response = run_command("regions", values, inputs, params, request_dir, skip=skip)
-    display.open_image(response.file("regions_labels.tif"), "regions_labels")
-    display.open_table(response.file("regions.csv"), "Regions")
+    out = run_folder(values)
+    display.open_image(response.file("regions_labels.tif"), titled("regions_labels", out))
+    display.open_table(response.file("regions.csv"), titled("Regions", out))
     return response
 
 
@@ -230,7 +251,7 @@ def statistics_and_report(values):
     """``stats``: densities per cm^2 by width per colour area, report.html and figures."""
     response = run_command("stats", values)
     if response.has_file("regions.csv"):
-        display.open_table(response.file("regions.csv"), "Regions")
+        display.open_table(response.file("regions.csv"), titled("Regions", run_folder(values)))
     display.show_report(response.file("report.html"), runner.is_interactive())
     return response
 
@@ -242,7 +263,7 @@ def compare_counts(values):
         if path is None or not os.path.isfile(path):
             raise BridgeError("protrusion table '%s' (key %s) does not exist" % (path or "", key))
     response = run_command("compare", values)
-    display.open_table(response.file("comparison.csv"), "Comparison")
+    display.open_table(response.file("comparison.csv"), titled("Comparison", run_folder(values)))
     return response
 
 
@@ -250,8 +271,8 @@ def relight(values):
     """``relight``: render the run's normals and albedo under a virtual raking light."""
     _run_file(values, "normals.tif")
     response = run_command("relight", values)
-    display.open_image(response.file("relight.tif"),
-                       "relight az%g el%g" % (values.get("azimuth"), values.get("elevation")))
+    display.show_relight(response.file("relight.tif"), titled(
+        "relight az%g el%g" % (values.get("azimuth"), values.get("elevation")), run_folder(values)))
     return response
 
 
@@ -259,15 +280,15 @@ def run_whole_pipeline(values):
     """``run``: capture -> lights, flat-field, normals, albedo, height (+ areas, detection)."""
     out = run_folder(values)
     response = _capture_call("run", values)
-    display.open_image(response.file("normals.tif"), "normals")
-    display.show_lights(response.file("lights.json"))
+    display.show_normals(response.file("normals.tif"), titled("normals", out))
+    _show_lights(response, out)
     # The core detects whenever regions are set (or detect is ticked): show what it listed.
     if response.has_file("protrusions.csv"):
         _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out,
                           "Protrusions")
     else:
-        display.show_height(response.file("depth.tif"), "depth")
-        display.show_albedo(response.file("albedo.tif"), "albedo")
+        show_height(response.file("depth.tif"), out)
+        display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     if response.has_file("report.html"):
         display.show_report(response.file("report.html"), runner.is_interactive())
     IJ.log("uvps Run Whole Pipeline: outputs in " + out)
