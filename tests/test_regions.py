@@ -214,3 +214,22 @@ def test_statistics_bad_table_and_regions():
         region_statistics({"x_px": [1.0], "y_px": [1.0]}, _two_areas(), pixel_size_um=PX)
     with pytest.raises(UVPSInputError, match="RegionMap"):
         region_statistics(_table([]), np.ones((3, 3), int), pixel_size_um=PX)
+
+
+def test_the_cli_refuses_a_pixel_size_in_mm_with_automatic_areas_in_one_line(tmp_path):
+    """`uvps run --pixel-size-um 0.1 --regions auto` (0.1 meant as mm): exit 1 and one line, not a
+    traceback from the clustering."""
+    import subprocess
+    import sys
+
+    from uvps.synthetic import make_capture, write_capture
+
+    write_capture(make_capture(shape=(120, 160), n_lights=8, seed=1), tmp_path / "cap", truth=False)
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(tmp_path / "cap"), "-o", str(tmp_path / "run"),
+                        "--pixel-size-um", "0.1", "--regions", "auto", "--lights", str(tmp_path / "cap" / "lights.lp")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if not ln.startswith(("INFO", "WARNING"))]
+    assert errors == ["uvps run: error: pixel_size_um 0.1 makes the 160 x 120 px image 0.016 mm wide, smaller "
+                      "than the 1 mm over which colour areas are proposed; give the pixel size in micrometres "
+                      "(0.1 mm = 100 um) or the areas as a label image"], r.stderr
