@@ -9,9 +9,11 @@ scored against the generator's truth. Nothing of the pipeline is assembled by ha
 Rows: ``none`` (no nuisance), every nuisance of :data:`uvps.synthetic.NUISANCE_TOP` alone at the top of
 its range, and ``all`` (:meth:`SyntheticSpec.realistic` with ``level="top"``). Each row is run for every
 seed, lamp count and lights mode: ``estimated`` (no ``--lights``), ``calibrated`` (``--lights`` with a
-positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth) and ``dark`` (lamps estimated, with
+positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth), ``dark`` (lamps estimated, with
 ``--dark`` a frame taken with the lamp off: :func:`uvps.synthetic.render_dark_frame`, the remedy the
-run's warnings name for stray light). With detection on (the default) the run
+run's warnings name for stray light) and ``card`` (the true positions, the dark frame, and ``--card`` a
+flat fluorescent card under every lamp: :func:`uvps.synthetic.render_card` with
+:data:`uvps.synthetic.CARD_TYPICAL`, tilted toward an azimuth that changes with the seed). With detection on (the default) the run
 gets ``--regions`` with the true colour areas (``truth/regions.tif``).
 
 Metrics per run:
@@ -25,6 +27,9 @@ Metrics per run:
 - detection (runs with ``--regions`` only): matching and summary of ``scripts/benchmark_protrusions.py``
   on ``protrusions_labels.tif``: F1 for protrusions >= 60 um, recall >= 200 um, median width error (%)
   >= 60 um.
+- the heights' reported expanded uncertainty (``run.json`` ``height_uncertainty_relative_95``, estimated
+  lamps) and whether it covers the true height error (1/0; the coverage over runs is the last line), and
+  whether the run's relief is relative (``run.json`` ``relief``).
 - wall time of the command; the additive term measured by the run (``run.json`` diagnostics
   ``additive.mean_counts``) vs the truth's (black level + mean stray light, counts); the run's warnings.
 
@@ -65,11 +70,12 @@ if str(SCRIPTS) not in sys.path:
 from benchmark_core import protrusion_errors  # noqa: E402  (the disc/ring height measure)
 from benchmark_protrusions import match, summarise  # noqa: E402  (detection matching and summary)
 
-from uvps.synthetic import NUISANCE_TOP, SyntheticSpec, make_capture, write_capture  # noqa: E402
+from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capture, render_card,  # noqa: E402
+                            write_capture)
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["all"]
-MODES = ("estimated", "calibrated", "dark")
-SCHEMA = 1
+MODES = ("estimated", "calibrated", "dark", "card")
+SCHEMA = 2
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
 METRICS = {
@@ -80,6 +86,9 @@ METRICS = {
     "f1_60": ("F1 >= 60 um (>= 0.93)", 0.93, "min", "{:.3f}"),
     "recall_200": ("recall >= 200 um (>= 0.97)", 0.97, "min", "{:.3f}"),
     "width_err_pct": ("widths (%, <= 10)", 10.0, "max", "{:.1f}"),
+    "height_unc95_pct": ("reported height unc. (%, 95 %)", None, "min", "{:.1f}"),
+    "unc_covers": ("unc. covers height err (>= 90 % of runs)", None, "min", "{:.0f}"),
+    "relative": ("relief relative (1/0)", None, "max", "{:.0f}"),
     "additive_err_counts": ("additive err (counts)", None, "max", "{:.0f}"),
     "wall_s": ("wall (s)", None, "max", "{:.1f}"),
     "n_warnings": ("warnings (n)", None, "max", "{:.0f}"),
@@ -202,6 +211,12 @@ def score_run(run_dir: Path, cap, *, detect: bool) -> dict:
     out["timings_s"] = rj.get("timings_s", {})
     lights_diag = diag.get("lights", {})
     out["refinement_converged"] = lights_diag.get("refinement_converged")
+    # the heights' reported expanded uncertainty against their true error (estimated lamps only)
+    unc = lights_diag.get("height_uncertainty_relative_95")
+    if unc is not None and out.get("height_median_pct") is not None:
+        out["height_unc95_pct"] = 100.0 * float(unc)
+        out["unc_covers"] = float(out["height_unc95_pct"] >= out["height_median_pct"])
+    out["relative"] = float((rj.get("relief") or {}).get("scale") == "relative")
     return out
 
 
@@ -281,7 +296,10 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
     spec = spec_for(row, shape=config["shape"], pixel_size_um=config["pixel_size_um"], seed=seed, n_lights=lamps)
     cap = make_capture(spec)
     t_make = time.perf_counter() - t0
-    write_capture(cap, cap_dir, dark_frame="dark" in todo)
+    card = None
+    if "card" in todo:
+        card = render_card(cap, tilt_azimuth_deg=(137.5 * seed) % 360.0, **CARD_TYPICAL)
+    write_capture(cap, cap_dir, dark_frame="dark" in todo or "card" in todo, card=card)
     lights_csv = workdir / "captures" / f"{key}__lights_truth.csv"
     write_positions_csv(cap, lights_csv)
     regions_tif = cap_dir / "truth" / "regions.tif"
@@ -291,12 +309,15 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
             shutil.rmtree(run_dir, ignore_errors=True)
             params = {}
             argv = ["uvps", "run", str(cap_dir), "-o", str(run_dir)]
-            if mode == "calibrated":
+            if mode in ("calibrated", "card"):
                 params["lights"] = str(lights_csv)
                 argv += ["--lights", str(lights_csv)]
-            if mode == "dark":
+            if mode in ("dark", "card"):
                 params["dark"] = str(cap_dir / "dark" / "dark.tif")
                 argv += ["--dark", params["dark"]]
+            if mode == "card":
+                params["card"] = str(cap_dir / "card")
+                argv += ["--card", params["card"]]
             if config["detect"]:
                 params["regions"] = str(regions_tif)
                 argv += ["--regions", str(regions_tif)]
@@ -437,6 +458,17 @@ def build_table(all_results: list, rows, lamps_list, modes):
     return "\n".join(out), worst_lines
 
 
+def coverage_line(results) -> str:
+    """How many runs' reported height uncertainty (95 %) covers their true height error."""
+    cov = [r["unc_covers"] for r in results if not r.get("error") and r.get("unc_covers") is not None]
+    failed = sum(1 for r in results if r.get("error") and r.get("mode") != "calibrated")
+    if not cov:
+        return "- coverage of the reported height uncertainty: no run with estimated lamps"
+    return (f"- coverage of the reported height uncertainty (95 %): {int(sum(cov))} of {len(cov)} runs with "
+            f"estimated lamps ({100 * sum(cov) / len(cov):.0f} %; target >= 90 %); {failed} run(s) stopped "
+            "(no heights written)")
+
+
 def _worse(a, b, sense):
     if not math.isfinite(a):
         return math.isfinite(b)
@@ -545,6 +577,7 @@ def main(argv=None) -> int:
         "targets": {k: METRICS[k][1] for k in METRICS if METRICS[k][1] is not None},
         "results": collected})
     table, worst = build_table(collected, args.rows, args.lights_counts, args.modes)
+    worst.append(coverage_line(collected))
     codes = sorted({str(r.get("code")) for r in collected})
     text = "\n".join([
         "## Robustness (issue 8)", "",
@@ -555,7 +588,8 @@ def main(argv=None) -> int:
         f"({N * args.pixel_size_um / 1000:g} x {M * args.pixel_size_um / 1000:g} mm), seeds "
         f"{' '.join(map(str, args.seeds))}; each nuisance of `NUISANCE_TOP` alone at the top of its range, "
         "then all of them (`all`), and none. lights: `estimated` (no --lights), `calibrated` (--lights with "
-        "the true positions) or `dark` (estimated, with --dark a frame taken with the lamp off). "
+        "the true positions), `dark` (estimated, with --dark a frame taken with the lamp off) or `card` (the true "
+        "positions, --dark, and --card a flat card under every lamp, tilted 1 deg, 1 % uneven). "
         + ("Detection with --regions (the true colour areas). " if config["detect"] else "No detection (--no-detect). ")
         + "Each cell: the worst value over seeds (the mean in brackets); **x**: misses its target. "
         "Lights: angle between the run's lights.json direction and the true one, mean / max over lamps; "

@@ -25,6 +25,7 @@ from typing import Optional
 
 import numpy as np
 
+from .card import CardCalibration, apply_card, load_card
 from .detect import DetectionParams, detect_protrusions
 from .errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, set_common
@@ -42,7 +43,8 @@ from .stereo import StereoResult, solve_normals
 log = logging.getLogger(__name__)
 
 __all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
-           "estimate_capture_lights", "find_protrusions"]
+           "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
+           "estimate_capture_lights", "find_protrusions", "given_lights"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
 #: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
@@ -61,13 +63,19 @@ OPTION_PARAMS = (
     Param("black_level", "numbers", None, unit="counts", minimum=0, label="Black level",
           help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
                "measuring it from the images"),
-    Param("offset", "choice", "auto", choices=("auto", "none"),
-          help="additive term (black level, stray light): measured from the images (auto) or none"),
+    Param("offset", "choice", "auto", choices=("auto", "measure", "none"),
+          help="additive term (black level, stray light) when none is given (black_level, dark, a raw file's "
+               "levels): auto measures it from the images of more than 8 bits and subtracts it where the fit pins "
+               "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
     Param("offset_degree", "int", 0, minimum=0, maximum=2,
           help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
     Param("lamp_beams", "bool", False,
           help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
                "the canvas's large-scale shape (bow) from the heights"),
+    Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
+          help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
+               "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "
+               "power and the vignetting; needs the lamps (--lights)"),
 )
 #: Where the capture comes from: shared by run, flatfield, lights and normals.
 CAPTURE_PARAMS = (
@@ -133,6 +141,7 @@ class RunOptions:
     offset: str = _default("offset")
     offset_degree: int = _default("offset_degree")
     lamp_beams: bool = _default("lamp_beams")
+    card: Optional[str] = _default("card")
 
     def __post_init__(self):
         for p in OPTION_PARAMS:
@@ -156,6 +165,7 @@ class LightsResult:
     estimate: Optional[LightEstimate] = None
     images: Optional[object] = None      # the stack as the lights see it (known positions: beams divided out)
     beam_rms: Optional[float] = None     # known positions: rms of the drop-off beyond the model (log units)
+    card: Optional[CardCalibration] = None   # the card whose gains the images are divided by
 
 
 @dataclass
@@ -185,6 +195,7 @@ class RunResult:
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     timings_s: dict = field(default_factory=dict)
+    relief: dict = field(default_factory=dict)   # run.json "relief" (:func:`relief_of_lights`)
 
 
 #: Stages :func:`run` knows, in order. "flatfield" computes nothing in memory: the flat-fielded
@@ -193,15 +204,9 @@ STAGES = ("flatfield", "normals", "height", "protrusions")
 #: A run whose lamps leave more than this fraction of the pixels with fewer than 3 usable samples
 #: stops: no model fits the images.
 NO_MODEL_FRACTION = 0.5
-#: Relative standard uncertainty of heights from the estimated lamps beyond which a run warns, and
-#: beyond which it says the heights' scale is not determined. The reported uncertainty is the noise
-#: part only: the bias the canvas's own shape gives the lamps' elevation is not in it. On the
-#: corrected generator (session 7, docs/benchmarks.md) it read 2.3-9.8 % where the heights were off
-#: by 1.3-8.2 %, with no order between the two (the demo's seeds: 6.7 % reported for 1.3 % off, 3.8 %
-#: for 6.3 %), so a warning at 5 % would say nothing about the run it is printed on; it starts at 20 %
-#: and flags what is undetermined: stray light the additive term misses gave 250-15000 %, a
-#: 3.6 x 4.8 mm field 140 %.
-HEIGHT_UNCERTAINTY_WARN = 0.20
+#: Relative standard uncertainty of heights from the estimated lamps beyond which the run says the
+#: heights' scale is not determined by the images (stray light the additive term misses, a small
+#: field); between :data:`RELATIVE_RELIEF_ABOVE` (expanded, 95 %) and this the heights are relative.
 HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
 #: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
@@ -228,7 +233,7 @@ KNOWN_POSITIONS_RESIDUALS = 150000
 
 def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
         dark_given: bool = False, regions=None, n_areas=None, detection: DetectionParams = None,
-        progress: Progress = None) -> RunResult:
+        card: Optional[CardCalibration] = None, progress: Progress = None) -> RunResult:
     """Run the pipeline on a capture, in memory.
 
     Parameters
@@ -249,6 +254,9 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         Number of areas for ``regions="auto"`` (default: chosen from the albedo).
     detection : DetectionParams, optional
         Options of :func:`uvps.detect.detect_protrusions`.
+    card : CardCalibration, optional
+        A card's per-lamp flat-field (:mod:`uvps.card`); else ``options.card`` (a path) is
+        loaded with :func:`uvps.card.load_card` (its images taken as dark-subtracted already).
     progress : callable(fraction, message), optional
 
     Returns
@@ -271,8 +279,12 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     capture, res.additive, warn = remove_additive(capture, options=options, dark_given=dark_given)
     res.timings_s["additive"] = _since(t0)
     res.diagnostics["additive"] = res.additive.to_json()
+    if getattr(capture, "raw", None) is not None:
+        res.diagnostics["raw"] = capture.raw
     res.warnings += warn
-    _run_lights(res, capture, sub_progress(progress, *span["lights"]))
+    if card is None and options.card:
+        card = load_card(options.card, lights=given_lights(capture), pixel_size_um=capture.pixel_size_um)
+    _run_lights(res, capture, sub_progress(progress, *span["lights"]), card=card)
     if "normals" in stages:
         _run_normals(res, sub_progress(progress, *span["normals"]))
     if "height" in stages:
@@ -326,20 +338,71 @@ def _since(t0) -> float:
     return round(time.perf_counter() - t0, 3)
 
 
-def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
+def given_lights(capture: Capture) -> LightModel:
+    """The capture's given lamps (positions, else directions), as a card needs them; none is an error."""
+    if capture.light_positions_mm is not None:
+        return LightModel.from_positions(capture.light_positions_mm, capture.light_intensities)
+    if capture.light_directions is not None:
+        return LightModel.from_directions(capture.light_directions, capture.light_intensities)
+    raise UVPSInputError("card: the card needs the lamps' positions or directions (--lights); "
+                         "with lamps estimated from the images it cannot say which part of each image is the beam")
+
+
+def _run_lights(res: RunResult, capture: Capture, progress: Progress, *, card=None) -> None:
     """The lights stage: fits, lights, their diagnostics and the heights' confidence."""
     t0 = time.perf_counter()
     se = res.additive.stderr
     offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
-    res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, progress=progress)
+    res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, card=card,
+                                         progress=progress)
     res.timings_s["lights"] = _since(t0)
     _check_lamp_residual(res.lights)
     res.diagnostics["lights"] = lights_diagnostics(res.lights)
     azimuth_warning = _azimuth_warnings(res.lights, res.diagnostics["lights"])
-    if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
+    if res.lights.images is not None:   # known lamps: the images with the beams (or the card) divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
+    res.relief = relief_of_lights(res.lights)
     res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
+
+
+#: Lamps estimated from the images pin the relief's scale when the heights' expanded uncertainty
+#: (:attr:`uvps.lights.LightUncertainty.height_rel_95`: noise, additive term and the lamp model's
+#: misfit along the bas-relief direction, coverage factor 2) is at most this; beyond it the run's relief
+#: is *relative* (docs/architecture.md, "Relief scale").
+RELATIVE_RELIEF_ABOVE = 0.20
+
+
+def relief_of_lights(lights: LightsResult) -> dict:
+    """``run.json``'s ``relief``: whether the heights have a scale in micrometres, and why.
+
+    Known lamps (positions, directions, a calibration) pin the lamps' elevation and so the relief's
+    depth scale: "absolute". Lamps estimated from the images pin it only as far as the images do
+    (the near-light remnant of the bas-relief ambiguity, :mod:`uvps.lights`): "absolute" when the
+    heights' uncertainty that follows is at most :data:`RELATIVE_RELIEF_ABOVE`, else "relative"
+    (normals, albedo, counts and widths hold; heights are a shape without a scale).
+    """
+    lamps = {"estimated": "estimated", "positions": "positions", "directions": "directions"}.get(
+        lights.source, str(lights.source))
+    if lights.source != "estimated":
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were given ({lamps}), which fixes their elevation and so the heights' "
+                          "scale"}
+    unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    if unc is None:
+        return {"scale": "relative", "lamps": lamps,
+                "reason": "the lamps were estimated from the images and their elevation's uncertainty could not be "
+                          "measured, so the heights have no scale; calibrate the lamps (uvps calibrate, "
+                          "--calibration) or give their positions (--lights)"}
+    pct = 100 * unc.height_rel_95
+    if unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were estimated from the images, which pin their elevation: heights uncertain "
+                          f"by +-{pct:.0f} % (95 %)"}
+    return {"scale": "relative", "lamps": lamps,
+            "reason": f"the lamps were estimated from the images, which do not pin their elevation (heights "
+                      f"uncertain by +-{pct:.0f} %, 95 %): the relief's shape holds, its scale in micrometres does "
+                      "not; calibrate the lamps (uvps calibrate, --calibration) or give their positions (--lights)"}
 
 
 def _azimuth_warnings(lights: LightsResult, diagnostics: dict) -> list:
@@ -382,28 +445,29 @@ def _check_lamp_residual(lights: LightsResult) -> None:
 def _height_confidence_warnings(lights: LightsResult, azimuth_warning=()) -> list:
     """The run's one warning on its estimated lamps: heights whose scale is not determined say so (and
     name a dark frame for stray light); else the azimuths' disagreement (:func:`_azimuth_warnings`)
-    names its cause, a lamp's beam, where the heights' uncertainty would give a generic one or, on
-    beams, none (it missed 2 of 3 beam captures); else the uncertainty beyond 20 %."""
+    names its cause, a lamp's beam; else a relative relief (:func:`relief_of_lights`) says that the
+    heights carry no micrometres, naming the cause that dominates and what to do."""
     unc = lights.estimate.uncertainty if lights.estimate is not None else None
     undetermined = unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED
     if azimuth_warning and not undetermined:
         return list(azimuth_warning)
-    if unc is None or unc.height_rel <= HEIGHT_UNCERTAINTY_WARN:
+    if unc is None or unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
         return []
     if undetermined:
         # the lamps are not determined by these images: the relief's shape may still serve (protrusions
         # show), its scale does not; said once, with what to do
         return [f"the heights' scale is not determined by these images (uncertain by +-{100 * unc.height_rel:.0f} %: "
-                "a small field, or stray light or lamp beams the model does not hold): give measured lamp positions "
-                "(--lights), and a dark frame (--dark) if there is stray light"]
-    # a warning only when the lamps' uncertainty makes the heights clearly uncertain: it then says
-    # which cause dominates and what to do (reported once: the CLI prints it, the bridge returns it)
-    cause = ("the black level could not be measured precisely enough; give the camera's black level or a "
-             "dark frame" if unc.height_rel_offset > unc.height_rel_noise else
-             "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
-             "apart; give measured lamp positions")
-    return [f"heights may be off by +-{100 * unc.height_rel:.0f} % (the estimated lamps' elevations are uncertain): "
-            f"{cause}"]
+                "a small field, or stray light or lamp beams the model does not hold): heights are relative; give "
+                "measured lamp positions (--lights) or a calibration, and a dark frame (--dark) if there is stray light"]
+    parts = {"offset": unc.height_rel_offset, "noise": unc.height_rel_noise, "misfit": unc.height_rel_misfit}
+    cause = {"offset": "the black level could not be measured precisely enough; give the camera's black level or a "
+                       "dark frame",
+             "noise": "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
+                      "apart; give measured lamp positions (--lights) or a calibration",
+             "misfit": "the canvas's shape or the lamps' beams move the estimated lamps' elevation; give measured "
+                       "lamp positions (--lights) or a calibration"}[max(parts, key=parts.get)]
+    return [f"heights are relative, not micrometres (uncertain by +-{100 * unc.height_rel_95:.0f} % at 95 %: the "
+            f"images do not pin the estimated lamps' elevation): {cause}"]
 
 
 def _run_normals(res: RunResult, progress: Progress) -> None:
@@ -423,12 +487,47 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
             "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
     if st.n_invalid:
         res.warnings.append(f"{st.n_invalid} pixels had fewer than 3 usable lights (NaN)")
+    if res.lights.card is not None:
+        st = _level_card(res, st, progress)
     res.stereo = st
+
+
+def _level_card(res: RunResult, st: StereoResult, progress: Progress) -> StereoResult:
+    """Divide out the card's tilt against the painting, and solve the normals again.
+
+    Divided by a card, the normals are the painting's relative to the card: a card tilted by ``t``
+    tilts them all by ``-t`` (:mod:`uvps.card`). The mean surface plane is z = 0
+    (architecture.md), so the mean normal gives the card's tilt; the gains are made those of the
+    tilted card (:meth:`uvps.card.CardCalibration.tilted`) and the normals solved once more (the
+    tilt left after that is second order: reported).
+    """
+    cap, lights = res.capture, res.lights
+
+    def mean_slope(normals):
+        n = normals.reshape(-1, 3)
+        n = n[np.all(np.isfinite(n), axis=1)]
+        m = n.mean(axis=0)
+        return m[:2] / m[2]
+
+    slope = mean_slope(st.normals)
+    card = lights.card.tilted(slope, lights.model, pixel_size_um=cap.pixel_size_um)
+    images = apply_card(lights.images.base, card)
+    st = solve_normals(images, lights.model, pixel_size_um=cap.pixel_size_um, mask=cap.mask,
+                       saturation=cap.saturation, robust=res.options.robust, progress=progress)
+    left = mean_slope(st.normals)
+    res.capture = dataclasses.replace(cap, images=images)
+    res.lights.card, res.lights.images = card, images
+    d = card.to_json()
+    d["tilt_to_painting_deg"] = round(float(np.degrees(np.arctan(np.hypot(*slope)))), 4)
+    d["tilt_to_painting_azimuth_deg"] = round(float(np.degrees(np.arctan2(slope[1], slope[0])) % 360.0), 2)
+    d["tilt_left_deg"] = round(float(np.degrees(np.arctan(np.hypot(*left)))), 4)
+    res.diagnostics["card"] = d
+    return st
 
 
 def lights_diagnostics(lights: LightsResult) -> dict:
     """What ``run.json`` says about the lights: source, count, the estimate's cost and confidence."""
-    d = {"source": lights.source, "n_lights": int(len(lights.model.intensities))}
+    d = {"source": lights.source, "n_lights": int(len(lights.model.intensities)), "card": lights.card is not None}
     if lights.beam_rms is not None:
         d["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
     if lights.estimate is not None:
@@ -440,6 +539,8 @@ def lights_diagnostics(lights: LightsResult) -> dict:
         if lights.estimate.uncertainty is not None:
             u = lights.estimate.uncertainty
             d["height_uncertainty_relative"] = round(float(u.height_rel), 5)
+            d["height_uncertainty_relative_95"] = round(float(u.height_rel_95), 5)
+            d["height_uncertainty_from_misfit"] = round(float(u.height_rel_misfit), 5)
             d["direction_uncertainty_deg_max"] = round(float(np.max(u.direction_deg)), 4)
     return d
 
@@ -486,6 +587,8 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
     return Protrusions(table, det.labels, regions, proposed, dict(det.rejected), float(det.noise_um))
 
 
+#: Input bit depths on which the additive term is not measured by default (``offset="auto"``).
+EIGHT_BIT = ("uint8", "int8")
 #: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
 #: moved the estimated lamps by 5 degrees on the benchmark captures (docs/benchmarks.md).
 OFFSET_TOLERANCE = 0.001
@@ -498,9 +601,12 @@ OFFSET_MAX = 0.5
 def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) -> tuple:
     """The capture with its additive term (black level, stray light) removed, and that term.
 
-    Given black level (``options.black_level``): that. A dark frame (already subtracted on reading):
-    nothing more is removed. ``options.offset == "none"``: nothing. Otherwise the term is measured
-    from the images (:func:`uvps.offset.estimate_additive`). The images are not copied: the result's
+    A given term beats a measured one. Given black level (``options.black_level``): that. A dark frame
+    (already subtracted on reading), or camera raw files (their metadata's black level subtracted on
+    reading, :func:`uvps.io.read_raw`): nothing more is removed. ``options.offset == "none"``: nothing;
+    ``"auto"`` on 8-bit input (:data:`EIGHT_BIT`: a linearised JPEG's tone curve is no pedestal):
+    nothing. Otherwise the term is measured from the images (:func:`uvps.offset.estimate_additive`)
+    and subtracted only when it lies more than :data:`SIGNIFICANT` standard errors above 0. The images are not copied: the result's
     ``images`` is a view that subtracts on access (:class:`uvps.offset.OffsetImages`).
 
     Returns
@@ -516,6 +622,18 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         term = known_additive(options.black_level, shape=(M, N), channels=C)
     elif dark_given or options.offset == "none":
         term = known_additive(0.0, shape=(M, N), channels=C, source="dark frame" if dark_given else "none")
+    elif getattr(capture, "raw", None) is not None:
+        # camera raw files: LibRaw subtracted the black level of their metadata on reading
+        term = known_additive(0.0, shape=(M, N), channels=C, source="raw metadata")
+        term.diagnostics["raw_black_level"] = [lv["black_level"] for lv in capture.raw["levels"]]
+        term.diagnostics["raw_white_level"] = [lv["white_level"] for lv in capture.raw["levels"]]
+    elif options.offset == "auto" and capture.bit_depth in EIGHT_BIT:
+        # 8-bit files (linearised JPEGs above all) carry a tone curve's remnant, not a pedestal: on a
+        # real RTI capture of a canvas a term measured as 5 % of the signal and subtracted set the two
+        # halves of the lamps' normals 3.16 deg apart, 2.40 with none (docs/benchmarks.md)
+        term = known_additive(0.0, shape=(M, N), channels=C, source="none")
+        term.diagnostics["note"] = (f"{capture.bit_depth} input: not measured (offset=measure to measure it, or give "
+                                    "black_level or a dark frame)")
     else:
         term = estimate_additive(images, mask=capture.mask, saturation=capture.saturation,
                                  degree=int(options.offset_degree), dropoff_degree=int(options.degree))
@@ -567,7 +685,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
 
 
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
-                            progress: Progress = None) -> LightsResult:
+                            card: Optional[CardCalibration] = None, progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
 
     Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
@@ -579,8 +697,17 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     from the images for either kind (far lights: from the levels), even over the file's. Otherwise
     the near-light positions are estimated from the images (:func:`uvps.lights.estimate_lights`);
     ``offset_stderr`` (grey counts, from :func:`remove_additive`) goes into their uncertainty.
+
+    With a ``card`` (:mod:`uvps.card`, known lamps only) every image is first divided by the card's
+    gain for its lamp: the lamps are then equal (``E_k = 1``) and beamless, and ``lamp_beams`` has
+    nothing left to do.
     """
     px = capture.pixel_size_um
+    if card is not None:
+        given_lights(capture)                       # the card needs them
+        capture = dataclasses.replace(capture, images=apply_card(capture.images, card),
+                                      light_intensities=np.ones(capture.images.shape[0]))
+        options = dataclasses.replace(options, lamp_beams=False)
     report(progress, 0.0, "drop-off fits")
     grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
     fits = fit_dropoffs(grid, degree=int(options.degree))
@@ -624,7 +751,8 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                                    pixel_size_um=px, n=n_known)
             E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
-                            images=capture.images if options.lamp_beams else None, beam_rms=beam_rms)
+                            images=capture.images if options.lamp_beams or card is not None else None,
+                            beam_rms=beam_rms, card=card)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
         # Intensities: given, else equal (None); from the levels only when asked.
@@ -633,7 +761,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         if options.estimate_intensities:
             E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=D)
         return LightsResult(LightModel.from_directions(D, None if E is None else E / np.median(E)), fits,
-                            "directions")
+                            "directions", images=capture.images if card is not None else None, card=card)
     sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
                            pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
