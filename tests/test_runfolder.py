@@ -32,7 +32,11 @@ def test_info_describes_the_run_on_the_command_line(run_dir):
     n = len((run_dir / "protrusions.csv").read_text().splitlines()) - 1
     assert "made by:    uvps run" in r.stdout
     assert "160 x 200 px x 3 channels of 15.0 um, 8 lights (positions)" in r.stdout
-    assert f"protrusions: {n}" in r.stdout and n > 0
+    rejected = sum(log["diagnostics"]["detect"]["rejected"].values())
+    assert n > 0 and rejected > 0
+    # the run's counts: kept, candidates and rejected as the detection gave them
+    assert (f"protrusions: {n} kept of {n + rejected} candidates ({rejected} rejected by the "
+            "detection's rules)") in r.stdout.splitlines()
     # every warning the run gave is repeated, or "none"
     assert all(w in r.stdout for w in log["warnings"]) and (log["warnings"] or "warnings:   none" in r.stdout)
     assert not list(run_dir.parent.glob(".run.tmp-*"))     # info writes nothing

@@ -424,6 +424,13 @@ def describe(run_dir) -> dict:
     if table.is_file():
         with open(table, encoding="utf-8") as fh:
             info["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
+        det = log.get("diagnostics", {}).get("detect") or {}
+        rejected = det.get("rejected")
+        if det.get("n_protrusions") == info["n_protrusions"] and isinstance(rejected, dict):
+            # the detection run.json describes made this table (a later `uvps detect` does not
+            # update run.json: then only the table's count is known)
+            info["detection"] = {"candidates": info["n_protrusions"] + sum(rejected.values()),
+                                 "kept": info["n_protrusions"], "rejected": dict(rejected)}
     return info
 
 
@@ -452,7 +459,11 @@ def info_text(info: dict) -> str:
     elif "height_uncertainty_relative" in info["lights"]:
         lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative']:.1f} % "
                      "(from the estimated lamps)")
-    if "n_protrusions" in info:
+    if "detection" in info:
+        det = info["detection"]
+        lines.append(f"protrusions: {det['kept']} kept of {det['candidates']} candidates "
+                     f"({det['candidates'] - det['kept']} rejected by the detection's rules)")
+    elif "n_protrusions" in info:
         lines.append(f"protrusions: {info['n_protrusions']}")
     lines += [f"warning:    {w}" for w in info["warnings"]] or ["warnings:   none"]
     return "\n".join(lines)

@@ -32,7 +32,8 @@ def main():
     values = dlg.show()
     if values is not None:
         response = menus.run_command(COMMAND, values)
-        display.open_image(response.file("height_change.tif"), "height change (um)")
+        display.open_image(response.file("height_change.tif"),
+                           menus.titled("height change (um)", menus.run_folder(values)))
 
 
 runner.run_menu(TITLE, main)
