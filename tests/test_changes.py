@@ -310,8 +310,9 @@ def test_each_dates_calibration_is_recorded(truth_runs, tmp_path):
                                                                        "reason": "spheres pin the lamps"})
     rec = date_record(b)
     assert rec["lamps"] == "positions" and rec["lights_file"] == "lamps.csv" and rec["relief"]["scale"] == "absolute"
-    assert date_record(truth_runs["a"]) == {"run_json": False, "lamps": "unknown",
-                                            "relief": {"scale": "absolute", "lamps": None, "reason": None}}
+    from uvps.runfolder import relief_of
+    assert date_record(truth_runs["a"]) == {"run_json": False, "lamps": "unknown", "relief": relief_of({})}
+    assert relief_of({})["scale"] == "absolute"
     out = tmp_path / "out"
     assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(out)]) == 0
     run = json.loads((out / "run.json").read_text())
