@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from . import protrusion_commands, runfolder
 from .runfolder import RunImages
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
-from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
+from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, new_output_dir, report, sub_progress
 from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
 from .relight import relight
 from .spec import CommandSpec, Param
@@ -59,15 +60,28 @@ def _capture_command(name: str, stages: tuple):
         result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
                      dark_given=params["dark"] is not None, regions=params.get("regions"),
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
-        with atomic_output_dir(run_dir) as tmp:
-            outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
-                                          progress=sub_progress(progress, 0.9, 0.95))
-        if name == "run":
-            _remove_stale(run_dir, {o.name for o in outputs})
-        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        if name != "run":
+            with atomic_output_dir(run_dir) as tmp:
+                outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
+                                              progress=sub_progress(progress, 0.9, 0.95))
+            out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        else:
+            # the whole result, report and figures included, is built in a new folder that replaces
+            # the old one in one step: a run folder is never a mixture of two runs
+            dropped = _earlier_results(run_dir)
+            with new_output_dir(run_dir, carry_over=carried_over) as new:
+                outputs = runfolder.write_run(new, result, command=name, params=params, final=run_dir,
+                                              progress=sub_progress(progress, 0.9, 0.95))
+                out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+                if protrusions:
+                    out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
+                    for o in out.outputs:
+                        if Path(o.path).is_relative_to(new):
+                            o.path = str(run_dir / Path(o.path).relative_to(new))
+            if dropped:
+                out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
+                                    "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
         out.diagnostics["lights_file"] = params["lights"]
-        if protrusions:
-            out = _statistics_and_report(run_dir, result, params, out, sub_progress(progress, 0.95, 1.0))
         out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
         report(progress, 1.0, f"{name}: done")
         return out
@@ -77,19 +91,24 @@ def _capture_command(name: str, stages: tuple):
     return cmd
 
 
-#: Outputs of an earlier run that a new ``run`` removes when it does not write them itself (they were
-#: made under the earlier run's lamps and would no longer match the folder's results).
-OPTIONAL_OUTPUTS = ("flatfield", "depth_zarr", "normals_zarr", "albedo_zarr")
+#: What a run folder holds that ``run`` owns: every file of :data:`uvps.runfolder.FILES`, the report's
+#: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
+#: of an earlier run (its flat-field, OME-Zarr stores, the wand's and compare's results) were made
+#: under its lamps and heights. Anything else in the folder (the user's clicks or notes, the demo's
+#: ``capture/``) is carried into the new folder unchanged.
+RUN_OWNED = frozenset(f for f, *_ in runfolder.FILES.values()) | {"figures", "relight.tif"}
 
 
-def _remove_stale(run_dir, written: set) -> None:
-    import shutil
+def carried_over(name: str) -> bool:
+    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
+    leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
+    return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
 
-    for name in OPTIONAL_OUTPUTS:
-        path = run_dir / runfolder.FILES[name][0]
-        if name not in written and path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-            log.info("removed %s of an earlier run (this run did not write it)", path)
+
+def _earlier_results(run_dir: Path) -> list:
+    """The manual results of an earlier run in ``run_dir`` that a new run drops (the warning names them)."""
+    names = (runfolder.FILES["protrusions_manual"][0], runfolder.FILES["comparison"][0])
+    return [n for n in names if (Path(run_dir) / n).is_file()]
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
@@ -149,7 +168,7 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     report(progress, 0.0, "demo: making a synthetic capture")
     cap = make_capture(shape=tuple(params["shape"]), n_lights=params["n_lights"], seed=params["seed"],
                        pixel_size_um=params["pixel_size_um"])
-    run_dir.mkdir(exist_ok=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
     cap_dir = run_dir / "capture"
     write_capture(cap, cap_dir)
     images = sorted(cap_dir.glob("uv_*.tif"))
