@@ -264,7 +264,7 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
     clicks = tmp_path / "clicks.csv"
     picked = rows[: min(5, len(rows))]
     clicks.write_text("x_px,y_px\n" + "".join(f"{float(p['x_px']):.0f},{float(p['y_px']):.0f}\n" for p in picked))
-    r = uvps("wand", clicks, "-o", out, "--tolerance", "2000", "--connectivity", "8")
+    r = uvps("wand", clicks, "-o", out)                      # the default: each click's own contrast
     assert r.returncode == 0, r.stderr
     manual = rows_of(out / "protrusions_manual.csv")
     assert len(manual) == len(picked)
@@ -282,6 +282,8 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
     assert r.returncode == 1 and "bins" in r.stderr.lower()
     r = uvps("wand", clicks, "-o", out, "--tolerance", "-1")
     assert r.returncode == 1 and "tolerance" in r.stderr
+    r = uvps("wand", clicks, "-o", out, "--method", "imagej")
+    assert r.returncode == 1 and "needs a tolerance in albedo units" in r.stderr
 
 
 @pytest.mark.slow
