@@ -6,6 +6,7 @@ A spec is called as ``spec(inputs, params, output_dir, progress=None)`` and retu
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -180,16 +181,25 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     return result
 
 
+# ``run`` reads no run folder's lights.json: its lights help says only what it does
+_RUN_LIGHTS = tuple(dataclasses.replace(
+    p, label="Lights file (.lp, or lamp positions in mm; empty = estimated from the images)",
+    help="the lamps: an RTI .lp file (directions), a positions file (.csv/.json, mm from the image centre) or a "
+         "lights.json; default: estimated from the images") if p.name == "lights" else p for p in CAPTURE_PARAMS)
+
 _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                      help="pixel size (default: the run's TIFF calibration)")
 _STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
-                params=CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
+                params=_RUN_LIGHTS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
                 description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
-                            "detect also colour areas, protrusions, statistics and report.html. The flat-fielded "
-                            "images themselves are written with --flatfield-images (or later by `uvps flatfield`)."),
+                            "detect also colour areas, protrusions, statistics and report.html (without either, "
+                            "no protrusions and no report). The flat-fielded images themselves are written with "
+                            "--flatfield-images (or later by `uvps flatfield`).",
+                output_note="the whole folder is replaced by this run's in one step, keeping files uvps does not "
+                            "write"),
     CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),
                 params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
     CommandSpec("lights", "light directions and positions", _capture_command("lights", ()),

@@ -119,11 +119,19 @@ def _interrupted(a, out, existed: bool) -> int:
     return 130
 
 
+def quiet_library_warnings(*, verbose: bool = False) -> None:
+    """Library warnings (numpy's "divide by zero" RuntimeWarning, a library's DeprecationWarning) go to
+    the log, shown only with ``-v``: what a user must know, uvps says in its own warnings."""
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
+
+
 def main(argv=None) -> int:
     """``uvps`` entry point; returns the exit status (0 ok, 1 bad input, 2 compute error)."""
     a = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
+    quiet_library_warnings(verbose=a.verbose)
     if a.command == "bridge":
         return run_bridge(a.request)
     if a.command == "spec":

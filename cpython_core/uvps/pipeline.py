@@ -77,7 +77,7 @@ CAPTURE_PARAMS = (
     Param("lights", "path", choices=("estimate",),
           label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)",
           help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
-               "the run folder has lights.json; default: the run folder's lights.json for flatfield and normals, "
+               "the run folder has lights.json; default: the run folder's lights.json (flatfield, normals), "
                "else estimated"),
     Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
     Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
@@ -92,7 +92,7 @@ PROTRUSION_PARAMS = (
     Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
           help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
                "and the report"),
-    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),
+    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions, with statistics and the report, even without regions (counted over the whole image)"),
     Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
     Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
 )

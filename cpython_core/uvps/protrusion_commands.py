@@ -275,6 +275,18 @@ def _cmd_compare(inputs: dict, params: dict, output_dir, *,
     a_path, b_path = Path(inputs["a"]), Path(inputs["b"])
     a, b = read_protrusions_csv(a_path), read_protrusions_csv(b_path)
     images = read_run(run_dir, need=(), pixel_size_um=params["pixel_size_um"])
+    if images.pixel_size_um is None:
+        # the output folder holds no run (e.g. a truth table against a run's): the pixel size of
+        # the run folder either table lies in
+        for folder in (b_path.parent, a_path.parent):
+            found = read_run(folder, need=(), require_pixel_size=False).pixel_size_um if folder.is_dir() else None
+            if found:
+                images = dataclasses.replace(images, pixel_size_um=found)
+                warnings.append(f"pixel size {found:g} um from the run folder {folder}")
+                break
+        else:
+            raise UVPSInputError(f"compare: no pixel size: {run_dir} and the tables' folders hold no run; give "
+                                 "pixel_size_um (--pixel-size-um), or -o the run folder of one of the tables")
     regions = None
     if images.shape is not None:
         regions, _ = _regions_for(params["regions"], run_dir, images)
@@ -357,8 +369,8 @@ SPECS = (
                    "imagej: ImageJ's wand, the pixels within a tolerance of the click's albedo"),
         Param("tolerance", "float", minimum=0,
               label="Tolerance (relative: share of the click's contrast, 0 = 0.5; imagej: albedo units)",
-              help=f"relative: the share of the click's contrast a pixel keeps, in (0, 1) (default "
-                   f"{CONTRAST_FRACTION}); imagej: required, in albedo units (counts) as ImageJ's wand tool"),
+              help=f"relative: the share of the click's contrast a pixel keeps, in (0, 1); {CONTRAST_FRACTION} when "
+                   "not given; imagej: required, in albedo units (counts) as ImageJ's wand tool"),
         Param("max_width_um", "float", MAX_WIDTH_UM, minimum=0, exclusive_minimum=True, unit="um",
               label="Widest protrusion (relative)",
               help="relative: the widest protrusion; a region that would grow wider has reached the paint"),
