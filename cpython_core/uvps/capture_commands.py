@@ -35,7 +35,8 @@ def read_request_capture(inputs: dict, params: dict, progress=None):
         images = images[0]
     lights = None if params["lights"] == "estimate" else params["lights"]
     return read_capture(images, lights=lights, mask=params["mask"], dark=params["dark"],
-                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"], progress=progress)
+                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"],
+                        pattern=params.get("pattern"), progress=progress)
 
 
 #: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
