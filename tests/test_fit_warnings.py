@@ -32,7 +32,8 @@ def test_a_good_fit_gives_no_warning_and_each_cause_is_named():
     assert "the heights ramp by about 3.44 mm across the field (mean normal tilted 16 deg" in w
     assert "check that the light file belongs to these images" in w
     est = pipeline.fit_checks(_stereo(residual=0.2), n, lights_source="estimated", pixel_size_um=15.0)
-    assert est["warnings"][0].endswith("give measured lamp positions (--lights)")
+    assert est["warnings"][0].endswith("give measured lamp positions (--lights); for gloss or cast shadows, --robust "
+                                       "leaves out each pixel's brightest and darkest samples")
     holes = pipeline.fit_checks(_stereo(), n, lights_source="positions", pixel_size_um=15.0)
     assert holes["warnings"] == []
     holes = pipeline.fit_checks(_stereo(invalid=int(0.05 * n)), n, lights_source="positions", pixel_size_um=15.0)

@@ -434,12 +434,13 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
             f"than 3 lamps as {res.lights.source} (lamps with narrow beams or stray light the lamp model does not "
             "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
     res.stereo = st
-    fit = fit_checks(st, n_px, lights_source=res.lights.source, pixel_size_um=cap.pixel_size_um)
+    fit = fit_checks(st, n_px, lights_source=res.lights.source, pixel_size_um=cap.pixel_size_um,
+                     robust=res.options.robust)
     res.diagnostics["normals"].update(fit.pop("diagnostics"))
     res.warnings += fit["warnings"]
 
 
-def fit_checks(st, n_px: int, *, lights_source: str, pixel_size_um: float) -> dict:
+def fit_checks(st, n_px: int, *, lights_source: str, pixel_size_um: float, robust: bool = False) -> dict:
     """Whether the fit holds: one warning per cause that names it and the next step.
 
     - the residual: the rms relative residual above :data:`FIT_RESIDUAL_WARN` (the images are not
@@ -474,7 +475,10 @@ def fit_checks(st, n_px: int, *, lights_source: str, pixel_size_um: float) -> di
                           f"normal tilted {tilt:.0f} deg: lamp directions off by about that much, or an oblique "
                           "camera)")
     if causes:
-        warnings.append(f"the fit does not hold: {'; '.join(causes)}; normals and heights are not reliable: {fix}")
+        gloss = ("" if robust or st.residual_rms <= FIT_RESIDUAL_WARN else
+                 "; for gloss or cast shadows, --robust leaves out each pixel's brightest and darkest samples")
+        warnings.append(f"the fit does not hold: {'; '.join(causes)}; normals and heights are not reliable: "
+                        f"{fix}{gloss}")
     frac = st.n_invalid / max(n_px, 1)
     if frac > INVALID_FRACTION_WARN:
         warnings.append(f"{100 * frac:.0f} % of the pixels have no normal (fewer than 3 lamps light them unshadowed "
