@@ -78,6 +78,10 @@ def test_the_readmes_examples_run_as_written(tmp_path):
                            timeout=900)
         assert r.returncode == 0, (line, r.stderr[-2000:])
         assert "Traceback" not in r.stderr and "RuntimeWarning" not in r.stderr, (line, r.stderr[-2000:])
-    assert (tmp_path / "runs" / "region1" / "report.html").is_file()
-    assert (tmp_path / "runs" / "region1" / "protrusions_manual.csv").is_file()
+        if line.startswith("uvps compare"):      # the run with areas, the wand and compare, before batch
+            assert {"report.html", "protrusions_manual.csv", "comparison.csv"} <= {
+                p.name for p in (tmp_path / "runs" / "region1").iterdir()}
+    # `uvps batch captures/ -o runs/` then made runs/region1 anew (a run without areas: no report)
+    assert (tmp_path / "runs" / "batch_summary.csv").is_file() and (tmp_path / "runs" / "region1" / "run.json").is_file()
+    assert (tmp_path / "run_2019" / "report.html").is_file()
     assert (tmp_path / "changes_2019_2024" / "changes.csv").is_file()
