@@ -31,7 +31,7 @@ class OutputSpec:
 
     name: str
     path: str
-    kind: str = "image"  # image | table | json | html | folder
+    kind: str = "image"  # image | table | json | html | pdf | folder
     axes: Optional[str] = None
     dtype: Optional[str] = None
     units: Optional[str] = None
