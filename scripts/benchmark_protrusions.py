@@ -14,9 +14,16 @@ rendered capture with ``RunOptions()`` (what ``uvps run`` does by default), the 
 the images or given (the true lamp positions); detection then runs with ``DetectionParams()`` on
 them as above (without colour areas; the truth's areas count the density per area).
 
+With ``--wand``, the manual method instead: a click at the centre of every true protrusion of at
+least 100 um on the albedo that ``uvps run`` computes with the true lamps (``--pipeline true``'s
+maps; ``--pipeline estimated`` for estimated lamps), outlined by ``uvps wand``'s default (the
+relative wand, :func:`uvps.wand.contrast_select`) and by ImageJ's wand at fixed tolerances (in the
+albedo's counts); the share of clicks outlined within 0.5-2x the true footprint's area.
+
 Example::
 
     .venv/bin/python scripts/benchmark_protrusions.py --seeds 0 1 2 --levels 0.3,0.01 1.0,0.03
+    .venv/bin/python scripts/benchmark_protrusions.py --wand --seeds 0 1 2
 """
 from __future__ import annotations
 
@@ -109,6 +116,48 @@ def run_one(seed, shape, height_noise, albedo_noise, params, pipeline=None):
                 time=elapsed, time_measure=elapsed_measure, rejected=det.rejected, source=det.source)
 
 
+def wand_one(seed, shape, pipeline, tolerances):
+    """Area ratios (outlined / true footprint) of the clicks at the true centres of protrusions
+    >= 100 um: the relative wand's default and ImageJ's wand at each of ``tolerances``."""
+    from uvps.wand import MAX_WIDTH_UM, contrast_select, wand_select
+
+    cap = make_capture(shape=shape, seed=seed, n_lights=12)
+    alb, _h = pipeline_maps(cap, true_lights=(pipeline != "estimated"))
+    pr = cap.protrusions
+    big = pr["width_um"] >= 100
+    px = cap.spec.pixel_size_um
+    clicks = np.column_stack([pr["x_px"][big], pr["y_px"][big]])
+    true_area = np.pi * (pr["width_um"][big] / px / 2) ** 2
+    out = {}
+
+    def ratios(labels):
+        ids = labels[np.floor(clicks[:, 1]).astype(int), np.floor(clicks[:, 0]).astype(int)]
+        area = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
+        return np.where(ids > 0, area[ids], 0) / true_area
+
+    out["relative 0.5 (default)"] = ratios(contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px))
+    for tol in tolerances:
+        out[f"ImageJ {tol:g}"] = ratios(wand_select(alb, clicks, tolerance=tol))
+    return out
+
+
+def wand_report(args) -> None:
+    tolerances = [float(t) for t in args.wand_tolerances]
+    runs = [wand_one(s, tuple(args.shape), args.pipeline, tolerances) for s in args.seeds]
+    print(f"Synthetic captures {args.shape[0]}x{args.shape[1]} px at 15 um/px, 12 lamps, seeds {args.seeds}; "
+          f"albedo from uvps run with {args.pipeline or 'true'} lights; a click at the centre of every true "
+          "protrusion >= 100 um.\n")
+    print("| wand | clicks | outlined within 0.5-2x the true area | worst seed | median area ratio | < 0.5x | > 2x |")
+    print("|---|---|---|---|---|---|---|")
+    for name in runs[0]:
+        per = [r[name] for r in runs]
+        allr = np.concatenate(per)
+        ok = (allr >= 0.5) & (allr <= 2)
+        worst = min(np.mean((r >= 0.5) & (r <= 2)) for r in per)
+        print(f"| {name} | {allr.size} | {100 * ok.mean():.1f} % | {100 * worst:.1f} % | {np.median(allr):.2f} | "
+              f"{100 * np.mean(allr < 0.5):.1f} % | {100 * np.mean(allr > 2):.1f} % |")
+
+
 def summarise(runs):
     rows = []
     true_w = np.concatenate([r["true_w"] for r in runs])
@@ -158,7 +207,13 @@ def main(argv=None) -> int:
                     help="end to end: detect on the albedo and height the core computes from the rendered "
                          "12-lamp capture, with lights estimated from the images or the true ones "
                          "(--levels is then ignored)")
+    ap.add_argument("--wand", action="store_true", help="the manual method's outlines instead of detection")
+    ap.add_argument("--wand-tolerances", nargs="+", default=["0.05", "1000", "3000"],
+                    help="ImageJ wand tolerances (albedo counts) compared with the relative wand")
     args = ap.parse_args(argv)
+    if args.wand:
+        wand_report(args)
+        return 0
     if args.pipeline:
         args.levels = ["pipeline"]
     cv2.setNumThreads(1)  # the target is one core

@@ -98,7 +98,7 @@ def _req_text(**fields):
     (_req_text(params="x"), "'params' must be"),
     (_req_text(output_dir=None), "'output_dir' must be"),
     (_req_text(output_dir="a_file"), "is an existing file"),
-    (_req_text(output_dir="no/such/out"), "does not exist"),
+    (_req_text(output_dir="a_file/out"), "is a file, not a folder"),
 ])
 def test_bad_requests_exit_1_with_one_line(tmp_path, registry, text, match):
     (tmp_path / "a_file").write_text("x")

@@ -265,7 +265,7 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
     clicks = tmp_path / "clicks.csv"
     picked = rows[: min(5, len(rows))]
     clicks.write_text("x_px,y_px\n" + "".join(f"{float(p['x_px']):.0f},{float(p['y_px']):.0f}\n" for p in picked))
-    r = uvps("wand", clicks, "-o", out, "--tolerance", "2000", "--connectivity", "8")
+    r = uvps("wand", clicks, "-o", out)                      # the default: each click's own contrast
     assert r.returncode == 0, r.stderr
     manual = rows_of(out / "protrusions_manual.csv")
     assert len(manual) == len(picked)
@@ -283,6 +283,8 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
     assert r.returncode == 1 and "bins" in r.stderr.lower()
     r = uvps("wand", clicks, "-o", out, "--tolerance", "-1")
     assert r.returncode == 1 and "tolerance" in r.stderr
+    r = uvps("wand", clicks, "-o", out, "--method", "imagej")
+    assert r.returncode == 1 and "needs a tolerance in albedo units" in r.stderr
 
 
 @pytest.mark.slow
@@ -399,19 +401,23 @@ def test_the_command_runs_with_one_blas_thread_unless_told_otherwise(monkeypatch
 def test_ctrl_c_ends_with_one_line_exit_130_and_no_partial_output(tmp_path):
     """A real SIGINT to a running `uvps run`: the shell's status 130, one line, no run folder."""
     import signal
-    import time
 
     cap = make_capture(shape=(900, 1200), n_lights=12, seed=1)
     write_capture(cap, tmp_path / "cap")
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "uvps", "run", str(tmp_path / "cap"), "-o", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)          # imports and reading done (~1.5 s): inside the light estimate (~4 s)
+    lines = []
+    for line in proc.stderr:      # reading done: inside the light estimate (~4 s)
+        lines.append(line)
+        if "uvps.io: capture:" in line:
+            break
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
+    err = "".join(lines) + err
     assert proc.returncode == 130, err
-    assert err.strip().splitlines()[-1] == f"uvps run: interrupted; {out} holds no partial file"
+    assert err.strip().splitlines()[-1] == f"uvps run: interrupted; nothing written ({out} not created)"
     assert "Traceback" not in err and not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap"]
 

@@ -1,6 +1,7 @@
 """Tests of uvps.io: reading captures and light files, writing ImageJ TIFFs."""
 import json
 import os
+from pathlib import Path
 
 import cv2
 import imageio.v3 as iio
@@ -548,3 +549,27 @@ def test_lights_json_with_directions_only(tmp_path):
     cap = read_capture(tmp_path, lights=jp)
     assert cap.light_positions_mm is None
     np.testing.assert_allclose(cap.light_directions, [[0, 0.6, 0.8], [0.6, 0, 0.8], [0, 0, 1]])
+
+
+def test_a_capture_folder_leaves_out_what_is_not_a_lamp_image(tmp_path, caplog):
+    """A mask, a dark frame (by name) and a thumbnail (by size) beside 4 lamp images: never read as
+    lamps, each named in the log with why; ``pattern`` chooses the files instead."""
+    import logging
+
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        tifffile.imwrite(tmp_path / f"uv_{k:02d}.tif", rng.integers(1000, 2000, (40, 50), dtype=np.uint16))
+    tifffile.imwrite(tmp_path / "mask.tif", np.full((40, 50), 255, np.uint8))
+    tifffile.imwrite(tmp_path / "uv_dark.tif", np.full((40, 50), 20, np.uint16))
+    tifffile.imwrite(tmp_path / "uv_04.tif", rng.integers(1000, 2000, (10, 12), dtype=np.uint16))
+    with caplog.at_level(logging.INFO, logger="uvps.io"):
+        cap = read_capture(tmp_path, pixel_size_um=15.0)
+    assert [Path(f).name for f in cap.files] == [f"uv_{k:02d}.tif" for k in range(4)]
+    text = caplog.text
+    assert "mask.tif: a mask (give it with --mask), by its name" in text
+    assert "uv_dark.tif: a dark frame (give it with --dark)" in text
+    assert "uv_04.tif: another size (10 x 12 px; the lamp images are 40 x 50)" in text
+    cap = read_capture(tmp_path, pixel_size_um=15.0, pattern="uv_0[0-2].tif")
+    assert [Path(f).name for f in cap.files] == ["uv_00.tif", "uv_01.tif", "uv_02.tif"]
+    with pytest.raises(UVPSInputError, match=r"no file of folder .* matches the pattern 'x\*'"):
+        read_capture(tmp_path, pixel_size_um=15.0, pattern="x*")

@@ -103,7 +103,7 @@ def test_wand_at_true_centres(run, capture):
         w = csv.writer(fh)
         w.writerow(["x_px", "y_px"])
         w.writerows(pts.tolist())
-    res = cmd_wand({"points": str(seeds)}, {"tolerance": 0.08}, run)
+    res = cmd_wand({"points": str(seeds)}, {"method": "imagej", "tolerance": 0.08}, run)
     _bridge_ready(res)
     table = read_protrusions_csv(run / "protrusions_manual.csv")
     assert res.diagnostics["n_protrusions"] == len(table["id"]) == len(pts)
@@ -179,12 +179,32 @@ def test_regions_auto_writes_imagej_label_tiff(run):
     assert data.shape == (240, 320) and res.diagnostics["n_areas"] == len(np.unique(data)) <= 3
 
 
+def test_wand_default_outlines_each_clicked_protrusion_and_names_repeated_clicks(run, capture):
+    """The relative wand (no tolerance given) outlines every protrusion >= 100 um of the run's albedo
+    within 0.5-2x its true area; a second click on one is named, not counted."""
+    p = capture.protrusions
+    big = p["width_um"] >= 100
+    pts = np.column_stack([p["x_px"][big], p["y_px"][big]]).astype(int)
+    seeds = run.parent / "points_relative.csv"
+    rows = pts.tolist() + [pts[0].tolist()]                       # the first protrusion clicked twice
+    seeds.write_text("x_px,y_px\n" + "".join(f"{x},{y}\n" for x, y in rows))
+    res = cmd_wand({"points": str(seeds)}, {}, run)
+    labels = read_tiff(run / "protrusions_manual_labels.tif").data
+    area = np.bincount(labels.ravel())[labels[pts[:, 1], pts[:, 0]]]
+    ratio = area * capture.spec.pixel_size_um ** 2 / (np.pi * (p["width_um"][big] / 2) ** 2)
+    assert np.mean((ratio >= 0.5) & (ratio <= 2)) >= 0.9, ratio
+    assert res.diagnostics["n_protrusions"] == len(pts) and res.diagnostics["repeated_clicks"] == [len(pts) + 1]
+    assert any(f"#{len(pts) + 1} at ({pts[0][0]}, {pts[0][1]}) px" in w and "repeated" in w for w in res.warnings)
+    assert not (run / "protrusions.csv").exists() or "wand" not in (run / "protrusions.csv").read_text()
+
+
 @pytest.mark.parametrize("cmd, inputs, params, match", [
     (cmd_regions, {}, {}, "exactly one of"),
     (cmd_regions, {"labels": "WRONG"}, {}, "expected the capture's 240 x 320"),
     (cmd_stats, {}, {}, "no protrusions.csv"),
     (cmd_stats, {}, {"table": "missing.csv"}, "missing.csv does not exist"),
-    (cmd_wand, {"points": [[10, 10]]}, {}, "tolerance"),
+    (cmd_wand, {"points": [[10, 10]]}, {"method": "imagej"}, "tolerance"),
+    (cmd_wand, {"points": [[10, 10]]}, {"tolerance": 1.5}, "tolerance"),
     (cmd_wand, {}, {"tolerance": 0.1}, "points"),
     (cmd_compare, {"a": "x.csv"}, {}, "inputs.b"),
     (cmd_detect, {}, {"regions": "WRONG"}, "expected the capture's 240 x 320"),

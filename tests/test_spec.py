@@ -87,7 +87,7 @@ def test_cli_flags_become_the_same_request_as_the_bridge_gets(tmp_path):
     ("run", {"black_level": "-5"}, "black_level must be a number or comma-separated numbers >= 0"),
     ("relight", {"elevation_deg": 95}, "elevation_deg must be a number above 0 and at most 90; got 95"),
     ("demo", {"shape": [10]}, "shape must be two positive integers"),
-    ("wand", {}, "wand: params.tolerance is required"),
+    ("wand", {"method": "exact"}, "method must be one of"),
 ])
 def test_bad_parameters_give_one_line_naming_the_parameter(command, params, message):
     inputs = {"images": ["a.tif"], "points": "p.csv"}

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.wand import read_seeds, wand_select
+from uvps.wand import contrast_select, read_seeds, wand_select
 
 
 def diagonal_image():
@@ -184,3 +184,54 @@ def test_read_seed_file_reads_the_unit_its_header_names(tmp_path):
     p.write_text("x_mm,y_mm\n1,2\n")
     with pytest.raises(UVPSInputError, match="a pixel size is needed"):
         read_seeds(p)
+
+
+# --------------------------------------------------------------------------- the relative wand
+
+
+def _painting(rng):
+    """Paint at 20,000 counts (2 % noise) with a brighter area to the right; three protrusions of
+    other contrasts: a bright dome (+20,000 at its top, falling to its rim), a faint one (+1,500)
+    3 px from the brighter area and one that does not fluoresce (-8,000)."""
+    img = 20000 * (1 + 0.02 * rng.standard_normal((160, 200)))
+    img[:, 120:] += 3000
+    yy, xx = np.mgrid[:160, :200]
+    discs = {"bright": (40, 40, 8, 20000.0), "faint": (100, 110, 6, 1500.0), "dark": (120, 50, 7, -8000.0)}
+    truth = {}
+    for name, (cy, cx, r, c) in discs.items():
+        rho2 = ((yy - cy) ** 2 + (xx - cx) ** 2) / (r * r)
+        inside = rho2 <= 1
+        img[inside] += c * (np.sqrt(1 - rho2[inside]) if name == "bright" else 1)
+        truth[name] = ((cx, cy), int(inside.sum()))
+    return img, truth
+
+
+def test_the_relative_wand_outlines_protrusions_of_any_contrast_where_no_tolerance_does():
+    img, truth = _painting(np.random.default_rng(0))
+    clicks = [xy for xy, _ in truth.values()]
+    lab = contrast_select(img, clicks, max_width_px=40)
+    for i, (name, (_, area)) in enumerate(truth.items()):
+        assert 0.7 <= (lab == i + 1).sum() / area <= 1.25, name
+    # ImageJ's wand: one tolerance in counts cannot serve the faint and the bright one
+    for tol in (500.0, 1000.0, 3000.0, 10000.0):
+        w = wand_select(img, clicks, tolerance=tol)
+        ratios = [(w == i + 1).sum() / area for i, (_, area) in enumerate(truth.values())]
+        assert not all(0.5 <= r <= 2 for r in ratios), (tol, ratios)
+
+
+def test_the_relative_wand_catches_repeated_clicks_and_refuses_what_has_no_contrast():
+    img, truth = _painting(np.random.default_rng(1))
+    (x, y), area = truth["dark"]
+    lab = contrast_select(img, [(x, y), (x + 2, y - 1), (170, 20)], max_width_px=40)
+    assert (lab == 1).sum() == pytest.approx(area, rel=0.25)
+    assert lab[y - 1, x + 2] == 1 and not (lab == 2).any()       # the second click repeats the first
+    assert (lab == 3).sum() == 1                                  # plain paint: the click's pixel only
+    with pytest.raises(UVPSInputError, match=r"tolerance.*\(0, 1\)"):
+        contrast_select(img, [(x, y)], fraction=1.5)
+
+
+def test_the_relative_wand_does_not_depend_on_the_albedos_units():
+    img, truth = _painting(np.random.default_rng(2))
+    clicks = [xy for xy, _ in truth.values()]
+    np.testing.assert_array_equal(contrast_select(img, clicks, max_width_px=40),
+                                  contrast_select(img / 65535.0 + 3.0, clicks, max_width_px=40))

@@ -184,6 +184,8 @@ def _configure_logging() -> None:
         root.addHandler(handler)
         root.setLevel(getattr(logging, level, logging.INFO))
     logging.captureWarnings(True)
+    # library warnings (numpy's RuntimeWarnings) only with UVPS_LOG_LEVEL=DEBUG, not in Fiji's Log
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if level == "DEBUG" else logging.CRITICAL)
 
 
 def _outputs_of(result: Any, command: str) -> tuple:

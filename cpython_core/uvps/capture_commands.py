@@ -6,8 +6,10 @@ A spec is called as ``spec(inputs, params, output_dir, progress=None)`` and retu
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -16,7 +18,8 @@ from .runfolder import RunImages
 from .integrate import integrate_normals
 from .card import load_card
 from .io import read_capture, write_imagej_tiff
-from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
+from .outputs import (CommandResult, OutputSpec, atomic_output_dir, check_output_dir, new_output_dir, report,
+                      sub_progress)
 from .pipeline import (CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, given_lights,
                        integration_diagnostics, run)
 from .relight import relight
@@ -35,7 +38,8 @@ def read_request_capture(inputs: dict, params: dict, progress=None):
         images = images[0]
     lights = None if params["lights"] == "estimate" else params["lights"]
     return read_capture(images, lights=lights, mask=params["mask"], dark=params["dark"],
-                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"], progress=progress)
+                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"],
+                        pattern=params.get("pattern"), progress=progress)
 
 
 #: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
@@ -66,15 +70,28 @@ def _capture_command(name: str, stages: tuple):
         result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
                      dark_given=params["dark"] is not None, regions=params.get("regions"), card=card,
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
-        with atomic_output_dir(run_dir) as tmp:
-            outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
-                                          progress=sub_progress(progress, 0.9, 0.95))
-        if name == "run":
-            _remove_stale(run_dir, {o.name for o in outputs})
-        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        if name != "run":
+            with atomic_output_dir(run_dir) as tmp:
+                outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
+                                              progress=sub_progress(progress, 0.9, 0.95))
+            out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        else:
+            # the whole result, report and figures included, is built in a new folder that replaces
+            # the old one in one step: a run folder is never a mixture of two runs
+            dropped = _earlier_results(run_dir)
+            with new_output_dir(run_dir, carry_over=carried_over) as new:
+                outputs = runfolder.write_run(new, result, command=name, params=params, final=run_dir,
+                                              progress=sub_progress(progress, 0.9, 0.95))
+                out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+                if protrusions:
+                    out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
+                    for o in out.outputs:
+                        if Path(o.path).is_relative_to(new):
+                            o.path = str(run_dir / Path(o.path).relative_to(new))
+            if dropped:
+                out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
+                                    "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
         out.diagnostics["lights_file"] = params["lights"]
-        if protrusions:
-            out = _statistics_and_report(run_dir, result, params, out, sub_progress(progress, 0.95, 1.0))
         out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
         report(progress, 1.0, f"{name}: done")
         return out
@@ -84,19 +101,24 @@ def _capture_command(name: str, stages: tuple):
     return cmd
 
 
-#: Outputs of an earlier run that a new ``run`` removes when it does not write them itself (they were
-#: made under the earlier run's lamps and would no longer match the folder's results).
-OPTIONAL_OUTPUTS = ("flatfield", "depth_zarr", "normals_zarr", "albedo_zarr")
+#: What a run folder holds that ``run`` owns: every file of :data:`uvps.runfolder.FILES`, the report's
+#: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
+#: of an earlier run (its flat-field, OME-Zarr stores, the wand's and compare's results) were made
+#: under its lamps and heights. Anything else in the folder (the user's clicks or notes, the demo's
+#: ``capture/``) is carried into the new folder unchanged.
+RUN_OWNED = frozenset(f for f, *_ in runfolder.FILES.values()) | {"figures", "relight.tif"}
 
 
-def _remove_stale(run_dir, written: set) -> None:
-    import shutil
+def carried_over(name: str) -> bool:
+    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
+    leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
+    return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
 
-    for name in OPTIONAL_OUTPUTS:
-        path = run_dir / runfolder.FILES[name][0]
-        if name not in written and path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-            log.info("removed %s of an earlier run (this run did not write it)", path)
+
+def _earlier_results(run_dir: Path) -> list:
+    """The manual results of an earlier run in ``run_dir`` that a new run drops (the warning names them)."""
+    names = (runfolder.FILES["protrusions_manual"][0], runfolder.FILES["comparison"][0])
+    return [n for n in names if (Path(run_dir) / n).is_file()]
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
@@ -157,7 +179,7 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     report(progress, 0.0, "demo: making a synthetic capture")
     cap = make_capture(shape=tuple(params["shape"]), n_lights=params["n_lights"], seed=params["seed"],
                        pixel_size_um=params["pixel_size_um"])
-    run_dir.mkdir(exist_ok=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
     cap_dir = run_dir / "capture"
     write_capture(cap, cap_dir)
     images = sorted(cap_dir.glob("uv_*.tif"))
@@ -169,16 +191,25 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     return result
 
 
+# ``run`` reads no run folder's lights.json: its lights help says only what it does
+_RUN_LIGHTS = tuple(dataclasses.replace(
+    p, label="Lights file (.lp, or lamp positions in mm; empty = estimated from the images)",
+    help="the lamps: an RTI .lp file (directions), a positions file (.csv/.json, mm from the image centre) or a "
+         "lights.json; default: estimated from the images") if p.name == "lights" else p for p in CAPTURE_PARAMS)
+
 _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                      help="pixel size (default: the run's TIFF calibration)")
 _STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
-                params=CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
+                params=_RUN_LIGHTS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
                 description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
-                            "detect also colour areas, protrusions, statistics and report.html. The flat-fielded "
-                            "images themselves are written with --flatfield-images (or later by `uvps flatfield`)."),
+                            "detect also colour areas, protrusions, statistics and report.html (without either, "
+                            "no protrusions and no report). The flat-fielded images themselves are written with "
+                            "--flatfield-images (or later by `uvps flatfield`).",
+                output_note="the whole folder is replaced by this run's in one step, keeping files uvps does not "
+                            "write"),
     CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),
                 params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
     CommandSpec("lights", "light directions and positions", _capture_command("lights", ()),

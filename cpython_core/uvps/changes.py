@@ -46,7 +46,7 @@ from scipy import ndimage
 
 from . import __version__
 from .compare import match_protrusions
-from .errors import UVPSComputeError, UVPSInputError
+from .errors import UVPSInputError
 from .io import read_tiff, sha256_file, write_imagej_tiff
 from .measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, write_json_atomic
@@ -509,7 +509,9 @@ def level_heights(height_a, height_b_in_a, valid, off_protrusions, *, block_px: 
             wgt = np.clip(1 - (r / (4.685 * s)) ** 2, 0, None) ** 2
             scale = float(np.sum(wgt * x * y) / max(np.sum(wgt * x * x), 1e-12))
         if not 0.5 < scale < 2.0:
-            raise UVPSComputeError(f"the two dates' relief does not match (B / A height scale {scale:.3g})")
+            raise UVPSInputError(f"the two dates' relief does not match (B / A height scale {scale:.3g}, 0.5-2 "
+                                 "expected): check that both runs show the same region, and give both the same "
+                                 "measured lamp positions (uvps run --lights) so that their heights share a scale")
     diff = hb / scale - ha
     smooth = _smooth_field(diff, valid & off_protrusions, block_px)
     change = np.where(valid, diff - smooth, np.nan).astype(np.float32)

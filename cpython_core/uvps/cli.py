@@ -17,6 +17,7 @@ from . import __version__
 from .bridge import run_bridge
 from .commands import COMMANDS
 from .errors import UVPSError, in_chain
+from .outputs import COMMITTED
 from .spec import add_parser, markdown, request_from_args, to_json
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,7 @@ def _run_command(a) -> int:
     inputs, params = request_from_args(spec, a)
     out = Path(a.output).resolve() if spec.output else None
     bar = _Bar(a.command) if sys.stderr.isatty() else None
+    existed = out is not None and out.exists()
     try:
         result = spec(inputs, params, out, progress=bar)
     except UVPSError as exc:
@@ -78,12 +80,12 @@ def _run_command(a) -> int:
               file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        return _interrupted(a, out)
+        return _interrupted(a, out, existed)
     except Exception as exc:  # an unexpected failure: one line, the traceback in the log
         if in_chain(exc, KeyboardInterrupt) is not None:
             # Ctrl-C inside a compiled (numba) kernel surfaces as a SystemError ("returned a result
             # with an exception set") with the KeyboardInterrupt down its chain
-            return _interrupted(a, out)
+            return _interrupted(a, out, existed)
         log.debug("traceback", exc_info=True)
         print(f"uvps {a.command}: internal error: {type(exc).__name__}: {exc}".splitlines()[0], file=sys.stderr)
         return 2
@@ -101,12 +103,27 @@ def _run_command(a) -> int:
     return 0
 
 
-def _interrupted(a, out) -> int:
-    """Ctrl-C: one line and exit status 130 (128 + SIGINT), as a shell reports it. Every output file is
-    written under a temporary name and moved into place whole, so ``out`` holds no partial file."""
-    where = f"; {out} holds no partial file" if out is not None else ""
+def _interrupted(a, out, existed: bool) -> int:
+    """Ctrl-C: one line saying what the output folder holds, and exit status 130 (128 + SIGINT), as a
+    shell reports it. Outputs are built in a temporary folder and moved into place whole (a Ctrl-C
+    during that move waits for its end), so ``out`` is as it was, or absent, or wholly new."""
+    if out is None:
+        where = ""
+    elif str(out) in COMMITTED:
+        where = f"; {out} was already written whole (this run's)"
+    elif existed:
+        where = f"; {out} left as it was (nothing of this run written)"
+    else:
+        where = f"; nothing written ({out} not created)"
     print(f"uvps {a.command}: interrupted{where}", file=sys.stderr)
     return 130
+
+
+def quiet_library_warnings(*, verbose: bool = False) -> None:
+    """Library warnings (numpy's "divide by zero" RuntimeWarning, a library's DeprecationWarning) go to
+    the log, shown only with ``-v``: what a user must know, uvps says in its own warnings."""
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
 
 
 def main(argv=None) -> int:
@@ -114,6 +131,7 @@ def main(argv=None) -> int:
     a = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
+    quiet_library_warnings(verbose=a.verbose)
     if a.command == "bridge":
         return run_bridge(a.request)
     if a.command == "spec":

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import fnmatch
 import hashlib
 import json
 import logging
@@ -898,7 +899,57 @@ def _attach_lights(lights, sources, by_name):
 # capture
 
 
-def _list_sources(images) -> tuple:
+#: Words in a file name (split at anything but letters) that mark a file of a capture folder that
+#: is not a lamp image, with what it is and what to do with it.
+NOT_LAMP_WORDS = {
+    "mask": "a mask (give it with --mask)",
+    "dark": "a dark frame (give it with --dark)", "black": "a dark frame (give it with --dark)",
+    "thumb": "a thumbnail", "thumbnail": "a thumbnail", "preview": "a thumbnail", "small": "a thumbnail",
+    "ref": "a reference image", "reference": "a reference image", "ambient": "a reference image",
+    "roomlight": "a reference image", "flat": "a flat-field frame", "white": "a flat-field frame",
+}
+
+
+def _image_size(path: Path):
+    """(rows, columns) of an image file from its header, or None if it cannot be read."""
+    try:
+        if path.suffix.lower() in TIFF_EXTS:
+            with tifffile.TiffFile(path) as tif:
+                shape, axes = tif.series[0].shape, tif.series[0].axes
+                return tuple(shape[axes.index(a)] for a in "YX")
+        return tuple(iio.improps(path).shape[:2])
+    except Exception:   # an unreadable file is reported by the reader itself, with its own message
+        return None
+
+
+def lamp_images(files: list) -> tuple:
+    """The lamp images among a capture folder's image files, and the others with why.
+
+    A file is left out when a word of its name says it is a mask, a dark frame, a thumbnail, a
+    reference or a flat-field frame (:data:`NOT_LAMP_WORDS`), or when its size differs from the
+    size most of the folder's images share (at least 3 of them). Returns ``(lamps, [(path, why)])``.
+    """
+    kept, left = [], []
+    for f in files:
+        words = [w for w in re.split(r"[^a-z]+", f.stem.lower()) if w]
+        why = next((NOT_LAMP_WORDS[w] for w in words if w in NOT_LAMP_WORDS), None)
+        (left.append((f, why + ", by its name")) if why else kept.append(f))
+    sizes = {f: _image_size(f) for f in kept}
+    counts = {}
+    for size in sizes.values():
+        if size is not None:
+            counts[size] = counts.get(size, 0) + 1
+    if counts:
+        common, n = max(counts.items(), key=lambda kv: kv[1])
+        if n >= 3 and n > len(kept) / 2:
+            odd = [f for f in kept if sizes[f] is not None and sizes[f] != common]
+            left += [(f, f"another size ({sizes[f][0]} x {sizes[f][1]} px; the lamp images are {common[0]} x "
+                         f"{common[1]})") for f in odd]
+            kept = [f for f in kept if f not in odd]
+    return kept, left
+
+
+def _list_sources(images, pattern=None) -> tuple:
     """-> (sources, stack_path or None, by_name)."""
     if isinstance(images, (list, tuple)) and len(images) == 1:
         images = images[0]  # ["folder"] or ["stack.tif"], as the bridge may send them
@@ -912,6 +963,15 @@ def _list_sources(images) -> tuple:
                  if p.is_file() and _is_image(p) and not p.name.startswith(".")),
                 key=lambda p: _natural_key(p.name),
             )
+            if pattern:
+                files = [p for p in files if fnmatch.fnmatch(p.name, pattern)]
+                if not files:
+                    raise UVPSInputError(f"images: no file of folder {root} matches the pattern {pattern!r}")
+            elif files:
+                files, left = lamp_images(files)
+                if left:
+                    log.info("capture folder %s: %d lamp images; left out %s (choose the images with --pattern)",
+                             root, len(files), "; ".join(f"{f.name}: {why}" for f, why in left))
             if not files:
                 raise UVPSInputError(f"images: folder {root} holds no TIFF/PNG/JPEG files")
         else:
@@ -997,14 +1057,16 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
 
 
 def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=None,
-                 linearize: str = "auto", memory_map: bool = True, progress: Progress = None) -> Capture:
+                 linearize: str = "auto", memory_map: bool = True, pattern: Optional[str] = None,
+                 progress: Progress = None) -> Capture:
     """Read a capture (K images, one per light) into one stack (no rescaling).
 
     Parameters
     ----------
     images : path or list of paths
-        A folder (every TIFF/PNG/JPEG file inside, natural order; other files and subfolders
-        are ignored), a list of image files, or ONE multi-page TIFF (``(K, M, N)``,
+        A folder (its TIFF/PNG/JPEG lamp images, natural order: files named as a mask, dark
+        frame, thumbnail, reference or flat-field frame, or of another size than most, are left
+        out and logged, :func:`lamp_images`; other files and subfolders are ignored), a list of image files, or ONE multi-page TIFF (``(K, M, N)``,
         ``(K, M, N, 3)``, ImageJ hyperstacks: Y, X and colour (S, or C of size 3 beside another
         frame axis) are the image, every other axis is flattened into K).
     lights : path, optional
@@ -1034,6 +1096,9 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         whose stack is larger than a quarter of the memory (:data:`SCRATCH_ABOVE_BYTES`) are
         decoded once into scratch files in the temporary folder (``TMPDIR``, which needs the
         stack's size free) and mapped there. False: read whole.
+    pattern : str, optional
+        With a folder: only its files whose names match this shell pattern (``"uv_*.tif"``), and
+        no file left out by name or size.
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -1058,7 +1123,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         raise UVPSInputError(f"linearize must be 'auto', 'srgb' or 'none'; got {linearize!r}")
     if pixel_size_um is not None:
         pixel_size_um = check_pixel_size(pixel_size_um)
-    sources, stack_path, by_name = _list_sources(images)
+    sources, stack_path, by_name = _list_sources(images, pattern)
 
     if stack_path is not None:
         lazy = memory_map and dark is None and linearize != "srgb"

@@ -41,7 +41,7 @@ from numpy.polynomial import legendre as Lg
 from scipy.optimize import least_squares
 from skimage.transform import warp_polar
 
-from .errors import UVPSComputeError, UVPSInputError
+from .errors import UVPSInputError
 from .flatfield import BlockGrid, DropoffFit, set_common, to_unit
 from .irradiance import lamp_vectors, near_scale
 from .outputs import Progress, report, sub_progress
@@ -295,7 +295,10 @@ def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=
         ok &= mask[r, c]
     idx = np.flatnonzero(ok)[:n]
     if idx.size < 100:
-        raise UVPSComputeError("too few pixels lit by every light to refine the light positions")
+        raise UVPSInputError(f"too few pixels lit by every light to refine the light positions ({idx.size} of "
+                             f"{cand.size} sampled are unsaturated and lit in every image, 100 needed): check the "
+                             "images' exposure (dark or saturated images), the mask, and that every lamp lights the "
+                             "whole field; or give measured lamp positions (--lights)")
     X = pixel_coordinates_mm(r[idx], c[idx], (M, N), pixel_size_um)
     return PixelSample(I[:, idx], X, r[idx], c[idx])
 

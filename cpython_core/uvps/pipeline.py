@@ -85,7 +85,7 @@ CAPTURE_PARAMS = (
     Param("lights", "path", choices=("estimate",),
           label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)",
           help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
-               "the run folder has lights.json; default: the run folder's lights.json for flatfield and normals, "
+               "the run folder has lights.json; default: the run folder's lights.json (flatfield, normals), "
                "else estimated"),
     Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
     Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
@@ -94,13 +94,17 @@ CAPTURE_PARAMS = (
           help="pixel size on the painting (default: from the TIFF tags)"),
     Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
           help="sRGB -> linear (auto: JPEG only)"),
+    Param("pattern", "str", label="Pattern (of a folder's image names, e.g. uv_*.tif; empty = the lamp images)",
+          help="with a folder: only its files whose names match this pattern (e.g. 'uv_*.tif'); without it, "
+               "files named as a mask, dark frame, thumbnail or reference, or of another size than most, are "
+               "left out"),
 )
 #: ``run`` adds the protrusion stages.
 PROTRUSION_PARAMS = (
     Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
           help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
                "and the report"),
-    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions even without regions"),
+    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions, with statistics and the report, even without regions (counted over the whole image)"),
     Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
     Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
 )
@@ -226,6 +230,14 @@ MAX_LAMP_RESIDUAL = 0.05
 #: integrability: beams 29.5-142, all nuisances 129 (seed 1), cupped paint 2.7-4.0, strokes 0.7-2.5,
 #: a clean capture 1.4 (before that step: beams 6.9-145, cupping up to 3.8, the rest up to 1.0).
 AZIMUTH_DISAGREEMENT_WARN_DEG = 5.0
+#: When the fit does not hold (:func:`fit_warnings`): the normals' rms relative residual (the demo
+#: 0.005; the benchmark's rows with given lamps up to 0.01; lamps estimated above 0.05 stop the run,
+#: :data:`MAX_LAMP_RESIDUAL`), the share of pixels left without normals, and the tilt of the mean
+#: normal (a ramp of the heights across the field: a canvas's bow of 250 um over 24 mm tilts no
+#: more than 1 deg). Measured: docs/benchmarks.md, "When a fit does not hold".
+FIT_RESIDUAL_WARN = 0.05
+INVALID_FRACTION_WARN = 0.03
+MEAN_TILT_WARN_DEG = 5.0
 #: :data:`MAX_RESIDUALS` for known positions, whose intensities alone are refined (their results
 #: unchanged by the larger sample of estimated lamps).
 KNOWN_POSITIONS_RESIDUALS = 150000
@@ -485,11 +497,61 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
             f"no lamp model fits these images: {100 * st.n_invalid / n_px:.0f} % of the pixels are lit by fewer "
             f"than 3 lamps as {res.lights.source} (lamps with narrow beams or stray light the lamp model does not "
             "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
-    if st.n_invalid:
-        res.warnings.append(f"{st.n_invalid} pixels had fewer than 3 usable lights (NaN)")
     if res.lights.card is not None:
         st = _level_card(res, st, progress)
     res.stereo = st
+    fit = fit_checks(st, n_px, lights_source=res.lights.source, pixel_size_um=cap.pixel_size_um,
+                     robust=res.options.robust)
+    res.diagnostics["normals"].update(fit.pop("diagnostics"))
+    res.warnings += fit["warnings"]
+
+
+def fit_checks(st, n_px: int, *, lights_source: str, pixel_size_um: float, robust: bool = False) -> dict:
+    """Whether the fit holds: one warning per cause that names it and the next step.
+
+    - the residual: the rms relative residual above :data:`FIT_RESIDUAL_WARN` (the images are not
+      explained by the lamps and a matte surface: lamp directions from another set-up or frame,
+      gloss, gamma-encoded images);
+    - invalid pixels: more than :data:`INVALID_FRACTION_WARN` of the pixels with fewer than 3 usable
+      lamps (shadowed, dark or saturated);
+    - a ramp: the mean normal tilted by more than :data:`MEAN_TILT_WARN_DEG` (the heights climb across
+      the field: the lamps' directions are off by about that much, or the camera looks obliquely).
+
+    Returns ``{"warnings": [...], "diagnostics": {...}}`` (the diagnostics go into ``run.json``).
+    """
+    warnings = []
+    given = lights_source != "estimated"
+    fix = ("check that the light file belongs to these images and uses uvps's frame (x right, y up, z toward "
+           "the camera; vectors from the surface to the lamp), or leave --lights out to estimate the lamps"
+           if given else "give measured lamp positions (--lights)")
+    causes = []
+    if st.residual_rms > FIT_RESIDUAL_WARN:
+        causes.append(f"the lamps and a matte surface leave {100 * st.residual_rms:.0f} % of the signal unexplained "
+                      "(a good capture leaves about 1 %)")
+    nz = st.normals[..., 2]
+    ok = np.isfinite(nz) & (nz > 0.05)
+    tilt = float("nan")
+    if ok.any():
+        p = float(np.mean(-st.normals[..., 0][ok] / nz[ok]))
+        q = float(np.mean(-st.normals[..., 1][ok] / nz[ok]))
+        tilt = float(np.degrees(np.arctan(np.hypot(p, q))))
+        width_mm = max(st.normals.shape[:2]) * pixel_size_um / 1000.0
+        if tilt > MEAN_TILT_WARN_DEG:
+            causes.append(f"the heights ramp by about {width_mm * np.hypot(p, q):.3g} mm across the field (mean "
+                          f"normal tilted {tilt:.0f} deg: lamp directions off by about that much, or an oblique "
+                          "camera)")
+    if causes:
+        gloss = ("" if robust or st.residual_rms <= FIT_RESIDUAL_WARN else
+                 "; for gloss or cast shadows, --robust leaves out each pixel's brightest and darkest samples")
+        warnings.append(f"the fit does not hold: {'; '.join(causes)}; normals and heights are not reliable: "
+                        f"{fix}{gloss}")
+    frac = st.n_invalid / max(n_px, 1)
+    if frac > INVALID_FRACTION_WARN:
+        warnings.append(f"{100 * frac:.0f} % of the pixels have no normal (fewer than 3 lamps light them unshadowed "
+                        "and unsaturated): check the exposure (saturated or very dark images) and that the lamps "
+                        "light the whole field from several sides")
+    return {"warnings": warnings, "diagnostics": {"invalid_fraction": round(frac, 5),
+                                                  "mean_tilt_deg": round(tilt, 2) if np.isfinite(tilt) else None}}
 
 
 def _level_card(res: RunResult, st: StereoResult, progress: Progress) -> StereoResult:

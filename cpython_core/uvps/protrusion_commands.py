@@ -26,7 +26,7 @@ from .regions import load_regions, propose_regions, region_statistics, whole_ima
 from .report import plot_comparison_map, print_pdf, write_report
 from .runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
 from .spec import CommandSpec, Param, coerce
-from .wand import read_seed_file, wand_select
+from .wand import CONTRAST_FRACTION, MAX_WIDTH_UM, contrast_select, read_seed_file, wand_select
 
 log = logging.getLogger(__name__)
 
@@ -88,10 +88,13 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
 
 def _cmd_wand(inputs: dict, params: dict, output_dir, *,
              progress: Progress = None) -> CommandResult:
-    """Manual protrusions: ImageJ's wand at each clicked point on the albedo, then measurement.
+    """Manual protrusions: each clicked point outlined on the albedo, then measured.
 
-    Writes ``protrusions_manual.csv`` and
-    ``protrusions_manual_labels.tif``.
+    ``method="relative"`` (default): the region that keeps ``tolerance`` (default 0.5) of the
+    click's own contrast against its surroundings (:func:`uvps.wand.contrast_select`);
+    ``method="imagej"``: ImageJ's wand with ``tolerance`` in albedo units
+    (:func:`uvps.wand.wand_select`). Writes ``protrusions_manual.csv`` and
+    ``protrusions_manual_labels.tif`` (never the automated ``protrusions.csv``).
     """
     run_dir = Path(output_dir)
     warnings = []
@@ -101,8 +104,17 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     seeds = clicks.seeds
     regions, _ = _regions_for(params["regions"], run_dir, images)
     report(progress, 0.2, f"wand at {len(seeds)} points")
-    labels = wand_select(images.albedo, seeds, tolerance=params["tolerance"],
-                         connectivity=_connectivity(params["connectivity"]), rgb=params["rgb"])
+    tolerance = params["tolerance"]
+    if params["method"] == "imagej":
+        if tolerance is None:
+            raise UVPSInputError("tolerance: method 'imagej' needs a tolerance in albedo units (the albedo's "
+                                 "counts, as ImageJ's wand tool); or use the default method 'relative'")
+        labels = wand_select(images.albedo, seeds, tolerance=tolerance,
+                             connectivity=_connectivity(params["connectivity"]), rgb=params["rgb"])
+    else:
+        labels = contrast_select(images.albedo, seeds,
+                                 fraction=CONTRAST_FRACTION if tolerance is None else tolerance,
+                                 max_width_px=params["max_width_um"] / images.pixel_size_um)
     report(progress, 0.7, "measuring")
     table = measure_protrusions(labels, albedo=images.albedo, height_um=images.height_um,
                                 pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
@@ -111,14 +123,36 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
         _write_labels(tmp / "protrusions_manual_labels.tif", labels, images.pixel_size_um,
                       "uvps wand: manual protrusion labels (id as in protrusions_manual.csv)")
     report(progress, 1.0, f"{len(table['id'])} protrusions")
-    n_dup = len(seeds) - len(table["id"])
-    if n_dup > 0:
-        warnings.append(f"{n_dup} points fell in a region already selected (or on NaN) and add "
-                        "no protrusion")
+    repeated, single = _wand_clicks(seeds, labels)
+    if repeated:
+        warnings.append(f"{len(repeated)} of {len(seeds)} clicks fell inside an earlier click's outline and add no "
+                        f"protrusion (repeated clicks: {_click_list(repeated)})")
+    if single:
+        warnings.append(f"{len(single)} clicks could not be outlined (no contrast against their surroundings: "
+                        f"{_click_list(single)}); click the protrusion's brightest part, or use method 'imagej' "
+                        "with a tolerance")
     return CommandResult([output_spec(run_dir, "protrusions_manual"), output_spec(run_dir, "protrusions_manual_labels")],
                          {"n_points": int(len(seeds)), "n_protrusions": int(len(table["id"])),
-                          "pixel_size_um": images.pixel_size_um, "points_unit": clicks.unit,
-                          "points_unit_said": clicks.said, "points_px": seeds.tolist()}, warnings)
+                          "repeated_clicks": [int(i) + 1 for i, _ in repeated],
+                          "not_outlined_clicks": [int(i) + 1 for i, _ in single],
+                          "method": params["method"], "pixel_size_um": images.pixel_size_um,
+                          "points_unit": clicks.unit, "points_unit_said": clicks.said,
+                          "points_px": seeds.tolist()}, warnings)
+
+
+def _wand_clicks(seeds, labels):
+    """Clicks (0-based index, (x, y)) that repeat an earlier click's outline, and those whose
+    outline is their own pixel only."""
+    ids = labels[seeds[:, 1], seeds[:, 0]] if len(seeds) else np.zeros(0, int)
+    area = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
+    repeated = [(i, tuple(seeds[i])) for i, lab in enumerate(ids) if lab and lab != i + 1]
+    single = [(i, tuple(seeds[i])) for i, lab in enumerate(ids) if lab == i + 1 and area[lab] == 1]
+    return repeated, single
+
+
+def _click_list(items, limit=8) -> str:
+    text = ", ".join(f"#{i + 1} at ({x}, {y}) px" for i, (x, y) in items[:limit])
+    return text + (f" and {len(items) - limit} more" if len(items) > limit else "")
 
 
 def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
@@ -248,6 +282,18 @@ def _cmd_compare(inputs: dict, params: dict, output_dir, *,
     a_path, b_path = Path(inputs["a"]), Path(inputs["b"])
     a, b = read_protrusions_csv(a_path), read_protrusions_csv(b_path)
     images = read_run(run_dir, need=(), pixel_size_um=params["pixel_size_um"])
+    if images.pixel_size_um is None:
+        # the output folder holds no run (e.g. a truth table against a run's): the pixel size of
+        # the run folder either table lies in
+        for folder in (b_path.parent, a_path.parent):
+            found = read_run(folder, need=(), require_pixel_size=False).pixel_size_um if folder.is_dir() else None
+            if found:
+                images = dataclasses.replace(images, pixel_size_um=found)
+                warnings.append(f"pixel size {found:g} um from the run folder {folder}")
+                break
+        else:
+            raise UVPSInputError(f"compare: no pixel size: {run_dir} and the tables' folders hold no run; give "
+                                 "pixel_size_um (--pixel-size-um), or -o the run folder of one of the tables")
     regions = None
     if images.shape is not None:
         regions, _ = _regions_for(params["regions"], run_dir, images)
@@ -323,7 +369,7 @@ SPECS = (
         Param("regions", "path", choices=("auto",), label="Regions: colour areas (auto = from the colours, a label image, or empty = the run's own)", help="colour-area label TIFF, or 'auto' (proposed from the "
               "albedo); default: the run's regions_labels.tif, else the whole image"),
         _N_AREAS, _SEED, _PX) + _DETECTION),
-    CommandSpec("wand", "the manual method: ImageJ's wand at given points", _cmd_wand, params=(
+    CommandSpec("wand", "the manual method: outline each clicked protrusion", _cmd_wand, params=(
         Param("points", "path", where="inputs", positional=True, required=True,
               label="Points CSV (x_px,y_px; empty = current point selection)",
               help="CSV of the clicks: x_px,y_px (pixels), x_um,y_um or x_mm,y_mm, or X,Y as ImageJ's "
@@ -331,12 +377,21 @@ SPECS = (
         Param("points_unit", "choice", "auto", choices=("auto", "px", "um"), label="Units of the points file",
               help="unit of X,Y columns (a header x_px, x_um or x_mm says its own): auto = pixels unless "
               "the clicks fit the image only in um (Measure on the calibrated albedo)"),
-        Param("tolerance", "float", required=True, minimum=0, label="Tolerance (albedo units, as ImageJ's wand tool)",
-              help="wand tolerance (albedo units, as ImageJ's)"),
-        Param("connectivity", "choice", "8", choices=("8", "4", "legacy"), label="Connectivity",
-              help="8-connected, 4-connected, or ImageJ's 'Legacy' mode"),
+        Param("method", "choice", "relative", choices=("relative", "imagej"),
+              label="Method (relative = by each click's own contrast; imagej = ImageJ's wand)",
+              help="relative: the region keeping a share of the click's own contrast against its surroundings; "
+                   "imagej: ImageJ's wand, the pixels within a tolerance of the click's albedo"),
+        Param("tolerance", "float", minimum=0,
+              label="Tolerance (relative: share of the click's contrast, 0 = 0.5; imagej: albedo units)",
+              help=f"relative: the share of the click's contrast a pixel keeps, in (0, 1); {CONTRAST_FRACTION} when "
+                   "not given; imagej: required, in albedo units (counts) as ImageJ's wand tool"),
+        Param("max_width_um", "float", MAX_WIDTH_UM, minimum=0, exclusive_minimum=True, unit="um",
+              label="Widest protrusion (relative)",
+              help="relative: the widest protrusion; a region that would grow wider has reached the paint"),
+        Param("connectivity", "choice", "8", choices=("8", "4", "legacy"), label="Connectivity (imagej)",
+              help="imagej: 8-connected, 4-connected, or ImageJ's 'Legacy' mode"),
         Param("rgb", "choice", "mean", choices=("mean", "channels"),
-              help="RGB albedo: compare the mean of R, G, B (ImageJ), or every channel"),
+              help="imagej, RGB albedo: compare the mean of R, G, B (ImageJ), or every channel"),
         _REGIONS_FILE, _PX)),
     CommandSpec("regions", "colour areas: from labels/masks or an automatic proposal", _cmd_regions, params=(
         Param("labels", "path", where="inputs", label="Label image (for source Label image)", help="label TIFF (0 = none)"),

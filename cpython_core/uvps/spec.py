@@ -114,6 +114,7 @@ class CommandSpec:
     output_default: Optional[str] = None   # -o default (None: required)
     aliases: tuple = ()
     description: str = ""
+    output_note: str = ""              # what happens to the -o folder's files (default: replaced one by one)
 
     def param(self, name: str) -> Param:
         for p in self.params:
@@ -249,6 +250,9 @@ def coerce(spec: CommandSpec, inputs: dict, params: dict) -> tuple:
 
 def _cli_help(p: Param) -> str:
     text = p.help.replace("%", "%%")
+    if p.type == "bool" and p.default and not p.positional:
+        # the flag is --no-<name>: its help says what it turns off (the declaration says what is on)
+        text = f"do not {text[0].lower()}{text[1:]} (on by default)"
     if p.unit:
         text += f" [{p.unit}]"
     if p.default not in (None, False, True, "") and not p.positional:
@@ -287,7 +291,8 @@ def add_parser(subparsers, spec: CommandSpec) -> argparse.ArgumentParser:
         ap.add_argument(p.flag, **kw)
     if spec.output:
         if spec.output_default is None:
-            ap.add_argument("-o", "--output", required=True, help=f"{spec.output} (created; files inside are replaced)")
+            ap.add_argument("-o", "--output", required=True, help=f"{spec.output} (created, with missing parent "
+                            "folders; " + (spec.output_note or "the command's files in it are replaced") + ")")
         else:
             ap.add_argument("-o", "--output", default=spec.output_default,
                             help=f"{spec.output} (default ./{spec.output_default})")

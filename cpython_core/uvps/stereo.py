@@ -329,7 +329,7 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
             sq_sum, sq_n, n_invalid = sq_sum + s, sq_n + n, n_invalid + bad
             report(progress, r1 / M, f"normals: rows {r1}/{M}")
     if n_invalid:
-        log.warning("%d pixels had fewer than 3 usable lights and are NaN", n_invalid)
+        log.info("%d pixels had fewer than 3 usable lights and are NaN", n_invalid)
     return StereoResult(out.normals, out.albedo, out.n_used, n_invalid, float(np.sqrt(sq_sum / max(sq_n, 1))))
 
 

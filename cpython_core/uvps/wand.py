@@ -40,7 +40,8 @@ from .errors import UVPSInputError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["wand_select", "read_seeds", "read_seed_file", "SeedFile"]
+__all__ = ["wand_select", "contrast_select", "read_seeds", "read_seed_file", "SeedFile", "CONTRAST_FRACTION",
+           "MAX_WIDTH_UM"]
 
 _CONNECTIVITY = {4: 4, 8: 8, "4": 4, "8": 8, "4-connected": 4, "8-connected": 8, "legacy": "legacy"}
 
@@ -147,6 +148,157 @@ def wand_select(image, seeds, *, tolerance, connectivity=8, rgb="mean") -> np.nd
         labels[region & (labels == 0)] = i + 1
     logger.debug("wand: %d seeds, %d labels", len(pts), len(np.unique(labels)) - 1)
     return labels
+
+
+#: The default of :func:`contrast_select`: a pixel belongs to the clicked protrusion when it keeps at
+#: least half of the click's contrast against its surroundings (the half-contrast outline: the
+#: footprint's edge for a protrusion whose fluorescence steps up at its rim).
+CONTRAST_FRACTION = 0.5
+
+#: The default widest protrusion of the relative wand, um (as :class:`uvps.detect.DetectionParams`).
+MAX_WIDTH_UM = 1000.0
+
+
+def contrast_select(image, seeds, *, fraction=CONTRAST_FRACTION, max_width_px=None) -> np.ndarray:
+    """Outline the protrusion at each click by its own contrast against its surroundings.
+
+    ImageJ's wand asks for a tolerance in the image's units, and no single value suits protrusions
+    whose contrast varies tenfold (an albedo in raw counts of 6,000-42,000: 0.05 selects one pixel,
+    1000 under-selects faint ones, 3000 leaks into the paint). Here each click sets its own. The
+    surroundings' level ``b`` is the highest level at which the click's region (8-connected pixels
+    at or above it) runs into the paint: wider than ``max_width_px``, or out to the edge of a
+    window of that radius (found by bisection). Levels are read on the image's 3 x 3 median (a single noisy
+    pixel neither bridges to the paint nor ends the region); with ``v0`` its value at the click and
+    ``c = v0 - b`` the click's contrast, the selection is the region of the pixels that keep at
+    least ``fraction`` of it (``v >= b + fraction c``), holes filled (as ImageJ's traced outline
+    encloses a crater). A click darker than its window's median (a protrusion that does not
+    fluoresce) is outlined the same way on the dark side. The region stays below the level at
+    which it leaks, so it never spreads across the field.
+
+    Parameters
+    ----------
+    image : (M, N) or (M, N, 3) array
+        The albedo (RGB: the mean of R, G, B, as ImageJ's wand) or any image in which a protrusion
+        stands out from its surroundings (the height). Not modified.
+    seeds : (S, 2) array_like
+        Clicks as ``(x_px, y_px)``, floored to the containing pixel.
+    fraction : float
+        In (0, 1): the share of the click's contrast a pixel must keep (0.5: half contrast).
+    max_width_px : float, optional
+        The largest protrusion expected, in pixels (default: a quarter of the smaller image side).
+
+    Returns
+    -------
+    labels : (M, N) int32
+        As :func:`wand_select`: seed ``i`` gets label ``i + 1``; a click inside an earlier click's
+        selection reuses its label (a repeated click); a click with no contrast (``c`` within twice
+        a pixel's noise, from the window's neighbouring-pixel differences) selects only its own
+        pixel.
+
+    Notes
+    -----
+    A half-contrast outline is the footprint of a protrusion whose fluorescence (or height) steps up
+    at its rim; for a dome in height alone it is the width at half height. About 25
+    :func:`skimage.segmentation.flood` calls per click on a window of ``2 max_width_px`` pixels.
+    Measured on the generator's captures: ``scripts/benchmark_protrusions.py --wand``
+    (docs/benchmarks.md, "The wand's default").
+
+    Examples
+    --------
+    >>> img = np.full((40, 40), 100.0); img[15:22, 10:17] = 180.0; img[5:8, 30:33] = 110.0
+    >>> lab = contrast_select(img, [[12, 17], [31, 6]])
+    >>> int((lab == 1).sum()), int((lab == 2).sum())
+    (49, 9)
+    """
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 3 and img.shape[2] == 3:
+        grey = img.mean(axis=2)
+    elif img.ndim == 2:
+        grey = img
+    else:
+        raise UVPSInputError(f"`image` must be (M, N) or (M, N, 3); got shape {img.shape}")
+    try:
+        frac = float(fraction)
+    except (TypeError, ValueError):
+        frac = float("nan")
+    if not 0 < frac < 1:
+        raise UVPSInputError(f"`tolerance` of the relative wand must be a fraction of the click's contrast in "
+                             f"(0, 1); got {fraction!r}")
+    pts = _as_seed_array(seeds, "seeds")
+    m, n = grey.shape
+    max_w = max(3.0, float(max_width_px) if max_width_px else min(m, n) / 4.0)
+    finite = np.isfinite(grey)
+    labels = np.zeros((m, n), np.int32)
+    for i, (x, y) in enumerate(pts):
+        if not (0 <= x < n and 0 <= y < m):
+            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
+        if not finite[y, x]:
+            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+        if labels[y, x]:
+            continue  # inside an earlier click's selection: a repeated click
+        region = _grow_by_contrast(grey, finite, y, x, frac, max_w)
+        labels[region[0], region[1]] = np.where(labels[region[0], region[1]] == 0, i + 1,
+                                                labels[region[0], region[1]])
+    logger.debug("contrast wand: %d seeds, %d labels", len(pts), len(np.unique(labels)) - 1)
+    return labels
+
+
+def _grow_by_contrast(grey, finite, y, x, frac, max_w):
+    """Rows and columns of the region around (y, x) keeping ``frac`` of its contrast (see
+    :func:`contrast_select`)."""
+    m, n = grey.shape
+    h = int(np.ceil(max_w))
+    r0, r1, c0, c1 = max(y - h, 0), min(y + h + 1, m), max(x - h, 0), min(x + h + 1, n)
+    ok = finite[r0:r1, c0:c1]
+    raw = np.where(ok, grey[r0:r1, c0:c1], np.nan)
+    noise = 1.4826 * float(np.nanmedian(np.abs(np.diff(raw, axis=1)))) / np.sqrt(2)
+    # grown on the 3 x 3 median: a single noisy pixel neither bridges to the paint nor ends the region
+    win = ndi.median_filter(np.where(ok, raw, np.nanmedian(raw)), size=3)
+    seed = (y - r0, x - c0)
+    v0 = float(win[seed])
+    # a bright protrusion, or a dark one (one that does not fluoresce): work on the bright side
+    sign = 1.0 if v0 >= np.nanmedian(win) else -1.0
+    g = np.where(ok, sign * win, -np.inf)
+    v = sign * v0
+    max_area = np.pi * (max_w / 2) ** 2
+    inner = (slice(1, -1), slice(1, -1))
+
+    def grow(t):
+        inside = g >= t
+        inside[seed] = True
+        return flood(inside, seed, connectivity=2)
+
+    def leaks(region):
+        # wider than the largest protrusion, or out to the window's edge (inside the image)
+        edge = ~np.zeros_like(region)
+        edge[inner] = False
+        if r0 == 0:
+            edge[0] = False
+        if r1 == m:
+            edge[-1] = False
+        if c0 == 0:
+            edge[:, 0] = False
+        if c1 == n:
+            edge[:, -1] = False
+        return region.sum() > max_area or (region & edge).any()
+
+    lo, hi = float(np.min(g[ok])), v
+    if leaks(grow(lo)):
+        # the surroundings' level: the highest level at which the click's region runs into the
+        # paint (hand-written bisection: each step is one flood of the window)
+        for _ in range(24):
+            mid = 0.5 * (lo + hi)
+            if leaks(grow(mid)):
+                lo = mid
+            else:
+                hi = mid
+    contrast = v - lo
+    if not contrast > 2 * noise:     # the 3 x 3 median's noise is a third of a pixel's: 6 of its sigma
+        return np.array([y]), np.array([x])
+    region = grow(lo + frac * contrast)
+    region = ndi.binary_fill_holes(region, structure=ndi.generate_binary_structure(2, 1))
+    rr, cc = np.nonzero(region)
+    return rr + r0, cc + c0
 
 
 def _as_seed_array(arr, name: str) -> np.ndarray:

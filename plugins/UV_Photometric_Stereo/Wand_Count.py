@@ -1,17 +1,19 @@
 """Wand Count: the paper's manual method, one wand selection per clicked protrusion.
 
 Click each protrusion on the albedo with the multi-point tool (or add point selections to the ROI
-Manager), then run this: every click grows a region of similar albedo (ImageJ's wand with a
-tolerance) and the regions are counted and measured. In a macro, the points come from a CSV with
-x_px,y_px columns (key points; x_um,y_um or x_mm,y_mm are read in their unit, X,Y as Analyze >
-Measure exports them in pixels or um: key units)
+Manager), then run this: every click is outlined on the albedo and the outlines are counted and
+measured. Method "relative" (default) keeps the pixels that hold at least the tolerance's share
+(0.5: half) of the click's own contrast against its surroundings, whatever the albedo's units;
+"imagej" is ImageJ's wand, with the tolerance in albedo units. In a macro, the points come from a
+CSV with x_px,y_px columns (key points; x_um,y_um or x_mm,y_mm are read in their unit, X,Y as
+Analyze > Measure exports them in pixels or um: key units)
 or from makeSelection("point", xs, ys) on the open albedo. Clicks inside an earlier click's
 selection are listed in the Log. The grey image the wand works on, (R+G+B)/3 of the albedo,
 opens as "albedo (R+G+B)/3" to try the wand by hand.
 Opens a "Manual protrusions" table and ROIs; writes protrusions_manual.csv and
 protrusions_manual_labels.tif.
 
-Macro: run("Wand Count", "run=[/data/run] points=[/data/clicks.csv] tolerance=0.05 connectivity=8");
+Macro: run("Wand Count", "run=[/data/run] points=[/data/clicks.csv] method=relative tolerance=0.5");
 """
 import os
 import sys
@@ -35,8 +37,10 @@ def main():
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "points"), key="points")
     dialogs.add_param(dlg, (COMMAND, "points_unit"), key="units")
-    # The core declares no default tolerance (a required value): this is ImageJ's usual start.
-    dialogs.add_param(dlg, (COMMAND, "tolerance"), key="tolerance", default=0.05, decimals=4)
+    dialogs.add_param(dlg, (COMMAND, "method"), key="method")
+    # 0 = the method's default (relative: 0.5 of the click's contrast)
+    dialogs.add_param(dlg, (COMMAND, "tolerance"), key="tolerance", decimals=4)
+    dialogs.add_param(dlg, (COMMAND, "max_width_um"), key="widest")
     dialogs.add_param(dlg, (COMMAND, "connectivity"), key="connectivity")
     dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
     values = dlg.show()

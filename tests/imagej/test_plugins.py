@@ -238,7 +238,7 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
         ('Detect Protrusions', 'run=%s regions=%s sensitivity=5 smallest=30'
          % (q(out), q(out / "regions_labels.tif")),
          ["protrusions.csv", "protrusions_labels.tif"]),
-        ('Wand Count', 'run=%s points=%s tolerance=0.05 connectivity=8' % (q(out), q(points)),
+        ('Wand Count', 'run=%s points=%s method=imagej tolerance=0.05 connectivity=8' % (q(out), q(points)),
          ["protrusions_manual.csv", "protrusions_manual_labels.tif"]),
         ('Compare Counts', 'run=%s first=%s second=%s match=0'
          % (q(out), q(out / "protrusions_manual.csv"), q(out / "protrusions.csv")),
@@ -371,7 +371,7 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
     result = run_macro(
         'open("%s");\n'
         'makeSelection("point", newArray(%s), newArray(%s));\n'
-        'run("Wand Count", "run=%s tolerance=0.05 connectivity=8");\n'
+        'run("Wand Count", "run=%s method=imagej tolerance=0.05 connectivity=8");\n'
         'print("rois " + roiManager("count"));\n'
         'print("rows " + Table.size("Manual protrusions - truth run"));\n'
         'selectImage("albedo - truth run");\nroiManager("select", 0);\n'
@@ -409,7 +409,7 @@ def test_wand_count_from_a_points_csv(run_macro, truth_run, tmp_path, imagej_hom
     points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked[:3]))
     points.write_text(points.read_text() + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked[3:]))
     write_plugin(imagej_home, "Test/Probe_Units.py", PROBE_UNITS)
-    wand = 'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
+    wand = 'run("Wand Count", "run=%s points=%s method=imagej tolerance=0.05 connectivity=4");\n'
     result = run_macro('newImage("user", "8-bit black", 320, 240, 1);\n'
                        'makeRectangle(1, 1, 20, 20);\nroiManager("add");\n'
                        + wand % (q(run), q(points)) + wand % (q(run), q(points))
@@ -441,7 +441,7 @@ def test_wand_points_in_mm_are_read_by_the_cores_parser(run_macro, truth_run, tm
     points.write_text("x_mm,y_mm\n" + "".join(
         "%.6f,%.6f\n" % ((float(r["x_px"]) + 0.5) * 0.015, (float(r["y_px"]) + 0.5) * 0.015)
         for r in clicked))
-    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
+    result = run_macro('run("Wand Count", "run=%s points=%s method=imagej tolerance=0.05 connectivity=8");\n'
                        % (q(run), q(points)), timeout=TIMEOUT).check()
     assert ("uvps Wand Count: %d clicks from the file %s, read in mm (the albedo's pixel size is "
             "15 um) as the file's header says" % (len(clicked), points)) in _log_lines(result)
@@ -450,7 +450,7 @@ def test_wand_points_in_mm_are_read_by_the_cores_parser(run_macro, truth_run, tm
 
 def test_wand_count_without_points_fails_clearly(run_macro, truth_run):
     run, _ = truth_run
-    result = run_macro('run("Wand Count", "run=%s tolerance=0.05 connectivity=8");\n' % q(run),
+    result = run_macro('run("Wand Count", "run=%s method=imagej tolerance=0.05 connectivity=8");\n' % q(run),
                        timeout=TIMEOUT)
     assert result.returncode == PYTHON_EXCEPTION_STATUS
     assert "uvps Wand Count failed (BridgeError): no points: click the protrusions" in result.stdout
@@ -618,7 +618,7 @@ def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_r
         "%d,0.1,5,%.3f,%.3f\n" % (i + 1, (x + 0.5) * px, (y + 0.5) * px)
         for i, (x, y) in enumerate(zip(xs, ys))))
     ix, iy = int(xs[1]), int(ys[1])
-    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
+    result = run_macro('run("Wand Count", "run=%s points=%s method=imagej tolerance=0.05 connectivity=8");\n'
                        'selectImage("albedo (R+G+B)/3 - truth run");\n'
                        'print("grey " + bitDepth() + " " + d2s(getPixel(%d, %d), 6));\n'
                        % (q(run), q(points), ix, iy), timeout=TIMEOUT).check()

@@ -1,0 +1,82 @@
+"""Failures say what to try: no library warning on the terminal, user-caused failures exit 1 with a
+next step, `uvps compare` against a truth table (real subprocesses)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from uvps import lights
+from uvps.errors import UVPSInputError
+from uvps.synthetic import make_capture, write_capture
+
+#: A command that trips numpy's divide-by-zero RuntimeWarning and a library DeprecationWarning, then
+#: fails on bad input, run through the real `uvps` entry point.
+_WARNING_COMMAND = """
+import dataclasses, sys, warnings
+import numpy as np
+from uvps import cli
+from uvps.errors import UVPSInputError
+
+def noisy(*args, **kwargs):
+    np.log(np.zeros(3))
+    np.float64(1.0) / np.zeros(2)
+    warnings.warn("a library's own warning", DeprecationWarning)
+    raise UVPSInputError("run folder x: the answer a user reads")
+
+cli.COMMANDS["info"] = dataclasses.replace(cli.COMMANDS["info"], run=noisy)
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_no_library_warning_reaches_the_terminal(tmp_path, verbose):
+    args = (["-v"] if verbose else []) + ["info", str(tmp_path)]
+    r = subprocess.run([sys.executable, "-W", "default", "-c", _WARNING_COMMAND, *args], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 1
+    if verbose:      # -v: the log shows them, for a developer
+        assert "RuntimeWarning" in r.stderr and "divide by zero" in r.stderr
+    else:
+        assert r.stderr.strip().splitlines() == ["uvps info: error: run folder x: the answer a user reads"]
+
+
+def test_too_few_lit_pixels_is_bad_input_with_a_next_step(monkeypatch):
+    """The light estimate's sample: a user's capture (exposure, mask) leaves too few pixels."""
+    monkeypatch.setattr(lights, "_eval_points", lambda fit, r, c: np.zeros(len(r)))
+    images = np.full((4, 60, 60), 1000, np.uint16)
+    mask = np.zeros((60, 60), bool)
+    mask[10:17, 10:17] = True                      # 49 pixels
+    with pytest.raises(UVPSInputError, match=r"too few pixels lit by every light .*49 of .* check the images' "
+                                             r"exposure.*give measured lamp positions \(--lights\)"):
+        lights.sample_pixels(images, [None] * 4, mask=mask, saturation=65535.0, pixel_size_um=15.0)
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cmp")
+    write_capture(make_capture(shape=(200, 260), n_lights=8, seed=4), root / "cap")
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(root / "cap"), "-o", str(root / "run"), "--detect",
+                        "--lights", str(root / "cap" / "lights_positions_mm.csv")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    return root
+
+
+def test_compare_against_a_truth_table_takes_the_runs_pixel_size(small_run):
+    out = small_run / "cmp"
+    r = subprocess.run([sys.executable, "-m", "uvps", "compare", str(small_run / "cap" / "truth" / "protrusions.csv"),
+                        str(small_run / "run" / "protrusions.csv"), "-o", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "pixel size 15 um from the run folder" in r.stderr
+    rows = (out / "comparison.csv").read_text().splitlines()
+    assert len(rows) >= 2 and "matched" in rows[0]
+    # with no run anywhere near: a one-line message naming what to give
+    lone = small_run / "lone.csv"
+    lone.write_text("id,x_px,y_px,width_um\n1,10,10,100\n")
+    r = subprocess.run([sys.executable, "-m", "uvps", "compare", str(lone), str(lone), "-o", str(small_run / "c2")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines()[-1].endswith("give pixel_size_um (--pixel-size-um), or -o the run folder "
+                                                      "of one of the tables")

@@ -1,0 +1,179 @@
+"""A run folder is all old or all new: the real `uvps run` (a subprocess), Ctrl-C at five points of a
+run that writes a report over an older folder, into a new folder, and output locations that cannot be
+written."""
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from uvps import outputs
+from uvps.errors import UVPSInputError
+from uvps.synthetic import make_capture, write_capture
+
+#: Log lines of `uvps run --regions auto` at which the Ctrl-C is sent: reading done, detection done,
+#: measurement done (the run folder's files are being written), the report started, the report done.
+POINTS = ("uvps.io: capture:", "uvps.detect: detect:", "uvps.measure: measured", "area names from",
+          "uvps.report: report:")
+
+
+def _start(args):
+    return subprocess.Popen([sys.executable, "-m", "uvps", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _interrupt_at(args, marker):
+    """Run uvps, send SIGINT the moment its log prints ``marker``; (exit status, stderr)."""
+    proc = _start(args)
+    lines = []
+
+    def read():
+        for line in proc.stderr:
+            lines.append(line)
+            if marker in line and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    proc.wait(timeout=600)
+    reader.join(timeout=60)
+    proc.stdout.close()
+    proc.stderr.close()
+    return proc.returncode, "".join(lines)
+
+
+def _snapshot(folder):
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cap")
+    write_capture(make_capture(shape=(200, 260), n_lights=8, seed=3, pixel_size_um=30.0), folder)
+    return folder
+
+
+@pytest.mark.slow
+def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture, tmp_path):
+    lights = capture / "lights_positions_mm.csv"
+    run = tmp_path / "run"
+    old = subprocess.run([sys.executable, "-m", "uvps", "run", str(capture), "-o", str(run), "--regions", "auto",
+                          "--pixel-size-um", "30", "--lights", str(lights)], capture_output=True, text=True, timeout=600)
+    assert old.returncode == 0, old.stderr
+    (run / "notes.txt").write_text("the conservator's own notes")             # not the run's: carried over
+    (run / "protrusions_manual.csv").write_text("id\n")                        # an earlier wand's result: dropped
+    before = _snapshot(run)
+    ran_over = interrupted = 0
+    for marker in POINTS:
+        t0 = time.time()
+        time.sleep(0.05)
+        code, err = _interrupt_at(["run", capture, "-o", run, "--regions", "auto", "--pixel-size-um", 15,
+                                   "--lights", lights], marker)
+        assert "Traceback" not in err, err
+        after = _snapshot(run)
+        log = json.loads((run / "run.json").read_text())
+        if code == 130 and "left as it was" in err.splitlines()[-1]:
+            interrupted += 1
+            assert after == before, marker                                     # byte for byte the old run
+            assert err.splitlines()[-1] == f"uvps run: interrupted; {run} left as it was (nothing of this run written)"
+        else:
+            ran_over += 1
+            assert code in (0, 130), err
+            assert log["params"]["pixel_size_um"] == 15.0
+            assert "protrusions_manual.csv" not in after and (run / "notes.txt").read_text().startswith("the")
+            assert {"report.html", "run.json", "depth.tif", "regions.csv"} <= set(after)
+            assert set(after) - {"notes.txt"} == {k for k in before if k != "protrusions_manual.csv"} - {"notes.txt"}
+            for rel in after:
+                if rel != "notes.txt":
+                    assert (run / rel).stat().st_mtime >= t0, rel                # every file of this run
+            break       # the folder is new now; the old-folder comparison ends here
+        # no leftovers beside it
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["run"], marker
+    assert interrupted >= 4, (interrupted, ran_over)
+
+
+@pytest.mark.slow
+def test_ctrl_c_into_a_new_nested_folder_leaves_nothing(capture, tmp_path):
+    out = tmp_path / "runs" / "region1"
+    code, err = _interrupt_at(["run", capture, "-o", out, "--regions", "auto", "--lights",
+                               capture / "lights_positions_mm.csv"], "uvps.detect: detect:")
+    assert code == 130, err
+    assert err.splitlines()[-1] == f"uvps run: interrupted; nothing written ({out} not created)"
+    assert list(tmp_path.iterdir()) == []                                      # not even runs/
+
+
+def test_missing_parent_folders_are_made(capture, tmp_path):
+    out = tmp_path / "runs" / "deeper" / "region1"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(capture), "-o", str(out), "--lights",
+                        str(capture / "lights_positions_mm.csv")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert (out / "run.json").is_file() and (out / "depth.tif").is_file()
+    assert sorted(p.name for p in out.parent.iterdir()) == ["region1"]         # no temporary left
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_an_unwritable_location_fails_before_computing(capture, tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "uvps", "run", str(capture), "-o", str(ro / "a" / "run")],
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 1
+        assert r.stderr.strip().splitlines()[-1] == (f"uvps run: error: output folder {ro / 'a' / 'run'}: cannot "
+                                                     f"write in {ro} (read-only or no permission); choose another "
+                                                     "output folder")
+        assert "lights" not in r.stderr and time.perf_counter() - t0 < 60
+    finally:
+        ro.chmod(0o755)
+
+
+def test_the_writability_check_names_the_folder(tmp_path, monkeypatch):
+    """As root a mode of 0o555 does not stop writing; a read-only file system does (os.access says so)."""
+    real = os.access
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: False if Path(p) == tmp_path else real(p, mode))
+    with pytest.raises(UVPSInputError, match=r"cannot write in .* \(read-only or no permission\)"):
+        outputs.check_output_dir(tmp_path / "x" / "run")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(UVPSInputError, match="is a file, not a folder"):
+        outputs.check_output_dir(tmp_path / "f" / "run")
+
+
+def test_new_output_dir_swaps_whole_and_carries_the_users_files(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "depth.tif").write_text("old")
+    (run / "clicks.csv").write_text("x_px,y_px\n1,2\n")
+    (run / "figures").mkdir()
+    (run / "figures" / "old.png").write_text("old")
+    with outputs.new_output_dir(run, carry_over=lambda name: name == "clicks.csv") as new:
+        assert new.name == "run" and new.parent.parent == tmp_path
+        (new / "depth.tif").write_text("new")
+    assert _snapshot(run).keys() == {"depth.tif", "clicks.csv"}
+    assert (run / "depth.tif").read_text() == "new" and str(run) in outputs.COMMITTED
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    before = _snapshot(run)
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.new_output_dir(run) as new:
+            (new / "depth.tif").write_text("newer")
+            raise KeyboardInterrupt
+    assert _snapshot(run) == before and sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_a_signal_during_the_swap_waits_for_its_end(tmp_path):
+    """SIGINT raised inside deferred_signals is delivered after the block, not in the middle."""
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.deferred_signals():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            done.append(1)
+    assert done == [1]
