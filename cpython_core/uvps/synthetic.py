@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 from .errors import UVPSInputError
 from .io import Capture, write_imagej_tiff
 from .outputs import Progress, atomic_output_dir, report, write_json_atomic
+from .synthetic_elements import ElementTruth, render_element_maps  # noqa: F401  (element maps: uvps elements)
 
 logger = logging.getLogger(__name__)
 
