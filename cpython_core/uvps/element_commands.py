@@ -37,6 +37,10 @@ TABLE_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
 #: Column names a text table may give its grid position by (lower case).
 ROW_NAMES = ("row", "rows", "y", "r", "i")
 COL_NAMES = ("col", "column", "columns", "x", "c", "j")
+#: Least fraction of the (standardised) maps' variance the colour areas must explain once registered:
+#: 0.92-1.00 on the benchmark's maps (with composition varying +-30 % inside the areas, a flat-topped
+#: spot and line jitter), under 0.01 for maps of another region (tests/test_elements.py).
+MIN_EXPLAINED = 0.2
 #: Fewest map pixels (each way) of a map: a smaller one is not a map.
 MIN_MAP_PIXELS = 4
 
@@ -186,7 +190,19 @@ def read_element_maps(paths, *, step_um: Optional[float] = None) -> ElementMaps:
         are missing, an element named twice.
     """
     names, arrays, sources, steps = [], [], [], {}
+    expanded = []
     for p in paths:
+        # a folder (the Fiji dialog's choice) stands for the map files in it
+        p = Path(p)
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.is_file()
+                           and f.suffix.lower() in TIFF_SUFFIXES + EDF_SUFFIXES + TABLE_SUFFIXES)
+            if not found:
+                raise UVPSInputError(f"element maps: folder {p} holds no TIFF, EDF or table files")
+            expanded.extend(found)
+        else:
+            expanded.append(p)
+    for p in expanded:
         path = Path(p)
         if not path.is_file():
             raise UVPSInputError(f"element map {path} does not exist")
@@ -319,7 +335,8 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
     timings["reading"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     spot = params["spot_um"]
-    reg = register_maps(images.albedo, maps, pixel_size_um=px, spot_um=spot, reference=reference,
+    reg = register_maps(images.albedo, maps, labels=regions.labels, pixel_size_um=px, spot_um=spot,
+                        reference=reference,
                         control_points=cp, refine=params["refine"],
                         progress=lambda f, m: report(progress, 0.7 * f, m))
     timings["registration"] = round(time.perf_counter() - t, 3)
@@ -329,6 +346,11 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
             f"element maps: {what} does not hold (residual {reg.residual_map_px:.2f} map px, more than "
             f"{params['max_residual_map_px']:g}); check --step-um, or give control points "
             "(--control-points: map_col,map_row,run_col,run_row)")
+    if reg.explained < MIN_EXPLAINED:
+        raise UVPSInputError(
+            f"element maps: the run's colour areas explain {100 * reg.explained:.0f} % of the maps' variation "
+            f"(at least {100 * MIN_EXPLAINED:.0f} % expected once registered): they do not show this region, "
+            "or the areas do not follow the paint; give control points (--control-points) or other areas")
     if reg.overlap < 0.5:
         raise UVPSInputError(f"element maps cover {100 * reg.overlap:.0f} % of the run's field (at least 50 % "
                              "needed); check that the maps show this region, and --step-um")

@@ -398,8 +398,13 @@ def register_maps(albedo: Optional[np.ndarray], maps: ElementMaps, *, labels: np
     if control_points is not None:
         from skimage.transform import SimilarityTransform
         cp = np.asarray(control_points, float)
-        tf = SimilarityTransform()
-        if not tf.estimate(cp[:, :2], cp[:, 2:4]):
+        if hasattr(SimilarityTransform, "from_estimate"):      # scikit-image >= 0.26
+            tf = SimilarityTransform.from_estimate(cp[:, :2], cp[:, 2:4])
+            ok = bool(tf)
+        else:
+            tf = SimilarityTransform()
+            ok = tf.estimate(cp[:, :2], cp[:, 2:4])
+        if not ok:
             raise UVPSInputError("control points: no similarity fits them (are they all on one point?)")
         start = np.asarray(tf.params, float)
         matrix, method = start, "control points"

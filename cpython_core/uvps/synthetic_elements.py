@@ -45,6 +45,7 @@ class ElementTruth:
 def render_element_maps(capture, *, elements: Sequence[str] = DEFAULT_ELEMENTS, step_um: float = 250.0,
                         spot_um: float = 1000.0, margin_mm: float = 2.5, rotation_deg: float = 0.0,
                         scale: float = 1.0, shift_mm=(0.0, 0.0), abundance: Optional[np.ndarray] = None,
+                        within_area: float = 0.0, spot_shape: str = "gaussian", line_jitter_px: float = 0.0,
                         seed: int = 0) -> ElementTruth:
     """Render element maps of a synthetic capture's colour areas.
 
@@ -65,6 +66,17 @@ def render_element_maps(capture, *, elements: Sequence[str] = DEFAULT_ELEMENTS, 
         ``step_um * scale`` on the painting) and shift of its centre (x right, y up, mm).
     abundance : (R + 1, E) array, optional
         Counts per dwell per area and element (default drawn from ``seed``).
+    within_area : float
+        What the registration does not model: each element's abundance varies inside every area by
+        a smooth random factor of up to ``1 +- within_area`` (over 2-6 mm), so composition no
+        longer follows the colour areas exactly. The truth's ``abundance`` stays the areas' nominal
+        values (the area means are then off by the factor's mean over the area).
+    spot_shape : str
+        ``"gaussian"`` (FWHM ``spot_um``) or ``"disc"`` (a flat-topped spot of diameter ``spot_um``,
+        as a polycapillary's is nearer to; the registration assumes a Gaussian).
+    line_jitter_px : float
+        Standard deviation (map pixels) of each scan line's shift along x (a scanner's stage
+        backlash), which no similarity holds.
     seed : int
 
     Returns
@@ -103,11 +115,40 @@ def render_element_maps(capture, *, elements: Sequence[str] = DEFAULT_ELEMENTS, 
     rr, cc = np.mgrid[0:H, 0:W]
     x = map_to_run[0, 0] * cc + map_to_run[0, 1] * rr + map_to_run[0, 2] + pad
     y = map_to_run[1, 0] * cc + map_to_run[1, 1] * rr + map_to_run[1, 2] + pad
+    if line_jitter_px:
+        jitter = rng.normal(0.0, line_jitter_px, H)[:, None]
+        x = x + jitter * map_to_run[0, 0]
+        y = y + jitter * map_to_run[1, 0]
+    if spot_shape not in ("gaussian", "disc"):
+        raise ValueError(f"spot_shape must be 'gaussian' or 'disc'; got {spot_shape!r}")
     data = np.empty((E, H, W))
     for e in range(E):
         field = abundance[lab, e].astype(np.float32)
-        blurred = cv2.GaussianBlur(field, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        if within_area:
+            vary = _smooth_field(rng, lab.shape, px)
+            field *= (1.0 + within_area * vary).astype(np.float32)
+        if spot_shape == "gaussian":
+            blurred = cv2.GaussianBlur(field, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        else:
+            r = spot_um / 2.0 / px
+            k = int(math.ceil(r))
+            yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+            disc = (np.hypot(xx, yy) <= r).astype(np.float32)
+            blurred = cv2.filter2D(field, -1, disc / disc.sum(), borderType=cv2.BORDER_REFLECT)
         lam = ndimage.map_coordinates(blurred, [y, x], order=1, mode="nearest")
         data[e] = rng.poisson(np.maximum(lam, 0)).astype(float)
     maps = ElementMaps(list(elements), data, float(step_um), [f"{n}.tif" for n in elements])
     return ElementTruth(maps, map_to_run, abundance)
+
+
+def _smooth_field(rng, shape, px) -> np.ndarray:
+    """A smooth random field in -1..1 varying over 2-6 mm (a few random waves)."""
+    M, N = shape
+    yy, xx = np.mgrid[0:M, 0:N].astype(np.float32) * (px / 1000.0)
+    out = np.zeros(shape, np.float32)
+    for _ in range(4):
+        period = rng.uniform(2.0, 6.0)
+        theta = rng.uniform(0, np.pi)
+        phase = rng.uniform(0, 2 * np.pi)
+        out += np.cos(2 * np.pi / period * (xx * np.cos(theta) + yy * np.sin(theta)) + phase)
+    return out / max(float(np.abs(out).max()), 1e-6)
