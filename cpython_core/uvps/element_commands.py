@@ -456,10 +456,11 @@ SPECS = (
                 "elements_by_area.csv, elements_by_protrusion.csv, element_correlation.csv, report.html "
                 "and run.json (docs/elements.md).",
                 params=(
-                    Param("run", "path", where="inputs", positional=True, required=True, label="Run folder",
+                    Param("run", "path", where="inputs", positional=True, required=True,
+                          label="Source run folder (with colour areas)",
                           help="run folder with colour areas and protrusions (uvps run --regions ...)"),
                     Param("maps", "paths", where="inputs", positional=True, required=True,
-                          label="Element maps",
+                          label="Element maps (folder, or files separated by ;)",
                           help="element map files: TIFF/EDF per element, a labelled TIFF stack, or a table"),
                     Param("step_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                           label="Scan step (um)",
