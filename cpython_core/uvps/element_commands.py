@@ -471,8 +471,9 @@ SPECS = (
                     Param("control_points", "path", where="inputs", label="Control points",
                           help="CSV map_col,map_row,run_col,run_row (2 or more) instead of automatic "
                                "registration"),
-                    Param("refine", "bool", True, label="Refine control points",
-                          help="refine the control points' registration by mutual information"),
+                    Param("refine", "bool", False, label="Refine control points",
+                          help="refine the control points' registration by the colour areas (helps clicks "
+                               "that are a pixel or more off; otherwise the points alone are nearer)"),
                     Param("reference", "str", label="Register on",
                           help="comma-separated elements to register on (default all)"),
                     Param("composite", "str", label="Composite elements",

@@ -339,7 +339,7 @@ def _grid_inside(matrix, map_shape, run_shape, margin_px) -> tuple:
 
 def register_maps(albedo: Optional[np.ndarray], maps: ElementMaps, *, labels: np.ndarray, pixel_size_um: float,
                   spot_um: float = 1000.0, reference: Optional[Sequence[str]] = None,
-                  control_points: Optional[np.ndarray] = None, refine: bool = True,
+                  control_points: Optional[np.ndarray] = None, refine: bool = False,
                   progress: Progress = None) -> ElementRegistration:
     """Register element maps onto a run.
 
@@ -368,8 +368,12 @@ def register_maps(albedo: Optional[np.ndarray], maps: ElementMaps, *, labels: np
         The elements to register on (default all).
     control_points : (P, 4) array, optional
         Rows ``map_col, map_row, run_col, run_row`` (pixel centres); two or more fix the similarity
-        (least squares, :class:`skimage.transform.SimilarityTransform`), which the mixing residual
-        then refines (``refine``; kept when it moves the points by less than 2 map pixels rms).
+        (least squares, :class:`skimage.transform.SimilarityTransform`).
+    refine : bool
+        With control points: refine their similarity by the mixing residual (kept when it moves the
+        points by less than 2 map pixels rms). Off by default: where composition varies inside the
+        areas the mixture's optimum lies 0.3 map px off (docs/benchmarks.md), farther than 4 careful
+        clicks.
 
     Returns
     -------
