@@ -9,9 +9,11 @@ scored against the generator's truth. Nothing of the pipeline is assembled by ha
 Rows: ``none`` (no nuisance), every nuisance of :data:`uvps.synthetic.NUISANCE_TOP` alone at the top of
 its range, and ``all`` (:meth:`SyntheticSpec.realistic` with ``level="top"``). Each row is run for every
 seed, lamp count and lights mode: ``estimated`` (no ``--lights``), ``calibrated`` (``--lights`` with a
-positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth) and ``dark`` (lamps estimated, with
+positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth), ``dark`` (lamps estimated, with
 ``--dark`` a frame taken with the lamp off: :func:`uvps.synthetic.render_dark_frame`, the remedy the
-run's warnings name for stray light). With detection on (the default) the run
+run's warnings name for stray light) and ``card`` (the true positions, the dark frame, and ``--card`` a
+flat fluorescent card under every lamp: :func:`uvps.synthetic.render_card` with
+:data:`uvps.synthetic.CARD_TYPICAL`, tilted toward an azimuth that changes with the seed). With detection on (the default) the run
 gets ``--regions`` with the true colour areas (``truth/regions.tif``).
 
 Metrics per run:
@@ -65,10 +67,11 @@ if str(SCRIPTS) not in sys.path:
 from benchmark_core import protrusion_errors  # noqa: E402  (the disc/ring height measure)
 from benchmark_protrusions import match, summarise  # noqa: E402  (detection matching and summary)
 
-from uvps.synthetic import NUISANCE_TOP, SyntheticSpec, make_capture, write_capture  # noqa: E402
+from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capture, render_card,  # noqa: E402
+                            write_capture)
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["all"]
-MODES = ("estimated", "calibrated", "dark")
+MODES = ("estimated", "calibrated", "dark", "card")
 SCHEMA = 1
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
@@ -281,7 +284,10 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
     spec = spec_for(row, shape=config["shape"], pixel_size_um=config["pixel_size_um"], seed=seed, n_lights=lamps)
     cap = make_capture(spec)
     t_make = time.perf_counter() - t0
-    write_capture(cap, cap_dir, dark_frame="dark" in todo)
+    card = None
+    if "card" in todo:
+        card = render_card(cap, tilt_azimuth_deg=(137.5 * seed) % 360.0, **CARD_TYPICAL)
+    write_capture(cap, cap_dir, dark_frame="dark" in todo or "card" in todo, card=card)
     lights_csv = workdir / "captures" / f"{key}__lights_truth.csv"
     write_positions_csv(cap, lights_csv)
     regions_tif = cap_dir / "truth" / "regions.tif"
@@ -291,12 +297,15 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
             shutil.rmtree(run_dir, ignore_errors=True)
             params = {}
             argv = ["uvps", "run", str(cap_dir), "-o", str(run_dir)]
-            if mode == "calibrated":
+            if mode in ("calibrated", "card"):
                 params["lights"] = str(lights_csv)
                 argv += ["--lights", str(lights_csv)]
-            if mode == "dark":
+            if mode in ("dark", "card"):
                 params["dark"] = str(cap_dir / "dark" / "dark.tif")
                 argv += ["--dark", params["dark"]]
+            if mode == "card":
+                params["card"] = str(cap_dir / "card")
+                argv += ["--card", params["card"]]
             if config["detect"]:
                 params["regions"] = str(regions_tif)
                 argv += ["--regions", str(regions_tif)]
@@ -555,7 +564,8 @@ def main(argv=None) -> int:
         f"({N * args.pixel_size_um / 1000:g} x {M * args.pixel_size_um / 1000:g} mm), seeds "
         f"{' '.join(map(str, args.seeds))}; each nuisance of `NUISANCE_TOP` alone at the top of its range, "
         "then all of them (`all`), and none. lights: `estimated` (no --lights), `calibrated` (--lights with "
-        "the true positions) or `dark` (estimated, with --dark a frame taken with the lamp off). "
+        "the true positions), `dark` (estimated, with --dark a frame taken with the lamp off) or `card` (the true "
+        "positions, --dark, and --card a flat card under every lamp, tilted 1 deg, 1 % uneven). "
         + ("Detection with --regions (the true colour areas). " if config["detect"] else "No detection (--no-detect). ")
         + "Each cell: the worst value over seeds (the mean in brackets); **x**: misses its target. "
         "Lights: angle between the run's lights.json direction and the true one, mean / max over lamps; "

@@ -14,9 +14,11 @@ import numpy as np
 from . import protrusion_commands, runfolder
 from .runfolder import RunImages
 from .integrate import integrate_normals
+from .card import load_card
 from .io import read_capture, write_imagej_tiff
 from .outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
-from .pipeline import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, integration_diagnostics, run
+from .pipeline import (CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, given_lights,
+                       integration_diagnostics, run)
 from .relight import relight
 from .spec import CommandSpec, Param
 from .synthetic import make_capture, write_capture
@@ -56,8 +58,13 @@ def _capture_command(name: str, stages: tuple):
             # the flat-fielded images are twice the capture on disk (15 GB for 10000 x 8000 x 16) and
             # 4.3 of a 4000 x 3000 run's 16 s; the normals divide by the same drop-off in memory
             todo = tuple(s for s in stages if s != "flatfield")
+        card = None
+        if params.get("card"):
+            # the card's images with the capture's dark frame subtracted, as the capture's were
+            card = load_card(params["card"], lights=given_lights(capture), pixel_size_um=capture.pixel_size_um,
+                             dark=params["dark"], linearize=params["linearize"])
         result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
-                     dark_given=params["dark"] is not None, regions=params.get("regions"),
+                     dark_given=params["dark"] is not None, regions=params.get("regions"), card=card,
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
         with atomic_output_dir(run_dir) as tmp:
             outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,

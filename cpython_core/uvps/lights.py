@@ -43,6 +43,7 @@ from skimage.transform import warp_polar
 
 from .errors import UVPSComputeError, UVPSInputError
 from .flatfield import BlockGrid, DropoffFit, set_common, to_unit
+from .irradiance import lamp_vectors, near_scale
 from .outputs import Progress, report, sub_progress
 
 log = logging.getLogger(__name__)
@@ -91,21 +92,13 @@ class LightModel:
         return cls(D, E, None)
 
     def vectors(self, X) -> np.ndarray:
-        """Per-point light vectors ``E_k (|L_k|/d)^2 (L_k - X)/d`` for points X (..., 3) mm.
+        """Per-point light vectors ``E_k (|L_k|/d)^2 (L_k - X)/d`` for points X (..., 3) mm
+        (:func:`uvps.irradiance.lamp_vectors`).
 
         Returns (K, ..., 3); far lights give ``E_k l_k`` everywhere.
         """
-        if not self.near:
-            shape = (len(self.directions),) + X.shape
-            v = self.directions * self.intensities[:, None]
-            return np.broadcast_to(v.reshape((len(v),) + (1,) * (X.ndim - 1) + (3,)), shape)
-        P = self.positions_mm
-        out = np.empty((len(P),) + X.shape, dtype=np.float32 if X.dtype == np.float32 else float)
-        for k, (Lk, Ek) in enumerate(zip(P, self.intensities)):
-            V = Lk - X
-            d2 = np.einsum("...i,...i->...", V, V)
-            out[k] = V * (Ek * np.dot(Lk, Lk) / d2 ** 1.5)[..., None]
-        return out
+        return lamp_vectors(X, intensities=self.intensities, positions_mm=self.positions_mm,
+                            directions=None if self.near else self.directions)
 
     def to_json(self, files, *, extra=None) -> dict:
         lights = []
@@ -269,10 +262,7 @@ def intensities_from_levels(levels, positions_mm, shape, pixel_size_um, *, direc
     E = np.empty(len(levels))
     for k, lev in enumerate(levels):
         if positions_mm is not None:
-            Lk = positions_mm[k]
-            V = Lk - X
-            d2 = np.einsum("...i,...i->...", V, V)
-            S = np.dot(Lk, Lk) * V[..., 2] / d2 ** 1.5
+            S = lamp_vectors(X, intensities=[1.0], positions_mm=positions_mm[k:k + 1])[0, ..., 2]
             E[k] = np.exp(lev) / np.exp(np.log(S).mean())
         else:
             E[k] = np.exp(lev) / max(directions[k][2], 1e-3)
@@ -739,7 +729,7 @@ def _lamp_vectors(th, X):
     L, along = _lamp_axes(th)
     u = L[:, :, None] - X.T[None]
     d2 = u[:, 0] ** 2 + u[:, 1] ** 2 + u[:, 2] ** 2
-    s = (np.exp(th[:, 3] + 2 * th[:, 2]))[:, None] / d2 ** 1.5
+    s = near_scale(u[:, 0], u[:, 1], u[:, 2], np.exp(th[:, 3] + 2 * th[:, 2])[:, None])
     V = u * s[:, None, :]
     W = np.empty((len(th), 4) + V.shape[1:])
     for j, a in enumerate(along):

@@ -25,6 +25,7 @@ from typing import Optional
 
 import numpy as np
 
+from .card import CardCalibration, apply_card, load_card
 from .detect import DetectionParams, detect_protrusions
 from .errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, set_common
@@ -42,7 +43,7 @@ from .stereo import StereoResult, solve_normals
 log = logging.getLogger(__name__)
 
 __all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
-           "estimate_capture_lights", "find_protrusions"]
+           "estimate_capture_lights", "find_protrusions", "given_lights"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
 #: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
@@ -68,6 +69,10 @@ OPTION_PARAMS = (
     Param("lamp_beams", "bool", False,
           help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
                "the canvas's large-scale shape (bow) from the heights"),
+    Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
+          help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
+               "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "
+               "power and the vignetting; needs the lamps (--lights)"),
 )
 #: Where the capture comes from: shared by run, flatfield, lights and normals.
 CAPTURE_PARAMS = (
@@ -133,6 +138,7 @@ class RunOptions:
     offset: str = _default("offset")
     offset_degree: int = _default("offset_degree")
     lamp_beams: bool = _default("lamp_beams")
+    card: Optional[str] = _default("card")
 
     def __post_init__(self):
         for p in OPTION_PARAMS:
@@ -156,6 +162,7 @@ class LightsResult:
     estimate: Optional[LightEstimate] = None
     images: Optional[object] = None      # the stack as the lights see it (known positions: beams divided out)
     beam_rms: Optional[float] = None     # known positions: rms of the drop-off beyond the model (log units)
+    card: Optional[CardCalibration] = None   # the card whose gains the images are divided by
 
 
 @dataclass
@@ -228,7 +235,7 @@ KNOWN_POSITIONS_RESIDUALS = 150000
 
 def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
         dark_given: bool = False, regions=None, n_areas=None, detection: DetectionParams = None,
-        progress: Progress = None) -> RunResult:
+        card: Optional[CardCalibration] = None, progress: Progress = None) -> RunResult:
     """Run the pipeline on a capture, in memory.
 
     Parameters
@@ -249,6 +256,9 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         Number of areas for ``regions="auto"`` (default: chosen from the albedo).
     detection : DetectionParams, optional
         Options of :func:`uvps.detect.detect_protrusions`.
+    card : CardCalibration, optional
+        A card's per-lamp flat-field (:mod:`uvps.card`); else ``options.card`` (a path) is
+        loaded with :func:`uvps.card.load_card` (its images taken as dark-subtracted already).
     progress : callable(fraction, message), optional
 
     Returns
@@ -272,7 +282,9 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     res.timings_s["additive"] = _since(t0)
     res.diagnostics["additive"] = res.additive.to_json()
     res.warnings += warn
-    _run_lights(res, capture, sub_progress(progress, *span["lights"]))
+    if card is None and options.card:
+        card = load_card(options.card, lights=given_lights(capture), pixel_size_um=capture.pixel_size_um)
+    _run_lights(res, capture, sub_progress(progress, *span["lights"]), card=card)
     if "normals" in stages:
         _run_normals(res, sub_progress(progress, *span["normals"]))
     if "height" in stages:
@@ -326,17 +338,28 @@ def _since(t0) -> float:
     return round(time.perf_counter() - t0, 3)
 
 
-def _run_lights(res: RunResult, capture: Capture, progress: Progress) -> None:
+def given_lights(capture: Capture) -> LightModel:
+    """The capture's given lamps (positions, else directions), as a card needs them; none is an error."""
+    if capture.light_positions_mm is not None:
+        return LightModel.from_positions(capture.light_positions_mm, capture.light_intensities)
+    if capture.light_directions is not None:
+        return LightModel.from_directions(capture.light_directions, capture.light_intensities)
+    raise UVPSInputError("card: the card needs the lamps' positions or directions (--lights); "
+                         "with lamps estimated from the images it cannot say which part of each image is the beam")
+
+
+def _run_lights(res: RunResult, capture: Capture, progress: Progress, *, card=None) -> None:
     """The lights stage: fits, lights, their diagnostics and the heights' confidence."""
     t0 = time.perf_counter()
     se = res.additive.stderr
     offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
-    res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, progress=progress)
+    res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, card=card,
+                                         progress=progress)
     res.timings_s["lights"] = _since(t0)
     _check_lamp_residual(res.lights)
     res.diagnostics["lights"] = lights_diagnostics(res.lights)
     azimuth_warning = _azimuth_warnings(res.lights, res.diagnostics["lights"])
-    if res.lights.images is not None:   # known positions: the images with the lamps' beams divided out
+    if res.lights.images is not None:   # known lamps: the images with the beams (or the card) divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
     res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
@@ -423,12 +446,47 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
             "hold?); give measured lamp positions (--lights) or a dark frame (--dark)")
     if st.n_invalid:
         res.warnings.append(f"{st.n_invalid} pixels had fewer than 3 usable lights (NaN)")
+    if res.lights.card is not None:
+        st = _level_card(res, st, progress)
     res.stereo = st
+
+
+def _level_card(res: RunResult, st: StereoResult, progress: Progress) -> StereoResult:
+    """Divide out the card's tilt against the painting, and solve the normals again.
+
+    Divided by a card, the normals are the painting's relative to the card: a card tilted by ``t``
+    tilts them all by ``-t`` (:mod:`uvps.card`). The mean surface plane is z = 0
+    (architecture.md), so the mean normal gives the card's tilt; the gains are made those of the
+    tilted card (:meth:`uvps.card.CardCalibration.tilted`) and the normals solved once more (the
+    tilt left after that is second order: reported).
+    """
+    cap, lights = res.capture, res.lights
+
+    def mean_slope(normals):
+        n = normals.reshape(-1, 3)
+        n = n[np.all(np.isfinite(n), axis=1)]
+        m = n.mean(axis=0)
+        return m[:2] / m[2]
+
+    slope = mean_slope(st.normals)
+    card = lights.card.tilted(slope, lights.model, pixel_size_um=cap.pixel_size_um)
+    images = apply_card(lights.images.base, card)
+    st = solve_normals(images, lights.model, pixel_size_um=cap.pixel_size_um, mask=cap.mask,
+                       saturation=cap.saturation, robust=res.options.robust, progress=progress)
+    left = mean_slope(st.normals)
+    res.capture = dataclasses.replace(cap, images=images)
+    res.lights.card, res.lights.images = card, images
+    d = card.to_json()
+    d["tilt_to_painting_deg"] = round(float(np.degrees(np.arctan(np.hypot(*slope)))), 4)
+    d["tilt_to_painting_azimuth_deg"] = round(float(np.degrees(np.arctan2(slope[1], slope[0])) % 360.0), 2)
+    d["tilt_left_deg"] = round(float(np.degrees(np.arctan(np.hypot(*left)))), 4)
+    res.diagnostics["card"] = d
+    return st
 
 
 def lights_diagnostics(lights: LightsResult) -> dict:
     """What ``run.json`` says about the lights: source, count, the estimate's cost and confidence."""
-    d = {"source": lights.source, "n_lights": int(len(lights.model.intensities))}
+    d = {"source": lights.source, "n_lights": int(len(lights.model.intensities)), "card": lights.card is not None}
     if lights.beam_rms is not None:
         d["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
     if lights.estimate is not None:
@@ -567,7 +625,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
 
 
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
-                            progress: Progress = None) -> LightsResult:
+                            card: Optional[CardCalibration] = None, progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
 
     Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
@@ -579,8 +637,17 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     from the images for either kind (far lights: from the levels), even over the file's. Otherwise
     the near-light positions are estimated from the images (:func:`uvps.lights.estimate_lights`);
     ``offset_stderr`` (grey counts, from :func:`remove_additive`) goes into their uncertainty.
+
+    With a ``card`` (:mod:`uvps.card`, known lamps only) every image is first divided by the card's
+    gain for its lamp: the lamps are then equal (``E_k = 1``) and beamless, and ``lamp_beams`` has
+    nothing left to do.
     """
     px = capture.pixel_size_um
+    if card is not None:
+        given_lights(capture)                       # the card needs them
+        capture = dataclasses.replace(capture, images=apply_card(capture.images, card),
+                                      light_intensities=np.ones(capture.images.shape[0]))
+        options = dataclasses.replace(options, lamp_beams=False)
     report(progress, 0.0, "drop-off fits")
     grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
     fits = fit_dropoffs(grid, degree=int(options.degree))
@@ -624,7 +691,8 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                                    pixel_size_um=px, n=n_known)
             E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
-                            images=capture.images if options.lamp_beams else None, beam_rms=beam_rms)
+                            images=capture.images if options.lamp_beams or card is not None else None,
+                            beam_rms=beam_rms, card=card)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
         # Intensities: given, else equal (None); from the levels only when asked.
@@ -633,7 +701,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         if options.estimate_intensities:
             E = intensities_from_levels([f.level for f in fits], None, shape, px, directions=D)
         return LightsResult(LightModel.from_directions(D, None if E is None else E / np.median(E)), fits,
-                            "directions")
+                            "directions", images=capture.images if card is not None else None, card=card)
     sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
                            pixel_size_um=px, n=n)
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))

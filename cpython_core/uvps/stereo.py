@@ -27,6 +27,7 @@ import numba
 import numpy as np
 
 from .errors import UVPSInputError
+from .irradiance import near_scale_compiled
 from .lights import LightModel, pixel_coordinates_mm
 from .outputs import Progress, report
 
@@ -77,15 +78,14 @@ def _grey_and_bright(band, p, grey, bright):  # pragma: no cover - compiled
 
 @numba.njit(inline="always", **_JIT)
 def _light_vectors(near, L, E, dirs, x, y, V, vn):  # pragma: no cover - compiled
-    """Each lamp's irradiance vector at the pixel (x, y) mm: near lamps with inverse square and their
-    direction from the pixel, far ones as given; ``vn`` their lengths."""
+    """Each lamp's irradiance vector at the pixel (x, y) mm (:mod:`uvps.irradiance`): near lamps with
+    inverse square and their direction from the pixel, far ones as given; ``vn`` their lengths."""
     for k in range(V.shape[0]):
         if near:
             d0 = np.float32(L[k, 0]) - x
             d1 = np.float32(L[k, 1]) - y
             d2 = np.float32(L[k, 2])
-            dd = d0 * d0 + d1 * d1 + d2 * d2
-            f = np.float32(E[k] * (L[k, 0] ** 2 + L[k, 1] ** 2 + L[k, 2] ** 2)) / (dd * np.sqrt(dd))
+            f = near_scale_compiled(d0, d1, d2, np.float32(E[k] * (L[k, 0] ** 2 + L[k, 1] ** 2 + L[k, 2] ** 2)))
             V[k, 0] = d0 * f
             V[k, 1] = d1 * f
             V[k, 2] = d2 * f

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from .errors import UVPSInputError
 from .io import Capture, write_imagej_tiff
+from .irradiance import irradiance
 from .outputs import Progress, atomic_output_dir, report, write_json_atomic
 from .synthetic_elements import ElementTruth, render_element_maps  # noqa: F401  (element maps: uvps elements)
 
@@ -415,32 +416,13 @@ def pixel_centres_mm(shape, pixel_size_um):
 
 def _shading(normals, height_um, pixel_size_um, positions, directions, intensities, *,
              beam_axes=None, beam_exponent=0.0, shadowed=None):
-    """Yield, per light, ``E_k * fall-off * max(0, n . l) [* beam] [* lit]`` as (M, N) float64."""
-    nx, ny, nz = (normals[..., i].astype(np.float64) for i in range(3))
-    if directions is not None:
-        for k, (e, d) in enumerate(zip(intensities, directions)):
-            s = e * np.maximum(nx * d[0] + ny * d[1] + nz * d[2], 0.0)
-            if shadowed is not None:
-                s[shadowed[k]] = 0.0
-            yield s
-        return
+    """Yield, per light, ``E_k * fall-off * max(0, n . l) [* beam] [* lit]`` as (M, N) float64
+    (:func:`uvps.irradiance.irradiance`)."""
     x, y = pixel_centres_mm(height_um.shape, pixel_size_um)
     z = np.asarray(height_um, dtype=np.float64) / 1000.0
-    for k, (e, lk) in enumerate(zip(intensities, positions)):
-        dx = lk[0] - x
-        dy = lk[1] - y
-        dz = lk[2] - z
-        dist2 = dx * dx + dy * dy + dz * dz
-        inv = 1.0 / np.sqrt(dist2)
-        cos = (nx * dx + ny * dy + nz * dz) * inv
-        s = e * (float(lk @ lk) / dist2) * np.maximum(cos, 0.0)
-        if beam_axes is not None:
-            a = beam_axes[k]
-            # the ray from the lamp to the point is -(dx, dy, dz)
-            s *= np.maximum(-(a[0] * dx + a[1] * dy + a[2] * dz) * inv, 0.0) ** beam_exponent
-        if shadowed is not None:
-            s[shadowed[k]] = 0.0
-        yield s
+    return irradiance(normals, x, y, z, intensities=intensities, positions_mm=positions,
+                      directions=directions, beam_axes=beam_axes, beam_exponent=beam_exponent,
+                      shadowed=shadowed)
 
 
 def shadow_masks(height_um, *, pixel_size_um, light_positions_mm=None, light_directions=None,
@@ -1634,6 +1616,77 @@ def render_dark_frame(capture: SyntheticCapture) -> np.ndarray:
     return counts.astype(capture.images.dtype)
 
 
+#: A card as real ones are: tilted by up to 1 deg on the painting, its fluorescence uneven by 1 %
+#: RMS (:func:`render_card`'s defaults in the benchmark's ``card`` mode).
+CARD_TYPICAL = {"tilt_deg": 1.0, "unevenness": 0.01}
+
+
+def render_card(capture: SyntheticCapture, *, tilt_deg: float = 0.0, tilt_azimuth_deg: float = 0.0,
+                unevenness: float = 0.0, relief_um: float = 0.0, relief_period_mm: float = 2.0,
+                peak_fraction: float = 0.75, colour=(0.85, 0.88, 0.80)) -> np.ndarray:
+    """A flat fluorescent card on the painting, photographed under each of the capture's lamps.
+
+    The same lamps (positions, ``E_k``, beams), lens (vignetting), stray light, black level and
+    camera (exposure, gain, read noise) as ``capture``, so that :func:`render_dark_frame` of the
+    capture is the card's dark frame too (:mod:`uvps.card`). The card's brightness sets its
+    fluorescence: the brightest noise-free sample is ``peak_fraction`` of full scale (above 1 it
+    saturates).
+
+    Parameters
+    ----------
+    capture : SyntheticCapture
+    tilt_deg, tilt_azimuth_deg : float
+        The card's plane rises by ``tan(tilt)`` toward the azimuth (deg, counter-clockwise from +x).
+    unevenness : float
+        RMS fraction of the card's fluorescence varying across it (wavelengths 0.3-6 mm).
+    relief_um, relief_period_mm : float
+        A card not lying flat: ``relief_um * sin(2 pi x / P) * sin(2 pi y / P)`` on its plane.
+    peak_fraction : float
+        Brightest sample over full scale.
+    colour : 3 floats
+        The card's fluorescence colour (RGB captures).
+
+    Returns
+    -------
+    (K, M, N) or (K, M, N, C) uint16 array, the capture's shape.
+    """
+    spec, nz = capture.spec, capture.nuisances
+    K, M, N = capture.images.shape[:3]
+    px = float(spec.pixel_size_um)
+    x, y = pixel_centres_mm((M, N), px)
+    az = math.radians(tilt_azimuth_deg)
+    height = 1000.0 * math.tan(math.radians(tilt_deg)) * (x * math.cos(az) + y * math.sin(az))
+    if relief_um:
+        w = 2 * np.pi / relief_period_mm
+        height = height + relief_um * np.sin(w * x) * np.sin(w * y)
+    height = np.broadcast_to(height, (M, N)).astype(np.float64)
+    rng = _substream(spec.seed, "card")
+    field = np.zeros((M, N))
+    if unevenness:
+        for _ in range(12):
+            wl = math.exp(rng.uniform(math.log(0.3), math.log(6.0)))
+            th, ph = rng.uniform(0, 2 * np.pi, 2)
+            field += np.cos(2 * np.pi / wl * (x * math.cos(th) + y * math.sin(th)) + ph)
+        field *= unevenness / field.std()
+    tone = np.clip(1.0 + field, 0.05, None)
+    albedo = tone[..., None] * np.asarray(colour, float) if capture.images.ndim == 4 else tone
+    card_nz = Nuisances(black_level=nz.black_level, stray_light=nz.stray_light, vignetting=nz.vignetting,
+                        beam_axes=nz.beam_axes, beam_exponent=nz.beam_exponent)
+    normals = _normals64(height, px)
+    shading = _shading(normals, height, px, capture.light_positions_mm, None, capture.intensities,
+                       beam_axes=nz.beam_axes, beam_exponent=nz.beam_exponent)
+    amax = albedo if albedo.ndim == 2 else albedo.max(axis=2)
+    direct = _peak(shading, amax, Nuisances(vignetting=nz.vignetting))
+    stray = 0.0 if nz.stray_light is None else float(np.max(nz.stray_light))
+    scale = (peak_fraction * 65535.0 / capture.exposure - stray) / direct
+    if not scale > 0:
+        raise UVPSInputError(f"peak_fraction {peak_fraction} leaves no room for the card above the stray light")
+    return render_images(height, albedo * scale, pixel_size_um=px, light_positions_mm=capture.light_positions_mm,
+                         intensities=capture.intensities, rng=rng, noise=spec.noise, gain=capture.gain,
+                         read_noise=spec.read_noise, exposure=capture.exposure, dtype=np.uint16,
+                         nuisances=card_nz)
+
+
 def _lamp_and_lens_nuisances(spec, nz, positions, intensities, shape):
     """Black level, vignetting and beams of ``spec`` into ``nz`` (and the lamps' truth)."""
     channels = 3 if spec.rgb else 1
@@ -1717,7 +1770,8 @@ def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) ->
     return folder
 
 
-def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark_frame: bool = False) -> list:
+def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark_frame: bool = False,
+                  card: Optional[np.ndarray] = None) -> list:
     """Write a capture as a folder of 16-bit TIFFs, light files and (optionally) ground truth.
 
     Parameters
@@ -1730,6 +1784,9 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark
     dark_frame : bool
         Also write ``dark/dark.tif`` (:func:`render_dark_frame`), for ``run``'s ``dark``
         parameter (in a folder of its own, so that the folder's images stay the lamps' ones).
+    card : (K, M, N[, C]) array, optional
+        A card's images (:func:`render_card`), written as ``card/`` with the images' names (``run``'s
+        ``card`` parameter).
 
     Returns
     -------
@@ -1779,6 +1836,11 @@ def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark
             (tmp / "dark").mkdir()
             _write_camera_tiff(tmp / "dark" / "dark.tif", render_dark_frame(capture), px)
             written.append("dark/dark.tif")
+        if card is not None:
+            (tmp / "card").mkdir()
+            for name, img in zip(names, card):
+                _write_camera_tiff(tmp / "card" / name, img, px)
+                written.append(f"card/{name}")
         if truth:
             written += _write_truth(capture, tmp / "truth", names)
     return [folder / w for w in written]
