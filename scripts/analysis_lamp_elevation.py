@@ -6,6 +6,7 @@ Usage::
     .venv/bin/python scripts/analysis_lamp_elevation.py landscape ROW SEED [--bow UM]
     .venv/bin/python scripts/analysis_lamp_elevation.py sweep --weights 0.6 0.3 [--grazing 5] [--lamps 12]
     .venv/bin/python scripts/analysis_lamp_elevation.py uncertainty
+    .venv/bin/python scripts/analysis_lamp_elevation.py additive [--black 200]
 
 Each builds the benchmark's captures (``benchmark_robustness.spec_for``: 1600 x 1200 at 15 um) and runs
 ``uvps.pipeline.run`` in process:
@@ -22,6 +23,8 @@ Each builds the benchmark's captures (``benchmark_robustness.spec_for``: 1600 x 
   (``lights._GRAZING_DEG``) set as given; with ``--grey`` also clean grey captures of 8-16 lamps.
 - ``uncertainty``: the heights' reported uncertainty (``lights.json``) against their true error, on
   four benchmark captures and the demo's.
+- ``additive``: the black level (``--black``, 200 counts) measured on canvases bowed by 100-250 um,
+  on 16 and 32 px blocks, against its reported standard error.
 """
 from __future__ import annotations
 
@@ -150,6 +153,23 @@ def uncertainty(a):
         report(f"demo seed {seed}", make_capture(shape=(600, 800), n_lights=12, seed=seed, pixel_size_um=30.0), 30.0)
 
 
+def additive(a):
+    """The black level measured on bowed canvases: 16 and 32 px blocks, the jackknife and the reported
+    standard error, and how many of them the truth lies off (1600 x 1200 RGB, 12 lamps)."""
+    from uvps.offset import estimate_additive
+    from uvps.synthetic import SyntheticSpec
+
+    for seed, bow in ((0, 100.0), (1, 200.0), (2, 250.0)):
+        cap = make_capture(SyntheticSpec(shape=(1200, 1600), pixel_size_um=PX, seed=seed, n_lights=12, bow_um=bow,
+                                         black_level=a.black))
+        small = estimate_additive(cap.images, saturation=65535, block=16)
+        term = estimate_additive(cap.images, saturation=65535)
+        off = np.abs(term.mean - a.black) / term.stderr
+        print(f"seed {seed}, bow {bow:g} um, black level {a.black:g}: 16 px blocks {np.round(small.mean, 1)} "
+              f"+- {np.round(small.stderr, 1)} (jackknife); reported (32 px) {np.round(term.mean, 1)} +- "
+              f"{np.round(term.stderr, 1)}; the truth {np.round(off, 2)} standard errors off")
+
+
 def report(name, cap, px):
     res = run(cap.as_capture(lights="estimate"), RunOptions(), stages=("normals", "height"))
     pe = protrusion_errors(res.height.height_um.astype(float), cap.height_um, cap.protrusions, px)
@@ -175,8 +195,11 @@ def main(argv=None):
     p.add_argument("--grey", action="store_true", help="also clean grey captures of 8, 12 and 16 lamps, seeds 3-5")
     p.add_argument("--jobs", type=int, default=2)
     sub.add_parser("uncertainty")
+    p = sub.add_parser("additive")
+    p.add_argument("--black", type=float, default=200.0, help="the black level (counts)")
     a = ap.parse_args(argv)
-    {"heights": heights, "landscape": landscape, "sweep": sweep, "uncertainty": uncertainty}[a.what](a)
+    {"heights": heights, "landscape": landscape, "sweep": sweep, "uncertainty": uncertainty,
+     "additive": additive}[a.what](a)
 
 
 if __name__ == "__main__":

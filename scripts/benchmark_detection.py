@@ -42,9 +42,28 @@ from skimage.measure import regionprops_table
 from benchmark_protrusions import match
 from uvps.detect import detect_protrusions
 from uvps.measure import read_protrusions_csv
-from uvps.synthetic import SyntheticSpec, make_capture, write_capture
+from uvps.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
 
-KINDS = ("dome", "crater", "mesa", "irregular", "cluster", "dark")
+KINDS = ("dome", "crater", "mesa", "irregular", "cluster", "dark", "weak", "on_stroke")
+#: Width classes (um) of the per-bin precision and recall.
+BINS = ((60.0, 100.0), (100.0, 200.0), (200.0, 500.0))
+#: Scenes: ``top`` every nuisance at the top of its range; ``impasto`` that and paint as real
+#: impasto (``uvps.synthetic.IMPASTO``: strokes up to 40 um high at twice the density, blunt ends
+#: with piled paint, ripples, bristle grooves, crossings; protrusions on strokes, weak ones,
+#: primer spots); the others one impasto morphology alone on top of ``top``.
+SCENES = {
+    "top": {},
+    "impasto": dict(IMPASTO),
+    "strokes_40um_x2": {k: IMPASTO[k] for k in ("ridge_width_um", "ridge_height_um",
+                                                "ridge_density")},
+    "blunt_ends": {"ridge_blunt_fraction": 1.0, "ridge_height_um": (5.0, 40.0)},
+    "ripples": {"ridge_ripple": IMPASTO["ridge_ripple"], "ridge_height_um": (5.0, 40.0)},
+    "grooves_crossings": {"ridge_groove_um": IMPASTO["ridge_groove_um"],
+                          "ridge_crossing_fraction": 0.5, "ridge_height_um": (5.0, 40.0)},
+    "on_strokes": {"on_stroke_fraction": 0.5, "ridge_height_um": (5.0, 40.0),
+                   "ridge_density": 8.0},
+    "primer_weak": {"primer_density": 9.0, "weak_fraction": 0.25},
+}
 
 
 def _detections_from_truth(cap, height_noise):
@@ -110,16 +129,32 @@ def score(cap, det_xy, det_w):
            "n_200": int(np.sum(true_w > 200)),
            "width_err": float(np.median(err)) if err.size else float("nan"),
            "width_bias": float(np.median(bias)) if bias.size else float("nan")}
-    kind_of = {"cluster": pr["cluster"] > 0, "dark": pr["dark"].astype(bool)}
+    kind_of = {"cluster": pr["cluster"] > 0, "dark": pr["dark"].astype(bool),
+               "weak": pr["weak"].astype(bool),
+               "on_stroke": pr.get("on_stroke", np.zeros(true_w.size, bool)).astype(bool)}
     for kind in KINDS:
         sel = big & kind_of.get(kind, pr["shape"] == kind)
         out[f"n_{kind}"] = int(sel.sum())
         out[f"found_{kind}"] = int(np.sum(found[sel]))
+    for lo, hi in BINS:
+        t_sel = (true_w >= lo) & (true_w < hi)
+        d_sel = (det_class_w >= lo) & (det_class_w < hi)
+        out[f"bin_{lo:g}"] = (int(np.sum(found[t_sel])), int(t_sel.sum()),
+                              int(np.sum(d_sel & (d2t >= 0))), int(d_sel.sum()))
+    # where the false positives (>= 60 um) lie: on a stroke (> 1 um of stroke relief), else
+    strokes = cap.nuisances.strokes
+    fp = (d2t < 0) & (det_class_w >= 60)
+    on = np.zeros(fp.size, bool)
+    if strokes is not None and fp.any():
+        r = np.clip(np.rint(det_xy[:, 1]).astype(int), 0, strokes.shape[0] - 1)
+        c = np.clip(np.rint(det_xy[:, 0]).astype(int), 0, strokes.shape[1] - 1)
+        on = strokes[r, c] > 1.0
+    out["fp_stroke"], out["fp_other"] = int(np.sum(fp & on)), int(np.sum(fp & ~on))
     return out
 
 
 def run_seed(seed, shape, args):
-    spec = SyntheticSpec.realistic("top", shape=tuple(shape), seed=seed)
+    spec = SyntheticSpec.realistic("top", shape=tuple(shape), seed=seed, **SCENES[args.scene])
     if args.pipeline:
         cap = make_capture(spec)
         with tempfile.TemporaryDirectory(prefix="uvps_bench_") as tmp:
@@ -157,13 +192,31 @@ def print_tables(results, args):
     for kind in KINDS:
         cells = [f"{r['found_' + kind]} / {r['n_' + kind]}" for r in results]
         recs = [r["found_" + kind] / r["n_" + kind] for r in results if r["n_" + kind]]
-        print(f"| {kind} | " + " | ".join(cells) + f" | {min(recs):.3f} |" if recs else " | - |")
+        print(f"| {kind} | " + " | ".join(cells) + (f" | {min(recs):.3f} |" if recs else " | - |"))
     total = {}
     for r in results:
         for k, v in r["rejected"].items():
             total[k] = total.get(k, 0) + int(v)
+    print("\nPer width class (found / true, right / detected; worst seed's recall and precision):\n")
+    print("| width (um) | " + " | ".join(f"seed {r['seed']}" for r in results)
+          + " | worst recall | worst precision |")
+    print("|---|" + "---|" * (len(results) + 2))
+    worst_rec_60 = 1.0
+    for lo, hi in BINS:
+        cells = [r[f"bin_{lo:g}"] for r in results]
+        recs = [c[0] / c[1] for c in cells if c[1]]
+        precs = [c[2] / c[3] for c in cells if c[3]]
+        if lo == 60.0 and recs:
+            worst_rec_60 = min(recs)
+        print(f"| {lo:g}-{hi:g} | " + " | ".join(f"{c[0]} / {c[1]}, {c[2]} / {c[3]}" for c in cells)
+              + f" | {min(recs) if recs else float('nan'):.3f} | "
+                f"{min(precs) if precs else float('nan'):.3f} |")
+    fps = ", ".join(f"seed {r['seed']}: {r['fp_stroke']} on strokes, {r['fp_other']} elsewhere"
+                    for r in results)
+    print(f"\nfalse positives >= 60 um: {fps}")
     print(f"\nrejected candidates (all seeds): {total}\n")
-    targets = [("F1 >= 0.93 for protrusions >= 60 um", worst["f1"] >= 0.93, f"{worst['f1']:.3f}"),
+    targets = [("F1 >= 0.95 for protrusions >= 60 um", worst["f1"] >= 0.95, f"{worst['f1']:.3f}"),
+               ("recall >= 0.9 for 60-100 um", worst_rec_60 >= 0.9, f"{worst_rec_60:.3f}"),
                ("recall >= 0.97 above 200 um", worst["recall_200"] >= 0.97,
                 f"{worst['recall_200']:.3f}"),
                ("widths within 10 % (median)", worst["width_err"] <= 0.10, _pct(worst["width_err"]))]
@@ -176,6 +229,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600], metavar=("ROWS", "COLS"))
+    ap.add_argument("--scene", choices=sorted(SCENES), default="top",
+                    help="top: every nuisance at the top of its range; impasto: that and real "
+                         "impasto (uvps.synthetic.IMPASTO); the others one impasto morphology")
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
     ap.add_argument("--pipeline", action="store_true",
@@ -192,7 +248,7 @@ def main(argv=None) -> int:
                 "positions and the camera's black level given)")
     else:
         mode = f"true albedo, height and normals, height noise {args.height_noise} um"
-    print(f"SyntheticSpec.realistic('top'), {args.shape[0]} x {args.shape[1]} px at 15 um/px, "
+    print(f"SyntheticSpec.realistic('top', **SCENES[{args.scene!r}]), {args.shape[0]} x {args.shape[1]} px at 15 um/px, "
           f"seeds {args.seeds}; {mode}; detect_protrusions defaults.\n")
     results = [run_seed(s, args.shape, args) for s in args.seeds]
     print_tables(results, args)

@@ -27,6 +27,9 @@ Metrics per run:
 - detection (runs with ``--regions`` only): matching and summary of ``scripts/benchmark_protrusions.py``
   on ``protrusions_labels.tif``: F1 for protrusions >= 60 um, recall >= 200 um, median width error (%)
   >= 60 um.
+- the heights' reported expanded uncertainty (``run.json`` ``height_uncertainty_relative_95``, estimated
+  lamps) and whether it covers the true height error (1/0; the coverage over runs is the last line), and
+  whether the run's relief is relative (``run.json`` ``relief``).
 - wall time of the command; the additive term measured by the run (``run.json`` diagnostics
   ``additive.mean_counts``) vs the truth's (black level + mean stray light, counts); the run's warnings.
 
@@ -72,7 +75,7 @@ from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capt
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["all"]
 MODES = ("estimated", "calibrated", "dark", "card")
-SCHEMA = 1
+SCHEMA = 2
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
 METRICS = {
@@ -83,6 +86,9 @@ METRICS = {
     "f1_60": ("F1 >= 60 um (>= 0.93)", 0.93, "min", "{:.3f}"),
     "recall_200": ("recall >= 200 um (>= 0.97)", 0.97, "min", "{:.3f}"),
     "width_err_pct": ("widths (%, <= 10)", 10.0, "max", "{:.1f}"),
+    "height_unc95_pct": ("reported height unc. (%, 95 %)", None, "min", "{:.1f}"),
+    "unc_covers": ("unc. covers height err (>= 90 % of runs)", None, "min", "{:.0f}"),
+    "relative": ("relief relative (1/0)", None, "max", "{:.0f}"),
     "additive_err_counts": ("additive err (counts)", None, "max", "{:.0f}"),
     "wall_s": ("wall (s)", None, "max", "{:.1f}"),
     "n_warnings": ("warnings (n)", None, "max", "{:.0f}"),
@@ -205,6 +211,12 @@ def score_run(run_dir: Path, cap, *, detect: bool) -> dict:
     out["timings_s"] = rj.get("timings_s", {})
     lights_diag = diag.get("lights", {})
     out["refinement_converged"] = lights_diag.get("refinement_converged")
+    # the heights' reported expanded uncertainty against their true error (estimated lamps only)
+    unc = lights_diag.get("height_uncertainty_relative_95")
+    if unc is not None and out.get("height_median_pct") is not None:
+        out["height_unc95_pct"] = 100.0 * float(unc)
+        out["unc_covers"] = float(out["height_unc95_pct"] >= out["height_median_pct"])
+    out["relative"] = float((rj.get("relief") or {}).get("scale") == "relative")
     return out
 
 
@@ -446,6 +458,17 @@ def build_table(all_results: list, rows, lamps_list, modes):
     return "\n".join(out), worst_lines
 
 
+def coverage_line(results) -> str:
+    """How many runs' reported height uncertainty (95 %) covers their true height error."""
+    cov = [r["unc_covers"] for r in results if not r.get("error") and r.get("unc_covers") is not None]
+    failed = sum(1 for r in results if r.get("error") and r.get("mode") != "calibrated")
+    if not cov:
+        return "- coverage of the reported height uncertainty: no run with estimated lamps"
+    return (f"- coverage of the reported height uncertainty (95 %): {int(sum(cov))} of {len(cov)} runs with "
+            f"estimated lamps ({100 * sum(cov) / len(cov):.0f} %; target >= 90 %); {failed} run(s) stopped "
+            "(no heights written)")
+
+
 def _worse(a, b, sense):
     if not math.isfinite(a):
         return math.isfinite(b)
@@ -554,6 +577,7 @@ def main(argv=None) -> int:
         "targets": {k: METRICS[k][1] for k in METRICS if METRICS[k][1] is not None},
         "results": collected})
     table, worst = build_table(collected, args.rows, args.lights_counts, args.modes)
+    worst.append(coverage_line(collected))
     codes = sorted({str(r.get("code")) for r in collected})
     text = "\n".join([
         "## Robustness (issue 8)", "",

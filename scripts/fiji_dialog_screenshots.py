@@ -103,7 +103,8 @@ def results(work, home, build, display, out):
     write_capture(make_capture(shape=(300, 400), n_lights=12, seed=3), capture, truth=False)
     macro = ('run("Run Whole Pipeline", "capture=[Folder or files] images=[%s] run=[%s] '
              'regions=auto");\n' % (capture, work / "run"))
-    for title, name in (("depth", "uvps_height.png"), ("albedo", "uvps_albedo.png")):
+    for title, name in (("height (um) - run", "uvps_height.png"), ("albedo - run", "uvps_albedo.png"),
+                        ("normals - run", "uvps_normals.png")):
         macro += ('selectImage("%s");\nrun("Flatten");\nsaveAs("PNG", "%s");\nprint("saved %s");\n'
                   % (title, out / name, out / name))
     (work / "results.ijm").write_text(macro)
@@ -115,7 +116,7 @@ def results(work, home, build, display, out):
     saved = [line[len("saved "):] for line in proc.stdout.splitlines() if line.startswith("saved ")]
     for path in saved:
         print(path)
-    if proc.returncode != 0 or len(saved) != 2:
+    if proc.returncode != 0 or len(saved) != 3:
         print(proc.stdout, proc.stderr, file=sys.stderr)
         return 1
     return 0

@@ -3,7 +3,12 @@
 
 Layout written (the plugin scripts rely on it):
 
-- menu scripts: ``<root>/plugins/UV_Photometric_Stereo/*.py`` (Plugins > UV Photometric Stereo);
+- menu: ``<root>/plugins/UV_Photometric_Stereo.jar`` holding only a ``plugins.config`` that lists
+  Plugins > UV Photometric Stereo in workflow order (:data:`MENU_ORDER`, with separators; ImageJ
+  sorts the ``.py`` files of a plugins folder alphabetically, but keeps a ``plugins.config``'s
+  order), each item ``ij.plugin.Macro_Runner("<script>")``; the scripts in
+  ``<root>/plugins/jars/uvps_menu/UV_Photometric_Stereo/*.py`` (depth 3: not scanned into menus
+  of their own);
 - Jython library, Fiji: ``<root>/jars/Lib/uvps_fiji/`` (Fiji puts ``jars/Lib`` on Jython's path);
 - Jython library, plain ImageJ 1.x: ``<root>/plugins/jars/Lib/uvps_fiji/`` (ImageJ turns every
   ``.py`` at depth <= 2 under ``plugins/`` into a menu command, so helpers must live at depth >= 3);
@@ -42,6 +47,18 @@ import tempfile
 import zipfile
 
 MENU_FOLDER = "UV_Photometric_Stereo"
+MENU_NAME = "UV Photometric Stereo"
+#: Where the menu scripts go, relative to ``plugins/`` (see the module docstring).
+MENU_SCRIPTS = os.path.join("jars", "uvps_menu", MENU_FOLDER)
+#: The jar whose plugins.config makes the menu.
+MENU_JAR = MENU_FOLDER + ".jar"
+#: The menu in workflow order ("-": a separator); scripts not listed come before the settings.
+MENU_ORDER = ["Run_Whole_Pipeline", "-",
+              "Estimate_Lights", "Flat_Field", "Normals_and_Albedo", "Integrate_Height", "-",
+              "Colour_Areas", "Detect_Protrusions", "Wand_Count", "Compare_Counts",
+              "Statistics_and_Report", "-",
+              "Relight", "Compare_Captures", "Run_Info", "-",
+              "UVPS_Settings"]
 PACKAGE = "uvps_fiji"
 CONFIG_NAME = "uvps_fiji.cfg"
 SPEC_NAME = "commands.json"
@@ -137,6 +154,40 @@ def source_files(source_root):
     return [os.path.join(menu_dir, name) for name in scripts], lib_dir
 
 
+def menu_config(script_names):
+    """The ``plugins.config`` text of the menu: the scripts (file names) in :data:`MENU_ORDER`,
+    those it does not list before the last group, separators only between groups."""
+    stems = [os.path.splitext(name)[0] for name in script_names]
+    order = list(MENU_ORDER)
+    extra = sorted(stem for stem in stems if stem not in order)
+    if extra:
+        order[-1:-1] = extra + ["-"]
+    lines, group = [], []
+    for item in order + ["-"]:
+        if item != "-":
+            if item in stems:
+                group.append(item)
+            continue
+        if group:
+            if lines:
+                lines.append('Plugins>%s, "-"' % MENU_NAME)
+            for stem in group:
+                path = "/".join(MENU_SCRIPTS.split(os.sep) + [stem + ".py"])
+                lines.append('Plugins>%s, "%s", ij.plugin.Macro_Runner("%s")'
+                             % (MENU_NAME, stem.replace("_", " "), path))
+            group = []
+    return "\n".join(lines) + "\n"
+
+
+def write_menu_jar(path, config):
+    """Write the jar holding ``plugins.config`` (atomically: a half-written jar breaks ImageJ's
+    menus)."""
+    tmp = path + ".part"
+    with zipfile.ZipFile(tmp, "w") as jar:
+        jar.writestr("plugins.config", config)
+    os.replace(tmp, path)
+
+
 def _replace_dir(target, fill):
     """Build the new folder beside ``target`` with ``fill(tmp)``, then swap it in."""
     parent = os.path.dirname(target)
@@ -167,8 +218,12 @@ def install(root, python, source_root=REPO_ROOT):
     scripts, lib_src = source_files(source_root)
     version = check_python(python)
     spec = command_table(python)
-    menu_target = os.path.join(root, "plugins", MENU_FOLDER)
+    menu_target = os.path.join(root, "plugins", MENU_SCRIPTS)
     lib_target = os.path.join(library_dir(root), PACKAGE)
+    # an older install's scripts at plugins/UV_Photometric_Stereo/ would be a second menu
+    old_menu = os.path.join(root, "plugins", MENU_FOLDER)
+    if os.path.isdir(old_menu):
+        shutil.rmtree(old_menu)
 
     def fill_menu(tmp):
         for path in scripts:
@@ -186,7 +241,9 @@ def install(root, python, source_root=REPO_ROOT):
 
     _replace_dir(menu_target, fill_menu)
     _replace_dir(lib_target, fill_lib)
-    return [menu_target, lib_target]
+    jar = os.path.join(root, "plugins", MENU_JAR)
+    write_menu_jar(jar, menu_config([os.path.basename(p) for p in scripts]))
+    return [menu_target, lib_target, jar]
 
 
 def _has_class(jar, name):
@@ -291,11 +348,16 @@ def uninstall(root):
     check_root(root)
     removed = []
     for path in (os.path.join(root, "plugins", MENU_FOLDER),
+                 os.path.join(root, "plugins", os.path.dirname(MENU_SCRIPTS)),
                  os.path.join(root, "jars", "Lib", PACKAGE),
                  os.path.join(root, "plugins", "jars", "Lib", PACKAGE)):
         if os.path.isdir(path):
             shutil.rmtree(path)
             removed.append(path)
+    jar = os.path.join(root, "plugins", MENU_JAR)
+    if os.path.isfile(jar):
+        os.remove(jar)
+        removed.append(jar)
     interpreter = os.path.join(root, "plugins", "jars", INTERPRETER_JAR)
     if os.path.isfile(interpreter):
         # the jython.jar copy came with it (a Jython.jar the user put there is left alone)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from uvps import cli
-from uvps.changes import COLUMNS, classify_changes, register
+from uvps.changes import (COLUMNS, NOISE_MODEL, change_uncertainty, classify_changes, date_record,
+                          pair_inflation, register)
 from uvps.commands import COMMANDS
 from uvps.io import read_tiff
 from uvps.synthetic import (LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture,
@@ -114,6 +115,9 @@ def test_changes_known_changes_and_output_contract(pair, truth_runs):
     assert run["command"] == "changes" and run["diagnostics"]["pixel_size"]["rescaled"]
     assert any("pixel sizes differ" in w for w in run["warnings"])
     assert (out / "report.html").is_file() and (out / "figures" / "changes_height.png").is_file()
+    assert (out / "figures" / "changes_map.png").is_file()
+    page = (out / "report.html").read_text()
+    assert "changes_map.png" in page and "The two dates: lamps and calibration" in page
     # every true status among the rows found, by A's id (B's for new ones)
     t = pair.changes
     truth_by_a = {int(i): s for i, s in zip(t["id_a"], t["status"]) if i > 0}
@@ -164,15 +168,87 @@ def test_run_without_detection_names_the_file(truth_runs, tmp_path, capsys):
     assert "protrusions.csv" in err and str(b) in err
 
 
-def test_classify_noise_floor_decides_grown():
-    a = {"id": np.array([1, 2]), "x_px": np.array([50.0, 150.0]), "y_px": np.array([50.0, 50.0]),
-         "width_um": np.array([150.0, 150.0]), "height_um": np.array([40.0, 40.0])}
-    b = dict(a, width_um=np.array([153.0, 190.0]), height_um=np.array([41.0, 40.0]))
-    rows, _, left = classify_changes(a, b, np.eye(3), shape_a=(100, 200), shape_b=(100, 200),
-                                     pixel_size_um=15.0)
-    assert rows["status"].tolist() == ["unchanged", "grown"]
-    assert rows["d_width_um"].tolist() == pytest.approx([3.0, 40.0])
+def _table(x, y, w, h):
+    n = len(x)
+    return {"id": np.arange(1, n + 1), "x_px": np.asarray(x, float), "y_px": np.asarray(y, float),
+            "width_um": np.asarray(w, float), "height_um": np.asarray(h, float)}
+
+
+def _classify(a, b, **kw):
+    rows, _, left, unc = classify_changes(a, b, np.eye(3), shape_a=(100, 200), shape_b=(100, 200),
+                                          pixel_size_um=15.0, **kw)
+    return rows, left, unc
+
+
+def test_classify_uncertainty_decides_grown_and_shrunk():
+    a = _table([40.0, 100.0, 160.0], [50.0] * 3, [150.0] * 3, [40.0] * 3)
+    b = _table([40.0, 100.0, 160.0], [50.0] * 3, [153.0, 190.0, 150.0], [41.0, 40.0, 30.0])
+    rows, left, _ = _classify(a, b)
+    assert rows["status"].tolist() == ["unchanged", "grown", "shrunk"]
+    assert rows["d_width_um"].tolist() == pytest.approx([3.0, 40.0, 0.0])
     assert left == {"a": 0, "b": 0}
+    # the columns' uncertainty is the model's, and the significance the larger of the two z-scores
+    sw, sh = change_uncertainty(rows["width_um_a"], rows["width_um_b"], rows["height_um_a"], rows["height_um_b"],
+                                pixel_size_um_a=15.0, pixel_size_um_b=15.0)
+    np.testing.assert_allclose(rows["d_width_sd_um"], sw)
+    np.testing.assert_allclose(rows["d_height_sd_um"], sh)
+    z = np.maximum(np.abs(rows["d_width_um"] / sw), np.abs(rows["d_height_um"] / sh))
+    np.testing.assert_allclose(rows["significance"], z)
+    assert rows["significance"][0] < 4 < rows["significance"][1]
+
+
+def test_uncertainty_grows_with_the_peak_sampling_and_the_pixel():
+    # a narrow tall protrusion's height is sampled at another phase when the camera moves:
+    # its uncertainty is the larger, and so is a coarser pixel's width uncertainty
+    _, sh_narrow = change_uncertainty(60.0, 60.0, 20.0, 20.0, pixel_size_um_a=15.0, pixel_size_um_b=15.0)
+    _, sh_wide = change_uncertainty(300.0, 300.0, 20.0, 20.0, pixel_size_um_a=15.0, pixel_size_um_b=15.0)
+    assert sh_narrow > 3 * sh_wide
+    sw_fine, _ = change_uncertainty(100.0, 100.0, 10.0, 10.0, pixel_size_um_a=5.0, pixel_size_um_b=5.0)
+    sw_coarse, _ = change_uncertainty(100.0, 100.0, 10.0, 10.0, pixel_size_um_a=20.0, pixel_size_um_b=20.0)
+    assert sw_coarse > sw_fine
+    assert NOISE_MODEL.source       # the model says where it was fitted
+
+
+def test_pair_inflation_measures_a_noisier_pair_and_ignores_the_grown():
+    rng = np.random.default_rng(0)
+    assert pair_inflation(rng.normal(0, 1, 400)) == pytest.approx(1.0, abs=0.1)
+    z = np.concatenate([rng.normal(0, 2.0, 300), rng.uniform(15, 30, 100)])   # 25 % grown far out
+    assert pair_inflation(z) == pytest.approx(2.0, rel=0.15)
+    assert pair_inflation(rng.normal(0, 0.3, 400)) == 1.0          # never below the model
+
+
+def test_new_and_gone_and_the_frame_edge():
+    a = _table([40.0, 100.0, 160.0], [50.0, 50.0, 1.0], [90.0] * 3, [20.0] * 3)
+    b = _table([40.0, 130.0, 160.0], [50.0, 20.0, 1.0], [90.0] * 3, [20.0] * 3)
+    rows, left, _ = _classify(a, b)
+    st = dict(zip(zip(rows["id_a"].tolist(), rows["id_b"].tolist()), rows["status"].tolist()))
+    assert st == {(1, 1): "unchanged", (2, 0): "gone", (0, 2): "new"}
+    assert left == {"a": 1, "b": 1}     # the protrusion cut by the frame's edge, at both dates
+
+
+def test_merged_and_split_neighbours():
+    # two neighbours of A became one wider protrusion in B between them: both merged into it
+    a = _table([94.0, 106.0, 40.0], [50.0, 50.0, 50.0], [120.0, 120.0, 90.0], [20.0, 20.0, 20.0])
+    b = _table([100.0, 40.0], [50.0, 50.0], [300.0, 90.0], [25.0, 20.0])
+    rows, _, _ = _classify(a, b)
+    merged = rows["status"] == "merged"
+    assert merged.sum() == 2 and set(rows["id_a"][merged].tolist()) == {1, 2}
+    assert set(rows["id_b"][merged].tolist()) == {1}
+    assert rows["status"][rows["id_a"] == 3].tolist() == ["unchanged"]
+    # the other way round: one split into two
+    rows, _, _ = _classify(b, a)
+    split = rows["status"] == "split"
+    assert split.sum() == 2 and set(rows["id_b"][split].tolist()) == {1, 2}
+    assert set(rows["id_a"][split].tolist()) == {1}
+    assert not np.isin(rows["status"], ("new", "gone")).any()
+
+
+def test_widths_only_leaves_heights_out():
+    a = _table([40.0, 100.0], [50.0] * 2, [150.0] * 2, [40.0] * 2)
+    b = _table([40.0, 100.0], [50.0] * 2, [150.0, 150.0], [40.0, 80.0])
+    rows, _, unc = _classify(a, b, heights=False)
+    assert rows["status"].tolist() == ["unchanged", "unchanged"]
+    assert np.isnan(rows["d_height_um"]).all() and not unc["heights"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -197,3 +273,68 @@ def test_end_to_end_with_detection(pair, tmp_path):
     counts = res.diagnostics["counts"]
     assert counts["new"] >= 3 and counts["grown"] >= 2
     assert "registration:" in res.text
+
+
+# ------------------------------------------------------------------------------------------------
+# the reversed pair (shrunk, gone), each date's calibration, the relative relief
+
+
+def test_reversed_pair_gives_shrunk_and_gone(pair, truth_runs):
+    out = truth_runs["root"] / "out_reversed"
+    assert cli.main(["changes", str(truth_runs["b"]), str(truth_runs["a"]), "-o", str(out)]) == 0
+    rows = _read_changes(out)
+    t = pair.changes
+    truth_by_b = {int(i): s for i, s in zip(t["id_b"], t["status"]) if i > 0}   # B is now the earlier date
+    statuses = {"shrunk": 0, "gone": 0}
+    for r in rows:
+        if r["id_a"]:
+            true = truth_by_b[int(r["id_a"])]
+            assert r["status"] in {"grown": ("shrunk", "unchanged"), "new": ("gone",),
+                                   "unchanged": ("unchanged",)}[true], (true, r)
+        if r["status"] in statuses:
+            statuses[r["status"]] += 1
+    assert statuses["shrunk"] >= 3 and statuses["gone"] >= 3
+
+
+def _with_run_json(src, dst, **fields):
+    import shutil
+    shutil.copytree(src, dst)
+    log = {"version": "0", "command": "run", "params": {"lights": "lamps.csv"},
+           "diagnostics": {"lights": {"source": "positions", "n_lights": 8}}, **fields}
+    (dst / "run.json").write_text(json.dumps(log))
+    return dst
+
+
+def test_each_dates_calibration_is_recorded(truth_runs, tmp_path):
+    b = _with_run_json(truth_runs["same"], tmp_path / "b_cal", relief={"scale": "absolute", "lamps": "calibration",
+                                                                       "reason": "spheres pin the lamps"})
+    rec = date_record(b)
+    assert rec["lamps"] == "positions" and rec["lights_file"] == "lamps.csv" and rec["relief"]["scale"] == "absolute"
+    from uvps.runfolder import relief_of
+    assert date_record(truth_runs["a"]) == {"run_json": False, "lamps": "unknown", "relief": relief_of({})}
+    assert relief_of({})["scale"] == "absolute"
+    out = tmp_path / "out"
+    assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(out)]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["diagnostics"]["dates"]["b"]["lamps"] == "positions"
+    assert run["diagnostics"]["dates"]["a"]["run_json"] is False
+    assert "lamps.csv" in (out / "report.html").read_text()
+
+
+def test_relative_relief_refuses_height_growth(truth_runs, tmp_path, capsys):
+    b = _with_run_json(truth_runs["same"], tmp_path / "b_rel",
+                       relief={"scale": "relative", "lamps": "estimated",
+                               "reason": "the lamps' elevation is not pinned by the images."})
+    out = tmp_path / "out"
+    assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(out)]) == 1
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if line.strip()]
+    assert len(err) == 1
+    assert "relative relief" in err[0] and str(b) in err[0]
+    assert "uvps calibrate" in err[0] and "--calibration" in err[0] and "--lights" in err[0]
+    assert not out.exists()
+    # widths and counts alone are still compared: heights empty, no height map
+    assert cli.main(["changes", str(truth_runs["a"]), str(b), "-o", str(out), "--widths-only"]) == 0
+    rows = _read_changes(out)
+    assert rows and all(r["d_height_um"] == "" and r["height_um_b"] == "" for r in rows)
+    assert all(r["status"] == "unchanged" for r in rows)
+    assert not (out / "height_change.tif").exists()

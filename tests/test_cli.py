@@ -125,12 +125,13 @@ def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
     assert len(reported) == len(lights["lights"]) and np.all(reported > 0)
     assert np.all(true_err < reported)
     assert unc > 0.05
-    # above 20 % it says the heights may be off, above 100 % that their scale is not determined (on this
-    # field it is one or the other depending on how far the refinement crawls along the valley)
-    warned = [w for w in run["warnings"] if "heights may be off" in w or "scale is not determined" in w]
+    # beyond 20 % (95 %) the heights are relative, above 100 % (standard) their scale is not determined
+    # (on this field it is one or the other depending on how far the refinement crawls along the valley)
+    warned = [w for w in run["warnings"] if "heights are relative" in w or "scale is not determined" in w]
     assert len(warned) == 1 and "measured lamp positions" in warned[0]
-    assert ("heights may be off" in warned[0]) == (unc <= 1.0)
-    assert r.stderr.count("heights may be off") + r.stderr.count("scale is not determined") == 1
+    assert ("heights are relative" in warned[0]) == (unc <= 1.0)
+    assert r.stderr.count("heights are relative") + r.stderr.count("scale is not determined") == 1
+    assert run["relief"]["scale"] == "relative"
     for f in ("protrusions.csv", "protrusions_labels.tif", "regions.csv", "regions_labels.tif", "report.html"):
         assert (out / f).is_file(), f
     assert "report:" in r.stdout

@@ -310,3 +310,96 @@ def test_rejection_table_and_counts():
         assert det.rejected[name] == int(np.sum(reasons == name))
     assert det.rejected["ridge"] >= 1
     assert [r["name"] for r in det.diagnostics["rejection_rules"]] == list(REJECTION_REASONS)
+
+
+def rippled_stroke(shape, px, *, row, width_um=240.0, height_um=30.0, ripple=0.2,
+                   wavelength_um=300.0):
+    """A straight stroke along the rows: cosine cross-section, height modulated by
+    ``1 + ripple sin(2 pi x / wavelength)`` (crests ``height_um`` high), no glow."""
+    yy, xx = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    half = width_um / 2 / px
+    d = np.abs(yy - row)
+    prof = np.where(d < half, 0.5 * (1 + np.cos(np.pi * d / half)), 0)
+    rip = 1 + ripple * np.sin(2 * np.pi * xx * px / wavelength_um)
+    return (height_um / (1 + ripple) * prof * rip).astype(np.float32)
+
+
+def test_stroke_ripples_rejected_protrusion_on_the_stroke_kept():
+    """The 'stroke' cue: the crests of a rippled stroke are compact bumps on a long structure
+    that do not glow; they are rejected against the strokes' own flank slopes, while a dome on
+    the stroke (steeper than the ripples) and one on the paint are kept."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape)
+    h += rippled_stroke(shape, px, row=100)
+    add_dome(alb, h, (100, 260), 150.0, px, weak=True)       # on the stroke, not glowing
+    add_dome(alb, h, (40, 100), 150.0, px, weak=True)        # on the paint
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 2
+    assert det.labels[100, 260] > 0 and det.labels[40, 100] > 0
+    assert det.rejected["stroke"] >= 8 and det.diagnostics["stroke_bumps"] >= 8
+    assert det.diagnostics["stroke_slope_min"] > 0
+    # without the cue the crests come through: it is this rule that rejects them
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(stroke_slope_k=0))
+    assert off.rejected["stroke"] == 0 and off.labels.max() > 2
+
+
+def test_stroke_rule_needs_the_strokes_statistics():
+    """One smooth stroke gives no population of bumps (fewer than 8): the rule tests nothing,
+    and a dome on it is kept."""
+    px, shape = 15.0, (160, 400)
+    alb, h = scene(shape)
+    h += rippled_stroke(shape, px, row=80, ripple=0.0)
+    add_dome(alb, h, (80, 200), 150.0, px, weak=True)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.diagnostics["stroke_slope_min"] == 0.0
+    assert det.rejected["stroke"] == 0 and det.labels[80, 200] > 0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_diameter_opening_matches_skimage(seed):
+    from scipy import ndimage as ndi
+    from skimage.morphology import diameter_opening
+    from uvps.detect import _diameter_opening
+    rng = np.random.default_rng(seed)
+    img = (ndi.gaussian_filter(rng.normal(size=(70, 90)), 2) * 10).astype(np.float32)
+    img[10:20, 10:20] = np.round(img[10:20, 10:20])            # plateaus: shared levels
+    for thr in (2, 5, 12, 40):
+        np.testing.assert_array_equal(_diameter_opening(img, thr),
+                                      diameter_opening(img, diameter_threshold=thr))
+
+
+def test_weave_fit_recovers_two_sinusoids():
+    """The separable fit: two sinusoids at frequencies between bins, their amplitudes, the
+    weave's RMS and RMS slope (analytic) against the brute-force values."""
+    from uvps.detect import _fit_sinusoids, _sinusoids
+    m, n = 120, 150
+    yy, xx = np.mgrid[:m, :n].astype(np.float64)
+    freqs = np.array([[0.043, 0.061], [-0.0171, 0.0333]])
+    truth = np.array([2.0, -1.0, 0.5, 1.5])                   # cos, sin per sinusoid
+    data = sum(truth[2 * k] * np.cos(2 * np.pi * (f[0] * yy + f[1] * xx))
+               + truth[2 * k + 1] * np.sin(2 * np.pi * (f[0] * yy + f[1] * xx))
+               for k, f in enumerate(freqs))
+    coef, gram = _fit_sinusoids(data, freqs)
+    np.testing.assert_allclose(coef, truth, atol=0.05)        # sequential fit, overlap small
+    comp = _sinusoids(freqs, coef, (m, n))
+    assert np.abs(comp - data).max() < 0.2
+    np.testing.assert_allclose(coef @ gram @ coef / (m * n), np.mean(comp.astype(np.float64) ** 2),
+                               rtol=1e-4)
+
+
+def test_fill_holes_and_distance_match_scipy():
+    from scipy import ndimage as ndi
+    from uvps.detect import _edt, _fill_holes
+    rng = np.random.default_rng(3)
+    for level in (-0.3, 0.0, 0.3):
+        mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
+        np.testing.assert_array_equal(_fill_holes(mask), ndi.binary_fill_holes(mask))
+        np.testing.assert_allclose(_edt(mask), ndi.distance_transform_edt(mask), atol=1e-4)
+
+
+def test_median_matches_numpy():
+    from uvps.detect import _median
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 50):
+        x = rng.normal(size=n)
+        assert _median(x) == np.median(x)

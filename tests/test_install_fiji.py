@@ -3,6 +3,7 @@ folders in tmp_path, with a small source tree so the expected files are known ex
 import json
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -60,9 +61,17 @@ def test_fiji_layout(tmp_path, source, marker):
     root = make_fiji(tmp_path, marker)
     proc = run_installer(root, "--source-root", source)
     assert proc.returncode == 0, proc.stderr
-    menu = root / "plugins" / "UV_Photometric_Stereo"
+    menu = root / "plugins" / "jars" / "uvps_menu" / "UV_Photometric_Stereo"
     lib = root / "jars" / "Lib" / "uvps_fiji"
     assert sorted(p.name for p in menu.iterdir()) == ["Run_Whole_Pipeline.py", "UVPS_Settings.py"]
+    assert not (root / "plugins" / "UV_Photometric_Stereo").exists()
+    with zipfile.ZipFile(str(root / "plugins" / "UV_Photometric_Stereo.jar")) as jar:
+        assert jar.read("plugins.config").decode() == (
+            'Plugins>UV Photometric Stereo, "Run Whole Pipeline", ij.plugin.Macro_Runner('
+            '"jars/uvps_menu/UV_Photometric_Stereo/Run_Whole_Pipeline.py")\n'
+            'Plugins>UV Photometric Stereo, "-"\n'
+            'Plugins>UV Photometric Stereo, "UVPS Settings", ij.plugin.Macro_Runner('
+            '"jars/uvps_menu/UV_Photometric_Stereo/UVPS_Settings.py")\n')
     assert sorted(p.name for p in lib.iterdir()) == ["__init__.py", "bridge_logic.py",
                                                      "commands.json", "uvps_fiji.cfg", "widgets"]
     assert (lib / "widgets" / "__init__.py").read_text() == "Y = 2\n"
@@ -70,7 +79,7 @@ def test_fiji_layout(tmp_path, source, marker):
     assert cfg["python"] == sys.executable
     import uvps
     assert cfg["uvps_version"] == uvps.__version__
-    assert not (root / "plugins" / "jars").exists()
+    assert sorted(p.name for p in (root / "plugins" / "jars").iterdir()) == ["uvps_menu"]
 
 
 def test_the_command_table_is_the_cores_declarations(tmp_path, source):
@@ -112,14 +121,20 @@ def test_plain_imagej_layout_puts_library_at_depth_three(tmp_path, source):
 def test_reinstall_replaces_stale_files_and_uninstall_removes_all(tmp_path, source):
     root = make_fiji(tmp_path)
     assert run_installer(root, "--source-root", source).returncode == 0
-    stale = root / "plugins" / "UV_Photometric_Stereo" / "Old_Command.py"
+    stale = root / "plugins" / "jars" / "uvps_menu" / "UV_Photometric_Stereo" / "Old_Command.py"
     stale.write_text("print('old')\n")
+    # an older install's menu folder (scripts at depth 2, sorted by ImageJ) goes too
+    older = root / "plugins" / "UV_Photometric_Stereo" / "Run_Whole_Pipeline.py"
+    older.parent.mkdir()
+    older.write_text("print('old')\n")
     (root / "plugins" / "Other_Plugin.py").write_text("print('not ours')\n")
     assert run_installer(root, "--source-root", source).returncode == 0
-    assert not stale.exists()
+    assert not stale.exists() and not older.parent.exists()
     proc = run_installer(root, "--uninstall")
     assert proc.returncode == 0, proc.stderr
     assert not (root / "plugins" / "UV_Photometric_Stereo").exists()
+    assert not (root / "plugins" / "UV_Photometric_Stereo.jar").exists()
+    assert not (root / "plugins" / "jars" / "uvps_menu").exists()
     assert not (root / "jars" / "Lib" / "uvps_fiji").exists()
     assert (root / "plugins" / "Other_Plugin.py").is_file()
     assert "nothing to remove" in run_installer(root, "--uninstall").stdout
@@ -134,7 +149,24 @@ def test_python_without_uvps_is_refused(tmp_path, source):
     assert proc.returncode == 1
     assert "cannot import uvps" in proc.stderr and str(fake) in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
-    assert not (root / "plugins" / "UV_Photometric_Stereo").exists()
+    assert not (root / "plugins" / "UV_Photometric_Stereo.jar").exists()
+
+
+def test_the_menu_lists_every_script_in_workflow_order():
+    """Scripts the order does not list (a new menu item) come before the settings, never lost."""
+    sys.path.insert(0, str(INSTALLER.parent))
+    try:
+        import install_fiji
+    finally:
+        sys.path.pop(0)
+    names = sorted(p.name for p in (INSTALLER.parent.parent / "plugins" / "UV_Photometric_Stereo").glob("*.py"))
+    config = install_fiji.menu_config(names + ["New_Item.py"])
+    items = [ln.split('"')[1] for ln in config.splitlines()]
+    assert items[0] == "Run Whole Pipeline" and items[-1] == "UVPS Settings"
+    assert sorted(i for i in items if i != "-") == sorted(n[:-3].replace("_", " ") for n in names + ["New_Item.py"])
+    assert items.index("Estimate Lights") < items.index("Normals and Albedo") < items.index("Integrate Height") \
+        < items.index("Detect Protrusions") < items.index("Statistics and Report") < items.index("New Item")
+    assert "--" not in "".join(items) and items.count("-") == 5
 
 
 @pytest.mark.parametrize("layout, message", [
@@ -199,4 +231,4 @@ def test_fiji_gets_no_interpreter(tmp_path, source):
     root = make_fiji(tmp_path)
     proc = run_installer(root, "--source-root", source)
     assert proc.returncode == 0 and "Fiji ships Jython" in proc.stdout
-    assert not (root / "plugins" / "jars").exists()
+    assert sorted(p.name for p in (root / "plugins" / "jars").iterdir()) == ["uvps_menu"]

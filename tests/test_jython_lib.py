@@ -601,6 +601,14 @@ def test_detection_counts_in_the_log():
     assert "lower Sensitivity" in lines[-1]
 
 
+def test_run_info_diagnostics_give_no_detection_counts_of_their_own():
+    """Run Info's diagnostics hold the table's row count only: no "104 candidates, 104 kept,
+    0 rejected" where the run had 321 candidates (its text says the run's counts)."""
+    info = {"n_protrusions": 104, "detection": {"candidates": 321, "kept": 104,
+                                                "rejected": {"ridge": 217}}}
+    assert bl.diagnostic_lines("info", info) == []
+
+
 def test_lights_lines_say_where_the_lamps_came_from():
     reused = {"lights": {"source": "positions", "n_lights": 8}, "lights_file": "/r/lights.json"}
     assert bl.diagnostic_lines("normals", reused) == [
@@ -675,20 +683,18 @@ def test_lights_file_count(tmp_path):
 
 # --------------------------------------------------------------------------- wand points
 
-def test_points_files_in_pixels_and_in_um():
-    pts, unit = bl.read_points_text("x_px,y_px\n10,20\n30.5,40\n")
-    assert pts == [(10.0, 20.0), (30.5, 40.0)] and unit == "px"
-    measure = " \tArea\tMean\tX\tY\n1\t0.1\t5\t450\t600\n2\t0.1\t5\t3000\t150\n"
-    pts, unit = bl.read_points_text(measure)
-    assert pts == [(450.0, 600.0), (3000.0, 150.0)] and unit == ""
-    # automatic: they fit the 320 x 240 image only in um (15 um pixels)
-    px, used = bl.points_in_pixels(pts, unit, bl.UNITS_AUTO, 320, 240, 15.0)
-    assert used == "um" and px == [(30.0, 40.0), (200.0, 10.0)]
-    assert bl.points_in_pixels([(5, 6)], "", bl.UNITS_AUTO, 320, 240, 15.0) == ([(5, 6)], "pixels")
-    assert bl.points_in_pixels([(30, 60)], "", bl.UNITS_CALIBRATED, 320, 240, 15.0)[0] == [(2.0, 4.0)]
-    assert bl.read_points_text("1 2\n3 4\n") == ([(1.0, 2.0), (3.0, 4.0)], "")
-    with pytest.raises(bl.BridgeError, match="no x, y columns"):
-        bl.read_points_text("a,b\n1,2\n")
+def test_the_clicks_line_says_the_unit_the_core_read():
+    diag = {"n_points": 3, "points_unit": "mm", "points_unit_said": True, "pixel_size_um": 15.0}
+    assert bl.clicks_line(diag, "the file /a.csv") == (
+        "3 clicks from the file /a.csv, read in mm (the albedo's pixel size is 15 um) "
+        "as the file's header says")
+    assert bl.clicks_line({"n_points": 2, "points_unit": "px"}, "the point selection") == (
+        "2 clicks from the point selection, read in pixels")
+
+
+def test_fiji_has_no_points_parser_of_its_own():
+    """The core's wand.read_seed_file is the one parser (Fiji's read x_mm as um, 1000x off)."""
+    assert not hasattr(bl, "read_points_text") and not hasattr(bl, "points_in_pixels")
 
 
 def test_repeated_clicks_are_listed_with_the_earlier_click():
@@ -710,3 +716,29 @@ def test_detection_settings_and_browse_buttons_come_with_fields(spec_table):
         for param in spec["params"]:
             if param["type"] in ("path", "paths"):
                 assert bl.dialog_field(param)["kind"] in ("file", "directory"), param
+
+
+def test_pixel_sizes_are_checked_naming_where_they_came_from():
+    where = 'the field "Pixel size on the painting"'
+    assert bl.check_pixel_size(30.0, where) == 30.0
+    assert bl.check_pixel_size(0, where) is None and bl.check_pixel_size("", where) is None
+    for bad, words in ((0.1, "(0.1 mm = 100 um)"), (-100, "a pixel size is positive"),
+                       (25400.0, "300 dpi = 84.7 um"), ("abc", "not a number")):
+        with pytest.raises(bl.BridgeError) as info:
+            bl.check_pixel_size(bad, where)
+        assert info.value.message.startswith(where + " holds ") and words in info.value.message
+
+
+def test_a_negative_number_in_a_field_without_default_is_refused_not_dropped():
+    param = bl.param_spec("wand", "pixel_size_um")
+    assert bl.value_of(param, 0) is None
+    with pytest.raises(bl.BridgeError, match="must be positive"):
+        bl.value_of(param, -100)
+
+
+def test_core_messages_lose_their_cli_flags_in_fiji():
+    text = ("pixel size unknown: the images carry no physical resolution; pass --pixel-size-um "
+            "(params 'pixel_size_um')")
+    assert bl.user_words(text, "run") == (
+        'pixel size unknown: the images carry no physical resolution; pass the field '
+        '"Pixel size on the painting"')

@@ -190,6 +190,18 @@ def test_propose_bad_input():
         propose_regions(np.ones((2, 5, 5)), pixel_size_um=15.0)
 
 
+def test_propose_refuses_a_pixel_size_that_makes_the_image_smaller_than_an_area():
+    """0.1 typed as mm into the um field: 320 px of 0.1 um are 0.032 mm, one smoothing block;
+    a one-line message naming the pixel size, not a scipy error from the clustering."""
+    alb, _ = _patches()
+    with pytest.raises(UVPSInputError) as info:
+        propose_regions(alb, pixel_size_um=0.1)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("pixel_size_um 0.1 makes the 320 x 240 px image 0.032 mm wide")
+    assert "micrometres" in message
+
+
 def test_statistics_reject_an_area_without_pixels():
     regions = _two_areas()
     regions.names[3] = "ghost"
@@ -202,3 +214,22 @@ def test_statistics_bad_table_and_regions():
         region_statistics({"x_px": [1.0], "y_px": [1.0]}, _two_areas(), pixel_size_um=PX)
     with pytest.raises(UVPSInputError, match="RegionMap"):
         region_statistics(_table([]), np.ones((3, 3), int), pixel_size_um=PX)
+
+
+def test_the_cli_refuses_a_pixel_size_in_mm_with_automatic_areas_in_one_line(tmp_path):
+    """`uvps run --pixel-size-um 0.1 --regions auto` (0.1 meant as mm): exit 1 and one line, not a
+    traceback from the clustering."""
+    import subprocess
+    import sys
+
+    from uvps.synthetic import make_capture, write_capture
+
+    write_capture(make_capture(shape=(120, 160), n_lights=8, seed=1), tmp_path / "cap", truth=False)
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(tmp_path / "cap"), "-o", str(tmp_path / "run"),
+                        "--pixel-size-um", "0.1", "--regions", "auto", "--lights", str(tmp_path / "cap" / "lights.lp")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if not ln.startswith(("INFO", "WARNING"))]
+    assert errors == ["uvps run: error: pixel_size_um 0.1 makes the 160 x 120 px image 0.016 mm wide, smaller "
+                      "than the 1 mm over which colour areas are proposed; give the pixel size in micrometres "
+                      "(0.1 mm = 100 um) or the areas as a label image"], r.stderr

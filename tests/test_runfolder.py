@@ -32,7 +32,11 @@ def test_info_describes_the_run_on_the_command_line(run_dir):
     n = len((run_dir / "protrusions.csv").read_text().splitlines()) - 1
     assert "made by:    uvps run" in r.stdout
     assert "160 x 200 px x 3 channels of 15.0 um, 8 lights (positions)" in r.stdout
-    assert f"protrusions: {n}" in r.stdout and n > 0
+    rejected = sum(log["diagnostics"]["detect"]["rejected"].values())
+    assert n > 0 and rejected > 0
+    # the run's counts: kept, candidates and rejected as the detection gave them
+    assert (f"protrusions: {n} kept of {n + rejected} candidates ({rejected} rejected by the "
+            "detection's rules)") in r.stdout.splitlines()
     # every warning the run gave is repeated, or "none"
     assert all(w in r.stdout for w in log["warnings"]) and (log["warnings"] or "warnings:   none" in r.stdout)
     assert not list(run_dir.parent.glob(".run.tmp-*"))     # info writes nothing
@@ -117,3 +121,80 @@ def test_outputs_written_band_by_band_hold_the_whole_arrays(run_dir, tmp_path, m
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "albedo.tif"), np.moveaxis(st.albedo, -1, 0))
     g = gradients_from_normals(st.normals)
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "gradients.tif"), np.stack([g.p, g.q]))
+
+
+# ------------------------------------------------------------------------------------------------
+# the relief's scale (run.json "relief"): relative when the estimated lamps do not pin it
+# ------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def relative_run(tmp_path_factory):
+    """Lamps estimated from a 2.4 x 3 mm field: their elevation is not pinned (the heights' 95 %
+    uncertainty is far above 20 %), so the run's relief is relative."""
+    cap = make_capture(shape=(160, 200), n_lights=8, seed=2)
+    d = tmp_path_factory.mktemp("relative")
+    write_capture(cap, d / "cap")
+    result = COMMANDS["run"]({"images": [str(d / "cap")]}, {"regions": "auto"}, d / "run")
+    return d / "run", result
+
+
+def test_relief_of_reads_run_json_defensively():
+    from uvps.runfolder import relief_of
+
+    assert relief_of({"relief": {"scale": "relative", "lamps": "estimated", "reason": "r"}}) == {
+        "scale": "relative", "lamps": "estimated", "reason": "r"}
+    for old in ({}, None, {"relief": None}, {"relief": "relative"}, {"relief": {"scale": "metres"}}):
+        assert relief_of(old)["scale"] == "absolute"          # older folders: heights were in micrometres
+
+
+def test_a_run_with_given_lamps_has_an_absolute_relief_in_micrometres(run_dir):
+    import tifffile
+
+    from uvps.runfolder import height_unit, relief_in
+
+    relief = relief_in(run_dir)
+    assert relief["scale"] == "absolute" and relief["lamps"] == "positions"
+    assert height_unit(run_dir / "depth.tif") == "um"
+    assert (run_dir / "protrusions.csv").read_text().splitlines()[0].split(",")[5] == "height_um"
+    with tifffile.TiffFile(run_dir / "depth.tif") as tif:
+        assert "micrometres" in tif.imagej_metadata["Info"]
+
+
+def test_a_relative_run_has_no_micrometre_heights(relative_run):
+    import tifffile
+
+    from uvps.measure import read_protrusions_csv
+    from uvps.runfolder import height_unit
+
+    run, result = relative_run
+    log = json.loads((run / "run.json").read_text())
+    assert log["relief"]["scale"] == "relative" and log["relief"]["lamps"] == "estimated"
+    assert log["diagnostics"]["lights"]["height_uncertainty_relative_95"] > 0.20
+    assert "calibrat" in log["relief"]["reason"]
+    # depth.tif: ImageJ's value unit says relative (the TIFF's ImageJ description, vunit=relative)
+    assert height_unit(run / "depth.tif") == "relative"
+    with tifffile.TiffFile(run / "depth.tif") as tif:
+        assert "vunit=relative" in tif.pages.first.description
+        assert "NOT micrometres" in tif.imagej_metadata["Info"]
+    # protrusions.csv: the heights are a unitless relative_height, no height_um column
+    header = (run / "protrusions.csv").read_text().splitlines()[0].split(",")
+    assert "relative_height" in header and "height_um" not in header
+    table = read_protrusions_csv(run / "protrusions.csv")
+    assert len(table["id"]) > 0 and np.isfinite(table["relative_height"]).any()
+    assert np.isnan(table["height_um"]).all()
+    # the run's one heights warning says so
+    assert sum("heights are relative" in w or "not determined" in w for w in result.warnings) == 1
+    # uvps info says it
+    r = subprocess.run([sys.executable, "-m", "uvps", "info", str(run)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "relief:     RELATIVE" in r.stdout
+
+
+def test_detect_and_integrate_on_a_relative_run_keep_it_relative(relative_run):
+    from uvps.runfolder import height_unit
+
+    run, _ = relative_run
+    COMMANDS["detect"]({}, {}, run)
+    header = (run / "protrusions.csv").read_text().splitlines()[0].split(",")
+    assert "relative_height" in header and "height_um" not in header
+    COMMANDS["integrate"]({}, {}, run)
+    assert height_unit(run / "depth.tif") == "relative"

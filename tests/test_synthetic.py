@@ -966,3 +966,64 @@ def test_dark_frame_holds_the_black_level_and_stray_light_and_is_written_apart(t
     assert tmp_path / "cap" / "dark" / "dark.tif" in written
     c = read_capture(tmp_path / "cap", pixel_size_um=15.0)
     assert c.images.shape == cap.images.shape                            # the dark frame is not an image
+
+
+# Impasto: each option changes the strokes as it says, against the same strokes without it (the
+# options draw from their own stream, so the strokes' paths, widths and heights are the same).
+STROKES = dict(shape=(240, 320), n_lights=3, noise=False, n_ridges=3, n_primer_spots=0,
+               protrusion_density_light=0.0, protrusion_density_dark=0.0, seed=4,
+               ridge_height_um=(20.0, 30.0))
+
+
+def _strokes(**impasto):
+    # a tiny crossing fraction switches the impasto stream on without changing the strokes
+    cap = make_capture(**{**STROKES, "ridge_crossing_fraction": 1e-12, **impasto})
+    return cap.nuisances.strokes.astype(np.float64)
+
+
+def test_impasto_ripples_blunt_ends_grooves():
+    plain = _strokes()
+    assert plain.max() > 15
+    inside = plain > 1.0
+    ratio = _strokes(ridge_ripple=(0.3, 0.3))[inside] / plain[inside]
+    assert 0.69 <= ratio.min() < 0.75 and 1.25 < ratio.max() <= 1.31   # 1 + 0.3 sin
+    blunt = _strokes(ridge_blunt_fraction=1.0)
+    assert np.all(blunt >= plain - 1e-9)                  # no taper, a piled end
+    assert blunt.max() >= 1.19 * plain.max()
+    grooved = _strokes(ridge_groove_um=(2.0, 2.0))
+    diff = plain - grooved
+    assert diff.min() >= -1e-9 and 1.5 <= diff.max() <= 2.0 + 1e-9
+
+
+def test_impasto_crossings_add_up():
+    """Strokes laid at any angle over the others add up where they cross: higher than any one
+    stroke (at most 30 um here); merged by their maximum they never are."""
+    plain = _strokes(n_ridges=10)
+    crossed = _strokes(n_ridges=10, ridge_crossing_fraction=1.0)
+    assert plain.max() <= 30.0 < crossed.max()
+
+
+def test_protrusions_on_strokes():
+    spec = dict(shape=(300, 400), n_lights=3, noise=False, n_ridges=6, seed=2,
+                ridge_width_um=(300.0, 600.0), protrusion_density_light=60.0,
+                protrusion_density_dark=60.0, on_stroke_fraction=1.0)
+    cap = make_capture(**spec)
+    pr, strokes = cap.protrusions, cap.nuisances.strokes
+    on = pr["on_stroke"]
+    assert on.mean() >= 0.7
+    r = np.rint(pr["y_px"][on]).astype(int)
+    c = np.rint(pr["x_px"][on]).astype(int)
+    near = np.array([strokes[max(i - 6, 0):i + 7, max(j - 6, 0):j + 7].max() for i, j in zip(r, c)])
+    assert np.all(near > 1.0)                            # on a stroke or against its flank
+    assert "on_stroke" not in make_capture(**{**spec, "on_stroke_fraction": 0.0}).protrusions
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(ridge_ripple=(0.2, 1.5)), "ridge_ripple"),
+    (dict(ridge_groove_um=(3.0, 1.0)), "ridge_groove_um"),
+    (dict(on_stroke_fraction=1.5), "on_stroke_fraction"),
+    (dict(ridge_density=-1.0), "ridge_density"),
+])
+def test_impasto_options_checked(overrides, match):
+    with pytest.raises(UVPSInputError, match=match):
+        make_capture(shape=(64, 80), n_lights=3, **overrides)

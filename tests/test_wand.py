@@ -140,7 +140,7 @@ def test_read_seeds_formats(tmp_path):
 def test_read_seeds_bad_files(tmp_path):
     p = tmp_path / "bad.csv"
     p.write_text("a,b\n1,2\n")
-    with pytest.raises(UVPSInputError, match="x_px,y_px or X,Y"):
+    with pytest.raises(UVPSInputError, match="x_px,y_px .or x_um,y_um, x_mm,y_mm, X,Y."):
         read_seeds(p)
     p.write_text("x_px,y_px\n1,oops\n")
     with pytest.raises(UVPSInputError, match="line 2"):
@@ -155,3 +155,32 @@ def test_read_seeds_tab_separated_and_headerless(tmp_path):
     np.testing.assert_array_equal(read_seeds(p), [[12, 7], [3, 4]])
     p.write_text(" \tX\tY\n1\t5\t6\n")
     np.testing.assert_array_equal(read_seeds(p), [[5, 6]])
+
+
+def test_read_seed_file_reads_the_unit_its_header_names(tmp_path):
+    """One parser for the CLI and Fiji: x_mm is millimetres (Fiji's own parser read it as um,
+    1000x off), x_um micrometres, X,Y pixels unless they only fit the image in um."""
+    from uvps.wand import read_seed_file
+
+    p = tmp_path / "mm.csv"
+    p.write_text("x_mm,y_mm\n0.15,0.30\n1.5,0.045\n")
+    got = read_seed_file(p, pixel_size_um=15.0)
+    np.testing.assert_array_equal(got.seeds, [[10, 20], [100, 3]])
+    assert (got.unit, got.said) == ("mm", True)
+    p.write_text("x_um,y_um\n150,300\n")
+    np.testing.assert_array_equal(read_seeds(p, pixel_size_um=15.0), [[10, 20]])
+    # ImageJ's Measure on the calibrated albedo (320 x 240 px of 15 um): X,Y in um
+    p.write_text(" ,X,Y\n1,4500,3000\n2,150,300\n")
+    got = read_seed_file(p, pixel_size_um=15.0, shape=(240, 320))
+    np.testing.assert_array_equal(got.seeds, [[300, 200], [10, 20]])
+    assert (got.unit, got.said) == ("um", False)
+    # the same numbers inside the image in pixels are pixels, unless told
+    p.write_text(" ,X,Y\n1,45,30\n")
+    assert read_seed_file(p, pixel_size_um=15.0, shape=(240, 320)).unit == "px"
+    np.testing.assert_array_equal(read_seeds(p, pixel_size_um=15.0, units="um"), [[3, 2]])
+    # a header's own unit wins over the choice
+    p.write_text("x_px,y_px\n45,30\n")
+    np.testing.assert_array_equal(read_seeds(p, pixel_size_um=15.0, units="um"), [[45, 30]])
+    p.write_text("x_mm,y_mm\n1,2\n")
+    with pytest.raises(UVPSInputError, match="a pixel size is needed"):
+        read_seeds(p)

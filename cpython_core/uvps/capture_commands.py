@@ -119,7 +119,8 @@ def _cmd_integrate(inputs, params, output_dir, *, progress=None):
     report(progress, 0.2, "integrating")
     res = integrate_normals(images.normals, pixel_size_um=images.pixel_size_um, method=params["integration"])
     with atomic_output_dir(run_dir) as tmp:
-        runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method)
+        runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method,
+                               relief=runfolder.relief_in(run_dir))
     report(progress, 1.0, "integrate: done")
     return CommandResult([runfolder.output_spec(run_dir, "depth")], integration_diagnostics(res), [])
 

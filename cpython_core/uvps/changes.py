@@ -13,11 +13,16 @@ A is the earlier run folder, B the later one; each made by ``uvps run`` with det
    difference (block medians off the protrusions, smoothed; a canvas relaxing, the integration's
    low-frequency error) is removed and reported, and the two dates' height scales are matched
    on the common relief (the estimated lamps leave the heights' scale uncertain by a few %).
+0. **The dates' scales**: each run's ``run.json`` (its lamps, calibration and relief scale) is
+   recorded (:func:`date_record`); a relative relief (lamps not pinned) refuses height growth
+   (:func:`check_height_scales`) unless ``widths_only``.
 3. **Matching** one to one (:func:`uvps.compare.match_protrusions`) of A's protrusions with B's
-   mapped into A's frame. Status ``new``, ``gone``, or for a pair ``grown`` / ``shrunk`` when the
-   change of width or height exceeds ``sigma_factor`` x the measurement's repeatability at that
-   size (:data:`NOISE_FLOOR`), else ``unchanged``. Protrusions outside the common field are left
-   out (counted in ``run.json``).
+   mapped into A's frame; then neighbours that ``merged`` or ``split``; what is left alone is
+   ``new`` or ``gone``. A pair is ``grown`` / ``shrunk`` when its change of width or height
+   exceeds ``sigma_factor`` x that change's standard uncertainty (:func:`change_uncertainty`:
+   :data:`NOISE_MODEL` fitted to unchanged pairs, scaled by :func:`pair_inflation` when this
+   pair repeats worse), else ``unchanged``. Protrusions that either date does not see whole are
+   left out (counted in ``run.json``).
 
 Outputs (the contract of issue 10; ``docs/monitoring.md``): ``registration.json``,
 ``changes.csv`` (:data:`COLUMNS`), ``height_change.tif`` (A's frame, um), ``report.html`` with
@@ -25,7 +30,9 @@ Outputs (the contract of issue 10; ``docs/monitoring.md``): ``registration.json`
 """
 from __future__ import annotations
 
+import dataclasses
 import html
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -50,36 +57,102 @@ from .spec import CommandSpec, Param
 
 log = logging.getLogger(__name__)
 
-#: Columns of ``changes.csv``, in order (the output contract).
+#: Columns of ``changes.csv``, in order (the output contract). ``d_width_sd_um`` and
+#: ``d_height_sd_um`` are the changes' standard uncertainties (:func:`change_uncertainty`),
+#: ``significance`` the larger of ``|d_width_um| / d_width_sd_um`` and ``|d_height_um| /
+#: d_height_sd_um`` (in standard deviations; a status other than unchanged needs ``sigma_factor``).
 COLUMNS = ("id_a", "id_b", "x_px_a", "y_px_a", "x_px_b", "y_px_b", "status", "width_um_a",
-           "width_um_b", "height_um_a", "height_um_b", "d_width_um", "d_height_um", "region")
-STATUSES = ("new", "grown", "shrunk", "unchanged", "gone")
-
-#: The measurement's repeatability: robust standard deviation (1.4826 x MAD) of the change of
-#: width and of height between two captures of an unchanged surface (another camera pose, other
-#: lamps estimated from the images), per protrusion width class ``[lo, hi)`` um, with the number
-#: of matched protrusions it rests on. Measured by
-#: ``.venv/bin/python scripts/benchmark_changes.py --pairs 0 --unchanged-pairs 2 --repeatability-only``
-#: (2 unchanged synthetic pairs of 1600 x 1200 px of 15 um, poses up to 200 px / 3 deg / 2 %;
-#: docs/benchmarks.md, "Monitoring over time"). The class >= 400 um rests on 5 pairs only
-#: (measured 2.2 um and 0.10 um): it takes 1.5 x the largest of the other classes.
-NOISE_FLOOR = (
-    # lo_um, hi_um, sigma_width_um, sigma_height_um, n
-    (0.0, 100.0, 2.26, 0.40, 67),
-    (100.0, 200.0, 2.44, 0.25, 251),
-    (200.0, 400.0, 1.95, 0.20, 105),
-    (400.0, float("inf"), 3.7, 0.6, 5),
-)
+           "width_um_b", "height_um_a", "height_um_b", "d_width_um", "d_height_um", "d_width_sd_um",
+           "d_height_sd_um", "significance", "region")
+STATUSES = ("new", "grown", "shrunk", "unchanged", "gone", "merged", "split")
 
 
-def noise_floor(width_um) -> tuple:
-    """``(sigma_width_um, sigma_height_um)`` of :data:`NOISE_FLOOR` at each width (arrays)."""
-    w = np.asarray(width_um, dtype=float)
-    lo = np.array([r[0] for r in NOISE_FLOOR])
-    k = np.clip(np.searchsorted(lo, np.nan_to_num(w, nan=0.0), side="right") - 1, 0, len(lo) - 1)
-    sw = np.array([r[2] for r in NOISE_FLOOR])[k]
-    sh = np.array([r[3] for r in NOISE_FLOOR])[k]
-    return sw, sh
+@dataclass(frozen=True)
+class NoiseModel:
+    """The standard uncertainty of one date's width and height of a protrusion, whose terms are
+    what makes a measurement differ between two captures of an unchanged surface; the
+    coefficients are fitted to unchanged pairs (another camera pose, the lamps placed again).
+
+    Per date, for a protrusion of width ``w`` and height ``h`` (um) at pixel size ``p`` (um), with
+    ``s`` the robust sd of the levelled height change around it (um, the pair's own surface
+    noise)::
+
+        sd_width^2  = (width_px * p)^2 + (width_rel * w)^2
+        sd_height^2 = (peak * h * (p / w)^2)^2 + (height_rel * h)^2 + (surface * s)^2
+
+    ``width_px``: the outline's quantisation on the pixel grid (a camera move puts other pixels on
+    the edge); ``width_rel``: the footprint threshold's share of the width; ``peak``: the peak
+    sampled at another phase (a dome's curvature over the offset of its nearest pixel, which
+    grows as (p / w)^2); ``height_rel``: the scale (the lamps placed again); ``surface``: the
+    heights' own noise. A change's variance is the sum of the two dates'.
+    """
+
+    width_px: float
+    width_rel: float
+    peak: float
+    height_rel: float
+    surface: float
+    n: int = 0
+    source: str = ""
+
+
+#: Fitted by ``.venv/bin/python scripts/benchmark_changes.py --variants clean --kinds moved --fit-noise``
+#: on the unchanged pairs with the camera moved and the lamps placed again (3 seeds, the true lamp
+#: positions; docs/benchmarks.md, "Monitoring over time").
+NOISE_MODEL = NoiseModel(width_px=0.130, width_rel=0.0, peak=0.635, height_rel=0.0014, surface=1.33, n=476,
+                         source="476 protrusions of 3 moved unchanged pairs (clean scenes), trimmed at 4 sd")
+
+
+def change_uncertainty(width_a, width_b, height_a, height_b, *, pixel_size_um_a: float,
+                       pixel_size_um_b: float, surface_um=0.0, model: NoiseModel = NOISE_MODEL):
+    """Standard uncertainties ``(sd_d_width_um, sd_d_height_um)`` of the changes of width and
+    height between two dates (arrays), by :class:`NoiseModel`: each date's variance at its own
+    width, height and pixel size, summed. NaN widths or heights count as the other date's."""
+    wa, wb = np.asarray(width_a, float), np.asarray(width_b, float)
+    ha, hb = np.abs(np.asarray(height_a, float)), np.abs(np.asarray(height_b, float))
+    wa, wb = np.where(np.isfinite(wa), wa, wb), np.where(np.isfinite(wb), wb, wa)
+    ha, hb = np.where(np.isfinite(ha), ha, hb), np.where(np.isfinite(hb), hb, ha)
+    s = np.nan_to_num(np.asarray(surface_um, float))
+
+    def var_w(w, p):
+        return (model.width_px * p) ** 2 + (model.width_rel * w) ** 2
+
+    def var_h(w, h, p):
+        q = np.clip(p / np.maximum(w, p), 0, 1) ** 2
+        return (model.peak * h * q) ** 2 + (model.height_rel * h) ** 2 + (model.surface * s) ** 2
+
+    sd_w = np.sqrt(var_w(wa, pixel_size_um_a) + var_w(wb, pixel_size_um_b))
+    sd_h = np.sqrt(var_h(wa, ha, pixel_size_um_a) + var_h(wb, hb, pixel_size_um_b))
+    return sd_w, sd_h
+
+
+def pair_inflation(z, *, cut: float = 2.5, floor: float = 1.0) -> float:
+    """How much noisier this pair's changes are than the model says: the robust sd of the
+    z-scores of the pairs that look unchanged (iterated: those within ``cut`` x the current
+    scale; 1.4826 x the median of |z| about zero), never below ``floor``. The changes that grew
+    lie beyond the cut, so they do not steer it while most protrusions are unchanged."""
+    z = np.abs(np.asarray(z, float))
+    z = z[np.isfinite(z)]
+    if z.size < 20:
+        return floor
+    s = floor
+    for _ in range(10):
+        sel = z[z < cut * s]
+        if sel.size < 10:
+            break
+        new = max(floor, 1.4826 * float(np.median(sel)) / _truncated_mad(cut))
+        if abs(new - s) < 1e-3:
+            s = new
+            break
+        s = new
+    return float(s)
+
+
+def _truncated_mad(cut: float) -> float:
+    """The median of |z| of a standard normal truncated at |z| < cut, over the untruncated one."""
+    from scipy.stats import norm
+
+    return float(norm.ppf(0.5 + (norm.cdf(cut) - 0.5) / 2) / norm.ppf(0.75))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -462,9 +535,11 @@ def _inside(xy, shape, margin):
 
 
 def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_a, shape_b,
-                     pixel_size_um: float, height_scale: float = 1.0, sigma_factor: float = 5.0,
-                     match_radius_um: Optional[float] = None, regions_a: Optional[np.ndarray] = None,
-                     change_um: Optional[np.ndarray] = None):
+                     pixel_size_um: float, pixel_size_um_b: Optional[float] = None, height_scale: float = 1.0,
+                     sigma_factor: float = 4.5, match_radius_um: Optional[float] = None,
+                     regions_a: Optional[np.ndarray] = None, change_um: Optional[np.ndarray] = None,
+                     off_protrusions: Optional[np.ndarray] = None, model: NoiseModel = NOISE_MODEL,
+                     heights: bool = True, adapt: bool = True):
     """Match two protrusion tables across dates and give each protrusion its status.
 
     Parameters
@@ -476,79 +551,178 @@ def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_
     shape_a, shape_b : (M, N)
     pixel_size_um : float
         A's pixel size (the matching radius is in A's frame).
+    pixel_size_um_b : float, optional
+        B's (default: A's x the registration's scale).
     height_scale : float
         B's heights are divided by it (the levelling's relief scale).
     sigma_factor : float
         A pair is ``grown`` (``shrunk``) when its width or height changed by more than
-        ``sigma_factor`` x :func:`noise_floor` at its width. 5 by default: the changes of an
-        unchanged pair have heavier tails than a normal law of the robust sd (3 flagged 3-5 %
-        of an unchanged pair's protrusions, 5 under 1 %; docs/benchmarks.md).
+        ``sigma_factor`` x its standard uncertainty (:func:`change_uncertainty`, times the pair's
+        :func:`pair_inflation`).
     regions_a : (M, N) int array, optional
         A's colour areas: the ``region`` column.
     change_um : (M, N) array, optional
-        The levelled height change in A's frame: a protrusion found at one date only stays
-        ``new`` / ``gone`` only when the change over it says so (:func:`_confirm_unmatched`).
+        The levelled height change in A's frame: its robust sd around each protrusion (off the
+        protrusions, ``off_protrusions``) is the height model's surface noise, and a protrusion
+        found at one date only stays ``new`` / ``gone`` only when the change over it says so
+        (:func:`_confirm_unmatched`).
+    model : NoiseModel
+    heights : bool
+        False: heights are not compared (a relative relief): the height columns stay empty and
+        the status rests on the widths.
+    adapt : bool
+        Scale the uncertainties by :func:`pair_inflation` (never below the model).
 
     Returns
     -------
-    rows : dict of columns :data:`COLUMNS`, and counts of protrusions left out (outside the
-    common field).
+    rows : dict of columns :data:`COLUMNS`; positions in A's frame (P, 2); counts of protrusions
+    left out (outside the common field); and a dict of the uncertainty's diagnostics.
+
+    Notes
+    -----
+    One-to-one matching first (:func:`uvps.compare.match_protrusions`). Then neighbours that merged
+    or split: a protrusion of A left without a partner whose centre lies inside (within half the
+    width of) a B protrusion matched to another of A's merged into it (``merged``, both rows
+    carrying that B's id); a B protrusion left without a partner inside an A protrusion matched
+    to another of B's split from it (``split``). What is still alone is ``new`` or ``gone``.
     """
-    xa = np.column_stack([table_a["x_px"], table_a["y_px"]]).astype(float)
-    xb = np.column_stack([table_b["x_px"], table_b["y_px"]]).astype(float)
+    xa = np.column_stack([table_a["x_px"], table_a["y_px"]]).astype(float).reshape(-1, 2)
+    xb = np.column_stack([table_b["x_px"], table_b["y_px"]]).astype(float).reshape(-1, 2)
     wa, wb = np.asarray(table_a["width_um"], float), np.asarray(table_b["width_um"], float)
-    ha, hb = np.asarray(table_a["height_um"], float), np.asarray(table_b["height_um"], float) / height_scale
+    ha = np.asarray(table_a.get("height_um", np.full(len(wa), np.nan)), float)
+    hb = np.asarray(table_b.get("height_um", np.full(len(wb), np.nan)), float) / height_scale
+    if not heights:
+        ha, hb = np.full(len(wa), np.nan), np.full(len(wb), np.nan)
     a_to_b = np.linalg.inv(b_to_a)
     xa_in_b = _apply(a_to_b, xa) if len(xa) else xa
     xb_in_a = _apply(b_to_a, xb) if len(xb) else xb
-    px_b = pixel_size_um * float(np.sqrt(abs(np.linalg.det(b_to_a[:2, :2]))))
-    # only where both dates see the protrusion whole
-    keep_a = _inside(xa_in_b, shape_b, 0) & _inside(xa_in_b, shape_b, 0.5 * np.nan_to_num(wa) / px_b + 2)
-    keep_b = _inside(xb_in_a, shape_a, 0.5 * np.nan_to_num(wb) / pixel_size_um + 2)
+    px_b = (pixel_size_um * float(np.sqrt(abs(np.linalg.det(b_to_a[:2, :2]))))
+            if pixel_size_um_b is None else float(pixel_size_um_b))
+    # only where both dates see the protrusion whole (a protrusion cut by either frame has its
+    # centre and width biased at that date)
+    keep_a = (_inside(xa_in_b, shape_b, 0.5 * np.nan_to_num(wa) / px_b + 2)
+              & _inside(xa, shape_a, 0.5 * np.nan_to_num(wa) / pixel_size_um + 2))
+    keep_b = (_inside(xb_in_a, shape_a, 0.5 * np.nan_to_num(wb) / pixel_size_um + 2)
+              & _inside(xb, shape_b, 0.5 * np.nan_to_num(wb) / px_b + 2))
     ia, ib = np.flatnonzero(keep_a), np.flatnonzero(keep_b)
     pairs, _ = match_protrusions(xa[ia], np.nan_to_num(wa[ia]), xb_in_a[ib], np.nan_to_num(wb[ib]),
                                  pixel_size_um=pixel_size_um, match_radius_um=match_radius_um)
     pa, pb = ia[pairs[:, 0]], ib[pairs[:, 1]]
     gone = np.setdiff1d(ia, pa)
     new = np.setdiff1d(ib, pb)
-    dw, dh = wb[pb] - wa[pa], hb[pb] - ha[pa]
-    sw, sh = noise_floor((wa[pa] + wb[pb]) / 2)
-    zw, zh = dw / sw, np.nan_to_num(dh / sh)
-    zmax = np.where(np.abs(zw) >= np.abs(zh), zw, zh)
-    up = (zw > sigma_factor) | (zh > sigma_factor)
-    down = (zw < -sigma_factor) | (zh < -sigma_factor)
-    status = np.where(up & ~down, "grown", np.where(down & ~up, "shrunk", "unchanged"))
-    both = up & down
-    status[both] = np.where(zmax[both] > 0, "grown", "shrunk")
-    n_rows = len(pa) + len(gone) + len(new)
+    # merged: an A protrusion alone, inside a matched B one; split: a B one alone inside a matched A one
+    rad_b = 0.5 * np.nan_to_num(wb) / pixel_size_um        # B's radius in A pixels
+    rad_a = 0.5 * np.nan_to_num(wa) / pixel_size_um
+    merged_into = {}
+    for g in gone:
+        d = np.hypot(*(xb_in_a[pb] - xa[g]).T) if len(pb) else np.zeros(0)
+        inside = np.flatnonzero(d <= rad_b[pb])
+        if inside.size:
+            merged_into[int(g)] = int(pb[inside[np.argmin(d[inside])]])
+    split_from = {}
+    for j in new:
+        d = np.hypot(*(xa[pa] - xb_in_a[j]).T) if len(pa) else np.zeros(0)
+        inside = np.flatnonzero(d <= rad_a[pa])
+        if inside.size:
+            split_from[int(j)] = int(pa[inside[np.argmin(d[inside])]])
+    ga = np.array(sorted(merged_into), int)
+    gb = np.array([merged_into[g] for g in ga], int)
+    sb = np.array(sorted(split_from), int)
+    sa = np.array([split_from[j] for j in sb], int)
+    gone = np.setdiff1d(gone, ga)
+    new = np.setdiff1d(new, sb)
+    # the rows: pairs, merged, split, gone, new
+    ra = np.concatenate([pa, ga, sa]).astype(int)
+    rb = np.concatenate([pb, gb, sb]).astype(int)
+    kind = np.array(["pair"] * len(pa) + ["merged"] * len(ga) + ["split"] * len(sa), dtype="<U9")
+    merged_b = set(gb.tolist())
+    split_a = set(sa.tolist())
+    kind[:len(pa)] = np.where(np.isin(pb, list(merged_b)), "merged",
+                              np.where(np.isin(pa, list(split_a)), "split", "pair"))
+    n_m, n_g, n_n = len(ra), len(gone), len(new)
+    n_rows = n_m + n_g + n_n
     nan = np.full(n_rows, np.nan)
-    rows = {"id_a": np.concatenate([table_a["id"][pa], table_a["id"][gone], np.zeros(len(new), int)]).astype(int),
-            "id_b": np.concatenate([table_b["id"][pb], np.zeros(len(gone), int), table_b["id"][new]]).astype(int),
-            "x_px_a": np.concatenate([xa[pa, 0], xa[gone, 0], nan[:len(new)]]),
-            "y_px_a": np.concatenate([xa[pa, 1], xa[gone, 1], nan[:len(new)]]),
-            "x_px_b": np.concatenate([xb[pb, 0], nan[:len(gone)], xb[new, 0]]),
-            "y_px_b": np.concatenate([xb[pb, 1], nan[:len(gone)], xb[new, 1]]),
-            "status": np.concatenate([status, ["gone"] * len(gone), ["new"] * len(new)]).astype("<U9"),
-            "width_um_a": np.concatenate([wa[pa], wa[gone], nan[:len(new)]]),
-            "width_um_b": np.concatenate([wb[pb], nan[:len(gone)], wb[new]]),
-            "height_um_a": np.concatenate([ha[pa], ha[gone], nan[:len(new)]]),
-            "height_um_b": np.concatenate([hb[pb], nan[:len(gone)], hb[new]])}
+
+    def col(va, vb):
+        return (np.concatenate([va[ra], va[gone], nan[:n_n]]), np.concatenate([vb[rb], nan[:n_g], vb[new]]))
+
+    rows = {"id_a": np.concatenate([np.asarray(table_a["id"])[ra], np.asarray(table_a["id"])[gone],
+                                    np.zeros(n_n, int)]).astype(int),
+            "id_b": np.concatenate([np.asarray(table_b["id"])[rb], np.zeros(n_g, int),
+                                    np.asarray(table_b["id"])[new]]).astype(int)}
+    rows["x_px_a"], rows["x_px_b"] = col(xa[:, 0], xb[:, 0])
+    rows["y_px_a"], rows["y_px_b"] = col(xa[:, 1], xb[:, 1])
+    rows["width_um_a"], rows["width_um_b"] = col(wa, wb)
+    rows["height_um_a"], rows["height_um_b"] = col(ha, hb)
     rows["d_width_um"] = rows["width_um_b"] - rows["width_um_a"]
     rows["d_height_um"] = rows["height_um_b"] - rows["height_um_a"]
     # position in A's frame of every row (B's mapped for new ones): the region, the figures
-    pos = np.concatenate([xa[pa], xa[gone], xb_in_a[new]]).reshape(-1, 2)
+    pos = np.concatenate([xa[ra], xa[gone], xb_in_a[new]]).reshape(-1, 2)
+    widths = np.where(np.isfinite(rows["width_um_a"]), rows["width_um_a"], rows["width_um_b"])
+    surface = (_local_noise(change_um, pos, widths, pixel_size_um, off_protrusions)
+               if change_um is not None else np.zeros(n_rows))
+    sd_w, sd_h = change_uncertainty(rows["width_um_a"], rows["width_um_b"], rows["height_um_a"],
+                                    rows["height_um_b"], pixel_size_um_a=pixel_size_um, pixel_size_um_b=px_b,
+                                    surface_um=surface, model=model)
+    zw, zh = rows["d_width_um"] / sd_w, rows["d_height_um"] / sd_h
+    paired = np.zeros(n_rows, bool)
+    paired[:n_m] = kind == "pair"
+    infl_w = pair_inflation(zw[paired]) if adapt else 1.0
+    infl_h = pair_inflation(zh[paired]) if adapt and heights else 1.0
+    sd_w, sd_h = sd_w * infl_w, sd_h * infl_h
+    zw, zh = rows["d_width_um"] / sd_w, rows["d_height_um"] / sd_h
+    rows["surface_noise_um"] = surface       # not a column: the fit of the model reads it
+    rows["d_width_sd_um"] = np.where(np.isfinite(rows["d_width_um"]), sd_w, np.nan)
+    rows["d_height_sd_um"] = np.where(np.isfinite(rows["d_height_um"]), sd_h, np.nan)
+    zw0, zh0 = np.nan_to_num(zw), np.nan_to_num(zh)
+    rows["significance"] = np.where(np.isfinite(zw) | np.isfinite(zh), np.maximum(np.abs(zw0), np.abs(zh0)), np.nan)
+    up = (zw0 > sigma_factor) | (zh0 > sigma_factor)
+    down = (zw0 < -sigma_factor) | (zh0 < -sigma_factor)
+    zmax = np.where(np.abs(zw0) >= np.abs(zh0), zw0, zh0)
+    status = np.where(up & ~down, "grown", np.where(down & ~up, "shrunk", "unchanged")).astype("<U9")
+    both = up & down
+    status[both] = np.where(zmax[both] > 0, "grown", "shrunk")
+    status[:n_m] = np.where(kind == "pair", status[:n_m], kind)
+    status[n_m:n_m + n_g] = "gone"
+    status[n_m + n_g:] = "new"
+    rows["status"] = status
     if regions_a is not None and len(pos):
         r = np.clip(np.rint(pos[:, 1]).astype(int), 0, regions_a.shape[0] - 1)
         c = np.clip(np.rint(pos[:, 0]).astype(int), 0, regions_a.shape[1] - 1)
         rows["region"] = regions_a[r, c].astype(int)
     else:
         rows["region"] = np.zeros(n_rows, int)
-    if change_um is not None:
+    if change_um is not None and heights:
         _confirm_unmatched(rows, pos, change_um, pixel_size_um)
     order = np.lexsort((pos[:, 0], pos[:, 1])) if n_rows else np.zeros(0, int)
     rows = {k: v[order] for k, v in rows.items()}
     left_out = {"a": int(len(xa) - len(ia)), "b": int(len(xb) - len(ib))}
-    return rows, pos[order], left_out
+    surf = surface[paired] if n_rows else np.zeros(0)
+    uncertainty = {"inflation_width": round(infl_w, 4), "inflation_height": round(infl_h, 4),
+                   "surface_noise_um_median": round(float(np.median(surf)), 4) if surf.size else None,
+                   "model": dataclasses.asdict(model), "sigma_factor": sigma_factor, "heights": bool(heights)}
+    return rows, pos[order], left_out, uncertainty
+
+
+def _local_noise(change_um, pos, widths, px, off_protrusions=None) -> np.ndarray:
+    """The robust sd (1.4826 MAD) of the levelled height change around each position: a square of
+    half-side max(2 widths, 0.5 mm) off the protrusions (``off_protrusions``); NaN -> 0."""
+    m, n = change_um.shape
+    out = np.zeros(len(pos))
+    for i, ((x, y), w) in enumerate(zip(pos, widths)):
+        r = int(max(2.0 * np.nan_to_num(w), 500.0) / px)
+        r0, r1 = max(int(y) - r, 0), min(int(y) + r + 1, m)
+        c0, c1 = max(int(x) - r, 0), min(int(x) + r + 1, n)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        v = change_um[r0:r1, c0:c1]
+        ok = np.isfinite(v)
+        if off_protrusions is not None:
+            ok &= off_protrusions[r0:r1, c0:c1]
+        if ok.sum() >= 16:
+            v = v[ok]
+            out[i] = 1.4826 * float(np.median(np.abs(v - np.median(v))))
+    return out
 
 
 def _confirm_unmatched(rows, pos, change_um, px):
@@ -622,13 +796,17 @@ def area_table(rows: dict, regions_a, names: dict, common: np.ndarray, pixel_siz
 # the report
 # ------------------------------------------------------------------------------------------------
 
-_MARK = {"new": ("#1a9641", "o"), "grown": ("#d7191c", "o"), "shrunk": ("#fdae61", "s"),
-         "gone": ("#2c7bb6", "x")}
+#: Colour and marker of each status in the figures (colour-blind-safe where it matters: grown red,
+#: new green filled, gone blue dashed, unchanged grey).
+_MARK = {"unchanged": ("#f4f4f4", "o"), "shrunk": ("#fdae61", "s"), "gone": ("#2c7bb6", "x"),
+         "merged": ("#7b3294", "D"), "split": ("#c51b7d", "D"), "grown": ("#d7191c", "o"),
+         "new": ("#1a9641", "o")}
 
 
-def _marks(ax, rows, pos, step, px_um, shape):
+def _marks(ax, rows, pos, step, px_um, shape, *, statuses=("shrunk", "gone", "merged", "split", "grown", "new")):
     ext = extent_mm(shape, px_um)
-    for s, (colour, marker) in _MARK.items():
+    for s in statuses:
+        colour, marker = _MARK[s]
         sel = rows["status"] == s
         if sel.any():
             x = ext[0] + (pos[sel, 0] + 0.5) * px_um / 1000.0
@@ -637,12 +815,61 @@ def _marks(ax, rows, pos, step, px_um, shape):
                        marker=marker, linewidths=1.0, label=f"{s} ({int(sel.sum())})")
 
 
+def _change_map_figure(path: Path, res: dict, step: int) -> None:
+    """The change map: A's albedo in grey, every protrusion of either date drawn at its place and
+    size (a circle of its width, B's for new ones) in its status's colour, with a legend of the
+    counts; grown, new, gone and unchanged told apart at a glance."""
+    from matplotlib.collections import PatchCollection
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+
+    a = res["a"]
+    rows, pos, px, shape = res["rows"], res["positions_a"], a.pixel_size_um, a.height.shape
+    ext = extent_mm(shape, px)
+    grey = display_albedo(a.albedo, step)
+    if grey.ndim == 3:
+        grey = grey.mean(axis=2)
+    fig = figure((10, 8 * shape[0] / shape[1] + 0.8))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.imshow(0.15 + 0.45 * grey, cmap="gray", vmin=0, vmax=1, extent=ext)
+    width = np.where(np.isfinite(rows["width_um_a"]), rows["width_um_a"], rows["width_um_b"])
+    handles = []
+    for s in ("unchanged", "shrunk", "merged", "split", "gone", "grown", "new"):
+        colour, _ = _MARK[s]
+        sel = np.flatnonzero(rows["status"] == s)
+        if sel.size == 0:
+            continue
+        x = ext[0] + (pos[sel, 0] + 0.5) * px / 1000.0
+        y = ext[3] - (pos[sel, 1] + 0.5) * px / 1000.0
+        r = np.maximum(np.nan_to_num(width[sel]) / 2000.0, 1.5 * px / 1000.0)
+        filled = s in ("grown", "new")
+        circles = [Circle((xi, yi), ri) for xi, yi, ri in zip(x, y, r)]
+        ax.add_collection(PatchCollection(
+            circles, facecolors=colour if filled else "none", edgecolors=colour,
+            alpha=0.85 if filled else 1.0, linewidths=0.8 if s == "unchanged" else 1.6,
+            linestyles="--" if s == "gone" else "-"))
+        handles.append(Line2D([], [], marker="o", linestyle="none", markersize=9,
+                              markerfacecolor=colour if filled else "none",
+                              markeredgecolor="#777777" if s == "unchanged" else colour,
+                              markeredgewidth=1.6, label=f"{s} ({sel.size})"))
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title("changes B - A in A's frame (circles at each protrusion's width)")
+    if handles:
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
+    save_figure(fig, path)
+
+
 def write_changes_report(folder: Path, res: dict) -> Path:
     """``report.html`` and ``figures/changes_*.png`` of :func:`compute_changes`'s result."""
     shape = res["a"].height.shape
     step = max(display_step(shape), int(np.ceil(max(shape) / 800)))   # figures of ~800 px: fast
+    _change_map_figure(folder / "figures" / "changes_map.png", res, step)
     _dates_figure(folder / "figures" / "changes_dates.png", res, step)
-    _height_change_figure(folder / "figures" / "changes_height.png", res, step)
+    if res["diagnostics"]["uncertainty"]["heights"]:
+        _height_change_figure(folder / "figures" / "changes_height.png", res, step)
     _registration_figure(folder / "figures" / "changes_registration.png", res, step)
     path = folder / "report.html"
     atomic_write_text(path, _report_page(res))
@@ -725,25 +952,48 @@ def _report_page(res: dict) -> str:
     classes = list(areas[-1]["grown_by_width"]) if areas else []
     area_rows = [[r["name"], r["area_cm2"]] + [r[s] for s in STATUSES] + [r["new_per_cm2"]] for r in areas]
     growth_rows = [[r["name"]] + [f"{g}/{m}" for g, m in r["grown_by_width"].values()] for r in areas]
-    floor_rows = [[f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", s_w, s_h, n]
-                  for lo, hi, s_w, s_h, n in NOISE_FLOOR]
+    unc = d["uncertainty"]
+    m = unc["model"]
+    model_rows = [("outline on the pixel grid (width_px)", f"{m['width_px']:g} px"),
+                  ("footprint threshold (width_rel)", f"{100 * m['width_rel']:.2g} % of the width"),
+                  ("peak sampling (peak)", f"{m['peak']:g} x height x (pixel / width)^2"),
+                  ("height scale (height_rel)", f"{100 * m['height_rel']:.2g} % of the height"),
+                  ("surface noise (surface)", f"{m['surface']:g} x the height change's robust sd around it "
+                                              f"(median {unc['surface_noise_um_median']} um)"),
+                  ("this pair against the model (widths, heights)",
+                   f"x {unc['inflation_width']:.2f}, x {unc['inflation_height']:.2f}")]
+    date_rows = []
+    for what, date in (("A", d["dates"]["a"]), ("B", d["dates"]["b"])):
+        lamps = date.get("lamps", "unknown")
+        given = date.get("calibration") or date.get("lights_file") or ""
+        unc_h = date.get("height_uncertainty_relative")
+        date_rows.append([what, lamps, html.escape(str(given)), date.get("n_lights") or "",
+                          date["relief"]["scale"], f"+-{100 * unc_h:.1f} %" if unc_h is not None else ""])
+    height_fig = ("" if not unc["heights"] else
+                  '<h2>Height change</h2><figure><img src="figures/changes_height.png"></figure>')
     warn = "".join(f"<p class='warn'>{html.escape(w)}</p>" for w in res["warnings"])
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>uvps changes</title>
 <style>{CSS}</style></head><body>
 <h1>Changes between two captures</h1>
 <p>A (earlier): <code>{html.escape(str(a.path))}</code><br>B (later): <code>{html.escape(str(b.path))}</code><br>
 uvps {__version__}; per protrusion: <a href="changes.csv">changes.csv</a>; registration:
-<a href="registration.json">registration.json</a>; height change: height_change.tif (um, A's frame).</p>
+<a href="registration.json">registration.json</a>{"; height change: height_change.tif (um, A's frame)" if unc["heights"] else ""}.</p>
 {warn}
-<h2>The two dates</h2><figure><img src="figures/changes_dates.png"></figure>
-<h2>Height change</h2><figure><img src="figures/changes_height.png"></figure>
+<h2>Change map</h2><figure><img src="figures/changes_map.png"></figure>
+<h2>The two dates: lamps and calibration</h2>
+{table_html(["date", "lamps", "calibration / lights file", "lamps (n)", "relief", "heights (lamps)"], date_rows)}
+<figure><img src="figures/changes_dates.png"></figure>
+{height_fig}
 <h2>Change per colour area</h2>
 {table_html(["area", "area (cm^2)"] + list(STATUSES) + ["new per cm^2"], area_rows)}
 <h3>Grown / matched, by width class (um)</h3>
 {table_html(["area"] + classes, growth_rows)}
 <p>A protrusion counts as grown (shrunk) when its width or height changed by more than
-{d['sigma_factor']:g} x the measurement's repeatability at its size:</p>
-{table_html(["width (um)", "sigma width (um)", "sigma height (um)", "pairs measured"], floor_rows)}
+{d['sigma_factor']:g} x that change's standard uncertainty (changes.csv <code>d_width_sd_um</code>,
+<code>d_height_sd_um</code>; <code>significance</code> in standard deviations). The uncertainty of each
+date's measurement, fitted to unchanged pairs ({html.escape(m['source'])}), and this pair's own
+repeatability against it:</p>
+{table_html(["term", "value"], model_rows)}
 <h2>Registration</h2>
 {table_html(["", ""], reg_rows)}
 <figure><img src="figures/changes_registration.png"></figure>
@@ -765,6 +1015,57 @@ class _Run:
     labels: Optional[np.ndarray]
     regions: Optional[np.ndarray]
     region_names: dict
+    date: dict = field(default_factory=dict)     # what its run.json says of its lamps (date_record)
+
+
+def _relief_of(log_: dict) -> dict:
+    """The run's relief scale (docs/architecture.md; contract of ``run.json``'s ``relief``): a
+    missing key is an older folder, read as absolute."""
+    try:
+        from .runfolder import relief_of      # the one reader, where the run folder module has it
+    except ImportError:
+        relief = log_.get("relief") or {}
+    else:
+        relief = relief_of(log_) or {}
+    return {"scale": relief.get("scale") or "absolute", "lamps": relief.get("lamps"),
+            "reason": relief.get("reason")}
+
+
+def date_record(run_dir) -> dict:
+    """What a run folder's ``run.json`` says of the date's lamps and calibration: where the lamps
+    came from (``lamps``: the lights' source; ``lights_file``, ``calibration``: the parameters
+    given), their count, the heights' relative uncertainty where the lamps were estimated, and
+    the relief's scale (``relief``: absolute or relative). A folder without ``run.json`` (made by
+    another tool) gives ``run_json: False`` and an absolute scale."""
+    path = Path(run_dir) / FILES["run"][0]
+    try:
+        log_ = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        log_ = None
+    if not isinstance(log_, dict):
+        return {"run_json": False, "lamps": "unknown", "relief": _relief_of({})}
+    params = log_.get("params") or {}
+    lights = (log_.get("diagnostics") or {}).get("lights") or {}
+    rec = {"run_json": True, "command": log_.get("command"), "version": log_.get("version"),
+           "lamps": lights.get("source", "unknown"), "n_lights": lights.get("n_lights"),
+           "lights_file": params.get("lights"), "calibration": params.get("calibration"),
+           "relief": _relief_of(log_)}
+    if "height_uncertainty_relative" in lights:
+        rec["height_uncertainty_relative"] = lights["height_uncertainty_relative"]
+    return rec
+
+
+def check_height_scales(date_a: dict, date_b: dict, paths) -> None:
+    """Height growth between dates needs both reliefs on a pinned (absolute) scale: a relative
+    run raises :class:`UVPSInputError` naming the calibration to add."""
+    for what, date, path in (("A", date_a, paths[0]), ("B", date_b, paths[1])):
+        relief = date["relief"]
+        if relief["scale"] == "relative":
+            why = f" ({relief['reason'].rstrip('.')})" if relief.get("reason") else ""
+            raise UVPSInputError(
+                f"run folder {what} {path} has a relative relief{why}: height growth between dates needs "
+                "a pinned scale; re-run that capture with --calibration CAL (made by 'uvps calibrate "
+                "--spheres DIR') or --lights POSITIONS, or compare widths and counts alone with --widths-only")
 
 
 def _read_dated_run(path, what: str) -> _Run:
@@ -788,7 +1089,7 @@ def _read_dated_run(path, what: str) -> _Run:
         if csv_path.is_file():
             names = read_region_names(csv_path)
     return _Run(path, images.albedo, images.height_um, read_protrusions_csv(table_path),
-                images.pixel_size_um, labels, regions, names)
+                images.pixel_size_um, labels, regions, names, date_record(path))
 
 
 def _footprints(labels, grow=4):
@@ -800,9 +1101,13 @@ def _hashes(run: _Run) -> list:
             for n in ("albedo", "depth", "protrusions")]
 
 
-def compute_changes(run_a, run_b, *, sigma_factor=5.0, match_radius_um=None, min_matches=25,
-                    level_mm=1.0, match_height_scale=True, bins_um=100.0, progress: Progress = None):
+def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min_matches=25,
+                    level_mm=1.0, match_height_scale=True, bins_um=100.0, widths_only=False,
+                    registration: Optional[Registration] = None, progress: Progress = None):
     """Everything ``uvps changes`` computes, in memory (see the module docstring).
+
+    ``registration``: B onto A as an earlier call found it (the same two runs), to decide again
+    with other options without registering again.
 
     Returns a dict: ``a``, ``b`` (the runs read), ``registration``, ``levelling``, ``rows``,
     ``positions_a``, ``common`` (A's pixels both dates see), ``areas``, ``diagnostics``,
@@ -813,11 +1118,16 @@ def compute_changes(run_a, run_b, *, sigma_factor=5.0, match_radius_um=None, min
     report(progress, 0.0, "reading the run folders")
     a = _read_dated_run(run_a, "A")
     b = _read_dated_run(run_b, "B")
+    heights = not widths_only
+    if heights:
+        check_height_scales(a.date, b.date, (a.path, b.path))
+    elif "relative" not in (a.date["relief"]["scale"], b.date["relief"]["scale"]):
+        warnings.append("--widths-only: heights not compared although both runs have an absolute relief")
     timings["read"] = round(time.perf_counter() - t0, 3)
     t = time.perf_counter()
-    reg = register(a.albedo, b.albedo, min_matches=min_matches, exclude_a=_footprints(a.labels),
-                   exclude_b=_footprints(b.labels),
-                   progress=lambda f, msg: report(progress, 0.05 + 0.45 * f, msg))
+    reg = registration or register(a.albedo, b.albedo, min_matches=min_matches, exclude_a=_footprints(a.labels),
+                                   exclude_b=_footprints(b.labels),
+                                   progress=lambda f, msg: report(progress, 0.05 + 0.45 * f, msg))
     timings["registration"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     ratio = b.pixel_size_um / a.pixel_size_um
@@ -843,28 +1153,31 @@ def compute_changes(run_a, run_b, *, sigma_factor=5.0, match_radius_um=None, min
         off &= ~ndimage.binary_dilation(lb > 0, iterations=3)
     block = max(8, int(round(level_mm * 1000.0 / a.pixel_size_um)))
     lev = level_heights(a.height, hb, common, off, block_px=block, match_scale=match_height_scale)
-    if abs(lev.height_scale - 1) > 0.02:
-        warnings.append(f"B's relief is {lev.height_scale:.3f} x A's on the common field (the estimated "
-                        "lamps' height scale); B's heights are divided by it")
+    if heights and abs(lev.height_scale - 1) > 0.02:
+        warnings.append(f"B's relief is {lev.height_scale:.3f} x A's on the common field; B's heights are "
+                        "divided by it (are both dates' lamps calibrated?)")
     timings["heights"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     report(progress, 0.7, "matching protrusions")
-    rows, pos, left_out = classify_changes(a.table, b.table, reg.b_to_a, shape_a=shape_a, shape_b=shape_b,
-                                           pixel_size_um=a.pixel_size_um, height_scale=lev.height_scale,
-                                           sigma_factor=sigma_factor, match_radius_um=match_radius_um,
-                                           regions_a=a.regions, change_um=lev.change_um)
+    rows, pos, left_out, unc = classify_changes(
+        a.table, b.table, reg.b_to_a, shape_a=shape_a, shape_b=shape_b, pixel_size_um=a.pixel_size_um,
+        pixel_size_um_b=b.pixel_size_um, height_scale=lev.height_scale, sigma_factor=sigma_factor,
+        match_radius_um=match_radius_um, regions_a=a.regions, change_um=lev.change_um,
+        off_protrusions=off, heights=heights)
+    for what, f in (("widths", unc["inflation_width"]), ("heights", unc["inflation_height"])):
+        if f > 1.5:
+            warnings.append(f"the {what} of this pair repeat {f:.1f} x worse than the repeatability model "
+                            "(measured on unchanged pairs): the uncertainties are widened by it; are the "
+                            "two captures comparable (lamps, exposure, focus)?")
     areas = area_table(rows, a.regions, a.region_names, common, a.pixel_size_um, bins_um)
     timings["matching"] = round(time.perf_counter() - t, 3)
     counts = {s: int(np.sum(rows["status"] == s)) for s in STATUSES}
     diagnostics = {"registration": {k: v for k, v in reg.to_json().items() if k != "tile_shifts_px"},
+                   "dates": {"a": a.date, "b": b.date},
                    "pixel_size": pixel, "levelling": lev.diagnostics, "counts": counts,
                    "left_out_outside_common_field": left_out,
                    "common_field_fraction_of_a": round(float(common.mean()), 4),
-                   "sigma_factor": sigma_factor,
-                   "noise_floor": [{"width_um": [lo, None if not np.isfinite(hi) else hi],
-                                    "sigma_width_um": s_w, "sigma_height_um": s_h, "n": n}
-                                   for lo, hi, s_w, s_h, n in NOISE_FLOOR],
-                   "areas": areas}
+                   "sigma_factor": sigma_factor, "uncertainty": unc, "areas": areas}
     return {"a": a, "b": b, "registration": reg, "levelling": lev, "rows": rows, "positions_a": pos,
             "common": common, "areas": areas, "diagnostics": diagnostics, "warnings": warnings,
             "timings_s": timings, "b_in_a_albedo": None}
@@ -877,16 +1190,18 @@ def cmd_changes(inputs: dict, params: dict, output_dir, *, progress: Progress = 
     res = compute_changes(inputs["run_a"], inputs["run_b"], sigma_factor=params["sigma_factor"],
                           match_radius_um=params["match_radius_um"], min_matches=params["min_matches"],
                           level_mm=params["level_mm"], match_height_scale=params["match_height_scale"],
-                          bins_um=params["bins_um"], progress=lambda f, m: report(progress, 0.9 * f, m))
+                          bins_um=params["bins_um"], widths_only=params["widths_only"],
+                          progress=lambda f, m: report(progress, 0.9 * f, m))
     a, reg, lev = res["a"], res["registration"], res["levelling"]
     t = time.perf_counter()
     report(progress, 0.9, "writing")
     with atomic_output_dir(out) as tmp:
         write_json_atomic(tmp / "registration.json", reg.to_json())
         write_changes_csv(tmp / "changes.csv", res["rows"])
-        write_imagej_tiff(tmp / "height_change.tif", lev.change_um, axes="YX", pixel_size_um=a.pixel_size_um,
-                          metadata={"Info": "uvps changes: height of B minus A in um, in A's frame, levelled "
-                                            "(smooth difference removed); NaN outside the common field"})
+        if not params["widths_only"]:
+            write_imagej_tiff(tmp / "height_change.tif", lev.change_um, axes="YX", pixel_size_um=a.pixel_size_um,
+                              metadata={"Info": "uvps changes: height of B minus A in um, in A's frame, levelled "
+                                                "(smooth difference removed); NaN outside the common field"})
         write_changes_report(tmp, res)
         res["timings_s"]["writing"] = round(time.perf_counter() - t, 3)
         res["timings_s"]["total"] = round(time.perf_counter() - t_all, 3)
@@ -895,16 +1210,17 @@ def cmd_changes(inputs: dict, params: dict, output_dir, *, progress: Progress = 
                         warnings=list(res["warnings"]), diagnostics=res["diagnostics"])
         runlog.write(tmp / "run.json")
     outputs = [OutputSpec("registration", str(out / "registration.json"), kind="json"),
-               OutputSpec("changes", str(out / "changes.csv"), kind="table", units="um"),
-               OutputSpec("height_change", str(out / "height_change.tif"), kind="image", axes="YX",
-                          dtype="float32", units="um"),
-               OutputSpec("report", str(out / "report.html"), kind="html"),
-               OutputSpec("run", str(out / "run.json"), kind="json")]
+               OutputSpec("changes", str(out / "changes.csv"), kind="table", units="um")]
+    if not params["widths_only"]:
+        outputs.append(OutputSpec("height_change", str(out / "height_change.tif"), kind="image", axes="YX",
+                                  dtype="float32", units="um"))
+    outputs += [OutputSpec("report", str(out / "report.html"), kind="html"),
+                OutputSpec("run", str(out / "run.json"), kind="json")]
     c = res["diagnostics"]["counts"]
     text = (f"registration: {reg.model}, {reg.matches} matches, residual {reg.rms_px:.3f} px rms, "
             f"scale {reg.scale:.4f}, rotation {reg.rotation_deg:.2f} deg\n"
             f"protrusions: {c['new']} new, {c['grown']} grown, {c['shrunk']} shrunk, "
-            f"{c['unchanged']} unchanged, {c['gone']} gone\n"
+            f"{c['unchanged']} unchanged, {c['gone']} gone, {c['merged']} merged, {c['split']} split\n"
             f"written to {out}")
     report(progress, 1.0, "done")
     diag = {k: v for k, v in res["diagnostics"].items() if k != "areas"}
@@ -923,10 +1239,10 @@ SPECS = (
                           label="Earlier run folder (A)", help="run folder of the earlier capture (with detection)"),
                     Param("run_b", "path", where="inputs", positional=True, required=True,
                           label="Later run folder (B)", help="run folder of the later capture (with detection)"),
-                    Param("sigma_factor", "float", 5.0, minimum=0, exclusive_minimum=True,
-                          label="Significance (x the repeatability)",
-                          help="a change of width or height counts beyond this many standard deviations "
-                               "of the measurement's repeatability at that size"),
+                    Param("sigma_factor", "float", 4.5, minimum=0, exclusive_minimum=True,
+                          label="Significance (x the uncertainty)",
+                          help="a change of width or height counts beyond this many standard uncertainties "
+                               "of that change (changes.csv d_width_sd_um, d_height_sd_um)"),
                     Param("match_radius_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                           label="Match radius (0 = automatic)",
                           help="largest centre distance of a match (default max(2 px, half the larger width))"),
@@ -940,5 +1256,8 @@ SPECS = (
                                "leave it uncertain by a few %)"),
                     Param("bins_um", "numbers", 100.0, unit="um", minimum=0, label="Width classes",
                           help="width class of the growth table, or increasing edges"),
+                    Param("widths_only", "bool", False, label="Widths only (a relative relief)",
+                          help="compare positions and widths alone, heights left empty: for a run whose "
+                               "relief is relative (lamps not calibrated), which is refused otherwise"),
                 )),
 )

@@ -43,7 +43,9 @@ PathLike = Union[str, os.PathLike]
 TIFF_EXTS = (".tif", ".tiff")
 PNG_EXTS = (".png",)
 JPEG_EXTS = (".jpg", ".jpeg")
-IMAGE_EXTS = TIFF_EXTS + PNG_EXTS + JPEG_EXTS
+#: Camera raw files, read linearly by LibRaw (rawpy): :func:`read_raw`.
+RAW_EXTS = (".dng", ".cr2", ".cr3", ".nef", ".arw")
+IMAGE_EXTS = TIFF_EXTS + PNG_EXTS + JPEG_EXTS + RAW_EXTS
 
 #: Length units found in TIFF/ImageJ metadata, in micrometres.
 _UNIT_UM = {
@@ -92,6 +94,9 @@ class Capture:
         ``(K,)`` relative lamp intensities ``E_k`` (> 0) when the light file gives them (an ``.lp``
         4th column, a positions CSV ``intensity`` column, ``lights.json`` ``intensity``); None when
         it does not.
+    raw : dict or None
+        Camera raw files (:data:`RAW_EXTS`): how they were read (:func:`raw_reading`: the black and
+        white levels subtracted, white balance, demosaic), recorded in ``run.json``; None otherwise.
     """
 
     images: np.ndarray
@@ -103,6 +108,7 @@ class Capture:
     light_positions_mm: Optional[np.ndarray]
     bit_depth: str
     light_intensities: Optional[np.ndarray] = None
+    raw: Optional[dict] = None          # camera raw files: how LibRaw read them (:func:`read_raw`)
 
 
 class LazyStack:
@@ -369,6 +375,8 @@ def _kind(path: Path) -> str:
         return "png"
     if ext in JPEG_EXTS:
         return "jpeg"
+    if ext in RAW_EXTS:
+        return "raw"
     raise UVPSInputError(
         f"{path}: not a supported image file; expected one of {', '.join(IMAGE_EXTS)}"
     )
@@ -434,6 +442,91 @@ def srgb_to_linear(values: np.ndarray, full_scale: float, *, out: Optional[np.nd
 
 
 # ---------------------------------------------------------------------------------------------
+# camera raw files
+
+#: How :func:`read_raw` has LibRaw develop a raw file: linear (gamma 1), no automatic brightness or
+#: maximum, white balance fixed at 1 for every channel, the camera's own colour channels (no colour
+#: matrix), bilinear demosaic (LINEAR: it mixes no channel into another and keeps the counts'
+#: linearity; AHD and its kin are tuned for a tone-mapped look), the image as stored (no rotation).
+RAW_DEVELOP = {"gamma": [1, 1], "no_auto_bright": True, "adjust_maximum_thr": 0.0, "white_balance": [1, 1, 1, 1],
+               "demosaic": "LINEAR", "colour": "camera raw (no colour matrix)", "flip": 0, "output_bps": 16}
+
+
+def _rawpy():
+    try:
+        import rawpy
+    except ImportError:  # pragma: no cover - a dependency
+        raise UVPSInputError("camera raw files need rawpy (pip install rawpy)") from None
+    return rawpy
+
+
+def _raw_levels(raw, path) -> dict:
+    black = [float(v) for v in raw.black_level_per_channel]
+    white = float(raw.white_level)
+    if not white > max(black):
+        raise UVPSInputError(f"{path}: its white level ({white:g}) is not above its black level ({max(black):g})")
+    return {"black_level": black, "white_level": white, "cfa": raw.color_desc.decode("ascii", "replace"),
+            "pattern": np.asarray(raw.raw_pattern).tolist() if raw.raw_pattern is not None else None}
+
+
+def read_raw(path: PathLike) -> np.ndarray:
+    """A camera raw file (:data:`RAW_EXTS`) as linear ``(M, N, 3)`` float32 counts above its black level.
+
+    LibRaw (through rawpy) develops it as :data:`RAW_DEVELOP` says: no gamma, no automatic
+    brightness, white balance fixed (1 for every channel), the camera's colour channels, bilinear
+    demosaic. It subtracts the black level of the file's metadata and scales to 16 bits by
+    ``65535 / (white - black)``; that scale is divided back out here, so a count is the sensor's count
+    above its black level (saturated at ``white - black``): nothing is rescaled.
+
+    Raises
+    ------
+    UVPSInputError
+        The file is missing, or LibRaw cannot read it (one line naming the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"image file {path} does not exist")
+    rawpy = _rawpy()
+    try:
+        with rawpy.imread(str(path)) as raw:
+            levels = _raw_levels(raw, path)
+            out = raw.postprocess(demosaic_algorithm=rawpy.DemosaicAlgorithm.LINEAR, gamma=(1, 1),
+                                  no_auto_bright=True, adjust_maximum_thr=0.0, output_bps=16,
+                                  use_camera_wb=False, use_auto_wb=False, user_wb=[1.0, 1.0, 1.0, 1.0],
+                                  output_color=rawpy.ColorSpace.raw, user_flip=0)
+    except UVPSInputError:
+        raise
+    except Exception as exc:  # LibRawError and kin: bad input, name the file
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UVPSInputError(f"{path}: LibRaw cannot read it as a camera raw file ({msg})") from None
+    # LibRaw's scale to 16 bits uses the largest black level
+    scale = 65535.0 / (levels["white_level"] - max(levels["black_level"]))
+    return (out.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def raw_reading(paths) -> dict:
+    """What :func:`read_raw` did to these raw files, for ``run.json``: the develop settings
+    (:data:`RAW_DEVELOP`), each distinct black level (per CFA channel) and white level, and the
+    saturation in the counts read (white - black)."""
+    rawpy = _rawpy()
+    levels = []
+    for p in paths:
+        try:
+            with rawpy.imread(str(p)) as raw:
+                lv = _raw_levels(raw, p)
+        except UVPSInputError:
+            raise
+        except Exception as exc:
+            raise UVPSInputError(f"{p}: LibRaw cannot read it as a camera raw file ({exc})") from None
+        if lv not in levels:
+            levels.append(lv)
+    return {"reader": f"LibRaw {'.'.join(map(str, rawpy.libraw_version))} (rawpy {rawpy.__version__})",
+            "develop": dict(RAW_DEVELOP), "levels": levels,
+            "black_level_subtracted": True,
+            "saturation_counts": min(lv["white_level"] - max(lv["black_level"]) for lv in levels)}
+
+
+# ---------------------------------------------------------------------------------------------
 # reading single images
 
 
@@ -460,6 +553,8 @@ def _read_image_px(path: PathLike) -> tuple:
         raise UVPSInputError(f"image file {path} does not exist")
     kind = _kind(path)
     px = None
+    if kind == "raw":
+        return read_raw(path), None
     try:
         if kind == "tiff":
             with tifffile.TiffFile(path) as tif:
@@ -1016,6 +1111,11 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     directions = positions = intensities = None
     if lights is not None:
         directions, positions, intensities = _attach_lights(lights, sources, by_name)
+    raw = None
+    saturation = _saturation_of(dtype)
+    if stack_path is None and any(_kind(Path(s.path)) == "raw" for s in sources):
+        raw = raw_reading([s.path for s in sources])
+        saturation = raw["saturation_counts"]
     report(progress, 1.0, f"read {len(sources)} images {shape_img} {dtype}")
     log.info("capture: %d images %s %s, pixel %.4g um",
              len(sources), shape_img, dtype, pixel_size_um)
@@ -1024,11 +1124,12 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         files=[s.label for s in sources],
         pixel_size_um=float(pixel_size_um),
         mask=mask_arr,
-        saturation=_saturation_of(dtype),
+        saturation=saturation,
         light_directions=directions,
         light_positions_mm=positions,
-        bit_depth=str(dtype),
+        bit_depth="raw" if raw is not None else str(dtype),
         light_intensities=intensities,
+        raw=raw,
     )
 
 

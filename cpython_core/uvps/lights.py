@@ -1075,6 +1075,10 @@ def _refine_lsq(sample: PixelSample, start: LightModel, R, X, history, *, w_drop
     return LightModel.from_positions(P, E / np.exp(np.mean(np.log(E))))
 
 
+#: Coverage factor of the heights' expanded uncertainty (:attr:`LightUncertainty.height_rel_95`).
+COVERAGE_FACTOR = 2.0
+
+
 @dataclass
 class LightUncertainty:
     """Standard uncertainties of estimated near lights (docs/architecture.md, "Confidence").
@@ -1083,7 +1087,10 @@ class LightUncertainty:
     standard uncertainty of heights that follows (the shared change of the lamps' elevations, as
     ``d log h = -mean_k d log tan(e_k)``). Each combines the residual's noise (Gauss-Newton
     covariance, ``sigma^2 (J^T J)^-1``) and the additive term's own uncertainty carried through the
-    solution (``-(J^T J)^-1 J^T dr/dc * se_c``), which dominates on real captures.
+    solution (``-(J^T J)^-1 J^T dr/dc * se_c``). ``height_rel`` also holds ``height_rel_misfit``,
+    what the lamp model leaves out (a bow, beams, cupping) moving the lamps along the bas-relief
+    direction (:func:`_tile_misfit`), which the noise term does not see: it dominates wherever the
+    estimated lamps are far off.
     """
 
     direction_deg: np.ndarray
@@ -1092,14 +1099,22 @@ class LightUncertainty:
     height_rel: float
     height_rel_noise: float
     height_rel_offset: float
+    height_rel_misfit: float = 0.0
+
+    @property
+    def height_rel_95(self) -> float:
+        """The heights' expanded relative uncertainty, coverage factor 2 (about 95 %; GUM 6.2)."""
+        return COVERAGE_FACTOR * float(self.height_rel)
 
     def to_json(self) -> dict:
         return {"direction_deg": [round(float(v), 4) for v in self.direction_deg],
+                "height_relative_95": round(self.height_rel_95, 5),
                 "distance_mm": [round(float(v), 3) for v in self.distance_mm],
                 "intensity": [round(float(v), 5) for v in self.intensity],
                 "height_relative": round(float(self.height_rel), 5),
                 "height_relative_from_noise": round(float(self.height_rel_noise), 5),
-                "height_relative_from_offset": round(float(self.height_rel_offset), 5)}
+                "height_relative_from_offset": round(float(self.height_rel_offset), 5),
+                "height_relative_from_misfit": round(float(self.height_rel_misfit), 5)}
 
 
 def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.0,
@@ -1142,12 +1157,50 @@ def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.
         e, _, _ = prob.photometric_terms(t)
         shift = -np.linalg.pinv(JtJ) @ np.einsum("kjp,kp->kj", e, dr).ravel() * offset_stderr
     h_off = float(abs(w_h @ shift))
+    Hinv = np.linalg.pinv(JtJ)
+    # the misfit's spatial scale is unknown (a bow: the field; cupping: a few mm): the largest over
+    # tilings of 4, 8 and 16 tiles a side
+    misfits = [_tile_misfit(sample, th, Hinv, w_h, prob.n_res, tiles=n) for n in MISFIT_TILES]
+    h_misfit = float(np.nanmax(misfits)) if np.any(np.isfinite(misfits)) else 0.0
     var = var_noise + shift ** 2
     cos_el = np.cos(el)
     dir_rad = np.sqrt(var[1::4] + cos_el ** 2 * var[0::4])
     D = np.exp(th[:, 2])
+    total = float(np.sqrt(h_noise ** 2 + h_off ** 2 + h_misfit ** 2))
     return LightUncertainty(np.degrees(dir_rad), D * np.sqrt(var[2::4]), np.exp(th[:, 3]) * np.sqrt(var[3::4]),
-                            float(np.hypot(h_noise, h_off)), h_noise, h_off)
+                            total, h_noise, h_off, h_misfit)
+
+
+#: Tilings of the field (tiles a side) for the heights' misfit term (:func:`_tile_misfit`).
+MISFIT_TILES = (4, 8, 16)
+
+
+def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = 8) -> float:
+    """Relative height uncertainty from what the lamp model leaves out, by tiles of the field.
+
+    The noise term assumes independent residuals; what the model leaves out (a bowed canvas's
+    shading, beams, cupping) is spatially coherent, and it moves the lamps along the bas-relief
+    direction. Each tile's share of the photometric gradient ``J_g^T r_g`` differs from the others'
+    by that coherent misfit; their spread through ``(J^T J)^-1`` (the cluster-robust sandwich, a
+    linearised jackknife over the tiles) is the heights' scale's uncertainty from it.
+    """
+    rows, cols = np.asarray(sample.rows), np.asarray(sample.cols)
+    M, N = float(rows.max()) + 1.0, float(cols.max()) + 1.0
+    tile = (rows * tiles // M).astype(int) * tiles + (cols * tiles // N).astype(int)
+    scores = []
+    for g in np.unique(tile):
+        sel = np.nonzero(tile == g)[0]
+        if sel.size < 8:
+            continue
+        sub = PixelSample(sample.I[:, sel], sample.X[sel], rows[sel], cols[sel])
+        scores.append(_vp_normal_equations(sub, th, workers=1)[3] / n_res)
+    if len(scores) < 3:
+        return float("nan")
+    S = np.asarray(scores)
+    S = S - S.mean(axis=0)
+    G = len(S)
+    proj = S @ (Hinv @ w_h)                                   # each tile's pull on log h
+    return float(np.sqrt(G / (G - 1) * np.sum(proj ** 2)))
 
 
 def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> np.ndarray:

@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 #: Columns of protrusions.csv, in order.
 COLUMNS = ("id", "x_px", "y_px", "width_um", "area_um2", "height_um", "crater",
            "r", "g", "b", "region", "source")
+#: The column that replaces ``height_um`` in a run whose relief has no scale (run.json ``relief``
+#: "relative": lamps estimated from images that do not pin their elevation): the same measure, no unit.
+RELATIVE_HEIGHT = "relative_height"
 _INT_COLUMNS = ("id", "crater", "region")
 _STR_COLUMNS = ("source",)
 
@@ -308,7 +311,7 @@ def table_to_csv_text(table: Mapping, columns: Sequence[str]) -> str:
     return buf.getvalue()
 
 
-def write_protrusions_csv(path, table: Mapping) -> None:
+def write_protrusions_csv(path, table: Mapping, *, relative: bool = False) -> None:
     """Write a protrusion table as CSV (columns :data:`COLUMNS`, in order), atomically.
 
     Parameters
@@ -317,6 +320,9 @@ def write_protrusions_csv(path, table: Mapping) -> None:
         Output file, e.g. ``<run>/protrusions.csv``.
     table : dict of str -> array
         As returned by :func:`measure_protrusions`.
+    relative : bool
+        The run's relief has no scale (``uvps.runfolder.relief_of``): the ``height_um`` column is
+        written as :data:`RELATIVE_HEIGHT` (no unit), so no table says micrometres it does not have.
     """
     missing = [c for c in COLUMNS if c not in table]
     if missing:
@@ -324,6 +330,11 @@ def write_protrusions_csv(path, table: Mapping) -> None:
     lengths = {len(table[c]) for c in COLUMNS}
     if len(lengths) > 1:
         raise UVPSInputError(f"protrusion table columns differ in length: {sorted(lengths)}")
+    if relative:
+        table = {**table, RELATIVE_HEIGHT: table["height_um"]}
+        atomic_write_text(path, table_to_csv_text(table, [RELATIVE_HEIGHT if c == "height_um" else c
+                                                          for c in COLUMNS]))
+        return
     atomic_write_text(path, table_to_csv_text(table, COLUMNS))
 
 
@@ -332,7 +343,8 @@ def read_protrusions_csv(path) -> dict:
 
     Only ``x_px``, ``y_px`` and ``width_um`` are required (so a table from another tool can be
     compared); the other columns of :data:`COLUMNS` get defaults (``id`` = 1..n, NaN, 0, "").
-    Extra columns are kept as strings.
+    Extra columns are kept as strings, but for :data:`RELATIVE_HEIGHT` (a number; ``height_um`` is
+    then NaN: a relative run's table has no heights in micrometres).
 
     Raises
     ------
@@ -356,7 +368,7 @@ def read_protrusions_csv(path) -> dict:
     table = {}
     for j, name in enumerate(header):
         cells = [(r[j].strip() if j < len(r) else "") for r in body]
-        if name in _STR_COLUMNS or (name not in COLUMNS):
+        if name in _STR_COLUMNS or (name not in COLUMNS and name != RELATIVE_HEIGHT):
             table[name] = np.array(cells, dtype=object)
             continue
         try:

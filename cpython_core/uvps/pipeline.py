@@ -43,6 +43,7 @@ from .stereo import StereoResult, solve_normals
 log = logging.getLogger(__name__)
 
 __all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+           "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions", "given_lights"]
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
@@ -62,8 +63,10 @@ OPTION_PARAMS = (
     Param("black_level", "numbers", None, unit="counts", minimum=0, label="Black level",
           help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
                "measuring it from the images"),
-    Param("offset", "choice", "auto", choices=("auto", "none"),
-          help="additive term (black level, stray light): measured from the images (auto) or none"),
+    Param("offset", "choice", "auto", choices=("auto", "measure", "none"),
+          help="additive term (black level, stray light) when none is given (black_level, dark, a raw file's "
+               "levels): auto measures it from the images of more than 8 bits and subtracts it where the fit pins "
+               "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
     Param("offset_degree", "int", 0, minimum=0, maximum=2,
           help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
     Param("lamp_beams", "bool", False,
@@ -192,6 +195,7 @@ class RunResult:
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     timings_s: dict = field(default_factory=dict)
+    relief: dict = field(default_factory=dict)   # run.json "relief" (:func:`relief_of_lights`)
 
 
 #: Stages :func:`run` knows, in order. "flatfield" computes nothing in memory: the flat-fielded
@@ -200,15 +204,9 @@ STAGES = ("flatfield", "normals", "height", "protrusions")
 #: A run whose lamps leave more than this fraction of the pixels with fewer than 3 usable samples
 #: stops: no model fits the images.
 NO_MODEL_FRACTION = 0.5
-#: Relative standard uncertainty of heights from the estimated lamps beyond which a run warns, and
-#: beyond which it says the heights' scale is not determined. The reported uncertainty is the noise
-#: part only: the bias the canvas's own shape gives the lamps' elevation is not in it. On the
-#: corrected generator (session 7, docs/benchmarks.md) it read 2.3-9.8 % where the heights were off
-#: by 1.3-8.2 %, with no order between the two (the demo's seeds: 6.7 % reported for 1.3 % off, 3.8 %
-#: for 6.3 %), so a warning at 5 % would say nothing about the run it is printed on; it starts at 20 %
-#: and flags what is undetermined: stray light the additive term misses gave 250-15000 %, a
-#: 3.6 x 4.8 mm field 140 %.
-HEIGHT_UNCERTAINTY_WARN = 0.20
+#: Relative standard uncertainty of heights from the estimated lamps beyond which the run says the
+#: heights' scale is not determined by the images (stray light the additive term misses, a small
+#: field); between :data:`RELATIVE_RELIEF_ABOVE` (expanded, 95 %) and this the heights are relative.
 HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
 #: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
@@ -281,6 +279,8 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     capture, res.additive, warn = remove_additive(capture, options=options, dark_given=dark_given)
     res.timings_s["additive"] = _since(t0)
     res.diagnostics["additive"] = res.additive.to_json()
+    if getattr(capture, "raw", None) is not None:
+        res.diagnostics["raw"] = capture.raw
     res.warnings += warn
     if card is None and options.card:
         card = load_card(options.card, lights=given_lights(capture), pixel_size_um=capture.pixel_size_um)
@@ -362,7 +362,47 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress, *, card=No
     if res.lights.images is not None:   # known lamps: the images with the beams (or the card) divided out
         capture = dataclasses.replace(capture, images=res.lights.images)
     res.capture = capture
+    res.relief = relief_of_lights(res.lights)
     res.warnings += _height_confidence_warnings(res.lights, azimuth_warning)
+
+
+#: Lamps estimated from the images pin the relief's scale when the heights' expanded uncertainty
+#: (:attr:`uvps.lights.LightUncertainty.height_rel_95`: noise, additive term and the lamp model's
+#: misfit along the bas-relief direction, coverage factor 2) is at most this; beyond it the run's relief
+#: is *relative* (docs/architecture.md, "Relief scale").
+RELATIVE_RELIEF_ABOVE = 0.20
+
+
+def relief_of_lights(lights: LightsResult) -> dict:
+    """``run.json``'s ``relief``: whether the heights have a scale in micrometres, and why.
+
+    Known lamps (positions, directions, a calibration) pin the lamps' elevation and so the relief's
+    depth scale: "absolute". Lamps estimated from the images pin it only as far as the images do
+    (the near-light remnant of the bas-relief ambiguity, :mod:`uvps.lights`): "absolute" when the
+    heights' uncertainty that follows is at most :data:`RELATIVE_RELIEF_ABOVE`, else "relative"
+    (normals, albedo, counts and widths hold; heights are a shape without a scale).
+    """
+    lamps = {"estimated": "estimated", "positions": "positions", "directions": "directions"}.get(
+        lights.source, str(lights.source))
+    if lights.source != "estimated":
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were given ({lamps}), which fixes their elevation and so the heights' "
+                          "scale"}
+    unc = lights.estimate.uncertainty if lights.estimate is not None else None
+    if unc is None:
+        return {"scale": "relative", "lamps": lamps,
+                "reason": "the lamps were estimated from the images and their elevation's uncertainty could not be "
+                          "measured, so the heights have no scale; calibrate the lamps (uvps calibrate, "
+                          "--calibration) or give their positions (--lights)"}
+    pct = 100 * unc.height_rel_95
+    if unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
+        return {"scale": "absolute", "lamps": lamps,
+                "reason": f"the lamps were estimated from the images, which pin their elevation: heights uncertain "
+                          f"by +-{pct:.0f} % (95 %)"}
+    return {"scale": "relative", "lamps": lamps,
+            "reason": f"the lamps were estimated from the images, which do not pin their elevation (heights "
+                      f"uncertain by +-{pct:.0f} %, 95 %): the relief's shape holds, its scale in micrometres does "
+                      "not; calibrate the lamps (uvps calibrate, --calibration) or give their positions (--lights)"}
 
 
 def _azimuth_warnings(lights: LightsResult, diagnostics: dict) -> list:
@@ -405,28 +445,29 @@ def _check_lamp_residual(lights: LightsResult) -> None:
 def _height_confidence_warnings(lights: LightsResult, azimuth_warning=()) -> list:
     """The run's one warning on its estimated lamps: heights whose scale is not determined say so (and
     name a dark frame for stray light); else the azimuths' disagreement (:func:`_azimuth_warnings`)
-    names its cause, a lamp's beam, where the heights' uncertainty would give a generic one or, on
-    beams, none (it missed 2 of 3 beam captures); else the uncertainty beyond 20 %."""
+    names its cause, a lamp's beam; else a relative relief (:func:`relief_of_lights`) says that the
+    heights carry no micrometres, naming the cause that dominates and what to do."""
     unc = lights.estimate.uncertainty if lights.estimate is not None else None
     undetermined = unc is not None and unc.height_rel > HEIGHT_UNCERTAINTY_UNDETERMINED
     if azimuth_warning and not undetermined:
         return list(azimuth_warning)
-    if unc is None or unc.height_rel <= HEIGHT_UNCERTAINTY_WARN:
+    if unc is None or unc.height_rel_95 <= RELATIVE_RELIEF_ABOVE:
         return []
     if undetermined:
         # the lamps are not determined by these images: the relief's shape may still serve (protrusions
         # show), its scale does not; said once, with what to do
         return [f"the heights' scale is not determined by these images (uncertain by +-{100 * unc.height_rel:.0f} %: "
-                "a small field, or stray light or lamp beams the model does not hold): give measured lamp positions "
-                "(--lights), and a dark frame (--dark) if there is stray light"]
-    # a warning only when the lamps' uncertainty makes the heights clearly uncertain: it then says
-    # which cause dominates and what to do (reported once: the CLI prints it, the bridge returns it)
-    cause = ("the black level could not be measured precisely enough; give the camera's black level or a "
-             "dark frame" if unc.height_rel_offset > unc.height_rel_noise else
-             "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
-             "apart; give measured lamp positions")
-    return [f"heights may be off by +-{100 * unc.height_rel:.0f} % (the estimated lamps' elevations are uncertain): "
-            f"{cause}"]
+                "a small field, or stray light or lamp beams the model does not hold): heights are relative; give "
+                "measured lamp positions (--lights) or a calibration, and a dark frame (--dark) if there is stray light"]
+    parts = {"offset": unc.height_rel_offset, "noise": unc.height_rel_noise, "misfit": unc.height_rel_misfit}
+    cause = {"offset": "the black level could not be measured precisely enough; give the camera's black level or a "
+                       "dark frame",
+             "noise": "the field is too small (or the lamps too far) for the lamps' distance and elevation to be told "
+                      "apart; give measured lamp positions (--lights) or a calibration",
+             "misfit": "the canvas's shape or the lamps' beams move the estimated lamps' elevation; give measured "
+                       "lamp positions (--lights) or a calibration"}[max(parts, key=parts.get)]
+    return [f"heights are relative, not micrometres (uncertain by +-{100 * unc.height_rel_95:.0f} % at 95 %: the "
+            f"images do not pin the estimated lamps' elevation): {cause}"]
 
 
 def _run_normals(res: RunResult, progress: Progress) -> None:
@@ -498,6 +539,8 @@ def lights_diagnostics(lights: LightsResult) -> dict:
         if lights.estimate.uncertainty is not None:
             u = lights.estimate.uncertainty
             d["height_uncertainty_relative"] = round(float(u.height_rel), 5)
+            d["height_uncertainty_relative_95"] = round(float(u.height_rel_95), 5)
+            d["height_uncertainty_from_misfit"] = round(float(u.height_rel_misfit), 5)
             d["direction_uncertainty_deg_max"] = round(float(np.max(u.direction_deg)), 4)
     return d
 
@@ -544,6 +587,8 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
     return Protrusions(table, det.labels, regions, proposed, dict(det.rejected), float(det.noise_um))
 
 
+#: Input bit depths on which the additive term is not measured by default (``offset="auto"``).
+EIGHT_BIT = ("uint8", "int8")
 #: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
 #: moved the estimated lamps by 5 degrees on the benchmark captures (docs/benchmarks.md).
 OFFSET_TOLERANCE = 0.001
@@ -556,9 +601,12 @@ OFFSET_MAX = 0.5
 def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) -> tuple:
     """The capture with its additive term (black level, stray light) removed, and that term.
 
-    Given black level (``options.black_level``): that. A dark frame (already subtracted on reading):
-    nothing more is removed. ``options.offset == "none"``: nothing. Otherwise the term is measured
-    from the images (:func:`uvps.offset.estimate_additive`). The images are not copied: the result's
+    A given term beats a measured one. Given black level (``options.black_level``): that. A dark frame
+    (already subtracted on reading), or camera raw files (their metadata's black level subtracted on
+    reading, :func:`uvps.io.read_raw`): nothing more is removed. ``options.offset == "none"``: nothing;
+    ``"auto"`` on 8-bit input (:data:`EIGHT_BIT`: a linearised JPEG's tone curve is no pedestal):
+    nothing. Otherwise the term is measured from the images (:func:`uvps.offset.estimate_additive`)
+    and subtracted only when it lies more than :data:`SIGNIFICANT` standard errors above 0. The images are not copied: the result's
     ``images`` is a view that subtracts on access (:class:`uvps.offset.OffsetImages`).
 
     Returns
@@ -574,6 +622,18 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         term = known_additive(options.black_level, shape=(M, N), channels=C)
     elif dark_given or options.offset == "none":
         term = known_additive(0.0, shape=(M, N), channels=C, source="dark frame" if dark_given else "none")
+    elif getattr(capture, "raw", None) is not None:
+        # camera raw files: LibRaw subtracted the black level of their metadata on reading
+        term = known_additive(0.0, shape=(M, N), channels=C, source="raw metadata")
+        term.diagnostics["raw_black_level"] = [lv["black_level"] for lv in capture.raw["levels"]]
+        term.diagnostics["raw_white_level"] = [lv["white_level"] for lv in capture.raw["levels"]]
+    elif options.offset == "auto" and capture.bit_depth in EIGHT_BIT:
+        # 8-bit files (linearised JPEGs above all) carry a tone curve's remnant, not a pedestal: on a
+        # real RTI capture of a canvas a term measured as 5 % of the signal and subtracted set the two
+        # halves of the lamps' normals 3.16 deg apart, 2.40 with none (docs/benchmarks.md)
+        term = known_additive(0.0, shape=(M, N), channels=C, source="none")
+        term.diagnostics["note"] = (f"{capture.bit_depth} input: not measured (offset=measure to measure it, or give "
+                                    "black_level or a dark frame)")
     else:
         term = estimate_additive(images, mask=capture.mask, saturation=capture.saturation,
                                  degree=int(options.offset_degree), dropoff_degree=int(options.degree))

@@ -24,9 +24,9 @@ from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, rep
 from .pipeline import find_protrusions, protrusion_diagnostics
 from .regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
 from .report import plot_comparison_map, print_pdf, write_report
-from .runfolder import RunImages, output_spec, read_run, write_protrusions
+from .runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
 from .spec import CommandSpec, Param, coerce
-from .wand import read_seeds, wand_select
+from .wand import read_seed_file, wand_select
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
                             regions=regions, params=det_params, progress=sub_progress(progress, 0.1, 0.9))
     prot.proposed = proposed
     with atomic_output_dir(run_dir) as tmp:
-        names = write_protrusions(tmp, prot, images.pixel_size_um)
+        names = write_protrusions(tmp, prot, images.pixel_size_um, relief=relief_in(run_dir))
     outputs = [output_spec(run_dir, n) for n in names]
     report(progress, 1.0, f"{len(prot.table['id'])} protrusions")
     return CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
@@ -95,8 +95,10 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     """
     run_dir = Path(output_dir)
     warnings = []
-    seeds = read_seeds(inputs["points"])
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params["pixel_size_um"])
+    clicks = read_seed_file(inputs["points"], pixel_size_um=images.pixel_size_um,
+                            units=params["points_unit"], shape=images.shape)
+    seeds = clicks.seeds
     regions, _ = _regions_for(params["regions"], run_dir, images)
     report(progress, 0.2, f"wand at {len(seeds)} points")
     labels = wand_select(images.albedo, seeds, tolerance=params["tolerance"],
@@ -105,7 +107,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     table = measure_protrusions(labels, albedo=images.albedo, height_um=images.height_um,
                                 pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
     with atomic_output_dir(run_dir) as tmp:
-        write_protrusions_csv(tmp / "protrusions_manual.csv", table)
+        write_protrusions_csv(tmp / "protrusions_manual.csv", table, relative=is_relative(relief_in(run_dir)))
         _write_labels(tmp / "protrusions_manual_labels.tif", labels, images.pixel_size_um,
                       "uvps wand: manual protrusion labels (id as in protrusions_manual.csv)")
     report(progress, 1.0, f"{len(table['id'])} protrusions")
@@ -115,7 +117,8 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                         "no protrusion")
     return CommandResult([output_spec(run_dir, "protrusions_manual"), output_spec(run_dir, "protrusions_manual_labels")],
                          {"n_points": int(len(seeds)), "n_protrusions": int(len(table["id"])),
-                          "pixel_size_um": images.pixel_size_um}, warnings)
+                          "pixel_size_um": images.pixel_size_um, "points_unit": clicks.unit,
+                          "points_unit_said": clicks.said, "points_px": seeds.tolist()}, warnings)
 
 
 def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
@@ -323,7 +326,11 @@ SPECS = (
     CommandSpec("wand", "the manual method: ImageJ's wand at given points", _cmd_wand, params=(
         Param("points", "path", where="inputs", positional=True, required=True,
               label="Points CSV (x_px,y_px; empty = current point selection)",
-              help="CSV with x_px,y_px (ImageJ's point export works)"),
+              help="CSV of the clicks: x_px,y_px (pixels), x_um,y_um or x_mm,y_mm, or X,Y as ImageJ's "
+              "Measure exports them"),
+        Param("points_unit", "choice", "auto", choices=("auto", "px", "um"), label="Units of the points file",
+              help="unit of X,Y columns (a header x_px, x_um or x_mm says its own): auto = pixels unless "
+              "the clicks fit the image only in um (Measure on the calibrated albedo)"),
         Param("tolerance", "float", required=True, minimum=0, label="Tolerance (albedo units, as ImageJ's wand tool)",
               help="wand tolerance (albedo units, as ImageJ's)"),
         Param("connectivity", "choice", "8", choices=("8", "4", "legacy"), label="Connectivity",

@@ -340,6 +340,15 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     if n_areas is not None and (int(n_areas) != n_areas or n_areas < 1):
         raise UVPSInputError(f"n_areas must be a positive integer or None; got {n_areas}")
     shape, channels = _albedo_channels(albedo)
+    extent_mm = max(shape) * pixel_size_um / 1000.0
+    if extent_mm < opts.smooth_mm:
+        # One smoothing block would hold the whole image: nothing to cluster (k-means on one
+        # sample fails deep in scipy). A pixel size typed in mm instead of um lands here.
+        raise UVPSInputError(
+            f"pixel_size_um {pixel_size_um:g} makes the {shape[1]} x {shape[0]} px image "
+            f"{extent_mm:.3g} mm wide, smaller than the {opts.smooth_mm:g} mm over which colour "
+            "areas are proposed; give the pixel size in micrometres (0.1 mm = 100 um) or the "
+            "areas as a label image")
     grey = len(channels) == 1
     valid = _valid_pixels(channels, shape, mask)
     # Everything but the final label map is computed on blocks of about smooth_mm / 9: block

@@ -85,12 +85,57 @@ class RunLog:
     timings_s: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
+    relief: Optional[dict] = None      # the relief's scale (:func:`relief_of`); None: not a run of a capture
 
     def time(self, stage, t0):
         self.timings_s[stage] = round(time.perf_counter() - t0, 3)
 
     def write(self, path):
-        write_json_atomic(path, {"version": __version__, **asdict(self)})
+        data = {"version": __version__, **asdict(self)}
+        if data["relief"] is None:
+            del data["relief"]
+        write_json_atomic(path, data)
+
+
+#: run.json ``relief`` of a folder that has none (written before relief was recorded, or made by a
+#: command that does not estimate lamps): heights were always reported in micrometres.
+_RELIEF_DEFAULT = {"scale": "absolute", "lamps": None, "reason": "no relief recorded (an older run folder)"}
+
+
+def relief_of(run_json: Optional[dict]) -> dict:
+    """The relief's scale of a run: run.json's ``relief`` object, the one reader of it.
+
+    Returns ``{"scale": "absolute" | "relative", "lamps": "calibration" | "positions" | "directions" |
+    "estimated" | None, "reason": str}``. "relative": the lamps' elevation, and so the heights' scale,
+    is not pinned (lamps estimated from the images that do not determine it): normals, albedo, counts
+    and widths hold, heights in micrometres do not. A missing or malformed entry reads as "absolute"
+    (older folders).
+
+    Example
+    -------
+    >>> relief_of({"relief": {"scale": "relative", "lamps": "estimated", "reason": "..."}})["scale"]
+    'relative'
+    >>> relief_of({})["scale"]
+    'absolute'
+    """
+    relief = (run_json or {}).get("relief") or {}
+    if not isinstance(relief, dict) or relief.get("scale") not in ("absolute", "relative"):
+        return dict(_RELIEF_DEFAULT)
+    return {"scale": relief["scale"], "lamps": relief.get("lamps"), "reason": str(relief.get("reason", ""))}
+
+
+def relief_in(run_dir) -> dict:
+    """:func:`relief_of` the run folder's ``run.json`` (absolute when it has none or it is unreadable)."""
+    path = Path(run_dir) / "run.json"
+    try:
+        return relief_of(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return dict(_RELIEF_DEFAULT)
+
+
+def is_relative(relief: Optional[dict]) -> bool:
+    """True when ``relief`` (a :func:`relief_of` dict, or None) says the heights have no scale."""
+    return bool(relief) and relief.get("scale") == "relative"
 
 
 def input_hashes(capture: Capture) -> list:
@@ -122,6 +167,7 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     """
     final = Path(final or folder)
     cap = result.capture
+    relief = getattr(result, "relief", None) or None
     write_lights(folder, cap, result.lights)
     names = ["lights", "dropoff"]
     if "flatfield" in result.stages:
@@ -131,11 +177,11 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
         write_stereo(folder, result.stereo, cap.pixel_size_um)
         names += ["normals", "albedo", "gradients"]
     if result.height is not None:
-        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method)
+        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method, relief=relief)
         names.append("depth")
     if result.protrusions is not None:
         names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
-                                   bins_um=params.get("bins_um") or 100.0)
+                                   bins_um=params.get("bins_um") or 100.0, relief=relief)
     if params.get("ome_zarr") and (result.stereo is not None or result.height is not None):
         # from the TIFFs just written (memory-mapped): the stores hold the same float32 values
         stores = write_ome_zarr(folder, pixel_size_um=cap.pixel_size_um)
@@ -146,6 +192,7 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
                        "image_shape": list(cap.images.shape[1:]), "bit_depth": cap.bit_depth})
     log.timings_s = dict(result.timings_s)
     log.diagnostics = dict(result.diagnostics)
+    log.relief = relief
     log.write(folder / "run.json")
     names.append("run")
     # dtypes of label images are read from the files just written
@@ -230,17 +277,34 @@ def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
         tif.put(1, g.q)
 
 
-def write_height(folder: Path, height_um, pixel_size_um: float, method: str) -> None:
-    """``depth.tif``: height in micrometres (median 0)."""
-    write_imagej_tiff(folder / "depth.tif", height_um, axes="YX", pixel_size_um=pixel_size_um,
-                      metadata={"Info": f"uvps height in micrometres ({method}), median 0"})
+#: ImageJ's value unit (``vunit`` in the TIFF's ImageJ description) of a height map without a scale.
+RELATIVE_UNIT = "relative"
 
 
-def write_protrusions(folder: Path, prot, pixel_size_um: float, *, bins_um=100.0) -> list:
+def write_height(folder: Path, height_um, pixel_size_um: float, method: str, *, relief: Optional[dict] = None) -> None:
+    """``depth.tif``: height in micrometres (median 0); with a relative ``relief`` (:func:`relief_of`)
+    the same map labelled relative: ImageJ value unit "relative" and the Info saying why."""
+    if is_relative(relief):
+        meta = {"Info": f"uvps relative height ({method}), median 0: NOT micrometres. {relief.get('reason', '')}",
+                "vunit": RELATIVE_UNIT}
+    else:
+        meta = {"Info": f"uvps height in micrometres ({method}), median 0", "vunit": "um"}
+    write_imagej_tiff(folder / "depth.tif", height_um, axes="YX", pixel_size_um=pixel_size_um, metadata=meta)
+
+
+def height_unit(path) -> str:
+    """The value unit of a height map written by :func:`write_height` ("um", or "relative")."""
+    with tifffile.TiffFile(path) as tif:
+        meta = tif.imagej_metadata or {}
+    return str(meta.get("vunit", "um"))
+
+
+def write_protrusions(folder: Path, prot, pixel_size_um: float, *, bins_um=100.0, relief: Optional[dict] = None) -> list:
     """``protrusions.csv``, ``protrusions_labels.tif`` and, with colour areas (proposed or given),
     ``regions_labels.tif`` and ``regions.csv`` (their names and densities): the run folder records
-    the areas it counted in, so statistics and the report use them. Returns the names written."""
-    write_protrusions_csv(folder / "protrusions.csv", prot.table)
+    the areas it counted in, so statistics and the report use them. Returns the names written.
+    With a relative ``relief`` the table's heights are ``relative_height`` (no unit)."""
+    write_protrusions_csv(folder / "protrusions.csv", prot.table, relative=is_relative(relief))
     write_label_tiff(folder / "protrusions_labels.tif", prot.labels, pixel_size_um=pixel_size_um,
                      metadata={"Info": "uvps detect: protrusion labels (0 = background; id as in protrusions.csv)"})
     names = ["protrusions", "protrusions_labels"]
@@ -354,11 +418,19 @@ def describe(run_dir) -> dict:
     files = sorted(f for name, (f, *_rest) in FILES.items() if (run_dir / f).exists())
     info = {"run_dir": str(run_dir), "version": log.get("version"), "command": log.get("command"),
             "params": log.get("params", {}), "warnings": list(log.get("warnings", [])), "files": files,
-            "lights": log.get("diagnostics", {}).get("lights", {}), "timings_s": log.get("timings_s", {})}
+            "lights": log.get("diagnostics", {}).get("lights", {}), "timings_s": log.get("timings_s", {}),
+            "relief": relief_of(log)}
     table = run_dir / FILES["protrusions"][0]
     if table.is_file():
         with open(table, encoding="utf-8") as fh:
             info["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
+        det = log.get("diagnostics", {}).get("detect") or {}
+        rejected = det.get("rejected")
+        if det.get("n_protrusions") == info["n_protrusions"] and isinstance(rejected, dict):
+            # the detection run.json describes made this table (a later `uvps detect` does not
+            # update run.json: then only the table's count is known)
+            info["detection"] = {"candidates": info["n_protrusions"] + sum(rejected.values()),
+                                 "kept": info["n_protrusions"], "rejected": dict(rejected)}
     return info
 
 
@@ -376,10 +448,22 @@ def info_text(info: dict) -> str:
                      f"({info['lights'].get('source', '?')})")
     if opts:
         lines.append("parameters: " + ", ".join(f"{k}={v}" for k, v in sorted(opts.items())))
-    if "height_uncertainty_relative" in info["lights"]:
+    relief = info.get("relief") or relief_of({})
+    if relief["scale"] == "relative":
+        lines.append(f"relief:     RELATIVE: heights have no scale in micrometres ({relief['reason']})")
+    elif relief.get("lamps"):
+        lines.append(f"relief:     absolute (lamps: {relief['lamps']})")
+    if "height_uncertainty_relative_95" in info["lights"]:
+        lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative_95']:.1f} % "
+                     "(95 %, from the estimated lamps)")
+    elif "height_uncertainty_relative" in info["lights"]:
         lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative']:.1f} % "
                      "(from the estimated lamps)")
-    if "n_protrusions" in info:
+    if "detection" in info:
+        det = info["detection"]
+        lines.append(f"protrusions: {det['kept']} kept of {det['candidates']} candidates "
+                     f"({det['candidates'] - det['kept']} rejected by the detection's rules)")
+    elif "n_protrusions" in info:
         lines.append(f"protrusions: {info['n_protrusions']}")
     lines += [f"warning:    {w}" for w in info["warnings"]] or ["warnings:   none"]
     return "\n".join(lines)

@@ -101,6 +101,8 @@ class Nuisances:
         The cast-shadow masks; computed by the renderer when ``cast_shadows`` and None.
     cracks : (M, N) bool array or None
         Truth only (the renderer ignores it): the crack grooves, whose relief is in the height.
+    strokes : (M, N) float32 array or None
+        Truth only: the brush strokes' relief (um), part of the height; set with impasto.
     info : dict
         How they were drawn (JSON-ready), written to ``truth.json`` by :func:`write_capture`.
     """
@@ -113,6 +115,7 @@ class Nuisances:
     cast_shadows: bool = False
     shadowed: Optional[np.ndarray] = None
     cracks: Optional[np.ndarray] = None
+    strokes: Optional[np.ndarray] = None
     info: dict = dataclasses.field(default_factory=dict)
 
 
@@ -121,7 +124,8 @@ class SyntheticSpec:
     """What to synthesise. Every option has a physically sensible default (a 18 x 24 mm detail).
 
     Densities are per cm^2 of the field; widths and heights in um; distances in mm.
-    ``n_ridges`` / ``n_primer_spots`` = None means 4 ridges and 3 primer spots per cm^2.
+    ``n_ridges`` / ``n_primer_spots`` = None means ``ridge_density`` (4) ridges and
+    ``primer_density`` (3) primer spots per cm^2.
     Each image's irradiance at the centre is 1 +- ``intensity_jitter`` (as if the exposure were reset
     per image); ``fixed_exposure`` instead models one lamp at one exposure: that drift times
     (median distance / distance)^2, so a lamp at 500 mm gives an image 4x darker than at 250 mm.
@@ -187,6 +191,25 @@ class SyntheticSpec:
     - ``height_um`` (None or (low, high) um): heights are clipped into this range (today's height
       is 0.15-0.35 x the width). With ``protrusion_shapes`` realistic widths are 40-500 um and
       heights 5-150 um.
+
+    **Impasto** (:data:`IMPASTO` holds the top of each range). The defaults give smooth strokes
+    tapered over 15 % of their length at both ends, laid by their maximum where they meet.
+
+    - ``ridge_density`` (strokes per cm^2, 4; used when ``n_ridges`` is None): 8 for paint worked
+      with a loaded brush.
+    - ``ridge_blunt_fraction`` (0): the fraction of stroke ends that are blunt: the stroke runs
+      at full height to a rounded end, with the paint the brush leaves piled there (a mound
+      20-50 % above the stroke, about one stroke width long).
+    - ``ridge_ripple`` ((low, high), relative, (0, 0)): ripples along the stroke, the height
+      modulated by ``1 + r sin(2 pi s / lambda)``, r drawn in this range, lambda 200-800 um.
+    - ``ridge_groove_um`` ((low, high) um, (0, 0)): bristle grooves along the stroke, 1-4 um
+      deep in real impasto, 40-120 um apart.
+    - ``ridge_crossing_fraction`` (0): the fraction of strokes laid at any angle across the
+      others and added on top of them (paint over dry paint), not merged by the maximum.
+    - ``on_stroke_fraction`` (0): the fraction of protrusions placed on a stroke or against its
+      flank (their relief adds to the stroke's); truth column ``on_stroke``.
+    - ``primer_density`` (spots per cm^2, 3; used when ``n_primer_spots`` is None): bare primer,
+      flat and bright (a weakly fluorescing protrusion's albedo is 5-20 % above its paint).
     """
 
     shape: tuple = (1200, 1600)
@@ -227,6 +250,14 @@ class SyntheticSpec:
     height_um: Optional[tuple] = None
     ridge_width_um: tuple = (100.0, 300.0)
     ridge_height_um: tuple = (5.0, 20.0)
+    # Impasto (see the docstring); the defaults give today's smooth strokes.
+    ridge_density: float = 4.0
+    ridge_blunt_fraction: float = 0.0
+    ridge_ripple: tuple = (0.0, 0.0)
+    ridge_groove_um: tuple = (0.0, 0.0)
+    ridge_crossing_fraction: float = 0.0
+    on_stroke_fraction: float = 0.0
+    primer_density: float = 3.0
 
     @classmethod
     def realistic(cls, level: str = "top", *, only=None, **fields) -> "SyntheticSpec":
@@ -299,6 +330,15 @@ NUISANCE_TYPICAL = {
     "weave": {"weave_period_um": (250.0, 800.0), "weave_amplitude_um": (2.0, 4.0)},
     "strokes": {"ridge_width_um": (80.0, 800.0), "ridge_height_um": (5.0, 30.0)},
 }
+
+#: Paint as real impasto at the top of each range (see :class:`SyntheticSpec`, "Impasto"):
+#: strokes up to 40 um high at twice the default density, half their ends blunt, ripples,
+#: bristle grooves, 30 % crossing the others; a fifth of the protrusions on or against a stroke,
+#: a quarter weakly fluorescing, and 40 bare primer spots on a 24 x 18 mm field (9 per cm^2).
+IMPASTO = {"ridge_width_um": (60.0, 1500.0), "ridge_height_um": (5.0, 40.0),
+           "ridge_density": 8.0, "ridge_blunt_fraction": 0.5, "ridge_ripple": (0.1, 0.35),
+           "ridge_groove_um": (1.0, 4.0), "ridge_crossing_fraction": 0.3,
+           "on_stroke_fraction": 0.2, "weak_fraction": 0.25, "primer_density": 9.0}
 
 
 @dataclass
@@ -1026,14 +1066,71 @@ def _region_palette(rng, n_regions):
     return names, is_light, colours
 
 
+@dataclass
+class _Impasto:
+    """The impasto options of :class:`SyntheticSpec` and their own random stream."""
+
+    blunt: float = 0.0
+    ripple: tuple = (0.0, 0.0)
+    groove_um: tuple = (0.0, 0.0)
+    crossing: float = 0.0
+    rng: Optional[np.random.Generator] = None
+
+    @classmethod
+    def of(cls, spec):
+        imp = cls(spec.ridge_blunt_fraction, tuple(spec.ridge_ripple), tuple(spec.ridge_groove_um),
+                  spec.ridge_crossing_fraction)
+        if imp.blunt > 0 or imp.ripple[1] > 0 or imp.groove_um[1] > 0 or imp.crossing > 0:
+            imp.rng = _substream(spec.seed, "impasto")
+        return imp
+
+
+def _stroke_relief(imp, tn, dist, prof, length, width, h, px):
+    """One stroke's height (um) in its box: ``tn`` the position along it (0..1) of the nearest
+    centreline pixel, ``dist`` the distance to it (px), ``prof`` the cross profile (0..1).
+    Without impasto: ``h prof`` tapered by a smoothstep over 15 % of the length at both ends.
+    Returns (height, its shape relative to ``h`` clipped to 1, which tints the albedo)."""
+    def smooth(x):
+        x = np.clip(x, 0, 1)
+        return x * x * (3 - 2 * x)
+    if imp.rng is None:
+        shape_k = prof * smooth(np.minimum(tn, 1 - tn) / 0.15)
+        return h * shape_k, shape_k
+    r = imp.rng
+    mound = np.ones_like(tn)
+    ends = []
+    for s_end in (tn * length, (1 - tn) * length):          # px from each end along the path
+        if r.random() < imp.blunt:
+            # full height to a rounded end (the cap), and the paint piled where the brush lifts
+            ends.append(np.ones_like(tn))
+            pile = r.uniform(0.2, 0.5)
+            mound = mound + pile * np.exp(-((s_end - 0.5 * width) / (0.5 * width)) ** 2)
+        else:
+            ends.append(smooth(s_end / (0.15 * length)))
+    rel = np.minimum(*ends) * mound
+    amp = r.uniform(*imp.ripple)
+    if amp > 0:
+        wave = r.uniform(200.0, 800.0) / px
+        rel = rel * (1 + amp * np.sin(2 * np.pi * tn * length / wave + r.uniform(0, 2 * np.pi)))
+    z = h * prof * rel
+    depth = r.uniform(*imp.groove_um)
+    if depth > 0:
+        period = r.uniform(40.0, 120.0) / px
+        grooves = 0.5 * (1 + np.cos(2 * np.pi * dist / period + r.uniform(0, 2 * np.pi)))
+        z = np.maximum(z - depth * grooves * np.minimum(3 * prof, 1) * np.minimum(rel, 1), 0)
+    return z, np.minimum(z / h, 1)
+
+
 def _ridges(rng, shape, px, count, albedo_factor, occupied, *, width_um=(100.0, 300.0),
-            height_um=(5.0, 20.0)):
+            height_um=(5.0, 20.0), impasto=None):
     """Brush-stroke ridges: curved, several mm long, ``width_um`` wide, ``height_um`` high.
 
     Distance to each stroke's centreline comes from ``scipy.ndimage.distance_transform_edt``
-    (with the indices of the nearest centreline pixel, to taper the stroke ends).
+    (with the indices of the nearest centreline pixel, to taper the stroke ends);
+    ``impasto`` (:class:`_Impasto`) adds blunt ends, ripples, bristle grooves and crossings.
     """
     m, n = shape
+    imp = impasto if impasto is not None else _Impasto()
     layer = np.zeros(shape)
     base_angle = rng.uniform(0, np.pi)
     for _ in range(count):
@@ -1041,6 +1138,9 @@ def _ridges(rng, shape, px, count, albedo_factor, occupied, *, width_um=(100.0, 
         width = rng.uniform(*width_um) / px
         h = rng.uniform(*height_um)
         angle = base_angle + rng.uniform(-0.5, 0.5)
+        crossing = imp.rng is not None and imp.rng.random() < imp.crossing
+        if crossing:
+            angle = imp.rng.uniform(0, np.pi)
         start = rng.uniform([0, 0], [m, n])
         direc = np.array([np.sin(angle), np.cos(angle)])
         end = start + length * direc
@@ -1068,10 +1168,11 @@ def _ridges(rng, shape, px, count, albedo_factor, occupied, *, width_um=(100.0, 
         half = width / 2
         prof = np.where(dist < half, 0.5 * (1 + np.cos(np.pi * dist / half)), 0.0)
         tn = tval[ir, ic]
-        taper = np.clip(np.minimum(tn, 1 - tn) / 0.15, 0, 1)
-        taper = taper * taper * (3 - 2 * taper)               # smoothstep
-        shape_k = prof * taper
-        layer[r0:r1, c0:c1] = np.maximum(layer[r0:r1, c0:c1], h * shape_k)
+        z, shape_k = _stroke_relief(imp, tn, dist, prof, length, width, h, px)
+        if crossing:
+            layer[r0:r1, c0:c1] += z                         # laid over dry paint
+        else:
+            layer[r0:r1, c0:c1] = np.maximum(layer[r0:r1, c0:c1], z)
         albedo_factor[r0:r1, c0:c1] *= 1 + rng.uniform(-0.06, 0.04) * shape_k
     occupied |= layer > 1.0
     return layer
@@ -1169,12 +1270,18 @@ class _Shapes:
                 "reach": float(w.max())}
 
 
-def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
-    """Place non-overlapping protrusions per colour area and add them to height and albedo."""
+def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied, ridge_mask=None):
+    """Place non-overlapping protrusions per colour area and add them to height and albedo
+    (``on_stroke_fraction`` of them on or against a stroke of ``ridge_mask``)."""
     m, n = labels.shape
+    on_f = spec.on_stroke_fraction if ridge_mask is not None and ridge_mask.any() else 0.0
+    if on_f > 0:
+        srng = _substream(spec.seed, "on stroke")
+        near_stroke = ndimage.binary_dilation(ridge_mask, iterations=4).ravel()
+        prot_occ = np.zeros((m, n), bool)
     keys = ("y_px", "x_px", "width_um", "height_um", "crater", "weak", "region", "aspect",
             "angle_deg", "shape", "cluster", "dark")
-    table = {key: [] for key in keys}
+    table = {key: [] for key in keys + (("on_stroke",) if on_f > 0 else ())}
     colour = np.array(PROTRUSION_COLOUR)[: albedo.shape[2]]
     flat = labels.ravel()
     shapes = None if spec.protrusion_shapes is None else _Shapes(spec)
@@ -1214,11 +1321,15 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
         rr = np.arange(r0, r1)[:, None] - cr
         ccs = np.arange(c0, c1)[None, :] - cc
         occupied[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
+        if on_f > 0:
+            prot_occ[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
 
     def record(cr, cc, w_um, peak, geometry, weak, dark, region, aspect, phi, cluster):
         for key, val in zip(keys, (cr, cc, w_um, peak, geometry == "crater", weak, region,
                                    aspect, math.degrees(phi), geometry, cluster, dark)):
             table[key].append(val)
+        if on_f > 0:
+            table["on_stroke"].append(bool(on_now))
 
     def clip_height(h):
         return h if h_range is None else min(max(h, h_range[0]), h_range[1])
@@ -1231,6 +1342,7 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
         count = int(rng.poisson(density * area_cm2))
         if count == 0:
             continue
+        idx_near = idx[near_stroke[idx]] if on_f > 0 else idx[:0]
         for w_um in np.sort(_protrusion_widths(rng, count, spec.width_um))[::-1]:
             kind, geometry, wobble, plateau = None, None, None, None
             if shapes is not None:
@@ -1246,8 +1358,12 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
                 a, b = a * wobble["scale"], b * wobble["scale"]
                 a_reach = a * wobble["reach"]
             margin = int(math.ceil(a_reach)) + 2
+            on_now = on_f > 0 and idx_near.size > 0 and srng.random() < on_f
             for _ in range(40):
-                j = idx[rng.integers(idx.size)]
+                if on_now:      # on or against a stroke: only protrusions and the rest block it
+                    j = idx_near[srng.integers(idx_near.size)]
+                else:
+                    j = idx[rng.integers(idx.size)]
                 cr = j // n + rng.uniform(-0.5, 0.5)
                 cc = j % n + rng.uniform(-0.5, 0.5)
                 if not (margin <= cr < m - margin and margin <= cc < n - margin):
@@ -1256,7 +1372,10 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
                 c0, c1 = int(cc) - margin, int(cc) + margin + 1
                 rr = np.arange(r0, r1)[:, None] - cr
                 ccs = np.arange(c0, c1)[None, :] - cc
-                if np.any(occupied[r0:r1, c0:c1] & (rr ** 2 + ccs ** 2 <= (a_reach + 1.5) ** 2)):
+                busy = occupied[r0:r1, c0:c1]
+                if on_now:
+                    busy = (busy & ~ridge_mask[r0:r1, c0:c1]) | prot_occ[r0:r1, c0:c1]
+                if np.any(busy & (rr ** 2 + ccs ** 2 <= (a_reach + 1.5) ** 2)):
                     continue
                 break
             else:
@@ -1333,6 +1452,7 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied):
         "shape": np.asarray(table["shape"], dtype="<U9"),
         "cluster": np.asarray(table["cluster"], dtype=np.int32),
         "dark": np.asarray(table["dark"], dtype=bool),
+        **({"on_stroke": np.asarray(table["on_stroke"], dtype=bool)} if on_f > 0 else {}),
     }
     out = {"id": np.arange(1, len(rows) + 1, dtype=np.int32)}
     out.update({k: v[order] for k, v in cols_.items()})
@@ -1428,6 +1548,17 @@ def _validate(spec: SyntheticSpec) -> None:
         if len(rng_) != 2 or not (lo_min < rng_[0] <= rng_[1] < np.inf):
             raise UVPSInputError(f"{name} must be (low, high) with {lo_min} < low <= high; got "
                                  f"{getattr(spec, name)}")
+    for name in ("ridge_density", "primer_density"):
+        if not 0 <= getattr(spec, name) < np.inf:
+            raise UVPSInputError(f"{name} must be >= 0 (per cm^2); got {getattr(spec, name)}")
+    for name in ("ridge_blunt_fraction", "ridge_crossing_fraction", "on_stroke_fraction"):
+        if not 0 <= getattr(spec, name) <= 1:
+            raise UVPSInputError(f"{name} must be in [0, 1]; got {getattr(spec, name)}")
+    for name in ("ridge_ripple", "ridge_groove_um"):
+        rng_ = tuple(getattr(spec, name))
+        if len(rng_) != 2 or not (0 <= rng_[0] <= rng_[1] < (1 if name == "ridge_ripple" else 1e3)):
+            raise UVPSInputError(f"{name} must be (low, high) with 0 <= low <= high"
+                                 f"{' < 1' if name == 'ridge_ripple' else ''}; got {getattr(spec, name)}")
     shapes = spec.protrusion_shapes
     if shapes is not None:
         if (not isinstance(shapes, dict) or set(shapes) - set(PROTRUSION_KINDS)
@@ -1514,13 +1645,17 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
 
     occupied = np.zeros((m, n), dtype=bool)
     factor = np.ones((m, n))
-    n_ridges = round(4 * area_cm2) if spec.n_ridges is None else int(spec.n_ridges)
-    height += _ridges(rng, (m, n), px, n_ridges, factor, occupied, width_um=spec.ridge_width_um,
-                      height_um=spec.ridge_height_um)
+    n_ridges = round(spec.ridge_density * area_cm2) if spec.n_ridges is None else int(spec.n_ridges)
+    ridge_layer = _ridges(rng, (m, n), px, n_ridges, factor, occupied,
+                          width_um=spec.ridge_width_um, height_um=spec.ridge_height_um,
+                          impasto=_Impasto.of(spec))
+    height += ridge_layer
     albedo *= factor[..., None]
-    n_spots = round(3 * area_cm2) if spec.n_primer_spots is None else int(spec.n_primer_spots)
+    n_spots = round(spec.primer_density * area_cm2) if spec.n_primer_spots is None else int(spec.n_primer_spots)
     height += _primer_spots(rng, (m, n), px, n_spots, albedo, occupied)
     nz = Nuisances()
+    if _Impasto.of(spec).rng is not None or spec.on_stroke_fraction > 0:
+        nz.strokes = ridge_layer.astype(np.float32)
     if spec.cupping_um > 0:
         layer, nz.cracks, nz.info["cupping"] = _cracks(_substream(spec.seed, "cracks"), (m, n),
                                                        px, spec.cupping_um, spec.crack_cell_mm)
@@ -1528,7 +1663,8 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
         occupied |= ndimage.binary_dilation(nz.cracks, iterations=2)   # they erupt in between
 
     report(progress, 0.3, "protrusions")
-    prot = _protrusions(rng, spec, labels, is_light, px, height, albedo, occupied)
+    prot = _protrusions(rng, spec, labels, is_light, px, height, albedo, occupied,
+                        ridge_mask=ridge_layer > 1.0)
     height -= np.median(height)
     if not spec.rgb:
         albedo = albedo @ LUMINANCE
@@ -1876,7 +2012,7 @@ def _write_truth(capture, folder, image_names):
     prot["area_um2"] = np.pi * prot["width_um"] ** 2 / 4
     columns = ["id", "x_px", "y_px", "width_um", "area_um2", "height_um", "crater", "region",
                "weak", "aspect", "angle_deg"]
-    extra = [c for c in ("shape", "cluster", "dark") if c in prot]
+    extra = [c for c in ("shape", "cluster", "dark", "on_stroke") if c in prot]
     with open(folder / "protrusions.csv", "w", newline="", encoding="utf-8") as fh:
         wr = csv.writer(fh)
         wr.writerow(columns + ["region_name"] + extra)
@@ -2149,8 +2285,12 @@ def _render_view(height, albedo, regions, spec, px, rng, world_like):
                                 distance_mm=spec.distance_mm, azimuth_jitter=spec.azimuth_jitter)
     intensities = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, spec.n_lights)
     nz = Nuisances()
+    # the spec's lamp and lens nuisances (black level, vignetting, beams; none by default), the
+    # same camera and lamp models at both dates
+    _lamp_and_lens_nuisances(spec, nz, positions, intensities, height.shape)
     amax = albedo if albedo.ndim == 2 else albedo.max(axis=2)
-    peak = _peak(_shading(normals, height, px, positions, None, intensities), amax, nz)
+    peak = _peak(_shading(normals, height, px, positions, None, intensities, beam_axes=nz.beam_axes,
+                          beam_exponent=nz.beam_exponent), amax, nz)
     exposure = spec.exposure_fraction * 65535.0 / peak
     gain = 65535.0 / spec.full_well_e
     images = render_images(height, albedo, pixel_size_um=px, light_positions_mm=positions,
@@ -2173,8 +2313,10 @@ def make_capture_pair(spec: Optional[SyntheticSpec] = None, later: Optional[Late
     Parameters
     ----------
     spec : SyntheticSpec, optional
-        The scene and camera of A (its ``shape`` and ``pixel_size_um``); the nuisances of a
-        real capture are not drawn (both views are clean renders with photon and read noise).
+        The scene and camera of A (its ``shape`` and ``pixel_size_um``). Of the nuisances of a
+        real capture, the canvas bow (``bow_um``), black level, vignetting and lamp beams are
+        drawn (the same camera and lamp models at both dates, the lamps placed again); stray
+        light, cast shadows and cracks are not.
     later : LaterSpec, optional
         How B differs (default :class:`LaterSpec()`; :meth:`LaterSpec.unchanged` for the
         repeatability pair).

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Union
 
@@ -39,7 +40,7 @@ from .errors import UVPSInputError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["wand_select", "read_seeds"]
+__all__ = ["wand_select", "read_seeds", "read_seed_file", "SeedFile"]
 
 _CONNECTIVITY = {4: 4, 8: 8, "4": 4, "8": 8, "4-connected": 4, "8-connected": 8, "legacy": "legacy"}
 
@@ -167,16 +168,121 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def read_seeds(path_or_array: Union[str, Path, np.ndarray, list]) -> np.ndarray:
-    """Read wand clicks from a CSV file (or pass an array through).
+#: Micrometres per unit of the coordinates a seeds file's header can name (``x_um``, ``x_mm``).
+SEED_UNITS_UM = {"um": 1.0, "mm": 1000.0}
+
+#: Header columns (x, y) and the unit they name; ``""``: not said (ImageJ's ``X``, ``Y``).
+_SEED_COLUMNS = ((("x_px", "y_px"), "px"), (("x_um", "y_um"), "um"), (("x_mm", "y_mm"), "mm"),
+                 (("x", "y"), ""))
+
+
+@dataclass
+class SeedFile:
+    """Clicks read by :func:`read_seed_file`.
+
+    Attributes
+    ----------
+    seeds : (S, 2) int64
+        ``(x_px, y_px)`` floored to the containing pixel.
+    unit : str
+        What the coordinates were read as: ``px``, ``um`` or ``mm``.
+    said : bool
+        Whether the file's header named that unit (else the ``units`` argument decided).
+    """
+
+    seeds: np.ndarray
+    unit: str
+    said: bool
+
+
+def _seed_table(path: Path):
+    """The (S, 2) float coordinates of a seeds file and the unit its header names ("" if none)."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            text = fh.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UVPSInputError(f"cannot read seeds file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    delim = "\t" if "\t" in text.split("\n", 1)[0] else ","
+    rows = list(csv.reader(text.splitlines(), delimiter=delim))
+    if not rows:
+        raise UVPSInputError(f"seeds file {path} is empty; expected a header with x_px,y_px or X,Y")
+    header = [h.strip() for h in rows[0]]
+    if len(header) == 2 and all(_is_number(h) for h in header):
+        # ImageJ's headerless "XY Coordinates" text: x <TAB> y per line
+        header = ["X", "Y"]
+        rows = [header] + rows
+    lower = [h.lower() for h in header]
+    for (cx, cy), unit in _SEED_COLUMNS:
+        if cx in lower and cy in lower:
+            ix, iy = lower.index(cx), lower.index(cy)
+            break
+    else:
+        raise UVPSInputError(f"seeds file {path}: header must contain x_px,y_px (or x_um,y_um, x_mm,y_mm, "
+                             f"X,Y); got {','.join(header)}")
+    pts = []
+    for k, row in enumerate(rows[1:], start=2):
+        if not any(c.strip() for c in row):
+            continue
+        try:
+            pts.append((float(row[ix]), float(row[iy])))
+        except (ValueError, IndexError):
+            raise UVPSInputError(f"seeds file {path} line {k}: expected numbers in columns "
+                                 f"{header[ix]},{header[iy]}; got {','.join(row)}") from None
+    return np.array(pts, float).reshape(-1, 2), unit
+
+
+def read_seed_file(path: Union[str, Path], *, pixel_size_um=None, units: str = "auto",
+                   shape=None) -> SeedFile:
+    """Read wand clicks from a CSV file, in the units its header names.
+
+    Parameters
+    ----------
+    path : str or Path
+        A CSV (comma or tab separated) whose header has ``x_px``, ``y_px`` (pixels), ``x_um``,
+        ``y_um`` (micrometres) or ``x_mm``, ``y_mm`` (millimetres) columns, or ``X``, ``Y`` as in
+        ImageJ's Results of Measure on a point selection (pixels on an uncalibrated image, the
+        calibrated unit on a calibrated one), or headerless two-column ``x y`` lines (File > Save
+        As > XY Coordinates: pixels).
+    pixel_size_um : float, optional
+        Needed for coordinates in um or mm: they are divided by it.
+    units : {"auto", "px", "um"}
+        The unit of a header that names none (``X``, ``Y``): pixels, micrometres, or ``auto``:
+        pixels unless some click lies outside an image of ``shape`` in pixels while all lie
+        inside it in micrometres (Measure on the calibrated albedo). A header that names its
+        unit is read in that unit.
+    shape : (M, N), optional
+        The image the clicks are on (for ``auto``).
+    """
+    if units not in ("auto", "px", "um"):
+        raise UVPSInputError(f"units must be auto, px or um; got {units!r}")
+    path = Path(path)
+    xy, unit = _seed_table(path)
+    said = bool(unit)
+    if not said:
+        unit = "px" if units == "auto" else units
+        if units == "auto" and shape is not None and pixel_size_um and len(xy):
+            def inside(a):
+                return bool(np.all((a >= 0) & (a < np.array([shape[1], shape[0]]))))
+            if not inside(xy) and inside(xy / pixel_size_um):
+                unit = "um"
+    if unit in SEED_UNITS_UM:
+        if not pixel_size_um:
+            raise UVPSInputError(f"seeds file {path} gives its clicks in {unit}; a pixel size is needed to "
+                                 "turn them into pixels (give pixel_size_um)")
+        xy = xy * (SEED_UNITS_UM[unit] / float(pixel_size_um))
+    return SeedFile(_as_seed_array(xy, f"seeds file {path}"), unit, said)
+
+
+def read_seeds(path_or_array: Union[str, Path, np.ndarray, list], *, pixel_size_um=None,
+               units: str = "auto", shape=None) -> np.ndarray:
+    """Read wand clicks from a CSV file (:func:`read_seed_file`) or pass an array through.
 
     Parameters
     ----------
     path_or_array : path or (S, 2) array_like
-        A CSV (comma or tab separated) whose header has ``x_px`` and ``y_px`` columns, or ``X``
-        and ``Y`` as in ImageJ's Results of Measure on a point selection (of an uncalibrated
-        image: pixels), or headerless two-column ``x y`` lines (File > Save As > XY
-        Coordinates); or an (S, 2) array of ``(x_px, y_px)``.
+        A seeds file, or an (S, 2) array of ``(x_px, y_px)``.
+    pixel_size_um, units, shape
+        See :func:`read_seed_file`.
 
     Returns
     -------
@@ -184,38 +290,7 @@ def read_seeds(path_or_array: Union[str, Path, np.ndarray, list]) -> np.ndarray:
         ``(x_px, y_px)`` floored to the containing pixel.
     """
     if isinstance(path_or_array, (str, Path)):
-        path = Path(path_or_array)
-        try:
-            with open(path, newline="", encoding="utf-8-sig") as fh:
-                text = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise UVPSInputError(f"cannot read seeds file {path}: {getattr(exc, 'strerror', None) or exc}") from None
-        delim = "\t" if "\t" in text.split("\n", 1)[0] else ","
-        rows = list(csv.reader(text.splitlines(), delimiter=delim))
-        if not rows:
-            raise UVPSInputError(f"seeds file {path} is empty; expected a header with x_px,y_px or X,Y")
-        header = [h.strip() for h in rows[0]]
-        if len(header) == 2 and all(_is_number(h) for h in header):
-            # ImageJ's headerless "XY Coordinates" text: x <TAB> y per line
-            header = ["X", "Y"]
-            rows = [header] + rows
-        lower = [h.lower() for h in header]
-        if "x_px" in lower and "y_px" in lower:
-            ix, iy = lower.index("x_px"), lower.index("y_px")
-        elif "X" in header and "Y" in header:
-            ix, iy = header.index("X"), header.index("Y")
-        elif "x" in lower and "y" in lower:
-            ix, iy = lower.index("x"), lower.index("y")
-        else:
-            raise UVPSInputError(f"seeds file {path}: header must contain x_px,y_px or X,Y; got {','.join(header)}")
-        pts = []
-        for k, row in enumerate(rows[1:], start=2):
-            if not any(c.strip() for c in row):
-                continue
-            try:
-                pts.append((float(row[ix]), float(row[iy])))
-            except (ValueError, IndexError):
-                raise UVPSInputError(f"seeds file {path} line {k}: expected numbers in columns "
-                                     f"{header[ix]},{header[iy]}; got {','.join(row)}") from None
-        return _as_seed_array(np.array(pts, float).reshape(-1, 2), f"seeds file {path}")
+        return read_seed_file(path_or_array, pixel_size_um=pixel_size_um, units=units,
+                              shape=shape).seeds
     return _as_seed_array(path_or_array, "seeds")
+

@@ -478,7 +478,9 @@ def find_python(setting=None, environ=None, config_path=None):
 _TABLE = [None]
 
 #: Fiji's words for some choice values; the request carries the core's value (e.g. ``fc``).
-CHOICE_LABELS = {"integration": {"fc": "Frankot-Chellappa (FFT)", "dct": "DCT Poisson (Neumann)"}}
+CHOICE_LABELS = {"integration": {"fc": "Frankot-Chellappa (FFT)", "dct": "DCT Poisson (Neumann)"},
+                 "points_unit": {"auto": "Automatic", "px": "Pixels",
+                                 "um": "Calibrated (um, as Analyze > Measure)"}}
 
 #: How a unit of the declarations is shown beside a number field.
 UNIT_LABELS = {"um": u"\u00b5m", "deg": "deg", "mm": "mm", "counts": "counts"}
@@ -618,6 +620,51 @@ def param_key(param):
     return macro_key(param_label(param))
 
 
+def field_name(param):
+    """The name a user sees for a declared parameter's dialog field: its label before any
+    ``(...)`` or ``:`` (``Pixel size on the painting``)."""
+    return param_label(param).split(" (")[0].split(":")[0].strip()
+
+
+def not_set_words(param):
+    """What a field left at 0 means, from its label's ``(0 = ...)`` (else "not set")."""
+    label = param_label(param)
+    if "(0 = " in label:
+        return label.split("(0 = ", 1)[1].split(")")[0]
+    return "not set"
+
+
+#: Pixel sizes (um) the capture menu items accept: a photograph of a painting (the paper's is
+#: about 30 um per pixel; a macro lens at 1:1 about 4 um). Outside, the value is almost surely
+#: in another unit (0.1 typed as mm, a dpi, an inch), refused before the core runs.
+PIXEL_SIZE_RANGE_UM = (1.0, 1000.0)
+
+
+def check_pixel_size(value, where):
+    """A pixel size (um) from a dialog field or an image's calibration, checked before the core
+    runs: ``None`` (0 or empty: not given) or a plausible size; BridgeError naming ``where``
+    (``the field "Pixel size on the painting"``) otherwise.
+    """
+    if value is None or value == "":
+        return None
+    try:
+        size = float(value)
+    except (TypeError, ValueError):
+        raise BridgeError("%s holds '%s', not a number of micrometres" % (where, value))
+    if size != size or size == 0:
+        return None
+    low, high = PIXEL_SIZE_RANGE_UM
+    if size < 0:
+        raise BridgeError("%s holds %g um; a pixel size is positive (0 = from the image file)"
+                          % (where, size))
+    if size < low or size > high:
+        hint = (" (0.1 mm = 100 um)" if size < low else
+                " (a size in nm or a dpi? 300 dpi = 84.7 um)")
+        raise BridgeError("%s holds %g um, not a pixel size on a painting (%g-%g um); give it in "
+                          "micrometres%s" % (where, size, low, high, hint))
+    return size
+
+
 def _format_default(value):
     if value is None:
         return ""
@@ -713,6 +760,10 @@ def value_of(param, value):
         if value is None or value != value:
             return None
         if param.get("default") is None and value <= 0:
+            if value < 0 and param.get("minimum") is not None and param["minimum"] >= 0:
+                # 0 means "not set"; a negative value is a typing mistake, never dropped silently
+                raise BridgeError('the field "%s" holds %g; it must be positive (0 = %s)' % (
+                    field_name(param), value, not_set_words(param)))
             return None
         return int(round(value)) if kind == "int" else float(value)
     if kind == "path":
@@ -904,6 +955,39 @@ def points_csv_text(points):
 # What the core says, in the words of the menu user
 # ---------------------------------------------------------------------------------------------
 
+# ---------------------------------------------------------------------------------------------
+# Names of a run's windows, and its relief scale
+# ---------------------------------------------------------------------------------------------
+
+def run_title(name, run_dir):
+    """The title of a window, table or ROI set of one run: ``"albedo - region1"`` (the run
+    folder's name), so that two runs' results never share a title."""
+    label = os.path.basename(os.path.normpath(run_dir or "")) or "run"
+    return "%s - %s" % (name, label)
+
+
+def relief_scale(run_dir):
+    """``"absolute"`` or ``"relative"``: the ``relief.scale`` of the run folder's run.json
+    (``"relative"`` when the lamps' elevation, hence the height scale, is not pinned by known
+    geometry). A missing file, key or unreadable run.json is ``"absolute"`` (older folders)."""
+    try:
+        fh = open(os.path.join(run_dir, "run.json"), "r")
+        try:
+            log = json.load(fh)
+        finally:
+            fh.close()
+    except (IOError, OSError, ValueError):
+        return "absolute"
+    relief = log.get("relief") if isinstance(log, dict) else None
+    scale = relief.get("scale") if isinstance(relief, dict) else None
+    return "relative" if scale == "relative" else "absolute"
+
+
+#: How the height map is named and labelled: (window name, value unit, bar label).
+HEIGHT_WORDS = {"absolute": ("height (um)", u"\u00b5m", u"height (\u00b5m)"),
+                "relative": ("relative height", "relative", "relative height (no unit)")}
+
+
 #: The menu item that runs each core command (the Log names it).
 MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfield": "Flat Field",
                "normals": "Normals and Albedo", "integrate": "Integrate Height",
@@ -942,7 +1026,7 @@ def field_names(command=None, table=None):
         for param in commands[name]["params"]:
             if not param.get("label"):
                 continue
-            field = param_label(param).split(" (")[0].split(":")[0].strip()
+            field = field_name(param)
             names[cli_flag(param["name"])] = field
             if param["type"] == "bool":
                 names["--no-" + param["name"].replace("_", "-")] = field
@@ -965,7 +1049,8 @@ def user_words(text, command=None, table=None):
             return match.group(0)
         return '%sfield "%s"' % ("(" if match.group(1) else "the ", field)
 
-    return re.sub(r"(\()?(--[a-z][a-z0-9-]*)(?![a-z0-9-])", swap, text or "")
+    text = re.sub(r" \(params '[a-z0-9_]+'\)", "", text or "")
+    return re.sub(r"(\()?(--[a-z][a-z0-9-]*)(?![a-z0-9-])", swap, text)
 
 
 def affects_result(warning):
@@ -1039,7 +1124,10 @@ def diagnostic_lines(command, diagnostics, user_gave_lights=False):
         lines += lights_lines(d["lights"], d.get("lights_file"), user_gave_lights)
     elif command == "lights":
         lines += lights_lines(d, d.get("lights_file"), user_gave_lights)
-    lines += detection_lines(d.get("detect") if command == "run" else d)
+    # `info`'s answer says the counts of the run itself (its text); its n_protrusions alone
+    # must not read as "N candidates, N kept, 0 rejected"
+    if command in ("run", "detect"):
+        lines += detection_lines(d.get("detect") if command == "run" else d)
     if command == "wand" and "n_points" in d:
         lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
     title = MENU_TITLES.get(command, command)
@@ -1210,90 +1298,29 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
 
 
 # ---------------------------------------------------------------------------------------------
-# Wand points: pixels or calibrated units
+# Wand clicks (the core reads the points file: uvps.wand.read_seed_file)
 # ---------------------------------------------------------------------------------------------
 
-#: Choices of the wand's ``units`` field.
-UNITS_AUTO = "Automatic"
-UNITS_PIXELS = "Pixels"
-UNITS_CALIBRATED = "Calibrated (um, as Analyze > Measure)"
-UNITS_CHOICES = [UNITS_AUTO, UNITS_PIXELS, UNITS_CALIBRATED]
+#: What the core's ``points_unit`` of the wand means, in words.
+UNIT_WORDS = {"px": "pixels", "um": "um", "mm": "mm"}
 
 
-def read_points_text(text):
-    """Read clicks from a points file: CSV or tab-separated, with a header (``x_px``/``y_px``,
-    ``x_um``/``y_um``, ImageJ's ``X``/``Y``) or none (x, y in the first two columns).
-
-    Returns
-    -------
-    (list of (float, float), str)
-        The points and the unit the header names: ``px``, ``um`` or ``""`` (not said).
-    """
-    rows = [ln for ln in (text or "").replace("\r", "\n").split("\n") if ln.strip()]
-    if not rows:
-        return [], ""
-
-    def cells(line):
-        sep = "\t" if "\t" in line else ("," if "," in line else None)
-        return [c.strip().strip('"') for c in (line.split(sep) if sep else line.split())]
-
-    head = cells(rows[0])
-    ix, iy, unit = 0, 1, ""
-    try:
-        [float(c) for c in head[:2]]
-        body = rows
-    except ValueError:
-        body = rows[1:]
-        low = [c.lower() for c in head]
-        for xs, ys, u in ((("x_px",), ("y_px",), "px"), (("x_um", "x_mm"), ("y_um", "y_mm"), "um"),
-                          (("x",), ("y",), "")):
-            found = [i for i, c in enumerate(low) if c in xs], [i for i, c in enumerate(low) if c in ys]
-            if found[0] and found[1]:
-                ix, iy, unit = found[0][0], found[1][0], u
-                break
+def clicks_line(diag, where, automatic=True):
+    """One Log line on the wand's clicks from its diagnostics: how many, from where, read in
+    which unit (and divided by which pixel size)."""
+    unit = diag.get("points_unit") or "px"
+    line = "%d clicks from %s, read in %s" % (diag.get("n_points", 0), where,
+                                              UNIT_WORDS.get(unit, unit))
+    if unit != "px" and diag.get("pixel_size_um"):
+        line += " (the albedo's pixel size is %g um)" % diag["pixel_size_um"]
+    if unit != "px":
+        if diag.get("points_unit_said"):
+            line += " as the file's header says"
+        elif automatic:
+            line += ": its X, Y fit the image only in um"
         else:
-            raise BridgeError("the points file has no x, y columns (header: %s)" % ", ".join(head))
-    points = []
-    for line in body:
-        c = cells(line)
-        try:
-            points.append((float(c[ix]), float(c[iy])))
-        except (ValueError, IndexError):
-            raise BridgeError("the points file has a row without two numbers: '%s'" % line.strip())
-    return points, unit
-
-
-def points_in_pixels(points, header_unit, choice, width, height, pixel_size_um):
-    """Turn clicks into pixel coordinates.
-
-    ``choice`` (:data:`UNITS_CHOICES`): pixels, the image's calibrated units (um: divided by
-    ``pixel_size_um``), or automatic: the header's unit if it names one, else pixels unless some
-    point lies outside the image in pixels while all lie inside it in um.
-
-    Returns
-    -------
-    (list of (float, float), str)
-        The points in pixels and ``"pixels"`` or ``"um"`` (what they were read as).
-    """
-    def inside(pts):
-        return all(0 <= x < width and 0 <= y < height for x, y in pts)
-
-    def to_px(pts):
-        if not pixel_size_um:
-            raise BridgeError("the points are in um but the albedo has no pixel size; give the "
-                              "pixel size or points in pixels")
-        return [(x / pixel_size_um, y / pixel_size_um) for x, y in pts]
-
-    if choice == UNITS_PIXELS:
-        return list(points), "pixels"
-    if choice == UNITS_CALIBRATED or header_unit == "um":
-        return to_px(points), "um"
-    if header_unit == "px" or inside(points) or not pixel_size_um:
-        return list(points), "pixels"
-    converted = to_px(points)
-    if inside(converted):
-        return converted, "um"
-    return list(points), "pixels"
+            line += " as the field \"Units of the points file\" says"
+    return line
 
 
 def repeated_clicks(points, labels_at):

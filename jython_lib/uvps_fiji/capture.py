@@ -129,11 +129,13 @@ def capture_inputs(values, request_dir):
     return {"images": images}
 
 
-def pixel_size_of_current(values):
-    """Pixel size in um from the option, else from the current image's calibration, else None."""
-    size = values.get("pixel")
-    if size and size > 0:
-        return float(size)
+def pixel_size_of_current(values, field="the pixel size field"):
+    """Pixel size in um from the dialog field (key ``pixel``), else from the current stack's
+    calibration, else None; an implausible size is refused naming where it came from
+    (``bridge_logic.check_pixel_size``)."""
+    size = bridge_logic.check_pixel_size(values.get("pixel"), field)
+    if size is not None:
+        return size
     if values.get("capture") != CAPTURE_CURRENT:
         return None
     imp = WindowManager.getCurrentImage()
@@ -144,7 +146,9 @@ def pixel_size_of_current(values):
     factor = {"micron": 1.0, u"\u00b5m": 1.0, "um": 1.0, "mm": 1000.0, "nm": 0.001}.get(unit)
     if factor is None or not cal.scaled():
         return None
-    return cal.pixelWidth * factor
+    return bridge_logic.check_pixel_size(
+        cal.pixelWidth * factor, "the calibration of '%s' (Image > Properties; or type the size "
+        "into %s)" % (imp.getTitle(), field))
 
 
 def point_selection():

@@ -248,12 +248,3 @@ def add_light_fields(dlg, command, lights=True):
     add_param(dlg, (command, "mask"), key="mask")
     add_param(dlg, (command, "dark"), key="dark")
     add_param(dlg, (command, "degree"), key="degree")
-
-
-def add_units_field(dlg):
-    """The unit of the wand's points file (key ``units``)."""
-    dlg.choice("Units of the points file", bridge_logic.UNITS_CHOICES, bridge_logic.UNITS_AUTO)
-    dlg.describe("Units of the points file",
-                 "Pixels (x_px, y_px; File > Save As > XY Coordinates), or the image's calibrated "
-                 "units (um, as Analyze > Measure exports X, Y on a calibrated image). Automatic: "
-                 "the column names say it, else um when the points only fit the image in um")

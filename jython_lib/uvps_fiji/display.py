@@ -16,6 +16,7 @@ from ij.gui import OvalRoi, Overlay, Plot, PolygonRoi, Roi, Wand
 from ij.measure import ResultsTable
 from ij.plugin.frame import RoiManager
 
+from uvps_fiji import bridge_logic
 from uvps_fiji.bridge_logic import BridgeError
 
 #: Colour of protrusion outlines (the paper's figure 3b uses a red overlay).
@@ -187,7 +188,7 @@ def read_lights(path):
     return data
 
 
-def show_lights(path, title="Lights (top view)"):
+def show_lights(path, title="Lights (top view)", table_title="Lights"):
     """Plot the lamps seen from the camera and open a "Lights" table; return the Plot.
 
     Each lamp sits at ``(cos(el) cos(az), cos(el) sin(az))`` (azimuth from +x toward +y, the
@@ -215,7 +216,7 @@ def show_lights(path, title="Lights (top view)"):
         xs.append(r * math.cos(math.radians(az)))
         ys.append(r * math.sin(math.radians(az)))
     table.setPrecision(3)
-    table.show("Lights")
+    table.show(table_title)
     plot = Plot(title, "x (toward image right)", "y (toward image top)")
     plot.setLimits(-1.15, 1.15, -1.15, 1.15)
     circle_x = [math.cos(2 * math.pi * t / 90.0) for t in range(91)]
@@ -297,18 +298,37 @@ def viridis_lut():
     return LUT(array(reds, "b"), array(greens, "b"), array(blues, "b"))
 
 
-def show_height(path, title="depth"):
-    """Open the height map with its value unit (um), a viridis LUT and a calibration bar (an
-    overlay, so the pixel values stay the heights)."""
+def show_height(path, title, scale="absolute"):
+    """Open the height map with its value unit (um; "relative" when the run's height scale is
+    not pinned, see ``bridge_logic.relief_scale``), a viridis LUT and a calibration bar with the
+    unit written under it (overlays, so the pixel values stay the heights)."""
+    from ij.gui import TextRoi
+    from java.awt import Font
+    _, unit, bar_label = bridge_logic.HEIGHT_WORDS[scale]
     imp = open_image(path, title, show=False)
-    imp.getCalibration().setValueUnit(MICRONS)
+    imp.getCalibration().setValueUnit(unit)
     imp.setLut(viridis_lut())
     imp.resetDisplayRange()
     _show_replacing(imp)
     IJ.run(imp, "Calibration Bar...", "location=[Upper Right] fill=White label=Black number=5 "
            "decimal=1 font=12 zoom=1 overlay")
-    for i in range(imp.getOverlay().size() if imp.getOverlay() is not None else 0):
-        imp.getOverlay().get(i).setName("calibration bar")
+    overlay = imp.getOverlay() or Overlay()
+    bar = None
+    for i in range(overlay.size()):
+        overlay.get(i).setName("calibration bar")
+        bar = overlay.get(i).getBounds() if bar is None else bar.union(overlay.get(i).getBounds())
+    # ImageJ's bar shows numbers only: its unit goes under it, on the same white ground
+    font = Font("SansSerif", Font.PLAIN, 12)
+    text = TextRoi(0, 0, bar_label, font)
+    width = text.getBounds().width
+    x = (bar.x + bar.width - width) if bar is not None else imp.getWidth() - width - 2
+    y = (bar.y + bar.height) if bar is not None else 2
+    text = TextRoi(max(0, x), y, bar_label, font)
+    text.setStrokeColor(Color.black)
+    text.setFillColor(Color.white)
+    text.setName("calibration bar unit")
+    overlay.add(text)
+    imp.setOverlay(overlay)
     return imp
 
 
@@ -325,26 +345,50 @@ def _sample_top(processors, fraction=0.995, n=200000):
     return values[min(len(values) - 1, int(fraction * len(values)))] or 1.0
 
 
-def albedo_rgb(float_imp, title="albedo"):
-    """The colour a person sees: the 3 float channels of ``albedo.tif`` as one RGB image, all
-    channels scaled by one factor (99.5 % of the values below white). Display only."""
+def rgb_image(float_imp, title, low=None, high=None, what="albedo.tif"):
+    """The colour a person sees of a 3-channel float image: one RGB image, every channel mapped
+    from [low, high] to 0-255 by the same factor (default: 0 to the 99.5 % quantile of the
+    values). Display only; an image without 3 channels is returned unchanged."""
     from ij.process import ColorProcessor
     stack = float_imp.getStack()
     if stack.getSize() != 3:
         return float_imp
     channels = [stack.getProcessor(i + 1) for i in range(3)]
-    top = _sample_top(channels)
+    low = 0.0 if low is None else low
+    high = _sample_top(channels) if high is None else high
     planes = []
     for ip in channels:
         ip = ip.duplicate()
-        ip.setMinAndMax(0.0, top)
+        ip.setMinAndMax(low, high)
         planes.append(ip.convertToByte(True).getPixels())
     cp = ColorProcessor(float_imp.getWidth(), float_imp.getHeight())
     cp.setRGB(planes[0], planes[1], planes[2])
     imp = ImagePlus(title, cp)
     imp.setCalibration(float_imp.getCalibration())
-    imp.setProperty("Info", "uvps: albedo.tif shown as RGB (R, G, B scaled by 255 / %g for "
-                    "display; the values are in the file)" % top)
+    imp.setProperty("Info", "uvps: %s shown as RGB (channels %g..%g mapped to 0..255 for "
+                    "display; the values are in the file)" % (what, low, high))
+    return imp
+
+
+def albedo_rgb(float_imp, title="albedo"):
+    """The 3 float channels of ``albedo.tif`` as one RGB image (99.5 % of the values below
+    white). Display only."""
+    return rgb_image(float_imp, title)
+
+
+def show_normals(path, title):
+    """``normals.tif`` (nx, ny, nz in [-1, 1]) as the usual normal-map colours: R, G, B =
+    (n + 1) / 2 (x right, y up, z toward the camera: a flat area facing the camera is lilac).
+    Display only; the file keeps the float normals."""
+    imp = rgb_image(open_image(path, title, show=False), title, -1.0, 1.0, "normals.tif")
+    _show_replacing(imp)
+    return imp
+
+
+def show_relight(path, title):
+    """``relight.tif`` as a colour image when it has R, G, B (a colour albedo), else grey."""
+    imp = rgb_image(open_image(path, title, show=False), title, what="relight.tif")
+    _show_replacing(imp)
     return imp
 
 
@@ -355,7 +399,7 @@ def show_albedo(path, title="albedo"):
     return imp
 
 
-def wand_image(albedo_path, title="albedo (R+G+B)/3"):
+def wand_image(albedo_path, title):
     """The grey image the wand works on: (R + G + B) / 3 of the float albedo (ImageJ's own wand
     on an RGB image uses the same mean), calibrated like the albedo."""
     from ij.process import Blitter
@@ -371,24 +415,12 @@ def wand_image(albedo_path, title="albedo (R+G+B)/3"):
     return out
 
 
-def show_wand_image(albedo_path, title="albedo (R+G+B)/3"):
+def show_wand_image(albedo_path, title):
     imp = wand_image(albedo_path, title)
     _show_replacing(imp)
     IJ.log("uvps: '%s' is the grey image the wand works on: use ImageJ's wand tool on it with "
            "the same tolerance to check a selection by hand" % title)
     return imp
-
-
-def image_geometry(path):
-    """(width, height, pixel size in um or None) of an image file."""
-    imp = IJ.openImage(path)
-    if imp is None:
-        raise BridgeError("ImageJ cannot open %s" % path)
-    cal = imp.getCalibration()
-    factor = {"micron": 1.0, "microns": 1.0, MICRONS: 1.0, "um": 1.0, "mm": 1000.0,
-              "nm": 0.001}.get((cal.getUnit() or "").lower())
-    size = cal.pixelWidth * factor if factor is not None and cal.scaled() else None
-    return imp.getWidth(), imp.getHeight(), size
 
 
 def values_at(path, points):

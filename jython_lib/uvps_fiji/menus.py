@@ -78,51 +78,75 @@ def report_response(command, response, table=None, user_gave_lights=False):
 def _capture_call(command, values, params=None):
     """A command on the capture (run, flatfield, lights, normals): the images and the pixel size
     come from ImageJ when the capture is the current stack."""
+    table = runner.command_table()
+    field = 'the field "%s"' % bridge_logic.field_name(
+        bridge_logic.param_spec(command, "pixel_size_um", table))
+    # checked before the stack is copied and the core started
+    extra = {"pixel_size_um": capture.pixel_size_of_current(values, field)}
     request_dir = runner.new_request_dir()
     inputs = capture.capture_inputs(values, request_dir)
-    extra = {"pixel_size_um": capture.pixel_size_of_current(values)}
     extra.update(params or {})
     return run_command(command, values, inputs, extra, request_dir,
                        skip=("images", "pixel_size_um"))
 
 
+def titled(name, run_dir):
+    """The title of one of the run's windows or tables: ``"albedo - region1"``."""
+    return bridge_logic.run_title(name, run_dir)
+
+
+def show_height(path, run_dir):
+    """The height map titled ``height (um) - <run>`` (``relative height - <run>`` when the
+    run's height scale is relative), its unit on the colour bar."""
+    scale = bridge_logic.relief_scale(run_dir)
+    return display.show_height(path, titled(bridge_logic.HEIGHT_WORDS[scale][0], run_dir), scale)
+
+
 def _show_protrusions(response, csv_name, labels_name, run_dir, title):
     """Open the protrusion table, its ROIs, and the albedo (RGB) and the height map with the
-    outlines as overlay."""
+    outlines as overlay; the table and the ROIs are named by ``title`` and the run."""
     albedo = height = None
     albedo_path = os.path.join(run_dir, "albedo.tif")
     if os.path.isfile(albedo_path):
-        albedo = display.show_albedo(albedo_path, "albedo")
+        albedo = display.show_albedo(albedo_path, titled("albedo", run_dir))
     height_path = os.path.join(run_dir, "depth.tif")
     if os.path.isfile(height_path):
-        height = display.show_height(height_path, "depth")
+        height = show_height(height_path, run_dir)
     labels = response.file(labels_name) if response.has_file(labels_name) else None
-    return display.show_protrusions(response.file(csv_name), labels, albedo, title,
-                                    images=[height])
+    return display.show_protrusions(response.file(csv_name), labels, albedo,
+                                    titled(title, run_dir), images=[height])
+
+
+def _show_lights(response, run_dir):
+    display.show_lights(response.file("lights.json"), titled("Lights (top view)", run_dir),
+                        titled("Lights", run_dir))
 
 
 def estimate_lights(values):
     """``lights``: lamp directions from the capture's drop-off (paper, figure 1b-f)."""
     response = _capture_call("lights", values)
-    display.show_lights(response.file("lights.json"))
-    display.open_image(response.file("dropoff.tif"), "dropoff")
+    out = run_folder(values)
+    _show_lights(response, out)
+    display.open_image(response.file("dropoff.tif"), titled("dropoff", out))
     return response
 
 
 def flat_field(values):
     """``flatfield``: divide each image by its Legendre drop-off fit."""
     response = _capture_call("flatfield", values)
-    display.open_image(response.file("dropoff.tif"), "dropoff")
+    out = run_folder(values)
+    display.open_image(response.file("dropoff.tif"), titled("dropoff", out))
     # One float32 TIFF per image in <run>/flatfield/ (3 channels each for an RGB capture).
-    display.open_folder_stack(response.path("flatfield"), "flatfield")
+    display.open_folder_stack(response.path("flatfield"), titled("flatfield", out))
     return response
 
 
 def normals_and_albedo(values):
     """``normals``: per-pixel least squares for normals and the RGB fluorescence albedo."""
     response = _capture_call("normals", values)
-    display.open_image(response.file("normals.tif"), "normals")
-    display.show_albedo(response.file("albedo.tif"), "albedo")
+    out = run_folder(values)
+    display.show_normals(response.file("normals.tif"), titled("normals", out))
+    display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     return response
 
 
@@ -130,7 +154,7 @@ def integrate_height(values):
     """``integrate``: height in um from the run's normals."""
     _run_file(values, "normals.tif")
     response = run_command("integrate", values)
-    display.show_height(response.file("depth.tif"), "depth")
+    show_height(response.file("depth.tif"), run_folder(values))
     return response
 
 
@@ -143,37 +167,21 @@ def detect_protrusions(values):
     return response
 
 
-def wand_points(values, request_dir, albedo_path):
-    """The wand's clicks in pixels, written to the request folder: the ``points`` file (pixels,
-    or um as *Analyze > Measure* exports them: key ``units``), else the current point selection
-    / ROI Manager points (pixels)."""
+def wand_points(values, request_dir):
+    """The wand's clicks: the ``points`` file as the user gave it (the core reads it, in the unit
+    its header names: ``wand.read_seed_file``), else the current point selection / ROI Manager
+    points, written in pixels to the request folder."""
     path = optional_path(values.get("points"))
     if path is not None:
         if not os.path.isfile(path):
             raise BridgeError("points file %s does not exist" % path)
-        fh = open(path, "r")
-        try:
-            points, header_unit = bridge_logic.read_points_text(fh.read())
-        finally:
-            fh.close()
-        if not points:
-            raise BridgeError("the points file %s lists no points" % path)
-        where = "file %s" % path
-    else:
-        points, header_unit = capture.point_selection(), "px"
-        if not points:
-            raise BridgeError("no points: click the protrusions with the multi-point tool (or "
-                              "add points to the ROI Manager), or give a CSV with x_px,y_px "
-                              "(key points=)")
-        where = "point selection"
-    width, height, pixel_um = display.image_geometry(albedo_path)
-    pixels, unit = bridge_logic.points_in_pixels(
-        points, header_unit, values.get("units") or bridge_logic.UNITS_AUTO, width, height,
-        pixel_um)
-    IJ.log("uvps Wand Count: %d clicks from the %s, read in %s%s" % (
-        len(points), where, unit,
-        " (divided by the albedo's pixel size %g um)" % pixel_um if unit == "um" else ""))
-    return capture.write_points(pixels, request_dir), pixels
+        return path, "the file %s" % path
+    points = capture.point_selection()
+    if not points:
+        raise BridgeError("no points: click the protrusions with the multi-point tool (or "
+                          "add points to the ROI Manager), or give a CSV with x_px,y_px "
+                          "(key points=)")
+    return capture.write_points(points, request_dir), "the point selection"
 
 
 def wand_count(values):
@@ -183,25 +191,29 @@ def wand_count(values):
     out = run_folder(values)
     albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
-    points_path, pixels = wand_points(values, request_dir, albedo_path)
+    points_path, where = wand_points(values, request_dir)
     response = run_command("wand", values, {"points": points_path}, None, request_dir,
                            skip=("points",))
+    diag = response.diagnostics
+    pixels = [tuple(p) for p in diag.get("points_px") or []]
+    IJ.log("uvps Wand Count: %s" % bridge_logic.clicks_line(
+        diag, where, automatic=values.get("units") in (None, "", "Automatic")))
     labels_path = response.file("protrusions_manual_labels.tif")
     labels = display.values_at(labels_path, pixels)
-    for number, (x, y), earlier in bridge_logic.repeated_clicks(pixels, labels):
+    repeated = bridge_logic.repeated_clicks(pixels, labels)
+    for number, (x, y), earlier in repeated:
         if earlier is None:
-            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px selected nothing (no valid "
+            IJ.log("uvps Wand Count: click %d at (%d, %d) px selected nothing (no valid "
                    "albedo there)" % (number, x, y))
         else:
-            IJ.log("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of "
+            IJ.log("uvps Wand Count: click %d at (%d, %d) px is inside the selection of "
                    "click %d: counted once" % (number, x, y, earlier))
-    repeated = len(bridge_logic.repeated_clicks(pixels, labels))
     if repeated:
         IJ.log("uvps Wand Count: %d of %d clicks added no protrusion (listed above); ImageJ's "
-               "own wand would keep each as a selection" % (repeated, len(pixels)))
+               "own wand would keep each as a selection" % (len(repeated), len(pixels)))
     count = _show_protrusions(response, "protrusions_manual.csv",
                               "protrusions_manual_labels.tif", out, "Manual protrusions")
-    display.show_wand_image(albedo_path)
+    display.show_wand_image(albedo_path, titled("albedo (R+G+B)/3", out))
     IJ.log("uvps Wand Count: %d protrusions" % count)
     return response
 
@@ -229,8 +241,9 @@ def colour_areas(values):
         params = {"auto": True}
     skip = ("labels", "n_areas") if source != "Automatic" else ("labels",)
     response = run_command("regions", values, inputs, params, request_dir, skip=skip)
-    display.open_image(response.file("regions_labels.tif"), "regions_labels")
-    display.open_table(response.file("regions.csv"), "Regions")
+    out = run_folder(values)
+    display.open_image(response.file("regions_labels.tif"), titled("regions_labels", out))
+    display.open_table(response.file("regions.csv"), titled("Regions", out))
     return response
 
 
@@ -238,7 +251,7 @@ def statistics_and_report(values):
     """``stats``: densities per cm^2 by width per colour area, report.html and figures."""
     response = run_command("stats", values)
     if response.has_file("regions.csv"):
-        display.open_table(response.file("regions.csv"), "Regions")
+        display.open_table(response.file("regions.csv"), titled("Regions", run_folder(values)))
     display.show_report(response.file("report.html"), runner.is_interactive())
     return response
 
@@ -250,7 +263,7 @@ def compare_counts(values):
         if path is None or not os.path.isfile(path):
             raise BridgeError("protrusion table '%s' (key %s) does not exist" % (path or "", key))
     response = run_command("compare", values)
-    display.open_table(response.file("comparison.csv"), "Comparison")
+    display.open_table(response.file("comparison.csv"), titled("Comparison", run_folder(values)))
     return response
 
 
@@ -258,8 +271,8 @@ def relight(values):
     """``relight``: render the run's normals and albedo under a virtual raking light."""
     _run_file(values, "normals.tif")
     response = run_command("relight", values)
-    display.open_image(response.file("relight.tif"),
-                       "relight az%g el%g" % (values.get("azimuth"), values.get("elevation")))
+    display.show_relight(response.file("relight.tif"), titled(
+        "relight az%g el%g" % (values.get("azimuth"), values.get("elevation")), run_folder(values)))
     return response
 
 
@@ -267,15 +280,15 @@ def run_whole_pipeline(values):
     """``run``: capture -> lights, flat-field, normals, albedo, height (+ areas, detection)."""
     out = run_folder(values)
     response = _capture_call("run", values)
-    display.open_image(response.file("normals.tif"), "normals")
-    display.show_lights(response.file("lights.json"))
+    display.show_normals(response.file("normals.tif"), titled("normals", out))
+    _show_lights(response, out)
     # The core detects whenever regions are set (or detect is ticked): show what it listed.
     if response.has_file("protrusions.csv"):
         _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out,
                           "Protrusions")
     else:
-        display.show_height(response.file("depth.tif"), "depth")
-        display.show_albedo(response.file("albedo.tif"), "albedo")
+        show_height(response.file("depth.tif"), out)
+        display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     if response.has_file("report.html"):
         display.show_report(response.file("report.html"), runner.is_interactive())
     IJ.log("uvps Run Whole Pipeline: outputs in " + out)

@@ -6,10 +6,12 @@ cancels (the process is destroyed), a timeout ends it, and the result counts onl
 status is 0, ``response.json`` says ``ok`` and every listed output exists (see
 ``bridge_logic.finish_call``).
 
-Errors: :func:`report_error` writes the message to the Log; when a user clicked the menu item it
-also shows it in an ``IJ.error`` dialog; when a macro (or ``ImageJ -batch``) ran the command it
-aborts the macro and raises :class:`PluginError`, so that the macro fails instead of carrying on
-with missing results (the test harness turns the uncaught exception into a non-zero exit status).
+Errors: :func:`report_error` writes the message to the Log, CLI flags in it turned into the
+dialog's field names; when a user clicked the menu item it also shows it in an ``IJ.error``
+dialog; when a macro (or ``ImageJ -batch``) ran the command it aborts the macro (``-batch`` then
+exits with status 1). Only under the test harness (``-Duvps.test``) does it raise
+:class:`PluginError` (the harness turns it into status 4): elsewhere an exception would put
+Jython's and Java's stack traces in the Log for what is a user's mistake.
 """
 import os
 import threading
@@ -72,6 +74,13 @@ def remove_request_dir(path, failed):
     keep = failed and bridge_logic.keep_failed_requests()
     if bridge_logic.remove_request_dir(path, failed=failed, keep_failed=keep):
         IJ.log("uvps: request folder kept for inspection: " + path)
+
+
+def remove_pending_request_dirs():
+    """Delete the request folders of calls that never ran (an error before the call, e.g. a
+    stack refused by ``bridge_logic.stack_layout``)."""
+    for path in list(_PENDING):
+        remove_request_dir(path, failed=True)
 
 
 def is_interactive():
@@ -220,6 +229,16 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
     return response
 
 
+def menu_words(title, message):
+    """A core message in the menu user's words: CLI flags become the dialog fields of the menu
+    item ``title`` (``bridge_logic.user_words``); unchanged when the table cannot be read."""
+    commands = dict((v, k) for k, v in bridge_logic.MENU_TITLES.items())
+    try:
+        return bridge_logic.user_words(message, commands.get(title), command_table())
+    except (Exception, Throwable):  # the message matters more than its wording
+        return message
+
+
 def report_error(title, exc):
     """Show a failure: Log always; a dialog when interactive; abort + raise in a macro.
 
@@ -231,7 +250,7 @@ def report_error(title, exc):
         A BridgeError (its ``message`` and ``log`` are used) or any other exception.
     """
     if isinstance(exc, BridgeError):
-        message = exc.message
+        message = menu_words(title, exc.message)
         kind = exc.error_type
         log = exc.log
     else:
@@ -257,10 +276,15 @@ def report_error(title, exc):
             and bridge_logic.exit_on_failure(System.getProperty("sun.java.command")):
         # Plain `ImageJ -batch` exits 0 after an aborted macro: end it with a failure status so a
         # script can tell (an interactive session or PyImageJ is never ended; the test harness
-        # has its own status, see tests/imagej/README.md).
+        # has its own status, see tests/imagej/README.md). System.exit skips run_menu's
+        # `finally`: the request folders go first.
+        remove_pending_request_dirs()
         System.out.flush()
         System.exit(bridge_logic.FAILURE_EXIT_STATUS)
-    if not interactive:
+    if not interactive and System.getProperty("uvps.test") is not None:
+        # The test harness turns this into a non-zero status. Elsewhere the message above is
+        # all a user sees: an exception would add Jython's and Java's stack traces to the Log
+        # for what is a user's mistake (the macro is already aborted).
         raise PluginError(line)
 
 
@@ -277,8 +301,7 @@ def run_menu(title, func):
     except (Exception, Throwable) as exc:  # Java exceptions are not Python Exceptions
         report_error(title, exc)
     finally:
-        for path in list(_PENDING):
-            remove_request_dir(path, failed=True)
+        remove_pending_request_dirs()
 
 
 def check_python(python):

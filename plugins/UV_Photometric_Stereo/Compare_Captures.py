@@ -1,7 +1,7 @@
 """Compare Captures: two captures of one region at two dates (uvps changes).
 
 Registers the later run folder (B) onto the earlier one (A) from the albedo, levels the heights
-and gives every protrusion its status (new, grown, shrunk, unchanged, gone). Writes
+and gives every protrusion its status (new, grown, shrunk, unchanged, gone, merged, split). Writes
 registration.json, changes.csv, height_change.tif, report.html and run.json into the output
 folder; the summary goes to the Log and the height change (um, A's frame) opens.
 
@@ -32,7 +32,8 @@ def main():
     values = dlg.show()
     if values is not None:
         response = menus.run_command(COMMAND, values)
-        display.open_image(response.file("height_change.tif"), "height change (um)")
+        display.open_image(response.file("height_change.tif"),
+                           menus.titled("height change (um)", menus.run_folder(values)))
 
 
 runner.run_menu(TITLE, main)

@@ -3,7 +3,8 @@
 Click each protrusion on the albedo with the multi-point tool (or add point selections to the ROI
 Manager), then run this: every click grows a region of similar albedo (ImageJ's wand with a
 tolerance) and the regions are counted and measured. In a macro, the points come from a CSV with
-x_px,y_px columns (key points; in pixels, or in um as Analyze > Measure exports them: key units)
+x_px,y_px columns (key points; x_um,y_um or x_mm,y_mm are read in their unit, X,Y as Analyze >
+Measure exports them in pixels or um: key units)
 or from makeSelection("point", xs, ys) on the open albedo. Clicks inside an earlier click's
 selection are listed in the Log. The grey image the wand works on, (R+G+B)/3 of the albedo,
 opens as "albedo (R+G+B)/3" to try the wand by hand.
@@ -33,7 +34,7 @@ def main():
     dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_run_field(dlg)
     dialogs.add_param(dlg, (COMMAND, "points"), key="points")
-    dialogs.add_units_field(dlg)
+    dialogs.add_param(dlg, (COMMAND, "points_unit"), key="units")
     # The core declares no default tolerance (a required value): this is ImageJ's usual start.
     dialogs.add_param(dlg, (COMMAND, "tolerance"), key="tolerance", default=0.05, decimals=4)
     dialogs.add_param(dlg, (COMMAND, "connectivity"), key="connectivity")

@@ -38,7 +38,7 @@ def test_compare_captures_from_a_batch_macro(run_macro, two_dates, tmp_path):
                        timeout=TIMEOUT).check()
     lines = result.stdout.splitlines()
     assert "went on" in lines
-    assert "title: height change (um)" in lines
+    assert "title: height change (um) - changes out" in lines
     assert any(line.startswith("registration: similarity") for line in lines), result.stdout
     for name in ("registration.json", "changes.csv", "height_change.tif", "report.html", "run.json"):
         assert (out / name).is_file(), name

@@ -88,17 +88,23 @@ def _assert_same_image(path_a, path_b, atol):
     np.testing.assert_allclose(a, b, atol=atol, rtol=1e-6, equal_nan=True)
 
 
-#: A menu command that prints what only a person sees of the open height map and albedo.
+#: A menu command that prints what only a person sees of the open height map, albedo and
+#: normals of the run folder called "run folder".
 PROBE = """from ij import IJ, WindowManager
-depth = WindowManager.getImage("depth")
+depth = WindowManager.getImage("height (um) - run folder")
 lut = depth.getProcessor().getLut()
 print("depth unit %s" % depth.getCalibration().getValueUnit().encode("ascii", "replace"))
 print("depth lut %d,%d,%d %d,%d,%d" % (lut.getRed(0), lut.getGreen(0), lut.getBlue(0),
                                        lut.getRed(255), lut.getGreen(255), lut.getBlue(255)))
-names = [depth.getOverlay().get(i).getName() for i in range(depth.getOverlay().size())]
+items = [depth.getOverlay().get(i) for i in range(depth.getOverlay().size())]
+names = [r.getName() for r in items]
 print("depth overlay %d protrusions, bar %s" % (
-    len([n for n in names if n and n.startswith("Protrusions ")]), "calibration bar" in names))
-print("albedo type %d" % WindowManager.getImage("albedo").getType())
+    len([n for n in names if n and n.startswith("Protrusions - run folder ")]),
+    "calibration bar" in names))
+print("bar unit %s" % [r.getText() for r in items
+                       if r.getName() == "calibration bar unit"][0].encode("ascii", "replace"))
+print("albedo type %d" % WindowManager.getImage("albedo - run folder").getType())
+print("normals type %d" % WindowManager.getImage("normals - run folder").getType())
 """
 
 
@@ -127,9 +133,9 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
         'run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s degree=4 '
         'integration=[Frankot-Chellappa (FFT)] regions=auto");\n'
         'print("rois " + roiManager("count"));\n'
-        'print("rows " + Table.size("Protrusions"));\n'
-        'print("lights " + Table.size("Lights"));\n'
-        'selectImage("albedo");\n'
+        'print("rows " + Table.size("Protrusions - run folder"));\n'
+        'print("lights " + Table.size("Lights - run folder"));\n'
+        'selectImage("albedo - run folder");\n'
         'print("overlay " + Overlay.size);\n'
         'getPixelSize(unit, pw, ph);\n'
         'print("pixel " + unit + " " + pw);\n'
@@ -153,7 +159,9 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
     # The height map and the albedo as a person sees them (the files are unchanged: below).
     assert "depth unit ?m" in lines or "depth unit um" in lines, lines
     assert "depth lut 68,1,84 253,231,37" in lines            # viridis, dark purple to yellow
+    assert "bar unit height (?m)" in lines, lines               # the unit on the colour bar
     assert "albedo type 4" in lines                             # ImagePlus.COLOR_RGB
+    assert "normals type 4" in lines                            # colour, not 3 grey slices
     for name in ("normals.tif", "albedo.tif", "depth.tif", "lights.json", "protrusions.csv",
                  "regions_labels.tif", "run.json"):
         assert (out / name).is_file(), name
@@ -194,7 +202,12 @@ def test_run_info_writes_the_run_folder_description_to_the_log(run_macro, refere
     assert sorted(p.name for p in reference_run.iterdir()) == before
     assert not any(p.exists() for p in _request_dirs(result))
     assert "made by:    uvps run (version" in result.stdout, result.stdout
-    assert "protrusions: %d" % n in lines, result.stdout
+    # The run's own counts, once (not "N candidates, N kept, 0 rejected" from the row count).
+    rejected = sum(json.loads((reference_run / "run.json").read_text())["diagnostics"]["detect"]
+                   ["rejected"].values())
+    assert ("protrusions: %d kept of %d candidates (%d rejected by the detection's rules)"
+            % (n, n + rejected, rejected)) in lines, result.stdout
+    assert not [ln for ln in lines if "detection:" in ln], result.stdout
 
 
 def test_run_info_on_a_folder_that_is_no_run_fails_with_the_core_message(run_macro, tmp_path):
@@ -235,7 +248,8 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
     ]
     macro = "".join('run("%s", "%s");\nprint("done %s");\n' % (cmd, opts.replace('"', '\\"'), cmd)
                     for cmd, opts, _ in steps)
-    macro += 'print("tables " + Table.size("Lights") + " " + Table.size("Comparison"));\n'
+    macro += 'print("tables " + Table.size("Lights - steps") + " " + Table.size("Comparison - steps"));\n'
+    macro += 'selectImage("relight az315 el15 - steps");\nprint("relight " + bitDepth());\n'
     result = run_macro(macro, timeout=TIMEOUT).check()
     lines = _log_lines(result)
     for cmd, _, files in steps:
@@ -243,6 +257,7 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
         for name in files:
             assert (out / name).exists(), (cmd, name)
     assert "tables %d %d" % (N_LIGHTS, len(_read_csv(out / "comparison.csv"))) in lines
+    assert "relight 24" in lines                                # an RGB image, not 3 grey slices
     # Steps after Estimate Lights reuse its lamps, and say so.
     for title in ("Flat Field", "Normals and Albedo"):
         assert ("uvps %s lights: %d lamps from the run folder's %s (not estimated again; give a "
@@ -358,8 +373,8 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
         'makeSelection("point", newArray(%s), newArray(%s));\n'
         'run("Wand Count", "run=%s tolerance=0.05 connectivity=8");\n'
         'print("rois " + roiManager("count"));\n'
-        'print("rows " + Table.size("Manual protrusions"));\n'
-        'selectImage("albedo");\nroiManager("select", 0);\n'
+        'print("rows " + Table.size("Manual protrusions - truth run"));\n'
+        'selectImage("albedo - truth run");\nroiManager("select", 0);\n'
         'print("type " + selectionType() + " " + Roi.getName);\n'
         % (run / "albedo.tif", ",".join("%.2f" % v for v in xs), ",".join("%.2f" % v for v in ys),
            q(run)), timeout=TIMEOUT).check()
@@ -367,23 +382,69 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     assert "rois %d" % len(clicked) in lines and "rows %d" % len(clicked) in lines
     # Outlines traced in the label image (4 = traced), not circles.
-    assert "type 4 Manual protrusions 1" in lines
+    assert "type 4 Manual protrusions - truth run 1" in lines
     _check_manual(run, clicked)
 
 
-def test_wand_count_from_a_points_csv(run_macro, truth_run, tmp_path):
+#: A menu command that prints the title and value unit of every open image.
+PROBE_UNITS = """from ij import WindowManager
+for i in WindowManager.getIDList():
+    imp = WindowManager.getImage(i)
+    print("image %s: %s" % (imp.getTitle(), imp.getCalibration().getValueUnit().encode("ascii", "replace")))
+"""
+
+
+def test_wand_count_from_a_points_csv(run_macro, truth_run, tmp_path, imagej_home, write_plugin):
+    """A user's ROI stays in the ROI Manager; a re-run replaces the earlier run's outlines; a
+    second run folder gets its own table, ROIs and windows (named by run, never mixed); a run
+    whose height scale is relative (run.json relief.scale) shows "relative height", no um."""
+    import shutil
+
     run, clicked = truth_run
+    other = run.parent / "other run"
+    shutil.copytree(str(run), str(other))
+    (other / "run.json").write_text(json.dumps({"command": "run", "relief": {
+        "scale": "relative", "lamps": "estimated", "reason": "the lamps' elevation is not pinned"}}))
     points = tmp_path / "my clicks.csv"
-    points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked))
-    # A user's ROI stays in the ROI Manager; a re-run replaces the earlier run's outlines.
+    points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked[:3]))
+    points.write_text(points.read_text() + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked[3:]))
+    write_plugin(imagej_home, "Test/Probe_Units.py", PROBE_UNITS)
+    wand = 'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
     result = run_macro('newImage("user", "8-bit black", 320, 240, 1);\n'
                        'makeRectangle(1, 1, 20, 20);\nroiManager("add");\n'
-                       'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
-                       'run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=4");\n'
+                       + wand % (q(run), q(points)) + wand % (q(run), q(points))
+                       + wand % (q(other), q(points)) +
                        'print("rois " + roiManager("count"));\n'
-                       % (q(run), q(points), q(run), q(points)), timeout=TIMEOUT).check()
-    assert "uvps Wand Count: %d protrusions" % len(clicked) in _log_lines(result)
-    assert "rois %d" % (len(clicked) + 1) in _log_lines(result)
+                       'print("tables " + Table.size("Manual protrusions - truth run") + " "'
+                       ' + Table.size("Manual protrusions - other run"));\n'
+                       'run("Probe Units");\n',
+                       timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
+    assert "rois %d" % (2 * len(clicked) + 1) in lines, lines
+    assert "tables %d %d" % (len(clicked), len(clicked)) in lines, lines
+    images = sorted(ln for ln in lines if ln.startswith("image "))
+    assert images == sorted([
+        "image user: Gray Value",
+        "image albedo - truth run: Gray Value", "image albedo - other run: Gray Value",
+        "image height (um) - truth run: ?m", "image relative height - other run: relative",
+        "image albedo (R+G+B)/3 - truth run: Gray Value",
+        "image albedo (R+G+B)/3 - other run: Gray Value"]), images
+    _check_manual(run, clicked)
+
+
+def test_wand_points_in_mm_are_read_by_the_cores_parser(run_macro, truth_run, tmp_path):
+    """x_mm, y_mm are millimetres (Fiji's own parser read them as um: 1000x off, outside the
+    image); the core's wand.read_seed_file reads them, the same as the CLI."""
+    run, clicked = truth_run
+    points = tmp_path / "clicks mm.csv"
+    points.write_text("x_mm,y_mm\n" + "".join(
+        "%.6f,%.6f\n" % ((float(r["x_px"]) + 0.5) * 0.015, (float(r["y_px"]) + 0.5) * 0.015)
+        for r in clicked))
+    result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
+                       % (q(run), q(points)), timeout=TIMEOUT).check()
+    assert ("uvps Wand Count: %d clicks from the file %s, read in mm (the albedo's pixel size is "
+            "15 um) as the file's header says" % (len(clicked), points)) in _log_lines(result)
     _check_manual(run, clicked)
 
 
@@ -402,7 +463,7 @@ def test_colour_areas_from_rois_in_the_roi_manager(run_macro, truth_run):
         'makeRectangle(0, 0, 100, 240);\nroiManager("add");\n'
         'makeOval(150, 60, 120, 100);\nroiManager("add");\n'
         'run("Colour Areas", "run=%s source=[ROI Manager]");\n'
-        'print("areas " + Table.size("Regions"));\n' % (run / "albedo.tif", q(run)),
+        'print("areas " + Table.size("Regions - truth run"));\n' % (run / "albedo.tif", q(run)),
         timeout=TIMEOUT).check()
     labels = tifffile.imread(str(run / "regions_labels.tif"))
     assert labels.shape == SHAPE
@@ -558,14 +619,14 @@ def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_r
         for i, (x, y) in enumerate(zip(xs, ys))))
     ix, iy = int(xs[1]), int(ys[1])
     result = run_macro('run("Wand Count", "run=%s points=%s tolerance=0.05 connectivity=8");\n'
-                       'selectImage("albedo (R+G+B)/3");\n'
+                       'selectImage("albedo (R+G+B)/3 - truth run");\n'
                        'print("grey " + bitDepth() + " " + d2s(getPixel(%d, %d), 6));\n'
                        % (q(run), q(points), ix, iy), timeout=TIMEOUT).check()
     lines = _log_lines(result)
-    assert ("uvps Wand Count: %d clicks from the file %s, read in um (divided by the albedo's "
-            "pixel size 15 um)" % (len(xs), points)) in lines, lines
-    assert ("uvps Wand Count: click %d at (%.1f, %.1f) px is inside the selection of click 1: "
-            "counted once" % (len(xs), xs[-1] + 0.5, ys[-1] + 0.5)) in lines, lines
+    assert ("uvps Wand Count: %d clicks from the file %s, read in um (the albedo's pixel size is "
+            "15 um): its X, Y fit the image only in um" % (len(xs), points)) in lines, lines
+    assert ("uvps Wand Count: click %d at (%d, %d) px is inside the selection of click 1: "
+            "counted once" % (len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))) in lines, lines
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     _check_manual(run, clicked)
     albedo = tifffile.imread(str(run / "albedo.tif")).astype(np.float64)
@@ -595,3 +656,66 @@ def test_plain_imagej_runs_the_menu_items_offline(imagej_env, tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "uvps Settings: %s has uvps" % sys.executable in proc.stdout
     assert "went on" in proc.stdout.splitlines()
+
+
+def test_a_request_refused_before_it_runs_leaves_no_request_folder(run_macro, capture_dir, tmp_path):
+    """An RGB image sequence as grey slices is refused before the core starts: the request folder
+    made for it is deleted, also in a plain `ImageJ -batch` (which ends the JVM with status 1)."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    macro = (_rgb_sequence_macro(capture_dir) +
+             'run("Normals and Albedo", "capture=[Current stack] run=%s");\n' % q(tmp_path / "run"))
+    for plain in (False, True):
+        result = run_macro(macro, plain=plain, env={"TMPDIR": str(temp)}, timeout=TIMEOUT)
+        assert result.returncode in (1, PYTHON_EXCEPTION_STATUS), result.stdout + result.stderr
+        assert "grey slices that are the R, G, B" in result.stdout
+        assert sorted(p.name for p in temp.glob("uvps-request-*")) == [], plain
+
+
+@pytest.mark.parametrize("typed,words", [
+    ("0.1", "holds 0.1 um, not a pixel size on a painting (1-1000 um); give it in micrometres "
+            "(0.1 mm = 100 um)"),
+    ("-100", "holds -100 um; a pixel size is positive (0 = from the image file)")])
+def test_an_implausible_pixel_size_is_refused_naming_the_field(run_macro, capture_dir, tmp_path,
+                                                              typed, words):
+    """0.1 (mm typed into the um field) crashed the core; -100 was dropped and the core then
+    asked for a CLI flag. Both are refused before the core starts, naming the dialog field, and
+    a user's macro (not the test harness) gets one Log line, no Python or Java stack trace."""
+    out = tmp_path / "run"
+    result = run_macro('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s '
+                       'pixel=%s regions=auto");\nprint("went on");\n' % (q(capture_dir), q(out), typed),
+                       plain=True, env={"UVPS_EXIT_ON_ERROR": "0"}, timeout=TIMEOUT)
+    assert ('uvps Run Whole Pipeline failed (BridgeError): the field "Pixel size on the painting" '
+            + words) in result.stdout, result.stdout + result.stderr
+    assert "went on" not in result.stdout
+    assert " -m uvps bridge " not in result.stdout            # the core never started
+    assert not out.exists()
+    for trace in ("Traceback", "Exception in", "PluginError", "\tat "):
+        assert trace not in result.stdout + result.stderr, trace
+
+
+#: A menu command that prints the items of Plugins > UV Photometric Stereo, in order.
+PROBE_MENU = """from ij import Menus
+bar = Menus.getMenuBar()
+for i in range(bar.getMenuCount()):
+    if bar.getMenu(i).getLabel() == "Plugins":
+        plugins = bar.getMenu(i)
+        for j in range(plugins.getItemCount()):
+            if plugins.getItem(j).getLabel() == "UV Photometric Stereo":
+                menu = plugins.getItem(j)
+                print("menu: " + " | ".join(menu.getItem(k).getLabel()
+                                            for k in range(menu.getItemCount())))
+"""
+
+
+def test_the_menu_is_in_workflow_order(run_macro, imagej_home, write_plugin):
+    """ImageJ sorts a plugins folder's scripts alphabetically ("Colour Areas" first); the
+    installed plugins.config keeps the workflow order, with separators between the stages."""
+    write_plugin(imagej_home, "Test/Probe_Menu.py", PROBE_MENU)
+    result = run_macro('run("Probe Menu");\n').check()
+    menus = [ln for ln in _log_lines(result) if ln.startswith("menu: ")]
+    assert menus == [
+        "menu: Run Whole Pipeline | - | Estimate Lights | Flat Field | Normals and Albedo | "
+        "Integrate Height | - | Colour Areas | Detect Protrusions | Wand Count | Compare Counts | "
+        "Statistics and Report | - | Relight | Compare Captures | Run Info | - | UVPS Settings"], \
+        result.stdout

@@ -1,0 +1,130 @@
+"""Camera raw files (.dng .cr2 .cr3 .nef .arw) read linearly by LibRaw (rawpy), on DNG files the tests
+write themselves: a Bayer mosaic (RGGB) with the DNG tags LibRaw needs, its black and white levels."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+
+rawpy = pytest.importorskip("rawpy")
+
+from uvps.io import RAW_DEVELOP, read_capture, read_raw  # noqa: E402
+
+BLACK, WHITE = 512, 16383
+
+
+def write_dng(path, rgb, *, black=BLACK, white=WHITE):
+    """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
+    plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
+    and white levels, an identity colour matrix, a neutral white balance)."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    M, N = rgb.shape[:2]
+    pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
+    ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
+    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
+    mosaic = np.clip(np.rint(mosaic), 0, white).astype(np.uint16)
+
+    def rational(values, den=10000):
+        return tuple(x for v in values for x in (int(round(v * den)), den))
+
+    extratags = [
+        (33421, "H", 2, (2, 2), True),                         # CFARepeatPatternDim
+        (33422, "B", 4, (0, 1, 1, 2), True),                   # CFAPattern: R G G B
+        (50706, "B", 4, (1, 4, 0, 0), True),                   # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),                   # DNGBackwardVersion
+        (50708, "s", 0, "uvps test camera", True),             # UniqueCameraModel
+        (50714, "H", 1, (int(black),), True),                  # BlackLevel
+        (50717, "H", 1, (int(white),), True),                  # WhiteLevel
+        (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
+        (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
+        (50778, "H", 1, (21,), True),                          # CalibrationIlluminant1: D65
+    ]
+    tifffile.imwrite(path, mosaic, photometric=32803, extratags=extratags, metadata=None, subfiletype=0)
+    return path
+
+
+def _ramps(M=48, N=64, scale=1.0):
+    r, c = np.mgrid[:M, :N].astype(np.float64)
+    return scale * np.stack([800 + 40 * c + 10 * r, 1500 + 25 * r + 5 * c, 300 + 12 * c + 30 * r], axis=-1)
+
+
+def test_a_written_dng_is_read_by_libraw_with_its_levels(tmp_path):
+    path = write_dng(tmp_path / "a.dng", _ramps())
+    with rawpy.imread(str(path)) as raw:
+        assert raw.raw_type == rawpy.RawType.Flat
+        assert list(raw.black_level_per_channel) == [BLACK] * 4 and raw.white_level == WHITE
+        assert raw.color_desc == b"RGBG"
+
+
+def test_raw_values_round_trip_linearly(tmp_path):
+    """Counts above the black level come back as they were: a linear ramp per channel (which bilinear
+    demosaicing reproduces exactly away from the border) within 0.5 count, and twice the light gives
+    twice the counts: no gamma, no automatic brightness, no white balance."""
+    scene = _ramps()
+    got = read_raw(write_dng(tmp_path / "a.dng", scene))
+    assert got.shape == scene.shape and got.dtype == np.float32
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(got[inner] - scene[inner]).max() < 0.5
+    twice = read_raw(write_dng(tmp_path / "b.dng", 2 * scene))
+    ratio = twice[inner] / got[inner]
+    assert np.allclose(ratio, 2.0, rtol=2e-3)
+    assert RAW_DEVELOP["gamma"] == [1, 1] and RAW_DEVELOP["white_balance"] == [1, 1, 1, 1]
+
+
+def _raw_capture(tmp_path, n=6, seed=3):
+    """A synthetic capture written as DNG files (counts / 4: the mosaic's 14 bits)."""
+    from uvps.synthetic import make_capture
+
+    cap = make_capture(shape=(96, 128), n_lights=n, seed=seed)
+    folder = tmp_path / "raw_capture"
+    folder.mkdir()
+    for k in range(n):
+        write_dng(folder / f"uv_{k:02d}.dng", np.asarray(cap.images[k], np.float64) / 4.0)
+    lines = ["file,x_mm,y_mm,z_mm"] + [f"uv_{k:02d}.dng," + ",".join(f"{v:.6f}" for v in p)
+                                       for k, p in enumerate(cap.light_positions_mm)]
+    (tmp_path / "lights.csv").write_text("\n".join(lines) + "\n")
+    return cap, folder
+
+
+def test_a_folder_of_raw_files_is_a_capture_with_its_levels_recorded(tmp_path):
+    cap, folder = _raw_capture(tmp_path)
+    c = read_capture(folder, pixel_size_um=15.0)
+    assert c.images.shape == (6, 96, 128, 3) and c.bit_depth == "raw"
+    assert c.raw["levels"][0]["black_level"] == [BLACK] * 4 and c.raw["levels"][0]["white_level"] == WHITE
+    assert c.raw["saturation_counts"] == WHITE - BLACK == c.saturation
+    assert c.raw["develop"]["demosaic"] == "LINEAR"
+    # linear and black-subtracted: the synthetic counts / 4 (bilinear demosaic of a textured scene)
+    truth = np.asarray(cap.images, np.float64)[:, 4:-4, 4:-4] / 4.0
+    got = np.asarray(c.images, np.float64)[:, 4:-4, 4:-4]
+    lit = truth > 50
+    assert lit.mean() > 0.9 and abs(np.median(got[lit] / truth[lit]) - 1.0) < 0.01
+
+
+def test_run_on_raw_files_records_the_levels_and_measures_no_additive_term(tmp_path):
+    from uvps.commands import COMMANDS
+
+    _, folder = _raw_capture(tmp_path)
+    out = tmp_path / "run"
+    COMMANDS["run"]({"images": [str(folder)]}, {"pixel_size_um": 15.0, "lights": str(tmp_path / "lights.csv")}, out)
+    log = json.loads((out / "run.json").read_text())
+    add = log["diagnostics"]["additive"]
+    assert add["source"] == "raw metadata" and add["raw_black_level"] == [[BLACK] * 4]
+    assert add["raw_white_level"] == [WHITE]
+    assert log["diagnostics"]["raw"]["develop"]["white_balance"] == [1, 1, 1, 1]
+    assert log["params"]["bit_depth"] == "raw"
+
+
+def test_a_raw_file_libraw_cannot_read_is_one_line_and_nothing_written(tmp_path):
+    _, folder = _raw_capture(tmp_path, n=3)
+    bad = folder / "uv_01.nef"
+    (folder / "uv_01.dng").unlink()
+    bad.write_bytes(b"not a raw file at all" * 100)
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(folder), "-o", str(out), "--pixel-size-um", "15"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "uv_01.nef" in lines[0] and "LibRaw cannot read it" in lines[0], r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
