@@ -31,6 +31,7 @@ JYTHON_JAR = "/usr/share/java/jython.jar"
 MENU_ITEMS = ["Run Whole Pipeline", "Estimate Lights", "Flat Field", "Normals and Albedo",
               "Integrate Height", "Colour Areas", "Detect Protrusions", "Wand Count",
               "Statistics and Report", "Compare Counts", "Relight", "Run Info", "Compare Captures",
+              "Element Maps",
               "UVPS Settings"]
 
 #: Example values shown in the screenshots (ij.Prefs keys uvps.<macro key>).

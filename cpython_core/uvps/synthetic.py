@@ -43,6 +43,7 @@ from .errors import UVPSInputError
 from .io import Capture, write_imagej_tiff
 from .irradiance import irradiance
 from .outputs import Progress, atomic_output_dir, report, write_json_atomic
+from .synthetic_elements import ElementTruth, render_element_maps  # noqa: F401  (element maps: uvps elements)
 
 logger = logging.getLogger(__name__)
 

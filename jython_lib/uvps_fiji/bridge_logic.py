@@ -993,7 +993,8 @@ MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfi
                "normals": "Normals and Albedo", "integrate": "Integrate Height",
                "regions": "Colour Areas", "detect": "Detect Protrusions", "wand": "Wand Count",
                "stats": "Statistics and Report", "compare": "Compare Counts",
-               "relight": "Relight", "info": "Run Info", "changes": "Compare Captures"}
+               "relight": "Relight", "info": "Run Info", "changes": "Compare Captures",
+               "elements": "Element Maps"}
 
 #: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
 REJECTION_WORDS = {"too_small": "narrower than the smallest width",

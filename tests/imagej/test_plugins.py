@@ -717,5 +717,5 @@ def test_the_menu_is_in_workflow_order(run_macro, imagej_home, write_plugin):
     assert menus == [
         "menu: Run Whole Pipeline | - | Estimate Lights | Flat Field | Normals and Albedo | "
         "Integrate Height | - | Colour Areas | Detect Protrusions | Wand Count | Compare Counts | "
-        "Statistics and Report | - | Relight | Compare Captures | Run Info | - | UVPS Settings"], \
+        "Statistics and Report | - | Relight | Compare Captures | Element Maps | Run Info | - | UVPS Settings"], \
         result.stdout
