@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from . import protrusion_commands, runfolder
+from . import calibration, protrusion_commands, runfolder
 from .runfolder import RunImages
 from .integrate import integrate_normals
 from .io import read_capture, write_imagej_tiff
@@ -44,12 +44,15 @@ def _capture_command(name: str, stages: tuple):
     def cmd(inputs, params, output_dir, *, progress=None):
         run_dir = check_output_dir(output_dir)
         t_all = time.perf_counter()
+        params, cal = calibration.run_params(params)     # the calibration's lamps, dark frame, pixel size
         if name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
             # step by step: the lamps of the folder's `lights` step, not a second estimate that
             # could differ (and costs the most time)
             params = {**params, "lights": str(run_dir / "lights.json")}
             log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
         capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
+        if cal is not None:
+            calibration.check_capture(cal, capture)
         protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
         todo = stages
         if name == "run" and not params.get("flatfield_images"):
@@ -59,6 +62,8 @@ def _capture_command(name: str, stages: tuple):
         result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
                      dark_given=params["dark"] is not None, regions=params.get("regions"),
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
+        if cal is not None:
+            result.diagnostics["calibration"] = cal.summary()
         with atomic_output_dir(run_dir) as tmp:
             outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
                                           progress=sub_progress(progress, 0.9, 0.95))

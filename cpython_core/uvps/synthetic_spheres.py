@@ -77,7 +77,7 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
                         stand: bool = False, flare: bool = True, seed: Optional[int] = None,
                         gloss_deg: float = GLOSS_SPREAD_DEG, specular: float = 20.0,
                         exposure: float = 0.5) -> SphereCapture:
-    """Render the spheres under the lamps of ``capture`` (grey, uint16).
+    """Render the spheres under the lamps of ``capture`` (uint16; RGB when the capture is).
 
     Parameters
     ----------
@@ -107,7 +107,7 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     Examples
     --------
     >>> from uvps.synthetic import make_capture
-    >>> cap = make_capture(shape=(120, 160), n_lights=4, seed=1)
+    >>> cap = make_capture(shape=(120, 160), n_lights=4, seed=1, rgb=False)
     >>> sc = make_sphere_capture(cap, [SphereSpec("matte", (0.5, 0.5), 0.5)])
     >>> sc.images.shape, sc.images.dtype, round(sc.spheres[0]["radius_px"], 1)
     ((4, 120, 160), dtype('uint16'), 33.3)
@@ -157,8 +157,10 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     vig = nzs.vignetting if nzs.vignetting is not None and nzs.vignetting.shape == (m, n) else None
     s2 = 2.0 * math.radians(gloss_deg) ** 2
     rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
-    black = 0.0 if nzs.black_level is None else float(np.mean(nzs.black_level))
-    out = np.empty((len(lamps), m, n), np.uint16)
+    rgb = capture.images.ndim == 4
+    black = (np.zeros(3 if rgb else 1, np.float32) if nzs.black_level is None
+             else np.asarray(nzs.black_level, np.float32))
+    out = np.empty((len(lamps), m, n) + ((3,) if rgb else ()), np.uint16)
     for k, (L, e) in enumerate(zip(lamps, E)):
         V = L - P
         d = np.linalg.norm(V, axis=-1)
@@ -177,9 +179,11 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         counts = (exposure * capture.exposure * sig).astype(np.float32)
         if flare:
             counts += _flare(counts, spec_w, rng)
+        if rgb:     # a neutral white sphere and background, seen by the capture's colour camera
+            counts = np.repeat(counts[..., None], 3, axis=2)
         if spec.noise:
             counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
-        counts += black
+        counts += black if rgb else black[0]
         out[k] = np.clip(np.rint(counts), 0, 65535)
     files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
     return SphereCapture(out, np.asarray(lamps, float), truth, px, files)
@@ -212,7 +216,7 @@ def _flare(counts, glossy, rng, *, full=65535.0):
 
 
 def write_sphere_capture(sc: SphereCapture, folder, *, truth: bool = True) -> list:
-    """Write a sphere capture as ``sphere_NN.tif`` (16-bit grey, calibrated in um), with
+    """Write a sphere capture as ``sphere_NN.tif`` (16-bit, calibrated in um), with
     ``truth/spheres.csv`` (``col,row,radius_px,kind``: a ``--sphere-circles`` file) and
     ``truth/lights_positions_mm.csv`` when ``truth``. Returns the paths written."""
     folder = Path(folder)
