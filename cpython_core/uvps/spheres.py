@@ -610,6 +610,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     sat = None if saturation is None else 0.995 * float(saturation)
     kind = sphere.kind if sphere.kind in KINDS else _kind_of(vals)
     sphere = Sphere(tuple(sphere.centre_px), float(sphere.radius_px), kind, sphere.source)
+    where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
     if kind == "matte":
         inner = _Disc(sphere, (M, N), pixel_size_um, shrink=0.9)
         ivals = np.stack([inner.values(images[k])[inner.rows, inner.cols] for k in range(K)])
@@ -622,7 +623,6 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     strength = np.empty(K)
     npx = np.empty(K, np.int64)
     resid = np.zeros(K)
-    where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
     for k in range(K):
         name = files[k] if files else f"image {k + 1}"
         if kind == "matte":
