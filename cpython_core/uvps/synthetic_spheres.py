@@ -200,18 +200,22 @@ def _flare(counts, glossy, rng, *, full=65535.0):
 
     lab, n_lab = ndimage.label(sat)
     m, n = counts.shape
-    rr, cc = np.mgrid[0:m, 0:n]
     for i in range(1, n_lab + 1):
         r0, c0 = ndimage.center_of_mass(sat, lab, i)
         size = math.sqrt((lab == i).sum())
-        length = 12.0 * size + 20.0
+        length = 3.0 * size + 15.0
+        reach = int(4 * length)          # the spikes fade to 2 % of their start beyond 4 lengths
+        ra, rb = max(0, int(r0) - reach), min(m, int(r0) + reach + 1)
+        ca, cb = max(0, int(c0) - reach), min(n, int(c0) + reach + 1)
+        rr, cc = np.mgrid[ra:rb, ca:cb]
+        box = add[ra:rb, ca:cb]
         rot = rng.uniform(0, np.pi / 3)
         for j in range(6):
             t = rot + j * np.pi / 3
             u = (cc - c0) * math.cos(t) - (rr - r0) * math.sin(t)      # along the spike
             v = (cc - c0) * math.sin(t) + (rr - r0) * math.cos(t)      # across it
             on = (u > 0) & (np.abs(v) < 4.0)
-            add[on] += (0.6 * full * np.exp(-u[on] / length) * np.exp(-0.5 * (v[on] / 0.8) ** 2)).astype(np.float32)
+            box[on] += (0.6 * full * np.exp(-u[on] / length) * np.exp(-0.5 * (v[on] / 0.8) ** 2)).astype(np.float32)
     return add
 
 
