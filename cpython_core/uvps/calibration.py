@@ -208,19 +208,32 @@ def read_calibration(path) -> Calibration:
 
 
 def run_params(params: dict) -> tuple:
-    """``(params, calibration)``: a capture command's parameters with a calibration's lamps (and dark
-    frame, pixel size) filled in; ``(params, None)`` without ``calibration``."""
+    """``(params, calibration)``: a capture command's parameters with a calibration's dark frame and
+    pixel size filled in (its lamps are attached to the capture read: :func:`apply`); ``(params, None)``
+    without ``calibration``."""
     if not params.get("calibration"):
         return params, None
     cal = read_calibration(params["calibration"])
     if params.get("lights") is not None:
         raise UVPSInputError(f"give calibration or lights, not both (calibration {cal.folder} holds the lamps)")
-    out = {**params, "lights": str(cal.lights)}
+    out = dict(params)
     if params.get("dark") is None and cal.dark is not None:
         out["dark"] = str(cal.dark)
     if params.get("pixel_size_um") is None and cal.pixel_size_um:
         out["pixel_size_um"] = cal.pixel_size_um
     return out, cal
+
+
+def apply(cal: Calibration, capture):
+    """The capture with the calibration's lamps (matched to its images by order), after
+    :func:`check_capture`."""
+    import dataclasses
+
+    check_capture(cal, capture)
+    lp = read_positions(cal.lights)
+    return dataclasses.replace(capture, light_positions_mm=lp.positions_mm,
+                               light_directions=None if lp.positions_mm is not None else lp.directions,
+                               light_intensities=lp.intensities)
 
 
 def check_capture(cal: Calibration, capture) -> None:

@@ -45,14 +45,14 @@ def _capture_command(name: str, stages: tuple):
         run_dir = check_output_dir(output_dir)
         t_all = time.perf_counter()
         params, cal = calibration.run_params(params)     # the calibration's lamps, dark frame, pixel size
-        if name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
+        if cal is None and name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
             # step by step: the lamps of the folder's `lights` step, not a second estimate that
             # could differ (and costs the most time)
             params = {**params, "lights": str(run_dir / "lights.json")}
             log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
         capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
         if cal is not None:
-            calibration.check_capture(cal, capture)
+            capture = calibration.apply(cal, capture)
         protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
         todo = stages
         if name == "run" and not params.get("flatfield_images"):
@@ -70,7 +70,7 @@ def _capture_command(name: str, stages: tuple):
         if name == "run":
             _remove_stale(run_dir, {o.name for o in outputs})
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-        out.diagnostics["lights_file"] = params["lights"]
+        out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
         if protrusions:
             out = _statistics_and_report(run_dir, result, params, out, sub_progress(progress, 0.95, 1.0))
         out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
