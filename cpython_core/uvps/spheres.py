@@ -305,7 +305,7 @@ def _refine_circle(proj, centre, radius):
         return None
     pts = np.column_stack([centre[0] + rad * np.cos(theta), centre[1] - rad * np.sin(theta)])[ok]
     model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=max(1.0, 0.01 * radius),
-                        max_trials=300, rng=0)
+                        max_trials=60, stop_probability=0.999, rng=0)
     if model is None or inl is None or inl.sum() < max(30, 0.3 * len(theta) * ok.mean()):
         return None
     fitted = _circle(pts[inl])
@@ -568,9 +568,16 @@ def _fit_glossy(v, disc: _Disc, sat):
     r_core = math.sqrt((lab == best).sum() / math.pi)
     inside = np.zeros(shape, bool)
     inside[disc.rows, disc.cols] = True
-    rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
+    nrm = np.zeros(shape + (3,), np.float32)
+    nrm[disc.rows, disc.cols] = disc.normals
+    # the work is done in a window around the core (the highlight is small beside the disc)
+    reach = int(math.ceil(2.5 * r_core + 2.0 + 0.5 * (2.5 * r_core + 2.0))) + 3
+    ra, rb = max(0, int(rc[0]) - reach), min(shape[0], int(rc[0]) + reach + 1)
+    ca, cb = max(0, int(rc[1]) - reach), min(shape[1], int(rc[1]) + reach + 1)
+    rr, cc = np.mgrid[ra:rb, ca:cb]
     # a grey opening takes out thin bright lines (flare spikes, 1-2 px wide) and keeps the lobe
-    wt = np.clip(ndimage.grey_opening(img, footprint=_DISK2) - 0.02 * peak, 0, None) * inside
+    wt = np.clip(ndimage.grey_opening(img[ra:rb, ca:cb], footprint=_DISK2) - 0.02 * peak, 0, None)
+    wt *= inside[ra:rb, ca:cb]
     for _ in range(3):
         win = (rr - rc[0]) ** 2 + (cc - rc[1]) ** 2 <= (2.5 * r_core + 2.0) ** 2
         ww = wt * win
@@ -580,10 +587,9 @@ def _fit_glossy(v, disc: _Disc, sat):
         rc = np.array([(ww * rr).sum() / tot, (ww * cc).sum() / tot])
     n_used = int((ww > 0).sum())
     # the mean normal per unit solid angle (a pixel holds 1 / n_z of it): foreshortening aside
-    nrm = np.zeros(shape + (3,))
-    nrm[disc.rows, disc.cols] = disc.normals
-    wn = ww / np.maximum(nrm[..., 2], 0.05)
-    nm = (wn[..., None] * nrm).sum(axis=(0, 1))
+    nw = nrm[ra:rb, ca:cb]
+    wn = ww / np.maximum(nw[..., 2], 0.05)
+    nm = (wn[..., None] * nw).sum(axis=(0, 1)).astype(np.float64)
     nm /= np.linalg.norm(nm)
     sigma_px = 0.02 + 0.5 / math.sqrt(max(n_used, 1)) * noise / max(peak, noise) + 0.05 / max(r_core, 1.0)
     return nm, peak, n_used, sigma_px
