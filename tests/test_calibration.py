@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.calibration import read_calibration, read_dome, write_dome
+from uvps.batch import _side_files
+from uvps.calibration import calibration_of_run, read_calibration, read_dome, write_dome
+from uvps.io import sha256_file
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
 from uvps.synthetic import make_capture, write_capture
@@ -78,6 +80,11 @@ def test_calibrate_then_run_with_the_calibration(scene):
     assert _angles([lp["direction"] for lp in run_lights["lights"]], L).max() < 0.5
     nrm = np.moveaxis(tifffile.imread(run / "normals.tif"), 0, -1)
     assert np.nanmean(_angles(nrm, cap.normals)) < 1.0
+    # what `uvps changes` records of each date, and what makes `uvps batch` runs stale
+    rec = calibration_of_run(run)
+    assert rec["lamps"] == "calibration" and rec["calibration"]["sha256"] == sha256_file(cal / "calibration.json")
+    assert calibration_of_run(tmp_missing := root / "nothing")["calibration"] is None and not tmp_missing.exists()
+    assert _side_files({"calibration": str(cal)})["calibration"]["sha256"] == rec["calibration"]["sha256"]
 
 
 def test_run_refuses_another_lamp_count_or_size(scene, tmp_path):

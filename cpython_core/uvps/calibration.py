@@ -248,6 +248,20 @@ def check_capture(cal: Calibration, capture) -> None:
                              f"images; the capture is {shape[1]} x {shape[0]} px (same camera and framing expected)")
 
 
+def calibration_of_run(run_dir) -> dict:
+    """What a run folder's ``run.json`` records of its lamps: the calibration it used (folder, route,
+    SHA-256 of its calibration.json), else where its lamps came from (``lights`` file or estimated)."""
+    try:
+        log_ = json.loads((Path(run_dir) / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {"calibration": None, "lamps": "unknown (no readable run.json)"}
+    cal = (log_.get("diagnostics") or {}).get("calibration")
+    if cal:
+        return {"calibration": cal, "lamps": "calibration"}
+    lights = (log_.get("params") or {}).get("lights")
+    return {"calibration": None, "lamps": f"light file {lights}" if lights and lights != "estimate" else "estimated"}
+
+
 def _lights_json(directions, positions, pixel_size_um, image_shape, sources) -> dict:
     lights = []
     for k, d in enumerate(directions):
