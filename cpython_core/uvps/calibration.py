@@ -439,24 +439,28 @@ SPECS = (
     CommandSpec("calibrate", "lamps from spheres (or a rig file) into a calibration folder", _cmd_calibrate,
                 output="calibration folder", params=(
                     Param("spheres", "paths", where="inputs",
-                          label="Sphere capture (folder, or files separated by ;)",
+                          label="Spheres: the sphere capture (folder, or files separated by ;)",
                           help="the sphere capture: one image per lamp position, in the order of the painting "
                                "captures' images (a folder, files or one multi-page TIFF)"),
-                    Param("sphere_circles", "path", where="inputs", label="Sphere circles CSV (optional)",
+                    Param("sphere_circles", "path", where="inputs",
+                          label="Circles of the spheres, CSV (optional: overrides the detection)",
                           help="CSV col,row,radius_px[,kind] of each sphere (pixels): overrides the detection"),
-                    Param("sphere_kind", "choice", "auto", choices=("auto",) + KINDS,
+                    Param("sphere_kind", "choice", "auto", choices=("auto",) + KINDS, label="Kind of sphere",
                           help="matte (white: shading) or glossy (black: highlight); auto: from the images"),
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",
                           help="a frame with the UV lamps off: subtracted from the sphere capture and kept in "
                                "the calibration for the captures that use it"),
-                    Param("dome", "path", where="inputs", help="a relight .dome file (a rig calibrated before)"),
+                    Param("dome", "path", where="inputs", label="Dome file (optional: a relight .dome rig instead of spheres)",
+                          help="a relight .dome file (a rig calibrated before)"),
                     Param("lights", "path", where="inputs",
+                          label="Lights file (optional: .lp or lamp positions in mm of a measured rig)",
                           help="an RTI .lp file or lamp positions (.csv/.json, mm) of a measured rig"),
                     Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                           label="Pixel size on the painting (0 = from the image file)",
                           help="pixel size on the painting (default: from the TIFF tags; required for dome "
                                "and lights)"),
                     Param("image_width_mm", "float", minimum=0, exclusive_minimum=True, unit="mm",
+                          label="Image width on the painting (dome only; 0 = the dome's positions in mm)",
                           help="with dome: the field's width in mm, to scale the dome's positions by its "
                                "imageWidth (default: the positions are in mm)"),
                     Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
