@@ -448,7 +448,10 @@ def _near_column(normals, b):
     1)``. Left out, it is taken for the additive term and for a sphere a fraction of a pixel larger or
     smaller: on a 5 mm sphere at 300 mm, 1 degree of the lamp's direction.
     """
-    c = normals @ (b / np.linalg.norm(b))
+    nb = np.linalg.norm(b)
+    if not nb > 0:
+        return np.zeros(len(normals))
+    c = normals @ (b / nb)
     return 3.0 * c * c - 1.0
 
 
