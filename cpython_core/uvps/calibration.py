@@ -221,6 +221,10 @@ def run_params(params: dict) -> tuple:
         out["dark"] = str(cal.dark)
     if params.get("pixel_size_um") is None and cal.pixel_size_um:
         out["pixel_size_um"] = cal.pixel_size_um
+    # the card part (uvps.card, contract C): a calibration holding card.tif is a stored card for the
+    # run's `card` parameter, where the run declares one and none is given
+    if "card" in params and params.get("card") is None and cal.card is not None:
+        out["card"] = str(cal.folder)
     return out, cal
 
 
