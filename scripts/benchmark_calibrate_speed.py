@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -87,8 +88,13 @@ def main(argv=None) -> int:
     shutil.rmtree(cal_dir, ignore_errors=True)
     cmd = [sys.executable, "-m", "uvps", "calibrate", "--spheres", str(cap_dir), "-o", str(cal_dir)]
     t0 = time.perf_counter()
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     r = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # CPU time: what the command costs when it has the machine to itself (wall time counts the waits
+    # of a loaded machine; the command runs one thread, so unloaded its wall time is about its CPU time)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     if r.returncode != 0:
         print(r.stderr, file=sys.stderr)
         return 1
@@ -97,7 +103,8 @@ def main(argv=None) -> int:
     ang = np.degrees(np.arccos(np.clip((D * L).sum(1) / np.linalg.norm(L, axis=1), -1, 1)))
     P = np.array([lp["position_mm"] for lp in lights], float)
     pos = np.linalg.norm(P - L, axis=1) / np.linalg.norm(L, axis=1) * 100
-    print(f"uvps calibrate: {args.lamps} lamps, {args.shape[1]} x {args.shape[0]} px grey uint16: {wall:.1f} s wall "
+    print(f"uvps calibrate: {args.lamps} lamps, {args.shape[1]} x {args.shape[0]} px grey uint16: {wall:.1f} s wall, "
+          f"{cpu:.1f} s CPU, peak memory {ru1.ru_maxrss / 2 ** 20:.2f} GiB "
           f"(capture written in {t_make:.0f} s); lamps max {ang.max():.3f} deg, positions max {pos.max():.2f} %; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     if not args.workdir:
