@@ -1,6 +1,7 @@
 """Tests of uvps.report: the HTML report and its figures on hand-made run folders."""
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -94,10 +95,10 @@ def test_full_report(tmp_path):
     img = _check_png(tmp_path / "figures" / "height.png")
     red = (img[..., 0] > 0.95) & (img[..., 1] < 0.05) & (img[..., 2] < 0.05)
     assert red.sum() > 50
-    # summary: parameters, counts, warnings, the stats and comparison tables
-    assert "integration" in text and "light 3 is partly saturated" in text
-    assert "<b>3</b> protrusions" in text and "height: 3" in text
-    assert "regions.csv" in text and "Comparison" in text and "92.6" in text
+    # summary, methods in words, warnings, the stats and comparison tables
+    assert "Frankot" in text and "light 3 is partly saturated" in text
+    assert "3 protrusions</b>" in text and "3 by relief alone" in text
+    assert "regions.csv" in text and "Two methods" in text and "93" in text
     assert not list(tmp_path.glob("figures/.*")) and not list(tmp_path.glob(".*"))
 
 
@@ -109,7 +110,7 @@ def test_partial_run_folder(tmp_path):
     assert figs == {"height.png", "detail3d.png", "histograms.png"}
     assert "lights.png: lights.json missing" in text
     assert "normals.png: normals.tif missing" in text
-    assert "No run.json" in text
+    assert "run summary: run.json missing" in text
     assert "lights.png" not in re.findall(r"src='figures/([^']+)'", text)
 
 
@@ -117,8 +118,8 @@ def test_height_only_without_protrusions(tmp_path):
     height, _ = _domes()
     write_imagej_tiff(tmp_path / "depth.tif", height, axes="YX", pixel_size_um=PX)
     text = write_report(tmp_path).read_text()
-    assert "the highest point (no protrusions)" in text
-    assert "No protrusions.csv" in text
+    assert "the highest point (no protrusions)" in text.lower()
+    assert "not counted (no protrusion table" in text
     _check_png(tmp_path / "figures" / "detail3d.png")
 
 
@@ -170,7 +171,7 @@ def test_no_pixel_size_anywhere_skips_the_image_figures(tmp_path):
     text = write_report(tmp_path).read_text()
     assert not list((tmp_path / "figures").glob("*.png"))
     assert "image figures: no pixel size" in text
-    assert "<b>3</b> protrusions" in text
+    assert "3 protrusions</b>" in text
 
 
 def test_images_of_different_sizes_are_refused(tmp_path):
@@ -178,3 +179,277 @@ def test_images_of_different_sizes_are_refused(tmp_path):
     write_imagej_tiff(tmp_path / "depth.tif", np.zeros((10, 12), np.float32), axes="YX", pixel_size_um=PX)
     with pytest.raises(UVPSInputError, match="differ in size"):
         write_report(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# the report as a conservator reads it: summary first, numbers rounded, relative heights unitless
+
+
+def _visible_text(fragment: str) -> str:
+    """The text a reader sees in an HTML fragment (tags dropped, entities decoded, spaces joined)."""
+    import html as _html
+
+    text = re.sub(r"<style>.*?</style>", " ", fragment, flags=re.S)
+    text = re.sub(r"</?(?:code|b|i|span|a)\b[^>]*>", "", text)     # inline: no space
+    return " ".join(_html.unescape(re.sub(r"<[^>]+>", " ", text)).split())
+
+
+def _realistic_run_json(path, **extra):
+    """run.json as `uvps run` writes it, with the unrounded floats it holds."""
+    run = {"version": "0.1.0", "command": "run",
+           "params": {"lights": None, "pixel_size_um": PX, "degree": 4, "robust": False,
+                      "integration": "fc", "regions": "auto", "detect": False, "bins_um": 100.0,
+                      "image_shape": [SHAPE[0], SHAPE[1], 3], "bit_depth": "uint16"},
+           "inputs": [{"path": f"/captures/uv_{k:02d}.tif", "sha256": "ab" * 32} for k in range(6)],
+           "timings_s": {"lights": 50.393, "normals": 1.222},
+           "warnings": ["light 3 is partly saturated"],
+           "diagnostics": {
+               "lights": {"source": "estimated", "n_lights": 6, "m_mm": 80.00000003505616,
+                          "final_cost": 2.982970558600815e-05, "height_uncertainty_relative": 0.06734,
+                          "direction_uncertainty_deg_max": 2.0067},
+               "normals": {"n_invalid": 0, "residual_rms": 0.0054685792293333825},
+               "integration": {"method": "fc", "residual_rms": 0.010371931019860229,
+                               "height_range_um": [-11.931466102600098, 177.9402313232422]},
+               "detect": {"n_protrusions": 3, "by_source": {"height": 3}, "n_craters": 0,
+                          "rejected": {"too_small": 0, "ridge": 5, "weave": 2},
+                          "noise_um": 0.12617194652557373}}}
+    run.update(extra)
+    (path / "run.json").write_text(json.dumps(run))
+
+
+def _named_run_folder(path, **run_extra):
+    """The run folder of `_run_folder` with realistic run.json and the areas named in regions.csv
+    (the file a user edits): area 1 (left, two domes) "light red", area 2 (right, one) "dark green"."""
+    _run_folder(path)
+    _realistic_run_json(path, **run_extra)
+    (path / "regions.csv").write_text("label,name\n1,light red\n2,dark green\n")
+
+
+def test_first_section_says_how_many_where_how_sure(tmp_path):
+    _named_run_folder(tmp_path)
+    text = write_report(tmp_path).read_text()
+    # the first section after the title is the summary
+    first = re.search(r"</h1>.*?<section id='summary'>(.*?)</section>", text, re.S)
+    assert first is not None and "<h2>" not in text[text.index("</h1>"):first.start(1) - 30]
+    summary = _visible_text(first.group(1))
+    # what was captured: 6 lamps, 120 x 90 px of 20 um = 2.4 x 1.8 mm
+    assert "6 UV images" in summary and "20 \u00b5m per pixel" in summary
+    assert "2.4 \u00d7 1.8 mm" in summary
+    # how many: 3 domes
+    assert "3 protrusions" in summary
+    # where: the left area holds two of them in half the field, the names from regions.csv
+    assert re.search(r"Densest: light red \(93 \u00b1 65 per cm\u00b2\)", summary), summary
+    assert "least dense: dark green (46 \u00b1 46 per cm\u00b2)" in summary
+    # how sure: the lamps' route, the heights' uncertainty, what was excluded, the warnings
+    assert "estimated from the images alone" in summary
+    assert "\u00b17 %" in summary
+    assert "7 of 10 candidate features rejected (5 elongated: brush strokes or crack lips, " \
+           "2 canvas weave texture)" in summary
+    assert "light 3 is partly saturated" in summary
+    assert "What counts as a protrusion" in summary
+    # methods in words, not a dump of parameters; provenance last
+    assert "robust False" not in text and "lights None" not in text and "detect False" not in text
+    assert text.index("Appendix A") < text.index("Appendix C") and "abab" in text[text.index("Appendix C"):]
+
+
+def _significant_digits(token: str) -> int:
+    digits = token.lstrip("-\u2212").replace(".", "").lstrip("0")
+    return len(digits)
+
+
+def test_no_number_shows_more_digits_than_it_holds(tmp_path, monkeypatch):
+    """Every decimal number in the report's text and in its figures' text has at most 3
+    significant digits (hashes and the date in the provenance aside)."""
+    import uvps.report as rep
+    from matplotlib.text import Text
+
+    texts = []
+    original = rep.save_figure
+
+    def recording(fig, path):
+        texts.extend(t.get_text() for t in fig.findobj(Text))
+        return original(fig, path)
+
+    monkeypatch.setattr(rep, "save_figure", recording)
+    _named_run_folder(tmp_path)
+    lights = json.loads((tmp_path / "lights.json").read_text())
+    lights["m_mm"] = 80.00000003505616
+    (tmp_path / "lights.json").write_text(json.dumps(lights))
+    text = write_report(tmp_path).read_text()
+    assert "80.00000003505616" not in text and "0.0054685792293333825" not in text
+    body = text[:text.index("<section class='appendix' id='provenance'>")]
+    body = body[body.index("</h1>") + 5:]
+    body = body[body.index("</p>"):]          # the line with the date and version
+    words = _visible_text(body) + " " + " ".join(texts)
+    numbers = re.findall(r"(?<![\w.])[-\u2212]?\d+\.\d+", words)
+    assert numbers, "no decimal number found: the test reads the wrong text"
+    too_long = [n for n in numbers if _significant_digits(n) > 3]
+    assert not too_long, too_long
+    assert not any("80.000" in t for t in texts)
+
+
+def test_relative_relief_shows_no_heights_in_micrometres(tmp_path, monkeypatch):
+    import uvps.report as rep
+    from matplotlib.text import Text
+
+    texts = {}
+    original = rep.save_figure
+
+    def recording(fig, path):
+        texts[Path(path).name] = [t.get_text() for t in fig.findobj(Text)]
+        return original(fig, path)
+
+    monkeypatch.setattr(rep, "save_figure", recording)
+    _named_run_folder(tmp_path, relief={"scale": "relative", "lamps": "estimated",
+                                        "reason": "No sphere and no measured lamp positions "
+                                                  "pin the lamps' elevation."})
+    text = write_report(tmp_path).read_text()
+    visible = _visible_text(text)
+    assert "relative only" in visible and "No sphere and no measured lamp positions" in visible
+    assert "Height (\u00b5m)" not in visible and "height noise" not in visible
+    assert "\u00b17 %" not in visible       # no height scale uncertainty: there is no scale
+    assert not re.search(r"heights reach [^.]*\u00b5m", visible)
+    # the figures: no micrometres on the height map's bar or the 3-D detail's vertical axis
+    assert not any("\u00b5m" in t for t in texts["height.png"] if "height" in t.lower())
+    assert any("relative height" in t for t in texts["height.png"])
+    assert any("vertical scale relative" in t for t in texts["detail3d.png"])
+    # widths are still micrometres
+    assert "Width (\u00b5m)" in visible
+
+
+def _captured(monkeypatch):
+    import uvps.report as rep
+
+    figs = []
+    monkeypatch.setattr(rep, "save_figure", lambda fig, path: figs.append(fig) or Path(path))
+    return figs
+
+
+def test_many_lamps_are_not_labelled_one_by_one(tmp_path, monkeypatch):
+    """72 lamps (an RTI dome): coloured by number, at most ~12 tick labels on the bar chart."""
+    from uvps.report import plot_lights
+
+    figs = _captured(monkeypatch)
+    entries = [{"file": f"l{k}.tif", "direction": None, "position_mm": [0.0, 0.0, 100.0 + k],
+                "azimuth_deg": 5.0 * k, "elevation_deg": 20.0 + k % 40, "intensity": 1.0}
+               for k in range(72)]
+    plot_lights({"mode": "near", "lights": entries, "m_mm": 80.00000003505616}, tmp_path / "l.png")
+    polar, bars = figs[0].axes[0], figs[0].axes[-1]
+    assert polar.name == "polar" and not polar.texts
+    labels = [t.get_text() for t in bars.get_xticklabels() if t.get_text()]
+    assert 2 <= len(labels) <= 13
+    assert "100\u2013170 mm" in bars.get_title()
+
+
+def test_3d_detail_states_its_vertical_exaggeration(tmp_path, monkeypatch):
+    from uvps.report import plot_detail_3d
+
+    figs = _captured(monkeypatch)
+    height, _ = _domes()
+    plot_detail_3d(height, tmp_path / "d.png", pixel_size_um=PX, centre_xy=(90, 45),
+                   width_um=28 * PX, what="protrusion 3")
+    ax = figs[0].axes[0]
+    title = ax.get_title()
+    m = re.search(r"vertical exaggeration \u00d7(\d+)", title)
+    assert m, title
+    stated = float(m.group(1))
+    # drawn: the box's height over its width, against the data's height over its width
+    bx, _, bz = ax.get_box_aspect()
+    xr = np.ptp(ax.get_xlim3d())
+    zr = np.ptp(ax.get_zlim3d())
+    drawn = (bz / zr) / (bx / xr)
+    assert abs(drawn / stated - 1) < 0.15, (drawn, stated)
+    assert "\u00b5m" in ax.get_xlabel() and "\u00b5m" in ax.get_zlabel()
+
+
+def test_height_colour_bar_says_where_it_clips(tmp_path, monkeypatch):
+    from uvps.report import height_scale, plot_height
+    from uvps.report_text import height as height_fmt
+
+    figs = _captured(monkeypatch)
+    height, labels = _domes()
+    plot_height(height, tmp_path / "h.png", pixel_size_um=PX, labels=labels)
+    cbar_ax = figs[0].axes[-1]
+    label = cbar_ax.get_ylabel()
+    sc = height_scale(height)
+    assert sc.clips and sc.max == pytest.approx(height.max())
+    assert "clipped" in label and "all heights" in label
+    assert height_fmt(height.max()) in label     # the real top: the 40 um dome on its tilt
+    assert "beyond the bar" in sc.words()
+
+
+def test_manual_and_automated_counts_are_compared_when_both_exist(tmp_path):
+    """protrusions_manual.csv (the wand) beside protrusions.csv, no comparison.csv: the report
+    compares them (map, densities, table) without writing comparison.csv."""
+    table = _run_folder(tmp_path)
+    manual = {k: np.asarray(v)[:2] for k, v in table.items()}    # the wand found two of three
+    write_protrusions_csv(tmp_path / "protrusions_manual.csv", manual)
+    text = write_report(tmp_path).read_text()
+    linked = set(re.findall(r"src='figures/([a-z_0-9]+)\.png'", text))
+    assert {"comparison_map", "comparison"} <= linked
+    visible = _visible_text(text)
+    assert "Table 4. Two methods: manual (wand) and automated" in visible
+    # every manual one matched, one automated extra
+    row = re.search(r"all areas [\d.]+ (\d+) (\d+) [\d.]+ [\d.]+ (\d+) (\d+) (\d+)", visible)
+    assert row and row.groups() == ("2", "3", "2", "0", "1"), visible[-2000:]
+    assert not (tmp_path / "comparison.csv").exists()
+
+
+@pytest.mark.slow
+def test_pdf_printed_by_a_headless_browser(tmp_path):
+    """`print_pdf` with the browser on PATH (Debian's chromium when installed): a PDF of the report
+    beside it; without one, the one-line message saying what to install."""
+    import shutil
+
+    from uvps.report import PDF_BROWSERS, print_pdf
+
+    _named_run_folder(tmp_path)
+    html_path = write_report(tmp_path)
+    if any(shutil.which(b) for b in PDF_BROWSERS):
+        pdf = print_pdf(html_path)
+        assert pdf == tmp_path / "report.pdf"
+        data = pdf.read_bytes()
+        assert data[:5] == b"%PDF-" and len(data) > 20000          # the figures are in it
+        assert len(re.findall(rb"/Type\s*/Page\b", data)) >= 3
+    else:
+        with pytest.raises(UVPSInputError, match="apt-get install chromium"):
+            print_pdf(html_path)
+    assert not list(tmp_path.glob(".report.pdf*"))
+
+
+def test_pdf_without_a_browser_says_what_to_do(tmp_path, monkeypatch):
+    from uvps.report import print_pdf
+
+    _run_folder(tmp_path)
+    html_path = write_report(tmp_path)
+    monkeypatch.setenv("PATH", str(tmp_path / "no-browsers-here"))
+    with pytest.raises(UVPSInputError, match=r"^pdf: no Chromium or Chrome on PATH.*apt-get install chromium"):
+        print_pdf(html_path)
+    # a browser that prints nothing: one line, and no PDF left behind
+    fake = tmp_path / "chromium"
+    fake.write_text("#!/bin/sh\nexit 3\n")
+    fake.chmod(0o755)
+    with pytest.raises(UVPSInputError, match=r"printed no PDF of report.html \(exit 3\)"):
+        print_pdf(html_path, browser=str(fake))
+    assert not (tmp_path / "report.pdf").exists() and not list(tmp_path.glob(".report.pdf*"))
+
+
+def test_lamps_from_a_calibration_folder_name_its_route(tmp_path):
+    """A run with --calibration CAL (contract B): the summary names the folder and how it measured
+    the lamps; no scale uncertainty from an estimate is claimed."""
+    cal = tmp_path / "cal_2024"
+    cal.mkdir()
+    (cal / "calibration.json").write_text(json.dumps({"format": "uvps-calibration", "version": 1,
+                                                      "route": "spheres"}))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    _named_run_folder(run_dir, relief={"scale": "absolute", "lamps": "calibration", "reason": ""})
+    run = json.loads((run_dir / "run.json").read_text())
+    run["params"]["calibration"] = str(cal)
+    del run["diagnostics"]["lights"]["height_uncertainty_relative"]
+    (run_dir / "run.json").write_text(json.dumps(run))
+    summary = _visible_text(re.search(r"<section id='summary'>(.*?)</section>",
+                                      write_report(run_dir).read_text(), re.S).group(1))
+    assert "Lamps: from a calibration folder (uvps calibrate) (cal_2024: reference spheres " \
+           "photographed under each lamp)" in summary
+    assert "scale set by the given lamps" in summary

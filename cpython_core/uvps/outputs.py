@@ -29,7 +29,7 @@ class OutputSpec:
 
     name: str
     path: str
-    kind: str = "image"  # image | table | json | html | folder
+    kind: str = "image"  # image | table | json | html | pdf | folder
     axes: Optional[str] = None
     dtype: Optional[str] = None
     units: Optional[str] = None

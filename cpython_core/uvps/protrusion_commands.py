@@ -23,7 +23,7 @@ from .measure import empty_table, measure_protrusions, read_protrusions_csv, wri
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, sub_progress
 from .pipeline import find_protrusions, protrusion_diagnostics
 from .regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
-from .report import plot_comparison_map, write_report
+from .report import plot_comparison_map, print_pdf, write_report
 from .runfolder import RunImages, output_spec, read_run, write_protrusions
 from .spec import CommandSpec, Param, coerce
 from .wand import read_seeds, wand_select
@@ -212,6 +212,9 @@ def _cmd_stats(inputs: dict, params: dict, output_dir, *,
     figures = sorted((run_dir / "figures").glob("*.png"))
     outputs = [OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2"),
                OutputSpec("report", str(html), kind="html")]
+    if params.get("pdf"):
+        report(progress, 0.98, "printing the report to PDF")
+        outputs.append(OutputSpec("report_pdf", str(print_pdf(html)), kind="pdf"))
     outputs += [OutputSpec(f"figure_{p.stem}", str(p), kind="image", axes="YXS", dtype="uint8")
                 for p in figures]
     diagnostics = {r.name: {"count": r.count, "area_cm2": r.area_cm2,
@@ -308,7 +311,10 @@ _N_AREAS = Param("n_areas", "int", minimum=1, label="Number of automatic areas (
 SPEC_STATS = CommandSpec("stats", "per-area statistics and report.html", _cmd_stats, aliases=("report",),
                          params=(_BINS, _REGIONS_FILE,
                                  Param("table", "path", help="the protrusion CSV to count (default protrusions.csv, "
-                                       "else protrusions_manual.csv)"), _PX))
+                                       "else protrusions_manual.csv)"), _PX,
+                                 Param("pdf", "bool", False, label="Also print the report to PDF (needs Chromium)",
+                                       help="also write report.pdf, printed from report.html by a headless Chromium "
+                                       "or Chrome found on PATH (none is downloaded)")))
 SPECS = (
     CommandSpec("detect", "automated protrusion detection on a run folder", _cmd_detect, params=(
         Param("regions", "path", choices=("auto",), label="Regions: colour areas (auto = from the colours, a label image, or empty = the run's own)", help="colour-area label TIFF, or 'auto' (proposed from the "
