@@ -180,9 +180,9 @@ def read_sphere_circles(path) -> list:
 
     Examples
     --------
-    >>> import tempfile, os
-    >>> p = os.path.join(tempfile.mkdtemp(), "c.csv")
-    >>> _ = open(p, "w").write("col,row,radius_px,kind\\n120.5,80,40,glossy\\n")
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "c.csv"
+    >>> _ = p.write_text("col,row,radius_px,kind\\n120.5,80,40,glossy\\n")
     >>> read_sphere_circles(p)[0]
     Sphere(centre_px=(120.5, 80.0), radius_px=40.0, kind='glossy', source='given')
     """
