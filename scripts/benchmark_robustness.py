@@ -73,8 +73,10 @@ from benchmark_protrusions import match, summarise  # noqa: E402  (detection mat
 from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capture, render_card,  # noqa: E402
                             write_capture)
 
-ROWS = ["none"] + list(NUISANCE_TOP) + ["all"]
-MODES = ("estimated", "calibrated", "dark", "card")
+ROWS = ["none"] + list(NUISANCE_TOP) + ["bow", "all"]
+MODES = ("estimated", "calibrated", "dark", "card", "spheres", "matte_spheres")
+#: The ``bow`` row: a canvas bowed by this much across the field (real canvases: 100-250 um).
+BOW_UM = 250.0
 SCHEMA = 2
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
@@ -89,6 +91,8 @@ METRICS = {
     "height_unc95_pct": ("reported height unc. (%, 95 %)", None, "min", "{:.1f}"),
     "unc_covers": ("unc. covers height err (>= 90 % of runs)", None, "min", "{:.0f}"),
     "relative": ("relief relative (1/0)", None, "max", "{:.0f}"),
+    "cal_light_max_deg": ("calibration lamps max (deg, <= 0.5)", 0.5, "max", "{:.2f}"),
+    "cal_position_max_pct": ("calibration positions max (%, <= 5)", 5.0, "max", "{:.1f}"),
     "additive_err_counts": ("additive err (counts)", None, "max", "{:.0f}"),
     "wall_s": ("wall (s)", None, "max", "{:.1f}"),
     "n_warnings": ("warnings (n)", None, "max", "{:.0f}"),
@@ -106,6 +110,8 @@ def spec_for(row, *, shape, pixel_size_um, seed, n_lights):
         return SyntheticSpec(**common)
     if row == "all":
         return SyntheticSpec.realistic(level="top", **common)
+    if row == "bow":
+        return SyntheticSpec(bow_um=BOW_UM, **common)
     if row not in NUISANCE_TOP:
         raise ValueError(f"unknown row {row!r}; expected some of {ROWS}")
     return SyntheticSpec.realistic(level="top", only=[row], **common)
@@ -236,6 +242,50 @@ def write_positions_csv(cap, path: Path):
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
+#: Sphere routes: the spheres of the calibration capture (kind, centre as fractions of the frame, radius mm).
+SPHERE_MODES = {
+    "spheres": [("glossy", (0.13, 0.17), 2.5), ("glossy", (0.87, 0.83), 2.5)],
+    "matte_spheres": [("matte", (0.13, 0.17), 2.5), ("matte", (0.87, 0.83), 2.5)],
+}
+
+
+def _has_additive(cap) -> bool:
+    """The capture holds a black level or stray light: a conservator's calibration takes a dark frame."""
+    nz = cap.nuisances
+    return nz.black_level is not None or nz.stray_light is not None
+
+
+def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dark=None) -> dict:
+    """Render the sphere capture of ``cap``'s lamps, run ``uvps calibrate`` on it (spheres detected), and
+    score the calibration's lamps against the truth: max direction error (deg) and max position error
+    (% of the lamp's distance)."""
+    from uvps.commands import COMMANDS
+    from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+
+    sc = make_sphere_capture(cap, [SphereSpec(*s) for s in spheres])
+    shutil.rmtree(sphere_dir, ignore_errors=True)
+    write_sphere_capture(sc, sphere_dir, truth=False)
+    shutil.rmtree(cal_dir, ignore_errors=True)
+    t0 = time.perf_counter()
+    inputs = {"spheres": [str(sphere_dir)]}
+    if dark is not None:
+        inputs["dark"] = str(dark)
+    COMMANDS["calibrate"](inputs, {"pixel_size_um": float(cap.spec.pixel_size_um)}, cal_dir)
+    out = {"calibrate_s": time.perf_counter() - t0}
+    lj = json.loads((cal_dir / "lights.json").read_text())
+    L = cap.light_positions_mm
+    D = np.array([lp["direction"] for lp in lj["lights"]])
+    out["cal_light_errors_deg"] = _angle_deg(D, L).tolist()
+    out["cal_light_max_deg"] = float(np.max(out["cal_light_errors_deg"]))
+    P = [lp.get("position_mm") for lp in lj["lights"]]
+    if all(p is not None for p in P):
+        err = np.linalg.norm(np.array(P) - L, axis=1) / np.linalg.norm(L, axis=1) * 100
+        out["cal_position_errors_pct"] = err.tolist()
+        out["cal_position_max_pct"] = float(err.max())
+    shutil.rmtree(sphere_dir, ignore_errors=True)
+    return out
+
+
 def result_path(workdir: Path, row, seed, lamps, mode) -> Path:
     return workdir / "results" / f"{row}__seed{seed}__k{lamps}__{mode}.json"
 
@@ -299,7 +349,10 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
     card = None
     if "card" in todo:
         card = render_card(cap, tilt_azimuth_deg=(137.5 * seed) % 360.0, **CARD_TYPICAL)
-    write_capture(cap, cap_dir, dark_frame="dark" in todo or "card" in todo, card=card)
+    cap_has_dark = ("dark" in todo or "card" in todo
+                    or (any(m in SPHERE_MODES for m in todo) and _has_additive(cap)))
+    write_capture(cap, cap_dir, dark_frame=cap_has_dark, card=card)
+    dark_path = cap_dir / "dark" / "dark.tif"
     lights_csv = workdir / "captures" / f"{key}__lights_truth.csv"
     write_positions_csv(cap, lights_csv)
     regions_tif = cap_dir / "truth" / "regions.tif"
@@ -318,14 +371,28 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
             if mode == "card":
                 params["card"] = str(cap_dir / "card")
                 argv += ["--card", params["card"]]
+            cal_score = {}
+            if mode in SPHERE_MODES:
+                # the lamps from a sphere capture under the same lamps (uvps calibrate), then the run
+                cal_dir = run_root / f"{key}__{mode}__cal"
+                try:
+                    cal_score = calibrate_from_spheres(cap, workdir / "captures" / f"{key}__{mode}", cal_dir,
+                                                       SPHERE_MODES[mode], dark=dark_path if cap_has_dark else None)
+                    params["calibration"] = str(cal_dir)
+                    argv += ["--calibration", str(cal_dir)]
+                except Exception as exc:  # reported as the run's failure below
+                    cal_score = {"calibrate_error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
             if config["detect"]:
                 params["regions"] = str(regions_tif)
                 argv += ["--regions", str(regions_tif)]
             res = {"schema": SCHEMA, "config": config, "row": row, "seed": seed, "lamps": lamps, "mode": mode,
                    "command": " ".join(shlex.quote(a) for a in argv), "make_capture_s": t_make,
                    "truth_nuisances": cap.nuisances.info, "code": code}
+            res.update(cal_score)
             t1 = time.perf_counter()
             try:
+                if "calibrate_error" in cal_score:
+                    raise RuntimeError(cal_score["calibrate_error"])
                 COMMANDS["run"]({"images": [str(cap_dir)]}, params, run_dir)
                 res["wall_s"] = time.perf_counter() - t1
                 res.update(score_run(run_dir, cap, detect=config["detect"]))
@@ -338,6 +405,7 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
             results[mode] = res
             if not keep:
                 shutil.rmtree(run_dir, ignore_errors=True)
+                shutil.rmtree(run_root / f"{key}__{mode}__cal", ignore_errors=True)
     finally:
         if not keep:
             shutil.rmtree(cap_dir, ignore_errors=True)

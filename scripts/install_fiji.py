@@ -53,7 +53,7 @@ MENU_SCRIPTS = os.path.join("jars", "uvps_menu", MENU_FOLDER)
 #: The jar whose plugins.config makes the menu.
 MENU_JAR = MENU_FOLDER + ".jar"
 #: The menu in workflow order ("-": a separator); scripts not listed come before the settings.
-MENU_ORDER = ["Run_Whole_Pipeline", "-",
+MENU_ORDER = ["Calibrate_Lamps", "Run_Whole_Pipeline", "-",
               "Estimate_Lights", "Flat_Field", "Normals_and_Albedo", "Integrate_Height", "-",
               "Colour_Areas", "Detect_Protrusions", "Wand_Count", "Compare_Counts",
               "Statistics_and_Report", "-",

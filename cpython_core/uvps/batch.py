@@ -165,8 +165,14 @@ def _jsonable(obj):
 
 
 def _side_files(params: dict) -> dict:
-    return {k: {"path": params[k], "sha256": sha256_file(params[k])}
-            for k in PER_CAPTURE_FILES if isinstance(params.get(k), str) and Path(params[k]).is_file()}
+    out = {k: {"path": params[k], "sha256": sha256_file(params[k])}
+           for k in PER_CAPTURE_FILES if isinstance(params.get(k), str) and Path(params[k]).is_file()}
+    cal = params.get("calibration")
+    if isinstance(cal, str) and (Path(cal) / "calibration.json").is_file():
+        # a calibration made again into the same folder makes the runs stale
+        out["calibration"] = {"path": str(Path(cal) / "calibration.json"),
+                              "sha256": sha256_file(Path(cal) / "calibration.json")}
+    return out
 
 
 def _image_files(folder: Path) -> set:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import protrusion_commands, runfolder
+from . import calibration, protrusion_commands, runfolder
 from .runfolder import RunImages
 from .integrate import integrate_normals
 from .card import load_card
@@ -50,12 +50,15 @@ def _capture_command(name: str, stages: tuple):
     def cmd(inputs, params, output_dir, *, progress=None):
         run_dir = check_output_dir(output_dir)
         t_all = time.perf_counter()
-        if name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
+        params, cal = calibration.run_params(params)     # the calibration's lamps, dark frame, pixel size
+        if cal is None and name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
             # step by step: the lamps of the folder's `lights` step, not a second estimate that
             # could differ (and costs the most time)
             params = {**params, "lights": str(run_dir / "lights.json")}
             log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
         capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
+        if cal is not None:
+            capture = calibration.apply(cal, capture)
         protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
         todo = stages
         if name == "run" and not params.get("flatfield_images"):
@@ -70,6 +73,8 @@ def _capture_command(name: str, stages: tuple):
         result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
                      dark_given=params["dark"] is not None, regions=params.get("regions"), card=card,
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
+        if cal is not None:
+            result.diagnostics["calibration"] = cal.summary()
         if name != "run":
             with atomic_output_dir(run_dir) as tmp:
                 outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
@@ -91,7 +96,7 @@ def _capture_command(name: str, stages: tuple):
             if dropped:
                 out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
                                     "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
-        out.diagnostics["lights_file"] = params["lights"]
+        out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
         out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
         report(progress, 1.0, f"{name}: done")
         return out

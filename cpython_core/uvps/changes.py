@@ -52,6 +52,7 @@ from .measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, write_json_atomic
 from .regions import UM2_PER_CM2, bin_edges, bin_names, read_region_names
 from .report import CSS, display_albedo, display_step, extent_mm, figure, save_figure, table_html
+from .calibration import calibration_of_run
 from .runfolder import FILES, RunLog, read_run
 from .spec import CommandSpec, Param
 
@@ -1207,6 +1208,8 @@ def cmd_changes(inputs: dict, params: dict, output_dir, *, progress: Progress = 
         write_changes_report(tmp, res)
         res["timings_s"]["writing"] = round(time.perf_counter() - t, 3)
         res["timings_s"]["total"] = round(time.perf_counter() - t_all, 3)
+        # each date's lamps: the calibration it used (uvps calibrate), else its light file or estimate
+        res["diagnostics"]["calibrations"] = {d: calibration_of_run(inputs[f"run_{d}"]) for d in ("a", "b")}
         runlog = RunLog("changes", {**params, "run_a": str(inputs["run_a"]), "run_b": str(inputs["run_b"])},
                         inputs=_hashes(res["a"]) + _hashes(res["b"]), timings_s=res["timings_s"],
                         warnings=list(res["warnings"]), diagnostics=res["diagnostics"])

@@ -87,6 +87,9 @@ CAPTURE_PARAMS = (
           help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
                "the run folder has lights.json; default: the run folder's lights.json (flatfield, normals), "
                "else estimated"),
+    Param("calibration", "path", label="Calibration folder (optional: from Calibrate Lamps)",
+          help="a calibration folder from `uvps calibrate`: its lamps (matched to the images by order), its dark "
+               "frame unless dark is given, its pixel size unless given"),
     Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
     Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
           "subtracted from every image"),

@@ -994,7 +994,39 @@ MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfi
                "regions": "Colour Areas", "detect": "Detect Protrusions", "wand": "Wand Count",
                "stats": "Statistics and Report", "compare": "Compare Counts",
                "relight": "Relight", "info": "Run Info", "changes": "Compare Captures",
-               "elements": "Element Maps"}
+               "elements": "Element Maps", "calibrate": "Calibrate Lamps"}
+
+
+def calibration_spheres(path):
+    """The spheres of a calibration folder's ``calibration.json``: a list of
+    ``(x, y, diameter, name)`` in ImageJ's pixel coordinates (a pixel's centre at +0.5), for the
+    circle overlays that let the user check the detection."""
+    with open(path) as fh:
+        doc = json.load(fh)
+    out = []
+    for i, s in enumerate(doc.get("spheres") or []):
+        col, row = s["centre_px"]
+        r = float(s["radius_px"])
+        out.append((col + 0.5 - r, row + 0.5 - r, 2.0 * r,
+                    "sphere %d (%s, %s)" % (i + 1, s.get("kind", "?"), s.get("source", "?"))))
+    return out
+
+
+def first_image(paths):
+    """The first image of a capture given as a folder, a ``;``-separated list or one file (None if
+    none): the picture the detections are drawn on."""
+    if not paths:
+        return None
+    items = [p.strip() for p in (paths if isinstance(paths, list) else paths.split(";")) if p.strip()]
+    if not items:
+        return None
+    if os.path.isdir(items[0]):
+        names = sorted(n for n in os.listdir(items[0])
+                       if os.path.splitext(n)[1].lower() in (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+                       and not n.startswith("."))
+        return os.path.join(items[0], names[0]) if names else None
+    return items[0] if os.path.isfile(items[0]) else None
+
 
 #: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
 REJECTION_WORDS = {"too_small": "narrower than the smallest width",

@@ -130,6 +130,36 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, name="protrusion
     return rois
 
 
+#: Colour of the sphere circles of Calibrate Lamps.
+SPHERE_COLOUR = Color(0, 200, 255)
+
+
+def show_spheres(image_path, spheres, title="sphere capture (detections)"):
+    """Open the sphere capture's first image with each sphere's circle as an overlay (and in the
+    ROI Manager), so that the user checks the detection; ``spheres``: ``(x, y, d, name)`` from
+    ``bridge_logic.calibration_spheres``."""
+    imp = IJ.openImage(image_path)
+    if imp is None:
+        raise BridgeError("ImageJ cannot open the sphere image %s" % image_path)
+    imp.setTitle(title)
+    overlay = Overlay()
+    rois = []
+    for x, y, d, name in spheres:
+        roi = OvalRoi(x, y, d, d)
+        roi.setName(name)
+        roi.setStrokeColor(SPHERE_COLOUR)
+        roi.setStrokeWidth(2)
+        overlay.add(roi)
+        rois.append(roi)
+    imp.setOverlay(overlay)
+    _show_replacing(imp)
+    manager = RoiManager.getInstance() or RoiManager()
+    replace_rois(manager, "sphere ")
+    for roi in rois:
+        manager.addRoi(roi)
+    return imp
+
+
 def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrusions",
                      images=()):
     """Open ``protrusions.csv`` as a table, its outlines in the ROI Manager and as an overlay on

@@ -295,6 +295,24 @@ def run_whole_pipeline(values):
     return response
 
 
+def calibrate_lamps(values):
+    """``calibrate``: lamps from a sphere capture (or a rig file) into a calibration folder (key
+    ``calibration``); the spheres found drawn as circles on the sphere capture's first image, to check."""
+    values = dict(values)
+    values["run"] = values.get("calibration") or ""
+    response = run_command("calibrate", values)
+    cal = run_folder(values)
+    image = bridge_logic.first_image(values.get("spheres"))
+    if image is not None and os.path.isfile(os.path.join(cal, "calibration.json")):
+        spheres = bridge_logic.calibration_spheres(os.path.join(cal, "calibration.json"))
+        display.show_spheres(image, spheres)
+        for x, y, d, name in spheres:
+            IJ.log("uvps Calibrate Lamps: %s at (%.1f, %.1f) px, radius %.1f px"
+                   % (name, x + d / 2.0 - 0.5, y + d / 2.0 - 0.5, d / 2.0))
+    IJ.log("uvps Calibrate Lamps: calibration in " + cal + " (give it to Run Whole Pipeline)")
+    return response
+
+
 def settings(values, previous=""):
     """Save the CPython path (Prefs ``uvps.python``) after checking that it imports uvps;
     on failure the ``previous`` setting is put back."""

@@ -5,7 +5,8 @@ Opens the normals, the height, the lamps' top view and the albedo (with protrusi
 detection ran); everything is written into the run folder (run.json records the parameters).
 
 Macro: run("Run Whole Pipeline", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4 integration=[Frankot-Chellappa (FFT)] regions=auto detect");
-(add "flatfield" to also write the flat-fielded images, "zarr" for OME-Zarr pyramids of the results)
+(add "flatfield" to also write the flat-fielded images, "zarr" for OME-Zarr pyramids of the results,
+"calibration=[/data/CAL]" for the lamps of Calibrate Lamps)
 """
 import os
 import sys
@@ -29,6 +30,7 @@ def main():
     dialogs.add_capture_fields(dlg, COMMAND)
     dialogs.add_run_field(dlg)
     dialogs.add_light_fields(dlg, COMMAND)
+    dialogs.add_param(dlg, (COMMAND, "calibration"), key="calibration")
     dialogs.add_param(dlg, (COMMAND, "robust"), key="robust")
     dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
     dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")

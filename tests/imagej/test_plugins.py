@@ -715,7 +715,7 @@ def test_the_menu_is_in_workflow_order(run_macro, imagej_home, write_plugin):
     result = run_macro('run("Probe Menu");\n').check()
     menus = [ln for ln in _log_lines(result) if ln.startswith("menu: ")]
     assert menus == [
-        "menu: Run Whole Pipeline | - | Estimate Lights | Flat Field | Normals and Albedo | "
+        "menu: Calibrate Lamps | Run Whole Pipeline | - | Estimate Lights | Flat Field | Normals and Albedo | "
         "Integrate Height | - | Colour Areas | Detect Protrusions | Wand Count | Compare Counts | "
         "Statistics and Report | - | Relight | Compare Captures | Element Maps | Run Info | - | UVPS Settings"], \
         result.stdout

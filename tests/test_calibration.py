@@ -1,0 +1,194 @@
+"""`uvps calibrate` and `uvps run --calibration` through the real command (a subprocess) and in process:
+the calibration folder, its reuse, relight's .dome round trip, and every bad input (one line, exit 1,
+nothing written)."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+
+from uvps.batch import _side_files
+from uvps.calibration import calibration_of_run, read_calibration, read_dome, write_dome
+from uvps.io import sha256_file
+from uvps.commands import COMMANDS
+from uvps.errors import UVPSInputError
+from uvps.synthetic import make_capture, write_capture
+from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+
+PX = 60.0     # 400 x 300 px of 60 um: a 24 x 18 mm field
+
+
+def uvps(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "uvps", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A painting capture (black level 200, a dark frame) and a sphere capture under its lamps."""
+    root = tmp_path_factory.mktemp("cal")
+    cap = make_capture(shape=(300, 400), n_lights=6, seed=4, pixel_size_um=PX, rgb=False, black_level=200.0)
+    write_capture(cap, root / "cap", dark_frame=True)
+    sc = make_sphere_capture(cap, [SphereSpec("glossy", (0.15, 0.2), 3.0), SphereSpec("glossy", (0.85, 0.8), 3.0)])
+    write_sphere_capture(sc, root / "spheres")
+    return root, cap, sc
+
+
+def _angles(a, b):
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    c = (a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+    return np.degrees(np.arccos(np.clip(c, -1, 1)))
+
+
+def test_calibrate_then_run_with_the_calibration(scene):
+    root, cap, sc = scene
+    cal = root / "CAL"
+    r = uvps("calibrate", "--spheres", root / "spheres", "--dark", root / "cap" / "dark" / "dark.tif", "-o", cal)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((cal / "calibration.json").read_text())
+    assert doc["format"] == "uvps-calibration" and doc["version"] == 1 and doc["route"] == "spheres"
+    assert doc["n_lamps"] == 6 and doc["image_shape"] == [300, 400] and doc["pixel_size_um"] == PX
+    assert [s["kind"] for s in doc["spheres"]] == ["glossy", "glossy"]
+    assert all(s["source"] == "detected" for s in doc["spheres"])
+    assert doc["dark"] is True and doc["card"] is None
+    # provenance: every sphere image and the dark frame, by SHA-256
+    assert len(doc["inputs"]) == 7 and all(len(h) == 64 for h in doc["inputs"].values())
+    lights = json.loads((cal / "lights.json").read_text())
+    assert lights["mode"] == "near" and all(lp["file"] is None for lp in lights["lights"])
+    L = cap.light_positions_mm
+    assert _angles([lp["direction"] for lp in lights["lights"]], L).max() < 0.5
+    P = np.array([lp["position_mm"] for lp in lights["lights"]])
+    assert (np.linalg.norm(P - L, axis=1) / np.linalg.norm(L, axis=1)).max() < 0.15
+    for lamp in doc["lamps"]:
+        assert lamp["direction_sigma_deg"] > 0 and lamp["distance_sigma_pct"] > 0
+    assert (cal / "dark.tif").is_file() and (cal / "spheres.png").is_file() and (cal / "rig.dome").is_file()
+    np.testing.assert_array_equal(tifffile.imread(cal / "dark.tif"), tifffile.imread(root / "cap/dark/dark.tif"))
+
+    run = root / "RUN"
+    r = uvps("run", root / "cap", "--calibration", cal, "-o", run)
+    assert r.returncode == 0, r.stderr
+    rj = json.loads((run / "run.json").read_text())
+    assert rj["params"]["calibration"] == str(cal)
+    assert rj["diagnostics"]["calibration"]["route"] == "spheres"
+    assert len(rj["diagnostics"]["calibration"]["sha256"]) == 64
+    assert rj["diagnostics"]["additive"]["source"] == "dark frame"     # the calibration's dark frame
+    run_lights = json.loads((run / "lights.json").read_text())
+    assert run_lights["source"] == "positions"
+    assert _angles([lp["direction"] for lp in run_lights["lights"]], L).max() < 0.5
+    nrm = np.moveaxis(tifffile.imread(run / "normals.tif"), 0, -1)
+    assert np.nanmean(_angles(nrm, cap.normals)) < 1.0
+    # what `uvps changes` records of each date, and what makes `uvps batch` runs stale
+    rec = calibration_of_run(run)
+    assert rec["lamps"] == "calibration" and rec["calibration"]["sha256"] == sha256_file(cal / "calibration.json")
+    assert calibration_of_run(tmp_missing := root / "nothing")["calibration"] is None and not tmp_missing.exists()
+    assert _side_files({"calibration": str(cal)})["calibration"]["sha256"] == rec["calibration"]["sha256"]
+
+
+def test_run_refuses_another_lamp_count_or_size(scene, tmp_path):
+    root, cap, _ = scene
+    cal = tmp_path / "CAL"
+    COMMANDS["calibrate"]({"spheres": [str(root / "spheres")]}, {}, cal)
+    few = tmp_path / "few"
+    few.mkdir()
+    for k in range(5):
+        (few / f"uv_{k:02d}.tif").write_bytes((root / "cap" / f"uv_{k:02d}.tif").read_bytes())
+    r = uvps("run", few, "--calibration", cal, "-o", tmp_path / "RUN")
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines()[-1].endswith("has 6 lamps; the capture has 5 images (lamps are matched "
+                                                      "to the images by order)")
+    assert not (tmp_path / "RUN").exists()
+    small = tmp_path / "small"
+    small.mkdir()
+    for k in range(6):
+        img = tifffile.imread(root / "cap" / f"uv_{k:02d}.tif")[:200, :300]
+        tifffile.imwrite(small / f"uv_{k:02d}.tif", img)
+    r = uvps("run", small, "--calibration", cal, "-o", tmp_path / "RUN")
+    assert r.returncode == 1 and "was made on 400 x 300 px images; the capture is 300 x 200 px" in r.stderr
+    assert not (tmp_path / "RUN").exists()
+    r = uvps("run", root / "cap", "--calibration", cal, "--lights", root / "cap" / "lights.lp", "-o", tmp_path / "R")
+    assert r.returncode == 1 and "give calibration or lights, not both" in r.stderr
+
+
+def test_calibrate_bad_inputs_write_nothing(scene, tmp_path):
+    root, _, _ = scene
+    out = tmp_path / "CAL"
+    # a dark frame of another size
+    tifffile.imwrite(tmp_path / "dark.tif", np.zeros((100, 100), np.uint16))
+    r = uvps("calibrate", "--spheres", root / "spheres", "--dark", tmp_path / "dark.tif", "-o", out)
+    assert r.returncode == 1 and "dark frame" in r.stderr and "expected (300, 400)" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not out.exists()
+    # no sphere in the images (the painting capture given as the sphere capture): names the image
+    r = uvps("calibrate", "--spheres", root / "cap", "-o", out)
+    assert r.returncode == 1 and "no sphere found in the sphere capture" in r.stderr and "uv_00.tif" in r.stderr
+    assert not out.exists()
+    # neither spheres nor a rig
+    r = uvps("calibrate", "-o", out)
+    assert r.returncode == 1 and "needs exactly one of spheres" in r.stderr
+    # an existing folder that is not a calibration is not replaced
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    r = uvps("calibrate", "--spheres", root / "spheres", "-o", other)
+    assert r.returncode == 1 and "is not a calibration folder" in r.stderr
+    assert (other / "keep.txt").read_text() == "mine"
+
+
+def test_given_circles_override_detection(scene, tmp_path):
+    root, cap, sc = scene
+    circles = tmp_path / "circles.csv"
+    t = sc.spheres[0]
+    circles.write_text(f"col,row,radius_px,kind\n{t['centre_px'][0]},{t['centre_px'][1]},{t['radius_px']},glossy\n")
+    COMMANDS["calibrate"]({"spheres": [str(root / "spheres")], "sphere_circles": str(circles)}, {}, tmp_path / "C")
+    doc = json.loads((tmp_path / "C" / "calibration.json").read_text())
+    assert len(doc["spheres"]) == 1 and doc["spheres"][0]["source"] == "given"
+    assert doc["lamps"][0]["position_mm"] is None          # one sphere: far directions
+    assert str(circles) in doc["inputs"]
+
+
+def test_dome_round_trip_and_rig_routes(scene, tmp_path):
+    root, cap, _ = scene
+    cal = tmp_path / "CAL"
+    COMMANDS["calibrate"]({"spheres": [str(root / "spheres")]}, {}, cal)
+    rig = read_dome(cal / "rig.dome")
+    lights = json.loads((cal / "lights.json").read_text())
+    P = np.array([lp["position_mm"] for lp in lights["lights"]])
+    np.testing.assert_allclose(rig.positions, P, rtol=1e-6)
+    assert rig.image_width == pytest.approx(400 * PX / 1000)
+    raw = json.loads((cal / "rig.dome").read_text())
+    assert raw["lightConfiguration"] == "lights3d" and set(raw["positions3d"][0]) == {"x", "y", "z"}
+    # the dome read back gives the same lamps
+    again = tmp_path / "CAL2"
+    COMMANDS["calibrate"]({"dome": str(cal / "rig.dome")}, {"pixel_size_um": PX}, again)
+    lights2 = json.loads((again / "lights.json").read_text())
+    np.testing.assert_allclose([lp["position_mm"] for lp in lights2["lights"]], P, rtol=1e-6)
+    assert read_calibration(again).doc["route"] == "dome"
+    # a dome in another unit, scaled by its imageWidth to the field's width
+    write_dome(tmp_path / "cm.dome", directions=P, positions_mm=P / 10, image_width_mm=2.4)
+    COMMANDS["calibrate"]({"dome": str(tmp_path / "cm.dome")}, {"pixel_size_um": PX, "image_width_mm": 24.0},
+                          tmp_path / "CAL3")
+    lights3 = json.loads((tmp_path / "CAL3" / "lights.json").read_text())
+    np.testing.assert_allclose([lp["position_mm"] for lp in lights3["lights"]], P, rtol=1e-6)
+    # an .lp rig: directions only
+    COMMANDS["calibrate"]({"lights": str(root / "cap" / "lights.lp")}, {"pixel_size_um": PX}, tmp_path / "CAL4")
+    doc4 = read_calibration(tmp_path / "CAL4").doc
+    assert doc4["route"] == "lp" and doc4["image_shape"] is None and doc4["lamps"][0]["position_mm"] is None
+    with pytest.raises(UVPSInputError, match="pixel_size_um is required"):
+        COMMANDS["calibrate"]({"lights": str(root / "cap" / "lights.lp")}, {}, tmp_path / "CAL5")
+
+
+def test_read_dome_errors(tmp_path):
+    p = tmp_path / "bad.dome"
+    p.write_text("[1, 2]")
+    with pytest.raises(UVPSInputError, match="expected relight's JSON dome format"):
+        read_dome(p)
+    p.write_text(json.dumps({"lightConfiguration": "directional", "directions": [{"x": 0, "y": 0, "z": -1}]}))
+    with pytest.raises(UVPSInputError, match="light 1 points away from the camera"):
+        read_dome(p)
+    p.write_text(json.dumps({"directions": []}))
+    with pytest.raises(UVPSInputError, match="has no directions or positions"):
+        read_dome(p)
+    with pytest.raises(UVPSInputError, match="expected a folder written by `uvps calibrate`"):
+        read_calibration(tmp_path)

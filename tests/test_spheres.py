@@ -1,0 +1,129 @@
+"""Lamps from spheres (uvps.spheres) on sphere captures rendered under known lamps (uvps.synthetic_spheres).
+
+Each case holds what a real sphere capture holds beyond the model the estimator assumes in some
+measure: photon and read noise, a black level, saturated highlights with flare spikes, a stand hiding
+part of the disc, the lamps' inverse square and direction varying across the sphere (near lamps).
+"""
+import numpy as np
+import pytest
+
+from uvps.errors import UVPSInputError
+from uvps.spheres import Sphere, calibrate_spheres, detect_spheres, read_sphere_circles, triangulate
+from uvps.synthetic import make_capture
+from uvps.synthetic_spheres import SphereSpec, make_sphere_capture
+
+PX = 50.0      # 480 x 360 px of 50 um: the 24 x 18 mm field of a real capture
+
+
+@pytest.fixture(scope="module")
+def painting():
+    # lamps 250-500 mm away at 20-60 deg, a black level of 300 counts (left in the files)
+    return make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, black_level=300.0)
+
+
+def _angles(a, b):
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+
+
+def _true_dirs(painting, sphere):
+    """Directions from a sphere's centre to each lamp."""
+    return painting.light_positions_mm - np.asarray(sphere["centre_mm"])
+
+
+def test_two_glossy_spheres_detected_give_positions(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("glossy", (0.13, 0.17), 3.0),
+                                        SphereSpec("glossy", (0.87, 0.83), 3.0)])
+    cal = calibrate_spheres(sc.images, pixel_size_um=PX, saturation=65535.0)
+    assert [s.kind for s in cal.spheres] == ["glossy", "glossy"]
+    for found, true in zip(cal.spheres, sc.spheres):
+        assert np.hypot(*np.subtract(found.centre_px, true["centre_px"])) < 0.5
+        assert abs(found.radius_px - true["radius_px"]) < 0.5
+    L = painting.light_positions_mm
+    assert cal.positions_mm is not None
+    err_pct = np.linalg.norm(cal.positions_mm - L, axis=1) / np.linalg.norm(L, axis=1) * 100
+    assert err_pct.max() < 10.0, err_pct
+    assert _angles(cal.directions, L).max() < 0.5
+    # the stated uncertainty is of the size of the error, not orders below it
+    assert np.all(cal.distance_sigma_pct > 0.1) and np.median(err_pct / cal.distance_sigma_pct) < 3
+
+
+def test_one_matte_sphere_gives_far_directions_with_a_stand(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("matte", (0.5, 0.5), 3.0)], stand=True)
+    cal = calibrate_spheres(sc.images, pixel_size_um=PX, saturation=65535.0)
+    assert len(cal.fits) == 1 and cal.spheres[0].kind == "matte"
+    assert cal.positions_mm is None
+    err = _angles(cal.directions, _true_dirs(painting, sc.spheres[0]))
+    assert err.max() < 0.5, err
+
+
+def test_glossy_highlight_only_needs_given_circles(painting):
+    """A mirror sphere on black shows only its highlight: nothing to detect, the given circle works."""
+    black = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False)
+    black.albedo[:] = 0.0
+    sc = make_sphere_capture(black, [SphereSpec("glossy", (0.3, 0.6), 4.0)], flare=True)
+    given = [Sphere(tuple(sc.spheres[0]["centre_px"]), sc.spheres[0]["radius_px"], "glossy", "given")]
+    cal = calibrate_spheres(sc.images, pixel_size_um=PX, saturation=65535.0, spheres=given)
+    assert cal.spheres[0].source == "given"
+    # glossy rays start at the highlight's surface point: compare with the lamp seen from there
+    fit = cal.fits[0]
+    err = _angles(fit.directions, black.light_positions_mm - fit.points_mm)
+    assert err.max() < 0.3, err
+
+
+@pytest.mark.parametrize("where, radius_mm", [((0.08, 0.1), 1.2), ((0.5, 0.5), 8.0)],
+                         ids=["small-in-a-corner", "filling-the-frame"])
+def test_detection_small_or_large(painting, where, radius_mm):
+    sc = make_sphere_capture(painting, [SphereSpec("matte", where, radius_mm)])
+    found = detect_spheres(sc.images)
+    assert len(found) == 1
+    true = sc.spheres[0]
+    assert np.hypot(*np.subtract(found[0].centre_px, true["centre_px"])) < 1.0
+    assert abs(found[0].radius_px - true["radius_px"]) < 0.02 * true["radius_px"] + 0.5
+
+
+def test_given_circle_overrides_a_wrong_detection(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("matte", (0.5, 0.5), 3.0)])
+    true = sc.spheres[0]
+    right = calibrate_spheres(sc.images, pixel_size_um=PX, spheres=[Sphere(tuple(true["centre_px"]),
+                                                                           true["radius_px"], "matte", "given")])
+    assert _angles(right.directions, _true_dirs(painting, true)).max() < 0.5
+    # a circle on the painting, not on the sphere: refused, naming the image
+    files = [f"sphere_{k:02d}.tif" for k in range(8)]
+    with pytest.raises(UVPSInputError, match=r"sphere capture sphere_00\.tif: the matte sphere at \(60, 60\)"):
+        calibrate_spheres(sc.images, pixel_size_um=PX, spheres=[Sphere((60.0, 60.0), 40.0, "matte", "given")],
+                          files=files)
+
+
+def test_no_sphere_in_the_capture(painting):
+    with pytest.raises(UVPSInputError, match="no sphere found in the sphere capture .*uv_00.tif.*--sphere-circles"):
+        calibrate_spheres(painting.images, pixel_size_um=PX, files=[f"uv_{k:02d}.tif" for k in range(8)])
+
+
+def test_triangulate_weighs_rays_by_their_uncertainty():
+    L = np.array([80.0, -40.0, 250.0])
+    P = np.array([[-8.0, 6.0, 2.5], [8.0, -6.0, 2.5], [0.0, 0.0, 2.5]])
+    D = (L - P) / np.linalg.norm(L - P, axis=1, keepdims=True)
+    bent = D.copy()
+    bent[2] = D[2] + np.array([0.01, 0.0, 0.0])           # the third ray 0.6 deg off, and said to be
+    bent[2] /= np.linalg.norm(bent[2])
+    pos, cov, miss = triangulate(P, bent, np.radians([0.01, 0.01, 5.0]))
+    assert np.linalg.norm(pos - L) < 0.5 and miss > 0
+    pos_eq, _, _ = triangulate(P, bent, np.radians([0.01, 0.01, 0.01]))
+    assert np.linalg.norm(pos_eq - L) > 1.0
+
+
+def test_read_sphere_circles_errors(tmp_path):
+    p = tmp_path / "c.csv"
+    p.write_text("x,y,radius\n10,20,5\n", encoding="utf-8")
+    assert read_sphere_circles(p)[0] == Sphere((10.0, 20.0), 5.0, "auto", "given")
+    p.write_text("col,row\n10,20\n", encoding="utf-8")
+    with pytest.raises(UVPSInputError, match="expected columns col,row,radius_px"):
+        read_sphere_circles(p)
+    p.write_text("col,row,radius_px,kind\n10,20,-3,matte\n", encoding="utf-8")
+    with pytest.raises(UVPSInputError, match="line 2: radius_px must be > 0"):
+        read_sphere_circles(p)
+    p.write_text("col,row,radius_px,kind\n10,20,3,shiny\n", encoding="utf-8")
+    with pytest.raises(UVPSInputError, match="kind must be matte, glossy or auto"):
+        read_sphere_circles(p)
