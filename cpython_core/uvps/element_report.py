@@ -7,6 +7,7 @@ import html
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from .measure import atomic_write_text
@@ -16,10 +17,14 @@ from .outputs import atomic_path
 MAX_DISPLAY_PX = 900
 
 
-def _figure(figsize):
-    from matplotlib.figure import Figure   # no pyplot: no global state, always the Agg canvas
+def _figure(figsize, **margins):
+    # no pyplot: no global state, always the Agg canvas; fixed margins (the constrained layout
+    # drew every figure twice: half of the command's time on a 1600 x 1200 run)
+    from matplotlib.figure import Figure
 
-    return Figure(figsize=figsize, dpi=100, layout="constrained")
+    fig = Figure(figsize=figsize, dpi=100)
+    fig.subplots_adjust(**{"left": 0.1, "right": 0.97, "bottom": 0.08, "top": 0.93, **margins})
+    return fig
 
 
 def _save(fig, path: Path) -> None:
@@ -57,17 +62,19 @@ def composite_figure(path: Path, resampled, names, composite, run_dir, table, *,
     ext = (-(N - 1) / 2 * px / 1000, (N - 1) / 2 * px / 1000, -(M - 1) / 2 * px / 1000, (M - 1) / 2 * px / 1000)
     fig = _figure((8, 8 * M / N + 0.8))
     ax = fig.add_subplot(1, 1, 1)
-    ax.imshow(rgb, extent=ext)
     lab = _outlines(run_dir, (M, N), step)
     if lab is not None and lab.max() > 0:
-        ax.contour(lab > 0, levels=[0.5], colors="white", linewidths=0.6, extent=(ext[0], ext[1], ext[3], ext[2]))
+        # each outline as white pixels: its footprint less its erosion (a contour plot of the
+        # labels took 2 s of a 1600 x 1200 run's 6)
+        inside = (lab > 0).astype(np.uint8)
+        rgb[(inside > 0) & (cv2.erode(inside, np.ones((3, 3), np.uint8)) == 0)] = 1.0
     else:
-        from matplotlib.patches import Circle
-
+        # no label image: a circle of each protrusion's width, drawn into the picture
+        rgb = np.ascontiguousarray(rgb, dtype=np.float32)
         for x, y, w in zip(table["x_px"], table["y_px"], table["width_um"]):
-            cx = (x - (N - 1) / 2) * px / 1000
-            cy = ((M - 1) / 2 - y) * px / 1000
-            ax.add_patch(Circle((cx, cy), max(float(w), px) / 2000, fill=False, color="white", lw=0.6))
+            r = max(1, int(round(float(w) / px / 2 / step)))
+            cv2.circle(rgb, (int(round(x / step)), int(round(y / step))), r, (1.0, 1.0, 1.0), 1)
+    ax.imshow(rgb, extent=ext)
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(f"red {composite[0]}, green {composite[1]}, blue {composite[2]}; protrusions outlined")
@@ -79,7 +86,7 @@ def density_figure(path: Path, areas, density, corr, names) -> None:
     n = len(names)
     cols = min(n, 3)
     rows = int(math.ceil(n / cols))
-    fig = _figure((4.2 * cols, 3.6 * rows))
+    fig = _figure((4.2 * cols, 3.6 * rows), wspace=0.35, hspace=0.45, bottom=0.12 / rows)
     use = areas.n_map_pixels >= 10
     for e, name in enumerate(names):
         ax = fig.add_subplot(rows, cols, e + 1)

