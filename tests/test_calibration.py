@@ -192,3 +192,44 @@ def test_read_dome_errors(tmp_path):
         read_dome(p)
     with pytest.raises(UVPSInputError, match="expected a folder written by `uvps calibrate`"):
         read_calibration(tmp_path)
+
+
+def test_calibrate_stores_a_card_and_the_run_divides_it_out(tmp_path):
+    """`uvps calibrate --lights positions --card DIR --dark FILE`: the card's gains are stored in the
+    calibration folder (card.tif, card.json; calibration.json says so), and `uvps run --calibration`
+    divides them out: lamp beams and vignetting no longer bend the normals. A card of another lamp
+    count is one line, exit 1, nothing written."""
+    from uvps.synthetic import SyntheticSpec, render_card
+
+    spec = SyntheticSpec.realistic(level="top", only=["beams", "vignetting"], shape=(160, 200), n_lights=8, seed=1)
+    cap = make_capture(spec)
+    folder = tmp_path / "cap"
+    write_capture(cap, folder, dark_frame=True, card=render_card(cap, tilt_deg=0.5))
+    cal = tmp_path / "cal"
+    common = ["--lights", folder / "lights_positions_mm.csv", "--dark", folder / "dark" / "dark.tif",
+              "--pixel-size-um", cap.spec.pixel_size_um]
+    r = subprocess.run([sys.executable, "-m", "uvps", "calibrate", *map(str, common), "--card", str(folder / "card"),
+                        "-o", str(cal)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert (cal / "card.tif").is_file() and (cal / "card.json").is_file()
+    doc = json.loads((cal / "calibration.json").read_text())
+    assert doc["card"]["n_lamps"] == 8
+    assert any(k.endswith(".tif") and "card" in k for k in doc["inputs"])
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(folder), "--calibration", str(cal), "-o", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    log = json.loads((out / "run.json").read_text())
+    assert "card" in log["diagnostics"]
+    normals = np.moveaxis(tifffile.imread(out / "normals.tif"), 0, -1)
+    cos = np.clip(np.sum(normals * cap.normals, axis=-1), -1, 1)
+    assert np.nanmean(np.degrees(np.arccos(cos))) < 0.4
+    seven = tmp_path / "card7"
+    seven.mkdir()
+    for p in sorted((folder / "card").glob("*.tif"))[:7]:
+        (seven / p.name).write_bytes(p.read_bytes())
+    bad = tmp_path / "bad"
+    r = subprocess.run([sys.executable, "-m", "uvps", "calibrate", *map(str, common), "--card", str(seven),
+                        "-o", str(bad)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1 and not bad.exists()
+    assert len([ln for ln in r.stderr.splitlines() if "error" in ln]) == 1, r.stderr

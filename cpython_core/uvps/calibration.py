@@ -35,6 +35,7 @@ from typing import Optional
 
 import numpy as np
 
+from .card import load_card
 from .errors import UVPSInputError
 from .io import read_capture, read_image, read_lp, read_positions, sha256_file
 from .outputs import CommandResult, OutputSpec, check_output_dir, replace_dir, report, sub_progress, write_json_atomic
@@ -395,9 +396,26 @@ def _cmd_calibrate(inputs, params, output_dir, *, progress=None):
                                  f"{image_shape[1]} x {image_shape[0]} like the sphere capture")
         hashed.append(dark_path)
     K = len(directions)
+    card = None
+    if inputs.get("card"):
+        # a flat card under every lamp position: per-lamp flat-field gains (uvps.card) for the lamps
+        # just found, stored beside them; a run given this folder divides them out
+        if px is None:
+            raise UVPSInputError("card: the pixel size is needed (give pixel_size_um)")
+        card = load_card(inputs["card"], lights=positions if positions is not None else directions,
+                         pixel_size_um=px, dark=dark_path)
+        if card.n_lamps != K:
+            raise UVPSInputError(f"card {inputs['card']}: {card.n_lamps} images for {K} lamps; one card image per "
+                                 "lamp position, in the same order")
+        if image_shape is not None and tuple(card.shape) != tuple(image_shape):
+            raise UVPSInputError(f"card {inputs['card']}: images of {card.shape[1]} x {card.shape[0]} px; "
+                                 f"expected {image_shape[1]} x {image_shape[0]} like the sphere capture")
+        card_path = Path(inputs["card"])
+        hashed += sorted(p for p in card_path.iterdir() if p.is_file()) if card_path.is_dir() else [card_path]
     doc = {"format": FORMAT, "version": VERSION, "pixel_size_um": px,
            "image_shape": None if image_shape is None else list(image_shape), "n_lamps": K, "route": route,
-           "spheres": spheres_json, "lamps": lamps, "inputs": _hashes(hashed), "card": None,
+           "spheres": spheres_json, "lamps": lamps, "inputs": _hashes(hashed),
+           "card": None if card is None else card.to_json(),
            "dark": dark_path is not None, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     if cal is not None:
         doc["diagnostics"] = cal.diagnostics
@@ -419,6 +437,8 @@ def _cmd_calibrate(inputs, params, output_dir, *, progress=None):
                              metadata=None)
         if cap is not None:
             _spheres_png(tmp / FILES["spheres_png"], cap.images, cal.spheres)
+        if card is not None:
+            card.write(tmp, pixel_size_um=px)
         replace_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -454,6 +474,11 @@ SPECS = (
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",
                           help="a frame with the UV lamps off: subtracted from the sphere capture and kept in "
                                "the calibration for the captures that use it"),
+                    Param("card", "path", where="inputs",
+                          label="Card (optional: a flat fluorescent card under each lamp)",
+                          help="a folder (or stack) of a flat fluorescent card under each lamp position, in the "
+                               "lamps' order: per-lamp flat-field gains (beams, power, vignetting) stored in the "
+                               "calibration (docs/capture.md)"),
                     Param("dome", "path", where="inputs", label="Dome file (optional: a relight .dome rig instead of spheres)",
                           help="a relight .dome file (a rig calibrated before)"),
                     Param("lights", "path", where="inputs",
