@@ -47,12 +47,21 @@ def test_step_by_step_reuses_the_folders_lamps_and_matches_the_whole_run(synthet
 
 @pytest.mark.slow
 def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
-    """`uvps demo` (README's first command) on a small capture: the capture, the run and its report."""
+    """`uvps demo` (README's first command) on a small capture: the capture, its sphere capture and
+    calibration (the calibrated route), the run with that calibration and its report."""
     out = tmp_path / "demo"
     result = COMMANDS["demo"]({}, {"shape": (300, 400), "n_lights": 8}, out)
-    for f in ("capture", "normals.tif", "depth.tif", "lights.json", "run.json", "protrusions.csv", "report.html"):
+    for f in ("capture", "spheres", "calibration/lights.json", "normals.tif", "depth.tif", "lights.json", "run.json",
+              "protrusions.csv", "report.html"):
         assert (out / f).exists(), f
     run = json.loads((out / "run.json").read_text())
+    assert run["relief"]["scale"] == "absolute" and run["relief"]["lamps"] == "calibration"
+    assert run["diagnostics"]["calibration"]["route"] == "spheres" and not run["warnings"]
+    lamps = np.array([lp["position_mm"] for lp in json.loads((out / "lights.json").read_text())["lights"]])
+    truth = np.array(result.diagnostics["truth_light_positions_mm"])
+    cos = np.sum(lamps * truth, axis=1) / np.linalg.norm(lamps, axis=1) / np.linalg.norm(truth, axis=1)
+    # spheres of 30 px on this 300 x 400 frame: within 0.9 deg (the full-size demo's 60 px: see the README)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.5
     assert run["diagnostics"]["additive"]["source"] == "estimated" and run["timings_s"]["lights"] > 0
     with tifffile.TiffFile(out / "depth.tif") as t:
         xres = t.pages[0].tags["XResolution"].value

@@ -75,6 +75,11 @@ def _capture_command(name: str, stages: tuple):
                      n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
         if cal is not None:
             result.diagnostics["calibration"] = cal.summary()
+            if result.relief:
+                result.relief = {**result.relief, "lamps": "calibration",
+                                 "reason": f"the lamps come from the calibration {cal.folder} "
+                                           f"({result.diagnostics['calibration'].get('route')}), which fixes "
+                                           "their elevation and so the heights' scale"}
         if name != "run":
             with atomic_output_dir(run_dir) as tmp:
                 outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
@@ -179,7 +184,12 @@ DEMO_PIXEL_UM = 30.0
 
 
 def _cmd_demo(inputs, params, output_dir, *, progress=None):
-    """``demo``: a synthetic capture written to ``<run>/capture/`` and the whole run on it."""
+    """``demo``: the calibrated route on synthetic captures: a painting capture written to
+    ``<run>/capture/``, two glossy spheres under the same lamps to ``<run>/spheres/``, ``uvps
+    calibrate`` on them into ``<run>/calibration/``, and the whole run with that calibration."""
+    from .commands import COMMANDS       # calibrate is declared in uvps.calibration
+    from .synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+
     run_dir = check_output_dir(output_dir)
     report(progress, 0.0, "demo: making a synthetic capture")
     cap = make_capture(shape=tuple(params["shape"]), n_lights=params["n_lights"], seed=params["seed"],
@@ -188,9 +198,19 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     cap_dir = run_dir / "capture"
     write_capture(cap, cap_dir)
     images = sorted(cap_dir.glob("uv_*.tif"))
+    report(progress, 0.05, "demo: the sphere capture and uvps calibrate")
+    sphere_dir, cal_dir = run_dir / "spheres", run_dir / "calibration"
+    # two glossy spheres in opposite corners (RTI practice), 2.5 mm or a tenth of the field's height
+    r_mm = min(2.5, 0.1 * params["shape"][0] * params["pixel_size_um"] / 1000.0)
+    spheres = (SphereSpec("glossy", (0.15, 0.2), r_mm), SphereSpec("glossy", (0.85, 0.8), r_mm))
+    write_sphere_capture(make_sphere_capture(cap, spheres, seed=params["seed"]), sphere_dir, truth=False)
+    COMMANDS["calibrate"]({"spheres": [str(sphere_dir)]}, {"pixel_size_um": float(params["pixel_size_um"])},
+                          cal_dir, progress=sub_progress(progress, 0.05, 0.15))
     # the colour areas are proposed from the albedo, as a user would accept them (the truth stays unread)
-    result = SPECS_BY_NAME["run"]({"images": [str(p) for p in images]}, {"regions": "auto", "bins_um": 100.0},
-                                  run_dir, progress=sub_progress(progress, 0.05, 1.0))
+    result = SPECS_BY_NAME["run"]({"images": [str(p) for p in images]},
+                                  {"regions": "auto", "bins_um": 100.0, "calibration": str(cal_dir)},
+                                  run_dir, progress=sub_progress(progress, 0.15, 1.0))
+    result.outputs.insert(0, OutputSpec("calibration", str(cal_dir), kind="folder"))
     result.outputs.insert(0, OutputSpec("capture", str(cap_dir), kind="folder"))
     result.diagnostics["truth_light_positions_mm"] = cap.light_positions_mm.tolist()
     return result
@@ -230,7 +250,8 @@ SPECS = (
               label="Elevation (above the canvas)", help="the light's elevation above the canvas"),
         Param("ambient", "float", 0.0, minimum=0, help="ambient term added to the shading"),
         _PX_OVERRIDE)),
-    CommandSpec("demo", "a synthetic capture and the whole run on it", _cmd_demo, output="folder",
+    CommandSpec("demo", "synthetic captures (a painting, two spheres), their calibration and the whole run",
+                _cmd_demo, output="folder",
                 output_default="uvps_demo", params=(
                     Param("shape", "shape", (600, 800), help="rows and columns of the synthetic capture"),
                     Param("n_lights", "int", 12, minimum=3, help="number of lamps"),
