@@ -53,6 +53,15 @@ def _is_line(inside: np.ndarray, row: int, border_col: int) -> bool:
     return win.size > 0 and win.mean() < 0.25
 
 
+def _check_seed(i: int, x: int, y: int, finite: np.ndarray) -> None:
+    """A click must fall inside the image, on a pixel with a value (both wands)."""
+    m, n = finite.shape
+    if not (0 <= x < n and 0 <= y < m):
+        raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
+    if not finite[y, x]:
+        raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+
+
 def wand_select(image, seeds, *, tolerance, connectivity=8, rgb="mean") -> np.ndarray:
     """Select the region around each seed the way ImageJ's wand tool does.
 
@@ -121,10 +130,7 @@ def wand_select(image, seeds, *, tolerance, connectivity=8, rgb="mean") -> np.nd
 
     labels = np.zeros((m, n), np.int32)
     for i, (x, y) in enumerate(pts):
-        if not (0 <= x < n and 0 <= y < m):
-            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
-        if not finite[y, x]:
-            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+        _check_seed(i, x, y, finite)
         if labels[y, x]:
             continue  # inside an earlier seed's selection: same region, same label
         if colour and (rgb == "channels" or tol == 0):
@@ -230,10 +236,7 @@ def contrast_select(image, seeds, *, fraction=CONTRAST_FRACTION, max_width_px=No
     finite = np.isfinite(grey)
     labels = np.zeros((m, n), np.int32)
     for i, (x, y) in enumerate(pts):
-        if not (0 <= x < n and 0 <= y < m):
-            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
-        if not finite[y, x]:
-            raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+        _check_seed(i, x, y, finite)
         if labels[y, x]:
             continue  # inside an earlier click's selection: a repeated click
         region = _grow_by_contrast(grey, finite, y, x, frac, max_w)
