@@ -139,7 +139,7 @@ def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path)
             if out.is_dir() and any(p.name.startswith(".cap") for p in out.iterdir()):
                 os.kill(pids[0], signal.SIGKILL)
                 killed.append(pids[0])
-            time.sleep(0.02)
+            time.sleep(0.002)   # the new folder exists only while the run writes it (a fraction of a second)
 
     watcher = threading.Thread(target=kill_when_writing)
     watcher.start()
