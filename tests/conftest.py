@@ -6,7 +6,6 @@ import pytest
 #: the one clicks parser), found by the clean-clone CI and not yet mended: each is an open defect,
 #: listed in the closing note, to fix first; they run and report XFAIL/XPASS, not hidden.
 KNOWN_BROKEN = {
-    "test_the_menu_lists_every_script_in_workflow_order": "menu order: Calibrate Lamps and Element Maps added",
     "test_a_dark_frame_removes_stray_light_and_black_level_and_the_lamps_come_right": "relative-relief warning",
     "test_bad_input[cmd4-inputs4-params4-tolerance]": "wand params after the clicks-parser merge",
     "test_bad_input[cmd5-inputs5-params5-tolerance]": "wand params after the clicks-parser merge",

@@ -162,7 +162,7 @@ def test_the_menu_lists_every_script_in_workflow_order():
     names = sorted(p.name for p in (INSTALLER.parent.parent / "plugins" / "UV_Photometric_Stereo").glob("*.py"))
     config = install_fiji.menu_config(names + ["New_Item.py"])
     items = [ln.split('"')[1] for ln in config.splitlines()]
-    assert items[0] == "Run Whole Pipeline" and items[-1] == "UVPS Settings"
+    assert items[:2] == ["Calibrate Lamps", "Run Whole Pipeline"] and items[-1] == "UVPS Settings"
     assert sorted(i for i in items if i != "-") == sorted(n[:-3].replace("_", " ") for n in names + ["New_Item.py"])
     assert items.index("Estimate Lights") < items.index("Normals and Albedo") < items.index("Integrate Height") \
         < items.index("Detect Protrusions") < items.index("Statistics and Report") < items.index("New Item")
