@@ -12,37 +12,7 @@ rawpy = pytest.importorskip("rawpy")
 
 from uvps.io import RAW_DEVELOP, read_capture, read_raw  # noqa: E402
 
-BLACK, WHITE = 512, 16383
-
-
-def write_dng(path, rgb, *, black=BLACK, white=WHITE):
-    """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
-    plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
-    and white levels, an identity colour matrix, a neutral white balance)."""
-    rgb = np.asarray(rgb, dtype=np.float64)
-    M, N = rgb.shape[:2]
-    pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
-    ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
-    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
-    mosaic = np.clip(np.rint(mosaic), 0, white).astype(np.uint16)
-
-    def rational(values, den=10000):
-        return tuple(x for v in values for x in (int(round(v * den)), den))
-
-    extratags = [
-        (33421, "H", 2, (2, 2), True),                         # CFARepeatPatternDim
-        (33422, "B", 4, (0, 1, 1, 2), True),                   # CFAPattern: R G G B
-        (50706, "B", 4, (1, 4, 0, 0), True),                   # DNGVersion
-        (50707, "B", 4, (1, 1, 0, 0), True),                   # DNGBackwardVersion
-        (50708, "s", 0, "uvps test camera", True),             # UniqueCameraModel
-        (50714, "H", 1, (int(black),), True),                  # BlackLevel
-        (50717, "H", 1, (int(white),), True),                  # WhiteLevel
-        (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
-        (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
-        (50778, "H", 1, (21,), True),                          # CalibrationIlluminant1: D65
-    ]
-    tifffile.imwrite(path, mosaic, photometric=32803, extratags=extratags, metadata=None, subfiletype=0)
-    return path
+from uvps.synthetic import DNG_BLACK as BLACK, DNG_WHITE as WHITE, write_dng  # noqa: E402
 
 
 def _ramps(M=48, N=64, scale=1.0):
@@ -75,16 +45,13 @@ def test_raw_values_round_trip_linearly(tmp_path):
 
 def _raw_capture(tmp_path, n=6, seed=3):
     """A synthetic capture written as DNG files (counts / 4: the mosaic's 14 bits)."""
-    from uvps.synthetic import make_capture
+    from uvps.synthetic import make_capture, write_raw_capture
 
     cap = make_capture(shape=(96, 128), n_lights=n, seed=seed)
     folder = tmp_path / "raw_capture"
-    folder.mkdir()
-    for k in range(n):
-        write_dng(folder / f"uv_{k:02d}.dng", np.asarray(cap.images[k], np.float64) / 4.0)
-    lines = ["file,x_mm,y_mm,z_mm"] + [f"uv_{k:02d}.dng," + ",".join(f"{v:.6f}" for v in p)
-                                       for k, p in enumerate(cap.light_positions_mm)]
-    (tmp_path / "lights.csv").write_text("\n".join(lines) + "\n")
+    write_raw_capture(cap, folder)
+    (tmp_path / "lights.csv").write_text((folder / "lights.csv").read_text())
+    (folder / "lights.csv").unlink()
     return cap, folder
 
 

@@ -1,6 +1,6 @@
 """The README's example commands, as written, on a demo capture (a real subprocess each).
 
-The files they name (`captures/region1/`, `areas.tif`, `lights.lp`, `clicks.csv`, ...) are made from a
+The files they name (`captures/region1/`, `spheres/` (two glossy spheres under its lamps), `raw_capture/` (DNG files), `xrf_maps/` (element maps), `areas.tif`, `lights.lp`, `clicks.csv`, ...) are made from a
 synthetic capture in a fresh folder, as a user would have them; nothing else is changed in a command
 but `uvps` itself, which runs as `python -m uvps`. The one line that needs a Dask scheduler at
 `tcp://host:8786` is left out, and `uvps changes` runs after the two runs it compares.
@@ -19,7 +19,8 @@ import pytest
 import tifffile
 
 from uvps.io import write_imagej_tiff
-from uvps.synthetic import make_capture, write_capture
+from uvps.synthetic import make_capture, render_element_maps, write_capture, write_raw_capture
+from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -41,6 +42,9 @@ def _sandbox(root: Path) -> None:
     cap = make_capture(shape=(200, 260), n_lights=8, seed=2)
     region = root / "captures" / "region1"
     write_capture(cap, region)
+    # two glossy spheres a tenth of the field's height across, in opposite corners, as the demo's
+    spheres = (SphereSpec("glossy", (0.15, 0.2), 0.3), SphereSpec("glossy", (0.85, 0.8), 0.3))
+    write_sphere_capture(make_sphere_capture(cap, spheres), root / "spheres", truth=False)
     tifffile.imwrite(root / "areas.tif", cap.regions.astype(np.uint16))
     names = sorted(p.name for p in region.glob("uv_*.tif"))
     lp = (region / "lights.lp").read_text().splitlines()
@@ -57,8 +61,15 @@ def _sandbox(root: Path) -> None:
         w = csv.writer(fh)
         w.writerow(["x_px", "y_px"])
         w.writerows(np.column_stack([cap.protrusions["x_px"][big], cap.protrusions["y_px"][big]]).astype(int).tolist())
+    truth = render_element_maps(cap, step_um=250.0, seed=1)         # XRF maps of the same region
+    (root / "xrf_maps").mkdir()
+    for name, m in zip(truth.maps.names, truth.maps.data):
+        tifffile.imwrite(root / "xrf_maps" / f"scan_{name}.tif", m.astype(np.float32), imagej=True,
+                         resolution=(1 / 250.0, 1 / 250.0), metadata={"unit": "um"})
+    write_raw_capture(make_capture(shape=(96, 128), n_lights=6, seed=3), root / "raw_capture")
     for date in ("capture_2019", "capture_2024"):
         shutil.copytree(region, root / date)
+        shutil.copy(region / "lights_positions_mm.csv", root / date / "lamps_mm.csv")   # measured positions
 
 
 @pytest.mark.slow

@@ -917,6 +917,10 @@ def _image_size(path: Path):
             with tifffile.TiffFile(path) as tif:
                 shape, axes = tif.series[0].shape, tif.series[0].axes
                 return tuple(shape[axes.index(a)] for a in "YX")
+        if path.suffix.lower() in RAW_EXTS:
+            # LibRaw's own header read (imageio would hand a DNG to OpenCV, which prints warnings)
+            with _rawpy().imread(str(path)) as raw:
+                return (int(raw.sizes.height), int(raw.sizes.width))
         return tuple(iio.improps(path).shape[:2])
     except Exception:   # an unreadable file is reported by the reader itself, with its own message
         return None

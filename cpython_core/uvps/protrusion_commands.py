@@ -26,7 +26,7 @@ from .regions import load_regions, propose_regions, region_statistics, whole_ima
 from .report import plot_comparison_map, print_pdf, write_report
 from .runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
 from .spec import CommandSpec, Param, coerce
-from .wand import CONTRAST_FRACTION, MAX_WIDTH_UM, contrast_select, read_seed_file, wand_select
+from .wand import CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, _as_seed_array, contrast_select, read_seed_file, wand_select
 
 log = logging.getLogger(__name__)
 
@@ -98,17 +98,19 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     """
     run_dir = Path(output_dir)
     warnings = []
+    tolerance = params["tolerance"]
+    if params["method"] == "imagej" and tolerance is None:
+        raise UVPSInputError("tolerance: method 'imagej' needs a tolerance in albedo units (the albedo's "
+                             "counts, as ImageJ's wand tool); or use the default method 'relative'")
+    if params["method"] != "imagej" and tolerance is not None and not 0 < tolerance < 1:
+        raise UVPSInputError(f"tolerance: method 'relative' takes the fraction of the click's contrast to keep, "
+                             f"between 0 and 1 (default {CONTRAST_FRACTION}); got {tolerance}")
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params["pixel_size_um"])
-    clicks = read_seed_file(inputs["points"], pixel_size_um=images.pixel_size_um,
-                            units=params["points_unit"], shape=images.shape)
+    clicks = _clicks(inputs["points"], images, params["points_unit"])
     seeds = clicks.seeds
     regions, _ = _regions_for(params["regions"], run_dir, images)
     report(progress, 0.2, f"wand at {len(seeds)} points")
-    tolerance = params["tolerance"]
     if params["method"] == "imagej":
-        if tolerance is None:
-            raise UVPSInputError("tolerance: method 'imagej' needs a tolerance in albedo units (the albedo's "
-                                 "counts, as ImageJ's wand tool); or use the default method 'relative'")
         labels = wand_select(images.albedo, seeds, tolerance=tolerance,
                              connectivity=_connectivity(params["connectivity"]), rgb=params["rgb"])
     else:
@@ -138,6 +140,14 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                           "method": params["method"], "pixel_size_um": images.pixel_size_um,
                           "points_unit": clicks.unit, "points_unit_said": clicks.said,
                           "points_px": seeds.tolist()}, warnings)
+
+
+def _clicks(points, images, unit: str) -> SeedFile:
+    """The wand's clicks: a clicks file in the units its header names (:func:`uvps.wand.read_seed_file`),
+    or, from the bridge or Python, an (S, 2) list of ``(x, y)`` pixels."""
+    if isinstance(points, (list, tuple, np.ndarray)):
+        return SeedFile(_as_seed_array(np.asarray(points, float), "inputs.points"), "px", True)
+    return read_seed_file(points, pixel_size_um=images.pixel_size_um, units=unit, shape=images.shape)
 
 
 def _wand_clicks(seeds, labels):

@@ -1906,6 +1906,58 @@ def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) ->
     return folder
 
 
+#: The black and white levels of the DNG files :func:`write_dng` writes (a 14-bit sensor).
+DNG_BLACK, DNG_WHITE = 512, 16383
+
+
+def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE):
+    """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
+    plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
+    and white levels, an identity colour matrix, a neutral white balance)."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    M, N = rgb.shape[:2]
+    pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
+    ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
+    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
+    mosaic = np.clip(np.rint(mosaic), 0, white).astype(np.uint16)
+
+    def rational(values, den=10000):
+        return tuple(x for v in values for x in (int(round(v * den)), den))
+
+    extratags = [
+        (33421, "H", 2, (2, 2), True),                         # CFARepeatPatternDim
+        (33422, "B", 4, (0, 1, 1, 2), True),                   # CFAPattern: R G G B
+        (50706, "B", 4, (1, 4, 0, 0), True),                   # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),                   # DNGBackwardVersion
+        (50708, "s", 0, "uvps test camera", True),             # UniqueCameraModel
+        (50714, "H", 1, (int(black),), True),                  # BlackLevel
+        (50717, "H", 1, (int(white),), True),                  # WhiteLevel
+        (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
+        (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
+        (50778, "H", 1, (21,), True),                          # CalibrationIlluminant1: D65
+    ]
+    tifffile.imwrite(path, mosaic, photometric=32803, extratags=extratags, metadata=None, subfiletype=0)
+    return path
+
+
+
+def write_raw_capture(capture: SyntheticCapture, folder) -> list:
+    """Write a capture as camera raw files: ``uv_NN.dng`` (:func:`write_dng`, counts / 4: the mosaic's
+    14 bits) and ``lights.csv`` (``file,x_mm,y_mm,z_mm``). Returns the paths written."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=False)
+    paths = []
+    for k, img in enumerate(capture.images):
+        rgb = np.asarray(img, np.float64)
+        rgb = rgb if rgb.ndim == 3 else np.repeat(rgb[..., None], 3, axis=2)
+        paths.append(write_dng(folder / f"uv_{k:02d}.dng", rgb / 4.0))
+    lines = ["file,x_mm,y_mm,z_mm"] + [f"uv_{k:02d}.dng," + ",".join(f"{v:.6f}" for v in p)
+                                       for k, p in enumerate(capture.light_positions_mm)]
+    (folder / "lights.csv").write_text("\n".join(lines) + "\n")
+    return paths + [folder / "lights.csv"]
+
+
+
 def write_capture(capture: SyntheticCapture, folder, *, truth: bool = True, dark_frame: bool = False,
                   card: Optional[np.ndarray] = None) -> list:
     """Write a capture as a folder of 16-bit TIFFs, light files and (optionally) ground truth.
