@@ -1154,20 +1154,28 @@ def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
     ``along_stroke_k`` x the candidate's radius long: the stroke's cross-profile runs on beyond
     the candidate and stays in the opening, a bump on it does not. Its footprint: ``e`` above
     ``footprint_fraction`` of its peak in the candidate (and ``floor_um``), connected to that
-    peak. Returns (footprint, peak excess um), or (None, 0) when the footprint reaches the crop's
-    border (not closed: the height does not run on as a stroke does)."""
+    peak; its outline (the label drawn): the part of the footprint also above the stroke's own
+    excess around it (the largest ``e`` beyond ``r + 2`` px: ripple crests cut by the same
+    line; at most half the peak), so the ripple under a bump is not counted in its width.
+    Returns (footprint, outline, peak excess um), or (None, None, 0) when the footprint reaches
+    the crop's border (not closed: the height does not run on as a stroke does)."""
     theta = _stroke_direction(h, inner, r_px)
     e = h - _line_opening(h, theta, max(p.along_stroke_k * r_px, 9.0))
-    inside = np.where(inner, e, -np.inf)
-    seed = np.unravel_index(int(np.argmax(inside)), e.shape)
+    seed = np.unravel_index(int(np.argmax(np.where(inner, e, -np.inf))), e.shape)
     peak = float(e[seed])
-    comp, _ = ndi.label(e >= max(p.footprint_fraction * peak, floor_um), structure=np.ones((3, 3)))
-    if comp[seed] == 0:
-        return None, 0.0
-    foot = comp == comp[seed]
+    parts = []
+    away = _edt(~inner) > r_px + 2
+    own = float(e[away].max()) if away.any() else 0.0
+    base = max(p.footprint_fraction * peak, floor_um)
+    for level in (base, max(base, min(own, 0.5 * peak))):
+        comp, _ = ndi.label(e >= level, structure=np.ones((3, 3)))
+        if comp[seed] == 0:
+            return None, None, 0.0
+        parts.append(comp == comp[seed])
+    foot = parts[0]
     if foot[0].any() or foot[-1].any() or foot[:, 0].any() or foot[:, -1].any():
-        return None, 0.0
-    return foot, peak
+        return None, None, 0.0
+    return foot, parts[1], peak
 
 
 def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, reason, th: Thresholds,
@@ -1180,7 +1188,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     flank slope (peak / half width) at least the strokes' own least slope (:func:`_stroke_slope`)
     and the weave's, its peak at least the relief threshold and at most twice the candidate's
     relief over its surround (more: the line cut through another structure, a crossing stroke or
-    a bend), and it must overlap no kept candidate. A kept one is relabelled to that footprint.
+    a bend), and it must overlap no kept candidate. A kept one is relabelled to its outline.
     Returns (reasons, labels)."""
     lab, reason = cand.labels.copy(), reason.copy()
     if p.along_stroke_k <= 0:
@@ -1197,7 +1205,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
         region = lab[crop]
-        foot, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um, p)
+        foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um, p)
         if foot is None or kept[region[foot]].any():
             continue
         area = float(np.count_nonzero(foot))
@@ -1207,7 +1215,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
                 and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
                 and th.relief_um <= peak <= 2 * f.relief[j]):
             region[region == k] = 0
-            region[foot] = k
+            region[outline] = k
             kept[k], reason[j] = True, ""
     return reason, lab
 
