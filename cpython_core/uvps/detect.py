@@ -34,6 +34,11 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    :func:`_apply_rules`) by the table :data:`REJECTION_RULES`, first match wins; each rejected
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
    ``Detection.rejected``.
+8. **Bumps on strokes** (:func:`_bumps_on_strokes`). A compact peak on a long structure that the
+   ``ridge``, ``crack`` or ``stroke`` rule rejects is measured again over the stroke's own
+   profile continued along the stroke (the height minus its opening by a line laid in the
+   direction the height around it runs on): a closed, compact bump as steep as the strokes' own
+   statistics ask is a protrusion on the stroke and is kept, outlined by that excess.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -83,7 +88,9 @@ REJECTION_RULES = (
                   "glow: flank slope relief / (width / 2)",
                   "< stroke_slope_k x the median flank slope of the bumps on long structures "
                   "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
-                  "of a brush stroke"),
+                  "of a brush stroke (ridge, stroke and crack: unless its excess over the "
+                  "stroke's profile continued along the stroke is a closed, steep bump, "
+                  "_bumps_on_strokes)"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
                   "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
