@@ -76,6 +76,8 @@ def _run_command(a) -> int:
     try:
         result = spec(inputs, params, out, progress=bar)
     except UVPSError as exc:
+        for line in getattr(exc, "details", ()):   # e.g. one line per failed capture of a batch
+            print(f"uvps {a.command}: {line}", file=sys.stderr)
         print(f"uvps {a.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
               file=sys.stderr)
         return exc.exit_code
