@@ -35,7 +35,7 @@ import tifffile
 
 from . import __version__
 from .errors import UVPSComputeError, UVPSError, UVPSInputError
-from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
+from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
 from .capture_commands import cmd_run
@@ -101,7 +101,7 @@ def list_captures(items) -> list:
         p = Path(item)
         if p.is_file():
             base = p.parent
-            lines = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
+            lines = [ln.split("#", 1)[0].strip() for ln in read_text(p, "captures: the list", "one capture folder a line").splitlines()]
             listed = [base / ln if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln]
             if not listed:
                 raise UVPSInputError(f"captures: the list {p} names no capture folder")
@@ -532,8 +532,8 @@ def read_layout(path, jobs) -> dict:
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"mosaic: layout {path} does not exist")
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = list(csv.DictReader(read_text(path, "mosaic: layout", "a CSV with columns capture,x_px,y_px")
+                               .splitlines()))
     if not rows or not {"capture", "x_px", "y_px"} <= set(rows[0]):
         raise UVPSInputError(f"mosaic: layout {path} must have the columns capture,x_px,y_px")
     by_name = {j.name: j for j in jobs}
