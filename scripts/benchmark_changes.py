@@ -10,7 +10,11 @@ again (drawn anew):
 - ``moved``: the surface unchanged, the camera moved as much as ``changed``'s.
 
 Each capture goes through ``uvps run --detect --lights lights_positions_mm.csv`` (the true lamp
-positions), then ``uvps changes A B``. Scored against the truth:
+positions), then ``uvps changes A B``. With ``--lamps spheres`` each date is calibrated as a
+conservator would: two glossy spheres rendered under that date's lamps
+(:func:`uvps.synthetic_spheres.make_sphere_capture`, 1.35 mm radius, in opposite corners),
+``uvps calibrate --spheres`` on them, then ``uvps run --detect --calibration CAL``; the table then
+also says whether ``uvps changes`` accepted the pair's height scales (B / A scale). Scored against the truth:
 
 - new (true width >= 60 um): F1 of ``new``;
 - grown (true change of width >= 20 um or of height >= 5 um): F1 of ``grown``; smaller growths
@@ -26,6 +30,7 @@ matched protrusions of the ``moved`` pairs, trimmed at 4 sd) and prints it for
 Usage::
 
     .venv/bin/python scripts/benchmark_changes.py [--seeds 0 1 2] [--work DIR] [--fit-noise]
+    .venv/bin/python scripts/benchmark_changes.py --lamps spheres --work /tmp/uvps_bench_changes_spheres
 
 Captures and run folders are kept in ``--work`` (default /tmp/uvps_bench_changes) and reused.
 """
@@ -43,6 +48,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from uvps.changes import NOISE_MODEL, NoiseModel, Registration, change_uncertainty, compute_changes
+from uvps.errors import UVPSInputError
 from uvps.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, write_capture
 
 UVPS = str(Path(sys.executable).parent / "uvps")
@@ -70,18 +76,37 @@ def later_spec(seed: int, kind: str) -> LaterSpec:
                                rotation_deg=-3.0 * sign, scale=1.02 if seed % 2 == 0 else 0.98)
 
 
-def _run(cap: Path, out: Path, variant: str) -> None:
+#: The calibration spheres of ``--lamps spheres`` (kind, centre as fractions of the frame, radius mm).
+SPHERES = (("glossy", (0.15, 0.2), 1.35), ("glossy", (0.85, 0.8), 1.35))
+
+
+def _write_spheres(capture, folder: Path) -> None:
+    from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+
+    write_sphere_capture(make_sphere_capture(capture, [SphereSpec(*s) for s in SPHERES]), folder, truth=False)
+
+
+def _run(cap: Path, out: Path, variant: str, lamps: str = "truth") -> None:
     if not (out / "protrusions.csv").is_file():
         black = ["--black-level", str(VARIANTS[variant]["black_level"])] if "black_level" in VARIANTS[variant] else []
-        subprocess.run([UVPS, "run", str(cap), "--detect", "--lights", str(cap / "lights_positions_mm.csv"),
-                        *black, "-o", str(out)], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if lamps == "spheres":
+            cal = cap.parent / (cap.name + "_cal")
+            if not (cal / "calibration.json").is_file():
+                subprocess.run([UVPS, "calibrate", "--spheres", str(cap.parent / (cap.name + "_spheres")),
+                                "--pixel-size-um", "15", "-o", str(cal)], check=True, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+            given = ["--calibration", str(cal)]
+        else:
+            given = ["--lights", str(cap / "lights_positions_mm.csv")]
+        subprocess.run([UVPS, "run", str(cap), "--detect", *given, *black, "-o", str(out)], check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def pair_dir(work: Path, seed: int, variant: str) -> Path:
     return work / (f"s{seed}" if variant == "clean" else f"s{seed}_{variant}")
 
 
-def make_pair(work: Path, seed: int, kind: str, variant: str = "clean") -> dict:
+def make_pair(work: Path, seed: int, kind: str, variant: str = "clean", lamps: str = "truth") -> dict:
     """Captures and run folders of one pair (A shared by the kinds of a seed); the truth."""
     d = pair_dir(work, seed, variant)
     kd = d / kind
@@ -92,11 +117,15 @@ def make_pair(work: Path, seed: int, kind: str, variant: str = "clean") -> dict:
         pair = make_capture_pair(spec, later_spec(seed, kind))
         if not (d / "capA").is_dir():
             write_capture(pair.a, d / "capA", truth=False)
+            if lamps == "spheres":
+                _write_spheres(pair.a, d / "capA_spheres")
         write_capture(pair.b, kd / "capB", truth=False)
+        if lamps == "spheres":
+            _write_spheres(pair.b, kd / "capB_spheres")
         (kd / "truth.json").write_text(json.dumps({"b_to_a": pair.b_to_a.tolist(), "info": pair.info,
                                                    "changes": {k: v.tolist() for k, v in pair.changes.items()}}))
-    _run(d / "capA", d / "runA", variant)
-    _run(kd / "capB", kd / "runB", variant)
+    _run(d / "capA", d / "runA", variant, lamps)
+    _run(kd / "capB", kd / "runB", variant, lamps)
     return json.loads((kd / "truth.json").read_text())
 
 
@@ -213,6 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
     ap.add_argument("--variants", nargs="+", default=["clean", "real"], choices=list(VARIANTS))
+    ap.add_argument("--lamps", choices=("truth", "spheres"), default="truth",
+                    help="each date's lamps: the true positions (--lights) or a sphere calibration (--calibration)")
     ap.add_argument("--fit-noise", action="store_true", help="fit the noise model on the moved pairs and print it")
     ap.add_argument("--sigma-factors", type=float, nargs="+", default=[],
                     help="also decide each pair at these significances (worst new F1, grown F1, flagged share)")
@@ -220,10 +251,10 @@ def main(argv=None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    results, samples, sweep, timed = [], [], {}, []
+    results, samples, sweep, timed, refused = [], [], {}, [], []
     for variant, seed, kind in ((v, s, k) for v in args.variants for s in args.seeds for k in args.kinds
                                 if not (v != "clean" and k == "still")):
-        truth = make_pair(work, seed, kind, variant)
+        truth = make_pair(work, seed, kind, variant, args.lamps)
         d = pair_dir(work, seed, variant)
         t = time.perf_counter()
         cache = d / kind / "registration_cache.json"     # the registration does not depend on the decision
@@ -231,7 +262,12 @@ def main(argv=None) -> int:
         if cache.is_file():
             fields = json.loads(cache.read_text())
             reg = Registration(**{**fields, "b_to_a": np.array(fields["b_to_a"])})
-        res = compute_changes(d / "runA", d / kind / "runB", registration=reg)
+        try:
+            res = compute_changes(d / "runA", d / kind / "runB", registration=reg)
+        except UVPSInputError as exc:        # a refused pair is a result: "no pair refused" is a target
+            print(variant, seed, kind, "REFUSED:", exc, flush=True)
+            refused.append(f"{variant} seed {seed} {kind}: {exc}")
+            continue
         secs = time.perf_counter() - t
         if reg is None:
             cache.write_text(json.dumps({**dataclasses.asdict(res["registration"]),
@@ -260,8 +296,8 @@ def main(argv=None) -> int:
               f"grown F1 {min((c['grown'][0] for c in ch), default=float('nan')):.3f}, unchanged flagged "
               f"{100 * max((u['share'] for u in un), default=float('nan')):.1f} % (worst)", flush=True)
     lines = ["| scene | seed | pair | pose (shift px, rot deg, scale) | registration error px | new F1 (P / R, n) | "
-             "grown F1 (P / R, n) | flagged (unchanged pair) | inflation w / h |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "grown F1 (P / R, n) | flagged (unchanged pair) | inflation w / h | B / A height scale |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         inf, s = r["info"], r["score"]
         pose = f"({np.hypot(*inf['shift_px']):.0f}, {inf['rotation_deg']:+.1f}, {inf['scale']:.2f})"
@@ -275,13 +311,14 @@ def main(argv=None) -> int:
             detail = ", ".join(f"{v} {k}" for k, v in s["by_status"].items())
             flag = f"{s['flagged']} of {s['n']} ({100 * s['share']:.1f} %){'; ' + detail if detail else ''}"
         lines.append(f"| {r['variant']} | {r['seed']} | {r['kind']} | {pose} | {r['reg_err']:.3f} | {new} | {grown} | {flag} | "
-                     f"{r['inflation'][0]:.2f} / {r['inflation'][1]:.2f} |")
+                     f"{r['inflation'][0]:.2f} / {r['inflation'][1]:.2f} | {r['scale']:.3f} |")
     ch = [r["score"] for r in results if r["kind"] == "changed"]
     un = [r["score"] for r in results if r["kind"] != "changed"]
     if ch:
         lines.append(f"\nWorst: new F1 {min(c['new'][0] for c in ch):.3f}, grown F1 {min(c['grown'][0] for c in ch):.3f}")
     if un:
         lines.append(f"Worst unchanged pair: {100 * max(u['share'] for u in un):.1f} % flagged")
+    lines.append(f"Pairs refused by `uvps changes`: {len(refused)}" + "".join(f"\n- {r}" for r in refused))
     if timed:
         lines.append(f"`changes` (registration included, where not cached) {min(timed):.0f}-{max(timed):.0f} s per pair")
     lines.append(f"Whole benchmark {time.perf_counter() - t_all:.0f} s (captures, runs and registrations cached in --work).")

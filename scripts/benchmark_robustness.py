@@ -74,7 +74,7 @@ from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capt
                             write_capture)
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["bow", "all"]
-MODES = ("estimated", "calibrated", "dark", "card", "spheres", "matte_spheres")
+MODES = ("estimated", "calibrated", "dark", "card", "spheres", "matte_spheres", "spheres_card")
 #: The ``bow`` row: a canvas bowed by this much across the field (real canvases: 100-250 um).
 BOW_UM = 250.0
 SCHEMA = 2
@@ -246,6 +246,8 @@ def write_positions_csv(cap, path: Path):
 SPHERE_MODES = {
     "spheres": [("glossy", (0.13, 0.17), 2.5), ("glossy", (0.87, 0.83), 2.5)],
     "matte_spheres": [("matte", (0.13, 0.17), 2.5), ("matte", (0.87, 0.83), 2.5)],
+    # the glossy spheres, and the card under every lamp stored in the calibration (uvps calibrate --card)
+    "spheres_card": [("glossy", (0.13, 0.17), 2.5), ("glossy", (0.87, 0.83), 2.5)],
 }
 
 
@@ -255,7 +257,7 @@ def _has_additive(cap) -> bool:
     return nz.black_level is not None or nz.stray_light is not None
 
 
-def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dark=None) -> dict:
+def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dark=None, card=None) -> dict:
     """Render the sphere capture of ``cap``'s lamps, run ``uvps calibrate`` on it (spheres detected), and
     score the calibration's lamps against the truth: max direction error (deg) and max position error
     (% of the lamp's distance)."""
@@ -270,6 +272,8 @@ def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dar
     inputs = {"spheres": [str(sphere_dir)]}
     if dark is not None:
         inputs["dark"] = str(dark)
+    if card is not None:
+        inputs["card"] = str(card)
     COMMANDS["calibrate"](inputs, {"pixel_size_um": float(cap.spec.pixel_size_um)}, cal_dir)
     out = {"calibrate_s": time.perf_counter() - t0}
     lj = json.loads((cal_dir / "lights.json").read_text())
@@ -347,9 +351,9 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
     cap = make_capture(spec)
     t_make = time.perf_counter() - t0
     card = None
-    if "card" in todo:
+    if "card" in todo or "spheres_card" in todo:
         card = render_card(cap, tilt_azimuth_deg=(137.5 * seed) % 360.0, **CARD_TYPICAL)
-    cap_has_dark = ("dark" in todo or "card" in todo
+    cap_has_dark = ("dark" in todo or "card" in todo or "spheres_card" in todo
                     or (any(m in SPHERE_MODES for m in todo) and _has_additive(cap)))
     write_capture(cap, cap_dir, dark_frame=cap_has_dark, card=card)
     dark_path = cap_dir / "dark" / "dark.tif"
@@ -377,7 +381,8 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
                 cal_dir = run_root / f"{key}__{mode}__cal"
                 try:
                     cal_score = calibrate_from_spheres(cap, workdir / "captures" / f"{key}__{mode}", cal_dir,
-                                                       SPHERE_MODES[mode], dark=dark_path if cap_has_dark else None)
+                                                       SPHERE_MODES[mode], dark=dark_path if cap_has_dark else None,
+                                                       card=cap_dir / "card" if mode == "spheres_card" else None)
                     params["calibration"] = str(cal_dir)
                     argv += ["--calibration", str(cal_dir)]
                 except Exception as exc:  # reported as the run's failure below

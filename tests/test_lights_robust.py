@@ -176,7 +176,7 @@ def test_lamp_beams_of_known_positions_are_divided_out_when_asked():
 def test_many_lamps_are_estimated_within_a_degree_on_their_capped_sample():
     """48 lamps: the refinement's first stage takes fewer pixels (lights.first_stage_pixels), the whole
     sample MAX_RESIDUALS / lamps (12500 here), and the lamps come out within 1.5 deg (1.15 deg mean on
-    this capture since the generator's normals are fourth-order differences, session 7; 0.54 before)."""
+    this capture)."""
     from uvps.lights import first_stage_pixels
     from uvps.pipeline import MAX_RESIDUALS
 

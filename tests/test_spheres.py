@@ -58,6 +58,31 @@ def test_one_matte_sphere_gives_far_directions_with_a_stand(painting):
     assert err.max() < 0.5, err
 
 
+def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
+    """A lens whose corners fall to 60 % (vignetting 0.4) brightens each corner sphere's side toward the
+    image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
+    the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
+    takes it out: directions within 0.5 deg (5 deg without it), positions within 30 % (78 % without)."""
+    import uvps.spheres as spheres
+
+    vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
+    sc = make_sphere_capture(vignetted, [SphereSpec("matte", (0.13, 0.17), 3.0), SphereSpec("matte", (0.87, 0.83), 3.0)])
+    L = vignetted.light_positions_mm
+
+    def errors():
+        cal = calibrate_spheres(sc.images, pixel_size_um=PX, saturation=65535.0)
+        per_sphere = [_angles(f.directions, _true_dirs(vignetted, t)) for f, t in zip(cal.fits, sc.spheres)]
+        pos = np.linalg.norm(cal.positions_mm - L, axis=1) / np.linalg.norm(L, axis=1) * 100
+        return max(e.max() for e in per_sphere), pos.max()
+
+    ang, pos = errors()
+    # spheres of 60 px radius 20 mm apart: 0.4 deg moves a lamp 300-500 mm away by a fifth of its distance
+    assert ang < 0.5 and pos < 30.0, (ang, pos)
+    monkeypatch.setattr(spheres, "_gain", lambda g, nx, ny: np.ones_like(nx))
+    ang0, pos0 = errors()
+    assert ang0 > 2.0 and pos0 > 50.0, (ang0, pos0)
+
+
 def test_glossy_highlight_only_needs_given_circles(painting):
     """A mirror sphere on black shows only its highlight: nothing to detect, the given circle works."""
     black = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False)

@@ -145,7 +145,7 @@ def test_normals_of_a_paraboloid_match_the_analytic_ones():
 
 def test_normals_of_a_narrow_bump_are_its_slopes_not_a_smoothed_ones():
     """A Gaussian bump 100 um wide (FWHM) at 15 um per pixel: the normals are within 0.5 % of the
-    analytic slopes. Plain central differences (the generator before session 7) are 2-4 % shallow
+    analytic slopes. Plain central differences would be 2-4 % shallow
     there, and every height integrated from them came out ~2.5 % low, even under the true lamps."""
     m = n = 65
     px, h0, fwhm = 15.0, 20.0, 100.0
@@ -459,10 +459,9 @@ def _capture_hash(cap):
      "c837f92291f92cd281031564ff10300b9f910c18aafe1267dc62fec4513e2a86"),
 ])
 def test_default_capture_is_unchanged_bit_for_bit(overrides, expected):
-    """Hashes pinned with every nuisance at its default (first at commit f78a8c5, before the nuisance
-    options existed; re-pinned once, in session 7, when the normals went from second- to
-    fourth-order differences): benchmarks and tests see the very same captures. A different numpy
-    could change the random streams; then re-pin these from this commit."""
+    """Hashes pinned with every nuisance at its default: benchmarks and tests see the very same
+    captures, and a change of the generator's output shows here (re-pin only on purpose; git log
+    says when they were). A different numpy could change the random streams; then re-pin these."""
     assert _capture_hash(make_capture(**overrides)) == expected
 
 

@@ -24,7 +24,6 @@ from .pipeline import (CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_
                        integration_diagnostics, run)
 from .relight import relight
 from .spec import CommandSpec, Param
-from .synthetic import make_capture, write_capture
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +187,8 @@ def _cmd_demo(inputs, params, output_dir, *, progress=None):
     ``<run>/capture/``, two glossy spheres under the same lamps to ``<run>/spheres/``, ``uvps
     calibrate`` on them into ``<run>/calibration/``, and the whole run with that calibration."""
     from .commands import COMMANDS       # calibrate is declared in uvps.calibration
+    # the generator is test data: imported when the demo runs, not with every command
+    from .synthetic import make_capture, write_capture
     from .synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
     run_dir = check_output_dir(output_dir)

@@ -415,7 +415,7 @@ def _fit_sinusoids(data: np.ndarray, freqs: np.ndarray) -> tuple:
 
     Hand-written because the sinusoids are separable: each inner product with the image is one
     matrix product with 1-D exponentials, and those between two sinusoids are products of 1-D
-    geometric sums, so no full-image cosine is ever formed (at 4000 x 3000 that was 2 s per
+    geometric sums, so no full-image cosine is ever formed (at 4000 x 3000 one costs 2 s per
     sinusoid). Returns (coefficients (2K,) as cos, sin per sinusoid; Gram matrix (2K, 2K))."""
     k = len(freqs)
     rows = np.arange(data.shape[0], dtype=np.float64)
@@ -635,7 +635,8 @@ def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray
 
 def _median(x: np.ndarray) -> float:
     """``np.median`` of a 1-D array by ``np.partition`` (the same value): called ~10 times per
-    footprint, where ``np.median``'s own overhead was 13 % of detection at 4000 x 3000."""
+    footprint, where ``np.median``'s own overhead is 13 % of detection at 4000 x 3000
+    (``scripts/benchmark_detection_speed.py --profile 40``)."""
     n = x.size
     part = np.partition(x, [(n - 1) // 2, n // 2])
     return 0.5 * (part[(n - 1) // 2] + part[n // 2])

@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 
 import cv2
 import numpy as np
-from scipy import linalg, ndimage, optimize, stats
+from scipy import linalg, ndimage, optimize
 
 from .errors import UVPSInputError
 from .outputs import Progress, report
@@ -593,6 +593,8 @@ def rank_correlations(density: np.ndarray, elements: AreaElements, element_names
     standard error ``sqrt(1.06 / (n - 3))`` (Fieller, Hartley and Pearson 1957); NaN below 4 areas."""
     out = []
     use = elements.n_map_pixels >= min_map_pixels
+    from scipy import stats       # 1 s to import: only where the statistics are computed
+
     zq = stats.norm.ppf(0.5 + confidence / 2)
     for e, name in enumerate(element_names):
         m = elements.mean[:, e]

@@ -179,7 +179,9 @@ def azimuth_from_dropoff(fit: DropoffFit, *, n_angles=360, size=256) -> float:
 #: degree. Worst mean direction error over seeds 0-2 (12 lamps, RGB) at total degree 4 / 3: cupping
 #: 1.76 / 1.37 deg, strokes 1.42 / 1.45, cast shadows 1.21 / 1.24, every other row within 0.03;
 #: clean grey captures (seeds 3-5) of 8 lamps 1.31 / 1.45, 12-64 lamps within 0.01; worst case
-#: over all 1.76 / 1.45 (docs/benchmarks.md). Degree 2 left cupping at 1.49 (seed 0).
+#: over all 1.76 / 1.45. Degree 2 left cupping at 1.49 (seed 0). Measured by
+#: ``scripts/benchmark_robustness.py --seeds 0 1 2 --modes estimated --no-detect`` and
+#: ``scripts/benchmark_lights.py --lamps 8 12 16 32 64 --seeds 3 4 5`` with the degree edited.
 PRIOR_DEGREE = 3
 
 
@@ -558,7 +560,8 @@ def _last_drop_weight(history) -> float:
 #: grazing. At 3 deg a clean 8-lamp capture's scan chose m = 821 mm with every lamp at 3.0-3.1 deg,
 #: just above the line, and the refinement stayed in the flat valley, 30 deg off (heights reported
 #: "not determined"); at 5 deg it chose m = 80 mm and ended 0.37 deg off. No other benchmark capture
-#: changed (session 7: 12-lamp rows, 8 and 16 lamps, grey 8-16 lamps, docs/benchmarks.md).
+#: changed (12-lamp rows, 8 and 16 lamps, grey 8-16 lamps: ``scripts/analysis_lamp_elevation.py sweep
+#: --grazing 3|5 --lamps 8 12 16 --grey``).
 _GRAZING_DEG = 5.0
 
 
@@ -651,7 +654,8 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, stage
     thousands of textured pixels tells it from the truth. The optimiser must run to convergence on
     such a sample: with 5000 pixels and 25 evaluations the lamps stopped ~20 % too close and the
     directions 6.6 deg off on the benchmark; with 30000 pixels to convergence, 0.5-0.6 deg
-    (docs/benchmarks.md). ``stages`` ((pixels, max_nfev, drop-off prior weight), ...) first solves on a
+    (``scripts/benchmark_core.py --parts 1``, the stages edited).
+    ``stages`` ((pixels, max_nfev, drop-off prior weight), ...) first solves on a
     subset (cheap, reaches the valley; :func:`first_stage_pixels` by default), then on the whole
     sample (None). Each stage stops at MINPACK's tolerances (a looser ``ftol`` = 1e-5 stopped an
     8-light capture 7 deg off) or after ``max_nfev`` evaluations: on
@@ -682,7 +686,8 @@ def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, stage
 #: Weight of the drop-off prior in the refinement's whole-sample stage (1 in the first). The ratio maps
 #: carry the shading of the relief's large-scale shape (cupped islands, strokes, protrusions), which
 #: biases them; the photometric residual does not, but without the prior the lamps drift along the
-#: valley. Worst mean direction error over 3 seeds at weights 1 / 0.6 / 0.3 (docs/benchmarks.md):
+#: valley. Worst mean direction error over 3 seeds at weights 1 / 0.6 / 0.3 (``scripts/benchmark_robustness.py
+#: --modes estimated --no-detect`` and ``scripts/benchmark_lights.py --seeds 3 4 5``, the weight edited):
 #: robustness rows (RGB, 12 lamps) cupping 3.22 / 1.76 / 0.97 deg, protrusion shapes 1.37 / 0.93 /
 #: 0.66, strokes 1.62 / 1.42 / 1.27, vignetting 0.96 / 1.10 / 1.24, cast shadows 1.03 / 1.21 / 1.33;
 #: clean grey captures of 8 lamps 0.59 / 1.31 / 2.49, 16: 0.50 / 0.73 / 0.98, 64: 0.57 / 0.70 / 0.80.

@@ -218,8 +218,8 @@ HEIGHT_UNCERTAINTY_UNDETERMINED = 1.0
 #: Residuals (lamps x sample pixels) the light estimate's refinement works on at most (the sample is
 #: also at most ``sample_pixels``, one pixel in 16, and at least 2000 pixels). 600000 (9375 pixels at
 #: 64 lamps, 30000 at 12): worst direction error over seeds 3-5 at 8-64 lamps 0.58-1.17 deg, where
-#: 150000 gave 1.45-3.0, both with the drop-off prior at full weight (docs/benchmarks.md, "Light
-#: estimate against the number of lamps"); an evaluation costs lamps x pixels since the refinement's
+#: 150000 gave 1.45-3.0, both with the drop-off prior at full weight (``scripts/benchmark_lights.py --lamps
+#: 8 12 16 32 64 --seeds 3 4 5`` with the constant edited); an evaluation costs lamps x pixels since the refinement's
 #: normal equations are built without J.
 MAX_RESIDUALS = 600000
 #: Relative RMS photometric residual (of the sample's mean intensity) beyond which lamps estimated from
@@ -231,7 +231,7 @@ MAX_LAMP_RESIDUAL = 0.05
 #: Largest disagreement (deg) between an estimated lamp's azimuth and the one read from its drop-off
 #: beyond which a run warns (:func:`_azimuth_warnings`). 12 lamps, seeds 0-2, with the azimuths from
 #: integrability: beams 29.5-142, all nuisances 129 (seed 1), cupped paint 2.7-4.0, strokes 0.7-2.5,
-#: a clean capture 1.4 (before that step: beams 6.9-145, cupping up to 3.8, the rest up to 1.0).
+#: a clean capture 1.4 (docs/benchmarks.md, "Rules that stop or warn").
 AZIMUTH_DISAGREEMENT_WARN_DEG = 5.0
 #: When the fit does not hold (:func:`fit_warnings`): the normals' rms relative residual (the demo
 #: 0.005; the benchmark's rows with given lamps up to 0.01; lamps estimated above 0.05 stop the run,
@@ -322,7 +322,7 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
 
 
 #: Relative time of each step, for the progress bar's fractions (and so its estimate of the time
-#: left): measured on 4000 x 3000 x 16 RGB with estimated lamps (docs/benchmarks.md, issue 9).
+#: left): measured on 4000 x 3000 x 16 RGB with estimated lamps by ``scripts/benchmark_speed.py``.
 _STEP_WEIGHTS = {"additive": 1.5, "lights": 12.0, "normals": 2.5, "height": 2.0, "protrusions": 18.0}
 
 
@@ -655,7 +655,7 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
 #: Input bit depths on which the additive term is not measured by default (``offset="auto"``).
 EIGHT_BIT = ("uint8", "int8")
 #: The measured additive term must be pinned to this fraction of the median signal: an error of 0.2 %
-#: moved the estimated lamps by 5 degrees on the benchmark captures (docs/benchmarks.md).
+#: moved the estimated lamps by 5 degrees on the benchmark captures (``scripts/benchmark_robustness.py``).
 OFFSET_TOLERANCE = 0.001
 #: A measured additive term smaller than this many standard errors is not subtracted.
 SIGNIFICANT = 2.0
@@ -695,7 +695,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     elif options.offset == "auto" and capture.bit_depth in EIGHT_BIT:
         # 8-bit files (linearised JPEGs above all) carry a tone curve's remnant, not a pedestal: on a
         # real RTI capture of a canvas a term measured as 5 % of the signal and subtracted set the two
-        # halves of the lamps' normals 3.16 deg apart, 2.40 with none (docs/benchmarks.md)
+        # halves of the lamps' normals 3.16 deg apart, 2.40 with none (a capture outside ../shared/data)
         term = known_additive(0.0, shape=(M, N), channels=C, source="none")
         term.diagnostics["note"] = (f"{capture.bit_depth} input: not measured (offset=measure to measure it, or give "
                                     "black_level or a dark frame)")
@@ -732,7 +732,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         se = float(np.sqrt(np.mean(term.stderr ** 2)))
         if abs(float(term.mean.mean())) < SIGNIFICANT * se:
             # consistent with no offset: subtracting it would only add its noise (a clean capture is
-            # then processed exactly as it was before the additive term was modelled)
+            # then processed exactly as if no additive term were modelled)
             term.diagnostics["used"] = False
             term.diagnostics["note"] = f"not significant (|c| < {SIGNIFICANT:g} standard errors): not subtracted"
             return capture, term, warnings

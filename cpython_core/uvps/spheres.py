@@ -422,6 +422,12 @@ class _Disc:
         self.centre_px = (float(c_), float(r_))
         self.radius_px = float(R)
         self.rows, self.cols = rr[self.mask] - r0, cc[self.mask] - c0
+        # the disc and its normals laid out on the box, for the per-lamp highlight fits
+        self.shape = (r1 - r0, c1 - c0)
+        self.inside = np.zeros(self.shape, bool)
+        self.inside[self.rows, self.cols] = True
+        self.normal_map = np.zeros(self.shape + (3,), np.float32)
+        self.normal_map[self.rows, self.cols] = self.normals
 
     def values(self, img):
         r0, r1, c0, c1 = self.box
@@ -483,18 +489,24 @@ def _fit_matte(v, normals, sat):
     dof = max(1, sel.sum() - cols)
     s2 = float(res @ res) / dof
     cov = s2 * np.linalg.pinv(A[sel, :cols].T @ A[sel, :cols])[:3, :3]
-    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel
+    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel, \
+        A[:, :cols] @ coef
 
 
 def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, per_image=1500):
-    """Centre and radius of a matte sphere that make Lambert's law fit its shading best.
+    """Centre and radius of a matte sphere, and the gain across its disc, that make Lambert's law fit
+    its shading best: (Sphere, g) with the gain :func:`_gain`.
 
     The rim found in the images is a fraction of a pixel off (its last pixels are partly background,
     and a lamp's shading falls toward the limb); a radius 1 % off tilts every normal of the disc and
-    the lamp's direction with it. Here the circle is the one whose normals leave the smallest
-    residual in every image's linear fit (variable projection: the fits are solved inside the
-    residual; ``scipy.optimize.least_squares`` over the three circle parameters), on the samples each
-    image's first fit kept (at most ``per_image``).
+    the lamp's direction with it. Vignetting multiplies the shading by a gain that varies across the
+    disc (on a sphere near a corner, 10 % per radius at a 40 % corner fall-off), which a per-lamp fit
+    reads as every lamp turned toward the image centre by 2-3 deg; the gain is the same under every
+    lamp and the shading's direction is not, so a joint fit tells them apart. Here the circle and
+    ``g`` are the ones that leave the smallest residual in every image's linear fit (variable
+    projection: each image's ``b``, ``c`` and near-lamp term are solved inside the residual;
+    ``scipy.optimize.least_squares`` over the eight parameters), on the samples each image's first fit
+    kept (at most ``per_image``).
     """
     from scipy.optimize import least_squares
 
@@ -511,7 +523,7 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, per_image=
         used.append(k)
         scale.append(np.linalg.norm(fit[0]))      # each image's residual in units of its first |b|, held
     if len(picks) < 3:
-        return sphere
+        return sphere, np.zeros(5)
     c0, r0 = sphere.centre_px
     R0 = sphere.radius_px
 
@@ -522,19 +534,26 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, per_image=
             nx, ny = (cols[idx] - c) / R, (r - rows[idx]) / R
             nz = np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))
             nrm = np.column_stack([nx, ny, nz])
+            gain = _gain(x[3:], nx, ny)[:, None]
             A = np.column_stack([nrm, np.ones(idx.size)])
             v = vals[k][idx]
-            coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+            coef, *_ = np.linalg.lstsq(gain * A, v, rcond=None)
             A = np.column_stack([A, _near_column(nrm, coef[:3])])
-            coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-            out.append((v - A @ coef) / sc)
+            coef, *_ = np.linalg.lstsq(gain * A, v, rcond=None)
+            out.append((v - (gain * A) @ coef) / sc)
         return np.concatenate(out)
 
     lim = 0.03 * R0
-    res = least_squares(residuals, np.zeros(3), bounds=([-lim, -lim, -0.03], [lim, lim, 0.03]),
-                        x_scale=[1.0, 1.0, 1.0 / R0], diff_step=1e-3)
+    res = least_squares(residuals, np.zeros(8), bounds=([-lim, -lim, -0.03] + [-0.5] * 5, [lim, lim, 0.03] + [0.5] * 5),
+                        x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * 5, diff_step=1e-3)
     x = res.x
-    return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source)
+    return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
+
+
+def _gain(g, nx, ny):
+    """The gain across a disc, ``1 + g0 nx + g1 ny + g2 nx^2 + g3 nx ny + g4 ny^2`` (a smooth fall-off
+    such as vignetting, to second order over the sphere)."""
+    return 1.0 + g[0] * nx + g[1] * ny + g[2] * nx * nx + g[3] * nx * ny + g[4] * ny * ny
 
 
 def _fit_glossy(v, disc: _Disc, sat):
@@ -546,13 +565,15 @@ def _fit_glossy(v, disc: _Disc, sat):
     peak within 2.5 core radii of it, recentred twice: the highlight's skirt, symmetric about its
     centre like the core, makes the centroid independent of where the pixel grid cuts the core.
     """
-    base = np.median(v)
-    noise = 1.4826 * np.median(np.abs(v - base)) + 1.0
+    # the background's level and spread from every 4th sample (a disc holds 10^4-10^5)
+    sub = v[::4] if v.size >= 4000 else v
+    base = np.median(sub)
+    noise = 1.4826 * np.median(np.abs(sub - base)) + 1.0
     w = v - base
     peak = float(w.max())
     if peak < 10 * noise:
         return None
-    shape = (disc.box[1] - disc.box[0], disc.box[3] - disc.box[2])
+    shape = disc.shape
     img = np.zeros(shape, np.float32)
     img[disc.rows, disc.cols] = w
     core = img >= 0.5 * peak
@@ -569,10 +590,7 @@ def _fit_glossy(v, disc: _Disc, sat):
     best = 1 + int(np.argmax(sums))
     rc = np.array(ndimage.center_of_mass(img, lab, best))
     r_core = math.sqrt((lab == best).sum() / math.pi)
-    inside = np.zeros(shape, bool)
-    inside[disc.rows, disc.cols] = True
-    nrm = np.zeros(shape + (3,), np.float32)
-    nrm[disc.rows, disc.cols] = disc.normals
+    inside, nrm = disc.inside, disc.normal_map
     # the work is done in a window around the core (the highlight is small beside the disc)
     reach = int(math.ceil(2.5 * r_core + 2.0 + 0.5 * (2.5 * r_core + 2.0))) + 3
     ra, rb = max(0, int(rc[0]) - reach), min(shape[0], int(rc[0]) + reach + 1)
@@ -627,11 +645,15 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     sphere = Sphere(tuple(sphere.centre_px), float(sphere.radius_px), kind, sphere.source)
     where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
     if kind == "matte":
+        # the circle and the gain across the disc (vignetting), fitted together
         inner = _Disc(sphere, (M, N), pixel_size_um, shrink=0.9)
         ivals = np.stack([inner.values(images[k])[inner.rows, inner.cols] for k in range(K)])
-        sphere = _refine_matte_circle(sphere, inner, ivals, sat)
+        sphere, g = _refine_matte_circle(sphere, inner, ivals, sat)
+        log.debug("matte %s: gain across the disc %s", where, np.round(g, 4).tolist())
         disc = _Disc(sphere, (M, N), pixel_size_um)
-        vals = np.stack([disc.values(images[k])[disc.rows, disc.cols] for k in range(K)])
+        gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
+        vals = np.stack([disc.values(images[k])[disc.rows, disc.cols] for k in range(K)]) / gain
+        sat = None if sat is None else sat / gain
     pts = np.empty((K, 3))
     dirs = np.empty((K, 3))
     sig = np.empty(K)
@@ -646,7 +668,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
                 raise UVPSInputError(f"sphere capture {name}: the matte {where} shows no lit part that Lambert's "
                                      "law fits (no sphere there, the lamp off, or the sphere not matte); "
                                      "give the circles with --sphere-circles")
-            b, _, cov, n_used, rms, _ = fit
+            b, _, cov, n_used, rms = fit[:5]
             nb = np.linalg.norm(b)
             d = b / nb
             P = np.eye(3) - np.outer(d, d)

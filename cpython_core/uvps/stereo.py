@@ -200,7 +200,7 @@ def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fractio
     Returns (sum of squared relative residuals, their count, invalid pixels inside ``use``).
     Hand-written (numba): no library solves millions of tiny weighted least-squares problems, each
     with its own sample selection, without K x P temporaries (numpy's passes took 10-19 s where this
-    takes 2.5 s at 4000 x 3000 x 16, docs/benchmarks.md).
+    takes 2.6 s at 4000 x 3000 x 16: ``scripts/benchmark_speed.py``).
     """
     K, P, C = band.shape
     grey = np.empty(K, np.float32)
@@ -302,9 +302,10 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     ``n . l`` is below ``shadow_cos``: the attached-shadow test, after a first solve) and saturated
     samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
     closed-form 3x3 solves per pixel and one pass over the samples, in a compiled kernel
-    (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.4 s for 4000 x 3000 x
-    16 RGB on 2 cores, against 46 s for the numpy version with (K, P, 3) float64 temporaries and
-    10-19 s for a float32 numpy version (docs/benchmarks.md). ``robust`` sorts the K samples.
+    (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.6 s for 4000 x 3000 x
+    16 RGB on 2 cores (docs/benchmarks.md), against 46 s for a numpy version with (K, P, 3) float64
+    temporaries and 10-19 s for a float32 numpy version (each timed by ``scripts/benchmark_speed.py``).
+    ``robust`` sorts the K samples.
 
     References
     ----------
