@@ -228,6 +228,13 @@ def add_to_overlay(imp, rois):
     imp.setOverlay(overlay)
 
 
+def forget_outlines(run_dir):
+    """Delete the ROI Manager's protrusion outlines of run ``run_dir`` (both kinds)."""
+    manager = RoiManager.getInstance()
+    if manager is not None:
+        delete_rois(manager, lambda roi: bridge_logic.outline_kind(roi.getName(), run_dir) is not None)
+
+
 def delete_rois(manager, which):
     """Delete the ROI Manager's ROIs for which ``which(roi)`` holds; keep the others."""
     old = [i for i, roi in enumerate(manager.getRoisAsArray()) if which(roi)]

@@ -292,6 +292,8 @@ def run_whole_pipeline(values):
     if response.has_file("protrusions.csv"):
         _show_protrusions(response, "auto", out)
     else:
+        # the new run folder holds no protrusion table: the earlier run's outlines are gone with it
+        display.forget_outlines(out)
         show_height(response.file("depth.tif"), out)
         display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     if response.has_file("report.html"):
