@@ -355,6 +355,44 @@ def test_stroke_rule_needs_the_strokes_statistics():
     assert det.rejected["stroke"] == 0 and det.labels[80, 200] > 0
 
 
+@pytest.mark.parametrize("seed, col", [(0, 200), (1, 300), (3, 200)])
+def test_bump_on_a_stroke_measured_over_the_strokes_own_profile(seed, col):
+    """The along-stroke cue: a 100 um dome, 25 um high, just off the crest of a rippled stroke
+    (180 um wide, 20 um high) that the shape rules reject (its footprint over a plane runs on
+    along the stroke) is found by its excess over the stroke's profile continued along the
+    stroke, with its width; the ripple crests stay rejected (only one protrusion)."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=100, width_um=180.0, height_um=20.0, ripple=0.2)
+    add_profile(h, (102, col), 100.0, px, 25.0, "dome")
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(along_stroke_k=0))
+    assert off.labels[102, col] == 0             # without the cue it is lost
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[102, col] == 1
+    assert det.diagnostics["stroke_bumps_kept"] == 1
+    assert abs(width_of(det.labels, (102, col), px) / 100.0 - 1) < 0.2
+
+
+@pytest.mark.parametrize("ripple, width_um, height_um", [(0.2, 180.0, 20.0), (0.3, 240.0, 30.0),
+                                                          (0.35, 300.0, 40.0)])
+def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, height_um):
+    """A rippled stroke alone (crests 20-40 um high, 300 um apart): its crests are closed bumps
+    over the stroke's continuation too, but no steeper than the strokes' own bumps, so the
+    along-stroke cue keeps none of them. (The steepest, 0.35 x 40 um every 300 um, comes through
+    the ``stroke`` rule itself, cue or not: its crests split into many small bumps that lower the
+    strokes' median slope; ``docs/protrusions.md``.)"""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=5)
+    h += rippled_stroke(shape, px, row=100, width_um=width_um, height_um=height_um, ripple=ripple)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(along_stroke_k=0))
+    assert det.diagnostics["stroke_bumps_kept"] == 0
+    assert np.array_equal(det.labels, off.labels)
+    assert det.rejected["stroke"] + det.rejected["ridge"] >= 8
+    if ripple <= 0.3:
+        assert det.labels.max() == 0
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi

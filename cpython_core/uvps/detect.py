@@ -34,6 +34,11 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    :func:`_apply_rules`) by the table :data:`REJECTION_RULES`, first match wins; each rejected
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
    ``Detection.rejected``.
+8. **Bumps on strokes** (:func:`_bumps_on_strokes`). A compact peak on a long structure that the
+   ``ridge``, ``crack`` or ``stroke`` rule rejects is measured again over the stroke's own
+   profile continued along the stroke (the height minus its opening by a line laid in the
+   direction the height around it runs on): a closed, compact bump as steep as the strokes' own
+   statistics ask is a protrusion on the stroke and is kept, outlined by that excess.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -83,7 +88,9 @@ REJECTION_RULES = (
                   "glow: flank slope relief / (width / 2)",
                   "< stroke_slope_k x the median flank slope of the bumps on long structures "
                   "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
-                  "of a brush stroke"),
+                  "of a brush stroke (ridge, stroke and crack: unless its excess over the "
+                  "stroke's profile continued along the stroke is a closed, steep bump, "
+                  "_bumps_on_strokes)"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
                   "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
@@ -159,6 +166,11 @@ class DetectionParams:
         A bump on a long structure (a stroke's ripple, piled end or crossing) that does not glow
         is kept only when its flank slope exceeds this many times the median flank slope of the
         bumps on long structures in the image (the strokes' own statistics). 0 disables.
+    along_stroke_k : float
+        A compact peak on a long structure that the ``ridge``, ``crack`` or ``stroke`` rule
+        rejects is measured again over the stroke's own profile continued along the stroke: the
+        height minus its grey opening by a line this many times the peak's compact radius long,
+        in the direction the height around it runs on (:func:`_bumps_on_strokes`). 0 disables.
     max_hole_fraction : float
         Largest fraction of a candidate's filled outline that may lie below its footprint
         level (cupped island rims enclose their dish).
@@ -196,6 +208,7 @@ class DetectionParams:
     ridge_min_length_um: float = 150.0
     ridge_compact_fraction: float = 0.5
     stroke_slope_k: float = 3.0
+    along_stroke_k: float = 6.0
     max_hole_fraction: float = 0.25
     max_crack_fraction: float = 0.08
     max_mismatch: float = 0.5
@@ -1111,6 +1124,110 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
     return reason
 
 
+# --------------------------------------------------------------------------------------------
+# Bumps on strokes: excess over the stroke's own continuation
+# --------------------------------------------------------------------------------------------
+
+
+def _stroke_direction(h: np.ndarray, inner: np.ndarray, r_px: float) -> float:
+    """Direction (rad from the column axis toward increasing row) in which the height around a
+    candidate runs on: perpendicular to the dominant gradient of the annulus 1 to ``2 r + 2`` px
+    from it (the structure tensor; across a stroke its flanks' gradient dominates)."""
+    dist = _edt(~inner)
+    ann = (dist > 1) & (dist <= 2 * r_px + 2)
+    gy, gx = np.gradient(h.astype(np.float64))
+    gx, gy = gx[ann], gy[ann]
+    across = 0.5 * math.atan2(2 * float(gx @ gy), float(gx @ gx - gy @ gy))
+    return across + 0.5 * math.pi
+
+
+def _line_opening(h: np.ndarray, theta: float, length_px: float) -> np.ndarray:
+    """Grey opening of ``h`` by a line ``length_px`` long at angle ``theta``
+    (:func:`cv2.morphologyEx` with a line drawn by :func:`cv2.line`): what runs on along the line
+    for at least its length stays, a bump shorter than it along the line is cut to its foot."""
+    k = max(3, int(length_px) | 1)
+    c = k // 2
+    dx, dy = c * math.cos(theta), c * math.sin(theta)
+    se = np.zeros((k, k), np.uint8)
+    cv2.line(se, (round(c - dx), round(c - dy)), (round(c + dx), round(c + dy)), 1, 1)
+    return cv2.morphologyEx(h.astype(np.float32), cv2.MORPH_OPEN, se,
+                            borderType=cv2.BORDER_REFLECT)
+
+
+def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
+                 p: DetectionParams) -> tuple:
+    """A candidate's bump over the stroke's profile continued along the stroke.
+
+    The excess ``e = h - line opening`` along the stroke's direction, the line
+    ``along_stroke_k`` x the candidate's radius long: the stroke's cross-profile runs on beyond
+    the candidate and stays in the opening, a bump on it does not. Its footprint: ``e`` above
+    ``footprint_fraction`` of its peak in the candidate (and ``floor_um``), connected to that
+    peak; its outline (the label drawn): the part of the footprint also above the stroke's own
+    excess around it (the largest ``e`` beyond ``r + 2`` px: ripple crests cut by the same
+    line; at most half the peak), so the ripple under a bump is not counted in its width.
+    Returns (footprint, outline, peak excess um), or (None, None, 0) when the footprint reaches
+    the crop's border (not closed: the height does not run on as a stroke does)."""
+    theta = _stroke_direction(h, inner, r_px)
+    e = h - _line_opening(h, theta, max(p.along_stroke_k * r_px, 9.0))
+    seed = np.unravel_index(int(np.argmax(np.where(inner, e, -np.inf))), e.shape)
+    peak = float(e[seed])
+    parts = []
+    away = _edt(~inner) > r_px + 2
+    own = float(e[away].max()) if away.any() else 0.0
+    base = max(p.footprint_fraction * peak, floor_um)
+    for level in (base, max(base, min(own, 0.5 * peak))):
+        comp, _ = ndi.label(e >= level, structure=np.ones((3, 3)))
+        if comp[seed] == 0:
+            return None, None, 0.0
+        parts.append(comp == comp[seed])
+    foot = parts[0]
+    if foot[0].any() or foot[-1].any() or foot[:, 0].any() or foot[:, -1].any():
+        return None, None, 0.0
+    return foot, parts[1], peak
+
+
+def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, reason, th: Thresholds,
+                      px: float, p: DetectionParams, stroke_min: float) -> tuple:
+    """Keep the closed bumps on strokes that the ``ridge``, ``crack`` and ``stroke`` rules reject.
+
+    Tested: compact peaks (height cue) with a long structure under them (``under`` >= the relief
+    threshold). Each one's excess over the stroke's continuation (:func:`_excess_bump`) must be
+    closed, ``min_width_um``-``max_width_um`` wide, at most ``ridge_elongation`` elongated, its
+    flank slope (peak / half width) at least the strokes' own least slope (:func:`_stroke_slope`)
+    and the weave's, its peak at least the relief threshold and at most twice the candidate's
+    relief over its surround (more: the line cut through another structure, a crossing stroke or
+    a bend), and it must overlap no kept candidate. A kept one is relabelled to its outline.
+    Returns (reasons, labels)."""
+    lab, reason = cand.labels.copy(), reason.copy()
+    if p.along_stroke_k <= 0:
+        return reason, lab
+    test = np.flatnonzero(np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h
+                          & (f.under >= th.relief_um))
+    kept = np.zeros(int(lab.max()) + 1, bool)
+    kept[f.lbl[reason == ""]] = True
+    slices, (m, n) = ndi.find_objects(lab), lab.shape
+    for j in test:
+        k, sl = int(f.lbl[j]), slices[int(f.lbl[j]) - 1]
+        r = math.sqrt(max(np.count_nonzero(cand.height[sl] == k), 1) / math.pi)
+        pad = int(4 * r + 6)
+        crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
+                slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
+        region = lab[crop]
+        foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um, p)
+        if foot is None or kept[region[foot]].any():
+            continue
+        area = float(np.count_nonzero(foot))
+        eqd = 2 * math.sqrt(area / math.pi)
+        elong = area / (math.pi * float(_edt(np.pad(foot, 1)).max()) ** 2)
+        if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
+                and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
+                and th.relief_um <= peak <= 2 * f.relief[j]):
+            region[region == k] = 0
+            region[outline] = k
+            kept[k], reason[j] = True, ""
+    return reason, lab
+
+
 def _finish(lab, f: CandidateFeatures, reason, shape) -> tuple:
     """Relabel the kept candidates 1..n (holes inside a kept one filled); their sources."""
     ok = reason == ""
@@ -1195,13 +1312,15 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
     feats = _candidate_features(cand, surf, normals, th, px, p)
-    reason = _apply_rules(feats, th, px, p)
-    rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
-    labels, source = _finish(cand.labels, feats, reason, h.shape)
+    first = _apply_rules(feats, th, px, p)
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
+    reason, lab = _bumps_on_strokes(cand, surf, feats, first, th, px, p, stroke_min)
+    rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
+    labels, source = _finish(lab, feats, reason, h.shape)
     diag.update(candidates=int(feats.lbl.size), candidate_labels=cand.labels,
                 candidate_reasons=reason, stroke_bumps=int(on_long.sum()),
-                stroke_slope_min=stroke_min)
+                stroke_slope_min=stroke_min,
+                stroke_bumps_kept=int(np.sum((first != "") & (reason == ""))))
     _report(progress, 1.0, "done")
     logger.info("detect: %d protrusions (%d candidates), rejected %s, noise %.3g um",
                 int(labels.max()), feats.lbl.size, rejected, surf.noise_um)

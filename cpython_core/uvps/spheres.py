@@ -69,6 +69,11 @@ MIN_RADIUS_PX = 12
 #: it (spheres of the benchmark: 0.94-0.99, with a stand and flare spikes 0.75; round paint features
 #: the Hough transform proposes: 0.31-0.49).
 MIN_RIM_FRACTION = 0.6
+#: A detected circle under this fraction of the largest one's radius is not a calibration sphere
+#: (spheres of one capture are of one size or close; on a painting's relief a 14 px bump beside two
+#: 90 px spheres was found as a third, and the lamps came 29 deg off). Give unequal spheres with
+#: ``--sphere-circles``.
+MIN_RADIUS_RATIO = 0.4
 #: Matte fit: samples with a predicted ``n . l`` below this are left out (the terminator, where the
 #: attached shadow's clip and a lamp's finite size bend the law).
 MATTE_MIN_COS = 0.2
@@ -386,6 +391,16 @@ def detect_spheres(images, *, progress: Progress = None) -> list:
             found.append(s)
         if found:
             break
+    if found:
+        # calibration spheres are of one size or close; a circle far smaller is the painting's own (a
+        # protrusion, a blob of paint) and would pull every lamp's position with a wrong ray
+        largest = max(s.radius_px for s in found)
+        small = [s for s in found if s.radius_px < MIN_RADIUS_RATIO * largest]
+        for s in small:
+            log.info("sphere detection: the circle at (%.0f, %.0f) px of radius %.1f px is under %.0f %% of the "
+                     "largest (%.1f px): left out", s.centre_px[0], s.centre_px[1], s.radius_px,
+                     100 * MIN_RADIUS_RATIO, largest)
+        found = [s for s in found if s not in small]
     report(progress, 0.5, f"sphere detection: {len(found)} circle(s)")
     return sorted(found, key=lambda s: (s.centre_px[1], s.centre_px[0]))
 
