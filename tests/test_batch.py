@@ -244,3 +244,40 @@ def test_importing_uvps_commands_does_not_import_dask():
     code = "import sys, uvps.cli; print(any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules))"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.stdout.strip() == "False", r.stderr
+
+
+@pytest.mark.slow
+def test_the_command_line_exit_status_when_captures_fail_on_bad_input(captures, tmp_path):
+    """Every capture failing on bad input (a .tif that is no TIFF, two images only) is the user's
+    to fix: exit 1, one line per capture naming it and its problem, then one summary line; the
+    summary is still written. One good capture beside a bad one: exit 0, the bad one a warning
+    and a line of the summary."""
+    caps = tmp_path / "caps"
+    (caps / "notiff").mkdir(parents=True)
+    for name in ("a.tif", "b.tif", "c.tif"):
+        (caps / "notiff" / name).write_text("not an image\n")
+    (caps / "two").mkdir()
+    for name in ("uv_00.tif", "uv_01.tif", LAMPS):
+        shutil.copy(captures / "cap1" / name, caps / "two" / name)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "uvps", "batch", "-o", str(out), "--workers", "1"]
+    r = subprocess.run(cmd + [str(caps)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0].startswith("uvps batch: notiff: ") and "a.tif" in lines[0] and "TIFF" in lines[0], lines
+    assert lines[1].startswith("uvps batch: two: ") and "at least 3 images; got 2" in lines[1], lines
+    assert lines[2].startswith("uvps batch: error: every capture failed on bad input (2") and \
+        str(out / SUMMARY) in lines[2], lines
+    assert "Traceback" not in r.stderr and "internal error" not in r.stderr
+    summary = _summary(out)
+    assert [summary[n]["status"] for n in ("notiff", "two")] == ["failed", "failed"]
+    assert lines[1].endswith(summary["two"]["error"])
+    assert [c["failure"] for c in json.loads((out / "batch.json").read_text())["captures"]] == ["input", "input"]
+    # one good capture beside a bad one: the batch did its work
+    shutil.copytree(captures / "cap1", caps / "cap1")
+    r = subprocess.run(cmd + ["--lights", LAMPS, str(caps / "cap1"), str(caps / "two")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "warning: two failed: images: photometric stereo needs at least 3 images" in r.stderr
+    assert "1 done, 0 skipped, 1 failed" in r.stdout and "two: failed (images:" in r.stdout

@@ -80,3 +80,51 @@ def test_compare_against_a_truth_table_takes_the_runs_pixel_size(small_run):
     assert r.returncode == 1
     assert r.stderr.strip().splitlines()[-1].endswith("give pixel_size_um (--pixel-size-um), or -o the run folder "
                                                       "of one of the tables")
+
+
+def _binary(path):
+    """A TIFF given where a text file is expected (a table, a light file, a list)."""
+    import tifffile
+
+    tifffile.imwrite(str(path), (np.arange(64, dtype=np.uint16) * 1000).reshape(8, 8))
+    return path
+
+
+#: Bad inputs a new user types (each once an exit 2: a library error, "internal error"): the
+#: arguments (``{run}``, ``{cap}``, ``{bin}``: the run folder, its capture, a TIFF named .csv)
+#: and the start of the one line expected after "uvps <command>: error: ".
+USER_MISTAKES = {
+    "pixel size of a km": (["run", "{cap}", "-o", "{tmp}/o1", "--pixel-size-um", "1e9"],
+                           "pixel_size_um 1e+09 um is not a pixel size on a painting (1-1000 um)"),
+    "pixel size in mm": (["detect", "-o", "{run}", "--pixel-size-um", "0.1"],
+                         "pixel_size_um 0.1 um is not a pixel size on a painting (1-1000 um); give it in "
+                         "micrometres (0.1 mm = 100 um)"),
+    "an image as a table": (["compare", "{bin}", "{run}/protrusions.csv", "-o", "{tmp}/o2"],
+                            "protrusion table {bin} is not a text file (an image?)"),
+    "an image as a lights file": (["run", "{cap}", "-o", "{tmp}/o3", "--lights", "{bin}"],
+                                  "light positions file {bin} is not a text file (an image?)"),
+    "an image as a batch list": (["batch", "{bin}", "-o", "{tmp}/o4"],
+                                 "captures: the list {bin} is not a text file (an image?)"),
+    "a lights file as clicks": (["wand", "{cap}/lights_positions_mm.csv", "-o", "{run}"],
+                                "click 1 at (x="),
+    "an unknown flag": (["detect", "-o", "{run}", "--sensitivty", "5"],
+                        "unrecognized arguments: --sensitivty 5; see uvps --help"),
+    "a missing argument": (["compare", "-o", "{tmp}/o5"],
+                           "the following arguments are required: a, b; see uvps compare --help"),
+}
+
+
+@pytest.mark.parametrize("mistake", sorted(USER_MISTAKES))
+def test_a_users_mistake_exits_1_with_one_line(small_run, tmp_path, mistake):
+    """No exit 2 (kept for failures a user cannot fix) and no traceback or library warning for what a
+    user typed wrong: exit 1, one line naming the value or file and what was expected."""
+    args, expected = USER_MISTAKES[mistake]
+    names = {"run": small_run / "run", "cap": small_run / "cap", "bin": _binary(tmp_path / "table.csv"),
+             "tmp": tmp_path}
+    args = [a.format(**names) for a in args]
+    r = subprocess.run([sys.executable, "-m", "uvps", *args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if not ln.startswith(("INFO ", "usage:", " "))]
+    assert len(lines) == 1, r.stderr
+    assert lines[0].split(": error: ", 1)[1].startswith(expected.format(**names)), lines
+    assert "Traceback" not in r.stderr and "Warning" not in r.stderr

@@ -697,9 +697,21 @@ def test_fiji_has_no_points_parser_of_its_own():
     assert not hasattr(bl, "read_points_text") and not hasattr(bl, "points_in_pixels")
 
 
-def test_repeated_clicks_are_listed_with_the_earlier_click():
-    pts = [(1, 1), (2, 2), (3, 3), (4, 4)]
-    assert bl.repeated_clicks(pts, [5, 5, 0, 7]) == [(2, (2, 2), 1), (3, (3, 3), None)]
+def test_outline_names_say_their_source_and_run():
+    """Manual and automatic outlines are told apart by name, and so are two runs' outlines
+    (a run whose name ends like another's included); a user's ROI is no outline."""
+    assert bl.outline_name("manual", 12, "/data/region1") == "manual 12 - region1"
+    assert bl.outline_name("auto", 3, "/data/region1/") == "auto 3 - region1"
+    assert bl.outline_kind("manual 12 - region1", "/x/region1") == "manual"
+    assert bl.outline_kind("auto 3 - region1", "/x/region1") == "auto"
+    assert bl.outline_kind("auto 3 - region1") == "auto"
+    assert bl.outline_kind("auto 3 - old region1", "/x/region1") is None
+    assert bl.outline_kind("auto 3 - region1", "/x/old region1") is None
+    for name in ("0001-0123", "sphere 1 (matte, found)", "auto - region1", "automatic 3 - region1",
+                 None, ""):
+        assert bl.outline_kind(name, "/x/region1") is None
+    assert bl.added_by_uvps("manual 12 - region1") and bl.added_by_uvps("sphere 2 (matte, found)")
+    assert not bl.added_by_uvps("0001-0123") and not bl.added_by_uvps(None)
 
 
 def test_detection_settings_and_browse_buttons_come_with_fields(spec_table):

@@ -228,3 +228,23 @@ def test_detect_needs_depth(tmp_path, template):
     shutil.copy(template / "albedo.tif", d)
     with pytest.raises(UVPSInputError, match="no depth.tif; run the 'integrate' command"):
         cmd_detect({}, {}, d)
+
+
+def test_imagej_wand_at_a_tolerance_below_the_noise_says_so(run, capture):
+    """ImageJ's wand at Fiji's default tolerance (0.05 albedo units, raw counts of thousands):
+    each click, and a second click beside the first on the same protrusion, selects its own pixel
+    only; the one warning names those clicks and says to raise the tolerance (not to use method
+    'imagej', which is the method used)."""
+    albedo = np.moveaxis(capture.albedo, -1, 0) * 30000.0        # raw counts, as a real albedo
+    albedo += np.random.default_rng(0).normal(0.0, 100.0, albedo.shape)   # with a camera's noise
+    write_imagej_tiff(run / "albedo.tif", albedo.astype(np.float32), axes="CYX",
+                      pixel_size_um=capture.spec.pixel_size_um)
+    p = capture.protrusions
+    big = np.argsort(-p["width_um"])[:3]
+    pts = np.column_stack([p["x_px"][big], p["y_px"][big]]).astype(int).tolist()
+    pts.append([pts[0][0] + 1, pts[0][1]])
+    res = cmd_wand({"points": pts}, {"method": "imagej", "tolerance": 0.05}, run)
+    assert res.diagnostics["not_outlined_clicks"] == [1, 2, 3, 4]
+    lines = [w for w in res.warnings if "own pixel" in w]
+    assert len(lines) == 1 and "4 clicks" in lines[0] and "tolerance of 0.05" in lines[0], res.warnings
+    assert "raise it" in lines[0] and "use method 'imagej'" not in lines[0]

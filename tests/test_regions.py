@@ -230,6 +230,7 @@ def test_the_cli_refuses_a_pixel_size_in_mm_with_automatic_areas_in_one_line(tmp
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 1, r.stderr
     errors = [ln for ln in r.stderr.splitlines() if not ln.startswith(("INFO", "WARNING"))]
-    assert errors == ["uvps run: error: pixel_size_um 0.1 makes the 160 x 120 px image 0.016 mm wide, smaller "
-                      "than the 1 mm over which colour areas are proposed; give the pixel size in micrometres "
-                      "(0.1 mm = 100 um) or the areas as a label image"], r.stderr
+    # refused as typed, before any work (uvps.errors.PIXEL_SIZE_RANGE_UM); a library call with such
+    # a size meets propose_regions' own one-line refusal (the test above)
+    assert errors == ["uvps run: error: pixel_size_um 0.1 um is not a pixel size on a painting (1-1000 um); "
+                      "give it in micrometres (0.1 mm = 100 um)"], r.stderr

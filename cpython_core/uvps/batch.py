@@ -35,7 +35,7 @@ import tifffile
 
 from . import __version__
 from .errors import UVPSComputeError, UVPSError, UVPSInputError
-from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_tiff, sha256_file
+from .io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, sha256_file
 from .measure import COLUMNS, atomic_write_text, read_protrusions_csv
 from .outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
 from .capture_commands import cmd_run
@@ -101,7 +101,7 @@ def list_captures(items) -> list:
         p = Path(item)
         if p.is_file():
             base = p.parent
-            lines = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
+            lines = [ln.split("#", 1)[0].strip() for ln in read_text(p, "captures: the list", "one capture folder a line").splitlines()]
             listed = [base / ln if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln]
             if not listed:
                 raise UVPSInputError(f"captures: the list {p} names no capture folder")
@@ -215,6 +215,15 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+def failure_kind(exc: BaseException) -> str:
+    """Why a capture failed, as the exit status counts it: ``"input"`` (bad input the user can
+    fix: :class:`UVPSInputError`), ``"compute"`` (:class:`UVPSComputeError`) or ``"internal"``
+    (anything else: a bug, a worker killed)."""
+    if isinstance(exc, UVPSInputError):
+        return "input"
+    return "compute" if isinstance(exc, UVPSComputeError) else "internal"
+
+
 def _swap_into_place(tmp: Path, target: Path) -> None:
     """Rename the finished ``tmp`` to ``target``; an old ``target`` is moved aside first and then
     removed. At every moment ``target`` is absent, the old run or the new one, never a mix."""
@@ -270,7 +279,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
         record.update(read_counts(target))
     except Exception as exc:  # noqa: BLE001 - one capture's failure is its record, not the batch's
         log.debug("%s failed", name, exc_info=True)
-        record.update(status="failed", error=_one_line(exc))
+        record.update(status="failed", error=_one_line(exc), failure=failure_kind(exc))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     record["elapsed_s"] = round(time.perf_counter() - t0, 3)
@@ -375,7 +384,7 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     out_dir.mkdir(exist_ok=True)
     _clean_temporaries(out_dir)
     records = {j.name: {"capture": j.name, "folder": str(j.folder), "status": "failed", "error": j.error,
-                        "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}
+                        "failure": "input", "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}
     todo = [j for j in jobs if not j.error]
     report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
     cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
@@ -390,7 +399,7 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                 rec = fut.result()
             except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
                 rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
-                       "error": _one_line(exc), "warnings": [], "elapsed_s": None}
+                       "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
             records[j.name] = rec
             _report_counts(progress, records, len(jobs))
     finally:
@@ -410,9 +419,26 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     result.elapsed_s = round(time.perf_counter() - t0, 3)
     write_summary(result, params)
     if result.count("failed") == len(jobs):
-        raise UVPSComputeError(f"every capture failed ({len(jobs)}), e.g. {result.warnings[0]}; "
-                               f"see {out_dir / SUMMARY}")
+        raise all_failed(result.records, out_dir / SUMMARY)
     return result
+
+
+def all_failed(records, summary: Path) -> UVPSError:
+    """The error of a batch in which every capture failed: a :class:`UVPSInputError` (exit
+    status 1) when every failure is bad input the user can fix, else a
+    :class:`UVPSComputeError` (exit status 2). Its ``details`` are one line per capture
+    (``"<capture>: <its problem>"``), printed before the message by the command line."""
+    kinds = [r.get("failure") or "internal" for r in records]
+    n_input = kinds.count("input")
+    if n_input == len(records):
+        exc = UVPSInputError(f"every capture failed on bad input ({len(records)}, each named with its problem "
+                             f"above and in {summary}); fix them and run again")
+    else:
+        exc = UVPSComputeError(f"every capture failed ({len(records)}: {n_input} on bad input, "
+                               f"{len(records) - n_input} while computing; each named with its problem above "
+                               f"and in {summary})")
+    exc.details = [f"{r['capture']}: {r['error']}" for r in records]
+    return exc
 
 
 def _remove(folder: Path, names) -> None:
@@ -506,8 +532,8 @@ def read_layout(path, jobs) -> dict:
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"mosaic: layout {path} does not exist")
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = list(csv.DictReader(read_text(path, "mosaic: layout", "a CSV with columns capture,x_px,y_px")
+                               .splitlines()))
     if not rows or not {"capture", "x_px", "y_px"} <= set(rows[0]):
         raise UVPSInputError(f"mosaic: layout {path} must have the columns capture,x_px,y_px")
     by_name = {j.name: j for j in jobs}

@@ -266,11 +266,13 @@ def run_bridge(request_path) -> int:
     except UVPSInputError as exc:
         code = 1
         response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
+        response["warnings"] += list(getattr(exc, "details", ()))
         log.error("%s: %s", type(exc).__name__, _one_line(exc))
     except Exception as exc:  # noqa: BLE001 - the bridge must answer whatever happened
         code = 2
         exc = _cancellation_in(exc) or exc
         response["error"] = {"type": type(exc).__name__, "message": _one_line(exc)}
+        response["warnings"] += list(getattr(exc, "details", ()))
         if isinstance(exc, Cancelled):
             log.error("%s", _one_line(exc))
         else:

@@ -3,7 +3,7 @@
 Every sub-command's flags come from its :class:`uvps.spec.CommandSpec` (``uvps.commands.COMMANDS``);
 two more are the CLI's own: ``uvps bridge REQUEST.json`` (the Fiji side's entry, ``uvps.bridge``) and
 ``uvps spec`` (the declarations as JSON for the Fiji side, or as the Markdown of docs/commands.md).
-Exit status: 0 ok, 1 bad input, 2 anything else.
+Exit status: 0 ok, 1 bad input (a mistyped command line included), 2 anything else.
 """
 from __future__ import annotations
 
@@ -26,9 +26,19 @@ log = logging.getLogger(__name__)
 _REPORTING = ("demo", "run", "stats", "report")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, but a mistyped command line is bad input like any other: its usage, one
+    line naming the argument and where to look, exit status 1 (argparse's own is 2, which uvps
+    keeps for failures the user cannot fix). Sub-command parsers are of this class too."""
+
+    def error(self, message):
+        self.print_usage(sys.stderr)
+        self.exit(1, f"{self.prog}: error: {message}; see {self.prog} --help\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``uvps`` parser: one sub-command per declared command, plus ``bridge`` and ``spec``."""
-    ap = argparse.ArgumentParser(prog="uvps", description="Photometric stereo by UV-induced fluorescence "
+    ap = _Parser(prog="uvps", description="Photometric stereo by UV-induced fluorescence "
                                  "(lights from the images, normals, albedo, height, protrusions).")
     ap.add_argument("--version", action="version", version=f"uvps {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -76,6 +86,8 @@ def _run_command(a) -> int:
     try:
         result = spec(inputs, params, out, progress=bar)
     except UVPSError as exc:
+        for line in getattr(exc, "details", ()):   # e.g. one line per failed capture of a batch
+            print(f"uvps {a.command}: {line}", file=sys.stderr)
         print(f"uvps {a.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
               file=sys.stderr)
         return exc.exit_code

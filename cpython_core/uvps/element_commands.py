@@ -10,6 +10,7 @@ element names as slice labels), ``elements_by_area.csv``, ``elements_by_protrusi
 from __future__ import annotations
 
 import csv
+import io
 import html
 import math
 import re
@@ -23,7 +24,7 @@ import tifffile
 from .elements import (ElementMaps, area_elements, protrusion_elements, rank_correlations, register_maps,
                        resample_to_run)
 from .errors import UVPSInputError
-from .io import read_tiff, sha256_file, write_imagej_tiff
+from .io import read_text, read_tiff, sha256_file, write_imagej_tiff
 from .measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from .outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report
 from .regions import load_regions, region_statistics, bin_names
@@ -139,7 +140,7 @@ def read_edf(path: Path) -> np.ndarray:
 
 
 def _read_table_maps(path: Path) -> tuple:
-    text = Path(path).read_text(encoding="utf-8-sig", errors="replace")
+    text = read_text(path, "element map", "a TIFF, an EDF file or a text table with row and column columns")
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if len(lines) < 2:
         raise UVPSInputError(f"element map {path}: a table needs a header line and rows")
@@ -248,7 +249,8 @@ def read_control_points(path, *, map_shape, run_shape) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"control points {path} do not exist")
-    with open(path, newline="", encoding="utf-8-sig") as fh:
+    text = read_text(path, "control points", "a CSV with columns map_col, map_row, run_col, run_row")
+    with io.StringIO(text, newline="") as fh:
         reader = csv.DictReader(fh)
         need = ("map_col", "map_row", "run_col", "run_row")
         fields = [f.strip() for f in (reader.fieldnames or [])]

@@ -41,6 +41,18 @@ log = logging.getLogger(__name__)
 
 PathLike = Union[str, os.PathLike]
 
+
+def read_text(path: PathLike, what: str, expected: str) -> str:
+    """The text of a file the user gave as text (a table, a light file, a list), UTF-8 with or
+    without a BOM; a binary file (an image given for a table) is a one-line
+    :class:`UVPSInputError` naming ``what`` and the file and saying what was ``expected``,
+    not a UnicodeDecodeError."""
+    try:
+        return Path(path).read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise UVPSInputError(f"{what} {path} is not a text file (an image?); expected {expected}") from None
+
+
 TIFF_EXTS = (".tif", ".tiff")
 PNG_EXTS = (".png",)
 JPEG_EXTS = (".jpg", ".jpeg")
@@ -692,7 +704,8 @@ def read_lp(path: PathLike) -> LightFile:
     if not path.is_file():
         raise UVPSInputError(f"light file {path} does not exist")
     numbered = [(i, ln.strip()) for i, ln in
-                enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1)]
+                enumerate(read_text(path, "light file", "a count then 'file x y z' lines").splitlines(),
+                          start=1)]
     numbered = [(i, ln) for i, ln in numbered if ln and not ln.startswith("#")]
     if not numbered:
         raise UVPSInputError(
@@ -794,8 +807,8 @@ def read_positions(path: PathLike) -> LightPositions:
                 intensities.append(_check_intensity(number, str(value),
                                                     f"light positions file {path} light {k + 1}"))
     else:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
+        text = read_text(path, "light positions file", "a CSV with columns file,x_mm,y_mm,z_mm")
+        rows = list(csv.DictReader(text.splitlines()))
         need = ("x_mm", "y_mm", "z_mm")
         if not rows or any(k not in rows[0] for k in need):
             raise UVPSInputError(

@@ -20,7 +20,7 @@ from scipy import ndimage as ndi
 from skimage.measure import regionprops_table
 
 from .errors import UVPSInputError, check_pixel_size
-from .io import write_imagej_tiff
+from .io import read_text, write_imagej_tiff
 from .outputs import atomic_path
 
 log = logging.getLogger(__name__)
@@ -354,8 +354,8 @@ def read_protrusions_csv(path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"protrusion table {path} does not exist")
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    rows = list(csv.reader(read_text(path, "protrusion table", "a CSV with columns x_px,y_px,width_um")
+                           .splitlines()))
     if not rows:
         raise UVPSInputError(f"protrusion table {path} is empty; expected a header with "
                              "x_px,y_px,width_um")

@@ -129,7 +129,11 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     if repeated:
         warnings.append(f"{len(repeated)} of {len(seeds)} clicks fell inside an earlier click's outline and add no "
                         f"protrusion (repeated clicks: {_click_list(repeated)})")
-    if single:
+    if single and params["method"] == "imagej":
+        warnings.append(f"{len(single)} clicks selected only their own pixel ({_click_list(single)}): a tolerance of "
+                        f"{tolerance:g} albedo units is below the albedo's pixel-to-pixel variation; raise it, or use "
+                        "the default method 'relative'")
+    elif single:
         warnings.append(f"{len(single)} clicks could not be outlined (no contrast against their surroundings: "
                         f"{_click_list(single)}); click the protrusion's brightest part, or use method 'imagej' "
                         "with a tolerance")

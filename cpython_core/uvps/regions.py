@@ -28,7 +28,7 @@ from skimage.morphology import disk
 from skimage.transform import downscale_local_mean
 
 from .errors import UVPSInputError, check_pixel_size
-from .io import read_image, read_tiff
+from .io import read_image, read_text, read_tiff
 from .measure import atomic_write_text, table_to_csv_text
 from .outputs import report
 
@@ -145,8 +145,8 @@ def read_region_names(path) -> dict:
             raise UVPSInputError(f"region names file {path}: expected an object label -> name")
         items = raw.items()
     else:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
+        rows = list(csv.DictReader(read_text(path, "region names file", "a CSV with columns label,name")
+                                   .splitlines()))
         if rows and not {"label", "name"} <= set(rows[0]):
             raise UVPSInputError(f"region names file {path}: header must contain label,name")
         items = [(r["label"], r["name"]) for r in rows]

@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from .errors import UVPSInputError
+from .errors import UVPSInputError, check_plausible_pixel_size
 
 #: Parameter types: how a value is checked, coerced, put on the command line and in a dialog.
 TYPES = ("str", "int", "float", "bool", "numbers", "path", "paths", "choice", "shape")
@@ -150,6 +150,9 @@ def _number(p: Param, v, kind=float):
     lo_bad = p.minimum is not None and (f <= p.minimum if p.exclusive_minimum else f < p.minimum)
     if lo_bad or (p.maximum is not None and f > p.maximum):
         raise UVPSInputError(f"{p.name} must be {_expected(p)}; got {v!r}")
+    if p.name == "pixel_size_um":
+        # a size the user typed: refused outside what a photograph of a painting has (mm typed as um)
+        check_plausible_pixel_size(f, p.name)
     return int(f) if kind is int else f
 
 

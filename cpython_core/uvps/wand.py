@@ -57,9 +57,11 @@ def _check_seed(i: int, x: int, y: int, finite: np.ndarray) -> None:
     """A click must fall inside the image, on a pixel with a value (both wands)."""
     m, n = finite.shape
     if not (0 <= x < n and 0 <= y < m):
-        raise UVPSInputError(f"seed {i} at (x={x}, y={y}) is outside the image of {n} x {m} pixels (x, y)")
+        raise UVPSInputError(f"click {i + 1} at (x={x}, y={y}) px is outside the image of {n} x {m} pixels (x, y); "
+                             "are the points in another unit? (a points file's header names it: x_px, x_um or x_mm)")
     if not finite[y, x]:
-        raise UVPSInputError(f"seed {i} at (x={x}, y={y}) falls on a NaN pixel")
+        raise UVPSInputError(f"click {i + 1} at (x={x}, y={y}) px falls on a pixel without a value (NaN: masked "
+                             "or not measured); click inside the measured area")
 
 
 def wand_select(image, seeds, *, tolerance, connectivity=8, rgb="mean") -> np.ndarray:

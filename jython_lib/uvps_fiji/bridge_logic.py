@@ -959,11 +959,46 @@ def points_csv_text(points):
 # Names of a run's windows, and its relief scale
 # ---------------------------------------------------------------------------------------------
 
+def run_label(run_dir):
+    """The name a run goes by in titles: its folder's name (``"region1"``)."""
+    return os.path.basename(os.path.normpath(run_dir or "")) or "run"
+
+
 def run_title(name, run_dir):
     """The title of a window, table or ROI set of one run: ``"albedo - region1"`` (the run
     folder's name), so that two runs' results never share a title."""
-    label = os.path.basename(os.path.normpath(run_dir or "")) or "run"
-    return "%s - %s" % (name, label)
+    return "%s - %s" % (name, run_label(run_dir))
+
+
+#: The two sources of protrusion outlines: the ROI names' first word -> (the run folder's table
+#: of them, the title of its table window). Wand Count's manual outlines and Detect Protrusions'
+#: automatic ones are kept apart: each replaces only its own kind of the same run.
+OUTLINE_KINDS = {"auto": ("protrusions.csv", "Protrusions"),
+                 "manual": ("protrusions_manual.csv", "Manual protrusions")}
+
+
+def outline_name(kind, number, run_dir):
+    """The ROI name of protrusion ``number`` of one kind and run: ``"manual 12 - region1"``."""
+    return "%s %d - %s" % (kind, number, run_label(run_dir))
+
+
+def outline_kind(name, run_dir=None):
+    """``"auto"`` or ``"manual"`` when ``name`` is a protrusion outline's ROI name (of the run
+    ``run_dir``, when given), else None (a user's ROI, a sphere, another run's outline)."""
+    import re
+    match = re.match(r"^(auto|manual) \d+ - (.+)$", name or "")
+    if match is None:
+        return None
+    if run_dir is not None and match.group(2) != run_label(run_dir):
+        return None
+    return match.group(1)
+
+
+def added_by_uvps(name):
+    """Whether a ROI name is one uvps gives (a protrusion outline, a calibration sphere's circle:
+    ``display.show_spheres``), so that Colour Areas never reads it as a user's colour area."""
+    import re
+    return outline_kind(name) is not None or re.match(r"^sphere \d+ \(", name or "") is not None
 
 
 def relief_scale(run_dir):
@@ -1353,30 +1388,3 @@ def clicks_line(diag, where, automatic=True):
         else:
             line += " as the field \"Units of the points file\" says"
     return line
-
-
-def repeated_clicks(points, labels_at):
-    """Clicks that fell inside an earlier click's selection (or on no valid pixel).
-
-    Parameters
-    ----------
-    points : list of (x, y)
-    labels_at : list of int
-        The protrusion label under each click (0: none).
-
-    Returns
-    -------
-    list of (int, (x, y), int or None)
-        ``(click number, position, earlier click number)``, 1-based; ``None`` when the click
-        selected nothing.
-    """
-    first = {}
-    out = []
-    for i, (pt, label) in enumerate(zip(points, labels_at)):
-        if label <= 0:
-            out.append((i + 1, pt, None))
-        elif label in first:
-            out.append((i + 1, pt, first[label]))
-        else:
-            first[label] = i + 1
-    return out

@@ -186,11 +186,13 @@ def write_points(points, request_dir):
 
 
 def area_rois():
-    """Return the area ROIs (not points, not lines) of the ROI Manager, in its order."""
+    """Return the area ROIs (not points, not lines) of the ROI Manager, in its order, leaving
+    out the ROIs uvps added itself (protrusion outlines, sphere circles)."""
     manager = RoiManager.getInstance()
     if manager is None:
         return []
-    return [roi for roi in manager.getRoisAsArray() if roi.isArea()]
+    return [roi for roi in manager.getRoisAsArray()
+            if roi.isArea() and not bridge_logic.added_by_uvps(roi.getName())]
 
 
 def write_label_image(rois, width, height, path):

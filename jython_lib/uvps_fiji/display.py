@@ -19,8 +19,9 @@ from ij.plugin.frame import RoiManager
 from uvps_fiji import bridge_logic
 from uvps_fiji.bridge_logic import BridgeError
 
-#: Colour of protrusion outlines (the paper's figure 3b uses a red overlay).
-PROTRUSION_COLOUR = Color(255, 0, 0)
+#: Colours of protrusion outlines by source (``bridge_logic.OUTLINE_KINDS``): the automatic
+#: ones red (the paper's figure 3b), the manual ones yellow, so both can be seen on one albedo.
+OUTLINE_COLOURS = {"auto": Color(255, 0, 0), "manual": Color(255, 220, 0)}
 
 
 def open_image(path, title=None, show=True):
@@ -90,8 +91,9 @@ def _column(table, name):
     return table.getColumnAsDoubles(table.getColumnIndex(name))
 
 
-def protrusion_rois(table, labels_imp=None, pixel_size_um=None, name="protrusion"):
-    """Make one ROI per protrusion row.
+def protrusion_rois(table, labels_imp=None, pixel_size_um=None, kind="auto", run_dir=None):
+    """Make one ROI per protrusion row, named by its source and run (``"auto 12 - region1"``,
+    ``bridge_logic.outline_name``) and coloured by its source (:data:`OUTLINE_COLOURS`).
 
     The outline is traced in the label image (``protrusions_labels.tif``) from the centroid with
     ImageJ's Wand when the centroid lies inside its own label; otherwise (ring-shaped label, no
@@ -124,8 +126,8 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, name="protrusion
             if widths is not None and pixel_size_um and widths[i] == widths[i]:
                 d = max(widths[i] / pixel_size_um, 1.0)
             roi = OvalRoi(xs[i] + 0.5 - d / 2.0, ys[i] + 0.5 - d / 2.0, d, d)
-        roi.setName("%s %d" % (name, label))
-        roi.setStrokeColor(PROTRUSION_COLOUR)
+        roi.setName(bridge_logic.outline_name(kind, label, run_dir))
+        roi.setStrokeColor(OUTLINE_COLOURS[kind])
         rois.append(roi)
     return rois
 
@@ -161,9 +163,14 @@ def show_spheres(image_path, spheres, title="sphere capture (detections)"):
 
 
 def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrusions",
-                     images=()):
-    """Open ``protrusions.csv`` as a table, its outlines in the ROI Manager and as an overlay on
-    the albedo and ``images`` (e.g. the height map; their other overlay items stay).
+                     images=(), kind="auto", run_dir=None, replace=None):
+    """Open a protrusion table (``protrusions.csv`` or ``protrusions_manual.csv``) as the table
+    window ``title``, its outlines in the ROI Manager and as an overlay on the albedo and
+    ``images`` (e.g. the height map).
+
+    Only the outlines of ``kind`` of the same run are replaced (and those of the kinds listed in
+    ``replace``, e.g. a kind whose table the run folder no longer holds): the other source's
+    outlines, other runs' and the user's ROIs, and the images' other overlay items stay.
 
     Returns
     -------
@@ -176,9 +183,14 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
         if not os.path.isfile(labels_path):
             raise BridgeError("output label image %s is missing" % labels_path)
         labels_imp = IJ.openImage(labels_path)
-    rois = protrusion_rois(table, labels_imp, name=title)
+    rois = protrusion_rois(table, labels_imp, kind=kind, run_dir=run_dir)
+    gone = set([kind] + list(replace or ()))
+
+    def replaced(roi):
+        return bridge_logic.outline_kind(roi.getName(), run_dir) in gone
+
     manager = RoiManager.getInstance() or RoiManager()
-    replace_rois(manager, title + " ")
+    delete_rois(manager, replaced)
     for roi in rois:
         manager.addRoi(roi)
     for imp in [albedo_imp] + list(images):
@@ -186,7 +198,7 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
             continue
         overlay = imp.getOverlay() or Overlay()
         for i in reversed(range(overlay.size())):
-            if (overlay.get(i).getName() or "").startswith(title + " "):
+            if replaced(overlay.get(i)):
                 overlay.remove(i)
         for roi in rois:
             overlay.add(roi.clone())
@@ -195,13 +207,45 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     return table.size()
 
 
-def replace_rois(manager, prefix):
-    """Delete the ROIs whose names start with ``prefix`` (an earlier run's), keep the user's."""
-    old = [i for i, roi in enumerate(manager.getRoisAsArray())
-           if (roi.getName() or "").startswith(prefix)]
+def outlines_on(title, run_dir):
+    """Copies of the protrusion outlines of run ``run_dir`` on the overlay of the open image
+    ``title`` (none if it is not open): what a re-opened image should show again."""
+    imp = WindowManager.getImage(title)
+    overlay = imp.getOverlay() if imp is not None else None
+    if overlay is None:
+        return []
+    return [overlay.get(i).clone() for i in range(overlay.size())
+            if bridge_logic.outline_kind(overlay.get(i).getName(), run_dir) is not None]
+
+
+def add_to_overlay(imp, rois):
+    """Add ``rois`` to the overlay of ``imp`` (kept items first)."""
+    if imp is None or not rois:
+        return
+    overlay = imp.getOverlay() or Overlay()
+    for roi in rois:
+        overlay.add(roi)
+    imp.setOverlay(overlay)
+
+
+def forget_outlines(run_dir):
+    """Delete the ROI Manager's protrusion outlines of run ``run_dir`` (both kinds)."""
+    manager = RoiManager.getInstance()
+    if manager is not None:
+        delete_rois(manager, lambda roi: bridge_logic.outline_kind(roi.getName(), run_dir) is not None)
+
+
+def delete_rois(manager, which):
+    """Delete the ROI Manager's ROIs for which ``which(roi)`` holds; keep the others."""
+    old = [i for i, roi in enumerate(manager.getRoisAsArray()) if which(roi)]
     if old:
         manager.setSelectedIndexes(old)
         manager.runCommand("Delete")
+
+
+def replace_rois(manager, prefix):
+    """Delete the ROIs whose names start with ``prefix`` (an earlier run's), keep the user's."""
+    delete_rois(manager, lambda roi: (roi.getName() or "").startswith(prefix))
 
 
 def read_lights(path):
@@ -451,17 +495,3 @@ def show_wand_image(albedo_path, title):
     IJ.log("uvps: '%s' is the grey image the wand works on: use ImageJ's wand tool on it with "
            "the same tolerance to check a selection by hand" % title)
     return imp
-
-
-def values_at(path, points):
-    """The pixel values of a (label) image at points (x, y) in pixels; 0 outside."""
-    imp = IJ.openImage(path)
-    if imp is None:
-        raise BridgeError("ImageJ cannot open %s" % path)
-    ip = imp.getProcessor()
-    out = []
-    for x, y in points:
-        xi, yi = int(math.floor(x)), int(math.floor(y))
-        inside = 0 <= xi < ip.getWidth() and 0 <= yi < ip.getHeight()
-        out.append(int(round(ip.getPixelValue(xi, yi))) if inside else 0)
-    return out

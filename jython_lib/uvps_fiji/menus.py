@@ -95,26 +95,47 @@ def titled(name, run_dir):
     return bridge_logic.run_title(name, run_dir)
 
 
+def height_title(run_dir):
+    """``height (um) - <run>``, or ``relative height - <run>`` when the run's height scale is
+    relative."""
+    return titled(bridge_logic.HEIGHT_WORDS[bridge_logic.relief_scale(run_dir)][0], run_dir)
+
+
 def show_height(path, run_dir):
-    """The height map titled ``height (um) - <run>`` (``relative height - <run>`` when the
-    run's height scale is relative), its unit on the colour bar."""
-    scale = bridge_logic.relief_scale(run_dir)
-    return display.show_height(path, titled(bridge_logic.HEIGHT_WORDS[scale][0], run_dir), scale)
+    """The height map titled by :func:`height_title`, its unit on the colour bar."""
+    return display.show_height(path, height_title(run_dir), bridge_logic.relief_scale(run_dir))
 
 
-def _show_protrusions(response, csv_name, labels_name, run_dir, title):
-    """Open the protrusion table, its ROIs, and the albedo (RGB) and the height map with the
-    outlines as overlay; the table and the ROIs are named by ``title`` and the run."""
+def _show_protrusions(response, kind, run_dir):
+    """Open one kind's protrusion table (``bridge_logic.OUTLINE_KINDS``: "auto" from Detect
+    Protrusions, "manual" from Wand Count), its ROIs, and the albedo (RGB) and the height map
+    with the outlines as overlay. The albedo and the height are opened afresh, with the other
+    kind's outlines of the run carried over while the run folder still holds its table: both
+    kinds of one run are shown together, each replacing only its own."""
+    csv_name, title = bridge_logic.OUTLINE_KINDS[kind]
+    labels_name = csv_name.replace(".csv", "_labels.tif")
+    other = [k for k in bridge_logic.OUTLINE_KINDS if k != kind][0]
+    other_kept = os.path.isfile(os.path.join(run_dir, bridge_logic.OUTLINE_KINDS[other][0]))
+
+    def reopened(window_title, opener):
+        kept = display.outlines_on(window_title, run_dir) if other_kept else []
+        imp = opener()
+        display.add_to_overlay(imp, [r for r in kept
+                                     if bridge_logic.outline_kind(r.getName(), run_dir) == other])
+        return imp
+
     albedo = height = None
     albedo_path = os.path.join(run_dir, "albedo.tif")
     if os.path.isfile(albedo_path):
-        albedo = display.show_albedo(albedo_path, titled("albedo", run_dir))
+        albedo = reopened(titled("albedo", run_dir),
+                          lambda: display.show_albedo(albedo_path, titled("albedo", run_dir)))
     height_path = os.path.join(run_dir, "depth.tif")
     if os.path.isfile(height_path):
-        height = show_height(height_path, run_dir)
+        height = reopened(height_title(run_dir), lambda: show_height(height_path, run_dir))
     labels = response.file(labels_name) if response.has_file(labels_name) else None
-    return display.show_protrusions(response.file(csv_name), labels, albedo,
-                                    titled(title, run_dir), images=[height])
+    return display.show_protrusions(response.file(csv_name), labels, albedo, titled(title, run_dir),
+                                    images=[height], kind=kind, run_dir=run_dir,
+                                    replace=[] if other_kept else [other])
 
 
 def _show_lights(response, run_dir):
@@ -163,7 +184,7 @@ def detect_protrusions(values):
     out = run_folder(values)
     _run_file(values, "albedo.tif")
     response = run_command("detect", values)
-    _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out, "Protrusions")
+    _show_protrusions(response, "auto", out)
     return response
 
 
@@ -186,33 +207,18 @@ def wand_points(values, request_dir):
 
 def wand_count(values):
     """``wand``: the manual method; one wand selection per click on the albedo, then counted.
-    Clicks inside an earlier click's selection are listed in the Log; the grey (R+G+B)/3 image
-    the wand works on opens as ``albedo (R+G+B)/3`` for wanding by hand."""
+    Clicks that added no protrusion (inside an earlier click's outline, or outlined as their own
+    pixel only) are the core's one warning line in the Log; the grey (R+G+B)/3 image the wand
+    works on opens as ``albedo (R+G+B)/3`` for wanding by hand."""
     out = run_folder(values)
     albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
     points_path, where = wand_points(values, request_dir)
     response = run_command("wand", values, {"points": points_path}, None, request_dir,
                            skip=("points",))
-    diag = response.diagnostics
-    pixels = [tuple(p) for p in diag.get("points_px") or []]
     IJ.log("uvps Wand Count: %s" % bridge_logic.clicks_line(
-        diag, where, automatic=values.get("units") in (None, "", "Automatic")))
-    labels_path = response.file("protrusions_manual_labels.tif")
-    labels = display.values_at(labels_path, pixels)
-    repeated = bridge_logic.repeated_clicks(pixels, labels)
-    for number, (x, y), earlier in repeated:
-        if earlier is None:
-            IJ.log("uvps Wand Count: click %d at (%d, %d) px selected nothing (no valid "
-                   "albedo there)" % (number, x, y))
-        else:
-            IJ.log("uvps Wand Count: click %d at (%d, %d) px is inside the selection of "
-                   "click %d: counted once" % (number, x, y, earlier))
-    if repeated:
-        IJ.log("uvps Wand Count: %d of %d clicks added no protrusion (listed above); ImageJ's "
-               "own wand would keep each as a selection" % (len(repeated), len(pixels)))
-    count = _show_protrusions(response, "protrusions_manual.csv",
-                              "protrusions_manual_labels.tif", out, "Manual protrusions")
+        response.diagnostics, where, automatic=values.get("units") in (None, "", "Automatic")))
+    count = _show_protrusions(response, "manual", out)
     display.show_wand_image(albedo_path, titled("albedo (R+G+B)/3", out))
     IJ.log("uvps Wand Count: %d protrusions" % count)
     return response
@@ -284,9 +290,10 @@ def run_whole_pipeline(values):
     _show_lights(response, out)
     # The core detects whenever regions are set (or detect is ticked): show what it listed.
     if response.has_file("protrusions.csv"):
-        _show_protrusions(response, "protrusions.csv", "protrusions_labels.tif", out,
-                          "Protrusions")
+        _show_protrusions(response, "auto", out)
     else:
+        # the new run folder holds no protrusion table: the earlier run's outlines are gone with it
+        display.forget_outlines(out)
         show_height(response.file("depth.tif"), out)
         display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
     if response.has_file("report.html"):

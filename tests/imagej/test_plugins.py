@@ -101,7 +101,7 @@ print("depth lut %d,%d,%d %d,%d,%d" % (lut.getRed(0), lut.getGreen(0), lut.getBl
 items = [depth.getOverlay().get(i) for i in range(depth.getOverlay().size())]
 names = [r.getName() for r in items]
 print("depth overlay %d protrusions, bar %s" % (
-    len([n for n in names if n and n.startswith("Protrusions - run folder ")]),
+    len([n for n in names if n and n.startswith("auto ") and n.endswith(" - run folder")]),
     "calibration bar" in names))
 print("bar unit %s" % [r.getText() for r in items
                        if r.getName() == "calibration bar unit"][0].encode("ascii", "replace"))
@@ -392,7 +392,7 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     assert "rois %d" % len(clicked) in lines and "rows %d" % len(clicked) in lines
     # Outlines traced in the label image (4 = traced), not circles.
-    assert "type 4 Manual protrusions - truth run 1" in lines
+    assert "type 4 manual 1 - truth run" in lines
     _check_manual(run, clicked)
 
 
@@ -635,8 +635,11 @@ def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_r
     lines = _log_lines(result)
     assert ("uvps Wand Count: %d clicks from the file %s, read in um (the albedo's pixel size is "
             "15 um): its X, Y fit the image only in um" % (len(xs), points)) in lines, lines
-    assert ("uvps Wand Count: click %d at (%d, %d) px is inside the selection of click 1: "
-            "counted once" % (len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))) in lines, lines
+    # the repeated click: one line (the core's warning, naming it), nothing else about it
+    about = [ln for ln in lines if "#%d " % len(xs) in ln or "click %d " % len(xs) in ln]
+    assert about == ["uvps Wand Count warning: 1 of %d clicks fell inside an earlier click's outline "
+                     "and add no protrusion (repeated clicks: #%d at (%d, %d) px)"
+                     % (len(xs), len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))], lines
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     _check_manual(run, clicked)
     albedo = tifffile.imread(str(run / "albedo.tif")).astype(np.float64)
@@ -729,3 +732,84 @@ def test_the_menu_is_in_workflow_order(run_macro, imagej_home, write_plugin):
         "Integrate Height | - | Colour Areas | Detect Protrusions | Wand Count | Compare Counts | "
         "Statistics and Report | - | Relight | Compare Captures | Element Maps | Run Info | - | UVPS Settings"], \
         result.stdout
+
+
+#: A menu command that prints, for the ROI Manager and for the overlays of the albedo and height
+#: windows of "truth run", how many protrusion outlines of each source and run they hold and in
+#: which stroke colours.
+PROBE_OUTLINES = """import re
+from ij import WindowManager
+from ij.plugin.frame import RoiManager
+
+def tally(where, rois):
+    counts, colours = {}, {}
+    for roi in rois:
+        m = re.match(r"^(auto|manual) [0-9]+ - (.+)$", roi.getName() or "")
+        if m is None and where != "manager":
+            continue  # the calibration bar
+        key = "%s/%s" % (m.group(1), m.group(2)) if m else "other"
+        counts[key] = counts.get(key, 0) + 1
+        c = roi.getStrokeColor()
+        colours.setdefault(key, set()).add("%d,%d,%d" % (c.getRed(), c.getGreen(), c.getBlue())
+                                           if c is not None else "none")
+    for key in sorted(counts):
+        print("%s %s %d %s" % (where, key, counts[key], ";".join(sorted(colours[key]))))
+
+tally("manager", (RoiManager.getInstance() or RoiManager()).getRoisAsArray())
+for title in ("albedo - truth run", "height (um) - truth run"):
+    imp = WindowManager.getImage(title)
+    overlay = imp.getOverlay()
+    tally(title.split(" ")[0], [overlay.get(i) for i in range(overlay.size())] if overlay else [])
+print("probe done")
+"""
+
+
+def _probe_blocks(stdout):
+    """The probe's lines, one set per run of the probe, in order."""
+    blocks, current = [], set()
+    for line in stdout.splitlines():
+        if line == "probe done":
+            blocks.append(current)
+            current = set()
+        elif line.split(" ")[0] in ("manager", "albedo", "height"):
+            current.add(line)
+    return blocks
+
+
+def test_manual_and_automatic_outlines_are_kept_apart(run_macro, truth_run, tmp_path, imagej_home,
+                                                       write_plugin):
+    """Detect Protrusions then Wand Count on one run: the ROI Manager and the albedo's and height's
+    overlays hold both kinds, named "auto N - <run>" / "manual N - <run>", red and yellow. Wand
+    Count again replaces only the manual ones (their count does not double, the automatic ones
+    stay); Wand Count on another run leaves this run's outlines alone; the user's ROI stays."""
+    import shutil
+
+    run, clicked = truth_run
+    other = run.parent / "other run"
+    shutil.copytree(str(run), str(other))
+    points = tmp_path / "clicks.csv"
+    points.write_text("x_px,y_px\n" + "".join("%s,%s\n" % (r["x_px"], r["y_px"]) for r in clicked))
+    write_plugin(imagej_home, "Test/Probe_Outlines.py", PROBE_OUTLINES)
+    wand = 'run("Wand Count", "run=%s points=%s");\n'
+    result = run_macro('newImage("user", "8-bit black", 320, 240, 1);\n'
+                       'makeRectangle(1, 1, 20, 20);\nroiManager("add");\n'
+                       'run("Detect Protrusions", "run=%s");\n' % q(run)
+                       + wand % (q(run), q(points)) + 'run("Probe Outlines");\n'
+                       + wand % (q(run), q(points)) + wand % (q(other), q(points))
+                       + 'run("Probe Outlines");\n'
+                       + 'run("Detect Protrusions", "run=%s");\n' % q(run)
+                       + 'run("Probe Outlines");\n',
+                       timeout=TIMEOUT).check()
+    n_auto = len(_read_csv(run / "protrusions.csv"))
+    n_manual = len(_read_csv(run / "protrusions_manual.csv"))
+    assert n_auto > 0 and n_manual == len(clicked) and n_auto != n_manual
+    red, yellow = "255,0,0", "255,220,0"
+    both = {"%s auto/truth run %d %s" % (w, n_auto, red) for w in ("manager", "albedo", "height")} \
+        | {"%s manual/truth run %d %s" % (w, n_manual, yellow) for w in ("manager", "albedo", "height")}
+    first, second, third = _probe_blocks(result.stdout)
+    assert first == both | {"manager other 1 none"}, first          # and the user's rectangle
+    # Wand Count again on the same run, and on another run: this run's outlines unchanged
+    assert second - first == {"manager manual/other run %d %s" % (len(clicked), yellow)}, second
+    assert first <= second
+    # Detect again: only the automatic ones replaced
+    assert third == second, third
