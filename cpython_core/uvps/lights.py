@@ -850,11 +850,12 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers: int = 2):
     Zu = np.empty((4 * K, 3 * n))
     args = (np.ascontiguousarray(L), np.ascontiguousarray(along), scale, X, I, r, e, Zq, Zu)
     edges = np.linspace(0, n, max(1, min(int(workers), n)) + 1).astype(int)
+    # the first band in this thread: numba compiles (or loads from its cache) on a function's first
+    # call, and two threads making that call at once can fail to type it ("Unknown attribute 'shape'")
+    _vp_rows(*args, edges[0], edges[1])
     if len(edges) > 2:
-        with ThreadPoolExecutor(len(edges) - 1) as pool:
-            list(pool.map(lambda i: _vp_rows(*args, edges[i], edges[i + 1]), range(len(edges) - 1)))
-    else:
-        _vp_rows(*args, 0, n)
+        with ThreadPoolExecutor(len(edges) - 2) as pool:
+            list(pool.map(lambda i: _vp_rows(*args, edges[i], edges[i + 1]), range(1, len(edges) - 1)))
     return _assemble(r, e, Zq, Zu)
 
 

@@ -253,8 +253,10 @@ def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2,
                 ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=rows.start)
                 tif.write((slice(None), rows) if C else rows, ff)
 
+    one(0)        # in this thread: compiled readers (numba) are typed on their first call, never in two at once
+    report(progress, 1 / K, f"flat field 1/{K}")
     with ThreadPoolExecutor(max(1, int(workers))) as pool:
-        for i, _ in enumerate(pool.map(one, range(K))):
+        for i, _ in enumerate(pool.map(one, range(1, K)), start=1):
             report(progress, (i + 1) / K, f"flat field {i + 1}/{K}")
     return out
 

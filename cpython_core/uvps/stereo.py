@@ -324,9 +324,12 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
         return _solve_band(images, lights, *band, out, pixel_size_um=pixel_size_um, mask=mask,
                            saturation=saturation, ranks=ranks, shadow_cos=shadow_cos, dark_fraction=dark_fraction)
 
-    sq_sum, sq_n, n_invalid = 0.0, 0, 0
-    with _pool(workers, len(bands)) as pool:
-        for (_, r1), (s, n, bad) in zip(bands, pool.map(one, bands)):
+    # the first band in this thread: numba compiles (or loads from its cache) on a function's first
+    # call, and two threads making that call at once can fail to type it
+    sq_sum, sq_n, n_invalid = one(bands[0])
+    report(progress, bands[0][1] / M, f"normals: rows {bands[0][1]}/{M}")
+    with _pool(workers, len(bands) - 1) as pool:
+        for (_, r1), (s, n, bad) in zip(bands[1:], pool.map(one, bands[1:])):
             sq_sum, sq_n, n_invalid = sq_sum + s, sq_n + n, n_invalid + bad
             report(progress, r1 / M, f"normals: rows {r1}/{M}")
     if n_invalid:
