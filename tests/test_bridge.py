@@ -293,31 +293,49 @@ def test_subprocess_sigterm_cancels_cleanly(tmp_path):
 
 
 def test_a_cancellation_inside_compiled_code_is_reported_as_cancelled():
-    """SIGTERM's Cancelled raised while a numba function runs comes out as a SystemError chain
-    (seen with the block statistics kernel); the bridge finds it and answers Cancelled."""
+    """A Cancelled raised while a numba function runs comes out as a SystemError chain ("returned a
+    result with an exception set"); the bridge finds it down the chain and answers Cancelled."""
+    from uvps.bridge import Cancelled, _cancellation_in
+
+    try:
+        try:
+            raise Cancelled("cancelled: the bridge received SIGTERM")
+        except Cancelled as inner:
+            raise SystemError("<numba dispatcher> returned a result with an exception set") from inner
+    except SystemError as exc:
+        found = _cancellation_in(exc)
+    assert isinstance(found, Cancelled), repr(found)
+    assert _cancellation_in(ValueError("other")) is None
+
+
+def test_sigterm_stops_a_command_at_its_next_progress_report_and_a_second_one_at_once():
+    """SIGTERM only sets a flag (an exception raised by a signal handler inside a compiled call can
+    crash the interpreter); the command stops at its next progress report; when none comes within
+    the grace period, a second SIGTERM interrupts it wherever it is."""
     import os
     import signal
-    import threading
+    import time
 
-    import numpy as np
+    import uvps.bridge as bridge
 
-    from uvps.bridge import Cancelled, _cancellation_in
-    from uvps.offset import block_stats
+    import io
 
-    def handler(signum, frame):
-        raise Cancelled("cancelled: the bridge received SIGTERM")
-
-    old = signal.signal(signal.SIGTERM, handler)
-    img = np.ones((1500, 2000, 3), np.uint16)
-    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    printer = bridge._progress_printer(io.StringIO())
+    with pytest.raises(bridge.Cancelled):
+        with bridge._sigterm_cancels():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)                     # the handler runs: nothing is raised yet
+            assert bridge._CANCEL.is_set()
+            printer(0.5, "next step")
+    assert not bridge._CANCEL.is_set()
+    old, bridge.CANCEL_GRACE_S = bridge.CANCEL_GRACE_S, 0.2
+    t0 = time.monotonic()
     try:
-        timer.start()
-        with pytest.raises(BaseException) as info:
-            for _ in range(100000):
-                block_stats(img, 42, 65535)
+        with pytest.raises(bridge.Cancelled):
+            with bridge._sigterm_cancels():
+                os.kill(os.getpid(), signal.SIGTERM)
+                while time.monotonic() - t0 < 30:   # a long step that reports no progress
+                    time.sleep(0.01)
     finally:
-        timer.cancel()
-        signal.signal(signal.SIGTERM, old)
-    found = _cancellation_in(info.value)
-    assert isinstance(found, Cancelled), repr(info.value)
-    assert _cancellation_in(ValueError("other")) is None
+        bridge.CANCEL_GRACE_S = old
+    assert time.monotonic() - t0 < 10

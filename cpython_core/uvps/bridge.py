@@ -164,8 +164,17 @@ def _jsonable(obj: Any) -> Any:
     return str(obj)
 
 
+#: Set by SIGTERM while a command runs (:func:`_sigterm_cancels`); the next progress report raises
+#: :class:`Cancelled` there.
+_CANCEL = threading.Event()
+#: Seconds after a first SIGTERM before the command is interrupted wherever it is.
+CANCEL_GRACE_S = 2.0
+
+
 def _progress_printer(stream) -> Callable[[float, str], None]:
     def progress(fraction: float, message: str) -> None:
+        if _CANCEL.is_set():
+            raise Cancelled("cancelled: the bridge received SIGTERM")
         fraction = min(max(float(fraction), 0.0), 1.0) if math.isfinite(fraction) else 0.0
         text = " ".join(str(message).split())
         stream.write(f"PROGRESS {fraction:.4f} {text}\n")
@@ -207,20 +216,36 @@ def _sigterm_cancels():
 
     So a Cancel on the Fiji side (which terminates the process) unwinds normally: the command's
     temporary output folder is removed, the run folder stays as it was, and the response says
-    ``Cancelled``.
+    ``Cancelled``. The first SIGTERM sets :data:`_CANCEL`, and the command stops at its next progress
+    report, between two steps; only when none comes within :data:`CANCEL_GRACE_S` does a second
+    SIGTERM raise :class:`Cancelled` wherever the command is. (An exception raised by a signal handler
+    while a compiled (numba) function is being called can crash the interpreter: seen as a
+    segmentation fault in ``offset.block_stats``; the Fiji side kills the process 5 s after its
+    SIGTERM anyway.)
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def handler(signum, frame):
-        raise Cancelled("cancelled: the bridge received SIGTERM")
+    timers = []
 
+    def handler(signum, frame):
+        if _CANCEL.is_set():
+            raise Cancelled("cancelled: the bridge received SIGTERM")
+        _CANCEL.set()
+        timers.append(threading.Timer(CANCEL_GRACE_S, os.kill, (os.getpid(), signal.SIGTERM)))
+        timers[-1].daemon = True
+        timers[-1].start()
+
+    _CANCEL.clear()
     old = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
+        yield      # a command that ends before its next progress report has its whole result: it stands
     finally:
+        for t in timers:
+            t.cancel()
         signal.signal(signal.SIGTERM, old)
+        _CANCEL.clear()
 
 
 def run_bridge(request_path) -> int:
