@@ -127,25 +127,50 @@ def test_a_corrupted_capture_fails_alone_with_its_message(captures, client, tmp_
 
 @pytest.mark.slow
 def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path):
-    """One worker process killed (SIGKILL) while a capture is being written: the nanny starts a new
-    worker, the scheduler runs the task again, every run folder is whole, no temporary is left."""
+    """One worker process killed (SIGKILL) while a capture is being written (or, if its new folder is
+    not seen in time, while it runs): the nanny starts a new worker, the scheduler runs the task
+    again, every run folder is whole, no temporary is left."""
     out = tmp_path / "out"
     pids = list(client.run(os.getpid).values())
     killed = []
 
+    # a small capture is written in a few milliseconds: each worker holds its new folder open for a
+    # second after writing it (before the swap), so that the kill falls inside the write, not beside it
+    def hold_new_folders(seconds):
+        import uvps.runfolder as rf
+
+        original = getattr(rf, "_write_run_unheld", rf.write_run)
+
+        def write_run(*args, **kwargs):
+            written = original(*args, **kwargs)
+            time.sleep(seconds)
+            return written
+
+        rf._write_run_unheld = original
+        rf.write_run = write_run if seconds else original
+
+    client.run(hold_new_folders, 1.0)
+
     def kill_when_writing():
         deadline = time.time() + 60
+        started = time.time()
         while time.time() < deadline and not killed:
-            if out.is_dir() and any(p.name.startswith(".cap") for p in out.iterdir()):
+            writing = out.is_dir() and any(p.name.startswith(".cap") for p in out.iterdir())
+            # or, where the new folder is not seen in time, while the worker runs a capture
+            running = time.time() > started + 3 and any(client.processing(workers=None).values())
+            if writing or running:
                 os.kill(pids[0], signal.SIGKILL)
                 killed.append(pids[0])
-            time.sleep(0.002)   # the new folder exists only while the run writes it (a fraction of a second)
+            time.sleep(0.01)
 
     watcher = threading.Thread(target=kill_when_writing)
     watcher.start()
-    res = run_batch([captures], out, PARAMS, client=client)
-    watcher.join()
-    assert killed, "no capture was seen being written"
+    try:
+        res = run_batch([captures], out, PARAMS, client=client)
+    finally:
+        watcher.join()
+        client.run(hold_new_folders, 0)
+    assert killed, "no capture was seen being run or written"
     assert [r["status"] for r in res.records] == ["done"] * 3, res.records
     for name in ("cap1", "cap2", "cap3"):
         assert complete(out / name, captures / name, res_params(out, name))[0]
