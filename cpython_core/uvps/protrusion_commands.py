@@ -26,7 +26,7 @@ from .regions import load_regions, propose_regions, region_statistics, whole_ima
 from .report import plot_comparison_map, print_pdf, write_report
 from .runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
 from .spec import CommandSpec, Param, coerce
-from .wand import CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, _as_seed_array, contrast_select, read_seed_file, wand_select
+from .wand import CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, read_seed_file, read_seeds, wand_select
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ def _clicks(points, images, unit: str) -> SeedFile:
     """The wand's clicks: a clicks file in the units its header names (:func:`uvps.wand.read_seed_file`),
     or, from the bridge or Python, an (S, 2) list of ``(x, y)`` pixels."""
     if isinstance(points, (list, tuple, np.ndarray)):
-        return SeedFile(_as_seed_array(np.asarray(points, float), "inputs.points"), "px", True)
+        return SeedFile(read_seeds(points), "px", True)
     return read_seed_file(points, pixel_size_um=images.pixel_size_um, units=unit, shape=images.shape)
 
 

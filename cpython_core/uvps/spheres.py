@@ -504,8 +504,7 @@ def _fit_matte(v, normals, sat):
     dof = max(1, sel.sum() - cols)
     s2 = float(res @ res) / dof
     cov = s2 * np.linalg.pinv(A[sel, :cols].T @ A[sel, :cols])[:3, :3]
-    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel, \
-        A[:, :cols] @ coef
+    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel
 
 
 def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, per_image=1500):
@@ -683,7 +682,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
                 raise UVPSInputError(f"sphere capture {name}: the matte {where} shows no lit part that Lambert's "
                                      "law fits (no sphere there, the lamp off, or the sphere not matte); "
                                      "give the circles with --sphere-circles")
-            b, _, cov, n_used, rms = fit[:5]
+            b, _, cov, n_used, rms, _ = fit
             nb = np.linalg.norm(b)
             d = b / nb
             P = np.eye(3) - np.outer(d, d)
