@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Time uvps.detect.detect_protrusions alone at a given size (default 4000 x 3000).
+"""Time uvps.core.detect.detect_protrusions alone at a given size (default 4000 x 3000).
 
 The scene is ``make_capture(shape=(ROWS, COLS), n_lights=3, seed=SEED, noise=False)``'s true
 albedo, height and normals (the detector's input in a run, without the run around it). Prints the
@@ -19,8 +19,8 @@ import pstats
 import sys
 import time
 
-from uvps.detect import detect_protrusions
-from uvps.synthetic import make_capture
+from uvps.core.detect import detect_protrusions
+from uvps.testing.synthetic import make_capture
 
 
 def main(argv=None) -> int:

@@ -97,7 +97,7 @@ def main(argv=None):
 def results(work, home, build, display, out):
     """Run the whole pipeline on a synthetic capture and save the height map and the albedo as
     ImageJ shows them (overlays flattened)."""
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     capture = work / "capture"
     write_capture(make_capture(shape=(300, 400), n_lights=12, seed=3), capture, truth=False)

@@ -10,8 +10,8 @@ import pytest
 
 from uvps import bridge
 from uvps.errors import UVPSComputeError
-from uvps.io import read_capture, read_tiff, sha256_file, write_imagej_tiff
-from uvps.outputs import CommandResult, OutputSpec, atomic_output_dir
+from uvps.files.io import read_capture, read_tiff, sha256_file, write_imagej_tiff
+from uvps.files.outputs import CommandResult, OutputSpec, atomic_output_dir
 
 PX_UM = 20.0
 
@@ -176,7 +176,7 @@ def _run(req, *, module="uvps", extra=("bridge",)):
 
 def _bump_run(folder, shape=(48, 64)):
     """A run folder holding normals.tif of an analytic Gaussian bump; returns its height (um)."""
-    from uvps.synthetic import normals_from_height
+    from uvps.testing.synthetic import normals_from_height
 
     m, n = shape
     r, c = np.mgrid[:m, :n]
@@ -268,7 +268,7 @@ def test_subprocess_missing_request_and_python_m_uvps_bridge(tmp_path):
 
 
 def test_subprocess_sigterm_cancels_cleanly(tmp_path):
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     write_capture(make_capture(shape=(120, 160), n_lights=6), tmp_path / "cap", truth=False)
     (tmp_path / "run").mkdir()

@@ -1,5 +1,5 @@
-"""The card flat-field (uvps.card): synthetic cards under lamps with beams, vignetting, unequal power and
-stray light (uvps.synthetic.render_card), against the known normals and the card's known tilt."""
+"""The card flat-field (uvps.core.card): synthetic cards under lamps with beams, vignetting, unequal power and
+stray light (uvps.testing.synthetic.render_card), against the known normals and the card's known tilt."""
 import dataclasses
 import json
 import subprocess
@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.card import CardCalibration, apply_card, calibrate_card
+from uvps.core.card import CardCalibration, apply_card, calibrate_card
 from uvps.errors import UVPSInputError
-from uvps.lights import LightModel
-from uvps.pipeline import RunOptions, run
-from uvps.synthetic import SyntheticSpec, make_capture, render_card, render_dark_frame, write_capture
+from uvps.core.lights import LightModel
+from uvps.core.pipeline import RunOptions, run
+from uvps.testing.synthetic import SyntheticSpec, make_capture, render_card, render_dark_frame, write_capture
 
 #: Beams aimed off (cos^30, 5 deg), 40 % vignetting, lamps +-15 % in power, stray light: what a card
-#: is for (the top of each nuisance's range, uvps.synthetic.NUISANCE_TOP).
+#: is for (the top of each nuisance's range, uvps.testing.synthetic.NUISANCE_TOP).
 NUISANCES = ["beams", "vignetting", "unequal_lamps", "stray_light"]
 
 

@@ -1,8 +1,8 @@
-"""Tests of uvps.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
+"""Tests of uvps.core.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
 import numpy as np
 import pytest
 
-from uvps.detect import Detection, DetectionParams, detect_protrusions
+from uvps.core.detect import Detection, DetectionParams, detect_protrusions
 from uvps.errors import UVPSInputError
 
 PAINT = np.array([0.80, 0.73, 0.58], np.float32)      # beige fluorescence
@@ -178,7 +178,7 @@ def test_albedo_shape_mismatch():
 
 def test_synthetic_capture_recall_and_precision():
     """End to end on a small synthetic capture (ground-truth albedo and height plus noise)."""
-    synthetic = pytest.importorskip("uvps.synthetic")
+    synthetic = pytest.importorskip("uvps.testing.synthetic")
     cap = synthetic.make_capture(shape=(400, 500), seed=3, n_lights=3, noise=False)
     px = cap.spec.pixel_size_um
     rng = np.random.default_rng(7)
@@ -200,7 +200,7 @@ def test_synthetic_capture_recall_and_precision():
     assert np.median(np.abs(width / pr["width_um"][big][hit > 0] - 1)) < 0.15
 
 
-# --- shapes and surfaces the detector was not tuned to (uvps.synthetic.MIXED_SHAPES, NUISANCE_TOP)
+# --- shapes and surfaces the detector was not tuned to (uvps.testing.synthetic.MIXED_SHAPES, NUISANCE_TOP)
 
 
 def add_profile(h, centre, width_um, px, height_um, kind):
@@ -292,7 +292,7 @@ def test_unseen_two_scale_weave_measured_and_not_detected():
 
 def test_rejection_table_and_counts():
     """Every rejected candidate keeps the rule that rejected it; the counts add up."""
-    from uvps.detect import REJECTION_REASONS, REJECTION_RULES
+    from uvps.core.detect import REJECTION_REASONS, REJECTION_RULES
 
     assert [r.name for r in REJECTION_RULES] == list(REJECTION_REASONS)
     assert all(r.quantity and r.test for r in REJECTION_RULES)
@@ -397,7 +397,7 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi
     from skimage.morphology import diameter_opening
-    from uvps.detect import _diameter_opening
+    from uvps.core.detect import _diameter_opening
     rng = np.random.default_rng(seed)
     img = (ndi.gaussian_filter(rng.normal(size=(70, 90)), 2) * 10).astype(np.float32)
     img[10:20, 10:20] = np.round(img[10:20, 10:20])            # plateaus: shared levels
@@ -409,7 +409,7 @@ def test_diameter_opening_matches_skimage(seed):
 def test_weave_fit_recovers_two_sinusoids():
     """The separable fit: two sinusoids at frequencies between bins, their amplitudes, the
     weave's RMS and RMS slope (analytic) against the brute-force values."""
-    from uvps.detect import _fit_sinusoids, _sinusoids
+    from uvps.core.detect import _fit_sinusoids, _sinusoids
     m, n = 120, 150
     yy, xx = np.mgrid[:m, :n].astype(np.float64)
     freqs = np.array([[0.043, 0.061], [-0.0171, 0.0333]])
@@ -427,7 +427,7 @@ def test_weave_fit_recovers_two_sinusoids():
 
 def test_fill_holes_and_distance_match_scipy():
     from scipy import ndimage as ndi
-    from uvps.detect import _edt, _fill_holes
+    from uvps.core.detect import _edt, _fill_holes
     rng = np.random.default_rng(3)
     for level in (-0.3, 0.0, 0.3):
         mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
@@ -436,7 +436,7 @@ def test_fill_holes_and_distance_match_scipy():
 
 
 def test_median_matches_numpy():
-    from uvps.detect import _median
+    from uvps.core.detect import _median
     rng = np.random.default_rng(5)
     for n in (1, 2, 7, 50):
         x = rng.normal(size=n)

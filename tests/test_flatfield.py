@@ -4,7 +4,7 @@ import pytest
 from numpy.polynomial import legendre as L
 
 from uvps.errors import UVPSInputError
-from uvps.flatfield import block_grid, fit_dropoffs, flatfield, set_common
+from uvps.core.flatfield import block_grid, fit_dropoffs, flatfield, set_common
 
 M, N, DEG = 240, 320, 3
 

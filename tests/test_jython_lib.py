@@ -323,7 +323,7 @@ def test_an_error_of_the_real_core_reaches_the_fiji_side(tmp_path):
 
 @pytest.mark.slow
 def test_a_real_core_run_is_accepted_with_its_outputs(tmp_path):
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     write_capture(make_capture(shape=(60, 80), n_lights=6, seed=2), tmp_path / "cap",
                   truth=False)

@@ -33,7 +33,7 @@ import numpy as np
 from . import __version__
 from .commands import COMMANDS
 from .errors import UVPSComputeError, UVPSInputError, in_chain
-from .outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
+from .files.outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
 

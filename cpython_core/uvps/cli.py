@@ -17,7 +17,7 @@ from . import __version__
 from .bridge import run_bridge
 from .commands import COMMANDS
 from .errors import UVPSError, in_chain
-from .outputs import COMMITTED
+from .files.outputs import COMMITTED
 from .spec import add_parser, markdown, request_from_args, to_json
 
 log = logging.getLogger(__name__)

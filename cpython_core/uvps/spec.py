@@ -102,7 +102,7 @@ class CommandSpec:
     """A command: name, one-line help, parameters and the function that runs it.
 
     ``run(inputs, params, output_dir, *, progress)`` receives the coerced request (every declared
-    key present, defaults filled in) and returns a :class:`uvps.outputs.CommandResult`. Calling the
+    key present, defaults filled in) and returns a :class:`uvps.files.outputs.CommandResult`. Calling the
     spec coerces first: ``spec(inputs, params, output_dir, progress=None)``.
     """
 

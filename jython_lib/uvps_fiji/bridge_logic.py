@@ -1063,7 +1063,7 @@ def first_image(paths):
     return items[0] if os.path.isfile(items[0]) else None
 
 
-#: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
+#: The detection's rejection rules (uvps.core.detect.REJECTION_RULES) in a conservator's words.
 REJECTION_WORDS = {"too_small": "narrower than the smallest width",
                    "too_large": "wider than the largest width",
                    "ridge": "ridges and brush strokes", "crack": "crack edges and cupped rims",
@@ -1365,7 +1365,7 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
 
 
 # ---------------------------------------------------------------------------------------------
-# Wand clicks (the core reads the points file: uvps.wand.read_seed_file)
+# Wand clicks (the core reads the points file: uvps.core.wand.read_seed_file)
 # ---------------------------------------------------------------------------------------------
 
 #: What the core's ``points_unit`` of the wand means, in words.
