@@ -47,7 +47,8 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from uvps.core.changes import NOISE_MODEL, NoiseModel, Registration, change_uncertainty, compute_changes
+from uvps.core.changes import NOISE_MODEL, NoiseModel, Registration, change_uncertainty
+from uvps.commands.changes import compute_changes
 from uvps.errors import UVPSInputError
 from uvps.testing.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, write_capture
 

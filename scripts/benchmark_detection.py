@@ -41,7 +41,7 @@ from skimage.measure import regionprops_table
 
 from benchmark_protrusions import match
 from uvps.core.detect import detect_protrusions
-from uvps.core.measure import read_protrusions_csv
+from uvps.files.tables import read_protrusions_csv
 from uvps.testing.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
 
 KINDS = ("dome", "crater", "mesa", "irregular", "cluster", "dark", "weak", "on_stroke")

@@ -27,7 +27,7 @@ import numpy as np
 import tifffile
 
 from uvps.core.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
-from uvps.core.measure import write_label_tiff
+from uvps.files.tables import write_label_tiff
 from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 PX = 15.0

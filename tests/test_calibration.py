@@ -10,7 +10,7 @@ import pytest
 import tifffile
 
 from uvps.commands.batch import _side_files
-from uvps.commands.calibrate import calibration_of_run, read_calibration, read_dome, write_dome
+from uvps.files.calibration import calibration_of_run, read_calibration, read_dome, write_dome
 from uvps.files.io import sha256_file
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError

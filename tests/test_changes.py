@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from uvps import cli
-from uvps.core.changes import (COLUMNS, NOISE_MODEL, change_uncertainty, classify_changes, date_record,
-                          pair_inflation, register)
+from uvps.core.changes import COLUMNS, NOISE_MODEL, change_uncertainty, classify_changes, pair_inflation, register
+from uvps.commands.changes import date_record
 from uvps.commands import COMMANDS
 from uvps.files.io import read_tiff
 from uvps.testing.synthetic import (LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture,

@@ -6,11 +6,8 @@ import pytest
 import tifffile
 
 from uvps import commands
-
+from uvps.commands import COMMANDS, info
 from uvps.commands import protrusions as protrusion_commands
-
-from uvps.files import runfolder
-from uvps.commands import COMMANDS
 from uvps.files.runfolder import read_run
 from uvps.testing.synthetic import make_capture, write_capture
 
@@ -26,7 +23,7 @@ def test_every_declared_command_is_registered_once_by_name_and_alias():
     for s in declared:
         assert COMMANDS[s.name] is s and all(COMMANDS[a] is s for a in s.aliases)
     assert {"run", "lights", "normals", "detect", "wand", "stats", "report", "info"} <= set(COMMANDS)
-    assert COMMANDS["info"] in runfolder.SPECS and COMMANDS["detect"] in protrusion_commands.SPECS
+    assert COMMANDS["info"] in info.SPECS and COMMANDS["detect"] in protrusion_commands.SPECS
 
 
 @pytest.mark.slow

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from uvps.core.compare import COLUMNS, compare_detections, read_comparison_csv, write_comparison_csv
+from uvps.core.compare import COLUMNS, compare_detections
+from uvps.files.comparison import read_comparison_csv, write_comparison_csv
 from uvps.errors import UVPSInputError
 from uvps.core.regions import RegionMap
 

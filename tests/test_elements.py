@@ -16,8 +16,9 @@ import tifffile
 from uvps.commands.elements import read_control_points, read_edf, read_element_maps
 from uvps.core.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
 from uvps.errors import UVPSInputError
-from uvps.core.measure import write_label_tiff
-from uvps.core.regions import RegionMap, region_statistics, write_regions_csv
+from uvps.files.tables import write_label_tiff
+from uvps.core.regions import RegionMap, region_statistics
+from uvps.files.tables import write_regions_csv
 from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 PX = 15.0

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.core.flatfield import block_grid, fit_dropoffs, set_common
-from uvps.core.lights import (LightModel, azimuth_from_dropoff, estimate_lights, model_logs,
+from uvps.core.flatfield import block_grid, fit_dropoffs, with_common
+from uvps.core.lights import (LightModel, azimuth_from_dropoff, dropoff_common, estimate_lights, model_logs,
                          pixel_coordinates_mm, sample_pixels)
 from uvps.testing.synthetic import make_capture, render_images
 
@@ -31,9 +31,7 @@ def test_polar_azimuth_of_a_light_of_known_azimuth(az):
     images = _flat_capture(P).astype(np.float32)
     grid = block_grid(images)
     fits = fit_dropoffs(grid, degree=3)
-    shape = grid.shape
-    set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
-        np.asarray(r)[:, None], np.asarray(c)[None, :], shape, PX)).mean(axis=0))
+    fits = with_common(fits, grid, dropoff_common(P, grid.shape, PX))
     got = azimuth_from_dropoff(fits[0])
     assert abs((got - az + 180) % 360 - 180) < 1.0
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from uvps.files.io import Capture
+from uvps.core.stack import Capture
 from uvps.core.lights import LightModel, levenberg_marquardt, refine_intensities, sample_pixels
 from uvps.core.flatfield import block_grid, fit_dropoffs
 from uvps.core.pipeline import RunOptions, estimate_capture_lights, remove_additive

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.files.io import Capture
+from uvps.core.stack import Capture
 from uvps.core.offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
 from uvps.core.pipeline import RunOptions, remove_additive
 from uvps.testing.synthetic import make_capture

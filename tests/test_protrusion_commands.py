@@ -11,7 +11,7 @@ import tifffile
 from uvps.core.compare import compare_detections
 from uvps.errors import UVPSInputError
 from uvps.files.io import read_tiff, write_imagej_tiff
-from uvps.core.measure import read_protrusions_csv
+from uvps.files.tables import read_protrusions_csv
 from uvps.commands import COMMANDS
 from uvps.commands.protrusions import cmd_compare, cmd_detect, cmd_regions, \
     cmd_stats, cmd_wand

@@ -6,8 +6,8 @@ import pytest
 
 from uvps.errors import UVPSInputError
 from uvps.files.io import write_imagej_tiff
-from uvps.core.regions import (RegionMap, load_regions, propose_regions, region_statistics,
-                          write_regions_csv)
+from uvps.core.regions import RegionMap, propose_regions, region_statistics
+from uvps.files.tables import load_regions, write_regions_csv
 
 PX = 50.0  # um per pixel: 200 px = 1 cm
 

@@ -9,7 +9,8 @@ from matplotlib.image import imread
 
 from uvps.errors import UVPSInputError
 from uvps.files.io import write_imagej_tiff
-from uvps.core.measure import measure_protrusions, write_label_tiff, write_protrusions_csv
+from uvps.core.measure import measure_protrusions
+from uvps.files.tables import write_label_tiff, write_protrusions_csv
 from uvps.report.page import write_report
 
 PX = 20.0

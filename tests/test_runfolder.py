@@ -163,7 +163,7 @@ def test_a_run_with_given_lamps_has_an_absolute_relief_in_micrometres(run_dir):
 def test_a_relative_run_has_no_micrometre_heights(relative_run):
     import tifffile
 
-    from uvps.core.measure import read_protrusions_csv
+    from uvps.files.tables import read_protrusions_csv
     from uvps.files.runfolder import height_unit
 
     run, result = relative_run

@@ -158,7 +158,7 @@ def _half_dark_albedo(shape):
 
 
 def _far_capture(images, directions, intensities=None):
-    from uvps.files.io import Capture
+    from uvps.core.stack import Capture
 
     return Capture(images=np.asarray(images, np.float32), files=[f"i{k:02d}.tif" for k in range(len(images))],
                    pixel_size_um=PX, mask=None, saturation=None, light_directions=np.asarray(directions, float),

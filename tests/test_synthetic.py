@@ -552,7 +552,7 @@ def test_near_light_photometric_stereo_recovers_the_truth():
 
 
 def test_truth_table_reads_back_with_uvps_measure(tmp_path):
-    from uvps.core.measure import read_protrusions_csv
+    from uvps.files.tables import read_protrusions_csv
 
     cap = make_capture(shape=(200, 260), n_lights=3, protrusion_density_light=200.0, seed=2)
     write_capture(cap, tmp_path / "cap")

@@ -7,7 +7,7 @@ import tifffile
 
 from conftest import PYTHON_EXCEPTION_STATUS
 from uvps.core.elements import registration_error_map_px
-from uvps.core.measure import write_label_tiff
+from uvps.files.tables import write_label_tiff
 from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 pytestmark = pytest.mark.imagej

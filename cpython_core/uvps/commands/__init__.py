@@ -9,26 +9,12 @@ alias) to its spec. This module only collects: no command module imports it.
 """
 from __future__ import annotations
 
-from . import batch
-
-from . import calibrate as calibration
-
-from . import capture as capture_commands
-
-from ..core import changes
-
-from . import elements as element_commands
-
-from ..files import omezarr
-
-from . import protrusions as protrusion_commands
-
-from ..files import runfolder
+from . import batch, calibrate, capture, changes, elements, info, ome_zarr, protrusions
 
 #: The modules that declare commands (a ``SPECS`` tuple each). A command added to one of them is
 #: registered; a new module is added here.
-MODULES = (capture_commands.SPECS, protrusion_commands.SPECS, runfolder.SPECS, omezarr.SPECS, batch.SPECS,
-           changes.SPECS, calibration.SPECS, element_commands.SPECS)
+MODULES = (capture.SPECS, protrusions.SPECS, info.SPECS, ome_zarr.SPECS, batch.SPECS, changes.SPECS,
+           calibrate.SPECS, elements.SPECS)
 
 
 def _registry() -> dict:

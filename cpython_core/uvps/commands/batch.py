@@ -36,12 +36,13 @@ import tifffile
 from .. import __version__
 from ..errors import UVPSComputeError, UVPSError, UVPSInputError
 from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, sha256_file
-from ..core.measure import COLUMNS, atomic_write_text, read_protrusions_csv
+from ..core.measure import COLUMNS
+from ..files.tables import atomic_write_text, read_protrusions_csv
 from ..files.outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
-from .capture import cmd_run
-from ..core.pipeline import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS
-from ..core.regions import UM2_PER_CM2, load_regions, read_region_names
-from ..spec import CommandSpec, Param
+from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, run_into_folder
+from ..core.regions import UM2_PER_CM2
+from ..files.tables import load_regions, read_region_names
+from ..spec import CommandSpec, Param, coerce_value
 
 log = logging.getLogger(__name__)
 
@@ -128,14 +129,31 @@ def list_captures(items) -> list:
     return out
 
 
+#: The parameters of ``uvps run`` (all of them but its images): each capture runs with them.
+RUN_PARAMS = tuple(p for p in CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS if p.where == "params")
+#: What ``uvps run`` computes: the pipeline's stages (the flat-fielded images only when asked).
+RUN_STAGES = ("flatfield", "normals", "height")
+
+
 def _run_param_names() -> tuple:
-    return tuple(p.name for p in cmd_run.params if p.where == "params")
+    return tuple(p.name for p in RUN_PARAMS)
+
+
+def _run_params(params: dict) -> dict:
+    """``run``'s parameters among ``params``, checked as ``uvps run`` checks them; absent or empty
+    ones take their default."""
+    out = {}
+    for p in RUN_PARAMS:
+        given = params.get(p.name)
+        empty = given is None or (p.type == "paths" and given == []) or (p.type == "path" and given == "")
+        out[p.name] = p.default if empty else coerce_value(p, given)
+    return out
 
 
 def make_jobs(folders, params: dict) -> list:
     """A :class:`Job` per capture folder: the ``run`` parameters among ``params``, with the file
     parameters (:data:`PER_CAPTURE_FILES`) resolved for each folder."""
-    run_params = {k: params.get(k) for k in _run_param_names()}
+    run_params = _run_params(params)
     jobs = []
     for folder in folders:
         p, error = dict(run_params), None
@@ -271,7 +289,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
             record["status"] = "skipped"
         else:
             log.info("%s: running (%s)", name, why)
-            result = cmd_run({"images": [str(folder)]}, params, tmp)
+            result = run_into_folder("run", RUN_STAGES, {"images": [str(folder)]}, params, tmp)
             write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
                                                      "params": _jsonable(params), "files": _side_files(params)})
             _swap_into_place(tmp, target)

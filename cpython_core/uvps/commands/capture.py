@@ -8,143 +8,30 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
-from pathlib import Path
 
 import numpy as np
 
-from . import calibrate as calibration
-
-from . import protrusions as protrusion_commands
-
-from ..files import runfolder
-from ..files.runfolder import RunImages
 from ..core.integrate import integrate_normals
-from ..core.card import load_card
-from ..files.io import read_capture, write_imagej_tiff
-from ..files.outputs import (CommandResult, OutputSpec, atomic_output_dir, check_output_dir, new_output_dir, report,
-                      sub_progress)
-from ..core.pipeline import (CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RunOptions, given_lights,
-                       integration_diagnostics, run)
+from ..core.pipeline import integration_diagnostics
 from ..core.relight import relight
+from ..files import runfolder
+from ..files.io import write_imagej_tiff
+from ..files.outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
 from ..spec import CommandSpec, Param
+from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, run_into_folder
 
 log = logging.getLogger(__name__)
 
 _LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
 
 
-def read_request_capture(inputs: dict, params: dict, progress=None):
-    """The capture a request names (``inputs.images`` and the capture parameters)."""
-    images = inputs["images"]
-    if len(images) == 1:
-        images = images[0]
-    lights = None if params["lights"] == "estimate" else params["lights"]
-    return read_capture(images, lights=lights, mask=params["mask"], dark=params["dark"],
-                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"],
-                        pattern=params.get("pattern"), progress=progress)
-
-
-#: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
-REUSE_LIGHTS = ("flatfield", "normals")
-
-
 def _capture_command(name: str, stages: tuple):
     def cmd(inputs, params, output_dir, *, progress=None):
-        run_dir = check_output_dir(output_dir)
-        t_all = time.perf_counter()
-        params, cal = calibration.run_params(params)     # the calibration's lamps, dark frame, pixel size
-        if cal is None and name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
-            # step by step: the lamps of the folder's `lights` step, not a second estimate that
-            # could differ (and costs the most time)
-            params = {**params, "lights": str(run_dir / "lights.json")}
-            log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
-        capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
-        if cal is not None:
-            capture = calibration.apply(cal, capture)
-        protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
-        todo = stages
-        if name == "run" and not params.get("flatfield_images"):
-            # the flat-fielded images are twice the capture on disk (15 GB for 10000 x 8000 x 16) and
-            # 4.3 of a 4000 x 3000 run's 16 s; the normals divide by the same drop-off in memory
-            todo = tuple(s for s in stages if s != "flatfield")
-        card = None
-        if params.get("card"):
-            # the card's images with the capture's dark frame subtracted, as the capture's were
-            card = load_card(params["card"], lights=given_lights(capture), pixel_size_um=capture.pixel_size_um,
-                             dark=params["dark"], linearize=params["linearize"])
-        result = run(capture, RunOptions.from_params(params), stages=todo + (("protrusions",) if protrusions else ()),
-                     dark_given=params["dark"] is not None, regions=params.get("regions"), card=card,
-                     n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
-        if cal is not None:
-            result.diagnostics["calibration"] = cal.summary()
-            if result.relief:
-                result.relief = {**result.relief, "lamps": "calibration",
-                                 "reason": f"the lamps come from the calibration {cal.folder} "
-                                           f"({result.diagnostics['calibration'].get('route')}), which fixes "
-                                           "their elevation and so the heights' scale"}
-        if name != "run":
-            with atomic_output_dir(run_dir) as tmp:
-                outputs = runfolder.write_run(tmp, result, command=name, params=params, final=run_dir,
-                                              progress=sub_progress(progress, 0.9, 0.95))
-            out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-        else:
-            # the whole result, report and figures included, is built in a new folder that replaces
-            # the old one in one step: a run folder is never a mixture of two runs
-            dropped = _earlier_results(run_dir)
-            with new_output_dir(run_dir, carry_over=carried_over) as new:
-                outputs = runfolder.write_run(new, result, command=name, params=params, final=run_dir,
-                                              progress=sub_progress(progress, 0.9, 0.95))
-                out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-                if protrusions:
-                    out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
-                    for o in out.outputs:
-                        if Path(o.path).is_relative_to(new):
-                            o.path = str(run_dir / Path(o.path).relative_to(new))
-            if dropped:
-                out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
-                                    "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
-        out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
-        out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
-        report(progress, 1.0, f"{name}: done")
-        return out
+        return run_into_folder(name, stages, inputs, params, output_dir, progress=progress)
 
     cmd.__name__ = f"cmd_{name}"
     cmd.__doc__ = f"``{name}``: read a capture and write {', '.join(stages) or 'the lights'} into the run folder."
     return cmd
-
-
-#: What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the report's
-#: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
-#: of an earlier run (its flat-field, OME-Zarr stores, the wand's and compare's results) were made
-#: under its lamps and heights. Anything else in the folder (the user's clicks or notes, the demo's
-#: ``capture/``) is carried into the new folder unchanged.
-RUN_OWNED = frozenset(f for f, *_ in runfolder.FILES.values()) | {"figures", "relight.tif"}
-
-
-def carried_over(name: str) -> bool:
-    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
-    leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
-    return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
-
-
-def _earlier_results(run_dir: Path) -> list:
-    """The manual results of an earlier run in ``run_dir`` that a new run drops (the warning names them)."""
-    names = (runfolder.FILES["protrusions_manual"][0], runfolder.FILES["comparison"][0])
-    return [n for n in names if (Path(run_dir) / n).is_file()]
-
-
-def _statistics_and_report(run_dir, result, params, out, progress):
-    """``run`` with colour areas or detection: statistics and the report, from the arrays in memory
-    (the files just written hold the same float32 values)."""
-    st = result.stereo
-    images = RunImages(st.albedo, result.height.height_um, st.normals, result.capture.pixel_size_um,
-                       result.height.height_um.shape)
-    r = protrusion_commands.statistics_and_report(run_dir, images, bins_um=params["bins_um"], progress=progress)
-    out.outputs += r.outputs
-    out.diagnostics["stats"] = r.diagnostics
-    out.warnings += r.warnings
-    return out
 
 
 def _cmd_integrate(inputs, params, output_dir, *, progress=None):

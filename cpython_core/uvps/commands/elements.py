@@ -25,9 +25,10 @@ from ..core.elements import (ElementMaps, area_elements, protrusion_elements, ra
                        resample_to_run)
 from ..errors import UVPSInputError
 from ..files.io import read_text, read_tiff, sha256_file, write_imagej_tiff
-from ..core.measure import atomic_write_text, read_protrusions_csv, table_to_csv_text
+from ..files.tables import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from ..files.outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report
-from ..core.regions import load_regions, region_statistics, bin_names
+from ..core.regions import region_statistics, bin_names
+from ..files.tables import load_regions
 from ..files.runfolder import FILES, RunLog, read_run
 from ..spec import CommandSpec, Param
 

@@ -12,20 +12,23 @@ import dataclasses
 import logging
 import re
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
-from ..core.compare import compare_detections, write_comparison_csv
+from ..core.compare import compare_detections
+from ..files.comparison import write_comparison_csv
 from ..core.detect import DetectionParams
 from ..errors import UVPSInputError
-from ..core.measure import empty_table, measure_protrusions, read_protrusions_csv, write_label_tiff, write_protrusions_csv
+from ..core.measure import measure_protrusions
+from ..files.tables import read_protrusions_csv, write_label_tiff, write_protrusions_csv
 from ..files.outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, sub_progress
 from ..core.pipeline import find_protrusions, protrusion_diagnostics
-from ..core.regions import load_regions, propose_regions, region_statistics, whole_image, write_regions_csv
-from ..report.page import plot_comparison_map, print_pdf, write_report
-from ..files.runfolder import RunImages, is_relative, output_spec, read_run, relief_in, write_protrusions
-from ..spec import CommandSpec, Param, coerce
+from ..core.regions import propose_regions, whole_image
+from ..files.tables import load_regions
+from ..report.page import plot_comparison_map
+from ..files.runfolder import is_relative, output_spec, read_run, relief_in, write_protrusions
+from ..spec import CommandSpec, Param
+from ..workflow import _stats_and_csv, regions_for, statistics
 from ..core.wand import CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, read_seed_file, read_seeds, wand_select
 
 log = logging.getLogger(__name__)
@@ -33,22 +36,6 @@ log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------------
 # helpers
-
-
-def _regions_for(spec, run_dir: Path, images, *, n_areas=None, seed=0):
-    """Colour areas from ``params.regions``: a label TIFF path, "auto", or None (the run's
-    ``regions_labels.tif`` when present, else None). Returns (RegionMap or None, proposed?)."""
-    if spec is None:
-        spec = run_dir / "regions_labels.tif"
-        if not spec.is_file():
-            return None, False
-    if isinstance(spec, str) and spec == "auto":
-        if images.albedo is None:
-            raise UVPSInputError("regions='auto' needs the run's albedo.tif")
-        return propose_regions(images.albedo, pixel_size_um=images.pixel_size_um, n_areas=n_areas, seed=seed), True
-    if isinstance(spec, (list, tuple)):
-        return load_regions([Path(p) for p in spec], shape=images.shape), False
-    return load_regions(Path(spec), shape=images.shape), False
 
 
 def _write_labels(path: Path, labels: np.ndarray, px: float, info: str) -> None:
@@ -74,7 +61,7 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
     det_params = DetectionParams(**{k: params[k] for k in _DETECTION_FIELDS if params[k] is not None})
     report(progress, 0.0, "reading the run folder")
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params["pixel_size_um"])
-    regions, proposed = _regions_for(params["regions"], run_dir, images, n_areas=params["n_areas"],
+    regions, proposed = regions_for(params["regions"], run_dir, images, n_areas=params["n_areas"],
                                      seed=params["seed"])
     prot = find_protrusions(images.albedo, images.height_um, images.normals, pixel_size_um=images.pixel_size_um,
                             regions=regions, params=det_params, progress=sub_progress(progress, 0.1, 0.9))
@@ -108,7 +95,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params["pixel_size_um"])
     clicks = _clicks(inputs["points"], images, params["points_unit"])
     seeds = clicks.seeds
-    regions, _ = _regions_for(params["regions"], run_dir, images)
+    regions, _ = regions_for(params["regions"], run_dir, images)
     report(progress, 0.2, f"wand at {len(seeds)} points")
     if params["method"] == "imagej":
         labels = wand_select(images.albedo, seeds, tolerance=tolerance,
@@ -169,16 +156,6 @@ def _click_list(items, limit=8) -> str:
     return text + (f" and {len(items) - limit} more" if len(items) > limit else "")
 
 
-def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
-                   path: Optional[Path] = None):
-    # areas are usually registered before detection: no table yet means counts of 0, not a warning
-    path = path or run_dir / "protrusions.csv"
-    table = read_protrusions_csv(path) if path.is_file() else empty_table()
-    stats = region_statistics(table, regions, pixel_size_um=px, bins_um=bins_um)
-    write_regions_csv(tmp / "regions.csv", stats)
-    return stats
-
-
 def _cmd_regions(inputs: dict, params: dict, output_dir, *,
                 progress: Progress = None) -> CommandResult:
     """Colour areas: load a label TIFF or masks, or propose them from the albedo colour.
@@ -222,65 +199,10 @@ def _cmd_regions(inputs: dict, params: dict, output_dir, *,
     return CommandResult(outputs, diagnostics, warnings)
 
 
-def _cmd_stats(inputs: dict, params: dict, output_dir, *,
-              progress: Progress = None, images: Optional[RunImages] = None) -> CommandResult:
-    """Per-area statistics (``regions.csv``) and the report (``report.html``, ``figures/``).
-
-    ``regions``: a label TIFF, default the run's ``regions_labels.tif``, else the whole image;
-    ``table``: default ``protrusions.csv``, else ``protrusions_manual.csv`` when only the wand ran.
-    """
-    run_dir = Path(output_dir)
-    warnings = []
-    if params["table"]:
-        table_path = Path(params["table"])
-        table_path = table_path if table_path.is_absolute() else run_dir / table_path
-        if not table_path.is_file():
-            raise UVPSInputError(f"table: protrusion CSV {table_path} does not exist")
-    elif (run_dir / "protrusions.csv").is_file():
-        table_path = run_dir / "protrusions.csv"
-    elif (run_dir / "protrusions_manual.csv").is_file():
-        table_path = run_dir / "protrusions_manual.csv"
-        warnings.append("no protrusions.csv: statistics of the wand count "
-                        "(protrusions_manual.csv)")
-    else:
-        raise UVPSInputError(f"run folder {run_dir} has no protrusions.csv; run the 'detect' or "
-                             "'wand' command first")
-    if images is None:
-        images = read_run(run_dir, need=(), pixel_size_um=params["pixel_size_um"])
-    if images.shape is None:
-        raise UVPSInputError(f"run folder {run_dir} has no albedo.tif or depth.tif to size the "
-                             "colour areas")
-    regions, _ = _regions_for(params["regions"], run_dir, images)
-    if regions is None:
-        regions = whole_image(images.shape)
-        warnings.append("no colour areas (regions_labels.tif): statistics over the whole image")
-    report(progress, 0.05, "statistics")
-    with atomic_output_dir(run_dir) as tmp:
-        stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,
-                               params["bins_um"], warnings, table_path)
-    html = write_report(run_dir, stats=stats, regions=regions, warnings=list(warnings), images=images,
-                        table=table_path, progress=sub_progress(progress, 0.1, 1.0))
-    figures = sorted((run_dir / "figures").glob("*.png"))
-    outputs = [OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2"),
-               OutputSpec("report", str(html), kind="html")]
-    if params.get("pdf"):
-        report(progress, 0.98, "printing the report to PDF")
-        outputs.append(OutputSpec("report_pdf", str(print_pdf(html)), kind="pdf"))
-    outputs += [OutputSpec(f"figure_{p.stem}", str(p), kind="image", axes="YXS", dtype="uint8")
-                for p in figures]
-    diagnostics = {r.name: {"count": r.count, "area_cm2": r.area_cm2,
-                            "density_per_cm2": r.density_per_cm2} for r in stats.rows}
-    return CommandResult(outputs, {"areas": diagnostics, "outside": stats.outside,
-                                   "table": str(table_path),
-                                   "edges_um": [float(e) if np.isfinite(e) else None
-                                                for e in stats.edges_um]}, warnings)
-
-
-def statistics_and_report(run_dir, images: RunImages, *, bins_um=100.0, progress: Progress = None):
-    """``stats`` on a run folder whose images the caller holds in memory (``run`` with detection has
-    just written them): the same command, without reading the TIFFs back."""
-    _, params, _ = coerce(SPEC_STATS, {}, {"bins_um": bins_um})
-    return _cmd_stats({}, params, Path(run_dir), progress=progress, images=images)
+def _cmd_stats(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+    """Per-area statistics (``regions.csv``) and the report (:func:`uvps.workflow.statistics`)."""
+    return statistics(output_dir, table=params["table"], regions=params["regions"], bins_um=params["bins_um"],
+                      pixel_size_um=params["pixel_size_um"], pdf=params["pdf"], progress=progress)
 
 
 def _cmd_compare(inputs: dict, params: dict, output_dir, *,
@@ -310,7 +232,7 @@ def _cmd_compare(inputs: dict, params: dict, output_dir, *,
                                  "pixel_size_um (--pixel-size-um), or -o the run folder of one of the tables")
     regions = None
     if images.shape is not None:
-        regions, _ = _regions_for(params["regions"], run_dir, images)
+        regions, _ = regions_for(params["regions"], run_dir, images)
         if regions is None:
             regions = whole_image(images.shape)
     else:

@@ -39,10 +39,8 @@ the painting instead (the mean surface plane is z = 0, architecture.md) and divi
 """
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -50,13 +48,12 @@ from numpy.polynomial import legendre as Lg
 
 from ..errors import UVPSInputError
 from .flatfield import GainCorrected, fit_log_grid, to_unit
-from .irradiance import lamp_vectors
-from .lights import LightModel, pixel_coordinates_mm
+from .irradiance import LightModel, lamp_vectors, pixel_coordinates_mm
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CardCalibration", "calibrate_card", "apply_card", "load_card", "DEGREE", "MAX_RELIEF_DEG",
-           "MAX_SATURATED_FRACTION", "CARD_FILES"]
+__all__ = ["CardCalibration", "calibrate_card", "apply_card", "DEGREE", "MAX_RELIEF_DEG",
+           "MAX_SATURATED_FRACTION"]
 
 #: Legendre degree of each lamp's log gain across the field.
 DEGREE = 6
@@ -67,8 +64,6 @@ BLOCKS = 128
 MAX_RELIEF_DEG = 0.5
 #: A card image with more than this fraction of its pixels at or above saturation is refused.
 MAX_SATURATED_FRACTION = 1e-4
-#: Files of a stored card: the gains (ImageJ TIFF, one slice per lamp) and their description.
-CARD_FILES = ("card.tif", "card.json")
 
 
 @dataclass
@@ -134,38 +129,6 @@ class CardCalibration:
                 "tilt_deg": round(self.tilt_deg, 4), "tilt_azimuth_deg": round(self.tilt_azimuth_deg, 2),
                 "unevenness": round(self.unevenness, 5), "relief_deg": round(self.relief_deg, 4),
                 **self.diagnostics}
-
-    def write(self, folder, *, pixel_size_um: float) -> list:
-        """``card.tif`` (the gains, (K, M, N) float32) and ``card.json`` (the coefficients and
-        figures) in ``folder``, each written atomically. Returns the paths."""
-        from ..files.io import write_imagej_tiff
-        from ..files.outputs import write_json_atomic
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        tif = write_imagej_tiff(folder / CARD_FILES[0], self.gains, axes="ZYX", pixel_size_um=pixel_size_um,
-                                unit="um", labels=[f"lamp {k + 1}" for k in range(self.n_lamps)])
-        meta = {"format": "uvps-card", "version": 1, **self.to_json(), "coeffs": self.coeffs.tolist()}
-        write_json_atomic(folder / CARD_FILES[1], meta)
-        return [Path(tif), folder / CARD_FILES[1]]
-
-    @classmethod
-    def read(cls, folder) -> "CardCalibration":
-        """A card written by :meth:`write` (its ``card.json``; ``card.tif`` holds the same gains)."""
-        path = Path(folder) / CARD_FILES[1]
-        try:
-            meta = json.loads(path.read_text(encoding="utf-8"))
-            coeffs = np.asarray(meta["coeffs"], dtype=float)
-            shape = tuple(int(v) for v in meta["image_shape"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise UVPSInputError(f"card {path}: not a uvps card description ({exc})") from None
-        if meta.get("format") != "uvps-card" or coeffs.ndim != 3 or coeffs.shape[1] != coeffs.shape[2]:
-            raise UVPSInputError(f"card {path}: not a uvps card description (format uvps-card, coeffs (K, n, n))")
-        known = {"n_lamps", "image_shape", "degree", "tilt_deg", "tilt_azimuth_deg", "unevenness", "relief_deg",
-                 "format", "version", "coeffs"}
-        return cls(coeffs, shape, float(meta["tilt_deg"]), float(meta["tilt_azimuth_deg"]),
-                   float(meta["unevenness"]), float(meta["relief_deg"]),
-                   {k: v for k, v in meta.items() if k not in known})
 
 
 def _as_lights(lights, k) -> LightModel:
@@ -345,22 +308,3 @@ def apply_card(images, calibration: CardCalibration):
         raise UVPSInputError(f"the card was taken for {calibration.n_lamps} lamps at {calibration.shape[0]} x "
                              f"{calibration.shape[1]} px; the capture has {K} images of {M} x {N} px")
     return GainCorrected(images, calibration.coeffs)
-
-
-def load_card(path, *, lights, pixel_size_um: float, dark=None, linearize: str = "auto") -> CardCalibration:
-    """A card from ``path``: a folder written by :meth:`CardCalibration.write` (``card.json``), or the
-    card's images (a folder or multi-page TIFF, one image per lamp in the capture's order), calibrated
-    here with ``lights`` and the dark frame ``dark`` (a path)."""
-    from ..files.io import read_capture, read_image
-
-    path = Path(path)
-    if path.is_dir() and (path / CARD_FILES[1]).is_file():
-        return CardCalibration.read(path)
-    if not path.exists():
-        raise UVPSInputError(f"card {path} does not exist (a folder of card images, one per lamp, or a stored card)")
-    cap = read_capture(path, pixel_size_um=pixel_size_um, linearize=linearize)
-    d = None
-    if dark is not None:
-        d = read_image(Path(dark))
-    return calibrate_card(cap.images, lights=lights, pixel_size_um=pixel_size_um, dark=d,
-                          saturation=cap.saturation)

@@ -8,10 +8,8 @@ distance; per area the comparison gives the counts and densities of both, the ma
 """
 from __future__ import annotations
 
-import csv
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -21,7 +19,6 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..errors import UVPSInputError, check_pixel_size
-from .measure import atomic_write_text, table_to_csv_text
 from .regions import UM2_PER_CM2, RegionMap
 
 log = logging.getLogger(__name__)
@@ -208,27 +205,3 @@ def _row(label, name, area_cm2, sel_a, sel_b, matched_a, matched_b) -> dict:
             "count_b": count_b, "density_a": dens(count_a), "density_b": dens(count_b),
             "matched": int((sel_a & matched_a).sum()), "missed": int((sel_a & ~matched_a).sum()),
             "extra": int((sel_b & ~matched_b).sum())}
-
-
-def write_comparison_csv(path, comparison: Comparison) -> None:
-    """Write ``comparison.csv`` atomically: a row per area, then "all".
-
-    Columns :data:`COLUMNS`, then ``table_a`` and ``table_b`` (what the two tables are, e.g. the
-    file names ``protrusions_manual`` and ``protrusions``), so the file describes itself.
-    """
-    cols = {c: [r[c] for r in comparison.rows] for c in COLUMNS}
-    cols["table_a"] = [comparison.name_a] * len(comparison.rows)
-    cols["table_b"] = [comparison.name_b] * len(comparison.rows)
-    atomic_write_text(path, table_to_csv_text(cols, list(cols)))
-
-
-def read_comparison_csv(path) -> list:
-    """Read ``comparison.csv`` back as a list of row dicts (strings)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UVPSInputError(f"comparison table {path} does not exist")
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
-    if rows and not set(COLUMNS) <= set(rows[0]):
-        raise UVPSInputError(f"comparison table {path}: expected columns {','.join(COLUMNS)}")
-    return rows

@@ -31,7 +31,7 @@ import numpy as np
 from scipy import linalg, ndimage, optimize
 
 from ..errors import UVPSInputError
-from ..files.outputs import Progress, report
+from .progress import Progress, report
 
 log = logging.getLogger(__name__)
 

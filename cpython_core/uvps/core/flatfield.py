@@ -9,10 +9,11 @@ a light area on one side pass for a lamp on that side (and a smooth variation of
 fluorescence is indistinguishable from drop-off in any single image). The albedo is the same in every
 image of a capture, so each image is fitted *relative to the geometric mean of the stack*, which
 cancels the albedo exactly; the part of the drop-off common to all images is taken from the fitted
-light model (see :func:`fit_dropoffs` and :func:`set_common`).
+light model (see :func:`fit_dropoffs` and :func:`with_common`).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Optional
@@ -21,12 +22,12 @@ import numpy as np
 from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
-from ..files.io import StackView
+from .stack import StackView
 from .offset import block_stats
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "fit_dropoffs", "fit_log_grid", "set_common",
+__all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "fit_dropoffs", "fit_log_grid", "with_common",
            "flatfield", "to_unit"]
 
 
@@ -196,7 +197,7 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
     -------
     list of DropoffFit
         With ``ratio_coeffs`` set and ``coeffs`` = the ratio fit alone (normalised to mean 1); call
-        :func:`set_common` with the part common to all images (from the light model) to complete them.
+        :func:`with_common` with the part common to all images (from the light model) to complete them.
 
     Notes
     -----
@@ -236,15 +237,15 @@ def _set_levels(fits, grid):
             fit.level = float(np.nanmedian(lv - fit.log_evaluate(grid.rows, grid.cols)))
 
 
-def set_common(fits, grid: BlockGrid, log_common) -> None:
-    """Complete the drop-off fits with the part common to all images.
+def with_common(fits, grid: BlockGrid, log_common) -> list:
+    """The drop-off fits completed with the part common to all images: new fits, ``fits`` unchanged.
 
-    ``log_common(rows, cols)`` gives that part on a separable grid (e.g. the mean log drop-off of the
-    fitted light model); it is projected on the same Legendre basis and added to each ratio fit, and
-    each map is renormalised to mean 1.
+    ``log_common(rows, cols)`` gives that part on a separable grid (the mean log drop-off of a light
+    model: :func:`uvps.core.lights.dropoff_common`); it is projected on the same Legendre basis and
+    added to each ratio fit, each map is renormalised to mean 1 and each image's level measured again.
     """
     if not fits:
-        return
+        return []
     degree, shape = fits[0].degree, fits[0].shape
     M, N = shape
     rows, cols = np.linspace(0, M - 1, 48), np.linspace(0, N - 1, 48)
@@ -253,9 +254,12 @@ def set_common(fits, grid: BlockGrid, log_common) -> None:
     A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
     common = np.linalg.lstsq(A, np.asarray(log_common(rows, cols)).ravel(), rcond=None)[0].reshape(n, n)
     ok_all = grid.valid.all(axis=0)
+    out = []
     for fit in fits:
-        fit.coeffs, fit.log_bounds = _normalise(fit.ratio_coeffs + common, grid, ok_all, degree)
-    _set_levels(fits, grid)
+        coeffs, bounds = _normalise(fit.ratio_coeffs + common, grid, ok_all, degree)
+        out.append(dataclasses.replace(fit, coeffs=coeffs, log_bounds=bounds))
+    _set_levels(out, grid)
+    return out
 
 
 def flatfield(image, fit: DropoffFit, *, channels_first: bool = False, row0: int = 0) -> np.ndarray:

@@ -39,7 +39,7 @@ import numpy as np
 import scipy.fft
 
 from ..errors import UVPSInputError, check_pixel_size
-from ..files.outputs import row_bands
+from .stack import row_bands
 
 logger = logging.getLogger(__name__)
 

@@ -21,12 +21,14 @@ compiled (:data:`near_scale_compiled`), inside the per-pixel kernels of :mod:`uv
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Iterator, Optional
 
 import numba
 import numpy as np
 
-__all__ = ["near_scale", "near_scale_compiled", "beam_factor", "lamp_vectors", "irradiance"]
+__all__ = ["pixel_coordinates_mm", "LightModel", "near_scale", "near_scale_compiled", "beam_factor", "lamp_vectors",
+           "irradiance"]
 
 
 def near_scale(dx, dy, dz, e_ll):
@@ -113,3 +115,81 @@ def irradiance(normals, x, y, z, *, intensities, positions_mm=None, directions=N
         if shadowed is not None:
             s[shadowed[k]] = 0.0
         yield s
+
+
+# ------------------------------------------------------------------------------------------------
+# the frame (pixel -> mm) and the lamps
+# ------------------------------------------------------------------------------------------------
+
+def pixel_coordinates_mm(rows, cols, shape, pixel_size_um, z_mm=None) -> np.ndarray:
+    """World coordinates (mm) of pixel centres; rows/cols broadcast. Returns (..., 3)."""
+    M, N = shape
+    px = pixel_size_um / 1000.0
+    rows, cols = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
+    X = np.empty(rows.shape + (3,))
+    X[..., 0] = (cols - (N - 1) / 2.0) * px
+    X[..., 1] = ((M - 1) / 2.0 - rows) * px
+    X[..., 2] = 0.0 if z_mm is None else z_mm
+    return X
+
+
+@dataclass
+class LightModel:
+    """Lights of a capture: near point lights (positions) or far lights (directions).
+
+    Attributes
+    ----------
+    positions_mm : ndarray (K, 3) or None
+        Near point lights, mm from the image centre.
+    directions : ndarray (K, 3)
+        Unit vectors from the image centre toward each light.
+    intensities : ndarray (K,)
+        Relative lamp irradiance at the image centre ``E_k`` (median 1).
+    """
+
+    directions: np.ndarray
+    intensities: np.ndarray
+    positions_mm: Optional[np.ndarray] = None
+
+    @property
+    def near(self) -> bool:
+        return self.positions_mm is not None
+
+    @classmethod
+    def from_positions(cls, positions_mm, intensities=None):
+        P = np.asarray(positions_mm, dtype=float)
+        E = np.ones(len(P)) if intensities is None else np.asarray(intensities, dtype=float)
+        return cls(P / np.linalg.norm(P, axis=1, keepdims=True), E, P)
+
+    @classmethod
+    def from_directions(cls, directions, intensities=None):
+        D = np.asarray(directions, dtype=float)
+        D = D / np.linalg.norm(D, axis=1, keepdims=True)
+        E = np.ones(len(D)) if intensities is None else np.asarray(intensities, dtype=float)
+        return cls(D, E, None)
+
+    def vectors(self, X) -> np.ndarray:
+        """Per-point light vectors ``E_k (|L_k|/d)^2 (L_k - X)/d`` for points X (..., 3) mm
+        (:func:`uvps.core.irradiance.lamp_vectors`).
+
+        Returns (K, ..., 3); far lights give ``E_k l_k`` everywhere.
+        """
+        return lamp_vectors(X, intensities=self.intensities, positions_mm=self.positions_mm,
+                            directions=None if self.near else self.directions)
+
+    def to_json(self, files, *, extra=None) -> dict:
+        lights = []
+        for k, f in enumerate(files):
+            d = self.directions[k]
+            lights.append({
+                "file": str(f),
+                "direction": [float(x) for x in d],
+                "position_mm": None if not self.near else [float(x) for x in self.positions_mm[k]],
+                "azimuth_deg": float(np.degrees(np.arctan2(d[1], d[0])) % 360.0),
+                "elevation_deg": float(np.degrees(np.arcsin(np.clip(d[2], -1, 1)))),
+                "intensity": float(self.intensities[k]),
+            })
+        out = {"mode": "near" if self.near else "far", "lights": lights}
+        if extra:
+            out.update(extra)
+        return out

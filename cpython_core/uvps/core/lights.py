@@ -42,9 +42,9 @@ from scipy.optimize import least_squares
 from skimage.transform import warp_polar
 
 from ..errors import UVPSInputError
-from .flatfield import BlockGrid, DropoffFit, set_common, to_unit
-from .irradiance import lamp_vectors, near_scale
-from ..files.outputs import Progress, report, sub_progress
+from .flatfield import BlockGrid, DropoffFit, to_unit, with_common
+from .irradiance import LightModel, lamp_vectors, near_scale, pixel_coordinates_mm
+from .progress import Progress, report, sub_progress
 
 log = logging.getLogger(__name__)
 
@@ -57,68 +57,6 @@ __all__ = [
 
 
 @dataclass
-class LightModel:
-    """Lights of a capture: near point lights (positions) or far lights (directions).
-
-    Attributes
-    ----------
-    positions_mm : ndarray (K, 3) or None
-        Near point lights, mm from the image centre.
-    directions : ndarray (K, 3)
-        Unit vectors from the image centre toward each light.
-    intensities : ndarray (K,)
-        Relative lamp irradiance at the image centre ``E_k`` (median 1).
-    """
-
-    directions: np.ndarray
-    intensities: np.ndarray
-    positions_mm: Optional[np.ndarray] = None
-
-    @property
-    def near(self) -> bool:
-        return self.positions_mm is not None
-
-    @classmethod
-    def from_positions(cls, positions_mm, intensities=None):
-        P = np.asarray(positions_mm, dtype=float)
-        E = np.ones(len(P)) if intensities is None else np.asarray(intensities, dtype=float)
-        return cls(P / np.linalg.norm(P, axis=1, keepdims=True), E, P)
-
-    @classmethod
-    def from_directions(cls, directions, intensities=None):
-        D = np.asarray(directions, dtype=float)
-        D = D / np.linalg.norm(D, axis=1, keepdims=True)
-        E = np.ones(len(D)) if intensities is None else np.asarray(intensities, dtype=float)
-        return cls(D, E, None)
-
-    def vectors(self, X) -> np.ndarray:
-        """Per-point light vectors ``E_k (|L_k|/d)^2 (L_k - X)/d`` for points X (..., 3) mm
-        (:func:`uvps.core.irradiance.lamp_vectors`).
-
-        Returns (K, ..., 3); far lights give ``E_k l_k`` everywhere.
-        """
-        return lamp_vectors(X, intensities=self.intensities, positions_mm=self.positions_mm,
-                            directions=None if self.near else self.directions)
-
-    def to_json(self, files, *, extra=None) -> dict:
-        lights = []
-        for k, f in enumerate(files):
-            d = self.directions[k]
-            lights.append({
-                "file": str(f),
-                "direction": [float(x) for x in d],
-                "position_mm": None if not self.near else [float(x) for x in self.positions_mm[k]],
-                "azimuth_deg": float(np.degrees(np.arctan2(d[1], d[0])) % 360.0),
-                "elevation_deg": float(np.degrees(np.arcsin(np.clip(d[2], -1, 1)))),
-                "intensity": float(self.intensities[k]),
-            })
-        out = {"mode": "near" if self.near else "far", "lights": lights}
-        if extra:
-            out.update(extra)
-        return out
-
-
-@dataclass
 class LightEstimate:
     """Result of :func:`estimate_lights`."""
 
@@ -128,6 +66,7 @@ class LightEstimate:
     residual_history: list = field(default_factory=list)  # dicts: stage, m_mm or iteration, cost
     equidistant: Optional[LightModel] = None  # the paper's equidistant solution before refinement
     uncertainty: Optional["LightUncertainty"] = None
+    fits: Optional[list] = None   # the drop-off fits with the estimated lamps' common part
 
 
 @dataclass
@@ -138,18 +77,6 @@ class PixelSample:
     X: np.ndarray        # (P, 3) mm
     rows: np.ndarray
     cols: np.ndarray
-
-
-def pixel_coordinates_mm(rows, cols, shape, pixel_size_um, z_mm=None) -> np.ndarray:
-    """World coordinates (mm) of pixel centres; rows/cols broadcast. Returns (..., 3)."""
-    M, N = shape
-    px = pixel_size_um / 1000.0
-    rows, cols = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
-    X = np.empty(rows.shape + (3,))
-    X[..., 0] = (cols - (N - 1) / 2.0) * px
-    X[..., 1] = ((M - 1) / 2.0 - rows) * px
-    X[..., 2] = 0.0 if z_mm is None else z_mm
-    return X
 
 
 def azimuth_from_dropoff(fit: DropoffFit, *, n_angles=360, size=256) -> float:
@@ -341,7 +268,8 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         Block means of the capture (for each image's overall level).
     fits : list of DropoffFit
         One per image, from :func:`uvps.core.flatfield.fit_dropoffs` (their albedo-free ratio part is used).
-        On return their common part is set from the estimated lights (:func:`uvps.core.flatfield.set_common`).
+        Not changed: :attr:`LightEstimate.fits` are these completed with the estimated lamps' common
+        part (:func:`uvps.core.flatfield.with_common`).
     sample : PixelSample or None
         Pixels for the photometric residual (:func:`sample_pixels`; 30000 recommended: the scan of
         ``m`` uses the first 5000, the per-light refinement all of them); None keeps ``m`` at the
@@ -397,9 +325,8 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         if key not in cache:
             near = min(cache, key=lambda q: abs(np.log(q / m))) if cache else None
             P = _equidistant_positions(R, X, m, cache[near].positions_mm if near else start)
-            set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
-                np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
-            E = intensities_from_levels([f.level for f in fits], P, shape, pixel_size_um)
+            levels = [f.level for f in with_common(fits, grid, dropoff_common(P, shape, pixel_size_um))]
+            E = intensities_from_levels(levels, P, shape, pixel_size_um)
             cache[key] = LightModel.from_positions(P, E)
         return cache[key]
 
@@ -450,13 +377,20 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         if refine:
             report(progress, 0.93, "lights: their uncertainty")
             unc = light_uncertainty(sample, model, R, X, w_drop=_last_drop_weight(history), offset_stderr=offset_stderr)
-    P = model.positions_mm
-    set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
-        np.asarray(r)[:, None], np.asarray(c)[None, :], shape, pixel_size_um)).mean(axis=0))
+    fits = with_common(fits, grid, dropoff_common(model.positions_mm, shape, pixel_size_um))
     az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
     report(progress, 1.0, "lights: done")
     return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
-                         equidistant=eq, uncertainty=unc)
+                         equidistant=eq, uncertainty=unc, fits=fits)
+
+
+def dropoff_common(positions_mm, shape, pixel_size_um):
+    """``log_common(rows, cols)`` for :func:`uvps.core.flatfield.with_common`: the mean log drop-off
+    of near lamps at ``positions_mm`` over the pixels of a separable grid."""
+    def log_common(rows, cols):
+        X = pixel_coordinates_mm(np.asarray(rows)[:, None], np.asarray(cols)[None, :], shape, pixel_size_um)
+        return model_logs(positions_mm, X).mean(axis=0)
+    return log_common
 
 
 #: Pixels whose solved slope exceeds this (|dh/dx| or |dh/dy|) are left out of the integrability fit

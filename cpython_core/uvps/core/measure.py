@@ -8,20 +8,15 @@ the centroid (as ImageJ reports them), widths and heights in micrometres, areas 
 """
 from __future__ import annotations
 
-import csv
 import logging
 from dataclasses import dataclass
-from io import StringIO
-from pathlib import Path
-from typing import Mapping, Optional, Sequence
+from typing import Mapping, Optional
 
 import numpy as np
 from scipy import ndimage as ndi
 from skimage.measure import regionprops_table
 
 from ..errors import UVPSInputError, check_pixel_size
-from ..files.io import read_text, write_imagej_tiff
-from ..files.outputs import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -285,124 +280,3 @@ def measure_protrusions(labels, *, albedo, height_um, pixel_size_um: float, regi
     }
     log.info("measured %d protrusions", len(ids))
     return table
-
-
-def _fmt(value) -> str:
-    if isinstance(value, (float, np.floating)):
-        return "" if not np.isfinite(value) else f"{float(value):.10g}"
-    return str(value)
-
-
-def atomic_write_text(path, text: str) -> None:
-    """Write text to ``path`` atomically (``uvps.files.outputs.atomic_path``)."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-
-
-def table_to_csv_text(table: Mapping, columns: Sequence[str]) -> str:
-    """CSV text of the given columns of a column table (NaN written as an empty cell)."""
-    buf = StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(columns)
-    n = len(table[columns[0]]) if columns else 0
-    for i in range(n):
-        writer.writerow([_fmt(table[c][i]) for c in columns])
-    return buf.getvalue()
-
-
-def write_protrusions_csv(path, table: Mapping, *, relative: bool = False) -> None:
-    """Write a protrusion table as CSV (columns :data:`COLUMNS`, in order), atomically.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output file, e.g. ``<run>/protrusions.csv``.
-    table : dict of str -> array
-        As returned by :func:`measure_protrusions`.
-    relative : bool
-        The run's relief has no scale (``uvps.files.runfolder.relief_of``): the ``height_um`` column is
-        written as :data:`RELATIVE_HEIGHT` (no unit), so no table says micrometres it does not have.
-    """
-    missing = [c for c in COLUMNS if c not in table]
-    if missing:
-        raise UVPSInputError(f"protrusion table lacks columns {missing}")
-    lengths = {len(table[c]) for c in COLUMNS}
-    if len(lengths) > 1:
-        raise UVPSInputError(f"protrusion table columns differ in length: {sorted(lengths)}")
-    if relative:
-        table = {**table, RELATIVE_HEIGHT: table["height_um"]}
-        atomic_write_text(path, table_to_csv_text(table, [RELATIVE_HEIGHT if c == "height_um" else c
-                                                          for c in COLUMNS]))
-        return
-    atomic_write_text(path, table_to_csv_text(table, COLUMNS))
-
-
-def read_protrusions_csv(path) -> dict:
-    """Read ``protrusions.csv`` back into a column table.
-
-    Only ``x_px``, ``y_px`` and ``width_um`` are required (so a table from another tool can be
-    compared); the other columns of :data:`COLUMNS` get defaults (``id`` = 1..n, NaN, 0, "").
-    Extra columns are kept as strings, but for :data:`RELATIVE_HEIGHT` (a number; ``height_um`` is
-    then NaN: a relative run's table has no heights in micrometres).
-
-    Raises
-    ------
-    UVPSInputError
-        If the file is missing, unreadable or lacks a required column or holds a non-number.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise UVPSInputError(f"protrusion table {path} does not exist")
-    rows = list(csv.reader(read_text(path, "protrusion table", "a CSV with columns x_px,y_px,width_um")
-                           .splitlines()))
-    if not rows:
-        raise UVPSInputError(f"protrusion table {path} is empty; expected a header with "
-                             "x_px,y_px,width_um")
-    header = [h.strip() for h in rows[0]]
-    body = [r for r in rows[1:] if any(cell.strip() for cell in r)]
-    missing = [c for c in ("x_px", "y_px", "width_um") if c not in header]
-    if missing:
-        raise UVPSInputError(f"protrusion table {path} lacks columns {missing}; got {header}")
-    n = len(body)
-    table = {}
-    for j, name in enumerate(header):
-        cells = [(r[j].strip() if j < len(r) else "") for r in body]
-        if name in _STR_COLUMNS or (name not in COLUMNS and name != RELATIVE_HEIGHT):
-            table[name] = np.array(cells, dtype=object)
-            continue
-        try:
-            values = [float(c) if c else np.nan for c in cells]
-        except ValueError:
-            bad = next(c for c in cells if c and not _is_float(c))
-            raise UVPSInputError(f"protrusion table {path}: column {name} holds {bad!r}; "
-                                 "expected a number") from None
-        arr = np.array(values, dtype=np.float64)
-        if name in _INT_COLUMNS:
-            arr = np.nan_to_num(arr, nan=0.0).astype(np.int64)
-        table[name] = arr
-    defaults = {"id": np.arange(1, n + 1, dtype=np.int64)}
-    for c in COLUMNS:
-        if c not in table:
-            table[c] = defaults.get(c, np.zeros(n, dtype=_dtype(c)) if c in _INT_COLUMNS else
-                                    np.array([""] * n, dtype=object) if c in _STR_COLUMNS else
-                                    np.full(n, np.nan))
-    ordered = {c: table[c] for c in COLUMNS}
-    ordered.update({k: v for k, v in table.items() if k not in ordered})
-    return ordered
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
-def write_label_tiff(path, labels: np.ndarray, *, pixel_size_um: float,
-                     metadata: Optional[dict] = None) -> None:
-    """Write an int32 label image as an ImageJ TIFF (calibrated in um) with ``uvps.files.io``."""
-    write_imagej_tiff(path, np.asarray(labels).astype(np.int32, copy=False), axes="YX",
-                      pixel_size_um=pixel_size_um, metadata=metadata)
-

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.polynomial import legendre as Lg
 
 from ..errors import UVPSInputError
-from ..files.io import StackView
+from .stack import StackView
 
 log = logging.getLogger(__name__)
 

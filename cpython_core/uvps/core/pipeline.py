@@ -20,146 +20,76 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .card import CardCalibration, apply_card, load_card
+from .card import CardCalibration, apply_card
 from .detect import DetectionParams, detect_protrusions
 from ..errors import UVPSInputError
-from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, set_common
+from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, with_common
 from .integrate import IntegrationResult, integrate_normals
-from ..files.io import Capture
-from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
+from .stack import Capture
+from .lights import (LightEstimate, LightModel, dropoff_common, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
                      model_logs, ratio_samples, refine_intensities, sample_pixels)
 from .measure import measure_protrusions
 from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
-from ..files.outputs import Progress, report, sub_progress
-from .regions import RegionMap, load_regions, propose_regions
-from ..spec import Param, coerce_value
+from .progress import Progress, report, sub_progress
+from .regions import RegionMap, propose_regions
 from .stereo import StereoResult, solve_normals
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAMS", "RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+__all__ = ["RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions", "given_lights"]
-
-#: The options of the photometric-stereo stages, declared once: the defaults and checks of
-#: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
-OPTION_PARAMS = (
-    Param("degree", "int", 4, minimum=1, maximum=8, label="Degree of the lamps' drop-off fit (4 suits most captures)",
-          help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
-    Param("robust", "bool", False, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
-          help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
-               "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
-    Param("integration", "choice", "fc", choices=("fc", "dct"), label="Integration method",
-          help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
-    Param("refine_lights", "bool", True, help="refine each lamp after the paper's equidistant solution"),
-    Param("sample_pixels", "int", 30000, minimum=500, help="pixels sampled by the photometric residual (at most 1 in 16)"),
-    Param("estimate_intensities", "bool", False,
-          help="with known lights: each lamp's intensity from the images even over the light file's own"),
-    Param("black_level", "numbers", None, unit="counts", minimum=0, label="Black level",
-          help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
-               "measuring it from the images"),
-    Param("offset", "choice", "auto", choices=("auto", "measure", "none"),
-          help="additive term (black level, stray light) when none is given (black_level, dark, a raw file's "
-               "levels): auto measures it from the images of more than 8 bits and subtracts it where the fit pins "
-               "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
-    Param("offset_degree", "int", 0, minimum=0, maximum=2,
-          help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
-    Param("lamp_beams", "bool", False,
-          help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
-               "the canvas's large-scale shape (bow) from the heights"),
-    Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
-          help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
-               "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "
-               "power and the vignetting; needs the lamps (--lights)"),
-)
-#: Where the capture comes from: shared by run, flatfield, lights and normals.
-CAPTURE_PARAMS = (
-    Param("images", "paths", where="inputs", positional=True, required=True,
-          label="Images (folder, multi-page TIFF, or files separated by ;)",
-          help="image files, a folder, or one multi-page TIFF"),
-    Param("lights", "path", choices=("estimate",),
-          label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)",
-          help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
-               "the run folder has lights.json; default: the run folder's lights.json (flatfield, normals), "
-               "else estimated"),
-    Param("calibration", "path", label="Calibration folder (optional: from Calibrate Lamps)",
-          help="a calibration folder from `uvps calibrate`: its lamps (matched to the images by order), its dark "
-               "frame unless dark is given, its pixel size unless given"),
-    Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
-    Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
-          "subtracted from every image"),
-    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size on the painting (0 = from the image file)",
-          help="pixel size on the painting (default: from the TIFF tags)"),
-    Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
-          help="sRGB -> linear (auto: JPEG only)"),
-    Param("pattern", "str", label="Pattern (of a folder's image names, e.g. uv_*.tif; empty = the lamp images)",
-          help="with a folder: only its files whose names match this pattern (e.g. 'uv_*.tif'); without it, "
-               "files named as a mask, dark frame, thumbnail or reference, or of another size than most, are "
-               "left out"),
-)
-#: ``run`` adds the protrusion stages.
-PROTRUSION_PARAMS = (
-    Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
-          help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
-               "and the report"),
-    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions, with statistics and the report, even without regions (counted over the whole image)"),
-    Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
-    Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
-)
-
-#: What ``run`` writes beyond its results (normals, albedo, gradients, height, lights, drop-off maps).
-OUTPUT_PARAMS = (
-    Param("flatfield_images", "bool", False, label="Flatfield images: also write them (twice the capture's size)",
-          help="also write flatfield/: each image divided by its drop-off fit, one float32 TIFF per image "
-               "(twice the capture's size on disk; `uvps flatfield CAPTURE -o RUN` writes them later from the "
-               "run's lights.json)"),
-    Param("ome_zarr", "bool", False, label="Zarr: also write OME-Zarr image pyramids (napari, BigDataViewer)",
-          help="also write depth, normals and albedo (with the label images) as OME-Zarr pyramids "
-               "(OME-NGFF 0.4), for napari, BigDataViewer/MoBIE and web viewers of whole paintings"),
-)
-
-_OPTION = {p.name: p for p in OPTION_PARAMS}
-
-
-def _default(name):
-    return field(default=_OPTION[name].default)
-
 
 @dataclass
 class RunOptions:
     """Options of the photometric-stereo stages (everything else is read from the capture).
 
-    Each field is declared in :data:`OPTION_PARAMS` (type, default, range, help) and checked
-    against it here.
+    Checked here (a value out of range raises :class:`~uvps.errors.UVPSInputError` naming the
+    option); the commands declare the same options, with their help and Fiji labels, in
+    :data:`uvps.workflow.OPTION_PARAMS`, whose defaults are these fields' (one place).
     """
 
-    degree: int = _default("degree")
-    robust: bool = _default("robust")
-    integration: str = _default("integration")
-    refine_lights: bool = _default("refine_lights")
-    sample_pixels: int = _default("sample_pixels")
-    estimate_intensities: bool = _default("estimate_intensities")
-    black_level: Optional[object] = _default("black_level")
-    offset: str = _default("offset")
-    offset_degree: int = _default("offset_degree")
-    lamp_beams: bool = _default("lamp_beams")
-    card: Optional[str] = _default("card")
+    degree: int = 4                       #: Legendre degree of each image's drop-off fit, 1-8
+    robust: bool = False                  #: rank-trimmed stereo
+    integration: str = "fc"               #: "fc" (Frankot-Chellappa) or "dct" (Poisson, Neumann)
+    refine_lights: bool = True            #: refine each lamp after the paper's equidistant solution
+    sample_pixels: int = 30000            #: pixels sampled by the photometric residual, >= 500
+    estimate_intensities: bool = False    #: known lights: each lamp's intensity from the images
+    black_level: Optional[object] = None  #: counts, one number or one per channel (>= 0)
+    offset: str = "auto"                  #: "auto", "measure" or "none"
+    offset_degree: int = 0                #: 0 constant; 1-2 also stray light across the field
+    lamp_beams: bool = False              #: known positions: divide out each lamp's beam
+    card: Optional[str] = None            #: the card the caller loaded (recorded; the card itself is ``run(card=)``)
 
     def __post_init__(self):
-        for p in OPTION_PARAMS:
-            v = getattr(self, p.name)
-            if v is not None:
-                setattr(self, p.name, coerce_value(p, v))
+        # the ranges uvps.workflow.OPTION_PARAMS declares (tests/test_spec.py holds the two together)
+        for name, lo, hi in (("degree", 1, 8), ("sample_pixels", 500, None), ("offset_degree", 0, 2)):
+            setattr(self, name, _whole(name, getattr(self, name), lo, hi))
+        for name, choices in (("integration", ("fc", "dct")), ("offset", ("auto", "measure", "none"))):
+            if getattr(self, name) not in choices:
+                raise UVPSInputError(f"{name} must be one of {', '.join(choices)}; got {getattr(self, name)!r}")
+        if self.black_level is not None:
+            levels = [float(v) for v in np.atleast_1d(np.asarray(self.black_level, dtype=float))]
+            if not levels or not all(np.isfinite(v) and v >= 0 for v in levels):
+                raise UVPSInputError(f"black_level must be a number or comma-separated numbers >= 0; "
+                                     f"got {self.black_level!r}")
+            self.black_level = levels[0] if len(levels) == 1 else levels
 
-    @classmethod
-    def from_params(cls, params: dict) -> "RunOptions":
-        """The options among a request's (coerced) parameters; absent ones take their default."""
-        return cls(**{k: params[k] for k in _OPTION if params.get(k) is not None})
+
+def _whole(name: str, v, lo: int, hi: Optional[int]) -> int:
+    """``v`` as an int in ``lo..hi`` (a whole float too), else the one-line error the commands give."""
+    expected = f"an integer from {lo} to {hi}" if hi is not None else f"an integer >= {lo}"
+    try:
+        ok = not isinstance(v, bool) and float(v) == int(float(v)) and lo <= float(v) and (hi is None or float(v) <= hi)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise UVPSInputError(f"{name} must be {expected}; got {v!r}")
+    return int(float(v))
 
 
 @dataclass
@@ -262,16 +192,16 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         "protrusions" implies both.
     dark_given : bool
         A dark frame was subtracted on reading: no additive term is measured.
-    regions : None, "auto", path or RegionMap
-        Colour areas for the protrusions: none (the whole image), proposed from the albedo, a label
-        TIFF, or given.
+    regions : None, "auto" or RegionMap
+        Colour areas for the protrusions: none (the whole image), proposed from the albedo, or given
+        (from files: :func:`uvps.files.tables.load_regions`).
     n_areas : int, optional
         Number of areas for ``regions="auto"`` (default: chosen from the albedo).
     detection : DetectionParams, optional
         Options of :func:`uvps.core.detect.detect_protrusions`.
     card : CardCalibration, optional
-        A card's per-lamp flat-field (:mod:`uvps.core.card`); else ``options.card`` (a path) is
-        loaded with :func:`uvps.core.card.load_card` (its images taken as dark-subtracted already).
+        A card's per-lamp flat-field (:mod:`uvps.core.card`; from files:
+        :func:`uvps.files.cards.load_card`).
     progress : callable(fraction, message), optional
 
     Returns
@@ -297,8 +227,6 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     if getattr(capture, "raw", None) is not None:
         res.diagnostics["raw"] = capture.raw
     res.warnings += warn
-    if card is None and options.card:
-        card = load_card(options.card, lights=given_lights(capture), pixel_size_um=capture.pixel_size_um)
     _run_lights(res, capture, sub_progress(progress, *span["lights"]), card=card)
     if "normals" in stages:
         _run_normals(res, sub_progress(progress, *span["normals"]))
@@ -631,17 +559,16 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
     """Colour areas and the automated protrusions of a run (paper section 3: albedo colour + height).
 
     ``regions``: None (the whole image), "auto" (proposed from the albedo colour,
-    :func:`uvps.core.regions.propose_regions`), a label TIFF path or list of mask paths
-    (:func:`uvps.core.regions.load_regions`), or a :class:`~uvps.core.regions.RegionMap`. With areas,
+    :func:`uvps.core.regions.propose_regions`), or a :class:`~uvps.core.regions.RegionMap` (from files:
+    :func:`uvps.files.tables.load_regions`). With areas,
     detection is restricted to them (the paper masks each area) and each protrusion gets its area.
     """
     proposed = isinstance(regions, str) and regions == "auto"
     if proposed:
         regions = propose_regions(albedo, pixel_size_um=pixel_size_um, n_areas=n_areas, seed=seed)
-    elif isinstance(regions, (list, tuple)):
-        regions = load_regions([Path(p) for p in regions], shape=height_um.shape)
-    elif isinstance(regions, (str, Path)):
-        regions = load_regions(Path(regions), shape=height_um.shape)
+    elif regions is not None and not isinstance(regions, RegionMap):
+        raise UVPSInputError(f"regions must be None, 'auto' or a RegionMap (files: uvps.files.tables.load_regions); "
+                             f"got {type(regions).__name__}")
     mask = regions.labels > 0 if regions is not None else None
     det = detect_protrusions(albedo, height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
                              params=params or DetectionParams(), progress=sub_progress(progress, 0.0, 0.85))
@@ -778,10 +705,6 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     fits = fit_dropoffs(grid, degree=int(options.degree))
     shape = grid.shape
 
-    def common_of(P):
-        return lambda r, c: model_logs(P, pixel_coordinates_mm(np.asarray(r)[:, None], np.asarray(c)[None, :],
-                                                                  shape, px)).mean(axis=0)
-
     # At most one pixel in 16 (a denser sample adds neighbours whose texture is correlated, and time),
     # and at most MAX_RESIDUALS residuals (lamps x pixels: an evaluation's cost)
     n = min(int(options.sample_pixels), max(5000, shape[0] * shape[1] // 16))
@@ -806,7 +729,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
             capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
             grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
             fits = fit_dropoffs(grid, degree=int(options.degree))
-        set_common(fits, grid, common_of(P))
+        fits = with_common(fits, grid, dropoff_common(P, shape, px))
         E = capture.light_intensities   # given (median 1 like an estimate), else from the images
         if E is None or options.estimate_intensities:
             # by the photometric residual with the positions held: the levels alone assume a flat
@@ -832,7 +755,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     sub = None if progress is None else (lambda f, m: progress(0.05 + 0.95 * f, m))
     est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights,
                           offset_stderr=offset_stderr, normals_of=_central_normals(capture), progress=sub)
-    return LightsResult(est.model, fits, "estimated", est)
+    return LightsResult(est.model, est.fits, "estimated", est)
 
 
 #: The central patch whose normals the estimated lamps are made integrable on

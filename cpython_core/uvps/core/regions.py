@@ -9,11 +9,8 @@ ImageJ) with the names in ``regions.csv`` beside it.
 """
 from __future__ import annotations
 
-import csv
-import json
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import NamedTuple, Optional, Union
 
 import cv2
@@ -28,9 +25,7 @@ from skimage.morphology import disk
 from skimage.transform import downscale_local_mean
 
 from ..errors import UVPSInputError, check_pixel_size
-from ..files.io import read_image, read_text, read_tiff
-from .measure import atomic_write_text, table_to_csv_text
-from ..files.outputs import report
+from .progress import report
 
 log = logging.getLogger(__name__)
 
@@ -108,14 +103,6 @@ def _check_shape(arr: np.ndarray, shape, what: str) -> None:
                              f"capture's {shape[0]} x {shape[1]}")
 
 
-def _read_array(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise UVPSInputError(f"region file {path} does not exist")
-    if path.suffix.lower() in (".tif", ".tiff"):
-        return np.asarray(read_tiff(path).data)
-    return np.asarray(read_image(path))
-
-
 def _mask_of(arr: np.ndarray, shape, what: str) -> np.ndarray:
     arr = np.asarray(arr)
     if arr.ndim == 3 and arr.shape[-1] in (3, 4) and arr.shape[:2] == tuple(shape):
@@ -126,122 +113,6 @@ def _mask_of(arr: np.ndarray, shape, what: str) -> np.ndarray:
         raise UVPSInputError(f"{what} must be a 2-D mask; got shape {arr.shape}")
     _check_shape(arr, shape, what)
     return arr != 0
-
-
-def read_region_names(path) -> dict:
-    """Read area names from a CSV (columns ``label,name``) or JSON (``{"1": "light red"}``) file.
-
-    Rows whose label is not a whole number (e.g. the "all" row of ``regions.csv``) are skipped.
-    """
-    path = Path(path)
-    if path.suffix.lower() == ".json":
-        try:
-            raw = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
-            raise UVPSInputError(f"region names file {path}: not valid JSON ({exc})") from None
-        if isinstance(raw, dict) and "names" in raw:
-            raw = raw["names"]
-        if not isinstance(raw, dict):
-            raise UVPSInputError(f"region names file {path}: expected an object label -> name")
-        items = raw.items()
-    else:
-        rows = list(csv.DictReader(read_text(path, "region names file", "a CSV with columns label,name")
-                                   .splitlines()))
-        if rows and not {"label", "name"} <= set(rows[0]):
-            raise UVPSInputError(f"region names file {path}: header must contain label,name")
-        items = [(r["label"], r["name"]) for r in rows]
-    names = {}
-    for lab, name in items:
-        try:
-            names[int(str(lab).strip())] = str(name)
-        except ValueError:
-            continue
-    return names
-
-
-def _names_beside(path: Path) -> dict:
-    for cand in (path.with_suffix(".json"), path.with_suffix(".csv"),
-                 path.parent / (path.stem + "_names.csv"), path.parent / "regions.csv"):
-        if cand.is_file():
-            log.info("area names from %s", cand)
-            return read_region_names(cand)
-    return {}
-
-
-def load_regions(labels_or_masks, *, shape, names: Optional[dict] = None) -> RegionMap:
-    """Read colour areas from a label image or from one mask per area.
-
-    Parameters
-    ----------
-    labels_or_masks : path, (M, N) array, or list of paths/arrays
-        A label TIFF (0 = no area; ImageJ may store it as 8/16-bit or float), a label array, or a
-        list of masks (nonzero = inside), one area per mask, labelled 1, 2, ... in list order.
-    shape : (M, N)
-        The capture's image shape; every label image or mask must match it.
-    names : dict of int -> str, optional
-        Area names. Otherwise read from a names file beside the label TIFF (``<stem>.json``,
-        ``<stem>.csv``, ``<stem>_names.csv`` or ``regions.csv``, columns ``label,name``), from
-        the mask file names, else "area 1", "area 2", ...
-
-    Returns
-    -------
-    RegionMap
-
-    Raises
-    ------
-    UVPSInputError
-        Wrong size, no area at all, or a listed mask that is empty.
-
-    Notes
-    -----
-    Where masks overlap, the earlier mask keeps the pixel (so no protrusion is counted twice).
-    """
-    shape = tuple(int(s) for s in shape)
-    found_names: dict = {}
-    if isinstance(labels_or_masks, (list, tuple)):
-        if not labels_or_masks:
-            raise UVPSInputError("masks: got an empty list; expected one mask per colour area")
-        labels = np.zeros(shape, np.int32)
-        for i, item in enumerate(labels_or_masks, start=1):
-            if isinstance(item, (str, Path)):
-                what = f"mask {item}"
-                mask = _mask_of(_read_array(Path(item)), shape, what)
-                found_names[i] = Path(item).stem
-            else:
-                what = f"mask {i}"
-                mask = _mask_of(item, shape, what)
-            if not mask.any():
-                raise UVPSInputError(f"{what} is empty; expected at least one pixel of its area")
-            free = mask & (labels == 0)
-            if free.sum() < mask.sum():
-                log.warning("%s overlaps earlier masks; the earlier ones keep %d pixels", what,
-                            int(mask.sum() - free.sum()))
-            if not free.any():
-                raise UVPSInputError(f"{what} lies entirely under earlier masks; its area has "
-                                     "no pixels")
-            labels[free] = i
-        ids = list(range(1, len(labels_or_masks) + 1))
-    else:
-        if isinstance(labels_or_masks, (str, Path)):
-            path = Path(labels_or_masks)
-            what = f"region label image {path}"
-            labels = _as_label_image(_read_array(path), what)
-            found_names = _names_beside(path)
-        else:
-            what = "region label image"
-            labels = _as_label_image(labels_or_masks, what)
-        _check_shape(labels, shape, what)
-        ids = [int(i) for i in np.unique(labels) if i != 0]
-        if not ids:
-            raise UVPSInputError(f"{what} has no area (all pixels are 0)")
-    given = dict(found_names)
-    given.update(names or {})
-    absent = sorted(set(given) - set(ids))
-    if absent and names:
-        raise UVPSInputError(f"region names given for labels {absent} that have no pixels")
-    if absent:
-        log.warning("names for labels %s ignored: those areas have no pixels", absent)
-    return RegionMap(labels, {i: given.get(i, f"area {i}") for i in ids})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -563,7 +434,7 @@ def region_statistics(table, regions: RegionMap, *, pixel_size_um: float,
     ----------
     table : dict
         Protrusion table (``x_px``, ``y_px``, ``width_um``) from
-        :func:`uvps.core.measure.measure_protrusions` or :func:`uvps.core.measure.read_protrusions_csv`.
+        :func:`uvps.core.measure.measure_protrusions` or :func:`uvps.files.tables.read_protrusions_csv`.
     regions : RegionMap
         Colour areas; a protrusion belongs to the area at its rounded centroid.
     pixel_size_um : float
@@ -633,13 +504,3 @@ def stats_columns(stats: RegionStats) -> dict:
     for j, b in enumerate(names):
         cols[f"density_{b}"] = [float(r.densities[j]) for r in stats.rows]
     return cols
-
-
-def write_regions_csv(path, stats: RegionStats) -> None:
-    """Write ``regions.csv`` atomically: one row per area then "all".
-
-    Columns: ``label, name, area_cm2, count, density_per_cm2``, then ``count_<lo>-<hi>um`` per
-    width bin, then ``density_<lo>-<hi>um`` (per cm^2) per bin.
-    """
-    cols = stats_columns(stats)
-    atomic_write_text(path, table_to_csv_text(cols, list(cols)))

@@ -52,7 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import UVPSInputError
-from ..files.outputs import Progress, report
+from .progress import Progress, report
 
 log = logging.getLogger(__name__)
 

@@ -27,9 +27,8 @@ import numba
 import numpy as np
 
 from ..errors import UVPSInputError
-from .irradiance import near_scale_compiled
-from .lights import LightModel, pixel_coordinates_mm
-from ..files.outputs import Progress, report
+from .irradiance import LightModel, near_scale_compiled, pixel_coordinates_mm
+from .progress import Progress, report
 
 log = logging.getLogger(__name__)
 

@@ -40,8 +40,7 @@ import tifffile
 from .. import __version__
 from ..errors import UVPSInputError
 from .io import BAND_BYTES, _tiff_pixel_size_um, read_tiff
-from .outputs import CommandResult, OutputSpec, Progress, replace_dir, report
-from ..spec import CommandSpec, Param
+from .outputs import Progress, replace_dir, report
 
 log = logging.getLogger(__name__)
 
@@ -268,28 +267,3 @@ def read_tiff_pixel_size(path: Path) -> Optional[float]:
     """The pixel size (um) a TIFF written by uvps records, or None."""
     with tifffile.TiffFile(path) as tif:
         return _tiff_pixel_size_um(tif)
-
-
-def _cmd_ome_zarr(inputs, params, output_dir, *, progress=None):
-    """``ome-zarr``: the OME-Zarr pyramids of an existing run folder, written into it."""
-    run_dir = Path(inputs["run"])
-    if not run_dir.is_dir():
-        raise UVPSInputError(f"run folder {run_dir} does not exist or is not a folder")
-    stores = write_ome_zarr(run_dir, pixel_size_um=params["pixel_size_um"], progress=progress)
-    outputs = [OutputSpec(s.name.split(".")[0] + "_zarr", str(s), kind="folder") for s in stores]
-    return CommandResult(outputs, {"ngff_version": NGFF_VERSION, "stores": [str(s) for s in stores]}, [],
-                         text="\n".join(str(s) for s in stores))
-
-
-SPECS = (
-    CommandSpec("ome-zarr", "a run folder's depth, normals and albedo as OME-Zarr pyramids", _cmd_ome_zarr,
-                output="", params=(
-                    Param("run", "path", where="inputs", positional=True, required=True, label="Run folder",
-                          help="the run folder whose depth.tif, normals.tif and albedo.tif to convert"),
-                    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
-                          help="pixel size (default: the TIFFs' calibration)")),
-                description="Writes depth.ome.zarr, normals.ome.zarr and albedo.ome.zarr (with the protrusion "
-                            "and colour-area labels) into the run folder: OME-NGFF 0.4 multiscale images for "
-                            "napari, BigDataViewer/MoBIE and web viewers; `uvps run --ome-zarr` does the same "
-                            "as part of a run."),
-)

@@ -7,7 +7,6 @@ and inputs are never touched.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import signal
@@ -15,15 +14,12 @@ import tempfile
 import threading
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional
+from typing import Callable, Iterator, Optional
 
-import numpy as np
 
+from ..core.progress import Progress, report, sub_progress  # noqa: F401 - the commands' progress helpers
 from ..errors import UVPSInputError
-
-#: A progress callback: fraction in [0, 1] and a short message.
-Progress = Optional[Callable[[float, str], None]]
-
+from .atomic import _umask, atomic_path, file_mode, write_json_atomic  # noqa: F401 - re-exported
 
 @dataclass
 class OutputSpec:
@@ -48,19 +44,6 @@ class CommandResult:
     diagnostics: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     text: str = ""      # a plain-text answer the CLI prints (e.g. ``uvps info``)
-
-
-def report(progress: Progress, fraction: float, message: str) -> None:
-    """Call ``progress`` if given."""
-    if progress is not None:
-        progress(float(min(max(fraction, 0.0), 1.0)), message)
-
-
-def sub_progress(progress: Progress, start: float, stop: float) -> Progress:
-    """A progress callback for a sub-step that covers ``[start, stop]`` of ``progress``."""
-    if progress is None:
-        return None
-    return lambda fraction, message: progress(start + (stop - start) * fraction, message)
 
 
 def check_output_dir(path) -> Path:
@@ -275,61 +258,3 @@ def replace_dir(src: Path, dst: Path) -> None:
     os.replace(dst, old)
     os.replace(src, dst)
     shutil.rmtree(old, ignore_errors=True)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def file_mode() -> int:
-    """The permission bits a plain ``open`` would give a new file (0o666 minus the umask).
-
-    ``tempfile.mkstemp`` creates files 0o600; outputs get the usual mode before being renamed.
-    """
-    return 0o666 & ~_umask()
-
-
-@contextlib.contextmanager
-def atomic_path(path, *, suffix: str = ".tmp") -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success give it the usual mode and rename it into
-    place (``os.replace``), on an exception remove it. The one atomic-write pattern of uvps."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.chmod(tmp, file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
-def write_json_atomic(path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, indent=2, allow_nan=False, default=_json_default)
-            fh.write("\n")
-
-
-def _json_default(obj):
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return None if not np.isfinite(obj) else float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def row_bands(n_rows: int, row_cost: int, budget: int) -> list:
-    """Row slices covering ``n_rows`` rows, each of at most ``budget`` (at least one row), a row
-    costing ``row_cost`` (pixels or bytes): how every band-by-band step cuts an image."""
-    step = max(1, int(budget) // max(int(row_cost), 1))
-    return [slice(r0, min(n_rows, r0 + step)) for r0 in range(0, n_rows, step)]

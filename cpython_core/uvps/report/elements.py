@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..core.measure import atomic_write_text
+from ..files.tables import atomic_write_text
 from ..files.outputs import atomic_path
 
 #: Longest side of a figure's image in pixels (larger runs are shown every n-th pixel).

@@ -28,12 +28,14 @@ from skimage.measure import block_reduce
 from skimage.segmentation import find_boundaries
 
 from .. import __version__
-from ..core.compare import compare_detections, read_comparison_csv
+from ..core.compare import compare_detections
+from ..files.comparison import read_comparison_csv
 from ..errors import UVPSInputError
 from ..files.io import read_tiff
-from ..core.measure import atomic_write_text, read_protrusions_csv
+from ..files.tables import atomic_write_text, read_protrusions_csv
 from ..files.outputs import Progress, atomic_path, report
-from ..core.regions import bin_names, load_regions, region_statistics, whole_image
+from ..core.regions import bin_names, region_statistics, whole_image
+from ..files.tables import load_regions
 from ..files.runfolder import read_run
 from .text import (Facts, Raw, area_table_html, cm2, density, facts_of, height,
                           largest_table_html, methods_html, protrusion_definition,
@@ -602,7 +604,7 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
         Per-area statistics; otherwise computed from ``protrusions.csv`` and the colour areas.
     regions : RegionMap, optional
         Colour areas (their names are the report's); otherwise ``regions_labels.tif`` with the
-        names beside it (:func:`uvps.core.regions.load_regions`: the ``name`` column of
+        names beside it (:func:`uvps.files.tables.load_regions`: the ``name`` column of
         ``regions.csv``) or the whole image.
     comparison : Comparison, optional
         A two-method comparison; otherwise ``comparison.csv`` when present.

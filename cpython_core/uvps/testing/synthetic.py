@@ -40,7 +40,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..errors import UVPSInputError
-from ..files.io import Capture, write_imagej_tiff
+from ..core.stack import Capture
+from ..files.io import write_imagej_tiff
 from ..core.irradiance import irradiance
 from ..files.outputs import Progress, atomic_output_dir, report, write_json_atomic
 from .synthetic_elements import ElementTruth, render_element_maps  # noqa: F401  (element maps: uvps elements)
