@@ -573,3 +573,33 @@ def test_a_capture_folder_leaves_out_what_is_not_a_lamp_image(tmp_path, caplog):
     assert [Path(f).name for f in cap.files] == ["uv_00.tif", "uv_01.tif", "uv_02.tif"]
     with pytest.raises(UVPSInputError, match=r"no file of folder .* matches the pattern 'x\*'"):
         read_capture(tmp_path, pixel_size_um=15.0, pattern="x*")
+
+
+class _CountingMap:
+    """An image file's memory map that records which part of it each read asks for."""
+
+    def __init__(self, arr):
+        self.arr, self.shape, self.dtype, self.reads = arr, arr.shape, arr.dtype, []
+
+    def __getitem__(self, key):
+        part = self.arr[key]
+        self.reads.append(part.size)
+        return part
+
+
+def test_a_mapped_stack_reads_a_band_not_the_whole_file_and_loads_only_when_asked():
+    """The lazy-stack protocol (docs/architecture.md, "Lazy stacks"): a band of every image reads
+    that band of each file; `[...]` is refused; the whole stack is `.load()`."""
+    from uvps.files.io import MappedStack
+
+    arrays = [np.full((40, 30), k, np.uint16) for k in range(3)]
+    maps = [_CountingMap(a) for a in arrays]
+    stack = MappedStack(maps)
+    band = stack[:, 10:14]
+    assert band.shape == (3, 4, 30) and [m.reads for m in maps] == [[4 * 30]] * 3
+    assert stack[1, 5:7, 2:4].tolist() == [[1, 1], [1, 1]]
+    with pytest.raises(IndexError, match=r"\.load\(\)"):
+        stack[...]
+    assert all(sum(m.reads) < m.arr.size for m in maps)
+    whole = stack.load()
+    assert whole.shape == (3, 40, 30) and np.array_equal(whole[2], arrays[2])

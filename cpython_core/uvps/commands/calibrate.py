@@ -257,7 +257,7 @@ def _calibrate(route, inputs, params, out, pool, t0, progress):
 
 SPECS = (
     CommandSpec("calibrate", "lamps from spheres (or a rig file) into a calibration folder", _cmd_calibrate,
-                output="calibration folder", params=(
+                menu="Calibrate Lamps", output="calibration folder", params=(
                     Param("spheres", "paths", where="inputs",
                           label="Spheres: the sphere capture (folder, or files separated by ;)",
                           help="the sphere capture: one image per lamp position, in the order of the painting "

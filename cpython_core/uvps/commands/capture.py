@@ -120,7 +120,7 @@ _STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
-                params=_RUN_LIGHTS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
+                menu="Run Whole Pipeline", params=_RUN_LIGHTS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
                 description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
                             "detect also colour areas, protrusions, statistics and report.html (without either, "
                             "no protrusions and no report). The flat-fielded images themselves are written with "
@@ -128,14 +128,14 @@ SPECS = (
                 output_note="the whole folder is replaced by this run's in one step, keeping files uvps does not "
                             "write"),
     CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),
-                params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
+                menu="Flat Field", params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
     CommandSpec("lights", "light directions and positions", _capture_command("lights", ()),
-                params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
+                menu="Estimate Lights", params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
     CommandSpec("normals", "normals, albedo and gradients", _capture_command("normals", ("normals",)),
-                params=CAPTURE_PARAMS + OPTION_PARAMS),
+                menu="Normals and Albedo", params=CAPTURE_PARAMS + OPTION_PARAMS),
     CommandSpec("integrate", "height from <run>/normals.tif", _cmd_integrate,
-                params=tuple(p for p in _STEREO if p.name == "integration") + (_PX_OVERRIDE,)),
-    CommandSpec("relight", "render under a virtual raking light", _cmd_relight, params=(
+                menu="Integrate Height", params=tuple(p for p in _STEREO if p.name == "integration") + (_PX_OVERRIDE,)),
+    CommandSpec("relight", "render under a virtual raking light", _cmd_relight, menu="Relight", params=(
         Param("azimuth_deg", "float", 315.0, unit="deg", label="Azimuth (from image right, counter-clockwise)", help="the light's azimuth, "
               "counter-clockwise from +x (right)"),
         Param("elevation_deg", "float", 15.0, unit="deg", minimum=0, exclusive_minimum=True, maximum=90,

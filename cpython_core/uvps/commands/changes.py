@@ -476,7 +476,7 @@ def cmd_changes(inputs: dict, params: dict, output_dir, *, progress: Progress = 
 
 SPECS = (
     CommandSpec("changes", "two captures of one region at two dates: registration, height change, "
-                "protrusions new / grown / shrunk / unchanged / gone", cmd_changes, output="output folder",
+                "protrusions new / grown / shrunk / unchanged / gone", cmd_changes, menu="Compare Captures", output="output folder",
                 description="Register run B (later) onto run A (earlier) from the albedo, bring B's heights "
                 "into A's frame and level them, match the protrusions one to one and give each its status "
                 "(docs/monitoring.md). Writes registration.json, changes.csv, height_change.tif, "

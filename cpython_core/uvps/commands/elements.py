@@ -452,7 +452,7 @@ def _write_correlation_csv(path, corr) -> None:
 SPECS = (
     CommandSpec("elements", "XRF element maps registered onto a run: element values per colour area and per "
                 "protrusion, and their rank correlation with protrusion density", cmd_elements,
-                output="output folder",
+                menu="Element Maps", output="output folder",
                 description="Read element maps (TIFF or EDF per element, a multi-page TIFF with element names, "
                 "or a row/column text table, as PyMCA exports them), register them onto the run's albedo "
                 "(mutual information, or control points), and write registration.json, elements.tif, "

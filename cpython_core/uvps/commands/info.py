@@ -48,7 +48,7 @@ def cmd_info(inputs: dict, params: dict, output_dir, *, progress: Progress = Non
 
 
 SPECS = (
-    CommandSpec("info", "what a run folder holds: files, parameters, lights, warnings", cmd_info, output="",
+    CommandSpec("info", "what a run folder holds: files, parameters, lights, warnings", cmd_info, menu="Run Info", output="",
                 params=(Param("run", "path", where="inputs", positional=True, required=True,
                               label="Run folder", help="the run folder to describe"),)),
 )

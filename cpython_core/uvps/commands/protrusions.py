@@ -293,7 +293,7 @@ _BINS = Param("bins_um", "numbers", 100.0, unit="um", minimum=0, label="Bins of 
 _SEED = Param("seed", "int", 0, help="random seed of the automatic proposal (k-means)")
 _N_AREAS = Param("n_areas", "int", minimum=1, label="Number of automatic areas (0 = choose)", help="number of colour areas for the proposal (default: chosen)")
 
-SPEC_STATS = CommandSpec("stats", "per-area statistics and report.html", _cmd_stats, aliases=("report",),
+SPEC_STATS = CommandSpec("stats", "per-area statistics and report.html", _cmd_stats, menu="Statistics and Report", aliases=("report",),
                          params=(_BINS, _REGIONS_FILE,
                                  Param("table", "path", help="the protrusion CSV to count (default protrusions.csv, "
                                        "else protrusions_manual.csv)"), _PX,
@@ -301,11 +301,11 @@ SPEC_STATS = CommandSpec("stats", "per-area statistics and report.html", _cmd_st
                                        help="also write report.pdf, printed from report.html by a headless Chromium "
                                        "or Chrome found on PATH (none is downloaded)")))
 SPECS = (
-    CommandSpec("detect", "automated protrusion detection on a run folder", _cmd_detect, params=(
+    CommandSpec("detect", "automated protrusion detection on a run folder", _cmd_detect, menu="Detect Protrusions", params=(
         Param("regions", "path", choices=("auto",), label="Regions: colour areas (auto = from the colours, a label image, or empty = the run's own)", help="colour-area label TIFF, or 'auto' (proposed from the "
               "albedo); default: the run's regions_labels.tif, else the whole image"),
         _N_AREAS, _SEED, _PX) + _DETECTION),
-    CommandSpec("wand", "the manual method: outline each clicked protrusion", _cmd_wand, params=(
+    CommandSpec("wand", "the manual method: outline each clicked protrusion", _cmd_wand, menu="Wand Count", params=(
         Param("points", "path", where="inputs", positional=True, required=True,
               label="Points CSV (x_px,y_px; empty = current point selection)",
               help="CSV of the clicks: x_px,y_px (pixels), x_um,y_um or x_mm,y_mm, or X,Y as ImageJ's "
@@ -329,13 +329,13 @@ SPECS = (
         Param("rgb", "choice", "mean", choices=("mean", "channels"),
               help="imagej, RGB albedo: compare the mean of R, G, B (ImageJ), or every channel"),
         _REGIONS_FILE, _PX)),
-    CommandSpec("regions", "colour areas: from labels/masks or an automatic proposal", _cmd_regions, params=(
+    CommandSpec("regions", "colour areas: from labels/masks or an automatic proposal", _cmd_regions, menu="Colour Areas", params=(
         Param("labels", "path", where="inputs", label="Label image (for source Label image)", help="label TIFF (0 = none)"),
         Param("masks", "paths", where="inputs", help="one mask TIFF per area"),
         Param("auto", "bool", False, help="propose areas by clustering the albedo colour"),
         _N_AREAS, _SEED, _BINS, _PX)),
     SPEC_STATS,
-    CommandSpec("compare", "compare two protrusion tables (e.g. manual vs automated)", _cmd_compare, params=(
+    CommandSpec("compare", "compare two protrusion tables (e.g. manual vs automated)", _cmd_compare, menu="Compare Counts", params=(
         Param("a", "path", where="inputs", positional=True, required=True,
               label="First protrusion table (e.g. protrusions_manual.csv)", help="the reference table (e.g. "
               "protrusions_manual.csv)"),
