@@ -502,7 +502,7 @@ def test_reading_holds_one_float_stack_plus_about_one_file(tmp_path, layout, lin
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
-    np.testing.assert_array_equal(cap.images[..., 0] > 0, arr[..., 0] > 0)
+    np.testing.assert_array_equal(np.asarray(cap.images)[..., 0] > 0, arr[..., 0] > 0)   # the whole stack: explicit
     one_float_image = cap.images[0].nbytes
     # the stack, one file in its own dtype (half a float32 image; a stack file is memory-mapped)
     # and, for the sRGB curve, one float32 temporary of part of an image plus a boolean mask
