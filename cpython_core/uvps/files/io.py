@@ -687,57 +687,8 @@ def read_positions(path: PathLike) -> LightPositions:
     path = Path(path)
     if not path.is_file():
         raise UVPSInputError(f"light positions file {path} does not exist")
-    if path.suffix.lower() == ".json":
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-            lights = doc["lights"] if isinstance(doc, dict) else doc
-            if not isinstance(lights, list) or not lights:
-                raise ValueError("no 'lights' list")
-        except (ValueError, KeyError, TypeError) as exc:
-            raise UVPSInputError(
-                f"light positions file {path}: expected uvps lights.json with a 'lights' list"
-                f" ({exc})"
-            )
-        files = [lt.get("file") for lt in lights]
-        pos = [lt.get("position_mm") for lt in lights]
-        dirs = [lt.get("direction") for lt in lights]
-        positions = np.asarray(pos, dtype=np.float64) if all(p is not None for p in pos) else None
-        directions = (np.asarray(dirs, dtype=np.float64)
-                      if all(d is not None for d in dirs) else None)
-        if positions is None and directions is None:
-            raise UVPSInputError(
-                f"light positions file {path}: every light needs 'position_mm' or 'direction'"
-            )
-        names = files if all(isinstance(f, str) and f for f in files) else None
-        intensities = None
-        if all(lt.get("intensity") is not None for lt in lights):
-            intensities = []
-            for k, lt in enumerate(lights):
-                value = lt["intensity"]
-                number = (float(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
-                          else None)
-                intensities.append(_check_intensity(number, str(value),
-                                                    f"light positions file {path} light {k + 1}"))
-    else:
-        text = read_text(path, "light positions file", "a CSV with columns file,x_mm,y_mm,z_mm")
-        rows = list(csv.DictReader(text.splitlines()))
-        need = ("x_mm", "y_mm", "z_mm")
-        if not rows or any(k not in rows[0] for k in need):
-            raise UVPSInputError(
-                f"light positions file {path}: expected a CSV with columns file,x_mm,y_mm,z_mm"
-            )
-        try:
-            positions = np.array([[float(r[k]) for k in need] for r in rows])
-        except (TypeError, ValueError):
-            raise UVPSInputError(f"light positions file {path}: non-numeric x_mm/y_mm/z_mm value")
-        names = [r["file"] for r in rows] if "file" in rows[0] else None
-        directions = None
-        intensities = None
-        if "intensity" in rows[0]:
-            # line numbers: the header is line 1 (a CSV row spanning lines is not expected here)
-            intensities = [_check_intensity(_number(r["intensity"] or ""), r["intensity"] or "",
-                                            f"light positions file {path} line {k + 2}")
-                           for k, r in enumerate(rows)]
+    read = _positions_json if path.suffix.lower() == ".json" else _positions_csv
+    names, positions, directions, intensities = read(path)
     for name, arr in (("position_mm", positions), ("direction", directions)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all()):
             raise UVPSInputError(
@@ -757,6 +708,65 @@ def read_positions(path: PathLike) -> LightPositions:
     if intensities is not None:
         intensities = np.asarray(intensities, dtype=np.float64)
     return LightPositions(str(path), names, positions, directions, intensities)
+
+
+def _positions_json(path: Path) -> tuple:
+    """``(names, positions, directions, intensities)`` of a uvps ``lights.json`` (:func:`read_positions`)."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        lights = doc["lights"] if isinstance(doc, dict) else doc
+        if not isinstance(lights, list) or not lights:
+            raise ValueError("no 'lights' list")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise UVPSInputError(
+            f"light positions file {path}: expected uvps lights.json with a 'lights' list"
+            f" ({exc})"
+        )
+    files = [lt.get("file") for lt in lights]
+    pos = [lt.get("position_mm") for lt in lights]
+    dirs = [lt.get("direction") for lt in lights]
+    positions = np.asarray(pos, dtype=np.float64) if all(p is not None for p in pos) else None
+    directions = (np.asarray(dirs, dtype=np.float64)
+                  if all(d is not None for d in dirs) else None)
+    if positions is None and directions is None:
+        raise UVPSInputError(
+            f"light positions file {path}: every light needs 'position_mm' or 'direction'"
+        )
+    names = files if all(isinstance(f, str) and f for f in files) else None
+    intensities = None
+    if all(lt.get("intensity") is not None for lt in lights):
+        intensities = []
+        for k, lt in enumerate(lights):
+            value = lt["intensity"]
+            number = (float(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
+                      else None)
+            intensities.append(_check_intensity(number, str(value),
+                                                f"light positions file {path} light {k + 1}"))
+    return names, positions, directions, intensities
+
+
+def _positions_csv(path: Path) -> tuple:
+    """``(names, positions, directions, intensities)`` of a positions CSV (:func:`read_positions`)."""
+    text = read_text(path, "light positions file", "a CSV with columns file,x_mm,y_mm,z_mm")
+    rows = list(csv.DictReader(text.splitlines()))
+    need = ("x_mm", "y_mm", "z_mm")
+    if not rows or any(k not in rows[0] for k in need):
+        raise UVPSInputError(
+            f"light positions file {path}: expected a CSV with columns file,x_mm,y_mm,z_mm"
+        )
+    try:
+        positions = np.array([[float(r[k]) for k in need] for r in rows])
+    except (TypeError, ValueError):
+        raise UVPSInputError(f"light positions file {path}: non-numeric x_mm/y_mm/z_mm value")
+    names = [r["file"] for r in rows] if "file" in rows[0] else None
+    directions = None
+    intensities = None
+    if "intensity" in rows[0]:
+        # line numbers: the header is line 1 (a CSV row spanning lines is not expected here)
+        intensities = [_check_intensity(_number(r["intensity"] or ""), r["intensity"] or "",
+                                        f"light positions file {path} line {k + 2}")
+                       for k, r in enumerate(rows)]
+    return names, positions, directions, intensities
 
 
 def _order_by_name(lightfile_path: str, names: Sequence[str], sources: list, by_name: bool):
@@ -1076,21 +1086,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
 
     shape_img = arr.shape[1:]
     if dark is not None:
-        dark_path = Path(dark)
-        if not dark_path.is_file():
-            raise UVPSInputError(f"dark frame {dark_path} does not exist")
-        d = read_image(dark_path)
-        if d.shape != shape_img or d.dtype != dtype:
-            raise UVPSInputError(
-                f"dark frame {dark_path} is {d.shape} {d.dtype};"
-                f" expected {shape_img} {dtype} like the images"
-            )
-        d = d.astype(np.float32)
-        if _needs_linearize(_kind(dark_path), dtype, linearize):
-            d = srgb_to_linear(d, _saturation_of(dtype))
-        for k in range(arr.shape[0]):
-            np.subtract(arr[k], d, out=arr[k])
-            np.maximum(arr[k], 0, out=arr[k])
+        _subtract_dark(arr, Path(dark), dtype, linearize)
 
     if pixel_size_um is None:
         if tag_px is None:
@@ -1125,6 +1121,25 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         light_intensities=intensities,
         raw=raw,
     )
+
+
+def _subtract_dark(arr, dark_path: Path, dtype, linearize: str) -> None:
+    """Subtract the dark frame from every image of ``arr`` (float32, in place), clipped at 0."""
+    shape_img = arr.shape[1:]
+    if not dark_path.is_file():
+        raise UVPSInputError(f"dark frame {dark_path} does not exist")
+    d = read_image(dark_path)
+    if d.shape != shape_img or d.dtype != dtype:
+        raise UVPSInputError(
+            f"dark frame {dark_path} is {d.shape} {d.dtype};"
+            f" expected {shape_img} {dtype} like the images"
+        )
+    d = d.astype(np.float32)
+    if _needs_linearize(_kind(dark_path), dtype, linearize):
+        d = srgb_to_linear(d, _saturation_of(dtype))
+    for k in range(arr.shape[0]):
+        np.subtract(arr[k], d, out=arr[k])
+        np.maximum(arr[k], 0, out=arr[k])
 
 
 def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
