@@ -501,10 +501,8 @@ def largest_table_html(table, f: Facts, area_names: dict, n: int = 10) -> str:
 # appendix: methods and parameters in words; provenance
 
 
-def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
-    """Appendix A: how the run was made, in words, with the parameters that matter."""
-    p, d = f.params, f.diagnostics
-    items = []
+def _capture_method(p: dict, d: dict) -> str:
+    """Appendix A's first item: how the images were read and what was subtracted."""
     lin = p.get("linearize")
     bit = p.get("bit_depth")
     cap = "Images read as linear signal"
@@ -522,7 +520,13 @@ def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
         cap += ("; an additive term (stray light, black level) measured from the images"
                 + (f" at {percent(frac)} of the median signal" if frac is not None else "")
                 + (", subtracted" if add.get("used") else ", not significant, not subtracted"))
-    items.append(cap + ".")
+    return cap + "."
+
+
+def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
+    """Appendix A: how the run was made, in words, with the parameters that matter."""
+    p, d = f.params, f.diagnostics
+    items = [_capture_method(p, d)]
     route = f.lamp_route
     lam = f"Lamps {LAMP_ROUTES.get(route, 'of an unrecorded source')}"
     if route == "estimated":
