@@ -177,11 +177,9 @@ def _registration_figure(path: Path, res: dict, step: int) -> None:
     save_figure(fig, path)
 
 
-def _report_page(res: dict) -> str:
-    """The HTML of the report: the dates, the height change, per-area tables, the registration."""
-    a, b, reg, lev = res["a"], res["b"], res["registration"], res["levelling"]
-    d = res["diagnostics"]
-    reg_rows = [("model (chosen by BIC)", reg.model), ("consistent matches", reg.matches),
+def _registration_rows(a, b, reg, lev, d: dict) -> list:
+    """The report's registration table: the model, its matches and residuals, scales, the common field."""
+    return [("model (chosen by BIC)", reg.model), ("consistent matches", reg.matches),
                 ("candidate matches", reg.candidates), ("residual rms (tiles)", f"{reg.rms_px:.3f} px"),
                 ("feature residual rms", f"{reg.feature_rms_px:.3f} px"), ("refinement", reg.refinement),
                 ("scale B -> A", f"{reg.scale:.5f}"), ("rotation", f"{reg.rotation_deg:.3f} deg"),
@@ -193,6 +191,13 @@ def _report_page(res: dict) -> str:
                 ("common field", f"{100 * d['common_field_fraction_of_a']:.1f} % of A"),
                 ("left out (outside the common field)",
                  f"A {d['left_out_outside_common_field']['a']}, B {d['left_out_outside_common_field']['b']}")]
+
+
+def _report_page(res: dict) -> str:
+    """The HTML of the report: the dates, the height change, per-area tables, the registration."""
+    a, b, reg, lev = res["a"], res["b"], res["registration"], res["levelling"]
+    d = res["diagnostics"]
+    reg_rows = _registration_rows(a, b, reg, lev, d)
     areas = res["areas"]
     classes = list(areas[-1]["grown_by_width"]) if areas else []
     area_rows = [[r["name"], r["area_cm2"]] + [r[s] for s in STATUSES] + [r["new_per_cm2"]] for r in areas]
@@ -346,6 +351,34 @@ def _hashes(run: _Run) -> list:
             for n in ("albedo", "depth", "protrusions")]
 
 
+def _pixel_sizes(a, b, reg, warnings: list) -> dict:
+    """The two dates' pixel sizes against the registration's scale (``run.json`` ``pixel_size``);
+    a warning when they differ or disagree."""
+    ratio = b.pixel_size_um / a.pixel_size_um
+    pixel = {"pixel_size_um_a": a.pixel_size_um, "pixel_size_um_b": b.pixel_size_um,
+             "ratio_b_over_a": round(ratio, 6), "registration_scale": round(reg.scale, 6),
+             "rescaled": bool(abs(ratio - 1) > 1e-6 or abs(reg.scale - 1) > 1e-3)}
+    if abs(ratio - 1) > 1e-6:
+        warnings.append(f"pixel sizes differ (A {a.pixel_size_um:g} um, B {b.pixel_size_um:g} um): B is "
+                        f"rescaled by {reg.scale:.4f} into A's frame")
+    if abs(reg.scale / ratio - 1) > 0.01:
+        warnings.append(f"the registration's scale ({reg.scale:.4f}) and the pixel sizes' ratio B / A "
+                        f"({ratio:.4f}) differ by more than 1 %: is one run's pixel size wrong? "
+                        "Widths of B are taken at B's calibration")
+    return pixel
+
+
+def _off_protrusions(a, b, reg, shape_a) -> np.ndarray:
+    """A's pixels away from both dates' protrusions (3 px), in A's frame: where the levelling looks."""
+    off = np.ones(shape_a, bool)
+    if a.labels is not None:
+        off &= ~ndimage.binary_dilation(a.labels > 0, iterations=3)
+    if b.labels is not None:
+        lb = warp_to_a((b.labels > 0).astype(np.uint8), reg.b_to_a, shape_a, interpolation=cv2.INTER_NEAREST)
+        off &= ~ndimage.binary_dilation(lb > 0, iterations=3)
+    return off
+
+
 def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min_matches=25,
                     level_mm=1.0, match_height_scale=True, bins_um=100.0, widths_only=False,
                     registration: Optional[Registration] = None, progress: Progress = None):
@@ -375,27 +408,12 @@ def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min
                                    progress=lambda f, msg: report(progress, 0.05 + 0.45 * f, msg))
     timings["registration"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
-    ratio = b.pixel_size_um / a.pixel_size_um
-    pixel = {"pixel_size_um_a": a.pixel_size_um, "pixel_size_um_b": b.pixel_size_um,
-             "ratio_b_over_a": round(ratio, 6), "registration_scale": round(reg.scale, 6),
-             "rescaled": bool(abs(ratio - 1) > 1e-6 or abs(reg.scale - 1) > 1e-3)}
-    if abs(ratio - 1) > 1e-6:
-        warnings.append(f"pixel sizes differ (A {a.pixel_size_um:g} um, B {b.pixel_size_um:g} um): B is "
-                        f"rescaled by {reg.scale:.4f} into A's frame")
-    if abs(reg.scale / ratio - 1) > 0.01:
-        warnings.append(f"the registration's scale ({reg.scale:.4f}) and the pixel sizes' ratio B / A "
-                        f"({ratio:.4f}) differ by more than 1 %: is one run's pixel size wrong? "
-                        "Widths of B are taken at B's calibration")
+    pixel = _pixel_sizes(a, b, reg, warnings)
     shape_a, shape_b = a.height.shape, b.height.shape
     report(progress, 0.55, "heights into A's frame")
     hb = warp_to_a(b.height.astype(np.float32), reg.b_to_a, shape_a, interpolation=cv2.INTER_CUBIC)
     common = _overlap_mask(reg.b_to_a, shape_b, shape_a, erode=3) & np.isfinite(a.height) & np.isfinite(hb)
-    off = np.ones(shape_a, bool)
-    if a.labels is not None:
-        off &= ~ndimage.binary_dilation(a.labels > 0, iterations=3)
-    if b.labels is not None:
-        lb = warp_to_a((b.labels > 0).astype(np.uint8), reg.b_to_a, shape_a, interpolation=cv2.INTER_NEAREST)
-        off &= ~ndimage.binary_dilation(lb > 0, iterations=3)
+    off = _off_protrusions(a, b, reg, shape_a)
     block = max(8, int(round(level_mm * 1000.0 / a.pixel_size_um)))
     lev = level_heights(a.height, hb, common, off, block_px=block, match_scale=match_height_scale)
     if heights and abs(lev.height_scale - 1) > 0.02:
