@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import io
-import html
 import math
 import re
 import time
@@ -24,7 +23,7 @@ import tifffile
 from ..core.elements import (ElementMaps, area_elements, protrusion_elements, rank_correlations, register_maps,
                        resample_to_run)
 from ..errors import UVPSInputError
-from ..files.io import read_text, read_tiff, sha256_file, write_imagej_tiff
+from ..files.io import read_text, sha256_file, write_imagej_tiff
 from ..files.tables import atomic_write_text, read_protrusions_csv, table_to_csv_text
 from ..files.outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report
 from ..core.regions import region_statistics, bin_names
@@ -317,6 +316,68 @@ def _fmt(v, digits=3) -> str:
     return f"{float(v):.{digits}g}"
 
 
+def _check_registration(reg, params: dict, *, control_points: bool) -> None:
+    """Refuse a registration that does not hold: residual, explained variation, overlap (one line each)."""
+    what = "the control points" if control_points else "the automatic registration"
+    if not reg.residual_map_px <= params["max_residual_map_px"]:
+        raise UVPSInputError(
+            f"element maps: {what} does not hold (residual {reg.residual_map_px:.2f} map px, more than "
+            f"{params['max_residual_map_px']:g}); check --step-um, or give control points "
+            "(--control-points: map_col,map_row,run_col,run_row)")
+    if reg.explained < MIN_EXPLAINED:
+        raise UVPSInputError(
+            f"element maps: the run's colour areas explain {100 * reg.explained:.0f} % of the maps' variation "
+            f"(at least {100 * MIN_EXPLAINED:.0f} % expected once registered): they do not show this region, "
+            "or the areas do not follow the paint; give control points (--control-points) or other areas")
+    if reg.overlap < 0.5:
+        raise UVPSInputError(f"element maps cover {100 * reg.overlap:.0f} % of the run's field (at least 50 % "
+                             "needed); check that the maps show this region, and --step-um")
+
+
+def _small_area_warnings(areas) -> list:
+    """A warning naming the colour areas with too few map pixels to enter the correlation."""
+    warnings = []
+    small = [n for n, k in zip(areas.names, areas.n_map_pixels) if k < 10]
+    if small:
+        warnings.append(f"{len(small)} colour area(s) have fewer than 10 map pixels away from their border "
+                        f"({', '.join(small[:4])}{', ...' if len(small) > 4 else ''}): their element means "
+                        "are left out of the correlation")
+    return warnings
+
+
+def _outputs(out: Path) -> list:
+    """What ``elements`` writes into ``out``."""
+    return [OutputSpec("registration", str(out / "registration.json"), kind="json"),
+               OutputSpec("elements", str(out / "elements.tif"), kind="image", axes="ZYX", dtype="float32",
+                          units="counts"),
+               OutputSpec("elements_by_area", str(out / "elements_by_area.csv"), kind="table"),
+               OutputSpec("elements_by_protrusion", str(out / "elements_by_protrusion.csv"), kind="table"),
+               OutputSpec("element_correlation", str(out / "element_correlation.csv"), kind="table"),
+               OutputSpec("report", str(out / "report.html"), kind="html"),
+               OutputSpec("run", str(out / "run.json"), kind="json")]
+
+
+def _answer(reg, corr, out: Path) -> list:
+    """The lines ``uvps elements`` prints: the registration, each element's correlation, the folder."""
+    lines = [f"registration: {reg.method}, residual {reg.residual_map_px:.2f} map px ({reg.residual_of}), "
+             f"{reg.scale:.3f} run px per map px, rotation {reg.rotation_deg:.2f} deg, "
+             f"{100 * reg.overlap:.0f} % of the field covered"]
+    for c in corr:
+        lines.append(f"{c.element}: density against area mean, Spearman rho {_fmt(c.rho, 2) or 'n/a'} "
+                     f"(95 % CI {_fmt(c.ci_low, 2) or '?'} to {_fmt(c.ci_high, 2) or '?'}, {c.n_areas} areas)")
+    lines.append(f"written to {out}")
+    return lines
+
+
+def _write_run_json(path: Path, inputs: dict, params: dict, maps, reg, timings: dict, warnings: list) -> None:
+    """``run.json`` of an ``elements`` folder: the request, every map file's SHA-256, timings, warnings."""
+    hashes = [{"file": s, "sha256": sha256_file(s)} for s in sorted(set(maps.sources))]
+    RunLog("elements", {**params, "run": str(Path(inputs["run"])), "maps": [str(p) for p in inputs["maps"]],
+                        "control_points": str(inputs.get("control_points") or "")},
+           inputs=hashes, timings_s=timings, warnings=warnings,
+           diagnostics={"registration": reg.to_json()}).write(path)
+
+
 def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
     """``elements``: register XRF element maps onto a run; element values per area and per protrusion."""
     t_all = time.perf_counter()
@@ -332,9 +393,8 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
     maps = read_element_maps(inputs["maps"], step_um=params["step_um"])
     reference = _names_list(params["reference"], "reference", maps.names)
     composite = _names_list(params["composite"], "composite", maps.names) or maps.names[:3]
-    cp = None
-    if inputs.get("control_points"):
-        cp = read_control_points(inputs["control_points"], map_shape=maps.shape, run_shape=shape)
+    cp = (read_control_points(inputs["control_points"], map_shape=maps.shape, run_shape=shape)
+          if inputs.get("control_points") else None)
     timings["reading"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     spot = params["spot_um"]
@@ -343,20 +403,7 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
                         control_points=cp, refine=params["refine"],
                         progress=lambda f, m: report(progress, 0.7 * f, m))
     timings["registration"] = round(time.perf_counter() - t, 3)
-    what = "the control points" if cp is not None else "the automatic registration"
-    if not reg.residual_map_px <= params["max_residual_map_px"]:
-        raise UVPSInputError(
-            f"element maps: {what} does not hold (residual {reg.residual_map_px:.2f} map px, more than "
-            f"{params['max_residual_map_px']:g}); check --step-um, or give control points "
-            "(--control-points: map_col,map_row,run_col,run_row)")
-    if reg.explained < MIN_EXPLAINED:
-        raise UVPSInputError(
-            f"element maps: the run's colour areas explain {100 * reg.explained:.0f} % of the maps' variation "
-            f"(at least {100 * MIN_EXPLAINED:.0f} % expected once registered): they do not show this region, "
-            "or the areas do not follow the paint; give control points (--control-points) or other areas")
-    if reg.overlap < 0.5:
-        raise UVPSInputError(f"element maps cover {100 * reg.overlap:.0f} % of the run's field (at least 50 % "
-                             "needed); check that the maps show this region, and --step-um")
+    _check_registration(reg, params, control_points=cp is not None)
     t = time.perf_counter()
     report(progress, 0.75, "resampling into the run's frame")
     resampled = resample_to_run(maps, reg, shape)
@@ -367,12 +414,7 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
     corr = rank_correlations(density, areas, maps.names)
     site, ring = protrusion_elements(resampled, table["x_px"], table["y_px"], pixel_size_um=px, spot_um=spot)
     timings["statistics"] = round(time.perf_counter() - t, 3)
-    warnings = []
-    small = [n for n, k in zip(areas.names, areas.n_map_pixels) if k < 10]
-    if small:
-        warnings.append(f"{len(small)} colour area(s) have fewer than 10 map pixels away from their border "
-                        f"({', '.join(small[:4])}{', ...' if len(small) > 4 else ''}): their element means "
-                        "are left out of the correlation")
+    warnings = _small_area_warnings(areas)
     t = time.perf_counter()
     report(progress, 0.85, "writing")
     with atomic_output_dir(out) as tmp:
@@ -391,26 +433,9 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
                               density, corr, reg, px=px, warnings=warnings)
         timings["writing"] = round(time.perf_counter() - t, 3)
         timings["total"] = round(time.perf_counter() - t_all, 3)
-        hashes = [{"file": s, "sha256": sha256_file(s)} for s in sorted(set(maps.sources))]
-        RunLog("elements", {**params, "run": str(run_dir), "maps": [str(p) for p in inputs["maps"]],
-                            "control_points": str(inputs.get("control_points") or "")},
-               inputs=hashes, timings_s=timings, warnings=warnings,
-               diagnostics={"registration": reg.to_json()}).write(tmp / "run.json")
-    outputs = [OutputSpec("registration", str(out / "registration.json"), kind="json"),
-               OutputSpec("elements", str(out / "elements.tif"), kind="image", axes="ZYX", dtype="float32",
-                          units="counts"),
-               OutputSpec("elements_by_area", str(out / "elements_by_area.csv"), kind="table"),
-               OutputSpec("elements_by_protrusion", str(out / "elements_by_protrusion.csv"), kind="table"),
-               OutputSpec("element_correlation", str(out / "element_correlation.csv"), kind="table"),
-               OutputSpec("report", str(out / "report.html"), kind="html"),
-               OutputSpec("run", str(out / "run.json"), kind="json")]
-    lines = [f"registration: {reg.method}, residual {reg.residual_map_px:.2f} map px ({reg.residual_of}), "
-             f"{reg.scale:.3f} run px per map px, rotation {reg.rotation_deg:.2f} deg, "
-             f"{100 * reg.overlap:.0f} % of the field covered"]
-    for c in corr:
-        lines.append(f"{c.element}: density against area mean, Spearman rho {_fmt(c.rho, 2) or 'n/a'} "
-                     f"(95 % CI {_fmt(c.ci_low, 2) or '?'} to {_fmt(c.ci_high, 2) or '?'}, {c.n_areas} areas)")
-    lines.append(f"written to {out}")
+        _write_run_json(tmp / "run.json", inputs, params, maps, reg, timings, warnings)
+    outputs = _outputs(out)
+    lines = _answer(reg, corr, out)
     report(progress, 1.0, "done")
     diag = {"registration": reg.to_json(), "timings_s": timings,
             "correlation": [{"element": c.element, "rho": c.rho, "n_areas": c.n_areas} for c in corr]}
