@@ -33,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import cv2
 import numpy as np
@@ -602,52 +602,10 @@ def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_
     pa, pb = ia[pairs[:, 0]], ib[pairs[:, 1]]
     gone = np.setdiff1d(ia, pa)
     new = np.setdiff1d(ib, pb)
-    # merged: an A protrusion alone, inside a matched B one; split: a B one alone inside a matched A one
-    rad_b = 0.5 * np.nan_to_num(wb) / pixel_size_um        # B's radius in A pixels
-    rad_a = 0.5 * np.nan_to_num(wa) / pixel_size_um
-    merged_into = {}
-    for g in gone:
-        d = np.hypot(*(xb_in_a[pb] - xa[g]).T) if len(pb) else np.zeros(0)
-        inside = np.flatnonzero(d <= rad_b[pb])
-        if inside.size:
-            merged_into[int(g)] = int(pb[inside[np.argmin(d[inside])]])
-    split_from = {}
-    for j in new:
-        d = np.hypot(*(xa[pa] - xb_in_a[j]).T) if len(pa) else np.zeros(0)
-        inside = np.flatnonzero(d <= rad_a[pa])
-        if inside.size:
-            split_from[int(j)] = int(pa[inside[np.argmin(d[inside])]])
-    ga = np.array(sorted(merged_into), int)
-    gb = np.array([merged_into[g] for g in ga], int)
-    sb = np.array(sorted(split_from), int)
-    sa = np.array([split_from[j] for j in sb], int)
-    gone = np.setdiff1d(gone, ga)
-    new = np.setdiff1d(new, sb)
-    # the rows: pairs, merged, split, gone, new
-    ra = np.concatenate([pa, ga, sa]).astype(int)
-    rb = np.concatenate([pb, gb, sb]).astype(int)
-    kind = np.array(["pair"] * len(pa) + ["merged"] * len(ga) + ["split"] * len(sa), dtype="<U9")
-    merged_b = set(gb.tolist())
-    split_a = set(sa.tolist())
-    kind[:len(pa)] = np.where(np.isin(pb, list(merged_b)), "merged",
-                              np.where(np.isin(pa, list(split_a)), "split", "pair"))
+    ra, rb, kind, gone, new = _regroup(pa, pb, gone, new, xa, xb_in_a, wa, wb, pixel_size_um)
     n_m, n_g, n_n = len(ra), len(gone), len(new)
     n_rows = n_m + n_g + n_n
-    nan = np.full(n_rows, np.nan)
-
-    def col(va, vb):
-        return (np.concatenate([va[ra], va[gone], nan[:n_n]]), np.concatenate([vb[rb], nan[:n_g], vb[new]]))
-
-    rows = {"id_a": np.concatenate([np.asarray(table_a["id"])[ra], np.asarray(table_a["id"])[gone],
-                                    np.zeros(n_n, int)]).astype(int),
-            "id_b": np.concatenate([np.asarray(table_b["id"])[rb], np.zeros(n_g, int),
-                                    np.asarray(table_b["id"])[new]]).astype(int)}
-    rows["x_px_a"], rows["x_px_b"] = col(xa[:, 0], xb[:, 0])
-    rows["y_px_a"], rows["y_px_b"] = col(xa[:, 1], xb[:, 1])
-    rows["width_um_a"], rows["width_um_b"] = col(wa, wb)
-    rows["height_um_a"], rows["height_um_b"] = col(ha, hb)
-    rows["d_width_um"] = rows["width_um_b"] - rows["width_um_a"]
-    rows["d_height_um"] = rows["height_um_b"] - rows["height_um_a"]
+    rows = _row_columns(table_a["id"], table_b["id"], (xa, wa, ha), (xb, wb, hb), ra, rb, gone, new)
     # position in A's frame of every row (B's mapped for new ones): the region, the figures
     pos = np.concatenate([xa[ra], xa[gone], xb_in_a[new]]).reshape(-1, 2)
     widths = np.where(np.isfinite(rows["width_um_a"]), rows["width_um_a"], rows["width_um_b"])
@@ -668,22 +626,8 @@ def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_
     rows["d_height_sd_um"] = np.where(np.isfinite(rows["d_height_um"]), sd_h, np.nan)
     zw0, zh0 = np.nan_to_num(zw), np.nan_to_num(zh)
     rows["significance"] = np.where(np.isfinite(zw) | np.isfinite(zh), np.maximum(np.abs(zw0), np.abs(zh0)), np.nan)
-    up = (zw0 > sigma_factor) | (zh0 > sigma_factor)
-    down = (zw0 < -sigma_factor) | (zh0 < -sigma_factor)
-    zmax = np.where(np.abs(zw0) >= np.abs(zh0), zw0, zh0)
-    status = np.where(up & ~down, "grown", np.where(down & ~up, "shrunk", "unchanged")).astype("<U9")
-    both = up & down
-    status[both] = np.where(zmax[both] > 0, "grown", "shrunk")
-    status[:n_m] = np.where(kind == "pair", status[:n_m], kind)
-    status[n_m:n_m + n_g] = "gone"
-    status[n_m + n_g:] = "new"
-    rows["status"] = status
-    if regions_a is not None and len(pos):
-        r = np.clip(np.rint(pos[:, 1]).astype(int), 0, regions_a.shape[0] - 1)
-        c = np.clip(np.rint(pos[:, 0]).astype(int), 0, regions_a.shape[1] - 1)
-        rows["region"] = regions_a[r, c].astype(int)
-    else:
-        rows["region"] = np.zeros(n_rows, int)
+    rows["status"] = _status(zw0, zh0, kind, n_g, sigma_factor)
+    rows["region"] = _region_at(regions_a, pos)
     if change_um is not None and heights:
         _confirm_unmatched(rows, pos, change_um, pixel_size_um)
     order = np.lexsort((pos[:, 0], pos[:, 1])) if n_rows else np.zeros(0, int)
@@ -694,6 +638,98 @@ def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_
                    "surface_noise_um_median": round(float(np.median(surf)), 4) if surf.size else None,
                    "model": dataclasses.asdict(model), "sigma_factor": sigma_factor, "heights": bool(heights)}
     return rows, pos[order], left_out, uncertainty
+
+
+class _Regrouped(NamedTuple):
+    ra: np.ndarray      # A's row of each pair, merged or split row
+    rb: np.ndarray      # B's
+    kind: np.ndarray    # "pair", "merged" or "split"
+    gone: np.ndarray    # A's protrusions still alone
+    new: np.ndarray     # B's
+
+
+def _regroup(pa, pb, gone, new, xa, xb_in_a, wa, wb, pixel_size_um: float) -> _Regrouped:
+    """The one-to-one pairs ``pa``/``pb`` and the protrusions left alone, regrouped: an A protrusion
+    alone inside a matched B one merged into it; a B one alone inside a matched A one split from it."""
+    rad_b = 0.5 * np.nan_to_num(wb) / pixel_size_um        # B's radius in A pixels
+    rad_a = 0.5 * np.nan_to_num(wa) / pixel_size_um
+    merged_into = _inside_partner(gone, pb, xa, xb_in_a, rad_b)
+    split_from = _inside_partner(new, pa, xb_in_a, xa, rad_a)
+    ga = np.array(sorted(merged_into), int)
+    gb = np.array([merged_into[g] for g in ga], int)
+    sb = np.array(sorted(split_from), int)
+    sa = np.array([split_from[j] for j in sb], int)
+    gone = np.setdiff1d(gone, ga)
+    new = np.setdiff1d(new, sb)
+    # the rows: pairs, merged, split, gone, new
+    ra = np.concatenate([pa, ga, sa]).astype(int)
+    rb = np.concatenate([pb, gb, sb]).astype(int)
+    kind = np.array(["pair"] * len(pa) + ["merged"] * len(ga) + ["split"] * len(sa), dtype="<U9")
+    merged_b = set(gb.tolist())
+    split_a = set(sa.tolist())
+    kind[:len(pa)] = np.where(np.isin(pb, list(merged_b)), "merged",
+                              np.where(np.isin(pa, list(split_a)), "split", "pair"))
+    return _Regrouped(ra, rb, kind, gone, new)
+
+
+def _inside_partner(alone, partners, x_alone, x_partners, radius) -> dict:
+    """For each protrusion in ``alone`` (indices into ``x_alone``), the nearest of ``partners``
+    (indices into ``x_partners``, ``radius`` each, all in A's pixels) whose disc holds its centre."""
+    out = {}
+    for g in alone:
+        d = np.hypot(*(x_partners[partners] - x_alone[g]).T) if len(partners) else np.zeros(0)
+        inside = np.flatnonzero(d <= radius[partners])
+        if inside.size:
+            out[int(g)] = int(partners[inside[np.argmin(d[inside])]])
+    return out
+
+
+def _row_columns(ids_a, ids_b, a: tuple, b: tuple, ra, rb, gone, new) -> dict:
+    """The columns of ``changes.csv`` from both tables: the rows ``ra``/``rb`` (pairs, merged, split),
+    then A's ``gone``, then B's ``new``; ``a``, ``b``: (positions (P, 2), widths, heights)."""
+    (xa, wa, ha), (xb, wb, hb) = a, b
+    n_g, n_n = len(gone), len(new)
+    nan = np.full(len(ra) + n_g + n_n, np.nan)
+
+    def col(va, vb):
+        return (np.concatenate([va[ra], va[gone], nan[:n_n]]), np.concatenate([vb[rb], nan[:n_g], vb[new]]))
+
+    rows = {"id_a": np.concatenate([np.asarray(ids_a)[ra], np.asarray(ids_a)[gone],
+                                    np.zeros(n_n, int)]).astype(int),
+            "id_b": np.concatenate([np.asarray(ids_b)[rb], np.zeros(n_g, int),
+                                    np.asarray(ids_b)[new]]).astype(int)}
+    rows["x_px_a"], rows["x_px_b"] = col(xa[:, 0], xb[:, 0])
+    rows["y_px_a"], rows["y_px_b"] = col(xa[:, 1], xb[:, 1])
+    rows["width_um_a"], rows["width_um_b"] = col(wa, wb)
+    rows["height_um_a"], rows["height_um_b"] = col(ha, hb)
+    rows["d_width_um"] = rows["width_um_b"] - rows["width_um_a"]
+    rows["d_height_um"] = rows["height_um_b"] - rows["height_um_a"]
+    return rows
+
+
+def _status(zw0, zh0, kind, n_g: int, sigma_factor: float) -> np.ndarray:
+    """Each row's status: a pair by its larger significant change (grown, shrunk, unchanged), the
+    merged and split ones as ``kind`` says, then ``n_g`` gone and the rest new."""
+    n_m = len(kind)
+    up = (zw0 > sigma_factor) | (zh0 > sigma_factor)
+    down = (zw0 < -sigma_factor) | (zh0 < -sigma_factor)
+    zmax = np.where(np.abs(zw0) >= np.abs(zh0), zw0, zh0)
+    status = np.where(up & ~down, "grown", np.where(down & ~up, "shrunk", "unchanged")).astype("<U9")
+    both = up & down
+    status[both] = np.where(zmax[both] > 0, "grown", "shrunk")
+    status[:n_m] = np.where(kind == "pair", status[:n_m], kind)
+    status[n_m:n_m + n_g] = "gone"
+    status[n_m + n_g:] = "new"
+    return status
+
+
+def _region_at(regions_a, pos) -> np.ndarray:
+    """A's colour area under each position (x, y in A's pixels), 0 without areas."""
+    if regions_a is None or not len(pos):
+        return np.zeros(len(pos), int)
+    r = np.clip(np.rint(pos[:, 1]).astype(int), 0, regions_a.shape[0] - 1)
+    c = np.clip(np.rint(pos[:, 0]).astype(int), 0, regions_a.shape[1] - 1)
+    return regions_a[r, c].astype(int)
 
 
 def _local_noise(change_um, pos, widths, px, off_protrusions=None) -> np.ndarray:
