@@ -31,7 +31,7 @@ from .errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, set_common
 from .integrate import IntegrationResult, integrate_normals
 from .io import Capture
-from .lights import (LightEstimate, LightModel, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
+from .lights import (LightEstimate, LightModel, beyond_model, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
                      model_logs, ratio_samples, refine_intensities, sample_pixels)
 from .measure import measure_protrusions
 from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
@@ -48,6 +48,8 @@ __all__ = ["CAPTURE_PARAMS", "OPTION_PARAMS", "PROTRUSION_PARAMS", "OUTPUT_PARAM
 
 #: The options of the photometric-stereo stages, declared once: the defaults and checks of
 #: :class:`RunOptions`, the CLI flags, the bridge's keys and the Fiji fields all come from here.
+#: ``lamp_beams``: auto, all, none (see :func:`uvps.lights.beyond_model`).
+LAMP_BEAMS = ("auto", "all", "none")
 OPTION_PARAMS = (
     Param("degree", "int", 4, minimum=1, maximum=8, label="Degree of the lamps' drop-off fit (4 suits most captures)",
           help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
@@ -69,9 +71,10 @@ OPTION_PARAMS = (
                "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
     Param("offset_degree", "int", 0, minimum=0, maximum=2,
           help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
-    Param("lamp_beams", "bool", False,
-          help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
-               "the canvas's large-scale shape (bow) from the heights"),
+    Param("lamp_beams", "choice", "auto", choices=LAMP_BEAMS,
+          help="with lamp positions given, each image's drop-off beyond the point-light model (a lamp's beam, its "
+               "aim): auto divides out what no tilt of the canvas explains (the canvas's bow kept); all divides out "
+               "all of it (narrowest beams; the bow goes from the heights too); none keeps it"),
     Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
           help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
                "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "
@@ -147,7 +150,7 @@ class RunOptions:
     black_level: Optional[object] = _default("black_level")
     offset: str = _default("offset")
     offset_degree: int = _default("offset_degree")
-    lamp_beams: bool = _default("lamp_beams")
+    lamp_beams: str = _default("lamp_beams")
     card: Optional[str] = _default("card")
 
     def __post_init__(self):
@@ -749,6 +752,15 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
 
 
+def _lamp_beams(options) -> str:
+    """``options.lamp_beams`` as one of :data:`LAMP_BEAMS` (run folders written before it was a choice
+    hold true / false)."""
+    v = options.lamp_beams
+    if isinstance(v, bool):
+        return "all" if v else "none"
+    return v
+
+
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
                             card: Optional[CardCalibration] = None, progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
@@ -772,7 +784,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         given_lights(capture)                       # the card needs them
         capture = dataclasses.replace(capture, images=apply_card(capture.images, card),
                                       light_intensities=np.ones(capture.images.shape[0]))
-        options = dataclasses.replace(options, lamp_beams=False)
+        options = dataclasses.replace(options, lamp_beams="none")
     report(progress, 0.0, "drop-off fits")
     grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
     fits = fit_dropoffs(grid, degree=int(options.degree))
@@ -790,18 +802,14 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         # What each image's drop-off holds beyond the point-light model of the given positions (a
-        # lamp's beam, its aim): measured from the ratio maps and reported; with lamp_beams it is
-        # divided out (a narrow lamp aimed 5 deg off tilted every normal by 1-9 deg; divided out,
-        # 0.2 deg), leaving the lamps' relative irradiance at every pixel to the model. It cannot be
-        # told from the shading of the canvas's own large-scale shape (bow), which goes with it: off
-        # by default.
-        rows, cols, R = ratio_samples(fits, shape)
-        X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, px)
-        h = model_logs(P, X)
-        delta = R - h + h.mean(axis=0)
-        delta -= delta.mean(axis=0)
+        # lamp's beam, its aim): measured from the ratio maps, reported, and divided out (a narrow lamp
+        # aimed 5 deg off tilted every normal by 1-9 deg), leaving the lamps' relative irradiance at every
+        # pixel to the model. The shading of the canvas's own large-scale shape (bow) is in it too; by
+        # default the part a tilt of the canvas explains is left to the relief (lights.beyond_model).
+        beams = _lamp_beams(options)
+        rows, cols, delta = beyond_model(fits, P, shape, px, keep_relief=beams != "all")
         beam_rms = float(np.sqrt(np.mean(delta ** 2)))
-        if options.lamp_beams:
+        if beams != "none":
             gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
             capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
             grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
@@ -816,7 +824,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                                    pixel_size_um=px, n=n_known)
             E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
-                            images=capture.images if options.lamp_beams or card is not None else None,
+                            images=capture.images if beams != "none" or card is not None else None,
                             beam_rms=beam_rms, card=card)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
