@@ -74,6 +74,8 @@ from uvps.testing.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, m
                             write_capture)
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["bow", "all"]
+#: Modes whose runs are given the lamps (``--lamp-beams`` applies to them; the card divides the beams out).
+KNOWN_LAMP_MODES = ("calibrated", "spheres", "matte_spheres")
 MODES = ("estimated", "calibrated", "dark", "card", "spheres", "matte_spheres", "spheres_card")
 #: The ``bow`` row: a canvas bowed by this much across the field (real canvases: 100-250 um).
 BOW_UM = 250.0
@@ -295,8 +297,11 @@ def result_path(workdir: Path, row, seed, lamps, mode) -> Path:
 
 
 def _config(args_like) -> dict:
-    return {"shape": list(args_like["shape"]), "pixel_size_um": float(args_like["pixel_size_um"]),
-            "detect": bool(args_like["detect"])}
+    out = {"shape": list(args_like["shape"]), "pixel_size_um": float(args_like["pixel_size_um"]),
+           "detect": bool(args_like["detect"])}
+    if args_like.get("lamp_beams"):
+        out["lamp_beams"] = args_like["lamp_beams"]
+    return out
 
 
 def load_cached(path: Path, config: dict, retry_failed=False):
@@ -387,6 +392,9 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
                     argv += ["--calibration", str(cal_dir)]
                 except Exception as exc:  # reported as the run's failure below
                     cal_score = {"calibrate_error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
+            if config.get("lamp_beams") and mode in KNOWN_LAMP_MODES:
+                params["lamp_beams"] = config["lamp_beams"]
+                argv += ["--lamp-beams", config["lamp_beams"]]
             if config["detect"]:
                 params["regions"] = str(regions_tif)
                 argv += ["--regions", str(regions_tif)]
@@ -614,6 +622,9 @@ def parse_args(argv):
     ap.add_argument("--keep", action="store_true", help="keep the captures and run folders")
     ap.add_argument("--no-detect", action="store_true",
                     help="run without --regions (no detection metrics; faster)")
+    ap.add_argument("--lamp-beams", choices=("auto", "all", "none"), default=None,
+                    help="runs with known lamps (calibrated, spheres, matte_spheres): uvps run --lamp-beams (default: "
+                         "the run's own default)")
     ap.add_argument("--retry-failed", action="store_true", help="re-run cached runs that failed")
     return ap.parse_args(argv)
 
@@ -624,7 +635,8 @@ def main(argv=None) -> int:
     M, N = args.shape
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.gettempdir()) / f"uvps_robustness_{M}x{N}"
     workdir.mkdir(parents=True, exist_ok=True)
-    config = _config({"shape": args.shape, "pixel_size_um": args.pixel_size_um, "detect": not args.no_detect})
+    config = _config({"shape": args.shape, "pixel_size_um": args.pixel_size_um, "detect": not args.no_detect,
+                      "lamp_beams": args.lamp_beams})
     code = code_version()
     groups = [(row, seed, lamps) for row in args.rows for lamps in args.lights_counts for seed in args.seeds]
     t_start = time.perf_counter()

@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import empty_table
-from .core.pipeline import RunOptions, given_lights, run
+from .core.pipeline import LAMP_BEAMS, RunOptions, given_lights, run
 from .core.regions import propose_regions, region_statistics, whole_image
 from .errors import UVPSInputError
 from .files.calibration import apply as apply_calibration, run_params
@@ -57,9 +57,10 @@ OPTION_PARAMS = (
                "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
     Param("offset_degree", "int", _RUN.offset_degree, minimum=0, maximum=2,
           help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
-    Param("lamp_beams", "bool", _RUN.lamp_beams,
-          help="with lamp positions given: divide out each lamp's beam (narrow or mis-aimed lamps); also removes "
-               "the canvas's large-scale shape (bow) from the heights"),
+    Param("lamp_beams", "choice", _RUN.lamp_beams, choices=LAMP_BEAMS,
+          help="with lamp positions given, each image's drop-off beyond the point-light model (a lamp's beam, its "
+               "aim): auto divides out what no tilt of the canvas explains (the canvas's bow kept); all divides out "
+               "all of it (narrowest beams; the bow goes from the heights too); none keeps it"),
     Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
           help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
                "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "

@@ -52,7 +52,7 @@ __all__ = [
     "LightModel", "LightEstimate", "PixelSample", "azimuth_from_dropoff", "pixel_coordinates_mm",
     "estimate_lights", "intensities_from_levels", "sample_pixels", "photometric_residual",
     "LightUncertainty", "light_uncertainty", "refine_intensities", "ratio_samples", "model_logs",
-    "integrability_correction",
+    "integrability_correction", "beyond_model",
 ]
 
 
@@ -135,6 +135,52 @@ def model_logs(P, X):
     V = P.reshape((len(P),) + (1,) * (X.ndim - 1) + (3,)) - X[None]
     h = -1.5 * np.log(np.einsum("...i,...i->...", V, V))
     return h - h.mean(axis=tuple(range(1, h.ndim)), keepdims=True)
+
+
+def beyond_model(fits, P, shape, pixel_size_um, *, keep_relief=True):
+    """What each image's drop-off holds beyond the point-light model of known positions ``P``.
+
+    Parameters
+    ----------
+    fits : list of DropoffFit
+    P : (K, 3) lamp positions (mm)
+    shape : (M, N)
+    pixel_size_um : float
+    keep_relief : bool
+        Leave out of the result the part a smooth tilt of the canvas (its bow) explains.
+
+    Returns
+    -------
+    rows, cols : (n,) grid coordinates (px)
+    delta : (K, n, n)
+        Log gains beyond the model on the grid, each centred over the lamps at every grid point
+        and over the field for every lamp: a lamp's beam, its aim.
+
+    Notes
+    -----
+    A smooth tilt of the canvas by slopes ``(p, q)`` at ``X`` changes lamp k's log shading by
+    ``log(l_z - p l_x - q l_y) - log l_z ~ -p t_x - q t_y`` with ``t = (l_x, l_y) / l_z`` the lamp's
+    direction at ``X`` (to first order in the slopes; 250 um of bow across 24 mm: slopes under 0.04,
+    the second-order term under 1 % of the first). That part is linear in ``t_k``; a beam's gain,
+    which depends on where each lamp is aimed, is not. With ``keep_relief`` the part of ``delta`` at
+    each grid point that is linear in the lamps' ``t`` (two numbers per point, K lamps) is left to the
+    relief: a beam keeps all but its projection on those two patterns, the bow's shading none.
+    """
+    rows, cols, R = ratio_samples(fits, shape)
+    X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, pixel_size_um)
+    h = model_logs(P, X)
+    delta = R - h + h.mean(axis=0)
+    delta -= delta.mean(axis=0)
+    if keep_relief:
+        V = np.asarray(P, float)[:, None, None, :] - X[None]
+        t = V[..., :2] / V[..., 2:3]                                 # (K, n, n, 2)
+        t = t - t.mean(axis=0)
+        A = np.einsum("knmi,knmj->nmij", t, t)
+        b = np.einsum("knmi,knm->nmi", t, delta)
+        coef = np.linalg.solve(A + 1e-12 * np.eye(2), b[..., None])[..., 0]
+        delta = delta - np.einsum("knmi,nmi->knm", t, coef)
+        delta -= delta.mean(axis=(1, 2), keepdims=True)
+    return rows, cols, delta
 
 
 def _equidistant_positions(R, X, m, start, n_outer=3):

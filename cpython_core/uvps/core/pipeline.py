@@ -30,8 +30,8 @@ from ..errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, with_common
 from .integrate import IntegrationResult, integrate_normals
 from .stack import Capture
-from .lights import (LightEstimate, LightModel, dropoff_common, estimate_lights, intensities_from_levels, pixel_coordinates_mm,
-                     model_logs, ratio_samples, refine_intensities, sample_pixels)
+from .lights import (LightEstimate, LightModel, beyond_model, dropoff_common, estimate_lights, intensities_from_levels,
+                     refine_intensities, sample_pixels)
 from .measure import measure_protrusions
 from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
 from .progress import Progress, report, sub_progress
@@ -43,6 +43,10 @@ log = logging.getLogger(__name__)
 __all__ = ["RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions", "given_lights"]
+
+#: ``lamp_beams``: auto, all, none (see :func:`uvps.core.lights.beyond_model`).
+LAMP_BEAMS = ("auto", "all", "none")
+
 
 @dataclass
 class RunOptions:
@@ -62,16 +66,18 @@ class RunOptions:
     black_level: Optional[object] = None  #: counts, one number or one per channel (>= 0)
     offset: str = "auto"                  #: "auto", "measure" or "none"
     offset_degree: int = 0                #: 0 constant; 1-2 also stray light across the field
-    lamp_beams: bool = False              #: known positions: divide out each lamp's beam
+    lamp_beams: str = "auto"              #: known positions: the drop-off beyond the model divided out (LAMP_BEAMS)
     card: Optional[str] = None            #: the card the caller loaded (recorded; the card itself is ``run(card=)``)
 
     def __post_init__(self):
         # the ranges uvps.workflow.OPTION_PARAMS declares (tests/test_spec.py holds the two together)
         for name, lo, hi in (("degree", 1, 8), ("sample_pixels", 500, None), ("offset_degree", 0, 2)):
             setattr(self, name, _whole(name, getattr(self, name), lo, hi))
-        for name, choices in (("integration", ("fc", "dct")), ("offset", ("auto", "measure", "none"))):
-            if getattr(self, name) not in choices:
-                raise UVPSInputError(f"{name} must be one of {', '.join(choices)}; got {getattr(self, name)!r}")
+        for name, choices in (("integration", ("fc", "dct")), ("offset", ("auto", "measure", "none")),
+                              ("lamp_beams", LAMP_BEAMS + (True, False))):    # true / false: older run folders
+            if getattr(self, name) not in choices or (name != "lamp_beams" and isinstance(getattr(self, name), bool)):
+                shown = ", ".join(c for c in choices if isinstance(c, str))
+                raise UVPSInputError(f"{name} must be one of {shown}; got {getattr(self, name)!r}")
         if self.black_level is not None:
             levels = [float(v) for v in np.atleast_1d(np.asarray(self.black_level, dtype=float))]
             if not levels or not all(np.isfinite(v) and v >= 0 for v in levels):
@@ -676,6 +682,15 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
 
 
+def _lamp_beams(options) -> str:
+    """``options.lamp_beams`` as one of :data:`LAMP_BEAMS` (run folders written before it was a choice
+    hold true / false)."""
+    v = options.lamp_beams
+    if isinstance(v, bool):
+        return "all" if v else "none"
+    return v
+
+
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
                             card: Optional[CardCalibration] = None, progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
@@ -699,7 +714,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         given_lights(capture)                       # the card needs them
         capture = dataclasses.replace(capture, images=apply_card(capture.images, card),
                                       light_intensities=np.ones(capture.images.shape[0]))
-        options = dataclasses.replace(options, lamp_beams=False)
+        options = dataclasses.replace(options, lamp_beams="none")
     report(progress, 0.0, "drop-off fits")
     grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
     fits = fit_dropoffs(grid, degree=int(options.degree))
@@ -713,18 +728,14 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     if capture.light_positions_mm is not None:
         P = capture.light_positions_mm
         # What each image's drop-off holds beyond the point-light model of the given positions (a
-        # lamp's beam, its aim): measured from the ratio maps and reported; with lamp_beams it is
-        # divided out (a narrow lamp aimed 5 deg off tilted every normal by 1-9 deg; divided out,
-        # 0.2 deg), leaving the lamps' relative irradiance at every pixel to the model. It cannot be
-        # told from the shading of the canvas's own large-scale shape (bow), which goes with it: off
-        # by default.
-        rows, cols, R = ratio_samples(fits, shape)
-        X = pixel_coordinates_mm(rows[:, None], cols[None, :], shape, px)
-        h = model_logs(P, X)
-        delta = R - h + h.mean(axis=0)
-        delta -= delta.mean(axis=0)
+        # lamp's beam, its aim): measured from the ratio maps, reported, and divided out (a narrow lamp
+        # aimed 5 deg off tilted every normal by 1-9 deg), leaving the lamps' relative irradiance at every
+        # pixel to the model. The shading of the canvas's own large-scale shape (bow) is in it too; by
+        # default the part a tilt of the canvas explains is left to the relief (lights.beyond_model).
+        beams = _lamp_beams(options)
+        rows, cols, delta = beyond_model(fits, P, shape, px, keep_relief=beams != "all")
         beam_rms = float(np.sqrt(np.mean(delta ** 2)))
-        if options.lamp_beams:
+        if beams != "none":
             gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
             capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
             grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
@@ -739,7 +750,7 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
                                    pixel_size_um=px, n=n_known)
             E = refine_intensities(sample, P, E)
         return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
-                            images=capture.images if options.lamp_beams or card is not None else None,
+                            images=capture.images if beams != "none" or card is not None else None,
                             beam_rms=beam_rms, card=card)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.

@@ -539,8 +539,12 @@ def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
         if zs:
             lam += (f"; they came out {sig(min(zs), 2)}\u2013{sig(max(zs), 2)} mm above the "
                     "canvas")
-    if p.get("lamp_beams"):
-        lam += "; each lamp's beam profile divided out"
+    beams = p.get("lamp_beams")
+    if beams in (True, "all"):
+        lam += "; each lamp's drop-off beyond the point-light model divided out (the canvas's bow with it)"
+    elif beams == "auto" and f.lights.get("lights") and any(x.get("position_mm") for x in f.lights["lights"]):
+        lam += ("; each lamp's drop-off beyond the point-light model divided out, but for what a tilt of the "
+                "canvas explains (its bow kept)")
     items.append(lam + ".")
     items.append("Normals and albedo by least squares at every pixel over the lamps lighting it "
                  + ("(rank-trimmed: each pixel's darkest and brightest samples left out)"
