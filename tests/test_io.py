@@ -603,3 +603,6 @@ def test_a_mapped_stack_reads_a_band_not_the_whole_file_and_loads_only_when_aske
     assert all(sum(m.reads) < m.arr.size for m in maps)
     whole = stack.load()
     assert whole.shape == (3, 40, 30) and np.array_equal(whole[2], arrays[2])
+    from uvps.core.stack import Stack, load
+    assert isinstance(stack, Stack) and isinstance(whole, Stack)     # an array is a stack too
+    assert np.array_equal(load(stack), whole) and load(whole) is whole

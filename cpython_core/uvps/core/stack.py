@@ -9,9 +9,29 @@ docs/architecture.md, "Lazy stacks".
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Protocol, runtime_checkable
 
 import numpy as np
+
+
+@runtime_checkable
+class Stack(Protocol):
+    """What a stage may use of ``Capture.images``: a ``(K, M, N[, C])`` numpy array or a
+    :class:`LazyStack` (docs/architecture.md, "Lazy stacks"). Indexing reads a part (``[k]``,
+    ``[k, rows, cols]``, ``[:, rows, cols]``, ``[:, r, c]``); the whole stack is :func:`load`."""
+
+    shape: tuple
+    ndim: int
+    dtype: np.dtype
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, key) -> np.ndarray: ...
+
+
+def load(stack: Stack) -> np.ndarray:
+    """The whole stack as one array in memory: the one explicit full load (an array is returned as is)."""
+    return stack if isinstance(stack, np.ndarray) else stack.load()
 
 
 @dataclass
