@@ -441,3 +441,49 @@ def test_median_matches_numpy():
     for n in (1, 2, 7, 50):
         x = rng.normal(size=n)
         assert _median(x) == np.median(x)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_expand_labels_by_groups_matches_skimage(seed):
+    """Per-group crops give skimage's expansion pixel for pixel, ties between touching labels
+    included (labels of random ids in random blobs, near each other and the border)."""
+    from scipy import ndimage as ndi
+    from skimage.segmentation import expand_labels
+    from uvps.detect import _expand_labels
+    rng = np.random.default_rng(seed)
+    for density in (0.003, 0.02, 0.06):
+        blobs = ndi.binary_dilation(rng.random((90, 110)) < density, iterations=int(rng.integers(0, 3)))
+        lab = np.where(blobs, rng.integers(1, 40, blobs.shape), 0).astype(np.int32)
+        for distance in (1, 1.5, 2, 4, 7.3):
+            np.testing.assert_array_equal(_expand_labels(lab, distance), expand_labels(lab, distance))
+
+
+def test_axis_lengths_match_regionprops():
+    """Per-label moments in one pass: regionprops' axis lengths of ellipses, bars and a pixel."""
+    from skimage.draw import ellipse
+    from skimage.measure import regionprops_table
+    from uvps.detect import _axis_lengths
+    lab = np.zeros((120, 160), np.int32)
+    for k, (r, c, a, b, rot) in enumerate([(30, 40, 20, 8, 0.3), (80, 50, 12, 12, 0.0),
+                                           (60, 120, 25, 5, -1.1)], start=1):
+        lab[ellipse(r, c, a, b, shape=lab.shape, rotation=rot)] = k
+    lab[100:103, 90:140] = 4
+    lab[5, 150] = 6                                            # label 5 absent
+    major, minor = _axis_lengths(lab, 6)
+    props = regionprops_table(lab, properties=("label", "axis_major_length", "axis_minor_length"))
+    np.testing.assert_allclose(major[props["label"] - 1], props["axis_major_length"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(minor[props["label"] - 1], props["axis_minor_length"], rtol=1e-9, atol=1e-9)
+    assert major[4] == minor[4] == 0
+    assert 2 * 25 * 0.95 < major[2] < 2 * 25 * 1.05 and minor[2] < major[2] / 4
+
+
+def test_hole_area_counts_only_holes_a_label_encloses_alone():
+    from uvps.detect import _hole_area
+    lab = np.zeros((60, 80), np.int32)
+    lab[5:20, 5:20] = 1
+    lab[9:14, 9:13] = 0                                        # 20 px enclosed by label 1
+    lab[30:50, 30:40], lab[30:50, 40:50] = 2, 3                # a hole shared by labels 2 and 3
+    lab[35:40, 38:42] = 0
+    lab[0:8, 60:75] = 4                                        # at the border, 3 x 3 px hole
+    lab[2:5, 66:69] = 0
+    np.testing.assert_array_equal(_hole_area(lab, 5), [20, 0, 0, 9, 0])
