@@ -875,20 +875,38 @@ def _disc_template(d: float) -> np.ndarray:
     return np.clip(d / 2 - r + 0.5, 0, 1).astype(np.float32)
 
 
-def _template_score(contrast: np.ndarray, diameters) -> np.ndarray:
-    """Max over disc diameters of the normalised correlation (TM_CCOEFF_NORMED), centred."""
-    m, n = contrast.shape
-    best = np.full((m, n), -1.0, np.float32)
+def _template_score(contrast: np.ndarray, comp: np.ndarray, n: int, diameters) -> np.ndarray:
+    """Per component 1..n of ``comp``, the best normalised correlation (TM_CCOEFF_NORMED) of a
+    disc template centred on one of its pixels, over the disc diameters (-1 if none fits).
+
+    Per diameter, :func:`cv2.matchTemplate` runs on each component's box widened by half the
+    template (reflected at the image's border) while those crops add up to less than half the
+    image, else once on the whole image: at 4000 x 3000 the components cover ~1 % of it and
+    the whole image cost 0.5 s per diameter. The scores are the whole image's to float32
+    rounding (a few 1e-6)."""
+    m, nc = contrast.shape
+    best = np.full(n, -1.0, np.float32)
     src = np.ascontiguousarray(contrast, dtype=np.float32)
+    slices = ndi.find_objects(comp)
     for d in diameters:
         tpl = _disc_template(d)
         k = tpl.shape[0]
         half = k // 2
-        if k >= min(m, n):
+        if k >= min(m, nc):
             continue
         padded = cv2.copyMakeBorder(src, half, half, half, half, cv2.BORDER_REFLECT)
-        score = cv2.matchTemplate(padded, tpl, cv2.TM_CCOEFF_NORMED)
-        np.maximum(best, score[:m, :n], out=best)
+        crops = sum((sl[0].stop - sl[0].start + k) * (sl[1].stop - sl[1].start + k)
+                    for sl in slices if sl is not None)
+        if crops >= 0.5 * m * nc:
+            score = cv2.matchTemplate(padded, tpl, cv2.TM_CCOEFF_NORMED)
+            np.maximum(best, _label_max(score, comp, n), out=best)
+            continue
+        for i, sl in enumerate(slices):
+            if sl is None:
+                continue
+            win = padded[sl[0].start:sl[0].stop + 2 * half, sl[1].start:sl[1].stop + 2 * half]
+            score = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
+            best[i] = max(best[i], score[comp[sl] == i + 1].max())
     return best
 
 
@@ -905,8 +923,8 @@ def _albedo_cue(lum, valid, px: float, th: Thresholds, p: DetectionParams) -> np
         return np.zeros(lum.shape, bool)
     k = max(int(p.template_scales), 1)
     diam = np.geomspace(max(th.min_w, 2.0), max(th.max_w, th.min_w * 1.01, 2.5), k)
-    score = _template_score(np.clip(contrast, 0, 2 * p.albedo_contrast + 0.5), diam)
-    keep = np.concatenate([[False], _label_max(score, acomp, na) >= p.template_ncc])
+    score = _template_score(np.clip(contrast, 0, 2 * p.albedo_contrast + 0.5), acomp, na, diam)
+    keep = np.concatenate([[False], score >= p.template_ncc])
     return keep[acomp]
 
 
