@@ -487,3 +487,20 @@ def test_hole_area_counts_only_holes_a_label_encloses_alone():
     lab[0:8, 60:75] = 4                                        # at the border, 3 x 3 px hole
     lab[2:5, 66:69] = 0
     np.testing.assert_array_equal(_hole_area(lab, 5), [20, 0, 0, 9, 0])
+
+
+def test_inscribed_radius_in_crops_matches_the_whole_image_transform():
+    """Labels apart from one another: the whole image's distance to the nearest unlabelled pixel;
+    touching labels: each one's own (its neighbour counts as outside)."""
+    from scipy import ndimage as ndi
+    from uvps.detect import _inscribed_radius
+    lab = np.zeros((50, 70), np.int32)
+    lab[5:16, 5:26] = 1                                        # 11 x 21 bar: r_in 6
+    lab[0:9, 40:49] = 2                                        # 9 x 9 at the border
+    lab[16, 26] = 3                                            # one pixel, diagonal to label 1
+    lab[30:45, 10:25], lab[30:45, 25:40] = 4, 5                # two touching squares
+    edt = ndi.distance_transform_edt(lab > 0)
+    expect = [edt[lab == k].max() for k in (1, 2, 3)]
+    expect += [ndi.distance_transform_edt(np.pad(lab == k, 1)).max() for k in (4, 5)]
+    np.testing.assert_allclose(_inscribed_radius(lab, 6), expect + [0.5], atol=1e-4)
+    assert _inscribed_radius(lab, 6)[0] == 6.0

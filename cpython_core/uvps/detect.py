@@ -977,7 +977,8 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
     if na:
         lab = np.where(acomp > 0, acomp + n_h, lab).astype(np.int32)
-    taken = ndi.binary_dilation(lab > 0, structure=np.ones((3, 3)))
+    taken = cv2.dilate((lab > 0).view(np.uint8), np.ones((3, 3), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     touch = np.zeros(int(long_lab.max()) + 1, bool)
     touch[long_lab[taken]] = True
     keep = (long_lab > 0) & ~touch[long_lab]
@@ -1052,16 +1053,25 @@ def _axis_lengths(lab: np.ndarray, n: int) -> tuple:
 
 def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
     """Largest inscribed radius per label (px): the largest distance from one of its pixels to
-    the nearest pixel outside it (touching labels count as outside)."""
-    r_in = _label_max(_edt(lab > 0), lab, n)
+    the nearest pixel outside it (touching labels count as outside).
+
+    Each label in its own crop, its box widened by 1 px: a label touching no other has, along
+    its row and its column, an unlabelled pixel within that ring, nearer than any pixel beyond
+    it, so the crop's distances are the whole image's (a whole-image transform cost 0.5 s at
+    4000 x 3000 for candidates covering a tenth of it)."""
+    r_in = np.full(n, -np.inf)
     touching = np.zeros(n + 1, bool)
     for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1], lab[1:])):
         sel = (a != b) & (a > 0) & (b > 0)
         touching[a[sel]] = touching[b[sel]] = True
-    slices = ndi.find_objects(lab)
-    for i in np.flatnonzero(touching):
-        sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in slices[i - 1])
-        r_in[i - 1] = _edt(np.pad(lab[sl] == i, 1)).max()
+    for i, s in enumerate(ndi.find_objects(lab), start=1):
+        if s is None:
+            continue
+        sl = tuple(slice(max(k.start - 1, 0), k.stop + 1) for k in s)
+        if touching[i]:
+            r_in[i - 1] = _edt(np.pad(lab[sl] == i, 1)).max()
+        else:
+            r_in[i - 1] = _edt(lab[sl] > 0)[lab[sl] == i].max()
     return np.maximum(r_in, 0.5)
 
 
@@ -1077,9 +1087,11 @@ def _crack_fraction(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, relief: n
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     depth = cv2.morphologyEx(hn, cv2.MORPH_CLOSE, se, borderType=cv2.BORDER_REFLECT) - hn
     need = np.concatenate([[np.inf], np.maximum(0.5 * relief, floor_um)])
-    below = hn < np.concatenate([[-np.inf], _label_mean(hn, ring, n)])[ring]
-    total = np.bincount(ring.ravel(), minlength=n + 1)[1:n + 1]
-    hit = np.bincount(ring[(ring > 0) & (depth >= need[ring]) & below], minlength=n + 1)[1:n + 1]
+    at = np.flatnonzero(ring)                            # the ring's pixels only
+    rl, h_at = ring.ravel()[at], hn.ravel()[at]
+    below = h_at < np.concatenate([[-np.inf], _label_mean(h_at, rl, n)])[rl]
+    total = np.bincount(rl, minlength=n + 1)[1:n + 1]
+    hit = np.bincount(rl[(depth.ravel()[at] >= need[rl]) & below], minlength=n + 1)[1:n + 1]
     return np.where(total > 0, hit / np.maximum(total, 1), 0.0)
 
 
