@@ -52,6 +52,7 @@ from typing import Callable, NamedTuple, Optional
 import cv2
 import numba
 import numpy as np
+import scipy.fft
 from scipy import ndimage as ndi
 from skimage.morphology import h_maxima, max_tree
 from skimage.segmentation import expand_labels, watershed
@@ -377,7 +378,7 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     m, n = hs.shape
     centred = hs.astype(np.float64) - float(np.mean(hs))
     win = np.outer(np.hanning(m), np.hanning(n))
-    power = np.abs(np.fft.rfft2(centred * win)) ** 2
+    power = np.abs(scipy.fft.rfft2(centred * win)) ** 2
     fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
     band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
     if not band.any():
@@ -548,7 +549,7 @@ def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float) -> np.n
 
 def _surface(h: np.ndarray, valid: np.ndarray, px: float, p: DetectionParams) -> Surface:
     """Noise, weave and compact relief of the height (see the module docstring, steps 1-2)."""
-    fill = float(np.median(h[valid]))
+    fill = float(np.median(h[valid])) if not valid.all() else 0.0    # no pixel to fill: 0.3 s
     h0 = np.where(valid, h, fill).astype(np.float32)
     noise = _noise_sigma(h0, valid)
     s = p.smooth_um / px
@@ -779,14 +780,14 @@ def _refine_group(h, hl, markers, cur, usable, reach, ring_w, p: DetectionParams
     near = np.zeros(h.shape, np.int32)
     for lab_id in members:
         near[(_edt(mk != lab_id) <= reach[lab_id]) & (near == 0)] = lab_id
-    rr, cc = np.mgrid[:h.shape[0], :h.shape[1]]
+    rows, cols = np.arange(h.shape[0])[:, None], np.arange(h.shape[1])[None, :]
     compact = hl * is_member[hl]
     closed = np.zeros(size, bool)
     closed[members] = True
     for _ in range(2):
         dist = _edt(~cur)
         ring = (dist > 0) & (dist <= ring_w) & usable
-        d = h - _robust_plane(rr[ring], cc[ring], h[ring])(rr, cc)
+        d = h - _robust_plane(*np.nonzero(ring), h[ring])(rows, cols)
         pk = np.full(size, -np.inf)
         np.maximum.at(pk, mk[mk > 0], d[mk > 0])
         lvl = np.where(np.isfinite(pk), p.footprint_fraction * pk, np.inf)
@@ -925,7 +926,8 @@ def _template_score(contrast: np.ndarray, comp: np.ndarray, n: int, diameters) -
 def _albedo_cue(lum, valid, px: float, th: Thresholds, p: DetectionParams) -> np.ndarray:
     """Bright components (contrast above ``albedo_contrast``) that match a disc template."""
     s = p.smooth_um / px
-    lum_s = np.where(valid, lum, float(np.median(lum[valid]))).astype(np.float32)
+    fill = float(np.median(lum[valid])) if not valid.all() else 0.0    # no pixel to fill
+    lum_s = np.where(valid, lum, fill).astype(np.float32)
     if s >= 0.3:
         lum_s = cv2.GaussianBlur(lum_s, (0, 0), s, borderType=cv2.BORDER_REFLECT)
     contrast = _albedo_contrast(lum_s, valid, max(2.0, 0.5 * th.max_w), p.albedo_contrast)
