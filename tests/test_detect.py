@@ -504,3 +504,25 @@ def test_inscribed_radius_in_crops_matches_the_whole_image_transform():
     expect += [ndi.distance_transform_edt(np.pad(lab == k, 1)).max() for k in (4, 5)]
     np.testing.assert_allclose(_inscribed_radius(lab, 6), expect + [0.5], atol=1e-4)
     assert _inscribed_radius(lab, 6)[0] == 6.0
+
+
+def test_robust_plane_kernel_matches_numpy_and_ignores_outliers():
+    """A plane 2 + 0.1 row - 0.3 col sampled on a ring, a neighbouring bump on a tenth of it: the
+    compiled fit and the numpy one give that plane; samples on one line take numpy's minimum-norm
+    least squares; fewer than 8 samples give their median."""
+    from uvps.detect import _robust_plane, _robust_plane_kernel, _robust_plane_numpy
+    rng = np.random.default_rng(4)
+    ang = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    rows, cols = np.round(30 + 12 * np.sin(ang)), np.round(40 + 12 * np.cos(ang))
+    values = 2 + 0.1 * rows - 0.3 * cols + rng.normal(0, 0.01, 200)
+    values[:20] += 5.0
+    r, c = np.array([[0.0, 30.0]]), np.array([[0.0, 40.0]])
+    truth = 2 + 0.1 * r - 0.3 * c
+    np.testing.assert_allclose(_robust_plane(rows, cols, values)(r, c), truth, atol=0.02)
+    np.testing.assert_allclose(_robust_plane(rows, cols, values)(r, c),
+                               _robust_plane_numpy(rows, cols, values)(r, c), rtol=1e-12)
+    assert _robust_plane_kernel(rows, cols, values)[3]
+    line = np.arange(12.0)                                     # samples on one row
+    assert not _robust_plane_kernel(np.zeros(12), line, 1 + 0.5 * line)[3]
+    np.testing.assert_allclose(_robust_plane(np.zeros(12), line, 1 + 0.5 * line)(np.zeros(1), np.array([4.0])), 3.0)
+    assert _robust_plane(rows[:5], cols[:5], np.array([1.0, 9, 3, 4, 5]))(r, c).tolist() == [[4.0, 4.0]]
