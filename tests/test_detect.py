@@ -425,14 +425,20 @@ def test_weave_fit_recovers_two_sinusoids():
                                rtol=1e-4)
 
 
-def test_fill_holes_and_distance_match_scipy():
+def test_holes_and_distance_match_scipy():
     from scipy import ndimage as ndi
-    from uvps.detect import _edt, _fill_holes
+    from uvps.detect import _edt, _holes
     rng = np.random.default_rng(3)
+    found = 0
     for level in (-0.3, 0.0, 0.3):
         mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
-        np.testing.assert_array_equal(_fill_holes(mask), ndi.binary_fill_holes(mask))
+        holes, k = _holes(mask)
+        expect, k_expect = ndi.label(ndi.binary_fill_holes(mask) & ~mask)
+        np.testing.assert_array_equal(holes, expect)
+        assert k == k_expect
+        found += k
         np.testing.assert_allclose(_edt(mask), ndi.distance_transform_edt(mask), atol=1e-4)
+    assert found >= 2
 
 
 def test_median_matches_numpy():
