@@ -532,3 +532,12 @@ def test_robust_plane_kernel_matches_numpy_and_ignores_outliers():
     assert not _robust_plane_kernel(np.zeros(12), line, 1 + 0.5 * line)[3]
     np.testing.assert_allclose(_robust_plane(np.zeros(12), line, 1 + 0.5 * line)(np.zeros(1), np.array([4.0])), 3.0)
     assert _robust_plane(rows[:5], cols[:5], np.array([1.0, 9, 3, 4, 5]))(r, c).tolist() == [[4.0, 4.0]]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
+def test_brightness_is_the_channel_sum(dtype):
+    from uvps.detect import _brightness
+    rng = np.random.default_rng(6)
+    alb = (rng.random((40, 50, 3)) * 3000).astype(dtype)
+    np.testing.assert_array_equal(_brightness(alb), alb.astype(np.float32).sum(axis=2))
+    assert _brightness(alb).dtype == np.float32

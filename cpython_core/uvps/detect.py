@@ -320,13 +320,16 @@ def _noise_sigma(h: np.ndarray, valid: np.ndarray) -> float:
 
     A second difference cancels planes and slopes; for white noise its variance is 6 sigma^2.
     """
-    d = np.concatenate([
-        (h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2])[valid[:, 2:] & valid[:, 1:-1] & valid[:, :-2]],
-        (h[2:] - 2 * h[1:-1] + h[:-2])[valid[2:] & valid[1:-1] & valid[:-2]],
-    ])
+    across, along = h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2], h[2:] - 2 * h[1:-1] + h[:-2]
+    if valid.all():
+        d = np.concatenate([across.ravel(), along.ravel()])
+    else:
+        d = np.concatenate([across[valid[:, 2:] & valid[:, 1:-1] & valid[:, :-2]],
+                            along[valid[2:] & valid[1:-1] & valid[:-2]]])
     if d.size == 0:
         return 0.0
-    mad = np.median(np.abs(d - np.median(d)))
+    # d is ours: both medians partition it in place (the same multiset, the same medians)
+    mad = np.median(np.abs(d - np.median(d, overwrite_input=True), out=d), overwrite_input=True)
     return float(1.4826 * mad / math.sqrt(6.0))
 
 
@@ -912,8 +915,14 @@ def _merge_by_saddle(ws: np.ndarray, d: np.ndarray, peak: np.ndarray, split: flo
 
 
 def _brightness(albedo: np.ndarray) -> np.ndarray:
-    a = albedo.astype(np.float32, copy=False)
-    return a.sum(axis=2) if a.ndim == 3 else a
+    """The albedo's sum over its channels (float32): ``astype(float32).sum(axis=2)``'s values,
+    added channel by channel (a reduction over an axis of 3 is 9x slower at 4000 x 3000)."""
+    if albedo.ndim == 2:
+        return albedo.astype(np.float32, copy=False)
+    out = albedo[..., 0].astype(np.float32) + albedo[..., 1].astype(np.float32, copy=False)
+    for k in range(2, albedo.shape[2]):
+        out += albedo[..., k].astype(np.float32, copy=False)
+    return out
 
 
 def _smooth_large(img: np.ndarray, sigma_px: float) -> np.ndarray:
