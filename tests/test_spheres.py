@@ -95,6 +95,24 @@ def test_a_small_circle_beside_the_spheres_is_left_out(painting):
         assert np.hypot(*np.subtract(f.centre_px, true["centre_px"])) < 1.0
 
 
+def test_a_rim_seen_half_in_the_median_and_half_in_the_maximum_is_a_sphere():
+    # A matte sphere's rim can be sharp in the median projection on one side and in the maximum on the
+    # other (each alone meets half the rays, under MIN_RIM_FRACTION): the two together are the circle.
+    M, N, cx, cy, r = 240, 320, 150.3, 118.6, 70.0
+    rr, cc = np.mgrid[0:M, 0:N]
+    disc = (cc - cx) ** 2 + (rr - cy) ** 2 < r * r
+    left, right = disc & (cc < cx), disc & (cc >= cx)
+    images = np.full((3, M, N), 1000.0)
+    images[0][left] = images[1][left] = 500.0      # the median: dark left half, right half as the ground
+    images[2][right] = 2500.0                      # the maximum: bright right half, left half as the ground
+    rng = np.random.default_rng(0)
+    images = np.clip(images + rng.normal(0, 5, images.shape), 0, 65535).astype(np.uint16)
+    found = detect_spheres(images)
+    assert len(found) == 1
+    (c, rw), rad = found[0].centre_px, found[0].radius_px
+    assert abs(c - cx) < 0.5 and abs(rw - cy) < 0.5 and abs(rad - r) < 0.5
+
+
 def test_glossy_highlight_only_needs_given_circles(painting):
     """A mirror sphere on black shows only its highlight: nothing to detect, the given circle works."""
     black = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False)

@@ -282,7 +282,8 @@ def _crop_box(centre, radius, shape, margin=1.35):
 
 def _refine_circle(proj, centre, radius):
     """Centre (col, row) and radius of the rim near a coarse circle, at full resolution: the steepest
-    radial step along 720 rays (sub-pixel), then a RANSAC circle. None if the rim is not found."""
+    radial step along 720 rays (sub-pixel), then a RANSAC circle; with the fraction of the rays that
+    meet the rim on it and which ones. None if the rim is not found."""
     from skimage.measure import CircleModel, ransac
 
     sm = ndimage.gaussian_filter(proj.astype(np.float32), 1.0)
@@ -317,7 +318,9 @@ def _refine_circle(proj, centre, radius):
     if fitted is None:
         return None
     xc, yc, r = fitted
-    return (xc, yc), r, float(inl.sum() / len(theta))
+    rays = np.zeros(len(theta), bool)
+    rays[np.flatnonzero(ok)[inl]] = True
+    return (xc, yc), r, float(inl.sum() / len(theta)), rays
 
 
 def _circle(points):
@@ -381,9 +384,13 @@ def detect_spheres(images, *, progress: Progress = None) -> list:
             if not refs:
                 continue
             ref = max(refs, key=lambda r_: r_[2])
-            if ref[2] < MIN_RIM_FRACTION:
+            # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
+            # where the two find the same circle, a ray on the rim in either counts
+            rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
+                                        < 1.0 and abs(r_[1] - ref[1]) < 1.0])
+            if rim.mean() < MIN_RIM_FRACTION:
                 continue
-            (xc, yc), rr, _ = ref
+            (xc, yc), rr = ref[:2]
             s = Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected")
             if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
                                          < 0.8 * (rr + o.radius_px) for o in found):
