@@ -7,9 +7,16 @@ wall time and the process's CPU time (on a loaded machine the CPU time is the on
 the number of protrusions and the rejection counts. ``--profile N`` prints the N costliest calls
 (cProfile, CPU time). The first call of a fresh install also compiles (numba, cached after).
 
+``--ps K`` then times the photometric stereo the detection follows, the same way (the process's
+CPU time, all its threads): :func:`uvps.core.pipeline.run` with its default stages (additive term,
+flat field, lamps estimated, normals, height) on ``make_capture(shape=(ROWS, COLS),
+n_lights=K, seed=SEED)`` (noise on, as ``scripts/benchmark_speed.py`` makes it), after one run on
+a 300 x 400 crop (compiled kernels loaded); it prints that CPU time, the wall time and
+``timings_s`` (wall, per stage).
+
 Example::
 
-    OMP_NUM_THREADS=1 .venv/bin/python scripts/benchmark_detection_speed.py
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/benchmark_detection_speed.py --ps 16
 """
 from __future__ import annotations
 
@@ -28,6 +35,8 @@ def main(argv=None) -> int:
     ap.add_argument("--shape", type=int, nargs=2, default=(3000, 4000), metavar=("ROWS", "COLS"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile", type=int, default=0, metavar="N")
+    ap.add_argument("--ps", type=int, default=0, metavar="K",
+                    help="also time the photometric stereo on a capture of K lamps")
     args = ap.parse_args(argv)
     cap = make_capture(shape=tuple(args.shape), n_lights=3, seed=args.seed, noise=False)
     detect_protrusions(cap.albedo[:64, :64], cap.height_um[:64, :64],   # compile, if needed
@@ -45,7 +54,23 @@ def main(argv=None) -> int:
           f"{int(det.labels.max())} protrusions; rejected {det.rejected}")
     if prof:
         pstats.Stats(prof).sort_stats("cumulative").print_stats(args.profile)
+    if args.ps:
+        del cap, det
+        time_photometric_stereo(tuple(args.shape), args.ps, args.seed)
     return 0
+
+
+def time_photometric_stereo(shape, n_lights: int, seed: int) -> None:
+    """CPU and wall time of :func:`uvps.core.pipeline.run` (default stages) on a synthetic capture."""
+    from uvps.core.pipeline import run
+
+    run(make_capture(shape=(300, 400), n_lights=n_lights, seed=seed).as_capture())
+    cap = make_capture(shape=shape, n_lights=n_lights, seed=seed).as_capture()
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = run(cap)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(f"photometric stereo {shape[0]} x {shape[1]} x {n_lights}: wall {wall:.1f} s, "
+          f"CPU {cpu:.1f} s; stages (wall, s) {res.timings_s}")
 
 
 if __name__ == "__main__":

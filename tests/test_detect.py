@@ -425,14 +425,20 @@ def test_weave_fit_recovers_two_sinusoids():
                                rtol=1e-4)
 
 
-def test_fill_holes_and_distance_match_scipy():
+def test_holes_and_distance_match_scipy():
     from scipy import ndimage as ndi
-    from uvps.core.detect import _edt, _fill_holes
+    from uvps.core.detect import _edt, _holes
     rng = np.random.default_rng(3)
+    found = 0
     for level in (-0.3, 0.0, 0.3):
         mask = ndi.gaussian_filter(rng.normal(size=(60, 80)), 2) > level
-        np.testing.assert_array_equal(_fill_holes(mask), ndi.binary_fill_holes(mask))
+        holes, k = _holes(mask)
+        expect, k_expect = ndi.label(ndi.binary_fill_holes(mask) & ~mask)
+        np.testing.assert_array_equal(holes, expect)
+        assert k == k_expect
+        found += k
         np.testing.assert_allclose(_edt(mask), ndi.distance_transform_edt(mask), atol=1e-4)
+    assert found >= 2
 
 
 def test_median_matches_numpy():
@@ -441,3 +447,97 @@ def test_median_matches_numpy():
     for n in (1, 2, 7, 50):
         x = rng.normal(size=n)
         assert _median(x) == np.median(x)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_expand_labels_by_groups_matches_skimage(seed):
+    """Per-group crops give skimage's expansion pixel for pixel, ties between touching labels
+    included (labels of random ids in random blobs, near each other and the border)."""
+    from scipy import ndimage as ndi
+    from skimage.segmentation import expand_labels
+    from uvps.core.detect import _expand_labels
+    rng = np.random.default_rng(seed)
+    for density in (0.003, 0.02, 0.06):
+        blobs = ndi.binary_dilation(rng.random((90, 110)) < density, iterations=int(rng.integers(0, 3)))
+        lab = np.where(blobs, rng.integers(1, 40, blobs.shape), 0).astype(np.int32)
+        for distance in (1, 1.5, 2, 4, 7.3):
+            np.testing.assert_array_equal(_expand_labels(lab, distance), expand_labels(lab, distance))
+
+
+def test_axis_lengths_match_regionprops():
+    """Per-label moments in one pass: regionprops' axis lengths of ellipses, bars and a pixel."""
+    from skimage.draw import ellipse
+    from skimage.measure import regionprops_table
+    from uvps.core.detect import _axis_lengths
+    lab = np.zeros((120, 160), np.int32)
+    for k, (r, c, a, b, rot) in enumerate([(30, 40, 20, 8, 0.3), (80, 50, 12, 12, 0.0),
+                                           (60, 120, 25, 5, -1.1)], start=1):
+        lab[ellipse(r, c, a, b, shape=lab.shape, rotation=rot)] = k
+    lab[100:103, 90:140] = 4
+    lab[5, 150] = 6                                            # label 5 absent
+    major, minor = _axis_lengths(lab, 6)
+    props = regionprops_table(lab, properties=("label", "axis_major_length", "axis_minor_length"))
+    np.testing.assert_allclose(major[props["label"] - 1], props["axis_major_length"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(minor[props["label"] - 1], props["axis_minor_length"], rtol=1e-9, atol=1e-9)
+    assert major[4] == minor[4] == 0
+    assert 2 * 25 * 0.95 < major[2] < 2 * 25 * 1.05 and minor[2] < major[2] / 4
+
+
+def test_hole_area_counts_only_holes_a_label_encloses_alone():
+    from uvps.core.detect import _hole_area
+    lab = np.zeros((60, 80), np.int32)
+    lab[5:20, 5:20] = 1
+    lab[9:14, 9:13] = 0                                        # 20 px enclosed by label 1
+    lab[30:50, 30:40], lab[30:50, 40:50] = 2, 3                # a hole shared by labels 2 and 3
+    lab[35:40, 38:42] = 0
+    lab[0:8, 60:75] = 4                                        # at the border, 3 x 3 px hole
+    lab[2:5, 66:69] = 0
+    np.testing.assert_array_equal(_hole_area(lab, 5), [20, 0, 0, 9, 0])
+
+
+def test_inscribed_radius_in_crops_matches_the_whole_image_transform():
+    """Labels apart from one another: the whole image's distance to the nearest unlabelled pixel;
+    touching labels: each one's own (its neighbour counts as outside)."""
+    from scipy import ndimage as ndi
+    from uvps.core.detect import _inscribed_radius
+    lab = np.zeros((50, 70), np.int32)
+    lab[5:16, 5:26] = 1                                        # 11 x 21 bar: r_in 6
+    lab[0:9, 40:49] = 2                                        # 9 x 9 at the border
+    lab[16, 26] = 3                                            # one pixel, diagonal to label 1
+    lab[30:45, 10:25], lab[30:45, 25:40] = 4, 5                # two touching squares
+    edt = ndi.distance_transform_edt(lab > 0)
+    expect = [edt[lab == k].max() for k in (1, 2, 3)]
+    expect += [ndi.distance_transform_edt(np.pad(lab == k, 1)).max() for k in (4, 5)]
+    np.testing.assert_allclose(_inscribed_radius(lab, 6), expect + [0.5], atol=1e-4)
+    assert _inscribed_radius(lab, 6)[0] == 6.0
+
+
+def test_robust_plane_kernel_matches_numpy_and_ignores_outliers():
+    """A plane 2 + 0.1 row - 0.3 col sampled on a ring, a neighbouring bump on a tenth of it: the
+    compiled fit and the numpy one give that plane; samples on one line take numpy's minimum-norm
+    least squares; fewer than 8 samples give their median."""
+    from uvps.core.detect import _robust_plane, _robust_plane_kernel, _robust_plane_numpy
+    rng = np.random.default_rng(4)
+    ang = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    rows, cols = np.round(30 + 12 * np.sin(ang)), np.round(40 + 12 * np.cos(ang))
+    values = 2 + 0.1 * rows - 0.3 * cols + rng.normal(0, 0.01, 200)
+    values[:20] += 5.0
+    r, c = np.array([[0.0, 30.0]]), np.array([[0.0, 40.0]])
+    truth = 2 + 0.1 * r - 0.3 * c
+    np.testing.assert_allclose(_robust_plane(rows, cols, values)(r, c), truth, atol=0.02)
+    np.testing.assert_allclose(_robust_plane(rows, cols, values)(r, c),
+                               _robust_plane_numpy(rows, cols, values)(r, c), rtol=1e-12)
+    assert _robust_plane_kernel(rows, cols, values)[3]
+    line = np.arange(12.0)                                     # samples on one row
+    assert not _robust_plane_kernel(np.zeros(12), line, 1 + 0.5 * line)[3]
+    np.testing.assert_allclose(_robust_plane(np.zeros(12), line, 1 + 0.5 * line)(np.zeros(1), np.array([4.0])), 3.0)
+    assert _robust_plane(rows[:5], cols[:5], np.array([1.0, 9, 3, 4, 5]))(r, c).tolist() == [[4.0, 4.0]]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
+def test_brightness_is_the_channel_sum(dtype):
+    from uvps.core.detect import _brightness
+    rng = np.random.default_rng(6)
+    alb = (rng.random((40, 50, 3)) * 3000).astype(dtype)
+    np.testing.assert_array_equal(_brightness(alb), alb.astype(np.float32).sum(axis=2))
+    assert _brightness(alb).dtype == np.float32
