@@ -142,84 +142,53 @@ def _cmd_calibrate(inputs, params, output_dir, *, progress=None):
         return _calibrate(route, inputs, params, out, pool, t0, progress)
 
 
-def _calibrate(route, inputs, params, out, pool, t0, progress):
-    """The body of ``calibrate`` for one route, hashing on ``pool`` (:func:`_from_spheres`)."""
-    warnings = []
-    spheres_json, lamps, sources, cap, cal = [], [], None, None, None
-    image_shape = None
-    px = params["pixel_size_um"]
-    dark_path = inputs["dark"]
-    hashed_capture = None
-    if route == "spheres":
-        cap, cal, sources, hashed_capture = _from_spheres(inputs, params, progress, pool)
-        px = cap.pixel_size_um
-        image_shape = tuple(cap.images.shape[1:3])
-        directions, positions = cal.directions, cal.positions_mm
-        spheres_json = [f.sphere.to_json() for f in cal.fits]
-        lamps = cal.lamps_json()
-        hashed = [inputs["sphere_circles"]]
-        if cal.positions_mm is None and len(cal.fits) > 1:
-            warnings.append(cal.diagnostics["positions"])
+def _lamps_from_file(route, inputs, params):
+    """Directions, positions (or None), the route as recorded and the lamps' JSON from a rig or light file."""
+    path = inputs[route]
+    if route == "dome":
+        rig = read_dome(path)
+        directions, positions = rig.directions, rig.positions
+        if positions is not None and rig.image_width > 0 and params["image_width_mm"]:
+            positions = positions * (params["image_width_mm"] / rig.image_width)
+    elif Path(path).suffix.lower() == ".lp":
+        lp = read_lp(path)
+        directions, positions, route = lp.directions, None, "lp"
     else:
-        if px is None:
-            raise UVPSInputError(f"calibrate from {route}: pixel_size_um is required (the pixel on the painting)")
-        if dark_path is not None and not Path(dark_path).is_file():
-            raise UVPSInputError(f"dark frame {dark_path} does not exist")
-        path = inputs[route]
-        hashed = [path]
-        if route == "dome":
-            rig = read_dome(path)
-            directions, positions = rig.directions, rig.positions
-            if positions is not None and rig.image_width > 0 and params["image_width_mm"]:
-                positions = positions * (params["image_width_mm"] / rig.image_width)
-        else:
-            if Path(path).suffix.lower() == ".lp":
-                lp = read_lp(path)
-                directions, positions, route = lp.directions, None, "lp"
-            else:
-                lpos = read_positions(path)
-                positions, route = lpos.positions_mm, "positions"
-                directions = (lpos.directions if positions is None
-                              else positions / np.linalg.norm(positions, axis=1, keepdims=True))
-        lamps = [{"direction": [float(v) for v in d], "direction_sigma_deg": None,
-                  "position_mm": None if positions is None else [float(v) for v in positions[k]],
-                  "position_sigma_mm": None, "distance_sigma_pct": None} for k, d in enumerate(directions)]
-    if dark_path is not None:
-        d = read_image(dark_path)
-        if image_shape is not None and d.shape[:2] != image_shape:
-            raise UVPSInputError(f"dark frame {dark_path} is {d.shape[1]} x {d.shape[0]} px; expected "
-                                 f"{image_shape[1]} x {image_shape[0]} like the sphere capture")
-        hashed.append(dark_path)
-    K = len(directions)
-    card = None
-    if inputs.get("card"):
-        # a flat card under every lamp position: per-lamp flat-field gains (uvps.core.card) for the lamps
-        # just found, stored beside them; a run given this folder divides them out
-        if px is None:
-            raise UVPSInputError("card: the pixel size is needed (give pixel_size_um)")
-        card = load_card(inputs["card"], lights=positions if positions is not None else directions,
-                         pixel_size_um=px, dark=dark_path)
-        if card.n_lamps != K:
-            raise UVPSInputError(f"card {inputs['card']}: {card.n_lamps} images for {K} lamps; one card image per "
-                                 "lamp position, in the same order")
-        if image_shape is not None and tuple(card.shape) != tuple(image_shape):
-            raise UVPSInputError(f"card {inputs['card']}: images of {card.shape[1]} x {card.shape[0]} px; "
-                                 f"expected {image_shape[1]} x {image_shape[0]} like the sphere capture")
-        card_path = Path(inputs["card"])
-        hashed += sorted(p for p in card_path.iterdir() if p.is_file()) if card_path.is_dir() else [card_path]
-    doc = {"format": FORMAT, "version": VERSION, "pixel_size_um": px,
-           "image_shape": None if image_shape is None else list(image_shape), "n_lamps": K, "route": route,
-           "spheres": spheres_json, "lamps": lamps,
-           "inputs": {**(hashed_capture.result() if hashed_capture is not None else {}), **_hashes(hashed)},
-           "card": None if card is None else card.to_json(),
-           "dark": dark_path is not None, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    if cal is not None:
-        doc["diagnostics"] = cal.diagnostics
-    report(progress, 0.9, "calibrate: writing")
+        lpos = read_positions(path)
+        positions, route = lpos.positions_mm, "positions"
+        directions = (lpos.directions if positions is None
+                      else positions / np.linalg.norm(positions, axis=1, keepdims=True))
+    lamps = [{"direction": [float(v) for v in d], "direction_sigma_deg": None,
+              "position_mm": None if positions is None else [float(v) for v in positions[k]],
+              "position_sigma_mm": None, "distance_sigma_pct": None} for k, d in enumerate(directions)]
+    return directions, positions, route, lamps
+
+
+def _card_for(inputs, lights, K, px, image_shape, dark_path):
+    """The card's gains for the lamps just found (:mod:`uvps.core.card`) and the files to hash; (None, [])
+    without a card."""
+    if not inputs.get("card"):
+        return None, []
+    if px is None:
+        raise UVPSInputError("card: the pixel size is needed (give pixel_size_um)")
+    card = load_card(inputs["card"], lights=lights, pixel_size_um=px, dark=dark_path)
+    if card.n_lamps != K:
+        raise UVPSInputError(f"card {inputs['card']}: {card.n_lamps} images for {K} lamps; one card image per "
+                             "lamp position, in the same order")
+    if image_shape is not None and tuple(card.shape) != tuple(image_shape):
+        raise UVPSInputError(f"card {inputs['card']}: images of {card.shape[1]} x {card.shape[0]} px; "
+                             f"expected {image_shape[1]} x {image_shape[0]} like the sphere capture")
+    card_path = Path(inputs["card"])
+    return card, sorted(p for p in card_path.iterdir() if p.is_file()) if card_path.is_dir() else [card_path]
+
+
+def _write_folder(out, doc, lights_json, *, directions, positions, route, px, image_shape, dark_path, cap, cal,
+                  card):
+    """The calibration folder, built beside ``out`` and swapped in whole."""
     tmp = Path(tempfile.mkdtemp(prefix="." + out.name + ".tmp-", dir=out.parent))
     try:
         write_json_atomic(tmp / FILES["calibration"], doc)
-        write_json_atomic(tmp / FILES["lights"], _lights_json(directions, positions, px, image_shape, sources))
+        write_json_atomic(tmp / FILES["lights"], lights_json)
         width = None if image_shape is None or px is None else image_shape[1] * px / 1000.0
         write_dome(tmp / FILES["dome"], directions=directions, positions_mm=positions, image_width_mm=width or 0.0,
                    label="uvps calibration", notes=f"uvps calibrate ({route}); units mm; x right, y up, z toward "
@@ -239,6 +208,9 @@ def _calibrate(route, inputs, params, out, pool, t0, progress):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _result(out, route, K, spheres_json, positions, cap, cal, t0, warnings):
     outputs = [OutputSpec("calibration", str(out / FILES["calibration"]), kind="json"),
                OutputSpec("lights", str(out / FILES["lights"]), kind="json"),
                OutputSpec("dome", str(out / FILES["dome"]), kind="json")]
@@ -251,8 +223,58 @@ def _calibrate(route, inputs, params, out, pool, t0, progress):
         diag["direction_sigma_deg_max"] = float(np.max(cal.direction_sigma_deg))
         if cal.distance_sigma_pct is not None:
             diag["distance_sigma_pct_max"] = float(np.max(cal.distance_sigma_pct))
-    report(progress, 1.0, "calibrate: done")
     return CommandResult(outputs, diag, warnings)
+
+
+def _calibrate(route, inputs, params, out, pool, t0, progress):
+    """The body of ``calibrate`` for one route, hashing on ``pool`` (:func:`_from_spheres`)."""
+    warnings = []
+    spheres_json, sources, cap, cal, image_shape, hashed_capture = [], None, None, None, None, None
+    px = params["pixel_size_um"]
+    dark_path = inputs["dark"]
+    if route == "spheres":
+        cap, cal, sources, hashed_capture = _from_spheres(inputs, params, progress, pool)
+        px = cap.pixel_size_um
+        image_shape = tuple(cap.images.shape[1:3])
+        directions, positions = cal.directions, cal.positions_mm
+        spheres_json = [f.sphere.to_json() for f in cal.fits]
+        lamps = cal.lamps_json()
+        hashed = [inputs["sphere_circles"]]
+        if cal.positions_mm is None and len(cal.fits) > 1:
+            warnings.append(cal.diagnostics["positions"])
+    else:
+        if px is None:
+            raise UVPSInputError(f"calibrate from {route}: pixel_size_um is required (the pixel on the painting)")
+        if dark_path is not None and not Path(dark_path).is_file():
+            raise UVPSInputError(f"dark frame {dark_path} does not exist")
+        hashed = [inputs[route]]
+        directions, positions, route, lamps = _lamps_from_file(route, inputs, params)
+    if dark_path is not None:
+        d = read_image(dark_path)
+        if image_shape is not None and d.shape[:2] != image_shape:
+            raise UVPSInputError(f"dark frame {dark_path} is {d.shape[1]} x {d.shape[0]} px; expected "
+                                 f"{image_shape[1]} x {image_shape[0]} like the sphere capture")
+        hashed.append(dark_path)
+    K = len(directions)
+    # a flat card under every lamp position: per-lamp flat-field gains for the lamps just found, stored
+    # beside them; a run given this folder divides them out
+    card, card_files = _card_for(inputs, positions if positions is not None else directions, K, px, image_shape,
+                                 dark_path)
+    hashed += card_files
+    doc = {"format": FORMAT, "version": VERSION, "pixel_size_um": px,
+           "image_shape": None if image_shape is None else list(image_shape), "n_lamps": K, "route": route,
+           "spheres": spheres_json, "lamps": lamps,
+           "inputs": {**(hashed_capture.result() if hashed_capture is not None else {}), **_hashes(hashed)},
+           "card": None if card is None else card.to_json(),
+           "dark": dark_path is not None, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if cal is not None:
+        doc["diagnostics"] = cal.diagnostics
+    report(progress, 0.9, "calibrate: writing")
+    _write_folder(out, doc, _lights_json(directions, positions, px, image_shape, sources), directions=directions,
+                  positions=positions, route=route, px=px, image_shape=image_shape, dark_path=dark_path, cap=cap,
+                  cal=cal, card=card)
+    report(progress, 1.0, "calibrate: done")
+    return _result(out, route, K, spheres_json, positions, cap, cal, t0, warnings)
 
 
 SPECS = (

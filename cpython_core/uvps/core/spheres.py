@@ -781,6 +781,40 @@ def triangulate(points, directions, sigma_rad):
     return L, np.linalg.pinv(A), float(miss)
 
 
+def _from_rays(fits, dirs, sig, K, diag) -> LampCalibration:
+    """Two or more spheres: each lamp's position where its rays meet (:func:`triangulate`), or far-light
+    directions when the rays are too nearly parallel to place the lamps."""
+    pos = np.empty((K, 3))
+    psig = np.empty((K, 3))
+    dsig = np.empty(K)
+    miss = np.empty(K)
+    pts = np.array([f.points_mm for f in fits])
+    for k in range(K):
+        L, cov, miss[k] = triangulate(pts[:, k], dirs[:, k], np.radians(sig[:, k]))
+        pos[k] = L
+        psig[k] = np.sqrt(np.diag(cov))
+        u = L / np.linalg.norm(L)
+        # the ray misses beyond their stated uncertainty widen it (a model error the covariance lacks)
+        along = math.sqrt(float(u @ cov @ u))
+        dsig[k] = 100.0 * along / np.linalg.norm(L)
+    spread = [float(np.degrees(np.arccos(np.clip(dirs[0, k] @ dirs[1, k], -1, 1)))) for k in range(K)]
+    diag["direction_spread_deg"] = spread
+    if np.median(dsig) > 100 * MAX_DISTANCE_UNCERTAINTY or np.any(pos[:, 2] <= 0):
+        diag["positions"] = (f"{len(fits)} spheres, but their rays are too nearly parallel to place the lamps "
+                             f"(median distance uncertainty {np.median(dsig):.0f} %): far-light directions")
+        d = dirs.mean(axis=0)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out = LampCalibration(d, sig.min(axis=0), fits, diagnostics=diag)
+    else:
+        diag["positions"] = f"{len(fits)} spheres: lamp positions from the intersection of their rays"
+        d = pos / np.linalg.norm(pos, axis=1, keepdims=True)
+        # the direction from the image centre: the position's uncertainty across the line of sight
+        dir_sig = np.degrees(np.sqrt(np.maximum(psig ** 2 @ np.ones(3) - (dsig / 100 * np.linalg.norm(pos, axis=1)) ** 2,
+                                                0)) / np.linalg.norm(pos, axis=1))
+        out = LampCalibration(d, dir_sig, fits, pos, psig, dsig, miss, diagnostics=diag)
+    return out
+
+
 def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequence[Sphere]] = None,
                       saturation=None, files=None, progress: Progress = None) -> LampCalibration:
     """Every lamp's direction, and with two or more spheres its position, from a sphere capture.
@@ -851,33 +885,6 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         out = LampCalibration(dirs[0].copy(), sig[0].copy(), fits, diagnostics=diag)
         report(progress, 1.0, "spheres: done")
         return out
-    pos = np.empty((K, 3))
-    psig = np.empty((K, 3))
-    dsig = np.empty(K)
-    miss = np.empty(K)
-    pts = np.array([f.points_mm for f in fits])
-    for k in range(K):
-        L, cov, miss[k] = triangulate(pts[:, k], dirs[:, k], np.radians(sig[:, k]))
-        pos[k] = L
-        psig[k] = np.sqrt(np.diag(cov))
-        u = L / np.linalg.norm(L)
-        # the ray misses beyond their stated uncertainty widen it (a model error the covariance lacks)
-        along = math.sqrt(float(u @ cov @ u))
-        dsig[k] = 100.0 * along / np.linalg.norm(L)
-    spread = [float(np.degrees(np.arccos(np.clip(dirs[0, k] @ dirs[1, k], -1, 1)))) for k in range(K)]
-    diag["direction_spread_deg"] = spread
-    if np.median(dsig) > 100 * MAX_DISTANCE_UNCERTAINTY or np.any(pos[:, 2] <= 0):
-        diag["positions"] = (f"{len(fits)} spheres, but their rays are too nearly parallel to place the lamps "
-                             f"(median distance uncertainty {np.median(dsig):.0f} %): far-light directions")
-        d = dirs.mean(axis=0)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        out = LampCalibration(d, sig.min(axis=0), fits, diagnostics=diag)
-    else:
-        diag["positions"] = f"{len(fits)} spheres: lamp positions from the intersection of their rays"
-        d = pos / np.linalg.norm(pos, axis=1, keepdims=True)
-        # the direction from the image centre: the position's uncertainty across the line of sight
-        dir_sig = np.degrees(np.sqrt(np.maximum(psig ** 2 @ np.ones(3) - (dsig / 100 * np.linalg.norm(pos, axis=1)) ** 2,
-                                                0)) / np.linalg.norm(pos, axis=1))
-        out = LampCalibration(d, dir_sig, fits, pos, psig, dsig, miss, diagnostics=diag)
+    out = _from_rays(fits, dirs, sig, K, diag)
     report(progress, 1.0, "spheres: done")
     return out
