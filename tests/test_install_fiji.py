@@ -232,3 +232,28 @@ def test_fiji_gets_no_interpreter(tmp_path, source):
     proc = run_installer(root, "--source-root", source)
     assert proc.returncode == 0 and "Fiji ships Jython" in proc.stdout
     assert sorted(p.name for p in (root / "plugins" / "jars").iterdir()) == ["uvps_menu"]
+
+
+def test_the_fiji_index_table_is_generated_from_the_declarations(tmp_path):
+    """docs/fiji/index.md's menu table is what scripts/fiji_index.py writes; a new menu script with its
+    declaration appears in menu order with its help, linked to the command reference until it has a page."""
+    proc = subprocess.run([sys.executable, str(INSTALLER.parent / "fiji_index.py"), "--check"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, "docs/fiji/index.md is stale: run scripts/fiji_index.py"
+    sys.path.insert(0, str(INSTALLER.parent))
+    try:
+        import install_fiji
+    finally:
+        sys.path.pop(0)
+    menu, docs = tmp_path / "menu", tmp_path / "docs"
+    menu.mkdir()
+    docs.mkdir()
+    for stem in ("Run_Whole_Pipeline", "New_Item", "UVPS_Settings"):
+        (menu / (stem + ".py")).write_text("")
+    (docs / "Run_Whole_Pipeline.md").write_text("")
+    commands = {"run": {"help": "the whole pipeline", "menu": "Run Whole Pipeline"},
+                "new": {"help": "what <run> gains", "menu": "New Item"}, "demo": {"help": "x", "menu": ""}}
+    rows = install_fiji.fiji_index_table(commands, menu, docs).splitlines()[2:]
+    assert rows == ["| [Run Whole Pipeline](Run_Whole_Pipeline.md) | the whole pipeline | `run` |",
+                    "| [New Item](../commands.md#uvps-new) | what &lt;run&gt; gains | `new` |",
+                    "| [UVPS Settings]() | choose and check the CPython | - |"]
