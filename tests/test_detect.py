@@ -560,7 +560,8 @@ def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
     sc = (110, int(round(small_c[1])))
     off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(shoulder_width_um=0))
     assert off.labels.max() == 1 and off.labels[sc] == off.labels[big_c]   # today's split misses it
-    det = detect_protrusions(alb, h, pixel_size_um=px)
+    on = DetectionParams(shoulder_width_um=60.0)
+    det = detect_protrusions(alb, h, pixel_size_um=px, params=on)
     assert det.labels.max() == 2
     assert det.labels[sc] > 0 and det.labels[big_c] > 0 and det.labels[sc] != det.labels[big_c]
     assert 0.5 <= width_of(det.labels, sc, px) / 80.0 <= 1.5
@@ -568,4 +569,4 @@ def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
     alb2, h2 = scene((220, 220), seed=seed, noise_um=0.3)
     add_profile(h2, (110, 60), 400.0, px, 100.0, "dome")
     add_profile(h2, (110, 165), 300.0, px, 40.0, "mesa")
-    assert detect_protrusions(alb2, h2, pixel_size_um=px).labels.max() == 2
+    assert detect_protrusions(alb2, h2, pixel_size_um=px, params=on).labels.max() == 2

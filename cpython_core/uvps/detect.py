@@ -176,7 +176,9 @@ class DetectionParams:
         ``split_fraction`` below them): the height cue also splits a footprint at the dome-like
         maxima of the compact relief's curvature (minus its Laplacian of Gaussian, sigma =
         this width / (2 sqrt 2)) that stand ``shoulder_k`` x the curvature's noise above the
-        saddle to a higher curvature peak (:func:`_shoulder_markers`). 0 disables.
+        saddle to a higher curvature peak (:func:`_shoulder_markers`). 0 (the default)
+        disables; 60 finds 60-100 um shoulders, at a cost in precision measured in
+        ``docs/benchmarks.md`` ("Detection on other shapes and surfaces").
     shoulder_k : float
         Least dynamic of such a curvature peak in multiples of the measured curvature noise
         (MAD over the image), and at least the curvature of a dome ``shoulder_width_um`` wide
@@ -223,9 +225,9 @@ class DetectionParams:
     ridge_compact_fraction: float = 0.5
     stroke_slope_k: float = 3.0
     along_stroke_k: float = 6.0
-    shoulder_width_um: float = 60.0
+    shoulder_width_um: float = 0.0
     shoulder_k: float = 5.0
-    shoulder_isotropy: float = 0.3
+    shoulder_isotropy: float = 0.6
     max_hole_fraction: float = 0.25
     max_crack_fraction: float = 0.08
     max_mismatch: float = 0.5
