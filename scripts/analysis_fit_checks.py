@@ -15,8 +15,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmark_robustness import ROWS, spec_for  # noqa: E402
 
-from uvps.pipeline import RunOptions, run  # noqa: E402
-from uvps.synthetic import make_capture  # noqa: E402
+from uvps.core.pipeline import RunOptions, run  # noqa: E402
+from uvps.testing.synthetic import make_capture  # noqa: E402
 
 
 def main(rows) -> int:

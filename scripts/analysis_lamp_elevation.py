@@ -10,7 +10,7 @@ Usage::
     .venv/bin/python scripts/analysis_lamp_elevation.py additive [--black 200]
 
 Each builds the benchmark's captures (``benchmark_robustness.spec_for``: 1600 x 1200 at 15 um) and runs
-``uvps.pipeline.run`` in process:
+``uvps.core.pipeline.run`` in process:
 
 - ``heights``: the disc/ring height measure of every protrusion >= 100 um wide, median of the absolute
   and of the signed relative error, with the true lamp positions and with estimated lamps (a bias
@@ -42,8 +42,8 @@ from benchmark_core import _disc_ring_stat, protrusion_errors  # noqa: E402
 from benchmark_robustness import spec_for  # noqa: E402
 
 from uvps import lights as L  # noqa: E402
-from uvps.pipeline import RunOptions, run  # noqa: E402
-from uvps.synthetic import make_capture  # noqa: E402
+from uvps.core.pipeline import RunOptions, run  # noqa: E402
+from uvps.testing.synthetic import make_capture  # noqa: E402
 
 ROWS = ("none", "black_level", "vignetting", "unequal_lamps", "cupping", "cast_shadows", "protrusion_shapes",
         "weave", "strokes")
@@ -157,8 +157,8 @@ def uncertainty(a):
 def additive(a):
     """The black level measured on bowed canvases: 16 and 32 px blocks, the jackknife and the reported
     standard error, and how many of them the truth lies off (1600 x 1200 RGB, 12 lamps)."""
-    from uvps.offset import estimate_additive
-    from uvps.synthetic import SyntheticSpec
+    from uvps.core.offset import estimate_additive
+    from uvps.testing.synthetic import SyntheticSpec
 
     for seed, bow in ((0, 100.0), (1, 200.0), (2, 250.0)):
         cap = make_capture(SyntheticSpec(shape=(1200, 1600), pixel_size_um=PX, seed=seed, n_lights=12, bow_um=bow,

@@ -54,7 +54,7 @@ def make_grey_capture(shape, n_lights, seed=0):
     the additive term (black level) from how bright and dark paint change between lamps, which a
     uniform canvas leaves undetermined (the run then stops).
     """
-    from uvps.synthetic import light_positions, render_images
+    from uvps.testing.synthetic import light_positions, render_images
 
     rng = np.random.default_rng(seed)
     m, n = shape
@@ -191,7 +191,7 @@ def bench_imagej_large(args, ij, stack):
 def bench_imagej(args, ij):
     """Round trip of one small menu item in the real ImageJ."""
     from uvps.commands import COMMANDS
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     work = ij.work
     cap = make_capture(shape=(240, 320), n_lights=8, seed=1)

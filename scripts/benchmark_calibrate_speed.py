@@ -3,7 +3,7 @@
 
 The capture: K grey 16-bit TIFFs (uncompressed, as a camera converter writes them) of a flat painting
 (albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy spheres of 2.5 mm radius in opposite
-corners, rendered by :func:`uvps.synthetic_spheres.make_sphere_capture` inside each sphere's box (the
+corners, rendered by :func:`uvps.testing.synthetic_spheres.make_sphere_capture` inside each sphere's box (the
 lamps shifted to the box's frame) and pasted into the frame; photon and read noise. ``uvps calibrate``
 is then run as a user runs it (a subprocess: start-up, reading, detection, fits, writing) and its wall
 time, the lamps' errors against the truth and the machine's load are printed.
@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from uvps.synthetic import Nuisances, SyntheticCapture, SyntheticSpec, light_positions, pixel_centres_mm
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture
+from uvps.testing.synthetic import Nuisances, SyntheticCapture, SyntheticSpec, light_positions, pixel_centres_mm
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture
 
 
 def render(shape, lamps, px, folder: Path, seed=0):

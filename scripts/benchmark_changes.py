@@ -1,7 +1,7 @@
 """Benchmark of ``uvps changes`` (issue 20, "Monitoring") on synthetic pairs with the true lamps.
 
 Per seed (0, 1, 2) one earlier capture A of 1200 x 900 px of 15 um
-(``uvps.synthetic.make_capture_pair``) and three later captures B, each under lamps placed
+(``uvps.testing.synthetic.make_capture_pair``) and three later captures B, each under lamps placed
 again (drawn anew):
 
 - ``changed``: the camera moved 120 px, rotated 3 deg, scaled 0.98 or 1.02; 25 % of the lone
@@ -12,7 +12,7 @@ again (drawn anew):
 Each capture goes through ``uvps run --detect --lights lights_positions_mm.csv`` (the true lamp
 positions), then ``uvps changes A B``. With ``--lamps spheres`` each date is calibrated as a
 conservator would: two glossy spheres rendered under that date's lamps
-(:func:`uvps.synthetic_spheres.make_sphere_capture`, 1.35 mm radius, in opposite corners),
+(:func:`uvps.testing.synthetic_spheres.make_sphere_capture`, 1.35 mm radius, in opposite corners),
 ``uvps calibrate --spheres`` on them, then ``uvps run --detect --calibration CAL``; the table then
 also says whether ``uvps changes`` accepted the pair's height scales (B / A scale). Scored against the truth:
 
@@ -23,9 +23,9 @@ also says whether ``uvps changes`` accepted the pair's height scales (B / A scal
   merged, split), of all rows;
 - registration error: rms over a 10-px grid of |true b_to_a - estimated|, px.
 
-``--fit-noise`` fits :class:`uvps.changes.NoiseModel` (maximum likelihood of the changes of the
+``--fit-noise`` fits :class:`uvps.core.changes.NoiseModel` (maximum likelihood of the changes of the
 matched protrusions of the ``moved`` pairs, trimmed at 4 sd) and prints it for
-``uvps.changes.NOISE_MODEL``; the table then shows the flagged shares at each significance.
+``uvps.core.changes.NOISE_MODEL``; the table then shows the flagged shares at each significance.
 
 Usage::
 
@@ -47,9 +47,10 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from uvps.changes import NOISE_MODEL, NoiseModel, Registration, change_uncertainty, compute_changes
+from uvps.core.changes import NOISE_MODEL, NoiseModel, Registration, change_uncertainty
+from uvps.commands.changes import compute_changes
 from uvps.errors import UVPSInputError
-from uvps.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, write_capture
+from uvps.testing.synthetic import LaterSpec, SyntheticSpec, make_capture_pair, write_capture
 
 UVPS = str(Path(sys.executable).parent / "uvps")
 SHAPE = (900, 1200)
@@ -81,7 +82,7 @@ SPHERES = (("glossy", (0.15, 0.2), 1.35), ("glossy", (0.85, 0.8), 1.35))
 
 
 def _write_spheres(capture, folder: Path) -> None:
-    from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+    from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
     write_sphere_capture(make_sphere_capture(capture, [SphereSpec(*s) for s in SPHERES]), folder, truth=False)
 

@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Accuracy, speed and memory benchmark of the photometric-stereo core.
 
-What is measured is what users run: every result comes from :func:`uvps.pipeline.run` (in process,
-on :meth:`uvps.synthetic.SyntheticCapture.as_capture`, the capture a file read gives) or from the
+What is measured is what users run: every result comes from :func:`uvps.core.pipeline.run` (in process,
+on :meth:`uvps.testing.synthetic.SyntheticCapture.as_capture`, the capture a file read gives) or from the
 ``uvps run`` command (parts 2 and 3), with the options of ``uvps run``: ``RunOptions()`` defaults
 (additive term measured, degree-4 drop-off fits, lamps refined, Frankot-Chellappa integration, not
 robust), except what a row deliberately varies, said where it does. Stage times are the run's own
@@ -42,9 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
-from uvps.io import read_capture
-from uvps.pipeline import RunOptions, run
-from uvps.synthetic import make_capture, write_capture
+from uvps.files.io import read_capture
+from uvps.core.pipeline import RunOptions, run
+from uvps.testing.synthetic import make_capture, write_capture
 
 DATA = Path("/work/shared/data")
 VENV_BIN = Path(sys.executable).parent
@@ -279,7 +279,7 @@ def part2(workdir: Path, shape=(3000, 4000), n_lights=16, keep=False):
     del cap
     files = sorted(folder.glob("uv_*.tif"))
     disk = sum(f.stat().st_size for f in files)
-    read_code = f"from uvps.io import read_capture; read_capture({str(folder)!r})"
+    read_code = f"from uvps.files.io import read_capture; read_capture({str(folder)!r})"
     runs = {
         "(a) read_capture(folder)": [sys.executable, "-c", read_code],
         "(b) uvps run folder -o out (estimated lights)": uvps_cmd() + ["run", str(folder), "-o",

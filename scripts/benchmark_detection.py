@@ -1,13 +1,13 @@
 #!/usr/bin/env python
-"""Benchmark uvps.detect on protrusions and surfaces it was not tuned to. Prints Markdown tables.
+"""Benchmark uvps.core.detect on protrusions and surfaces it was not tuned to. Prints Markdown tables.
 
 Each capture is ``SyntheticSpec.realistic("top")``: every nuisance of a real capture at the top of
-its realistic range (``uvps.synthetic.NUISANCE_TOP``), among them protrusions of every kind
+its realistic range (``uvps.testing.synthetic.NUISANCE_TOP``), among them protrusions of every kind
 (``MIXED_SHAPES``: domes, craters, mesas, irregular outlines, touching clusters, non-fluorescing
 ones; 40-500 um wide, 5-150 um high), a weave of two scales, strokes 60-1500 um wide, cupping with
 cracks, cast shadows, black level, stray light, vignetting, lamp beams. Detection runs either on
 the generator's true albedo, height and normals (default; ``--height-noise`` adds white noise) or,
-with ``--pipeline``, end to end: the capture is written with ``uvps.synthetic.write_capture`` and
+with ``--pipeline``, end to end: the capture is written with ``uvps.testing.synthetic.write_capture`` and
 the real command ``uvps run CAPTURE -o RUN --detect --lights CAPTURE/lights_positions_mm.csv
 --black-level B`` computes everything from the images given the measured lamp positions (as the
 README advises) and the camera's black level (``--uncalibrated`` leaves both out), then
@@ -40,15 +40,15 @@ import numpy as np
 from skimage.measure import regionprops_table
 
 from benchmark_protrusions import match
-from uvps.detect import DetectionParams, detect_protrusions
-from uvps.measure import read_protrusions_csv
-from uvps.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
+from uvps.core.detect import DetectionParams, detect_protrusions
+from uvps.files.tables import read_protrusions_csv
+from uvps.testing.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
 
 KINDS = ("dome", "crater", "mesa", "irregular", "cluster", "dark", "weak", "on_stroke")
 #: Width classes (um) of the per-bin precision and recall.
 BINS = ((60.0, 100.0), (100.0, 200.0), (200.0, 500.0))
 #: Scenes: ``top`` every nuisance at the top of its range; ``impasto`` that and paint as real
-#: impasto (``uvps.synthetic.IMPASTO``: strokes up to 40 um high at twice the density, blunt ends
+#: impasto (``uvps.testing.synthetic.IMPASTO``: strokes up to 40 um high at twice the density, blunt ends
 #: with piled paint, ripples, bristle grooves, crossings; protrusions on strokes, weak ones,
 #: primer spots); the others one impasto morphology alone on top of ``top``.
 SCENES = {
@@ -232,7 +232,7 @@ def main(argv=None) -> int:
     ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600], metavar=("ROWS", "COLS"))
     ap.add_argument("--scene", choices=sorted(SCENES), default="top",
                     help="top: every nuisance at the top of its range; impasto: that and real "
-                         "impasto (uvps.synthetic.IMPASTO); the others one impasto morphology")
+                         "impasto (uvps.testing.synthetic.IMPASTO); the others one impasto morphology")
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
     ap.add_argument("--shoulder-width-um", type=float, default=0.0,

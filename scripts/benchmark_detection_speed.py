@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Time uvps.detect.detect_protrusions alone at a given size (default 4000 x 3000).
+"""Time uvps.core.detect.detect_protrusions alone at a given size (default 4000 x 3000).
 
 The scene is ``make_capture(shape=(ROWS, COLS), n_lights=3, seed=SEED, noise=False)``'s true
 albedo, height and normals (the detector's input in a run, without the run around it). Prints the
@@ -8,7 +8,7 @@ the number of protrusions and the rejection counts. ``--profile N`` prints the N
 (cProfile, CPU time). The first call of a fresh install also compiles (numba, cached after).
 
 ``--ps K`` then times the photometric stereo the detection follows, the same way (the process's
-CPU time, all its threads): :func:`uvps.pipeline.run` with its default stages (additive term,
+CPU time, all its threads): :func:`uvps.core.pipeline.run` with its default stages (additive term,
 flat field, lamps estimated, normals, height) on ``make_capture(shape=(ROWS, COLS),
 n_lights=K, seed=SEED)`` (noise on, as ``scripts/benchmark_speed.py`` makes it), after one run on
 a 300 x 400 crop (compiled kernels loaded); it prints that CPU time, the wall time and
@@ -26,8 +26,8 @@ import pstats
 import sys
 import time
 
-from uvps.detect import detect_protrusions
-from uvps.synthetic import make_capture
+from uvps.core.detect import detect_protrusions
+from uvps.testing.synthetic import make_capture
 
 
 def main(argv=None) -> int:
@@ -61,8 +61,8 @@ def main(argv=None) -> int:
 
 
 def time_photometric_stereo(shape, n_lights: int, seed: int) -> None:
-    """CPU and wall time of :func:`uvps.pipeline.run` (default stages) on a synthetic capture."""
-    from uvps.pipeline import run
+    """CPU and wall time of :func:`uvps.core.pipeline.run` (default stages) on a synthetic capture."""
+    from uvps.core.pipeline import run
 
     run(make_capture(shape=(300, 400), n_lights=n_lights, seed=seed).as_capture())
     cap = make_capture(shape=shape, n_lights=n_lights, seed=seed).as_capture()

@@ -1,6 +1,6 @@
 """Benchmark of ``uvps elements``: registration of XRF element maps onto a run, per-area means, time.
 
-Each seed renders a 1600 x 1200 capture at 15 um (uvps.synthetic), writes a run folder of its truth
+Each seed renders a 1600 x 1200 capture at 15 um (uvps.testing.synthetic), writes a run folder of its truth
 with its colour areas, and renders 4 element maps (250 um step, 1 mm spot, Poisson counts) rotated by
 up to 3 deg, scaled by up to +-5 % and shifted by up to 2 mm, drawn per seed. Rows add what the
 registration does not model: composition varying +-30 % inside each area, a flat-topped spot, scan
@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from uvps.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
-from uvps.measure import write_label_tiff
-from uvps.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
+from uvps.core.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
+from uvps.files.tables import write_label_tiff
+from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 PX = 15.0
 ROWS = {"clean": {}, "composition +-30 % in areas": {"within_area": 0.3},

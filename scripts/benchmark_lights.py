@@ -6,8 +6,8 @@ Usage::
     .venv/bin/python scripts/benchmark_lights.py [--lamps 8 16 32 64] [--shape 1200 1600] [--seeds 3 4 5]
                                                  [--out-md docs/benchmarks.md]
 
-Renders a grey synthetic capture per lamp count (``uvps.synthetic.make_capture``), runs the additive
-term and the light estimate of ``uvps run`` (:func:`uvps.pipeline.run` with ``RunOptions()`` and no
+Renders a grey synthetic capture per lamp count (``uvps.testing.synthetic.make_capture``), runs the additive
+term and the light estimate of ``uvps run`` (:func:`uvps.core.pipeline.run` with ``RunOptions()`` and no
 stage beyond the lights, on ``as_capture()``) and prints, per lamp count and seed: the time of each
 (the run's ``timings_s``), the mean and max direction error against the truth, the heights' relative
 scale error (mean log tan-elevation ratio) and the reported height uncertainty; then, per lamp count,
@@ -23,9 +23,9 @@ import sys
 
 import numpy as np
 
-from uvps import pipeline
-from uvps.pipeline import RunOptions
-from uvps.synthetic import make_capture
+from uvps.core import pipeline
+from uvps.core.pipeline import RunOptions
+from uvps.testing.synthetic import make_capture
 
 
 def _machine():

@@ -1,15 +1,15 @@
 #!/usr/bin/env python
-"""Benchmark uvps.detect on synthetic captures: precision / recall / F1 by width class, width error,
+"""Benchmark uvps.core.detect on synthetic captures: precision / recall / F1 by width class, width error,
 timing. Prints a Markdown table.
 
 Detection runs on the synthetic ground-truth albedo and height with noise added (height: white
 Gaussian, ``--height-noise`` um; albedo: multiplicative Gaussian, ``--albedo-noise``), at each
 noise level given. A detection matches a true protrusion when their centroids are within
 ``max(2 px, 0.5 * true width)`` (greedy, closest pairs first, one-to-one). Widths are
-equivalent-circle diameters (as ``uvps.measure``). A detection is counted in the width class of
+equivalent-circle diameters (as ``uvps.core.measure``). A detection is counted in the width class of
 its matched truth, an unmatched one in the class of its own width.
 
-With ``--pipeline``, end to end: the albedo and height come from :func:`uvps.pipeline.run` on the
+With ``--pipeline``, end to end: the albedo and height come from :func:`uvps.core.pipeline.run` on the
 rendered capture with ``RunOptions()`` (what ``uvps run`` does by default), the lights estimated from
 the images or given (the true lamp positions); detection then runs with ``DetectionParams()`` on
 them as above (without colour areas; the truth's areas count the density per area).
@@ -17,7 +17,7 @@ them as above (without colour areas; the truth's areas count the density per are
 With ``--wand``, the manual method instead: a click at the centre of every true protrusion of at
 least 100 um on the albedo that ``uvps run`` computes with the true lamps (``--pipeline true``'s
 maps; ``--pipeline estimated`` for estimated lamps), outlined by ``uvps wand``'s default (the
-relative wand, :func:`uvps.wand.contrast_select`) and by ImageJ's wand at fixed tolerances (in the
+relative wand, :func:`uvps.core.wand.contrast_select`) and by ImageJ's wand at fixed tolerances (in the
 albedo's counts); the share of clicks outlined within 0.5-2x the true footprint's area.
 
 Example::
@@ -36,9 +36,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from skimage.measure import regionprops_table
 
-from uvps.detect import DetectionParams, detect_protrusions
-from uvps.measure import measure_protrusions
-from uvps.synthetic import make_capture
+from uvps.core.detect import DetectionParams, detect_protrusions
+from uvps.core.measure import measure_protrusions
+from uvps.testing.synthetic import make_capture
 
 CLASSES = [(0, 60), (60, 100), (100, 200), (200, 400), (400, 10000)]
 
@@ -69,11 +69,11 @@ def match(true_xy, true_w_px, det_xy):
 def pipeline_maps(cap, *, true_lights):
     """Albedo and height as ``uvps run`` computes them from the rendered capture (12 lamps, noise).
 
-    :func:`uvps.pipeline.run` with ``RunOptions()`` (the defaults of ``uvps run``: additive term
+    :func:`uvps.core.pipeline.run` with ``RunOptions()`` (the defaults of ``uvps run``: additive term
     measured, lamps refined, Frankot-Chellappa); the lights estimated from the images, or the true
     ones as a calibrated positions file gives them (``as_capture(lights="positions")``).
     """
-    from uvps.pipeline import RunOptions, run
+    from uvps.core.pipeline import RunOptions, run
 
     res = run(cap.as_capture(lights="positions" if true_lights else "estimate"), RunOptions(),
               stages=("normals", "height"))
@@ -119,7 +119,7 @@ def run_one(seed, shape, height_noise, albedo_noise, params, pipeline=None):
 def wand_one(seed, shape, pipeline, tolerances):
     """Area ratios (outlined / true footprint) of the clicks at the true centres of protrusions
     >= 100 um: the relative wand's default and ImageJ's wand at each of ``tolerances``."""
-    from uvps.wand import MAX_WIDTH_UM, contrast_select, wand_select
+    from uvps.core.wand import MAX_WIDTH_UM, contrast_select, wand_select
 
     cap = make_capture(shape=shape, seed=seed, n_lights=12)
     alb, _h = pipeline_maps(cap, true_lights=(pipeline != "estimated"))
@@ -239,7 +239,7 @@ def main(argv=None) -> int:
         for name, nt, nd, pr, rc, f1, wr, err, bias in rows:
             print(f"| {name} | {nt} | {nd} | {pr:.3f} | {rc:.3f} | {f1:.3f} | {wr:.2f} | {100 * err:.1f} % | {100 * bias:+.1f} % |")
         print(f"\ntime per capture (one core): detection median {np.median(times):.2f} s "
-              f"(max {max(times):.2f} s); detection + uvps.measure statistics median "
+              f"(max {max(times):.2f} s); detection + uvps.core.measure statistics median "
               f"{np.median(tm):.2f} s (max {max(tm):.2f} s)\n\nrejected candidates: {rej}\n")
         dens = np.abs(np.concatenate([r["dens"] for r in runs]))
         if dens.size:

@@ -2,18 +2,18 @@
 """Robustness benchmark (issue 8): ``uvps run`` on synthetic captures that hold a real capture's nuisances.
 
 What is measured is what users run: each capture is written to disk with
-:func:`uvps.synthetic.write_capture` and the ``run`` command (``uvps.commands.COMMANDS["run"]``, the
+:func:`uvps.testing.synthetic.write_capture` and the ``run`` command (``uvps.commands.COMMANDS["run"]``, the
 function behind ``uvps run``) is called in-process on its folder; the run folder's outputs are then
 scored against the generator's truth. Nothing of the pipeline is assembled by hand.
 
-Rows: ``none`` (no nuisance), every nuisance of :data:`uvps.synthetic.NUISANCE_TOP` alone at the top of
+Rows: ``none`` (no nuisance), every nuisance of :data:`uvps.testing.synthetic.NUISANCE_TOP` alone at the top of
 its range, and ``all`` (:meth:`SyntheticSpec.realistic` with ``level="top"``). Each row is run for every
 seed, lamp count and lights mode: ``estimated`` (no ``--lights``), ``calibrated`` (``--lights`` with a
 positions CSV ``file,x_mm,y_mm,z_mm`` written from the truth), ``dark`` (lamps estimated, with
-``--dark`` a frame taken with the lamp off: :func:`uvps.synthetic.render_dark_frame`, the remedy the
+``--dark`` a frame taken with the lamp off: :func:`uvps.testing.synthetic.render_dark_frame`, the remedy the
 run's warnings name for stray light) and ``card`` (the true positions, the dark frame, and ``--card`` a
-flat fluorescent card under every lamp: :func:`uvps.synthetic.render_card` with
-:data:`uvps.synthetic.CARD_TYPICAL`, tilted toward an azimuth that changes with the seed). With detection on (the default) the run
+flat fluorescent card under every lamp: :func:`uvps.testing.synthetic.render_card` with
+:data:`uvps.testing.synthetic.CARD_TYPICAL`, tilted toward an azimuth that changes with the seed). With detection on (the default) the run
 gets ``--regions`` with the true colour areas (``truth/regions.tif``).
 
 Metrics per run:
@@ -70,7 +70,7 @@ if str(SCRIPTS) not in sys.path:
 from benchmark_core import protrusion_errors  # noqa: E402  (the disc/ring height measure)
 from benchmark_protrusions import match, summarise  # noqa: E402  (detection matching and summary)
 
-from uvps.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capture, render_card,  # noqa: E402
+from uvps.testing.synthetic import (CARD_TYPICAL, NUISANCE_TOP, SyntheticSpec, make_capture, render_card,  # noqa: E402
                             write_capture)
 
 ROWS = ["none"] + list(NUISANCE_TOP) + ["bow", "all"]
@@ -264,7 +264,7 @@ def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dar
     score the calibration's lamps against the truth: max direction error (deg) and max position error
     (% of the lamp's distance)."""
     from uvps.commands import COMMANDS
-    from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+    from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
     sc = make_sphere_capture(cap, [SphereSpec(*s) for s in spheres])
     shutil.rmtree(sphere_dir, ignore_errors=True)

@@ -1,6 +1,6 @@
 """Speed and memory of a whole run against the time to merely read the stack (issue 9).
 
-Makes (once, cached in ``--work``) a synthetic capture with :func:`uvps.synthetic.make_capture`
+Makes (once, cached in ``--work``) a synthetic capture with :func:`uvps.testing.synthetic.make_capture`
 (default 4000 x 3000, 16 lights, RGB uint16 TIFFs, one file per light) or, with ``--tile``, with
 :func:`make_tiled` (the same generator in tiles and bands, for a capture it cannot hold in memory),
 then measures, each in a fresh process whose peak resident memory is taken from ``os.wait4``'s
@@ -14,7 +14,7 @@ rusage:
 - the same with ``--regions auto`` (colour areas, detection, statistics, report);
 - ``uvps demo`` (its default 600 x 800 capture, 12 lights);
 
-and optionally (``--profile``) a cProfile of :func:`uvps.pipeline.run` in this process, whose top
+and optionally (``--profile``) a cProfile of :func:`uvps.core.pipeline.run` in this process, whose top
 lines go with the table. The table is printed and, with ``--md PATH`` (default
 docs/benchmarks.md), inserted at the top of that file under its title, with the machine (cores,
 RAM, load) and the command line.
@@ -83,7 +83,7 @@ def make(folder: Path, shape, n_lights: int, seed: int, tile=None) -> float:
 
     files = sorted(folder.glob("uv_*.tif"))
     if len(files) != n_lights:
-        from uvps.synthetic import make_capture, write_capture
+        from uvps.testing.synthetic import make_capture, write_capture
 
         t0 = time.perf_counter()
         if tile:
@@ -105,7 +105,7 @@ def render_band(height, albedo, r0: int, r1: int, *, pixel_size_um, light_positi
     the lamps moved by the band's offset from the field's centre and their intensities scaled by
     ``|L|^2 / |L - offset|^2`` (render_images' inverse square is relative to the centre it is given)."""
     import numpy as np
-    from uvps.synthetic import render_images
+    from uvps.testing.synthetic import render_images
 
     M = height.shape[0]
     h0, h1 = max(0, r0 - 1), min(M, r1 + 1)
@@ -119,7 +119,7 @@ def render_band(height, albedo, r0: int, r1: int, *, pixel_size_um, light_positi
 
 
 def make_tiled(folder: Path, shape, n_lights: int, seed: int, tile, band_rows: int = 200) -> None:
-    """A capture too large for :func:`uvps.synthetic.make_capture` to hold (it needs about 270 bytes
+    """A capture too large for :func:`uvps.testing.synthetic.make_capture` to hold (it needs about 270 bytes
     a pixel: 22 GB for 10000 x 8000), made with the same generator in pieces.
 
     The painting: ``make_capture`` of each ``tile`` (rows, cols) with its own seed (``seed * 1000 +
@@ -141,8 +141,8 @@ def make_tiled(folder: Path, shape, n_lights: int, seed: int, tile, band_rows: i
 
     import numpy as np
     import tifffile
-    from uvps.io import release
-    from uvps.synthetic import SyntheticSpec, light_positions, make_capture, pixel_centres_mm
+    from uvps.files.io import release
+    from uvps.testing.synthetic import SyntheticSpec, light_positions, make_capture, pixel_centres_mm
 
     spec = SyntheticSpec()
     M, N = shape
@@ -322,8 +322,8 @@ print('READ_S', time.perf_counter() - t0)
 
 def profile_run(folder: Path, top: int) -> str:
     """cProfile of read_capture + pipeline.run (the default stages) in this process: the top lines."""
-    from uvps.io import read_capture
-    from uvps.pipeline import RunOptions, run
+    from uvps.files.io import read_capture
+    from uvps.core.pipeline import RunOptions, run
 
     pr = cProfile.Profile()
     pr.enable()

@@ -17,8 +17,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from uvps.commands import COMMANDS  # noqa: E402
-from uvps.synthetic import make_capture  # noqa: E402
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture  # noqa: E402
+from uvps.testing.synthetic import make_capture  # noqa: E402
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture  # noqa: E402
 
 
 def main(argv=None) -> int:

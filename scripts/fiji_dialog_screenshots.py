@@ -28,11 +28,11 @@ from xvfb_display import start_xvfb, stop_xvfb  # noqa: E402  (the test harness'
 IJ_JAR = "/usr/share/java/ij.jar"
 JYTHON_JAR = "/usr/share/java/jython.jar"
 
-MENU_ITEMS = ["Run Whole Pipeline", "Estimate Lights", "Flat Field", "Normals and Albedo",
-              "Integrate Height", "Colour Areas", "Detect Protrusions", "Wand Count",
-              "Statistics and Report", "Compare Counts", "Relight", "Run Info", "Compare Captures",
-              "Element Maps",
-              "UVPS Settings"]
+sys.path.insert(0, str(REPO / "scripts"))
+from install_fiji import menu_items  # noqa: E402  (the installed menu, in its order)
+
+#: Every menu item, in the installed menu's order: one dialog screenshot each.
+MENU_ITEMS = menu_items(REPO / "plugins" / "UV_Photometric_Stereo")
 
 #: Example values shown in the screenshots (ij.Prefs keys uvps.<macro key>).
 EXAMPLES = {"run": "/data/okeeffe/run1", "images": "/data/okeeffe/uv capture",
@@ -97,7 +97,7 @@ def main(argv=None):
 def results(work, home, build, display, out):
     """Run the whole pipeline on a synthetic capture and save the height map and the albedo as
     ImageJ shows them (overlays flattened)."""
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     capture = work / "capture"
     write_capture(make_capture(shape=(300, 400), n_lights=12, seed=3), capture, truth=False)

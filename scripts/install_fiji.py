@@ -154,14 +154,28 @@ def source_files(source_root):
     return [os.path.join(menu_dir, name) for name in scripts], lib_dir
 
 
-def menu_config(script_names):
-    """The ``plugins.config`` text of the menu: the scripts (file names) in :data:`MENU_ORDER`,
-    those it does not list before the last group, separators only between groups."""
+def menu_order(script_names):
+    """The menu's items (script stems) and separators ("-"): :data:`MENU_ORDER`, with the scripts
+    it does not list as one group before the last one."""
     stems = [os.path.splitext(name)[0] for name in script_names]
     order = list(MENU_ORDER)
     extra = sorted(stem for stem in stems if stem not in order)
     if extra:
         order[-1:-1] = extra + ["-"]
+    return [item for item in order if item == "-" or item in stems]
+
+
+def menu_items(menu_folder):
+    """The titles of the menu scripts in ``menu_folder``, in the installed menu's order."""
+    names = [p for p in os.listdir(str(menu_folder)) if p.endswith(".py")]
+    return [stem.replace("_", " ") for stem in menu_order(names) if stem != "-"]
+
+
+def menu_config(script_names):
+    """The ``plugins.config`` text of the menu: the scripts (file names) in :func:`menu_order`,
+    separators only between groups."""
+    stems = [os.path.splitext(name)[0] for name in script_names]
+    order = menu_order(script_names)
     lines, group = [], []
     for item in order + ["-"]:
         if item != "-":

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.batch import SUMMARY, complete, list_captures, run_batch
+from uvps.commands.batch import SUMMARY, complete, list_captures, run_batch
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
-from uvps.synthetic import make_capture, write_capture
+from uvps.testing.synthetic import make_capture, write_capture
 
 
 LAMPS = "lights_positions_mm.csv"          # written by write_capture into each capture folder
@@ -137,7 +137,7 @@ def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path)
     # a small capture is written in a few milliseconds: each worker holds its new folder open for a
     # second after writing it (before the swap), so that the kill falls inside the write, not beside it
     def hold_new_folders(seconds):
-        import uvps.runfolder as rf
+        import uvps.files.runfolder as rf
 
         original = getattr(rf, "_write_run_unheld", rf.write_run)
 

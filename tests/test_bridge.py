@@ -10,8 +10,8 @@ import pytest
 
 from uvps import bridge
 from uvps.errors import UVPSComputeError
-from uvps.io import read_capture, read_tiff, sha256_file, write_imagej_tiff
-from uvps.outputs import CommandResult, OutputSpec, atomic_output_dir
+from uvps.files.io import read_capture, read_tiff, sha256_file, write_imagej_tiff
+from uvps.files.outputs import CommandResult, OutputSpec, atomic_output_dir
 
 PX_UM = 20.0
 
@@ -46,10 +46,8 @@ def _mean_command(inputs, params, output_dir, *, progress=None):
 
 
 @pytest.fixture
-def registry(monkeypatch):
-    reg = {"mean": _mean_command}
-    monkeypatch.setattr(bridge, "COMMANDS", reg)
-    return reg
+def registry():
+    return {"mean": _mean_command}
 
 
 def _request(folder, **fields):
@@ -69,7 +67,7 @@ def _response(req_path):
 def test_in_process_round_trip_with_relative_paths(tmp_path, registry, capsys):
     imgs = _capture(tmp_path / "req" / "cap")
     req = _request(tmp_path / "req", inputs={"images": "cap"}, output_dir="out", extra=1)
-    assert bridge.run_bridge(req) == 0
+    assert bridge.run_bridge(req, registry) == 0
     resp = _response(req)
     assert resp["status"] == "ok" and resp["error"] is None and resp["command"] == "mean"
     out = resp["outputs"][0]
@@ -104,7 +102,7 @@ def test_bad_requests_exit_1_with_one_line(tmp_path, registry, text, match):
     (tmp_path / "a_file").write_text("x")
     req = tmp_path / "request.json"
     req.write_text(text)
-    assert bridge.run_bridge(req) == 1
+    assert bridge.run_bridge(req, registry) == 1
     resp = _response(req)
     assert resp["status"] == "error" and resp["error"]["type"] == "UVPSInputError"
     assert match in resp["error"]["message"] and "\n" not in resp["error"]["message"]
@@ -112,7 +110,7 @@ def test_bad_requests_exit_1_with_one_line(tmp_path, registry, text, match):
 
 
 def test_missing_request_file_still_answers(tmp_path, registry):
-    assert bridge.run_bridge(tmp_path / "request.json") == 1
+    assert bridge.run_bridge(tmp_path / "request.json", registry) == 1
     assert "does not exist" in _response(tmp_path / "request.json")["error"]["message"]
 
 
@@ -122,7 +120,7 @@ def test_input_error_from_command_leaves_output_untouched(tmp_path, registry):
     (out / "old.txt").write_text("keep")
     before = {p.name: sha256_file(p) for p in out.iterdir()}
     req = _request(tmp_path, inputs={"images": str(tmp_path / "missing")})
-    assert bridge.run_bridge(req) == 1
+    assert bridge.run_bridge(req, registry) == 1
     resp = _response(req)
     assert resp["error"]["type"] == "UVPSInputError" and "missing" in resp["error"]["message"]
     assert {p.name: sha256_file(p) for p in out.iterdir()} == before
@@ -139,7 +137,7 @@ def test_other_errors_exit_2_traceback_on_stderr_only(tmp_path, registry, capsys
     out.mkdir()
     (out / "mean.tif").write_bytes(b"previous result")
     req = _request(tmp_path, inputs={"images": str(tmp_path / "cap")}, params={"fail": fail})
-    assert bridge.run_bridge(req) == 2
+    assert bridge.run_bridge(req, registry) == 2
     resp = _response(req)
     assert resp["error"] == {"type": exc_type, "message": message}
     assert resp["status"] == "error" and resp["outputs"] == []
@@ -155,7 +153,7 @@ def test_other_errors_exit_2_traceback_on_stderr_only(tmp_path, registry, capsys
 def test_command_returning_wrong_type_is_compute_error(tmp_path, registry):
     registry["mean"] = lambda inputs, params, output_dir, *, progress=None: {"outputs": []}
     req = _request(tmp_path)
-    assert bridge.run_bridge(req) == 2
+    assert bridge.run_bridge(req, registry) == 2
     assert _response(req)["error"]["type"] == "UVPSComputeError"
 
 
@@ -176,7 +174,7 @@ def _run(req, *, module="uvps", extra=("bridge",)):
 
 def _bump_run(folder, shape=(48, 64)):
     """A run folder holding normals.tif of an analytic Gaussian bump; returns its height (um)."""
-    from uvps.synthetic import normals_from_height
+    from uvps.testing.synthetic import normals_from_height
 
     m, n = shape
     r, c = np.mgrid[:m, :n]
@@ -268,7 +266,7 @@ def test_subprocess_missing_request_and_python_m_uvps_bridge(tmp_path):
 
 
 def test_subprocess_sigterm_cancels_cleanly(tmp_path):
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     write_capture(make_capture(shape=(120, 160), n_lights=6), tmp_path / "cap", truth=False)
     (tmp_path / "run").mkdir()

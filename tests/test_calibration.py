@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.batch import _side_files
-from uvps.calibration import calibration_of_run, read_calibration, read_dome, write_dome
-from uvps.io import sha256_file
+from uvps.commands.batch import _side_files
+from uvps.files.calibration import calibration_of_run, read_calibration, read_dome, write_dome
+from uvps.files.io import sha256_file
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
-from uvps.synthetic import make_capture, write_capture
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+from uvps.testing.synthetic import make_capture, write_capture
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
 PX = 60.0     # 400 x 300 px of 60 um: a 24 x 18 mm field
 
@@ -199,7 +199,7 @@ def test_calibrate_stores_a_card_and_the_run_divides_it_out(tmp_path):
     calibration folder (card.tif, card.json; calibration.json says so), and `uvps run --calibration`
     divides them out: lamp beams and vignetting no longer bend the normals. A card of another lamp
     count is one line, exit 1, nothing written."""
-    from uvps.synthetic import SyntheticSpec, render_card
+    from uvps.testing.synthetic import SyntheticSpec, render_card
 
     spec = SyntheticSpec.realistic(level="top", only=["beams", "vignetting"], shape=(160, 200), n_lights=8, seed=1)
     cap = make_capture(spec)

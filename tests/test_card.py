@@ -1,5 +1,5 @@
-"""The card flat-field (uvps.card): synthetic cards under lamps with beams, vignetting, unequal power and
-stray light (uvps.synthetic.render_card), against the known normals and the card's known tilt."""
+"""The card flat-field (uvps.core.card): synthetic cards under lamps with beams, vignetting, unequal power and
+stray light (uvps.testing.synthetic.render_card), against the known normals and the card's known tilt."""
 import dataclasses
 import json
 import subprocess
@@ -9,14 +9,15 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.card import CardCalibration, apply_card, calibrate_card
+from uvps.core.card import apply_card, calibrate_card
 from uvps.errors import UVPSInputError
-from uvps.lights import LightModel
-from uvps.pipeline import RunOptions, run
-from uvps.synthetic import SyntheticSpec, make_capture, render_card, render_dark_frame, write_capture
+from uvps.files.cards import read_card, write_card
+from uvps.core.lights import LightModel
+from uvps.core.pipeline import RunOptions, run
+from uvps.testing.synthetic import SyntheticSpec, make_capture, render_card, render_dark_frame, write_capture
 
 #: Beams aimed off (cos^30, 5 deg), 40 % vignetting, lamps +-15 % in power, stray light: what a card
-#: is for (the top of each nuisance's range, uvps.synthetic.NUISANCE_TOP).
+#: is for (the top of each nuisance's range, uvps.testing.synthetic.NUISANCE_TOP).
 NUISANCES = ["beams", "vignetting", "unequal_lamps", "stray_light"]
 
 
@@ -105,9 +106,9 @@ def test_bad_shapes_are_refused(beamed):
 
 def test_write_read_round_trip(beamed, tmp_path):
     cal = calibrate_card(render_card(beamed, tilt_deg=0.5), lights=beamed.light_positions_mm, pixel_size_um=15.0)
-    paths = cal.write(tmp_path / "cal", pixel_size_um=15.0)
+    paths = write_card(cal, tmp_path / "cal", pixel_size_um=15.0)
     assert [p.name for p in paths] == ["card.tif", "card.json"]
-    back = CardCalibration.read(tmp_path / "cal")
+    back = read_card(tmp_path / "cal")
     np.testing.assert_allclose(back.coeffs, cal.coeffs)
     assert back.tilt_deg == pytest.approx(cal.tilt_deg, abs=1e-4) and back.shape == cal.shape
     np.testing.assert_allclose(tifffile.imread(paths[0]), cal.gains, rtol=1e-6)

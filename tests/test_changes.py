@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from uvps import cli
-from uvps.changes import (COLUMNS, NOISE_MODEL, change_uncertainty, classify_changes, date_record,
-                          pair_inflation, register)
+from uvps.core.changes import COLUMNS, NOISE_MODEL, change_uncertainty, classify_changes, pair_inflation, register
+from uvps.commands.changes import date_record
 from uvps.commands import COMMANDS
-from uvps.io import read_tiff
-from uvps.synthetic import (LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture,
+from uvps.files.io import read_tiff
+from uvps.testing.synthetic import (LaterSpec, SyntheticSpec, make_capture_pair, similarity_matrix, write_capture,
                              write_truth_run)
 
 SPEC = SyntheticSpec(shape=(300, 400), n_lights=8, protrusion_density_light=150.0,
@@ -310,7 +310,7 @@ def test_each_dates_calibration_is_recorded(truth_runs, tmp_path):
                                                                        "reason": "spheres pin the lamps"})
     rec = date_record(b)
     assert rec["lamps"] == "positions" and rec["lights_file"] == "lamps.csv" and rec["relief"]["scale"] == "absolute"
-    from uvps.runfolder import relief_of
+    from uvps.files.runfolder import relief_of
     assert date_record(truth_runs["a"]) == {"run_json": False, "lamps": "unknown", "relief": relief_of({})}
     assert relief_of({})["scale"] == "absolute"
     out = tmp_path / "out"

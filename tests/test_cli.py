@@ -10,7 +10,7 @@ import pytest
 import tifffile
 
 from uvps import cli
-from uvps.synthetic import make_capture, write_capture
+from uvps.testing.synthetic import make_capture, write_capture
 
 PX = 15.0
 
@@ -292,7 +292,7 @@ def test_protrusion_commands_from_the_command_line(capture_dir, tmp_path):
 def test_lp_intensity_column_is_used_and_equal_intensities_otherwise(tmp_path):
     """Far lights from an .lp file: its 4th column gives the intensities; without it they are equal
     (not re-estimated from the levels) unless --estimate-intensities asks for that."""
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     r, c = np.mgrid[0:120, 0:160].astype(float)
     h = 40 * np.sin(2 * np.pi * c / 80) * np.cos(2 * np.pi * r / 60)
@@ -411,7 +411,7 @@ def test_ctrl_c_ends_with_one_line_exit_130_and_no_partial_output(tmp_path):
     lines = []
     for line in proc.stderr:      # reading done: inside the light estimate (~4 s)
         lines.append(line)
-        if "uvps.io: capture:" in line:
+        if "uvps.files.io: capture:" in line:
             break
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps import commands, protrusion_commands, runfolder
-from uvps.commands import COMMANDS
-from uvps.runfolder import read_run
-from uvps.synthetic import make_capture, write_capture
+from uvps import commands
+from uvps.commands import COMMANDS, info
+from uvps.commands import protrusions as protrusion_commands
+from uvps.files.runfolder import read_run
+from uvps.testing.synthetic import make_capture, write_capture
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +23,7 @@ def test_every_declared_command_is_registered_once_by_name_and_alias():
     for s in declared:
         assert COMMANDS[s.name] is s and all(COMMANDS[a] is s for a in s.aliases)
     assert {"run", "lights", "normals", "detect", "wand", "stats", "report", "info"} <= set(COMMANDS)
-    assert COMMANDS["info"] in runfolder.SPECS and COMMANDS["detect"] in protrusion_commands.SPECS
+    assert COMMANDS["info"] in info.SPECS and COMMANDS["detect"] in protrusion_commands.SPECS
 
 
 @pytest.mark.slow
@@ -72,7 +73,7 @@ def test_demo_makes_a_capture_and_runs_everything_on_it(tmp_path):
 def test_run_with_a_label_tiff_counts_in_those_areas(synthetic, tmp_path):
     """`run --regions labels.tif`: the run folder records the given areas (regions_labels.tif and
     regions.csv with their names), so statistics count per area, not over the whole image."""
-    from uvps.io import write_imagej_tiff
+    from uvps.files.io import write_imagej_tiff
 
     write_capture(synthetic, tmp_path / "cap")
     labels = np.zeros(synthetic.height_um.shape, np.uint8)

@@ -1,11 +1,12 @@
-"""Tests of uvps.compare: one-to-one matching and per-area matched / missed / extra."""
+"""Tests of uvps.core.compare: one-to-one matching and per-area matched / missed / extra."""
 
 import numpy as np
 import pytest
 
-from uvps.compare import COLUMNS, compare_detections, read_comparison_csv, write_comparison_csv
+from uvps.core.compare import COLUMNS, compare_detections
+from uvps.files.comparison import read_comparison_csv, write_comparison_csv
 from uvps.errors import UVPSInputError
-from uvps.regions import RegionMap
+from uvps.core.regions import RegionMap
 
 PX = 50.0  # um per pixel
 

@@ -1,8 +1,8 @@
-"""Tests of uvps.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
+"""Tests of uvps.core.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
 import numpy as np
 import pytest
 
-from uvps.detect import Detection, DetectionParams, detect_protrusions
+from uvps.core.detect import Detection, DetectionParams, detect_protrusions
 from uvps.errors import UVPSInputError
 
 PAINT = np.array([0.80, 0.73, 0.58], np.float32)      # beige fluorescence
@@ -178,7 +178,7 @@ def test_albedo_shape_mismatch():
 
 def test_synthetic_capture_recall_and_precision():
     """End to end on a small synthetic capture (ground-truth albedo and height plus noise)."""
-    synthetic = pytest.importorskip("uvps.synthetic")
+    synthetic = pytest.importorskip("uvps.testing.synthetic")
     cap = synthetic.make_capture(shape=(400, 500), seed=3, n_lights=3, noise=False)
     px = cap.spec.pixel_size_um
     rng = np.random.default_rng(7)
@@ -200,7 +200,7 @@ def test_synthetic_capture_recall_and_precision():
     assert np.median(np.abs(width / pr["width_um"][big][hit > 0] - 1)) < 0.15
 
 
-# --- shapes and surfaces the detector was not tuned to (uvps.synthetic.MIXED_SHAPES, NUISANCE_TOP)
+# --- shapes and surfaces the detector was not tuned to (uvps.testing.synthetic.MIXED_SHAPES, NUISANCE_TOP)
 
 
 def add_profile(h, centre, width_um, px, height_um, kind):
@@ -292,7 +292,7 @@ def test_unseen_two_scale_weave_measured_and_not_detected():
 
 def test_rejection_table_and_counts():
     """Every rejected candidate keeps the rule that rejected it; the counts add up."""
-    from uvps.detect import REJECTION_REASONS, REJECTION_RULES
+    from uvps.core.detect import REJECTION_REASONS, REJECTION_RULES
 
     assert [r.name for r in REJECTION_RULES] == list(REJECTION_REASONS)
     assert all(r.quantity and r.test for r in REJECTION_RULES)
@@ -397,7 +397,7 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi
     from skimage.morphology import diameter_opening
-    from uvps.detect import _diameter_opening
+    from uvps.core.detect import _diameter_opening
     rng = np.random.default_rng(seed)
     img = (ndi.gaussian_filter(rng.normal(size=(70, 90)), 2) * 10).astype(np.float32)
     img[10:20, 10:20] = np.round(img[10:20, 10:20])            # plateaus: shared levels
@@ -409,7 +409,7 @@ def test_diameter_opening_matches_skimage(seed):
 def test_weave_fit_recovers_two_sinusoids():
     """The separable fit: two sinusoids at frequencies between bins, their amplitudes, the
     weave's RMS and RMS slope (analytic) against the brute-force values."""
-    from uvps.detect import _fit_sinusoids, _sinusoids
+    from uvps.core.detect import _fit_sinusoids, _sinusoids
     m, n = 120, 150
     yy, xx = np.mgrid[:m, :n].astype(np.float64)
     freqs = np.array([[0.043, 0.061], [-0.0171, 0.0333]])
@@ -427,7 +427,7 @@ def test_weave_fit_recovers_two_sinusoids():
 
 def test_holes_and_distance_match_scipy():
     from scipy import ndimage as ndi
-    from uvps.detect import _edt, _holes
+    from uvps.core.detect import _edt, _holes
     rng = np.random.default_rng(3)
     found = 0
     for level in (-0.3, 0.0, 0.3):
@@ -442,7 +442,7 @@ def test_holes_and_distance_match_scipy():
 
 
 def test_median_matches_numpy():
-    from uvps.detect import _median
+    from uvps.core.detect import _median
     rng = np.random.default_rng(5)
     for n in (1, 2, 7, 50):
         x = rng.normal(size=n)
@@ -455,7 +455,7 @@ def test_expand_labels_by_groups_matches_skimage(seed):
     included (labels of random ids in random blobs, near each other and the border)."""
     from scipy import ndimage as ndi
     from skimage.segmentation import expand_labels
-    from uvps.detect import _expand_labels
+    from uvps.core.detect import _expand_labels
     rng = np.random.default_rng(seed)
     for density in (0.003, 0.02, 0.06):
         blobs = ndi.binary_dilation(rng.random((90, 110)) < density, iterations=int(rng.integers(0, 3)))
@@ -468,7 +468,7 @@ def test_axis_lengths_match_regionprops():
     """Per-label moments in one pass: regionprops' axis lengths of ellipses, bars and a pixel."""
     from skimage.draw import ellipse
     from skimage.measure import regionprops_table
-    from uvps.detect import _axis_lengths
+    from uvps.core.detect import _axis_lengths
     lab = np.zeros((120, 160), np.int32)
     for k, (r, c, a, b, rot) in enumerate([(30, 40, 20, 8, 0.3), (80, 50, 12, 12, 0.0),
                                            (60, 120, 25, 5, -1.1)], start=1):
@@ -484,7 +484,7 @@ def test_axis_lengths_match_regionprops():
 
 
 def test_hole_area_counts_only_holes_a_label_encloses_alone():
-    from uvps.detect import _hole_area
+    from uvps.core.detect import _hole_area
     lab = np.zeros((60, 80), np.int32)
     lab[5:20, 5:20] = 1
     lab[9:14, 9:13] = 0                                        # 20 px enclosed by label 1
@@ -499,7 +499,7 @@ def test_inscribed_radius_in_crops_matches_the_whole_image_transform():
     """Labels apart from one another: the whole image's distance to the nearest unlabelled pixel;
     touching labels: each one's own (its neighbour counts as outside)."""
     from scipy import ndimage as ndi
-    from uvps.detect import _inscribed_radius
+    from uvps.core.detect import _inscribed_radius
     lab = np.zeros((50, 70), np.int32)
     lab[5:16, 5:26] = 1                                        # 11 x 21 bar: r_in 6
     lab[0:9, 40:49] = 2                                        # 9 x 9 at the border
@@ -516,7 +516,7 @@ def test_robust_plane_kernel_matches_numpy_and_ignores_outliers():
     """A plane 2 + 0.1 row - 0.3 col sampled on a ring, a neighbouring bump on a tenth of it: the
     compiled fit and the numpy one give that plane; samples on one line take numpy's minimum-norm
     least squares; fewer than 8 samples give their median."""
-    from uvps.detect import _robust_plane, _robust_plane_kernel, _robust_plane_numpy
+    from uvps.core.detect import _robust_plane, _robust_plane_kernel, _robust_plane_numpy
     rng = np.random.default_rng(4)
     ang = np.linspace(0, 2 * np.pi, 200, endpoint=False)
     rows, cols = np.round(30 + 12 * np.sin(ang)), np.round(40 + 12 * np.cos(ang))
@@ -536,7 +536,7 @@ def test_robust_plane_kernel_matches_numpy_and_ignores_outliers():
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
 def test_brightness_is_the_channel_sum(dtype):
-    from uvps.detect import _brightness
+    from uvps.core.detect import _brightness
     rng = np.random.default_rng(6)
     alb = (rng.random((40, 50, 3)) * 3000).astype(dtype)
     np.testing.assert_array_equal(_brightness(alb), alb.astype(np.float32).sum(axis=2))

@@ -1,6 +1,6 @@
 """uvps elements: XRF element maps registered onto a run, per colour area and per protrusion.
 
-Known answers come from :func:`uvps.synthetic.render_element_maps`: each colour area holds each
+Known answers come from :func:`uvps.testing.synthetic.render_element_maps`: each colour area holds each
 element at a known abundance, the scan is a known similarity of the camera's view, and the maps
 carry Poisson counting noise (and, where said, what the registration does not model).
 """
@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.element_commands import read_control_points, read_edf, read_element_maps
-from uvps.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
+from uvps.commands.elements import read_control_points, read_edf, read_element_maps
+from uvps.core.elements import area_elements, register_maps, registration_error_map_px, resample_to_run
 from uvps.errors import UVPSInputError
-from uvps.measure import write_label_tiff
-from uvps.regions import RegionMap, region_statistics, write_regions_csv
-from uvps.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
+from uvps.files.tables import write_label_tiff
+from uvps.core.regions import RegionMap, region_statistics
+from uvps.files.tables import write_regions_csv
+from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 PX = 15.0
 STEP = 250.0

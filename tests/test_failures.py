@@ -6,9 +6,9 @@ import sys
 import numpy as np
 import pytest
 
-from uvps import lights
+from uvps.core import lights
 from uvps.errors import UVPSInputError
-from uvps.synthetic import make_capture, write_capture
+from uvps.testing.synthetic import make_capture, write_capture
 
 #: A command that trips numpy's divide-by-zero RuntimeWarning and a library DeprecationWarning, then
 #: fails on bad input, run through the real `uvps` entry point.

@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from uvps import pipeline
-from uvps.synthetic import make_capture, write_capture
+from uvps.core import pipeline
+from uvps.testing.synthetic import make_capture, write_capture
 
 
 def _stereo(tilt_deg=0.0, residual=0.005, invalid=0, shape=(100, 120)):

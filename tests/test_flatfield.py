@@ -4,7 +4,7 @@ import pytest
 from numpy.polynomial import legendre as L
 
 from uvps.errors import UVPSInputError
-from uvps.flatfield import block_grid, fit_dropoffs, flatfield, set_common
+from uvps.core.flatfield import block_grid, fit_dropoffs, flatfield, with_common
 
 M, N, DEG = 240, 320, 3
 
@@ -40,12 +40,15 @@ def test_ratio_fit_recovers_known_coefficients_despite_colour_areas():
         assert np.abs(got - expect).max() < 2e-3
 
 
-def test_set_common_completes_the_maps_normalised_to_mean_one():
+def test_with_common_completes_the_maps_normalised_to_mean_one_leaving_the_fits_as_they_were():
     images, C = _capture(seed=1)
     grid = block_grid(images)
-    fits = fit_dropoffs(grid, degree=DEG)
+    ratio_only = fit_dropoffs(grid, degree=DEG)
+    before = [(f.coeffs.copy(), f.level) for f in ratio_only]
     mean_C = C.mean(axis=0)
-    set_common(fits, grid, lambda r, c: _poly(mean_C, np.asarray(r), np.asarray(c)))
+    fits = with_common(ratio_only, grid, lambda r, c: _poly(mean_C, np.asarray(r), np.asarray(c)))
+    for f, (coeffs, level) in zip(ratio_only, before):     # values: the given fits are not changed
+        assert np.array_equal(f.coeffs, coeffs) and f.level == level
     rows, cols = np.arange(M, dtype=float), np.arange(N, dtype=float)
     for k, fit in enumerate(fits):
         F = fit.evaluate()

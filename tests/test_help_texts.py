@@ -6,7 +6,7 @@ import re
 import pytest
 
 from uvps import cli
-from uvps.capture_commands import REUSE_LIGHTS
+from uvps.workflow import REUSE_LIGHTS
 from uvps.commands import COMMANDS
 from uvps.spec import _cli_help
 

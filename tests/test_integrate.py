@@ -1,4 +1,4 @@
-"""Tests of uvps.integrate on analytic surfaces with exact normals.
+"""Tests of uvps.core.integrate on analytic surfaces with exact normals.
 
 Frame (docs/architecture.md): x = column direction, y UP (decreasing row), z toward the camera,
 p = dz/dx, q = dz/dy, n = (-p, -q, 1) / norm. Surfaces are defined in pixel units on the pixel
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.integrate import (
+from uvps.core.integrate import (
     Gradients,
     IntegrationResult,
     dct_poisson,
@@ -348,7 +348,7 @@ def test_fc_on_a_relief_equals_the_earlier_float64_result():
 @pytest.mark.parametrize("method", ["fc", "dct"])
 def test_bands_change_nothing(method, monkeypatch):
     """Gradients, heights and diagnostics computed in bands of one row = in one band."""
-    import uvps.integrate
+    import uvps.core.integrate
 
     z, p, q = sphere_dome((30, 41))
     rng = np.random.default_rng(4)
@@ -359,7 +359,7 @@ def test_bands_change_nothing(method, monkeypatch):
     mask[:, :3] = False
     whole = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=mask)
     g_whole = gradients_from_normals(n, mask=mask)
-    monkeypatch.setattr(uvps.integrate, "BAND_PIXELS", 1)
+    monkeypatch.setattr(uvps.core.integrate, "BAND_PIXELS", 1)
     banded = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=mask)
     g = gradients_from_normals(n, mask=mask)
     for a, b in ((g.p, g_whole.p), (g.q, g_whole.q), (g.invalid, g_whole.invalid),

@@ -1,4 +1,4 @@
-"""Tests of uvps.io: reading captures and light files, writing ImageJ TIFFs."""
+"""Tests of uvps.files.io: reading captures and light files, writing ImageJ TIFFs."""
 import json
 import os
 from pathlib import Path
@@ -10,7 +10,7 @@ import pytest
 import tifffile
 
 from uvps.errors import UVPSInputError
-from uvps.io import (
+from uvps.files.io import (
     Capture,
     imagej_tiff_writer,
     read_capture,
@@ -452,18 +452,18 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
 def test_tiff_written_band_by_band_equals_the_array(tmp_path, monkeypatch):
     """Writing in bands of a few rows (from a strided view, cast on the way) gives the file that
     holds the array; above LARGE_TIFF_BYTES the file is in ImageJ's one-IFD large-file layout."""
-    import uvps.io
+    import uvps.files.io
 
     rng = np.random.default_rng(1)
     normals = rng.normal(size=(37, 23, 3))                      # float64, channels last
-    monkeypatch.setattr(uvps.io, "BAND_BYTES", 5 * 23 * 4)     # 5 rows per band
+    monkeypatch.setattr(uvps.files.io, "BAND_BYTES", 5 * 23 * 4)     # 5 rows per band
     write_imagej_tiff(tmp_path / "n.tif", np.moveaxis(normals, -1, 0), axes="CYX", pixel_size_um=15,
                       labels=["nx", "ny", "nz"])
     with tifffile.TiffFile(tmp_path / "n.tif") as tif:
         assert tif.series[0].axes == "CYX" and tif.imagej_metadata["Labels"] == ["nx", "ny", "nz"]
         np.testing.assert_array_equal(tif.asarray(), np.moveaxis(normals, -1, 0).astype(np.float32))
         assert len(tif.pages) == 3
-    monkeypatch.setattr(uvps.io, "LARGE_TIFF_BYTES", 1000)
+    monkeypatch.setattr(uvps.files.io, "LARGE_TIFF_BYTES", 1000)
     stack = rng.integers(0, 4000, size=(4, 2, 19, 17)).astype(np.uint16)
     write_imagej_tiff(tmp_path / "big.tif", stack, axes="ZCYX", pixel_size_um=2)
     with tifffile.TiffFile(tmp_path / "big.tif") as tif:
@@ -502,7 +502,7 @@ def test_reading_holds_one_float_stack_plus_about_one_file(tmp_path, layout, lin
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
-    np.testing.assert_array_equal(cap.images[..., 0] > 0, arr[..., 0] > 0)
+    np.testing.assert_array_equal(np.asarray(cap.images)[..., 0] > 0, arr[..., 0] > 0)   # the whole stack: explicit
     one_float_image = cap.images[0].nbytes
     # the stack, one file in its own dtype (half a float32 image; a stack file is memory-mapped)
     # and, for the sRGB curve, one float32 temporary of part of an image plus a boolean mask
@@ -562,7 +562,7 @@ def test_a_capture_folder_leaves_out_what_is_not_a_lamp_image(tmp_path, caplog):
     tifffile.imwrite(tmp_path / "mask.tif", np.full((40, 50), 255, np.uint8))
     tifffile.imwrite(tmp_path / "uv_dark.tif", np.full((40, 50), 20, np.uint16))
     tifffile.imwrite(tmp_path / "uv_04.tif", rng.integers(1000, 2000, (10, 12), dtype=np.uint16))
-    with caplog.at_level(logging.INFO, logger="uvps.io"):
+    with caplog.at_level(logging.INFO, logger="uvps.files.io"):
         cap = read_capture(tmp_path, pixel_size_um=15.0)
     assert [Path(f).name for f in cap.files] == [f"uv_{k:02d}.tif" for k in range(4)]
     text = caplog.text
@@ -573,3 +573,36 @@ def test_a_capture_folder_leaves_out_what_is_not_a_lamp_image(tmp_path, caplog):
     assert [Path(f).name for f in cap.files] == ["uv_00.tif", "uv_01.tif", "uv_02.tif"]
     with pytest.raises(UVPSInputError, match=r"no file of folder .* matches the pattern 'x\*'"):
         read_capture(tmp_path, pixel_size_um=15.0, pattern="x*")
+
+
+class _CountingMap:
+    """An image file's memory map that records which part of it each read asks for."""
+
+    def __init__(self, arr):
+        self.arr, self.shape, self.dtype, self.reads = arr, arr.shape, arr.dtype, []
+
+    def __getitem__(self, key):
+        part = self.arr[key]
+        self.reads.append(part.size)
+        return part
+
+
+def test_a_mapped_stack_reads_a_band_not_the_whole_file_and_loads_only_when_asked():
+    """The lazy-stack protocol (docs/architecture.md, "Lazy stacks"): a band of every image reads
+    that band of each file; `[...]` is refused; the whole stack is `.load()`."""
+    from uvps.files.io import MappedStack
+
+    arrays = [np.full((40, 30), k, np.uint16) for k in range(3)]
+    maps = [_CountingMap(a) for a in arrays]
+    stack = MappedStack(maps)
+    band = stack[:, 10:14]
+    assert band.shape == (3, 4, 30) and [m.reads for m in maps] == [[4 * 30]] * 3
+    assert stack[1, 5:7, 2:4].tolist() == [[1, 1], [1, 1]]
+    with pytest.raises(IndexError, match=r"\.load\(\)"):
+        stack[...]
+    assert all(sum(m.reads) < m.arr.size for m in maps)
+    whole = stack.load()
+    assert whole.shape == (3, 40, 30) and np.array_equal(whole[2], arrays[2])
+    from uvps.core.stack import Stack, load
+    assert isinstance(stack, Stack) and isinstance(whole, Stack)     # an array is a stack too
+    assert np.array_equal(load(stack), whole) and load(whole) is whole

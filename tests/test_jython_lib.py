@@ -323,7 +323,7 @@ def test_an_error_of_the_real_core_reaches_the_fiji_side(tmp_path):
 
 @pytest.mark.slow
 def test_a_real_core_run_is_accepted_with_its_outputs(tmp_path):
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     write_capture(make_capture(shape=(60, 80), n_lights=6, seed=2), tmp_path / "cap",
                   truth=False)
@@ -754,3 +754,22 @@ def test_core_messages_lose_their_cli_flags_in_fiji():
     assert bl.user_words(text, "run") == (
         'pixel size unknown: the images carry no physical resolution; pass the field '
         '"Pixel size on the painting"')
+
+
+def test_menu_titles_come_from_the_declarations(spec_table):
+    """The Log's name of each command is its declared `menu` (uvps spec), which is the title of the
+    menu script that runs it: no hand-kept list to go stale."""
+    import re
+    titles = bl.menu_titles(spec_table)
+    assert titles["run"] == "Run Whole Pipeline"
+    scripts = 0
+    for path in sorted((ROOT / "plugins" / "UV_Photometric_Stereo").glob("*.py")):
+        text = path.read_text()
+        command = re.search(r'^COMMAND = "([\w-]+)"', text, re.M)
+        if command is None:
+            continue
+        scripts += 1
+        title = re.search(r'^TITLE = "([^"]+)"', text, re.M).group(1)
+        assert titles[command.group(1)] == title, path.name
+    assert scripts >= 14
+    assert bl.menu_title("no-such-command", spec_table) == "no-such-command"

@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.flatfield import block_grid, fit_dropoffs, set_common
-from uvps.lights import (LightModel, azimuth_from_dropoff, estimate_lights, model_logs,
+from uvps.core.flatfield import block_grid, fit_dropoffs, with_common
+from uvps.core.lights import (LightModel, azimuth_from_dropoff, dropoff_common, estimate_lights, model_logs,
                          pixel_coordinates_mm, sample_pixels)
-from uvps.synthetic import make_capture, render_images
+from uvps.testing.synthetic import make_capture, render_images
 
 PX = 15.0
 
@@ -31,9 +31,7 @@ def test_polar_azimuth_of_a_light_of_known_azimuth(az):
     images = _flat_capture(P).astype(np.float32)
     grid = block_grid(images)
     fits = fit_dropoffs(grid, degree=3)
-    shape = grid.shape
-    set_common(fits, grid, lambda r, c: model_logs(P, pixel_coordinates_mm(
-        np.asarray(r)[:, None], np.asarray(c)[None, :], shape, PX)).mean(axis=0))
+    fits = with_common(fits, grid, dropoff_common(P, grid.shape, PX))
     got = azimuth_from_dropoff(fits[0])
     assert abs((got - az + 180) % 360 - 180) < 1.0
 
@@ -99,7 +97,7 @@ def test_estimated_lights_from_the_images_alone(estimated):
     costs = [h["cost"] for h in est.residual_history]
     assert costs[-1] < 0.5 * min(c for h, c in zip(est.residual_history, costs) if h["stage"] == "equidistant")
     # normals from the estimated lights, and the mean normal is +z (the canvas plane)
-    from uvps.stereo import solve_normals
+    from uvps.core.stereo import solve_normals
 
     n = solve_normals(cap.images.astype(np.float32), est.model, pixel_size_um=PX).normals
     err = np.degrees(np.arccos(np.clip((n * cap.normals).sum(-1), -1, 1)))
@@ -135,7 +133,7 @@ def test_refinement_normal_equations_match_finite_differences():
     """The per-light refinement's J^T J and J^T f, built without J from the variable-projection
     structure and the drop-off prior's, against those of a central-difference Jacobian of the same
     residual (photometric, drop-off prior and mean log intensity), at lamps that leave large residuals."""
-    from uvps.lights import PixelSample, _params, _Problem
+    from uvps.core.lights import PixelSample, _params, _Problem
 
     rng = np.random.default_rng(0)
     K, n = 6, 50
@@ -157,7 +155,7 @@ def test_refinement_normal_equations_match_finite_differences():
 def test_compiled_normal_equations_equal_the_numpy_statement():
     """lights._vp_normal_equations (compiled per-pixel work, threads over pixel bands) gives the
     numpy statement's residual, e, J^T J and J^T r to rounding, whatever the number of threads."""
-    from uvps.lights import PixelSample, _params, _vp_normal_equations, _vp_normal_equations_numpy
+    from uvps.core.lights import PixelSample, _params, _vp_normal_equations, _vp_normal_equations_numpy
 
     rng = np.random.default_rng(4)
     K, n = 7, 301
@@ -176,7 +174,7 @@ def test_compiled_normal_equations_equal_the_numpy_statement():
 def test_variable_projection_jacobian_matches_finite_differences():
     """The photometric residual's Jacobian (with Golub-Pereyra's second term) against central differences,
     at random lamps and intensities that the lights do not explain (large residuals)."""
-    from uvps.lights import PixelSample, _vp_residual_and_jacobian, photometric_residual
+    from uvps.core.lights import PixelSample, _vp_residual_and_jacobian, photometric_residual
 
     rng = np.random.default_rng(0)
     K, n, scale = 6, 50, 300.0
@@ -205,7 +203,7 @@ def test_integrability_correction_undoes_a_non_gbr_distortion_of_the_lamps():
     integrability removes), are A^-T n; the correction finds A and gives back the true lamps."""
     from scipy.ndimage import gaussian_filter
 
-    from uvps.lights import integrability_correction
+    from uvps.core.lights import integrability_correction
 
     rng = np.random.default_rng(5)
     h = gaussian_filter(rng.standard_normal((320, 300)), 3) * 0.08 + gaussian_filter(rng.standard_normal((320, 300)), 12)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from uvps.io import Capture
-from uvps.lights import LightModel, levenberg_marquardt, refine_intensities, sample_pixels
-from uvps.flatfield import block_grid, fit_dropoffs
-from uvps.pipeline import RunOptions, estimate_capture_lights, remove_additive
-from uvps.synthetic import make_capture
+from uvps.core.stack import Capture
+from uvps.core.lights import LightModel, levenberg_marquardt, refine_intensities, sample_pixels
+from uvps.core.flatfield import block_grid, fit_dropoffs
+from uvps.core.pipeline import RunOptions, estimate_capture_lights, remove_additive
+from uvps.testing.synthetic import make_capture
 
 PX = 45.0
 pytestmark = pytest.mark.slow
@@ -137,7 +137,7 @@ def test_stray_light_the_model_misses_is_reported_as_undetermined_heights(tmp_pa
     import json
 
     from uvps.commands import COMMANDS
-    from uvps.synthetic import write_capture
+    from uvps.testing.synthetic import write_capture
 
     cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=10, seed=3, stray_light=0.03)
     lr, _ = _estimate(cap)
@@ -154,7 +154,7 @@ def test_stray_light_the_model_misses_is_reported_as_undetermined_heights(tmp_pa
 
 
 def _normals_error_with_beams(cap, beams):
-    from uvps.stereo import solve_normals
+    from uvps.core.stereo import solve_normals
 
     options = RunOptions(lamp_beams=beams)
     c, _, _ = remove_additive(_capture(cap, positions=cap.light_positions_mm), options=options)
@@ -169,7 +169,7 @@ def test_lamp_beams_of_known_positions_are_divided_out():
     """Narrow lamps (cos^30) aimed up to 5 deg off: with the given positions alone the beams tilt the
     normals by 6.6 deg; divided out but for what a tilt of the canvas explains (the default), 0.95;
     divided out whole, 0.2."""
-    from uvps.synthetic import NUISANCE_TOP
+    from uvps.testing.synthetic import NUISANCE_TOP
 
     cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=10, seed=1, **NUISANCE_TOP["beams"])
     res = {b: _normals_error_with_beams(cap, b) for b in ("none", "auto", "all")}
@@ -194,8 +194,8 @@ def test_many_lamps_are_estimated_within_a_degree_on_their_capped_sample():
     """48 lamps: the refinement's first stage takes fewer pixels (lights.first_stage_pixels), the whole
     sample MAX_RESIDUALS / lamps (12500 here), and the lamps come out within 1.5 deg (1.15 deg mean on
     this capture)."""
-    from uvps.lights import first_stage_pixels
-    from uvps.pipeline import MAX_RESIDUALS
+    from uvps.core.lights import first_stage_pixels
+    from uvps.core.pipeline import MAX_RESIDUALS
 
     cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=48, seed=5, rgb=False)
     lr, _ = _estimate(cap)
@@ -211,8 +211,8 @@ def test_lamp_beams_are_reported_by_the_azimuths_disagreement():
     azimuths read from the two part (15.6 deg here, lamps 26 deg off) and the run says so, once, naming
     the cause; on the same capture without beams they agree within 1.4 deg (lamps 1.6 deg off) and the
     run says nothing."""
-    from uvps import pipeline
-    from uvps.synthetic import NUISANCE_TOP
+    from uvps.core import pipeline
+    from uvps.testing.synthetic import NUISANCE_TOP
 
     for beams in (False, True):
         cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=12, seed=0,
@@ -236,7 +236,7 @@ def test_a_dark_frame_removes_stray_light_and_black_level_and_the_lamps_come_rig
     import json
 
     from uvps.commands import COMMANDS
-    from uvps.synthetic import write_capture
+    from uvps.testing.synthetic import write_capture
 
     cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=10, seed=3, stray_light=0.03, black_level=300.0)
     folder = tmp_path / "cap"
@@ -264,13 +264,13 @@ def test_a_bowed_canvas_no_longer_shears_the_lamps_azimuths(monkeypatch):
     """A 60 um bow across the field tilts every lamp's drop-off, and the flat-canvas prior turns
     that into azimuths sheared by degrees (here up to 2.8, 1.6 mean); the integrability of the normals
     pins them (within 0.8, 0.4 mean)."""
-    import uvps.pipeline
+    import uvps.core.pipeline
 
     cap = make_capture(shape=SHAPE, pixel_size_um=PX, n_lights=12, seed=0, bow_um=60.0)
     lr, _ = _estimate(cap)
     with_it = _direction_errors(lr.model, cap.light_positions_mm)
     assert any(h["stage"] == "integrability" for h in lr.estimate.residual_history)
-    monkeypatch.setattr(uvps.pipeline, "_central_normals", lambda capture: None)
+    monkeypatch.setattr(uvps.core.pipeline, "_central_normals", lambda capture: None)
     lr0, _ = _estimate(cap)
     without = _direction_errors(lr0.model, cap.light_positions_mm)
     assert not any(h["stage"] == "integrability" for h in lr0.estimate.residual_history)

@@ -1,10 +1,10 @@
-"""Tests of uvps.measure on hand-checkable layouts (discs, a dome, a caldera crater)."""
+"""Tests of uvps.core.measure on hand-checkable layouts (discs, a dome, a caldera crater)."""
 import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.measure import (COLUMNS, MeasureOptions, measure_protrusions, read_protrusions_csv,
-                          write_protrusions_csv)
+from uvps.core.measure import COLUMNS, MeasureOptions, measure_protrusions
+from uvps.files.tables import read_protrusions_csv, write_protrusions_csv
 
 PX = 10.0  # um per pixel
 

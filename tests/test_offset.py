@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.io import Capture
-from uvps.offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
-from uvps.pipeline import RunOptions, remove_additive
-from uvps.synthetic import make_capture
+from uvps.core.stack import Capture
+from uvps.core.offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
+from uvps.core.pipeline import RunOptions, remove_additive
+from uvps.testing.synthetic import make_capture
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_grey_captures_are_measured_like_colour_ones(small):
     the grey of the per-channel levels, and none on the clean capture. (A transposed block grid for
     grey stacks once measured -300 to +280 counts on clean captures and sent estimated lamps 40 deg
     off.)"""
-    from uvps.offset import _channel_blocks
+    from uvps.core.offset import _channel_blocks
 
     clean, black = small
     grey = black.images.mean(axis=-1).astype(np.float32)
@@ -185,7 +185,7 @@ def test_one_paint_is_not_measurable_and_the_run_goes_on_with_a_warning():
     """A field of one paint has no colour areas to cancel: the fit of c runs away. That is "not
     measurable" (estimated lamps: a warning saying what to give), not "mostly pedestal" (the images
     are at 28000 counts)."""
-    from uvps.synthetic import render_images
+    from uvps.testing.synthetic import render_images
 
     cap = make_capture(shape=(240, 320), n_lights=8, seed=2)
     imgs = render_images(cap.height_um, np.full(cap.height_um.shape + (3,), 0.7), pixel_size_um=15.0,
@@ -200,7 +200,7 @@ def test_one_paint_is_not_measurable_and_the_run_goes_on_with_a_warning():
 def test_block_stats_equal_the_numpy_statistics(shape, dtype):
     """One compiled pass gives the block means, the smallest grey and sample, and saturation, with a
     black pixel and a saturated sample planted."""
-    from uvps.offset import block_stats
+    from uvps.core.offset import block_stats
 
     rng = np.random.default_rng(4)
     img = rng.integers(1, 60000, shape).astype(dtype)
@@ -226,7 +226,7 @@ def test_black_level_on_a_bowed_canvas_lies_within_its_reported_error(seed, bow_
     measure's standard error holds the texture's bias (the block sizes' spread), so the true value
     lies within 2 standard errors of the grey measure (what decides whether it is subtracted) and
     within 3 in every channel (jackknife alone: 3.6 standard errors off at 1600 x 1200, seed 1)."""
-    from uvps.synthetic import SyntheticSpec
+    from uvps.testing.synthetic import SyntheticSpec
 
     cap = make_capture(SyntheticSpec(shape=(600, 800), pixel_size_um=30.0, seed=seed, n_lights=12, bow_um=bow_um,
                                      black_level=200.0))
@@ -244,7 +244,7 @@ def test_eight_bit_input_is_not_measured_by_default_but_a_given_term_is_used():
     not measured unless asked (offset="measure"); a given black level beats everything."""
     import dataclasses
 
-    from uvps.pipeline import RunOptions, remove_additive
+    from uvps.core.pipeline import RunOptions, remove_additive
 
     cap = make_capture(shape=(240, 320), n_lights=8, seed=4).as_capture(lights="positions")
     img = np.asarray(cap.images, dtype=np.float64)

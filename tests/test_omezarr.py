@@ -14,9 +14,9 @@ from ome_zarr_models import open_ome_zarr
 from ome_zarr_models.v04.image import Image
 from ome_zarr_models.v04.image_label import ImageLabel
 
-from uvps import omezarr
-from uvps.io import write_imagej_tiff
-from uvps.synthetic import make_capture, write_capture
+from uvps.files import omezarr
+from uvps.files.io import write_imagej_tiff
+from uvps.testing.synthetic import make_capture, write_capture
 
 PX = 15.0
 

@@ -7,10 +7,10 @@ import tifffile
 
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
-from uvps.io import read_capture
-from uvps.pipeline import STAGES, RunOptions, run
-from uvps.runfolder import read_run, write_run
-from uvps.synthetic import make_capture, write_capture
+from uvps.files.io import read_capture
+from uvps.core.pipeline import STAGES, RunOptions, run
+from uvps.files.runfolder import read_run, write_run
+from uvps.testing.synthetic import make_capture, write_capture
 
 
 @pytest.fixture(scope="module")

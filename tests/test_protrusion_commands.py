@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.compare import compare_detections
+from uvps.core.compare import compare_detections
 from uvps.errors import UVPSInputError
-from uvps.io import read_tiff, write_imagej_tiff
-from uvps.measure import read_protrusions_csv
+from uvps.files.io import read_tiff, write_imagej_tiff
+from uvps.files.tables import read_protrusions_csv
 from uvps.commands import COMMANDS
-from uvps.protrusion_commands import cmd_compare, cmd_detect, cmd_regions, \
+from uvps.commands.protrusions import cmd_compare, cmd_detect, cmd_regions, \
     cmd_stats, cmd_wand
-from uvps.synthetic import make_capture
+from uvps.testing.synthetic import make_capture
 
 
 @pytest.fixture(scope="module")

@@ -10,9 +10,9 @@ import tifffile
 
 rawpy = pytest.importorskip("rawpy")
 
-from uvps.io import RAW_DEVELOP, read_capture, read_raw  # noqa: E402
+from uvps.files.io import RAW_DEVELOP, read_capture, read_raw  # noqa: E402
 
-from uvps.synthetic import DNG_BLACK as BLACK, DNG_WHITE as WHITE, write_dng  # noqa: E402
+from uvps.testing.synthetic import DNG_BLACK as BLACK, DNG_WHITE as WHITE, write_dng  # noqa: E402
 
 
 def _ramps(M=48, N=64, scale=1.0):
@@ -45,7 +45,7 @@ def test_raw_values_round_trip_linearly(tmp_path):
 
 def _raw_capture(tmp_path, n=6, seed=3):
     """A synthetic capture written as DNG files (counts / 4: the mosaic's 14 bits)."""
-    from uvps.synthetic import make_capture, write_raw_capture
+    from uvps.testing.synthetic import make_capture, write_raw_capture
 
     cap = make_capture(shape=(96, 128), n_lights=n, seed=seed)
     folder = tmp_path / "raw_capture"

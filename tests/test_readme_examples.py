@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.io import write_imagej_tiff
-from uvps.synthetic import make_capture, render_element_maps, write_capture, write_raw_capture
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+from uvps.files.io import write_imagej_tiff
+from uvps.testing.synthetic import make_capture, render_element_maps, write_capture, write_raw_capture
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

@@ -1,13 +1,13 @@
-"""Tests of uvps.regions: loading areas, the automatic proposal, per-area statistics."""
+"""Tests of uvps.core.regions: loading areas, the automatic proposal, per-area statistics."""
 import csv
 
 import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.io import write_imagej_tiff
-from uvps.regions import (RegionMap, load_regions, propose_regions, region_statistics,
-                          write_regions_csv)
+from uvps.files.io import write_imagej_tiff
+from uvps.core.regions import RegionMap, propose_regions, region_statistics
+from uvps.files.tables import load_regions, write_regions_csv
 
 PX = 50.0  # um per pixel: 200 px = 1 cm
 
@@ -222,7 +222,7 @@ def test_the_cli_refuses_a_pixel_size_in_mm_with_automatic_areas_in_one_line(tmp
     import subprocess
     import sys
 
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     write_capture(make_capture(shape=(120, 160), n_lights=8, seed=1), tmp_path / "cap", truth=False)
     r = subprocess.run([sys.executable, "-m", "uvps", "run", str(tmp_path / "cap"), "-o", str(tmp_path / "run"),

@@ -1,4 +1,4 @@
-"""Tests of uvps.relight with planes whose rendering is known in closed form.
+"""Tests of uvps.core.relight with planes whose rendering is known in closed form.
 
 Frame (docs/architecture.md): x = column direction, y UP (decreasing row), z toward the camera.
 Azimuth counter-clockwise from +x: 0 = light from the right, 90 = from the image top.
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.relight import hillshade, light_direction, relight
+from uvps.core.relight import hillshade, light_direction, relight
 
 SHAPE = (12, 16)
 

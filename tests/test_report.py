@@ -1,4 +1,4 @@
-"""Tests of uvps.report: the HTML report and its figures on hand-made run folders."""
+"""Tests of uvps.report.page: the HTML report and its figures on hand-made run folders."""
 import json
 import re
 from pathlib import Path
@@ -8,9 +8,10 @@ import pytest
 from matplotlib.image import imread
 
 from uvps.errors import UVPSInputError
-from uvps.io import write_imagej_tiff
-from uvps.measure import measure_protrusions, write_label_tiff, write_protrusions_csv
-from uvps.report import write_report
+from uvps.files.io import write_imagej_tiff
+from uvps.core.measure import measure_protrusions
+from uvps.files.tables import write_label_tiff, write_protrusions_csv
+from uvps.report.page import write_report
 
 PX = 20.0
 SHAPE = (90, 120)
@@ -130,7 +131,7 @@ def test_missing_run_folder(tmp_path):
 
 def test_far_lights_figure_shows_elevations(tmp_path):
     """Far lights have no position: the second panel gives each lamp's elevation instead."""
-    from uvps.report import plot_lights
+    from uvps.report.page import plot_lights
 
     lights = {"mode": "far", "lights": [
         {"file": f"l{k}.tif", "direction": [0.5, 0.0, 0.866], "position_mm": None,
@@ -260,7 +261,7 @@ def _significant_digits(token: str) -> int:
 def test_no_number_shows_more_digits_than_it_holds(tmp_path, monkeypatch):
     """Every decimal number in the report's text and in its figures' text has at most 3
     significant digits (hashes and the date in the provenance aside)."""
-    import uvps.report as rep
+    import uvps.report.page as rep
     from matplotlib.text import Text
 
     texts = []
@@ -289,7 +290,7 @@ def test_no_number_shows_more_digits_than_it_holds(tmp_path, monkeypatch):
 
 
 def test_relative_relief_shows_no_heights_in_micrometres(tmp_path, monkeypatch):
-    import uvps.report as rep
+    import uvps.report.page as rep
     from matplotlib.text import Text
 
     texts = {}
@@ -318,7 +319,7 @@ def test_relative_relief_shows_no_heights_in_micrometres(tmp_path, monkeypatch):
 
 
 def _captured(monkeypatch):
-    import uvps.report as rep
+    import uvps.report.page as rep
 
     figs = []
     monkeypatch.setattr(rep, "save_figure", lambda fig, path: figs.append(fig) or Path(path))
@@ -327,7 +328,7 @@ def _captured(monkeypatch):
 
 def test_many_lamps_are_not_labelled_one_by_one(tmp_path, monkeypatch):
     """72 lamps (an RTI dome): coloured by number, at most ~12 tick labels on the bar chart."""
-    from uvps.report import plot_lights
+    from uvps.report.page import plot_lights
 
     figs = _captured(monkeypatch)
     entries = [{"file": f"l{k}.tif", "direction": None, "position_mm": [0.0, 0.0, 100.0 + k],
@@ -342,7 +343,7 @@ def test_many_lamps_are_not_labelled_one_by_one(tmp_path, monkeypatch):
 
 
 def test_3d_detail_states_its_vertical_exaggeration(tmp_path, monkeypatch):
-    from uvps.report import plot_detail_3d
+    from uvps.report.page import plot_detail_3d
 
     figs = _captured(monkeypatch)
     height, _ = _domes()
@@ -363,8 +364,8 @@ def test_3d_detail_states_its_vertical_exaggeration(tmp_path, monkeypatch):
 
 
 def test_height_colour_bar_says_where_it_clips(tmp_path, monkeypatch):
-    from uvps.report import height_scale, plot_height
-    from uvps.report_text import height as height_fmt
+    from uvps.report.page import height_scale, plot_height
+    from uvps.report.text import height as height_fmt
 
     figs = _captured(monkeypatch)
     height, labels = _domes()
@@ -401,7 +402,7 @@ def test_pdf_printed_by_a_headless_browser(tmp_path):
     beside it; without one, the one-line message saying what to install."""
     import shutil
 
-    from uvps.report import PDF_BROWSERS, print_pdf
+    from uvps.report.page import PDF_BROWSERS, print_pdf
 
     _named_run_folder(tmp_path)
     html_path = write_report(tmp_path)
@@ -418,7 +419,7 @@ def test_pdf_printed_by_a_headless_browser(tmp_path):
 
 
 def test_pdf_without_a_browser_says_what_to_do(tmp_path, monkeypatch):
-    from uvps.report import print_pdf
+    from uvps.report.page import print_pdf
 
     _run_folder(tmp_path)
     html_path = write_report(tmp_path)

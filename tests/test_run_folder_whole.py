@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from uvps import outputs
+from uvps.files import outputs
 from uvps.errors import UVPSInputError
-from uvps.synthetic import make_capture, write_capture
+from uvps.testing.synthetic import make_capture, write_capture
 
 #: Log lines of `uvps run --regions auto` at which the Ctrl-C is sent: reading done, detection done,
 #: measurement done (the run folder's files are being written), the report started, the report done.
-POINTS = ("uvps.io: capture:", "uvps.detect: detect:", "uvps.measure: measured", "area names from",
-          "uvps.report: report:")
+POINTS = ("uvps.files.io: capture:", "uvps.core.detect: detect:", "uvps.core.measure: measured", "area names from",
+          "uvps.report.page: report:")
 
 
 def _start(args):
@@ -103,7 +103,7 @@ def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture,
 def test_ctrl_c_into_a_new_nested_folder_leaves_nothing(capture, tmp_path):
     out = tmp_path / "runs" / "region1"
     code, err = _interrupt_at(["run", capture, "-o", out, "--regions", "auto", "--lights",
-                               capture / "lights_positions_mm.csv"], "uvps.detect: detect:")
+                               capture / "lights_positions_mm.csv"], "uvps.core.detect: detect:")
     assert code == 130, err
     assert err.splitlines()[-1] == f"uvps run: interrupted; nothing written ({out} not created)"
     assert list(tmp_path.iterdir()) == []                                      # not even runs/

@@ -9,9 +9,9 @@ import pytest
 
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
-from uvps.io import write_imagej_tiff
-from uvps.runfolder import describe, read_run
-from uvps.synthetic import make_capture, write_capture
+from uvps.files.io import write_imagej_tiff
+from uvps.files.runfolder import describe, read_run
+from uvps.testing.synthetic import make_capture, write_capture
 
 
 @pytest.fixture(scope="module")
@@ -94,27 +94,27 @@ def test_outputs_written_band_by_band_hold_the_whole_arrays(run_dir, tmp_path, m
     rows hold the run's arrays."""
     import tifffile
 
-    import uvps.io
-    import uvps.runfolder
-    from uvps.flatfield import flatfield
-    from uvps.integrate import gradients_from_normals
-    from uvps.io import MappedStack, read_capture
-    from uvps.pipeline import RunOptions, run
-    from uvps.runfolder import write_flatfield, write_stereo
+    import uvps.files.io
+    import uvps.files.runfolder
+    from uvps.core.flatfield import flatfield
+    from uvps.core.integrate import gradients_from_normals
+    from uvps.files.io import MappedStack, read_capture
+    from uvps.core.pipeline import RunOptions, run
+    from uvps.files.runfolder import write_flatfield, write_stereo
 
     cap_dir = run_dir.parent / "cap"
     cap = read_capture(cap_dir, lights=cap_dir / "lights_positions_mm.csv")
     assert isinstance(cap.images, MappedStack)
     res = run(cap, RunOptions(), stages=("flatfield", "normals"))
     K, M, N, C = cap.images.shape
-    monkeypatch.setattr(uvps.runfolder, "BAND_BYTES", 7 * N * C * 4)
+    monkeypatch.setattr(uvps.files.runfolder, "BAND_BYTES", 7 * N * C * 4)
     write_flatfield(tmp_path, res.capture, res.lights)
     files = sorted((tmp_path / "flatfield").glob("*.tif"))
     assert len(files) == K
     for k, f in enumerate(files):
         whole = flatfield(np.asarray(res.capture.images[k]), res.lights.fits[k], channels_first=True)
         np.testing.assert_array_equal(tifffile.imread(f), whole)
-    monkeypatch.setattr(uvps.io, "BAND_BYTES", 5 * N * 4)
+    monkeypatch.setattr(uvps.files.io, "BAND_BYTES", 5 * N * 4)
     write_stereo(tmp_path, res.stereo, cap.pixel_size_um)
     st = res.stereo
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "normals.tif"), np.moveaxis(st.normals, -1, 0))
@@ -139,7 +139,7 @@ def relative_run(tmp_path_factory):
 
 
 def test_relief_of_reads_run_json_defensively():
-    from uvps.runfolder import relief_of
+    from uvps.files.runfolder import relief_of
 
     assert relief_of({"relief": {"scale": "relative", "lamps": "estimated", "reason": "r"}}) == {
         "scale": "relative", "lamps": "estimated", "reason": "r"}
@@ -150,7 +150,7 @@ def test_relief_of_reads_run_json_defensively():
 def test_a_run_with_given_lamps_has_an_absolute_relief_in_micrometres(run_dir):
     import tifffile
 
-    from uvps.runfolder import height_unit, relief_in
+    from uvps.files.runfolder import height_unit, relief_in
 
     relief = relief_in(run_dir)
     assert relief["scale"] == "absolute" and relief["lamps"] == "positions"
@@ -163,8 +163,8 @@ def test_a_run_with_given_lamps_has_an_absolute_relief_in_micrometres(run_dir):
 def test_a_relative_run_has_no_micrometre_heights(relative_run):
     import tifffile
 
-    from uvps.measure import read_protrusions_csv
-    from uvps.runfolder import height_unit
+    from uvps.files.tables import read_protrusions_csv
+    from uvps.files.runfolder import height_unit
 
     run, result = relative_run
     log = json.loads((run / "run.json").read_text())
@@ -190,7 +190,7 @@ def test_a_relative_run_has_no_micrometre_heights(relative_run):
 
 
 def test_detect_and_integrate_on_a_relative_run_keep_it_relative(relative_run):
-    from uvps.runfolder import height_unit
+    from uvps.files.runfolder import height_unit
 
     run, _ = relative_run
     COMMANDS["detect"]({}, {}, run)

@@ -11,7 +11,8 @@ import pytest
 from uvps.cli import build_parser
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
-from uvps.pipeline import OPTION_PARAMS, RunOptions
+from uvps.core.pipeline import RunOptions
+from uvps.workflow import OPTION_PARAMS
 from uvps.spec import coerce, markdown, request_from_args, to_json
 
 ROOT = Path(__file__).resolve().parents[1]

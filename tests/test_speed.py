@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from uvps.io import MappedStack, read_capture
-from uvps.lights import LightModel, pixel_coordinates_mm
-from uvps.pipeline import RunOptions, run
-from uvps.stereo import solve_normals
-from uvps.synthetic import make_capture, write_capture
+from uvps.files.io import MappedStack, read_capture
+from uvps.core.lights import LightModel, pixel_coordinates_mm
+from uvps.core.pipeline import RunOptions, run
+from uvps.core.stereo import solve_normals
+from uvps.testing.synthetic import make_capture, write_capture
 
 M, N, PX = 40, 56, 20.0
 
@@ -83,12 +83,12 @@ def test_mapped_stack_indexes_like_an_array(folder):
 
 def test_band_path_gives_the_in_memory_results(folder, monkeypatch):
     """A memory-mapped capture through bands of 97 pixels = the capture read whole, in one band."""
-    import uvps.stereo
+    import uvps.core.stereo
 
     opts = RunOptions(estimate_intensities=True)    # the lamps' intensities from the images too
     lights = folder / "lights_positions_mm.csv"
     whole = run(read_capture(folder, lights=lights, memory_map=False), opts, stages=("normals", "height"))
-    monkeypatch.setattr(uvps.stereo, "CHUNK_PIXELS", 97)
+    monkeypatch.setattr(uvps.core.stereo, "CHUNK_PIXELS", 97)
     banded = run(read_capture(folder, lights=lights), opts, stages=("normals", "height"))
     np.testing.assert_array_equal(banded.lights.model.intensities, whole.lights.model.intensities)
     np.testing.assert_allclose(banded.lights.model.positions_mm, whole.lights.model.positions_mm, rtol=1e-9)
@@ -99,9 +99,9 @@ def test_band_path_gives_the_in_memory_results(folder, monkeypatch):
 
 def test_run_progress_advances_band_by_band(folder, monkeypatch):
     """The run's progress never goes back and moves within the normals (one report per band)."""
-    import uvps.stereo
+    import uvps.core.stereo
 
-    monkeypatch.setattr(uvps.stereo, "CHUNK_PIXELS", 1200)     # 10 rows of 120: 9 bands
+    monkeypatch.setattr(uvps.core.stereo, "CHUNK_PIXELS", 1200)     # 10 rows of 120: 9 bands
     seen = []
     run(read_capture(folder, lights=folder / "lights_positions_mm.csv"), RunOptions(), stages=("normals", "height"),
         progress=lambda f, m: seen.append((f, m)))
@@ -116,7 +116,7 @@ def _rewritten(folder, out, **tiff_options):
     the calibration and the lamp file kept."""
     import tifffile
 
-    from uvps.synthetic import _write_camera_tiff
+    from uvps.testing.synthetic import _write_camera_tiff
 
     out.mkdir()
     for f in sorted(folder.glob("uv_*.tif")):
@@ -131,7 +131,7 @@ def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(fol
     mapped there: the same counts as the files, the same run, and nothing left in TMPDIR."""
     import tempfile
 
-    import uvps.io
+    import uvps.files.io
 
     packed = _rewritten(folder, tmp_path / "packed", compression="zlib")
     scratch = tmp_path / "scratch"
@@ -139,7 +139,7 @@ def test_compressed_files_of_a_large_stack_are_decoded_to_scratch_and_mapped(fol
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     small = read_capture(packed)                              # a small stack stays in memory
     assert isinstance(small.images, np.ndarray)
-    monkeypatch.setattr(uvps.io, "SCRATCH_ABOVE_BYTES", 0)
+    monkeypatch.setattr(uvps.files.io, "SCRATCH_ABOVE_BYTES", 0)
     cap = read_capture(packed, lights=packed / "lights_positions_mm.csv")
     assert isinstance(cap.images, MappedStack)
     assert list(scratch.iterdir()) == []                     # unlinked once mapped
@@ -159,8 +159,8 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
 
     import tifffile
 
-    import uvps.io
-    from uvps.io import write_imagej_tiff
+    import uvps.files.io
+    from uvps.files.io import write_imagej_tiff
 
     files = sorted(folder.glob("uv_*.tif"))
     data = np.stack([tifffile.imread(f) for f in files])           # (K, M, N, 3) uint16
@@ -175,7 +175,7 @@ def test_an_integer_multipage_stack_is_mapped_not_copied_to_float(folder, tmp_pa
                          resolution=(1 / 30.0, 1 / 30.0), resolutionunit="NONE",
                          description="ImageJ=1.54f\nunit=micron\n", metadata=None)
         # "deflate-small": under the threshold, read whole, but still views in uint16, no float32 copy
-        monkeypatch.setattr(uvps.io, "SCRATCH_ABOVE_BYTES", 0 if layout == "deflate" else 10 ** 12)
+        monkeypatch.setattr(uvps.files.io, "SCRATCH_ABOVE_BYTES", 0 if layout == "deflate" else 10 ** 12)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))

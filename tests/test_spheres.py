@@ -1,4 +1,4 @@
-"""Lamps from spheres (uvps.spheres) on sphere captures rendered under known lamps (uvps.synthetic_spheres).
+"""Lamps from spheres (uvps.core.spheres) on sphere captures rendered under known lamps (uvps.testing.synthetic_spheres).
 
 Each case holds what a real sphere capture holds beyond the model the estimator assumes in some
 measure: photon and read noise, a black level, saturated highlights with flare spikes, a stand hiding
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.spheres import Sphere, calibrate_spheres, detect_spheres, read_sphere_circles, triangulate
-from uvps.synthetic import make_capture
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture
+from uvps.core.spheres import Sphere, calibrate_spheres, detect_spheres, read_sphere_circles, triangulate
+from uvps.testing.synthetic import make_capture
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture
 
 PX = 50.0      # 480 x 360 px of 50 um: the 24 x 18 mm field of a real capture
 
@@ -63,7 +63,7 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
     the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
     takes it out: directions within 0.5 deg (5 deg without it), positions within 30 % (78 % without)."""
-    import uvps.spheres as spheres
+    import uvps.core.spheres as spheres
 
     vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
     sc = make_sphere_capture(vignetted, [SphereSpec("matte", (0.13, 0.17), 3.0), SphereSpec("matte", (0.87, 0.83), 3.0)])

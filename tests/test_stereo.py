@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from uvps.lights import LightModel, pixel_coordinates_mm
-from uvps.stereo import solve_normals
+from uvps.core.lights import LightModel, pixel_coordinates_mm
+from uvps.core.stereo import solve_normals
 
 M, N, PX = 160, 200, 15.0
 
@@ -113,7 +113,7 @@ def test_mask_and_bands_do_not_change_the_result():
 
 def test_paraboloid_normals_and_height_near_lights():
     """A paraboloid cap rendered under near lights: exact normals, and FC integration gives its height."""
-    from uvps.integrate import integrate_normals
+    from uvps.core.integrate import integrate_normals
 
     r, c = np.mgrid[0:M, 0:N]
     X = pixel_coordinates_mm(r, c, (M, N), PX)
@@ -158,7 +158,7 @@ def _half_dark_albedo(shape):
 
 
 def _far_capture(images, directions, intensities=None):
-    from uvps.io import Capture
+    from uvps.core.stack import Capture
 
     return Capture(images=np.asarray(images, np.float32), files=[f"i{k:02d}.tif" for k in range(len(images))],
                    pixel_size_um=PX, mask=None, saturation=None, light_directions=np.asarray(directions, float),
@@ -171,8 +171,8 @@ def test_far_lights_without_intensities_are_equal_not_reestimated_from_levels():
     The old path re-estimated E_k from each image's level as if the surface were flat and facing the
     camera; on a relief under a half-dark albedo that tilts the normals. Asking for it still does.
     """
-    from uvps.pipeline import RunOptions, estimate_capture_lights
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.core.pipeline import RunOptions, estimate_capture_lights
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     h = _relief()
     truth = normals_from_height(h, pixel_size_um=PX)
@@ -193,8 +193,8 @@ def test_far_lights_without_intensities_are_equal_not_reestimated_from_levels():
 
 def test_far_lights_use_given_intensities():
     """Intensities from the light file (median-normalised) are used as they are."""
-    from uvps.pipeline import RunOptions, estimate_capture_lights
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.core.pipeline import RunOptions, estimate_capture_lights
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     h = _relief()
     truth = normals_from_height(h, pixel_size_um=PX)
@@ -240,7 +240,7 @@ def test_rank_trimmed_robust_beats_least_squares_under_cast_shadows():
     """16 % of the samples in cast shadow (lit by ambient light only, 10-20 % per pixel): trimming the
     darkest 25 % per pixel gives normals at least 25 % better than plain least squares (measured:
     0.004 deg against 7.0 deg)."""
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     h = _relief()
     truth = normals_from_height(h, pixel_size_um=PX)
@@ -258,7 +258,7 @@ def test_rank_trimmed_robust_beats_least_squares_on_highlights():
     """A narrow Blinn-Phong lobe on every sample (14 % of them over a tenth of the diffuse level):
     trimming the brightest 10 % per pixel is at least 25 % better than plain least squares (measured:
     2.0 deg against 7.9 deg)."""
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     h = _relief()
     truth = normals_from_height(h, pixel_size_um=PX).astype(float)
@@ -275,7 +275,7 @@ def test_rank_trimmed_robust_beats_least_squares_on_highlights():
 
 
 def test_rank_trimmed_robust_is_exact_on_clean_data_and_band_independent():
-    from uvps.synthetic import normals_from_height, render_images
+    from uvps.testing.synthetic import normals_from_height, render_images
 
     h = _relief()
     truth = normals_from_height(h, pixel_size_um=PX)

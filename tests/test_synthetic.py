@@ -1,4 +1,4 @@
-"""Tests of uvps.synthetic: the renderer against the analytic image model, the frames, the ground
+"""Tests of uvps.testing.synthetic: the renderer against the analytic image model, the frames, the ground
 truth against the rendered height map, densities, written files and determinism."""
 import csv
 import hashlib
@@ -14,7 +14,7 @@ import tifffile
 from scipy import ndimage
 
 from uvps.errors import UVPSInputError
-from uvps.synthetic import (
+from uvps.testing.synthetic import (
     DARK_AREA_COLOURS,
     LIGHT_AREA_COLOURS,
     MIXED_SHAPES,
@@ -489,7 +489,7 @@ def test_render_refuses_bad_lights():
 
 
 def test_written_capture_reads_back_through_uvps_io(tmp_path):
-    from uvps.io import read_capture
+    from uvps.files.io import read_capture
 
     cap = make_capture(shape=(48, 64), n_lights=4, pixel_size_um=12.5)
     write_capture(cap, tmp_path / "cap")
@@ -552,7 +552,7 @@ def test_near_light_photometric_stereo_recovers_the_truth():
 
 
 def test_truth_table_reads_back_with_uvps_measure(tmp_path):
-    from uvps.measure import read_protrusions_csv
+    from uvps.files.tables import read_protrusions_csv
 
     cap = make_capture(shape=(200, 260), n_lights=3, protrusion_density_light=200.0, seed=2)
     write_capture(cap, tmp_path / "cap")
@@ -949,8 +949,8 @@ def test_bad_nuisance_is_refused(overrides, match):
 def test_dark_frame_holds_the_black_level_and_stray_light_and_is_written_apart(tmp_path):
     """render_dark_frame: what a frame with the lamp off reads (black level + stray light + noise);
     write_capture puts it in dark/ so that the folder's images stay the lamps' ones."""
-    from uvps.io import read_capture
-    from uvps.synthetic import render_dark_frame, write_capture
+    from uvps.files.io import read_capture
+    from uvps.testing.synthetic import render_dark_frame, write_capture
 
     cap = make_capture(**{**NUIS, "noise": True}, stray_light=0.03, black_level=(100.0, 200.0, 300.0))
     dark = render_dark_frame(cap)

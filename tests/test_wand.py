@@ -1,9 +1,9 @@
-"""Tests of uvps.wand on hand-made images with known selections."""
+"""Tests of uvps.core.wand on hand-made images with known selections."""
 import numpy as np
 import pytest
 
 from uvps.errors import UVPSInputError
-from uvps.wand import contrast_select, read_seeds, wand_select
+from uvps.core.wand import contrast_select, read_seeds, wand_select
 
 
 def diagonal_image():
@@ -160,7 +160,7 @@ def test_read_seeds_tab_separated_and_headerless(tmp_path):
 def test_read_seed_file_reads_the_unit_its_header_names(tmp_path):
     """One parser for the CLI and Fiji: x_mm is millimetres (Fiji's own parser read it as um,
     1000x off), x_um micrometres, X,Y pixels unless they only fit the image in um."""
-    from uvps.wand import read_seed_file
+    from uvps.core.wand import read_seed_file
 
     p = tmp_path / "mm.csv"
     p.write_text("x_mm,y_mm\n0.15,0.30\n1.5,0.045\n")

@@ -26,14 +26,13 @@ import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable
 
 import numpy as np
 
 from . import __version__
-from .commands import COMMANDS
 from .errors import UVPSComputeError, UVPSInputError, in_chain
-from .outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
+from .files.outputs import CommandResult, OutputSpec, check_output_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -77,15 +76,15 @@ def _resolve(value: Any, base: Path, keywords=()) -> Any:
     return value
 
 
-def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequest:
+def load_request(request_path, *, commands: dict) -> BridgeRequest:
     """Read and validate ``request.json``.
 
     Parameters
     ----------
     request_path : path
         The request file.
-    commands : dict, optional
-        The command registry (default ``uvps.commands.COMMANDS``).
+    commands : dict
+        The command registry, name -> spec (``uvps.commands.COMMANDS``; the CLI passes it).
 
     Returns
     -------
@@ -114,8 +113,6 @@ def load_request(request_path, *, commands: Optional[dict] = None) -> BridgeRequ
         raise UVPSInputError(
             f"request file {path}: schema_version must be {SCHEMA_VERSION}; got {version!r}"
         )
-    if commands is None:
-        commands = COMMANDS
     command = raw.get("command")
     if not isinstance(command, str) or command not in commands:
         raise UVPSInputError(
@@ -248,13 +245,16 @@ def _sigterm_cancels():
         _CANCEL.clear()
 
 
-def run_bridge(request_path) -> int:
+def run_bridge(request_path, commands: dict) -> int:
     """Run one bridge request and write ``response.json`` beside it.
 
     Parameters
     ----------
     request_path : path
         ``request.json`` (see the module docstring and ``docs/bridge.md``).
+    commands : dict
+        The command registry, name -> spec (``uvps.commands.COMMANDS``; the CLI passes it, so that
+        the bridge sits beside the commands, not above them).
 
     Returns
     -------
@@ -274,12 +274,12 @@ def run_bridge(request_path) -> int:
     progress = _progress_printer(sys.stdout)
     code = 2
     try:
-        request = load_request(request_path)
+        request = load_request(request_path, commands=commands)
         response["command"] = request.command
         response["warnings"] = list(request.warnings)
         for w in request.warnings:
             log.warning("%s", w)
-        func = COMMANDS[request.command]
+        func = commands[request.command]
         log.info("bridge: %s -> %s", request.command, request.output_dir)
         # Only PROGRESS lines may reach stdout: divert anything printed by libraries.
         with contextlib.redirect_stdout(sys.stderr), _sigterm_cancels():
@@ -323,12 +323,14 @@ def _write_response(path: Path, response: dict) -> None:
 
 
 def main(argv=None) -> int:
-    """``python -m uvps.bridge REQUEST.json`` (the CLI's ``uvps bridge`` calls :func:`run_bridge`)."""
+    """``python -m uvps.bridge REQUEST.json``: the same as ``uvps bridge REQUEST.json``."""
+    from .cli import main as cli_main      # the CLI holds the registry; the bridge is called by it
+
     argv = sys.argv[1:] if argv is None else list(argv)
     if len(argv) != 1 or argv[0] in ("-h", "--help"):
         print("usage: uvps bridge REQUEST.json", file=sys.stderr)
         return 0 if argv and argv[0] in ("-h", "--help") else 1
-    return run_bridge(argv[0])
+    return cli_main(["bridge", argv[0]])
 
 
 if __name__ == "__main__":

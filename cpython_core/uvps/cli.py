@@ -17,7 +17,7 @@ from . import __version__
 from .bridge import run_bridge
 from .commands import COMMANDS
 from .errors import UVPSError, in_chain
-from .outputs import COMMITTED
+from .files.outputs import COMMITTED
 from .spec import add_parser, markdown, request_from_args, to_json
 
 log = logging.getLogger(__name__)
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     quiet_library_warnings(verbose=a.verbose)
     if a.command == "bridge":
-        return run_bridge(a.request)
+        return run_bridge(a.request, COMMANDS)
     if a.command == "spec":
         print(markdown(COMMANDS) if a.markdown else json.dumps(to_json(COMMANDS), indent=1))
         return 0

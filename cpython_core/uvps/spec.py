@@ -102,7 +102,7 @@ class CommandSpec:
     """A command: name, one-line help, parameters and the function that runs it.
 
     ``run(inputs, params, output_dir, *, progress)`` receives the coerced request (every declared
-    key present, defaults filled in) and returns a :class:`uvps.outputs.CommandResult`. Calling the
+    key present, defaults filled in) and returns a :class:`uvps.files.outputs.CommandResult`. Calling the
     spec coerces first: ``spec(inputs, params, output_dir, progress=None)``.
     """
 
@@ -115,6 +115,7 @@ class CommandSpec:
     aliases: tuple = ()
     description: str = ""
     output_note: str = ""              # what happens to the -o folder's files (default: replaced one by one)
+    menu: str = ""                     # its Fiji menu item (Plugins > UV Photometric Stereo), "" for none
 
     def param(self, name: str) -> Param:
         for p in self.params:
@@ -336,7 +337,8 @@ def param_json(p: Param) -> dict:
 def to_json(specs: dict) -> dict:
     """The command table: ``{"schema_version": 1, "commands": {name: {help, params}}}``."""
     return {"schema_version": 1,
-            "commands": {name: {"help": s.help, "output": s.output, "params": [param_json(p) for p in s.params]}
+            "commands": {name: {"help": s.help, "output": s.output, "menu": s.menu,
+                                "params": [param_json(p) for p in s.params]}
                          for name, s in specs.items() if name == s.name}}
 
 
@@ -351,6 +353,8 @@ def markdown(specs: dict) -> str:
             continue
         alias = f" (also `{'`, `'.join(s.aliases)}`)" if s.aliases else ""
         lines += [f"## `uvps {name}`{alias}", "", s.description or s.help, ""]
+        if s.menu:
+            lines += [f"Fiji: *Plugins > UV Photometric Stereo > {s.menu}*.", ""]
         if s.output:
             lines += [f"`-o/--output`: the {s.output}" + (f" (default `{s.output_default}`)." if s.output_default
                                                           else "."), ""]

@@ -1023,13 +1023,16 @@ HEIGHT_WORDS = {"absolute": ("height (um)", u"\u00b5m", u"height (\u00b5m)"),
                 "relative": ("relative height", "relative", "relative height (no unit)")}
 
 
-#: The menu item that runs each core command (the Log names it).
-MENU_TITLES = {"run": "Run Whole Pipeline", "lights": "Estimate Lights", "flatfield": "Flat Field",
-               "normals": "Normals and Albedo", "integrate": "Integrate Height",
-               "regions": "Colour Areas", "detect": "Detect Protrusions", "wand": "Wand Count",
-               "stats": "Statistics and Report", "compare": "Compare Counts",
-               "relight": "Relight", "info": "Run Info", "changes": "Compare Captures",
-               "elements": "Element Maps", "calibrate": "Calibrate Lamps"}
+def menu_titles(table=None):
+    """The menu item that runs each core command (the Log names it), from the core's declarations:
+    each command's ``menu`` in ``uvps spec`` (a command without one is named by itself)."""
+    table = load_spec() if table is None else table
+    return dict((name, c.get("menu") or name) for name, c in table["commands"].items())
+
+
+def menu_title(command, table=None):
+    """The menu item of one core command (:func:`menu_titles`)."""
+    return menu_titles(table).get(command, command)
 
 
 def calibration_spheres(path):
@@ -1063,7 +1066,7 @@ def first_image(paths):
     return items[0] if os.path.isfile(items[0]) else None
 
 
-#: The detection's rejection rules (uvps.detect.REJECTION_RULES) in a conservator's words.
+#: The detection's rejection rules (uvps.core.detect.REJECTION_RULES) in a conservator's words.
 REJECTION_WORDS = {"too_small": "narrower than the smallest width",
                    "too_large": "wider than the largest width",
                    "ridge": "ridges and brush strokes", "crack": "crack edges and cupped rims",
@@ -1128,7 +1131,7 @@ def affects_result(warning):
 
 def warning_lines(response, command, table=None):
     """The Log lines of a response's warnings: ``uvps <menu item> warning: <text>``."""
-    title = MENU_TITLES.get(command, command)
+    title = menu_title(command, table)
     return ["uvps %s warning: %s" % (title, user_words(w, command, table))
             for w in getattr(response, "warnings", [])]
 
@@ -1182,7 +1185,7 @@ def lights_lines(diag, lights_file=None, user_gave_lights=False):
     return ["lights: %s as given (%s)" % (lamps, lights_file or diag["source"])]
 
 
-def diagnostic_lines(command, diagnostics, user_gave_lights=False):
+def diagnostic_lines(command, diagnostics, user_gave_lights=False, table=None):
     """The Log lines of a response's diagnostics that a user acts on: where the lamps came
     from, detection's candidates and rejections, the wand's clicks."""
     d = diagnostics or {}
@@ -1197,7 +1200,7 @@ def diagnostic_lines(command, diagnostics, user_gave_lights=False):
         lines += detection_lines(d.get("detect") if command == "run" else d)
     if command == "wand" and "n_points" in d:
         lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
-    title = MENU_TITLES.get(command, command)
+    title = menu_title(command, table)
     return ["uvps %s %s" % (title, line) for line in lines]
 
 
@@ -1365,7 +1368,7 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
 
 
 # ---------------------------------------------------------------------------------------------
-# Wand clicks (the core reads the points file: uvps.wand.read_seed_file)
+# Wand clicks (the core reads the points file: uvps.core.wand.read_seed_file)
 # ---------------------------------------------------------------------------------------------
 
 #: What the core's ``points_unit`` of the wand means, in words.

@@ -64,7 +64,8 @@ def run_command(command, values, inputs=None, params=None, request_dir=None, ski
 def report_response(command, response, table=None, user_gave_lights=False):
     """The response's warnings and diagnostics in the Log, in the menu user's words; warnings
     that change the result also in a (non-modal) window when a user clicked the menu item."""
-    for line in bridge_logic.diagnostic_lines(command, response.diagnostics, user_gave_lights):
+    table = table or runner.command_table()
+    for line in bridge_logic.diagnostic_lines(command, response.diagnostics, user_gave_lights, table):
         IJ.log(line)
     lines = bridge_logic.warning_lines(response, command, table)
     for line in lines:
@@ -72,7 +73,7 @@ def report_response(command, response, table=None, user_gave_lights=False):
     serious = [line for line, w in zip(lines, response.warnings)
                if bridge_logic.affects_result(w)]
     if serious and runner.is_interactive():
-        display.show_warnings(bridge_logic.MENU_TITLES.get(command, command), serious)
+        display.show_warnings(bridge_logic.menu_title(command, table), serious)
 
 
 def _capture_call(command, values, params=None):

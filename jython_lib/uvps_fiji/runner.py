@@ -232,9 +232,10 @@ def call(command, inputs=None, params=None, output_dir=None, request_dir=None,
 def menu_words(title, message):
     """A core message in the menu user's words: CLI flags become the dialog fields of the menu
     item ``title`` (``bridge_logic.user_words``); unchanged when the table cannot be read."""
-    commands = dict((v, k) for k, v in bridge_logic.MENU_TITLES.items())
     try:
-        return bridge_logic.user_words(message, commands.get(title), command_table())
+        table = command_table()
+        commands = dict((v, k) for k, v in bridge_logic.menu_titles(table).items())
+        return bridge_logic.user_words(message, commands.get(title), table)
     except (Exception, Throwable):  # the message matters more than its wording
         return message
 

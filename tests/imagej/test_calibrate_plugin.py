@@ -5,8 +5,8 @@ import json
 import pytest
 
 from conftest import PYTHON_EXCEPTION_STATUS
-from uvps.synthetic import make_capture, write_capture
-from uvps.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+from uvps.testing.synthetic import make_capture, write_capture
+from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
 pytestmark = pytest.mark.imagej
 

@@ -4,7 +4,7 @@ import json
 import pytest
 
 from conftest import PYTHON_EXCEPTION_STATUS
-from uvps.synthetic import write_truth_run
+from uvps.testing.synthetic import write_truth_run
 
 pytestmark = pytest.mark.imagej
 
@@ -21,7 +21,7 @@ def _truth_run(folder, cap, px):
 
 @pytest.fixture(scope="module")
 def two_dates(tmp_path_factory):
-    from uvps.synthetic import LaterSpec, make_capture_pair
+    from uvps.testing.synthetic import LaterSpec, make_capture_pair
 
     d = tmp_path_factory.mktemp("two dates")
     pair = make_capture_pair(shape=(300, 400), n_lights=4, protrusion_density_light=150.0,

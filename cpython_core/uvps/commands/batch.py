@@ -1,0 +1,801 @@
+"""``uvps batch``: many captures on Dask, each as ``uvps run`` would, and mosaics of one painting.
+
+Each capture folder is run through the ``run`` command into ``OUT/<capture name>/`` by a task on a
+``dask.distributed`` cluster (a local one by default, or ``scheduler``'s). A task runs into a
+temporary folder inside ``OUT`` and renames it into place when the run is complete, so a killed
+worker, a failure or a re-run never leaves a half-written run folder; a capture whose run folder is
+complete (its inputs' SHA-256 and the parameters unchanged) is skipped unless ``force``. A capture
+that fails is listed with its one-line error; the others go on. ``OUT/batch_summary.csv`` and
+``OUT/batch.json`` sum up the batch (counts and densities per colour area).
+
+With a mosaic layout (each tile's offset in the painting, in pixels) the tiles' protrusion tables are
+merged into ``OUT/painting_protrusions.csv`` (painting coordinates, each protrusion of an overlap
+once) and ``OUT/painting_regions.csv`` (counts, areas and densities per colour-area name, the
+overlaps' areas counted once). See docs/batch.md.
+
+Dask is imported inside the functions that use it: importing it costs every other command about a
+second.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from dataclasses import dataclass, field
+from io import StringIO
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import tifffile
+
+from .. import __version__
+from ..errors import UVPSComputeError, UVPSError, UVPSInputError
+from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, sha256_file
+from ..core.measure import COLUMNS
+from ..files.tables import atomic_write_text, read_protrusions_csv
+from ..files.outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
+from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, run_into_folder
+from ..core.regions import UM2_PER_CM2
+from ..files.tables import load_regions, read_region_names
+from ..spec import CommandSpec, Param, coerce_value
+
+log = logging.getLogger(__name__)
+
+#: Parameters of ``run`` that name a file: one file for every capture when it exists, else looked
+#: up by its name in each capture folder (``lights_positions_mm.csv`` beside each capture's images).
+PER_CAPTURE_FILES = ("lights", "mask", "dark", "regions")
+#: Keywords these parameters take instead of a file (from the run command's declaration).
+_KEYWORDS = {p.name: p.choices for p in CAPTURE_PARAMS + PROTRUSION_PARAMS if p.name in PER_CAPTURE_FILES}
+#: What a batch writes beside the run folders.
+SUMMARY, BATCH_JSON = "batch_summary.csv", "batch.json"
+PAINTING_PROTRUSIONS, PAINTING_REGIONS = "painting_protrusions.csv", "painting_regions.csv"
+#: Written last into each run folder: the request it was run with (for the skip rule).
+REQUEST_RECORD = "batch_request.json"
+_TMP, _OLD = ".batch-tmp-", ".batch-old-"
+
+
+@dataclass
+class Job:
+    """One capture of a batch: its name (the folder's), folder, and the ``run`` parameters for it."""
+
+    name: str
+    folder: Path
+    params: dict
+    error: Optional[str] = None     # known before any work (e.g. no lights file in the folder)
+
+
+@dataclass
+class BatchResult:
+    """What :func:`run_batch` did: one record per capture (input order), the cluster, the mosaic."""
+
+    records: list
+    out_dir: Path
+    cluster: dict
+    mosaic: Optional[dict] = None
+    warnings: list = field(default_factory=list)
+    elapsed_s: float = 0.0
+
+    def count(self, status: str) -> int:
+        return sum(r["status"] == status for r in self.records)
+
+
+# ------------------------------------------------------------------------------------------------
+# which captures, and with which files
+# ------------------------------------------------------------------------------------------------
+
+def _has_images(folder: Path) -> bool:
+    return any(p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith(".")
+               for p in folder.iterdir())
+
+
+def list_captures(items) -> list:
+    """Capture folders from ``items``: capture folders (a folder holding images), folders of
+    capture folders (their sub-folders that hold images, sorted by name), or text files listing
+    either (one a line; ``#`` starts a comment; relative to the text file's folder)."""
+    out = []
+    for item in items:
+        p = Path(item)
+        if p.is_file():
+            base = p.parent
+            lines = [ln.split("#", 1)[0].strip() for ln in read_text(p, "captures: the list", "one capture folder a line").splitlines()]
+            listed = [base / ln if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln]
+            if not listed:
+                raise UVPSInputError(f"captures: the list {p} names no capture folder")
+            for q in listed:
+                if not q.is_dir():
+                    raise UVPSInputError(f"captures: {q} (listed in {p.name}) is not a folder")
+            out += list_captures(listed)
+        elif p.is_dir():
+            if _has_images(p):
+                out.append(p.resolve())
+                continue
+            subs = sorted(q.resolve() for q in p.iterdir() if q.is_dir() and not q.name.startswith(".")
+                          and _has_images(q))
+            if not subs:
+                raise UVPSInputError(f"captures: {p} holds no images and no capture folders")
+            out += subs
+        else:
+            raise UVPSInputError(f"captures: {p} does not exist")
+    names = [q.name for q in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise UVPSInputError(f"captures: two capture folders are named {dup[0]}; each writes OUT/<name>/, "
+                             "so names must differ")
+    return out
+
+
+#: The parameters of ``uvps run`` (all of them but its images): each capture runs with them.
+RUN_PARAMS = tuple(p for p in CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS if p.where == "params")
+#: What ``uvps run`` computes: the pipeline's stages (the flat-fielded images only when asked).
+RUN_STAGES = ("flatfield", "normals", "height")
+
+
+def _run_param_names() -> tuple:
+    return tuple(p.name for p in RUN_PARAMS)
+
+
+def _run_params(params: dict) -> dict:
+    """``run``'s parameters among ``params``, checked as ``uvps run`` checks them; absent or empty
+    ones take their default."""
+    out = {}
+    for p in RUN_PARAMS:
+        given = params.get(p.name)
+        empty = given is None or (p.type == "paths" and given == []) or (p.type == "path" and given == "")
+        out[p.name] = p.default if empty else coerce_value(p, given)
+    return out
+
+
+def make_jobs(folders, params: dict) -> list:
+    """A :class:`Job` per capture folder: the ``run`` parameters among ``params``, with the file
+    parameters (:data:`PER_CAPTURE_FILES`) resolved for each folder."""
+    run_params = _run_params(params)
+    jobs = []
+    for folder in folders:
+        p, error = dict(run_params), None
+        for key in PER_CAPTURE_FILES:
+            value = p.get(key)
+            if not isinstance(value, str) or value in _KEYWORDS.get(key, ()):
+                continue
+            if Path(value).is_file():
+                p[key] = str(Path(value).resolve())
+            elif (folder / Path(value).name).is_file():
+                p[key] = str(folder / Path(value).name)
+            else:
+                error = f"{key}: {value} is no file, and capture folder {folder.name} has no {Path(value).name}"
+        jobs.append(Job(folder.name, folder, p, error))
+    for key in PER_CAPTURE_FILES:
+        if jobs and all(j.error and j.error.startswith(key + ":") for j in jobs):
+            raise UVPSInputError(jobs[0].error.replace(f"capture folder {jobs[0].name}", "no capture folder"))
+    return jobs
+
+
+# ------------------------------------------------------------------------------------------------
+# one capture (runs on a worker)
+# ------------------------------------------------------------------------------------------------
+
+def _jsonable(obj):
+    return json.loads(json.dumps(obj, default=str))
+
+
+def _side_files(params: dict) -> dict:
+    out = {k: {"path": params[k], "sha256": sha256_file(params[k])}
+           for k in PER_CAPTURE_FILES if isinstance(params.get(k), str) and Path(params[k]).is_file()}
+    cal = params.get("calibration")
+    if isinstance(cal, str) and (Path(cal) / "calibration.json").is_file():
+        # a calibration made again into the same folder makes the runs stale
+        out["calibration"] = {"path": str(Path(cal) / "calibration.json"),
+                              "sha256": sha256_file(Path(cal) / "calibration.json")}
+    return out
+
+
+def _image_files(folder: Path) -> set:
+    return {str(p) for p in folder.iterdir()
+            if p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith(".")}
+
+
+def complete(run_dir: Path, folder: Path, params: dict) -> tuple:
+    """``(True, "")`` when ``run_dir`` holds a finished batch run of ``folder`` with ``params``:
+    ``run.json`` and the request record present, the same parameters, the same image files with
+    unchanged SHA-256, and unchanged light, mask, dark and region files; else ``(False, why)``."""
+    run_json, record = run_dir / "run.json", run_dir / REQUEST_RECORD
+    if not (run_json.is_file() and record.is_file()):
+        return False, "no finished run folder"
+    try:
+        log_ = json.loads(run_json.read_text(encoding="utf-8"))
+        req = json.loads(record.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False, "unreadable run.json"
+    if req.get("params") != _jsonable(params):
+        return False, "parameters changed"
+    recorded = {i["path"]: i["sha256"] for i in log_.get("inputs", [])}
+    if set(recorded) != _image_files(folder):
+        return False, "image files added or removed"
+    for path, digest in recorded.items():
+        if sha256_file(path) != digest:
+            return False, f"{Path(path).name} changed"
+    for key, f in req.get("files", {}).items():
+        if not Path(f["path"]).is_file() or sha256_file(f["path"]) != f["sha256"]:
+            return False, f"{key} file changed"
+    if set(req.get("files", {})) != set(_side_files(params)):
+        return False, "parameters changed"
+    return True, ""
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0].strip() if str(exc).strip() else ""
+    if isinstance(exc, UVPSError):
+        return text or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def failure_kind(exc: BaseException) -> str:
+    """Why a capture failed, as the exit status counts it: ``"input"`` (bad input the user can
+    fix: :class:`UVPSInputError`), ``"compute"`` (:class:`UVPSComputeError`) or ``"internal"``
+    (anything else: a bug, a worker killed)."""
+    if isinstance(exc, UVPSInputError):
+        return "input"
+    return "compute" if isinstance(exc, UVPSComputeError) else "internal"
+
+
+def _swap_into_place(tmp: Path, target: Path) -> None:
+    """Rename the finished ``tmp`` to ``target``; an old ``target`` is moved aside first and then
+    removed. At every moment ``target`` is absent, the old run or the new one, never a mix."""
+    if target.exists():
+        old = target.parent / f".{target.name}{_OLD}{uuid.uuid4().hex[:8]}"
+        os.replace(target, old)
+        os.replace(tmp, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, target)
+
+
+def read_counts(run_dir: Path) -> dict:
+    """``n_protrusions`` (rows of ``protrusions.csv``) and the rows of ``regions.csv`` of a run
+    folder (``areas``: name, area_cm2, count, density_per_cm2; the "all" row left out)."""
+    out = {"n_protrusions": None, "areas": []}
+    table = run_dir / "protrusions.csv"
+    if table.is_file():
+        with open(table, encoding="utf-8") as fh:
+            out["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
+    regions = run_dir / "regions.csv"
+    if regions.is_file():
+        with open(regions, newline="", encoding="utf-8") as fh:
+            out["areas"] = [{"name": r["name"], "area_cm2": float(r["area_cm2"]), "count": int(r["count"]),
+                             "density_per_cm2": float(r["density_per_cm2"])}
+                            for r in csv.DictReader(fh) if r["label"] != "all"]
+    return out
+
+
+def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool = False) -> dict:
+    """Run one capture as ``uvps run`` would into ``out_dir/name`` (the task a worker runs).
+
+    Never raises: a failure is the record's ``status`` "failed" with its one-line ``error``.
+    Returns a JSON-ready record: capture, folder, status (done, skipped, failed), error,
+    n_protrusions, areas, elapsed_s, warnings.
+    """
+    t0 = time.perf_counter()
+    folder, out_dir = Path(folder), Path(out_dir)
+    target = out_dir / name
+    record = {"capture": name, "folder": str(folder), "status": "done", "error": None, "warnings": []}
+    tmp = out_dir / f".{name}{_TMP}{uuid.uuid4().hex[:8]}"
+    try:
+        done, why = (False, "forced") if force else complete(target, folder, params)
+        if done:
+            record["status"] = "skipped"
+        else:
+            log.info("%s: running (%s)", name, why)
+            result = run_into_folder("run", RUN_STAGES, {"images": [str(folder)]}, params, tmp)
+            write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
+                                                     "params": _jsonable(params), "files": _side_files(params)})
+            _swap_into_place(tmp, target)
+            record["warnings"] = list(result.warnings)
+        record.update(read_counts(target))
+    except Exception as exc:  # noqa: BLE001 - one capture's failure is its record, not the batch's
+        log.debug("%s failed", name, exc_info=True)
+        record.update(status="failed", error=_one_line(exc), failure=failure_kind(exc))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    record["elapsed_s"] = round(time.perf_counter() - t0, 3)
+    return record
+
+
+# ------------------------------------------------------------------------------------------------
+# the batch
+# ------------------------------------------------------------------------------------------------
+
+def default_workers(n_captures: int) -> int:
+    """Local workers: one process per core, at most one per capture (each with one thread)."""
+    return max(1, min(os.cpu_count() or 1, n_captures))
+
+
+class _Cluster:
+    """A ``distributed.Client``: the one given, one on ``scheduler``, or on a new ``LocalCluster``."""
+
+    def __init__(self, client=None, scheduler=None, n_workers=1, processes=True):
+        import dask
+        from distributed import Client, LocalCluster   # lazily: dask costs every other command its import
+
+        if not log.isEnabledFor(logging.DEBUG):
+            # the scheduler's and workers' INFO lines (ports, nannies) bury the batch's own (uvps -v shows them)
+            logging.getLogger("distributed").setLevel(logging.WARNING)
+            dask.config.set({"logging.distributed": "warning"})
+        self.own = []
+        if client is None and scheduler:
+            client = Client(scheduler, timeout="30s")
+            self.own = [client]
+        elif client is None:
+            # one thread per worker: the pipeline's Python parts hold the GIL, and one capture per
+            # process bounds the memory to one capture per worker (the nanny also sets
+            # OMP/MKL/OPENBLAS_NUM_THREADS=1 in each worker, so numpy does not oversubscribe)
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                                   dashboard_address=None)
+            client = Client(cluster)
+            self.own = [client, cluster]
+        self.client = client
+        info = client.scheduler_info()
+        workers = info.get("workers", {})
+        self.info = {"scheduler": info.get("address"), "local": bool(self.own) and not scheduler,
+                     "workers": len(workers), "threads": sum(w.get("nthreads", 0) for w in workers.values())}
+
+    def close(self):
+        for obj in self.own:
+            obj.close()
+
+
+def _clean_temporaries(out_dir: Path) -> None:
+    """Remove what killed tasks left (``OUT/.<name>.batch-tmp-*``, ``.batch-old-*``)."""
+    for p in out_dir.glob(".*.batch-*-*"):
+        if _TMP in p.name or _OLD in p.name:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=None, client=None,
+              scheduler: Optional[str] = None, n_workers: Optional[int] = None, processes: bool = True,
+              progress: Progress = None) -> BatchResult:
+    """Run every capture as ``uvps run`` would, on a Dask cluster, and sum them up.
+
+    Parameters
+    ----------
+    captures : list of path
+        Capture folders, folders of capture folders, or text files listing them (:func:`list_captures`).
+    out_dir : path
+        The batch folder: ``<out_dir>/<capture name>/`` per capture, the summary beside them.
+    params : dict
+        Parameters of ``run`` (coerced; absent ones take ``run``'s defaults). The file parameters
+        (:data:`PER_CAPTURE_FILES`) name one file for all, or a file name found in each capture folder.
+    force : bool
+        Run captures whose run folder is complete too.
+    mosaic : path, optional
+        Layout CSV (``capture,x_px,y_px``): merge the tiles (:func:`merge_mosaic`).
+    client : distributed.Client, optional
+        Use this client; else one on ``scheduler``; else a ``LocalCluster`` of ``n_workers``
+        processes (default :func:`default_workers`), one thread each (``processes=False``: threads).
+    progress : callable(fraction, message), optional
+        Called as each capture finishes (fraction of captures finished, counts so far).
+
+    Returns
+    -------
+    BatchResult
+
+    Raises
+    ------
+    UVPSInputError
+        Before any work: no captures, two with one name, a file parameter found nowhere, a bad
+        mosaic layout (a tile it names is not among the captures, or a tile overlaps no other).
+    UVPSComputeError
+        Every capture failed (the summary is written first).
+    """
+    from distributed import as_completed   # lazily, as above
+
+    t0 = time.perf_counter()
+    out_dir = check_output_dir(out_dir)
+    folders = list_captures(captures)
+    if not folders:
+        raise UVPSInputError("captures: no capture folders given")
+    jobs = make_jobs(folders, params)
+    layout = read_layout(mosaic, jobs) if mosaic else None
+    out_dir.mkdir(exist_ok=True)
+    _clean_temporaries(out_dir)
+    records = {j.name: {"capture": j.name, "folder": str(j.folder), "status": "failed", "error": j.error,
+                        "failure": "input", "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}
+    todo = [j for j in jobs if not j.error]
+    report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
+    cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
+    try:
+        futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
+                                         key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
+                   for j in todo}
+        _report_counts(progress, records, len(jobs))
+        for fut in as_completed(futures):
+            j = futures[fut]
+            try:
+                rec = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
+                rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
+                       "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
+            records[j.name] = rec
+            _report_counts(progress, records, len(jobs))
+    finally:
+        if cluster is not None:
+            cluster.close()
+        _clean_temporaries(out_dir)
+    result = BatchResult([records[j.name] for j in jobs], out_dir,
+                         cluster.info if cluster else {"workers": 0})
+    result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records if r["status"] == "failed"]
+    if layout is not None:
+        _remove(out_dir, (PAINTING_PROTRUSIONS, PAINTING_REGIONS))
+        failed = [r["capture"] for r in result.records if r["status"] == "failed"]
+        if failed:
+            result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
+        else:
+            result.mosaic = merge_mosaic(out_dir, layout)
+    result.elapsed_s = round(time.perf_counter() - t0, 3)
+    write_summary(result, params)
+    if result.count("failed") == len(jobs):
+        raise all_failed(result.records, out_dir / SUMMARY)
+    return result
+
+
+def all_failed(records, summary: Path) -> UVPSError:
+    """The error of a batch in which every capture failed: a :class:`UVPSInputError` (exit
+    status 1) when every failure is bad input the user can fix, else a
+    :class:`UVPSComputeError` (exit status 2). Its ``details`` are one line per capture
+    (``"<capture>: <its problem>"``), printed before the message by the command line."""
+    kinds = [r.get("failure") or "internal" for r in records]
+    n_input = kinds.count("input")
+    if n_input == len(records):
+        exc = UVPSInputError(f"every capture failed on bad input ({len(records)}, each named with its problem "
+                             f"above and in {summary}); fix them and run again")
+    else:
+        exc = UVPSComputeError(f"every capture failed ({len(records)}: {n_input} on bad input, "
+                               f"{len(records) - n_input} while computing; each named with its problem above "
+                               f"and in {summary})")
+    exc.details = [f"{r['capture']}: {r['error']}" for r in records]
+    return exc
+
+
+def _remove(folder: Path, names) -> None:
+    for n in names:
+        (folder / n).unlink(missing_ok=True)
+
+
+def _report_counts(progress, records, total):
+    n = {s: sum(r["status"] == s for r in records.values()) for s in ("done", "skipped", "failed")}
+    report(progress, len(records) / total, f"{len(records)}/{total} captures: {n['done']} done, "
+                                           f"{n['skipped']} skipped, {n['failed']} failed")
+
+
+def write_summary(result: BatchResult, params: dict) -> None:
+    """``batch_summary.csv`` (a row per capture) and ``batch.json`` (everything), atomically.
+
+    Columns: capture, status, n_protrusions, then for each colour-area name (in order of first
+    appearance) ``<name>: count``, ``<name>: area_cm2``, ``<name>: density_per_cm2``, then
+    elapsed_s and error. Empty cells where a capture has no such area or failed.
+    """
+    names = []
+    for r in result.records:
+        names += [a["name"] for a in r.get("areas", []) if a["name"] not in names]
+    header = ["capture", "status", "n_protrusions"]
+    header += [f"{n}: {k}" for n in names for k in ("count", "area_cm2", "density_per_cm2")]
+    header += ["elapsed_s", "error"]
+    buf = StringIO()
+    wr = csv.writer(buf, lineterminator="\n")
+    wr.writerow(header)
+    for r in result.records:
+        areas = {a["name"]: a for a in r.get("areas", [])}
+        row = [r["capture"], r["status"], _cell(r.get("n_protrusions"))]
+        for n in names:
+            a = areas.get(n, {})
+            row += [_cell(a.get("count")), _cell(a.get("area_cm2")), _cell(a.get("density_per_cm2"))]
+        row += [_cell(r.get("elapsed_s")), r.get("error") or ""]
+        wr.writerow(row)
+    atomic_write_text(result.out_dir / SUMMARY, buf.getvalue())
+    write_json_atomic(result.out_dir / BATCH_JSON, _jsonable({
+        "version": __version__, "cluster": result.cluster, "elapsed_s": result.elapsed_s,
+        "counts": {s: result.count(s) for s in ("done", "skipped", "failed")},
+        "params": params, "captures": result.records, "mosaic": result.mosaic, "warnings": result.warnings}))
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    return f"{v:.8g}" if isinstance(v, float) else str(v)
+
+
+# ------------------------------------------------------------------------------------------------
+# mosaics
+# ------------------------------------------------------------------------------------------------
+
+@dataclass
+class Tile:
+    """A tile of a mosaic: its offset in the painting (pixels) and its shape (rows, columns)."""
+
+    name: str
+    x0: float
+    y0: float
+    shape: tuple
+
+    def overlap(self, other: "Tile") -> Optional[tuple]:
+        """``(x_lo, y_lo, x_hi, y_hi)`` of the overlap in painting pixels, or None."""
+        x_lo, y_lo = max(self.x0, other.x0), max(self.y0, other.y0)
+        x_hi = min(self.x0 + self.shape[1], other.x0 + other.shape[1])
+        y_hi = min(self.y0 + self.shape[0], other.y0 + other.shape[0])
+        return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
+
+    def edge_distance(self, x_px, y_px):
+        """Distance in pixels from the tile's points ``(x_px, y_px)`` (its own frame) to its nearest edge."""
+        M, N = self.shape
+        return np.minimum(np.minimum(x_px, N - 1 - np.asarray(x_px)), np.minimum(y_px, M - 1 - np.asarray(y_px)))
+
+
+def _first_image_shape(folder: Path) -> tuple:
+    first = min(_image_files(folder))
+    if Path(first).suffix.lower() in TIFF_EXTS:
+        with tifffile.TiffFile(first) as tif:     # the header only
+            return int(tif.pages[0].imagelength), int(tif.pages[0].imagewidth)
+    return tuple(read_image(first).shape[:2])
+
+
+def read_layout(path, jobs) -> dict:
+    """The mosaic layout: ``{capture name: Tile}`` from a CSV with columns ``capture,x_px,y_px``.
+
+    Checked before any work: every tile it names is a capture of the batch and every capture a tile;
+    each tile overlaps another (when there are several). Shapes are read from the first image's header.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"mosaic: layout {path} does not exist")
+    rows = list(csv.DictReader(read_text(path, "mosaic: layout", "a CSV with columns capture,x_px,y_px")
+                               .splitlines()))
+    if not rows or not {"capture", "x_px", "y_px"} <= set(rows[0]):
+        raise UVPSInputError(f"mosaic: layout {path} must have the columns capture,x_px,y_px")
+    by_name = {j.name: j for j in jobs}
+    tiles = {}
+    for r in rows:
+        name = (r["capture"] or "").strip()
+        name = Path(name).name if name not in by_name else name
+        if name not in by_name:
+            raise UVPSInputError(f"mosaic: layout names tile {name!r}, which is not among the captures")
+        if name in tiles:
+            raise UVPSInputError(f"mosaic: layout names tile {name!r} twice")
+        try:
+            x0, y0 = float(r["x_px"]), float(r["y_px"])
+        except (TypeError, ValueError):
+            raise UVPSInputError(f"mosaic: tile {name}: x_px and y_px must be numbers; got "
+                                 f"{r['x_px']!r}, {r['y_px']!r}") from None
+        tiles[name] = Tile(name, x0, y0, _first_image_shape(by_name[name].folder))
+    missing = [j.name for j in jobs if j.name not in tiles]
+    if missing:
+        raise UVPSInputError(f"mosaic: capture {missing[0]} is not in the layout {path.name}")
+    for t in tiles.values():
+        if len(tiles) > 1 and not any(t.overlap(u) for u in tiles.values() if u is not t):
+            raise UVPSInputError(f"mosaic: tile {t.name} at ({t.x0:g}, {t.y0:g}) overlaps no other tile")
+    return tiles
+
+
+def _tile_regions(run_dir: Path, shape) -> tuple:
+    """``(labels (M, N), {label: name})`` of a tile's run folder; the whole tile when it has none."""
+    labels_tif = run_dir / "regions_labels.tif"
+    given = json.loads((run_dir / REQUEST_RECORD).read_text(encoding="utf-8"))["params"].get("regions")
+    if not labels_tif.is_file() and given not in (None, "auto") and Path(given).is_file():
+        # a label TIFF given to run is not copied into the run folder: read it (names beside it)
+        regions = load_regions(Path(given), shape=shape)
+        return regions.labels.astype(np.int64), dict(regions.names)
+    if labels_tif.is_file():
+        labels = np.asarray(read_tiff(labels_tif)[0]).astype(np.int64)
+        names = read_region_names(run_dir / "regions.csv") if (run_dir / "regions.csv").is_file() else {}
+        return labels, {i: names.get(i, f"area {i}") for i in np.unique(labels) if i}
+    names = read_region_names(run_dir / "regions.csv") if (run_dir / "regions.csv").is_file() else {}
+    return np.ones(shape, np.int64), {1: names.get(1, "whole image")}
+
+
+def _run_meta(run_dir: Path) -> tuple:
+    p = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))["params"]
+    return float(p["pixel_size_um"]), tuple(int(n) for n in p["image_shape"][:2])
+
+
+def _owned(tile: Tile, tiles) -> np.ndarray:
+    """(M, N) bool: the tile's pixels it owns, those farther from its edge than from any other
+    covering tile's (ties: the tile first in the layout)."""
+    M, N = tile.shape
+    own = np.ones((M, N), bool)
+    order = list(tiles)
+    for other in tiles.values():
+        ov = other.overlap(tile) if other is not tile else None
+        if ov is None:
+            continue
+        x_lo, y_lo, x_hi, y_hi = ov
+        c0, c1 = int(np.ceil(x_lo - tile.x0)), int(np.ceil(x_hi - tile.x0))
+        r0, r1 = int(np.ceil(y_lo - tile.y0)), int(np.ceil(y_hi - tile.y0))
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        mine = tile.edge_distance(cc, rr)
+        theirs = other.edge_distance(cc + tile.x0 - other.x0, rr + tile.y0 - other.y0)
+        first = order.index(other.name) < order.index(tile.name)
+        lose = (theirs > mine) | ((theirs == mine) & first)
+        own[r0:r1, c0:c1] &= ~lose
+    return own
+
+
+def merge_mosaic(out_dir: Path, tiles: dict) -> dict:
+    """Merge the tiles' protrusion tables and colour areas into the painting's.
+
+    Rule for the overlaps: two protrusions of two tiles are one when their centres (in painting
+    pixels) lie closer than half the larger of their widths; matched pairs are taken closest first,
+    each protrusion in at most one pair per tile pair, and the one farther from its own tile's edge
+    is kept (the other tile saw it nearer its border, where it may be cut). Areas: each painting
+    pixel counts once, for the tile whose edge it is farthest from (the same rule), under that tile's
+    area name. Areas are merged by NAME (``regions.csv``), not by colour.
+
+    Writes ``painting_protrusions.csv`` and ``painting_regions.csv``; returns what the merge did.
+    """
+    pxs, rows, areas = {}, [], {}
+    for t in tiles.values():
+        run_dir = out_dir / t.name
+        px, shape = _run_meta(run_dir)
+        pxs[t.name] = px
+        if tuple(shape) != tuple(t.shape):
+            t.shape = tuple(shape)
+    ref = next(iter(pxs.values()))
+    for name, px in pxs.items():
+        if abs(px - ref) > 1e-6 * ref:
+            raise UVPSInputError(f"mosaic: tile {name} has {px:g} um pixels, the first tile {ref:g} um; "
+                                 "a layout needs one pixel size")
+    for t in tiles.values():
+        run_dir = out_dir / t.name
+        if not (run_dir / "protrusions.csv").is_file():
+            raise UVPSInputError(f"mosaic: tile {t.name} has no protrusions.csv; run with regions or detect")
+        table = read_protrusions_csv(run_dir / "protrusions.csv")
+        labels, names = _tile_regions(run_dir, t.shape)
+        own = _owned(t, tiles)
+        for lab, nm in names.items():
+            areas.setdefault(nm, [0, 0, set()])
+            areas[nm][0] += int(np.count_nonzero(own & (labels == lab)))
+            areas[nm][2].add(t.name)
+        edge = t.edge_distance(table["x_px"], table["y_px"])
+        for i in range(len(table["id"])):
+            rows.append({"tile": t.name, **{c: table[c][i] for c in COLUMNS},
+                         "X": table["x_px"][i] + t.x0, "Y": table["y_px"][i] + t.y0, "edge_px": float(edge[i]),
+                         "area": names.get(int(table["region"][i]), "")})
+    keep = _deduplicate(rows, tiles, ref)
+    kept = [r for r, k in zip(rows, keep) if k]
+    for r in kept:
+        if r["area"] in areas:
+            areas[r["area"]][1] += 1
+    _write_painting(out_dir, kept, areas, ref)
+    return {"tiles": len(tiles), "tile_protrusions": len(rows), "duplicates_removed": len(rows) - len(kept),
+            "n_protrusions": len(kept), "pixel_size_um": ref,
+            "areas": {n: {"count": c, "area_cm2": a * ref**2 / UM2_PER_CM2} for n, (a, c, _) in areas.items()}}
+
+
+def _deduplicate(rows, tiles, px_um) -> np.ndarray:
+    """Which rows to keep (see :func:`merge_mosaic`)."""
+    keep = np.ones(len(rows), bool)
+    if not rows:
+        return keep
+    tile_of = np.array([r["tile"] for r in rows])
+    X, Y = np.array([r["X"] for r in rows]), np.array([r["Y"] for r in rows])
+    W = np.nan_to_num(np.array([r["width_um"] for r in rows], float)) / px_um
+    E = np.array([r["edge_px"] for r in rows])
+    names = list(tiles)
+    for a_i, a in enumerate(names):
+        for b in names[a_i + 1:]:
+            ov = tiles[a].overlap(tiles[b])
+            if ov is None:
+                continue
+            ia, ib = np.flatnonzero(tile_of == a), np.flatnonzero(tile_of == b)
+            if not len(ia) or not len(ib):
+                continue
+            d = np.hypot(X[ia, None] - X[None, ib], Y[ia, None] - Y[None, ib])
+            limit = 0.5 * np.maximum(W[ia, None], W[None, ib])
+            pairs = sorted(zip(*np.nonzero(d < limit)), key=lambda p: d[p])
+            used_a, used_b = set(), set()
+            for p, q in pairs:
+                if p in used_a or q in used_b:
+                    continue
+                used_a.add(p)
+                used_b.add(q)
+                i, j = ia[p], ib[q]
+                keep[j if E[i] >= E[j] else i] = False
+    return keep
+
+
+def _write_painting(out_dir: Path, kept, areas, px_um) -> None:
+    cols = ["painting_id", "tile", "tile_id", "x_px", "y_px", "x_tile_px", "y_tile_px", "edge_px", "area"]
+    cols += [c for c in COLUMNS if c not in ("id", "x_px", "y_px", "region")]
+    buf = StringIO()
+    wr = csv.writer(buf, lineterminator="\n")
+    wr.writerow(cols)
+    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
+        vals = {"painting_id": k, "tile": r["tile"], "tile_id": int(r["id"]), "x_px": r["X"], "y_px": r["Y"],
+                "x_tile_px": r["x_px"], "y_tile_px": r["y_px"], "edge_px": r["edge_px"], "area": r["area"]}
+        wr.writerow([_cell(_plain(vals[c] if c in vals else r[c])) for c in cols])
+    atomic_write_text(out_dir / PAINTING_PROTRUSIONS, buf.getvalue())
+    buf = StringIO()
+    wr = csv.writer(buf, lineterminator="\n")
+    wr.writerow(["name", "tiles", "area_cm2", "count", "density_per_cm2"])
+    cm2 = px_um**2 / UM2_PER_CM2
+    for name, (a_px, count, seen) in areas.items():
+        a = a_px * cm2
+        wr.writerow([name, len(seen), _cell(a), count, _cell(count / a if a else None)])
+    total_a = sum(v[0] for v in areas.values()) * cm2
+    total = len(kept)
+    wr.writerow(["all areas", len({t for v in areas.values() for t in v[2]}), _cell(total_a), total,
+                 _cell(total / total_a if total_a else None)])
+    atomic_write_text(out_dir / PAINTING_REGIONS, buf.getvalue())
+
+
+def _plain(v):
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
+
+
+# ------------------------------------------------------------------------------------------------
+# the command
+# ------------------------------------------------------------------------------------------------
+
+def _cmd_batch(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
+    """``batch``: every capture run into ``OUT/<name>/`` on Dask, the summary and the mosaic."""
+    own = {p.name for p in BATCH_PARAMS}
+    run_params = {k: v for k, v in params.items() if k not in own}
+    res = run_batch(inputs["captures"], output_dir, run_params, force=params["force"], mosaic=params["mosaic"],
+                    scheduler=params["scheduler"], n_workers=params["workers"], progress=progress)
+    out = res.out_dir
+    outputs = [OutputSpec("batch_summary", str(out / SUMMARY), kind="table"),
+               OutputSpec("batch", str(out / BATCH_JSON), kind="json")]
+    if res.mosaic:
+        outputs += [OutputSpec("painting_protrusions", str(out / PAINTING_PROTRUSIONS), kind="table", units="um"),
+                    OutputSpec("painting_regions", str(out / PAINTING_REGIONS), kind="table", units="cm^-2")]
+    outputs += [OutputSpec(r["capture"], str(out / r["capture"]), kind="folder") for r in res.records
+                if r["status"] != "failed"]
+    lines = [f"{r['capture']}: {r['status']}" + (f", {r['n_protrusions']} protrusions" if r.get("n_protrusions")
+                                                 is not None else "") + (f" ({r['error']})" if r["error"] else "")
+             for r in res.records]
+    lines.append(f"{res.count('done')} done, {res.count('skipped')} skipped, {res.count('failed')} failed in "
+                 f"{res.elapsed_s:.1f} s on {res.cluster.get('workers')} workers; summary: {out / SUMMARY}")
+    if res.mosaic:
+        lines.append(f"painting: {res.mosaic['n_protrusions']} protrusions ({res.mosaic['duplicates_removed']} "
+                     f"seen twice in overlaps); {out / PAINTING_REGIONS}")
+    diagnostics = {"counts": {s: res.count(s) for s in ("done", "skipped", "failed")}, "cluster": res.cluster,
+                   "captures": res.records, "mosaic": res.mosaic, "elapsed_s": res.elapsed_s}
+    return CommandResult(outputs, diagnostics, list(res.warnings), text="\n".join(lines))
+
+
+#: ``batch``'s own parameters (the others are ``run``'s).
+BATCH_PARAMS = (
+    Param("captures", "paths", where="inputs", positional=True, required=True,
+          label="Captures (folders, a folder of capture folders, or a text list)",
+          help="capture folders, a folder of capture folders, or a text file listing them (one a line)"),
+    Param("scheduler", "str", label="Dask scheduler address (empty = local cluster)",
+          help="address of a running Dask scheduler (e.g. tcp://host:8786); default: a local cluster"),
+    Param("workers", "int", minimum=1, help="local cluster: worker processes of one thread each "
+          "(default: one per core, at most one per capture)"),
+    Param("force", "bool", False, help="run every capture again, even those whose run folder is complete"),
+    Param("mosaic", "path", label="Mosaic layout CSV (optional)",
+          help="layout CSV (capture,x_px,y_px: each tile's offset in the painting, in pixels): merge the tiles "
+               "into painting_protrusions.csv and painting_regions.csv"),
+)
+
+
+def _batch_spec() -> CommandSpec:
+    params = BATCH_PARAMS[:1] + tuple(p for p in CAPTURE_PARAMS if p.name != "images") + OPTION_PARAMS \
+        + PROTRUSION_PARAMS + OUTPUT_PARAMS + BATCH_PARAMS[1:]
+    return CommandSpec(
+        "batch", "many captures, each as uvps run, on a Dask cluster; summary and mosaics", _cmd_batch,
+        params=params, output="batch folder",
+        description="Each capture folder is run as `uvps run` (same parameters) into OUT/<capture name>/ on a "
+                    "Dask cluster (a local one of one process per core, or --scheduler); run folders appear "
+                    "whole or not at all, complete ones are skipped (unless --force), a failing capture is "
+                    "listed with its error. lights, mask, dark and regions name one file for all captures or "
+                    "a file name found in each capture folder. Writes batch_summary.csv and batch.json; with "
+                    "--mosaic also painting_protrusions.csv and painting_regions.csv (docs/batch.md).")
+
+
+SPECS = (_batch_spec(),)

@@ -1,0 +1,862 @@
+"""Lamp directions and positions from spheres photographed under every lamp (``uvps calibrate``).
+
+A sphere of known shape pins what the painting cannot: each lamp's direction at the sphere, and, from
+two or more spheres, its 3-D position (the bas-relief ambiguity of a sphere-free run is then gone).
+
+- **Matte white sphere**: every pixel of the disc has a known normal, so its shading is
+  ``I = n . b + c`` with ``b = rho E_k l_k`` (Lambert; ``c`` the additive term: black level, stray
+  light). ``b`` and ``c`` are one linear least squares over the lit, unsaturated part of the disc,
+  trimmed of what does not follow the model (a stand hiding part of the sphere, specks, the
+  terminator): ``l_k = b / |b|``. It holds behind a UV-blocking filter (the sphere's own
+  fluorescence or the visible light reflected by it are both Lambertian enough).
+- **Glossy black sphere**: the lamp's mirror highlight. Its centre is the intensity-weighted mean
+  of the normals under the highlight, weighted per unit of solid angle (``1 / n_z`` per pixel), so
+  the foreshortening near the limb does not pull it; a saturated highlight counts as a disc, and thin
+  flare spikes are opened away first. With the viewer along +z (orthographic camera),
+  ``l = 2 n_z n - (0, 0, 1)``, from the highlight's surface point.
+
+Each sphere gives each lamp a ray (a point in mm and a direction). One sphere gives far-light
+directions (the RTI case); two or more give the lamp's position as the point closest to every ray
+(weighted least squares, each ray weighted by its direction's uncertainty times its length), with
+its covariance.
+
+Spheres are found by circle detection (OpenCV's gradient Hough transform, ``HOUGH_GRADIENT_ALT``,
+on a reduced maximum projection of the capture), their rims then located along 720 rays at full
+resolution and fitted by a RANSAC circle (``skimage.measure.ransac``): a stand, a flare spike or a
+highlight crossing the rim are outliers. Each candidate must then behave as a sphere (a highlight in
+every image, or a shading that Lambert's law fits). A wrong or missed detection is overridden by
+given circles (:func:`read_sphere_circles`, ``--sphere-circles``).
+
+Frames follow docs/architecture.md: pixel centre ``(r, c)`` at ``X = (c - (N - 1) / 2) px``,
+``Y = ((M - 1) / 2 - r) px`` (mm); a sphere's normal at ``(r, c)`` is
+``((c - c0) / R, (r0 - r) / R, n_z)``. Each sphere is taken to rest on the plane of the painting
+(its centre one radius above z = 0): a sphere on a taller stand puts the lamps' positions that much
+too low (a few mm in 300).
+
+References
+----------
+Woodham, R. J. (1980), photometric stereo with a calibration sphere; Mudge, M. et al. (2006),
+highlight RTI with reflective spheres; relight (cnr-isti-vclab) computes 3-D lamps from two or more
+spheres the same way (intersection of the reflected rays).
+"""
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import UVPSInputError
+from .progress import Progress, report
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Sphere", "SphereFit", "LampCalibration", "detect_spheres", "read_sphere_circles", "fit_sphere",
+           "triangulate", "calibrate_spheres"]
+
+KINDS = ("matte", "glossy")
+#: The reduced projection for detection is at most this many pixels on its long side.
+DETECT_LONG_SIDE = 1000
+#: A sphere's radius at least this many pixels of the full image (smaller ones cannot give a direction
+#: to a fraction of a degree).
+MIN_RADIUS_PX = 12
+#: A circle is a sphere's rim when at least this fraction of the 720 rays from its centre meet the rim on
+#: it (spheres of the benchmark: 0.94-0.99, with a stand and flare spikes 0.75; round paint features
+#: the Hough transform proposes: 0.31-0.49).
+MIN_RIM_FRACTION = 0.6
+#: A detected circle under this fraction of the largest one's radius is not a calibration sphere
+#: (spheres of one capture are of one size or close; on a painting's relief a 14 px bump beside two
+#: 90 px spheres was found as a third, and the lamps came 29 deg off). Give unequal spheres with
+#: ``--sphere-circles``.
+MIN_RADIUS_RATIO = 0.4
+#: Matte fit: samples with a predicted ``n . l`` below this are left out (the terminator, where the
+#: attached shadow's clip and a lamp's finite size bend the law).
+MATTE_MIN_COS = 0.2
+#: Relative position uncertainty above which two or more spheres are said not to give positions
+#: (the rays are too nearly parallel: far lamps, or spheres too close together).
+MAX_DISTANCE_UNCERTAINTY = 0.25
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A sphere in the image: centre ``(col, row)`` and radius in pixels; ``kind`` matte, glossy or
+    auto (decided from the images); ``source`` detected or given."""
+
+    centre_px: tuple
+    radius_px: float
+    kind: str = "auto"
+    source: str = "detected"
+
+    def to_json(self) -> dict:
+        return {"centre_px": [float(self.centre_px[0]), float(self.centre_px[1])], "radius_px": float(self.radius_px),
+                "kind": self.kind, "source": self.source}
+
+
+@dataclass
+class SphereFit:
+    """One sphere under every lamp: a ray per lamp.
+
+    Attributes
+    ----------
+    sphere : Sphere
+        With its kind decided.
+    points_mm : (K, 3)
+        Where each ray starts: the sphere's centre (matte) or the highlight's surface point (glossy).
+    directions : (K, 3)
+        Unit vectors toward each lamp.
+    sigma_deg : (K,)
+        Standard uncertainty of each direction.
+    strength : (K,)
+        Matte: ``|b|`` (counts per unit ``n . l``); glossy: the highlight's peak above the sphere.
+    n_pixels : (K,)
+        Samples used.
+    residual : (K,)
+        Matte: rms residual over ``|b|``; glossy: 0.
+    """
+
+    sphere: Sphere
+    points_mm: np.ndarray
+    directions: np.ndarray
+    sigma_deg: np.ndarray
+    strength: np.ndarray
+    n_pixels: np.ndarray
+    residual: np.ndarray
+
+
+@dataclass
+class LampCalibration:
+    """The lamps from a sphere capture.
+
+    ``positions_mm`` (K, 3) and ``position_sigma_mm`` (K, 3) when two or more spheres pin them,
+    else None; ``directions`` (K, 3) from the image centre toward each lamp (``positions / |positions|``,
+    or the spheres' mean direction); ``direction_sigma_deg`` (K,); ``distance_sigma_pct`` (K,) the
+    position's uncertainty along the line of sight, over the distance; ``ray_miss_mm`` (K,) how far the
+    rays pass from the position (rms); ``diagnostics`` what a reader checks.
+    """
+
+    directions: np.ndarray
+    direction_sigma_deg: np.ndarray
+    fits: list
+    positions_mm: Optional[np.ndarray] = None
+    position_sigma_mm: Optional[np.ndarray] = None
+    distance_sigma_pct: Optional[np.ndarray] = None
+    ray_miss_mm: Optional[np.ndarray] = None
+    diagnostics: dict = field(default_factory=dict)
+
+    @property
+    def spheres(self) -> list:
+        return [f.sphere for f in self.fits]
+
+    def lamps_json(self) -> list:
+        """One dict per lamp: direction, position (or None) and their uncertainties."""
+        out = []
+        for k, d in enumerate(self.directions):
+            lamp = {"direction": [float(v) for v in d],
+                    "direction_sigma_deg": float(self.direction_sigma_deg[k]),
+                    "position_mm": None, "position_sigma_mm": None, "distance_sigma_pct": None,
+                    "per_sphere_direction": [[float(v) for v in f.directions[k]] for f in self.fits]}
+            if self.positions_mm is not None:
+                lamp.update(position_mm=[float(v) for v in self.positions_mm[k]],
+                            position_sigma_mm=[float(v) for v in self.position_sigma_mm[k]],
+                            distance_sigma_pct=float(self.distance_sigma_pct[k]),
+                            ray_miss_mm=float(self.ray_miss_mm[k]))
+            out.append(lamp)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+# reading circles, grey values
+# ------------------------------------------------------------------------------------------------
+
+_COL_NAMES = ("col", "x", "centre_col", "center_col", "cx", "x_px")
+_ROW_NAMES = ("row", "y", "centre_row", "center_row", "cy", "y_px")
+_RAD_NAMES = ("radius_px", "radius", "r", "r_px")
+
+
+def read_sphere_circles(path) -> list:
+    """Spheres given by hand: a CSV with columns ``col,row,radius_px`` (centre column and row and
+    radius, in pixels of the full image; ``x,y,radius`` also accepted) and optionally ``kind``
+    (matte or glossy; empty or auto = decided from the images).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "c.csv"
+    >>> _ = p.write_text("col,row,radius_px,kind\\n120.5,80,40,glossy\\n")
+    >>> read_sphere_circles(p)[0]
+    Sphere(centre_px=(120.5, 80.0), radius_px=40.0, kind='glossy', source='given')
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UVPSInputError(f"sphere circles file {path} does not exist")
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise UVPSInputError(f"sphere circles file {path} is empty; expected columns col,row,radius_px")
+    keys = {k.strip().lower(): k for k in rows[0] if k is not None}
+
+    def pick(names):
+        for nm in names:
+            if nm in keys:
+                return keys[nm]
+        raise UVPSInputError(f"sphere circles file {path}: expected columns col,row,radius_px; got "
+                             f"{', '.join(keys) or 'none'}")
+
+    kc, kr, kd = pick(_COL_NAMES), pick(_ROW_NAMES), pick(_RAD_NAMES)
+    kk = keys.get("kind")
+    out = []
+    for i, row in enumerate(rows, start=2):
+        try:
+            c, r, rad = float(row[kc]), float(row[kr]), float(row[kd])
+        except (TypeError, ValueError):
+            raise UVPSInputError(f"sphere circles file {path} line {i}: col, row and radius_px must be numbers; "
+                                 f"got {row[kc]!r}, {row[kr]!r}, {row[kd]!r}") from None
+        if not (math.isfinite(c) and math.isfinite(r) and math.isfinite(rad) and rad > 0):
+            raise UVPSInputError(f"sphere circles file {path} line {i}: radius_px must be > 0 and every value finite")
+        kind = (row.get(kk) or "auto").strip().lower() if kk else "auto"
+        if kind not in KINDS + ("auto", ""):
+            raise UVPSInputError(f"sphere circles file {path} line {i}: kind must be matte, glossy or auto; "
+                                 f"got {kind!r}")
+        out.append(Sphere((c, r), rad, kind or "auto", "given"))
+    return out
+
+
+def _grey(img) -> np.ndarray:
+    a = np.asarray(img, dtype=np.float32)
+    return a.mean(axis=-1) if a.ndim == 3 else a
+
+
+# ------------------------------------------------------------------------------------------------
+# detection
+# ------------------------------------------------------------------------------------------------
+
+def _projections(images, step):
+    """Median, maximum and mean over the images of the grey image sampled every ``step`` pixels."""
+    K = images.shape[0]
+    first = _grey(images[0, ::step, ::step])
+    stack = np.empty((K,) + first.shape, np.float32)
+    stack[0] = first
+    for k in range(1, K):
+        stack[k] = _grey(images[k, ::step, ::step])
+    return np.median(stack, axis=0), stack.max(axis=0), stack.mean(axis=0)
+
+
+def _to8(img):
+    lo, hi = np.percentile(img, (0.5, 99.8))
+    if not hi > lo:
+        return None
+    return np.clip((img - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+def _hough(img, min_r, max_r):
+    """Circles (x, y, r) in the reduced image by OpenCV's HOUGH_GRADIENT_ALT."""
+    import cv2
+
+    img8 = _to8(img)
+    if img8 is None:
+        return []
+    img8 = cv2.GaussianBlur(img8, (0, 0), 1.5)
+    found = []
+    # the Canny threshold of the gradient Hough transform suits one contrast or another: the union of
+    # three, each circle then checked at full resolution and against the images
+    for edge in (200, 100, 50):
+        c = cv2.HoughCircles(img8, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=max(2.0 * min_r, 4.0), param1=edge,
+                             param2=0.8, minRadius=int(min_r), maxRadius=int(max_r))
+        if c is not None:
+            found += [tuple(map(float, v)) for v in c.reshape(-1, 3)]
+    return found
+
+
+def _crop_box(centre, radius, shape, margin=1.35):
+    c, r = centre
+    h = margin * radius
+    r0, r1 = max(0, int(math.floor(r - h))), min(shape[0], int(math.ceil(r + h)) + 1)
+    c0, c1 = max(0, int(math.floor(c - h))), min(shape[1], int(math.ceil(c + h)) + 1)
+    return r0, r1, c0, c1
+
+
+def _refine_circle(proj, centre, radius):
+    """Centre (col, row) and radius of the rim near a coarse circle, at full resolution: the steepest
+    radial step along 720 rays (sub-pixel), then a RANSAC circle; with the fraction of the rays that
+    meet the rim on it and which ones. None if the rim is not found."""
+    from skimage.measure import CircleModel, ransac
+
+    sm = ndimage.gaussian_filter(proj.astype(np.float32), 1.0)
+    theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    rho = np.arange(0.75 * radius, 1.25 * radius, 0.5)
+    cc = centre[0] + np.outer(np.cos(theta), rho)
+    rr = centre[1] - np.outer(np.sin(theta), rho)
+    inside = (cc >= 0) & (cc <= proj.shape[1] - 1) & (rr >= 0) & (rr <= proj.shape[0] - 1)
+    prof = ndimage.map_coordinates(sm, [rr, cc], order=1, mode="nearest")
+    grad = np.abs(np.gradient(prof, axis=1))
+    grad[~inside] = 0
+    grad[:, 0] = grad[:, -1] = 0
+    j = grad.argmax(axis=1)
+    ok = inside[np.arange(len(theta)), j] & (grad[np.arange(len(theta)), j] > 0)
+    # sub-pixel: the parabola through the step and its neighbours
+    jj = np.clip(j, 1, len(rho) - 2)
+    g0, g1, g2 = (grad[np.arange(len(theta)), jj + o] for o in (-1, 0, 1))
+    den = g0 - 2 * g1 + g2
+    off = np.where(np.abs(den) > 1e-12, 0.5 * (g0 - g2) / np.where(den == 0, 1, den), 0.0)
+    rad = rho[jj] + np.clip(off, -1, 1) * (rho[1] - rho[0])
+    # strong steps only: a rim in the frame has a contrast well above the noise
+    strength = grad[np.arange(len(theta)), j]
+    ok &= strength > 0.25 * np.median(strength[ok]) if ok.any() else ok
+    if ok.sum() < 30:
+        return None
+    pts = np.column_stack([centre[0] + rad * np.cos(theta), centre[1] - rad * np.sin(theta)])[ok]
+    model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=max(1.0, 0.01 * radius),
+                        max_trials=60, stop_probability=0.999, rng=0)
+    if model is None or inl is None or inl.sum() < max(30, 0.3 * len(theta) * ok.mean()):
+        return None
+    fitted = _circle(pts[inl])
+    if fitted is None:
+        return None
+    xc, yc, r = fitted
+    rays = np.zeros(len(theta), bool)
+    rays[np.flatnonzero(ok)[inl]] = True
+    return (xc, yc), r, float(inl.sum() / len(theta)), rays
+
+
+def _circle(points):
+    """Least-squares circle (x, y, r) through points (skimage's CircleModel, either API)."""
+    from skimage.measure import CircleModel
+
+    if hasattr(CircleModel, "from_estimate"):
+        model = CircleModel.from_estimate(points)
+        if not model:
+            return None
+        return float(model.center[0]), float(model.center[1]), float(model.radius)
+    model = CircleModel()
+    if not model.estimate(points):
+        return None
+    return tuple(float(v) for v in model.params)
+
+
+def detect_spheres(images, *, progress: Progress = None) -> list:
+    """Find the spheres of a sphere capture: circles of the capture's maximum projection.
+
+    Parameters
+    ----------
+    images : (K, M, N[, C]) array-like
+        The sphere capture (counts).
+
+    Returns
+    -------
+    list of Sphere
+        ``kind`` "auto"; ``source`` "detected"; sorted by row, then column. Empty when none is found.
+
+    Notes
+    -----
+    The projection is reduced to at most :data:`DETECT_LONG_SIDE` pixels on its long side (every
+    n-th pixel) for the Hough transform; each circle is then refined at full resolution
+    (:func:`_refine_circle`). The median projection shows a glossy sphere as a dark disc on the
+    lit background and a matte one as a shaded disc, without the highlights and flare spikes (whose
+    ring in the maximum projection is a circle too); where it finds nothing the maximum (a mirror
+    sphere on black, only its highlights) and then the mean are tried.
+    """
+    K, M, N = images.shape[:3]
+    step = max(1, int(math.ceil(max(M, N) / DETECT_LONG_SIDE)))
+    projections = _projections(images, step)
+    report(progress, 0.4, "sphere detection: projections")
+    min_r = max(4.0, MIN_RADIUS_PX / step)
+    max_r = 0.55 * min(projections[0].shape)
+    found = []
+    for proj in projections:
+        circles = _hough(proj, min_r, max_r)
+        for (x, y, r) in circles:
+            centre, radius = (x * step, y * step), r * step
+            if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
+                   for o in found):
+                continue
+            box = _crop_box(centre, radius, (M, N))
+            crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
+            # the rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
+            # median a glossy sphere's dark disc; the fit with more rim points on its circle wins
+            refs = [_refine_circle(crop, (centre[0] - box[2], centre[1] - box[0]), radius)
+                    for crop in (np.median(crops, axis=0), crops.max(axis=0))]
+            refs = [r_ for r_ in refs if r_ is not None]
+            if not refs:
+                continue
+            ref = max(refs, key=lambda r_: r_[2])
+            # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
+            # where the two find the same circle, a ray on the rim in either counts
+            rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
+                                        < 1.0 and abs(r_[1] - ref[1]) < 1.0])
+            if rim.mean() < MIN_RIM_FRACTION:
+                continue
+            (xc, yc), rr = ref[:2]
+            s = Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected")
+            if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
+                                         < 0.8 * (rr + o.radius_px) for o in found):
+                continue
+            found.append(s)
+        if found:
+            break
+    if found:
+        # calibration spheres are of one size or close; a circle far smaller is the painting's own (a
+        # protrusion, a blob of paint) and would pull every lamp's position with a wrong ray
+        largest = max(s.radius_px for s in found)
+        small = [s for s in found if s.radius_px < MIN_RADIUS_RATIO * largest]
+        for s in small:
+            log.info("sphere detection: the circle at (%.0f, %.0f) px of radius %.1f px is under %.0f %% of the "
+                     "largest (%.1f px): left out", s.centre_px[0], s.centre_px[1], s.radius_px,
+                     100 * MIN_RADIUS_RATIO, largest)
+        found = [s for s in found if s not in small]
+    report(progress, 0.5, f"sphere detection: {len(found)} circle(s)")
+    return sorted(found, key=lambda s: (s.centre_px[1], s.centre_px[0]))
+
+
+# ------------------------------------------------------------------------------------------------
+# one sphere under every lamp
+# ------------------------------------------------------------------------------------------------
+
+_DISK2 = np.hypot(*np.mgrid[-2:3, -2:3]) <= 2.0
+
+
+class _Disc:
+    """The pixels of a sphere's disc inside ``shrink`` of its radius, with their normals."""
+
+    def __init__(self, sphere: Sphere, shape, pixel_size_um, shrink=0.96):
+        M, N = shape
+        self.box = _crop_box(sphere.centre_px, sphere.radius_px, shape, margin=1.0)
+        r0, r1, c0, c1 = self.box
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        c_, r_ = sphere.centre_px
+        R = sphere.radius_px
+        nx, ny = (cc - c_) / R, (r_ - rr) / R
+        rho2 = nx * nx + ny * ny
+        self.mask = rho2 < shrink * shrink
+        if self.mask.sum() < 50:
+            raise UVPSInputError(f"sphere at ({c_:.0f}, {r_:.0f}) px: fewer than 50 pixels of its disc lie in the "
+                                 f"{N} x {M} image; expected a circle inside the frame")
+        nz = np.sqrt(np.clip(1 - rho2, 0, None))
+        self.normals = np.stack([nx, ny, nz], axis=-1)[self.mask]          # (P, 3)
+        px_mm = pixel_size_um / 1000.0
+        R_mm = R * px_mm
+        self.centre_mm = np.array([(c_ - (N - 1) / 2.0) * px_mm, ((M - 1) / 2.0 - r_) * px_mm, R_mm])
+        self.radius_mm = R_mm
+        self.centre_px = (float(c_), float(r_))
+        self.radius_px = float(R)
+        self.rows, self.cols = rr[self.mask] - r0, cc[self.mask] - c0
+        # the disc and its normals laid out on the box, for the per-lamp highlight fits
+        self.shape = (r1 - r0, c1 - c0)
+        self.inside = np.zeros(self.shape, bool)
+        self.inside[self.rows, self.cols] = True
+        self.normal_map = np.zeros(self.shape + (3,), np.float32)
+        self.normal_map[self.rows, self.cols] = self.normals
+
+    def values(self, img):
+        r0, r1, c0, c1 = self.box
+        return _grey(img[r0:r1, c0:c1])
+
+
+def _kind_of(stack_vals) -> str:
+    """matte or glossy from the disc's values (K, P): the lit fraction of a matte disc is large (a
+    hemisphere under each lamp), a glossy one's only its highlight."""
+    fr = []
+    for v in stack_vals:
+        base = np.percentile(v, 5)
+        peak = np.percentile(v, 99.9) - base
+        fr.append(np.mean(v - base > 0.25 * peak) if peak > 0 else 0.0)
+    return "matte" if np.median(fr) > 0.15 else "glossy"
+
+
+def _near_column(normals, b):
+    """The near lamp's term of a sphere's shading, ``3 (n . l)^2 - 1`` for ``l = b / |b|``.
+
+    A lamp at distance D from a sphere of radius R lights its near side closer: to first order in
+    ``kappa = R / D`` the irradiance over ``n . l`` grows by ``2 kappa n . l`` (inverse square) and the
+    local direction turns toward the limb by ``kappa (1 - (n . l)^2)``, together ``kappa (3 (n . l)^2 -
+    1)``. Left out, it is taken for the additive term and for a sphere a fraction of a pixel larger or
+    smaller: on a 5 mm sphere at 300 mm, 1 degree of the lamp's direction.
+    """
+    nb = np.linalg.norm(b)
+    if not nb > 0:
+        return np.zeros(len(normals))
+    c = normals @ (b / nb)
+    return 3.0 * c * c - 1.0
+
+
+def _fit_matte(v, normals, sat):
+    """``v = n . b + c + beta (3 (n . l)^2 - 1)`` over the lit, unsaturated samples, trimmed:
+    (b, c, cov of b, n used, rms over |b|, the samples used)."""
+    ok = np.isfinite(v) if sat is None else v < sat
+    lo, hi = np.percentile(v, (2, 99.5))
+    sel = ok & (v > lo + 0.3 * (hi - lo))
+    A = np.column_stack([normals, np.ones(len(v)), np.zeros(len(v))])
+    coef = None
+    cols = 4
+    for it in range(6):
+        if sel.sum() < 20:
+            return None
+        coef, *_ = np.linalg.lstsq(A[sel, :cols], v[sel], rcond=None)
+        b = coef[:3]
+        nb = np.linalg.norm(b)
+        if not nb > 0:
+            return None
+        A[:, 4] = _near_column(normals, b)
+        res = v - A[:, :cols] @ coef
+        s = 1.4826 * np.median(np.abs(res[sel])) + 1e-9
+        new = ok & (normals @ (b / nb) > MATTE_MIN_COS) & (np.abs(res) < 4 * s)
+        if cols == 5 and np.array_equal(new, sel):
+            break
+        sel, cols = new, 5
+    res = v[sel] - A[sel, :cols] @ coef
+    dof = max(1, sel.sum() - cols)
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.pinv(A[sel, :cols].T @ A[sel, :cols])[:3, :3]
+    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel
+
+
+def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, per_image=1500):
+    """Centre and radius of a matte sphere, and the gain across its disc, that make Lambert's law fit
+    its shading best: (Sphere, g) with the gain :func:`_gain`.
+
+    The rim found in the images is a fraction of a pixel off (its last pixels are partly background,
+    and a lamp's shading falls toward the limb); a radius 1 % off tilts every normal of the disc and
+    the lamp's direction with it. Vignetting multiplies the shading by a gain that varies across the
+    disc (on a sphere near a corner, 10 % per radius at a 40 % corner fall-off), which a per-lamp fit
+    reads as every lamp turned toward the image centre by 2-3 deg; the gain is the same under every
+    lamp and the shading's direction is not, so a joint fit tells them apart. Here the circle and
+    ``g`` are the ones that leave the smallest residual in every image's linear fit (variable
+    projection: each image's ``b``, ``c`` and near-lamp term are solved inside the residual;
+    ``scipy.optimize.least_squares`` over the eight parameters), on the samples each image's first fit
+    kept (at most ``per_image``).
+    """
+    from scipy.optimize import least_squares
+
+    rows = disc.rows + disc.box[0]
+    cols = disc.cols + disc.box[2]
+    rng = np.random.default_rng(0)
+    picks, used, scale = [], [], []
+    for k, v in enumerate(vals):
+        fit = _fit_matte(v, disc.normals, sat)
+        if fit is None:
+            continue
+        idx = np.flatnonzero(fit[5])
+        picks.append(idx if idx.size <= per_image else rng.choice(idx, per_image, replace=False))
+        used.append(k)
+        scale.append(np.linalg.norm(fit[0]))      # each image's residual in units of its first |b|, held
+    if len(picks) < 3:
+        return sphere, np.zeros(5)
+    c0, r0 = sphere.centre_px
+    R0 = sphere.radius_px
+
+    def residuals(x):
+        c, r, R = c0 + x[0], r0 + x[1], R0 * (1 + x[2])
+        out = []
+        for k, idx, sc in zip(used, picks, scale):
+            nx, ny = (cols[idx] - c) / R, (r - rows[idx]) / R
+            nz = np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))
+            nrm = np.column_stack([nx, ny, nz])
+            gain = _gain(x[3:], nx, ny)[:, None]
+            A = np.column_stack([nrm, np.ones(idx.size)])
+            v = vals[k][idx]
+            coef, *_ = np.linalg.lstsq(gain * A, v, rcond=None)
+            A = np.column_stack([A, _near_column(nrm, coef[:3])])
+            coef, *_ = np.linalg.lstsq(gain * A, v, rcond=None)
+            out.append((v - (gain * A) @ coef) / sc)
+        return np.concatenate(out)
+
+    lim = 0.03 * R0
+    res = least_squares(residuals, np.zeros(8), bounds=([-lim, -lim, -0.03] + [-0.5] * 5, [lim, lim, 0.03] + [0.5] * 5),
+                        x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * 5, diff_step=1e-3)
+    x = res.x
+    return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
+
+
+def _gain(g, nx, ny):
+    """The gain across a disc, ``1 + g0 nx + g1 ny + g2 nx^2 + g3 nx ny + g4 ny^2`` (a smooth fall-off
+    such as vignetting, to second order over the sphere)."""
+    return 1.0 + g[0] * nx + g[1] * ny + g[2] * nx * nx + g[3] * nx * ny + g[4] * ny * ny
+
+
+def _fit_glossy(v, disc: _Disc, sat):
+    """The highlight's centre as a normal, its peak, sample count and centroid uncertainty in pixels;
+    None when the disc shows no highlight.
+
+    The core (half the peak, or the saturated samples) is opened (thin flare spikes removed) and its
+    largest component taken; the centre is then the weighted centroid of everything above 2 % of the
+    peak within 2.5 core radii of it, recentred twice: the highlight's skirt, symmetric about its
+    centre like the core, makes the centroid independent of where the pixel grid cuts the core.
+    """
+    # the background's level and spread from every 4th sample (a disc holds 10^4-10^5)
+    sub = v[::4] if v.size >= 4000 else v
+    base = np.median(sub)
+    noise = 1.4826 * np.median(np.abs(sub - base)) + 1.0
+    w = v - base
+    peak = float(w.max())
+    if peak < 10 * noise:
+        return None
+    shape = disc.shape
+    img = np.zeros(shape, np.float32)
+    img[disc.rows, disc.cols] = w
+    core = img >= 0.5 * peak
+    if sat is not None and (v >= sat).any():
+        core = np.zeros(shape, bool)
+        core[disc.rows, disc.cols] = v >= sat
+    if core.sum() > 12:
+        opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
+        core = opened if opened.any() else core
+    lab, n = ndimage.label(core)
+    if n == 0:
+        return None
+    sums = ndimage.sum(img, lab, index=np.arange(1, n + 1))
+    best = 1 + int(np.argmax(sums))
+    rc = np.array(ndimage.center_of_mass(img, lab, best))
+    r_core = math.sqrt((lab == best).sum() / math.pi)
+    inside, nrm = disc.inside, disc.normal_map
+    # the work is done in a window around the core (the highlight is small beside the disc)
+    reach = int(math.ceil(2.5 * r_core + 2.0 + 0.5 * (2.5 * r_core + 2.0))) + 3
+    ra, rb = max(0, int(rc[0]) - reach), min(shape[0], int(rc[0]) + reach + 1)
+    ca, cb = max(0, int(rc[1]) - reach), min(shape[1], int(rc[1]) + reach + 1)
+    rr, cc = np.mgrid[ra:rb, ca:cb]
+    # a grey opening takes out thin bright lines (flare spikes, 1-2 px wide) and keeps the lobe
+    wt = np.clip(ndimage.grey_opening(img[ra:rb, ca:cb], footprint=_DISK2) - 0.02 * peak, 0, None)
+    wt *= inside[ra:rb, ca:cb]
+    for _ in range(3):
+        win = (rr - rc[0]) ** 2 + (cc - rc[1]) ** 2 <= (2.5 * r_core + 2.0) ** 2
+        ww = wt * win
+        tot = ww.sum()
+        if not tot > 0:
+            return None
+        rc = np.array([(ww * rr).sum() / tot, (ww * cc).sum() / tot])
+    n_used = int((ww > 0).sum())
+    # the mean normal per unit solid angle (a pixel holds 1 / n_z of it): foreshortening aside
+    nw = nrm[ra:rb, ca:cb]
+    wn = ww / np.maximum(nw[..., 2], 0.05)
+    nm = (wn[..., None] * nw).sum(axis=(0, 1)).astype(np.float64)
+    nm /= np.linalg.norm(nm)
+    sigma_px = 0.02 + 0.5 / math.sqrt(max(n_used, 1)) * noise / max(peak, noise) + 0.05 / max(r_core, 1.0)
+    return nm, peak, n_used, sigma_px
+
+
+def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None, files=None) -> SphereFit:
+    """Every lamp's ray from one sphere (see the module notes).
+
+    Parameters
+    ----------
+    images : (K, M, N[, C]) array-like
+        The sphere capture (counts, dark frame removed if there is one).
+    sphere : Sphere
+        ``kind`` auto is decided from the images.
+    pixel_size_um : float
+    saturation : float, optional
+        Counts at/above which a sample is saturated (left out of a matte fit; a glossy highlight's
+        saturated samples are its disc).
+    files : list of str, optional
+        Image names for the messages.
+
+    Raises
+    ------
+    UVPSInputError
+        When an image shows no highlight (glossy) or no lit part Lambert's law fits (matte), naming it.
+    """
+    K, M, N = images.shape[:3]
+    disc = _Disc(sphere, (M, N), pixel_size_um)
+    vals = np.stack([disc.values(images[k])[disc.rows, disc.cols] for k in range(K)])
+    sat = None if saturation is None else 0.995 * float(saturation)
+    kind = sphere.kind if sphere.kind in KINDS else _kind_of(vals)
+    sphere = Sphere(tuple(sphere.centre_px), float(sphere.radius_px), kind, sphere.source)
+    where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
+    if kind == "matte":
+        # the circle and the gain across the disc (vignetting), fitted together
+        inner = _Disc(sphere, (M, N), pixel_size_um, shrink=0.9)
+        ivals = np.stack([inner.values(images[k])[inner.rows, inner.cols] for k in range(K)])
+        sphere, g = _refine_matte_circle(sphere, inner, ivals, sat)
+        log.debug("matte %s: gain across the disc %s", where, np.round(g, 4).tolist())
+        disc = _Disc(sphere, (M, N), pixel_size_um)
+        gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
+        vals = np.stack([disc.values(images[k])[disc.rows, disc.cols] for k in range(K)]) / gain
+        sat = None if sat is None else sat / gain
+    pts = np.empty((K, 3))
+    dirs = np.empty((K, 3))
+    sig = np.empty(K)
+    strength = np.empty(K)
+    npx = np.empty(K, np.int64)
+    resid = np.zeros(K)
+    for k in range(K):
+        name = files[k] if files else f"image {k + 1}"
+        if kind == "matte":
+            fit = _fit_matte(vals[k], disc.normals, sat)
+            if fit is None or fit[4] > 0.2:
+                raise UVPSInputError(f"sphere capture {name}: the matte {where} shows no lit part that Lambert's "
+                                     "law fits (no sphere there, the lamp off, or the sphere not matte); "
+                                     "give the circles with --sphere-circles")
+            b, _, cov, n_used, rms, _ = fit
+            nb = np.linalg.norm(b)
+            d = b / nb
+            P = np.eye(3) - np.outer(d, d)
+            sig[k] = math.degrees(math.sqrt(max(np.trace(P @ cov @ P), 0.0)) / nb)
+            dirs[k], pts[k], strength[k], npx[k], resid[k] = d, disc.centre_mm, nb, n_used, rms
+        else:
+            fit = _fit_glossy(vals[k], disc, sat)
+            if fit is None:
+                raise UVPSInputError(f"sphere capture {name}: no highlight on the glossy {where} (no sphere there, "
+                                     "or the lamp off); give the circles with --sphere-circles")
+            nm, peak, n_used, sigma_px = fit
+            d = 2 * nm[2] * nm - np.array([0.0, 0.0, 1.0])
+            dirs[k] = d / np.linalg.norm(d)
+            pts[k] = disc.centre_mm + disc.radius_mm * nm
+            sig[k] = math.degrees(2 * sigma_px / (sphere.radius_px * max(nm[2], 0.3)))
+            strength[k], npx[k] = peak, n_used
+    return SphereFit(sphere, pts, dirs, sig, strength, npx, resid)
+
+
+# ------------------------------------------------------------------------------------------------
+# rays -> positions
+# ------------------------------------------------------------------------------------------------
+
+def triangulate(points, directions, sigma_rad):
+    """The point closest to several rays, weighted, and its covariance.
+
+    Parameters
+    ----------
+    points, directions : (S, 3)
+        Each ray's origin (mm) and unit direction.
+    sigma_rad : (S,)
+        Each direction's standard uncertainty (rad).
+
+    Returns
+    -------
+    position : (3,) mm
+    cov : (3, 3) mm^2
+        ``(sum_i w_i (I - d_i d_i^T))^-1`` with ``w_i = 1 / (t_i sigma_i)^2``, ``t_i`` the distance along
+        ray i: each ray pins the point across itself to ``t_i sigma_i``.
+    miss : float
+        The rms distance of the rays from the point (mm).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> L = np.array([100.0, 50.0, 300.0])
+    >>> P = np.array([[-10.0, 0, 0], [10.0, 0, 0]])
+    >>> D = (L - P) / np.linalg.norm(L - P, axis=1, keepdims=True)
+    >>> pos, cov, miss = triangulate(P, D, np.full(2, 1e-3))
+    >>> np.allclose(pos, L), miss < 1e-9
+    (True, True)
+    """
+    P = np.asarray(points, float)
+    D = np.asarray(directions, float)
+    s = np.maximum(np.asarray(sigma_rad, float), 1e-6)
+    proj = np.eye(3)[None] - D[:, :, None] * D[:, None, :]
+    w = np.ones(len(P))
+    for _ in range(2):
+        A = (w[:, None, None] * proj).sum(axis=0)
+        rhs = (w[:, None, None] * proj @ P[:, :, None]).sum(axis=0)[:, 0]
+        L = np.linalg.lstsq(A, rhs, rcond=None)[0]
+        t = np.maximum(np.einsum("ij,ij->i", L - P, D), 1e-3)
+        w = 1.0 / (t * s) ** 2
+    A = (w[:, None, None] * proj).sum(axis=0)
+    rhs = (w[:, None, None] * proj @ P[:, :, None]).sum(axis=0)[:, 0]
+    L = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    miss = np.sqrt(np.mean(np.einsum("ijk,ik->ij", proj, L - P) ** 2 * 3))
+    return L, np.linalg.pinv(A), float(miss)
+
+
+def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequence[Sphere]] = None,
+                      saturation=None, files=None, progress: Progress = None) -> LampCalibration:
+    """Every lamp's direction, and with two or more spheres its position, from a sphere capture.
+
+    Parameters
+    ----------
+    images : (K, M, N[, C]) array-like
+        One image per lamp position, in the order of the painting capture's images.
+    pixel_size_um : float
+        The pixel on the plane of the painting (the spheres' radius in mm follows).
+    spheres : sequence of Sphere, optional
+        Given circles (override detection); None: :func:`detect_spheres`.
+    saturation : float, optional
+        Counts at/above which a sample is saturated.
+    files : list of str, optional
+        Image names for the messages.
+    progress : callable, optional
+
+    Returns
+    -------
+    LampCalibration
+
+    Raises
+    ------
+    UVPSInputError
+        No sphere found (naming the capture), or an image where a sphere shows nothing (naming it).
+
+    Notes
+    -----
+    Cost: the detection reads every n-th pixel of each image (n = long side / 1000) and each sphere's
+    box at full resolution; the fits are linear least squares over the disc (matte) or a centroid
+    (glossy). Two or more spheres: :func:`triangulate` per lamp; when the rays are too nearly
+    parallel to give a distance within :data:`MAX_DISTANCE_UNCERTAINTY` (median over lamps), the
+    calibration keeps directions only and says so in ``diagnostics["positions"]``.
+    """
+    K, M, N = images.shape[:3]
+    given = spheres is not None
+    if spheres is None:
+        spheres = detect_spheres(images, progress=progress)
+        if not spheres:
+            first = files[0] if files else "the first image"
+            raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}); expected a matte "
+                                 "or glossy sphere in the frame, or give the circles with --sphere-circles "
+                                 "(col,row,radius_px)")
+    for s in spheres:
+        c, r = s.centre_px
+        if not (0 <= c < N and 0 <= r < M):
+            raise UVPSInputError(f"sphere at ({c:g}, {r:g}) px lies outside the {N} x {M} images")
+    fits = []
+    for i, s in enumerate(spheres):
+        try:
+            fits.append(fit_sphere(images, s, pixel_size_um=pixel_size_um, saturation=saturation, files=files))
+        except (UVPSInputError, np.linalg.LinAlgError):
+            if given or len(spheres) == 1:
+                raise
+            log.info("detected circle at (%.0f, %.0f) r %.0f px is not a sphere under these lamps; left out",
+                     s.centre_px[0], s.centre_px[1], s.radius_px)
+        report(progress, 0.5 + 0.4 * (i + 1) / len(spheres), f"sphere {i + 1} of {len(spheres)}")
+    if not fits:
+        raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from "
+                             f"{files[0] if files else 'the first image'}): the circles found show no highlight "
+                             "or Lambertian shading; give the circles with --sphere-circles (col,row,radius_px)")
+    diag = {"spheres": [f.sphere.to_json() for f in fits],
+            "direction_spread_deg": None, "positions": "one sphere: far-light directions"}
+    dirs = np.array([f.directions for f in fits])                        # (S, K, 3)
+    sig = np.array([f.sigma_deg for f in fits])                          # (S, K)
+    if len(fits) == 1:
+        out = LampCalibration(dirs[0].copy(), sig[0].copy(), fits, diagnostics=diag)
+        report(progress, 1.0, "spheres: done")
+        return out
+    pos = np.empty((K, 3))
+    psig = np.empty((K, 3))
+    dsig = np.empty(K)
+    miss = np.empty(K)
+    pts = np.array([f.points_mm for f in fits])
+    for k in range(K):
+        L, cov, miss[k] = triangulate(pts[:, k], dirs[:, k], np.radians(sig[:, k]))
+        pos[k] = L
+        psig[k] = np.sqrt(np.diag(cov))
+        u = L / np.linalg.norm(L)
+        # the ray misses beyond their stated uncertainty widen it (a model error the covariance lacks)
+        along = math.sqrt(float(u @ cov @ u))
+        dsig[k] = 100.0 * along / np.linalg.norm(L)
+    spread = [float(np.degrees(np.arccos(np.clip(dirs[0, k] @ dirs[1, k], -1, 1)))) for k in range(K)]
+    diag["direction_spread_deg"] = spread
+    if np.median(dsig) > 100 * MAX_DISTANCE_UNCERTAINTY or np.any(pos[:, 2] <= 0):
+        diag["positions"] = (f"{len(fits)} spheres, but their rays are too nearly parallel to place the lamps "
+                             f"(median distance uncertainty {np.median(dsig):.0f} %): far-light directions")
+        d = dirs.mean(axis=0)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out = LampCalibration(d, sig.min(axis=0), fits, diagnostics=diag)
+    else:
+        diag["positions"] = f"{len(fits)} spheres: lamp positions from the intersection of their rays"
+        d = pos / np.linalg.norm(pos, axis=1, keepdims=True)
+        # the direction from the image centre: the position's uncertainty across the line of sight
+        dir_sig = np.degrees(np.sqrt(np.maximum(psig ** 2 @ np.ones(3) - (dsig / 100 * np.linalg.norm(pos, axis=1)) ** 2,
+                                                0)) / np.linalg.norm(pos, axis=1))
+        out = LampCalibration(d, dir_sig, fits, pos, psig, dsig, miss, diagnostics=diag)
+    report(progress, 1.0, "spheres: done")
+    return out

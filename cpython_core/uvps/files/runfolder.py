@@ -1,0 +1,437 @@
+"""The run folder: its file names, writing a run into it, reading it back, and ``uvps info``.
+
+Every command writes and reads a run folder through this module (docs/architecture.md, "Output folder
+of a run"): file names, axes, pixel size and channel layout are decided here once. Images are
+ImageJ TIFFs with the pixel size in um; channel-first on disk (``CYX``), channel-last in memory
+(``(M, N, C)``).
+"""
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import tifffile
+
+from .. import __version__
+from ..errors import UVPSInputError, check_pixel_size
+from ..core.flatfield import flatfield
+from ..core.integrate import gradients_from_normals
+from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
+from .tables import write_label_tiff, write_protrusions_csv
+from .omezarr import write_ome_zarr
+from ..core.stack import row_bands
+from .outputs import OutputSpec, Progress, report, write_json_atomic
+from ..core.regions import region_statistics
+from .tables import write_regions_csv
+
+#: The files of a run folder: name -> (file, kind, axes, units). One place for every file name.
+FILES = {
+    "lights": ("lights.json", "json", None, None),
+    "dropoff": ("dropoff.tif", "image", "ZYX", "1"),
+    "flatfield": ("flatfield", "folder", None, "counts"),
+    "normals": ("normals.tif", "image", "CYX", "1"),
+    "albedo": ("albedo.tif", "image", None, "counts"),
+    "gradients": ("gradients.tif", "image", "CYX", "1"),
+    "depth": ("depth.tif", "image", "YX", "um"),
+    "protrusions": ("protrusions.csv", "table", None, "um"),
+    "protrusions_labels": ("protrusions_labels.tif", "image", "YX", "label"),
+    "protrusions_manual": ("protrusions_manual.csv", "table", None, "um"),
+    "protrusions_manual_labels": ("protrusions_manual_labels.tif", "image", "YX", "label"),
+    "regions_labels": ("regions_labels.tif", "image", "YX", "label"),
+    "regions": ("regions.csv", "table", None, "cm^-2"),
+    "run": ("run.json", "json", None, None),
+    "report": ("report.html", "html", None, None),
+    "comparison": ("comparison.csv", "table", None, "cm^-2"),
+    "depth_zarr": ("depth.ome.zarr", "folder", "YX", "um"),
+    "normals_zarr": ("normals.ome.zarr", "folder", "CYX", "1"),
+    "albedo_zarr": ("albedo.ome.zarr", "folder", None, "counts"),
+}
+#: The command that writes each image a later command needs (for the "run X first" message).
+MADE_BY = {"albedo": "normals", "normals": "normals", "depth": "integrate"}
+
+
+def output_spec(run_dir, name: str, *, axes: Optional[str] = None) -> OutputSpec:
+    """The :class:`~uvps.files.outputs.OutputSpec` of run-folder file ``name`` (a key of :data:`FILES`)."""
+    file, kind, ax, units = FILES[name]
+    path = Path(run_dir) / file
+    dtype = None
+    if kind == "image":
+        dtype = "float32" if units != "label" else _tiff_dtype(path)
+    elif kind == "folder":
+        dtype = "float32"
+    return OutputSpec(name, str(path), kind=kind, axes=axes or ax, dtype=dtype, units=units)
+
+
+def _tiff_dtype(path: Path) -> str:
+    with tifffile.TiffFile(path) as tif:
+        return str(tif.series[0].dtype)
+
+
+# ------------------------------------------------------------------------------------------------
+# run.json
+# ------------------------------------------------------------------------------------------------
+
+@dataclass
+class RunLog:
+    """What run.json records: parameters, inputs, timings, warnings."""
+
+    command: str
+    params: dict
+    inputs: list = field(default_factory=list)
+    timings_s: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+    relief: Optional[dict] = None      # the relief's scale (:func:`relief_of`); None: not a run of a capture
+
+    def time(self, stage, t0):
+        self.timings_s[stage] = round(time.perf_counter() - t0, 3)
+
+    def write(self, path):
+        data = {"version": __version__, **asdict(self)}
+        if data["relief"] is None:
+            del data["relief"]
+        write_json_atomic(path, data)
+
+
+#: run.json ``relief`` of a folder that has none (written before relief was recorded, or made by a
+#: command that does not estimate lamps): heights were always reported in micrometres.
+_RELIEF_DEFAULT = {"scale": "absolute", "lamps": None, "reason": "no relief recorded (an older run folder)"}
+
+
+def relief_of(run_json: Optional[dict]) -> dict:
+    """The relief's scale of a run: run.json's ``relief`` object, the one reader of it.
+
+    Returns ``{"scale": "absolute" | "relative", "lamps": "calibration" | "positions" | "directions" |
+    "estimated" | None, "reason": str}``. "relative": the lamps' elevation, and so the heights' scale,
+    is not pinned (lamps estimated from the images that do not determine it): normals, albedo, counts
+    and widths hold, heights in micrometres do not. A missing or malformed entry reads as "absolute"
+    (older folders).
+
+    Example
+    -------
+    >>> relief_of({"relief": {"scale": "relative", "lamps": "estimated", "reason": "..."}})["scale"]
+    'relative'
+    >>> relief_of({})["scale"]
+    'absolute'
+    """
+    relief = (run_json or {}).get("relief") or {}
+    if not isinstance(relief, dict) or relief.get("scale") not in ("absolute", "relative"):
+        return dict(_RELIEF_DEFAULT)
+    return {"scale": relief["scale"], "lamps": relief.get("lamps"), "reason": str(relief.get("reason", ""))}
+
+
+def relief_in(run_dir) -> dict:
+    """:func:`relief_of` the run folder's ``run.json`` (absolute when it has none or it is unreadable)."""
+    path = Path(run_dir) / "run.json"
+    try:
+        return relief_of(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return dict(_RELIEF_DEFAULT)
+
+
+def is_relative(relief: Optional[dict]) -> bool:
+    """True when ``relief`` (a :func:`relief_of` dict, or None) says the heights have no scale."""
+    return bool(relief) and relief.get("scale") == "relative"
+
+
+def input_hashes(capture: Capture) -> list:
+    """SHA-256 of every input file (a stack is hashed once; null for an image that is no file, e.g. a
+    capture made in memory)."""
+    paths = []
+    for f in capture.files:
+        p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
+        if p not in paths:
+            paths.append(p)
+    # two files at a time: hashlib releases the GIL (16 files, 1.15 GB: 1.18 s -> 0.68 s on 2 cores)
+    with ThreadPoolExecutor(2) as pool:
+        digests = pool.map(lambda p: sha256_file(p) if Path(p).is_file() else None, paths)
+        return [{"path": str(p), "sha256": d} for p, d in zip(paths, digests)]
+
+
+# ------------------------------------------------------------------------------------------------
+# writing
+# ------------------------------------------------------------------------------------------------
+
+def write_run(folder: Path, result, *, command: str, params: dict, final: Optional[Path] = None, warnings=(),
+              progress: Progress = None) -> list:
+    """Write a :class:`uvps.core.pipeline.RunResult` into ``folder``.
+
+    ``folder`` is usually the temporary folder of :func:`uvps.files.outputs.atomic_output_dir`, moved to
+    the run folder ``final`` afterwards. ``params`` (the request's) and ``warnings`` go into
+    ``run.json`` with the result's diagnostics and timings. Returns the
+    :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``.
+    """
+    final = Path(final or folder)
+    cap = result.capture
+    relief = getattr(result, "relief", None) or None
+    write_lights(folder, cap, result.lights)
+    names = ["lights", "dropoff"]
+    if "flatfield" in result.stages:
+        write_flatfield(folder, cap, result.lights, progress=progress)
+        names.append("flatfield")
+    if result.stereo is not None:
+        write_stereo(folder, result.stereo, cap.pixel_size_um)
+        names += ["normals", "albedo", "gradients"]
+    if result.height is not None:
+        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method, relief=relief)
+        names.append("depth")
+    if result.protrusions is not None:
+        names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
+                                   bins_um=params.get("bins_um") or 100.0, relief=relief)
+    if params.get("ome_zarr") and (result.stereo is not None or result.height is not None):
+        # from the TIFFs just written (memory-mapped): the stores hold the same float32 values
+        stores = write_ome_zarr(folder, pixel_size_um=cap.pixel_size_um)
+        names += [s.name.split(".")[0] + "_zarr" for s in stores]
+    log = RunLog(command, dict(params), warnings=list(warnings) + list(result.warnings))
+    log.inputs = input_hashes(cap)
+    log.params.update({**asdict(result.options), "pixel_size_um": cap.pixel_size_um,
+                       "image_shape": list(cap.images.shape[1:]), "bit_depth": cap.bit_depth})
+    log.timings_s = dict(result.timings_s)
+    log.diagnostics = dict(result.diagnostics)
+    log.relief = relief
+    log.write(folder / "run.json")
+    names.append("run")
+    # dtypes of label images are read from the files just written
+    return [_spec_in(final, folder, n) for n in names]
+
+
+def _spec_in(final: Path, written: Path, name: str) -> OutputSpec:
+    spec = output_spec(written, name)
+    spec.path = str(final / FILES[name][0])
+    return spec
+
+
+def write_lights(folder: Path, capture: Capture, lights) -> dict:
+    """``lights.json`` and ``dropoff.tif`` (the fitted drop-off maps, at most 1024 px wide)."""
+    extra = {"pixel_size_um": capture.pixel_size_um, "image_shape": list(capture.images.shape[1:3]),
+             "source": lights.source,
+             "dropoff": [{"degree": f.degree, "legendre_coeffs": f.coeffs.tolist(), "level": f.level}
+                         for f in lights.fits]}
+    if lights.beam_rms is not None:
+        extra["dropoff_beyond_model_rms"] = round(lights.beam_rms, 6)
+    if lights.estimate is not None:
+        est = lights.estimate
+        if est.uncertainty is not None:
+            extra["uncertainty"] = est.uncertainty.to_json()
+        extra.update({"m_mm": est.m_mm, "residual_history": est.residual_history,
+                      "azimuth_polar_deg": [float(a) for a in est.azimuth_polar_deg],
+                      "equidistant_positions_mm": est.equidistant.positions_mm.tolist()})
+    data = lights.model.to_json([Path(f).name for f in capture.files], extra=extra)
+    write_json_atomic(folder / "lights.json", data)
+    M, N = capture.images.shape[1:3]
+    step = max(1, int(np.ceil(max(M, N) / 1024)))
+    rows, cols = np.arange(0, M, step), np.arange(0, N, step)
+    maps = np.stack([f.evaluate(rows, cols) for f in lights.fits]).astype(np.float32)
+    write_imagej_tiff(folder / "dropoff.tif", maps, axes="ZYX", pixel_size_um=capture.pixel_size_um * step,
+                      labels=[Path(f).name for f in capture.files],
+                      metadata={"Info": f"uvps drop-off maps (mean 1), sampled every {step} px"})
+    return data
+
+
+def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2, progress: Progress = None) -> Path:
+    """``flatfield/<k>_<name>.tif``: each image divided by its drop-off map, one float32 file each.
+
+    Each file is filled band by band (:data:`uvps.files.io.BAND_BYTES` of output at a time) as it is read, one
+    image per worker (``workers`` threads: numpy and the file writes release the GIL), so memory holds
+    ``workers`` bands, never an image (a 10000 x 8000 RGB one is 0.96 GB as float32).
+    """
+    out = folder / "flatfield"
+    out.mkdir(exist_ok=True)
+    K, M, N = capture.images.shape[:3]
+    C = capture.images.shape[3] if capture.images.ndim == 4 else 0
+    shape, axes = ((C, M, N), "CYX") if C else ((M, N), "YX")
+
+    def one(k):
+        name = Path(capture.files[k].replace("#", "_")).stem
+        with imagej_tiff_writer(out / f"{k:03d}_{name}.tif", shape, np.float32, axes=axes,
+                                pixel_size_um=capture.pixel_size_um) as tif:
+            for rows in row_bands(M, N * max(C, 1) * 4, BAND_BYTES):
+                ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=rows.start)
+                tif.write((slice(None), rows) if C else rows, ff)
+
+    one(0)        # in this thread: compiled readers (numba) are typed on their first call, never in two at once
+    report(progress, 1 / K, f"flat field 1/{K}")
+    with ThreadPoolExecutor(max(1, int(workers))) as pool:
+        for i, _ in enumerate(pool.map(one, range(1, K)), start=1):
+            report(progress, (i + 1) / K, f"flat field {i + 1}/{K}")
+    return out
+
+
+def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
+    """``normals.tif`` (3, M, N), ``albedo.tif`` ((C,) M, N) and ``gradients.tif`` (2, M, N).
+
+    The channel-last arrays are written channel-first band by band (never transposed whole)."""
+    write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
+                      pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
+    if res.albedo.ndim == 3:
+        write_imagej_tiff(folder / "albedo.tif", np.moveaxis(res.albedo, -1, 0), axes="CYX",
+                          pixel_size_um=pixel_size_um, labels=["R", "G", "B"][:res.albedo.shape[-1]])
+    else:
+        write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
+    g = gradients_from_normals(res.normals)
+    with imagej_tiff_writer(folder / "gradients.tif", (2,) + g.p.shape, np.float32, axes="CYX",
+                            pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"]) as tif:
+        tif.put(0, g.p)
+        tif.put(1, g.q)
+
+
+#: ImageJ's value unit (``vunit`` in the TIFF's ImageJ description) of a height map without a scale.
+RELATIVE_UNIT = "relative"
+
+
+def write_height(folder: Path, height_um, pixel_size_um: float, method: str, *, relief: Optional[dict] = None) -> None:
+    """``depth.tif``: height in micrometres (median 0); with a relative ``relief`` (:func:`relief_of`)
+    the same map labelled relative: ImageJ value unit "relative" and the Info saying why."""
+    if is_relative(relief):
+        meta = {"Info": f"uvps relative height ({method}), median 0: NOT micrometres. {relief.get('reason', '')}",
+                "vunit": RELATIVE_UNIT}
+    else:
+        meta = {"Info": f"uvps height in micrometres ({method}), median 0", "vunit": "um"}
+    write_imagej_tiff(folder / "depth.tif", height_um, axes="YX", pixel_size_um=pixel_size_um, metadata=meta)
+
+
+def height_unit(path) -> str:
+    """The value unit of a height map written by :func:`write_height` ("um", or "relative")."""
+    with tifffile.TiffFile(path) as tif:
+        meta = tif.imagej_metadata or {}
+    return str(meta.get("vunit", "um"))
+
+
+def write_protrusions(folder: Path, prot, pixel_size_um: float, *, bins_um=100.0, relief: Optional[dict] = None) -> list:
+    """``protrusions.csv``, ``protrusions_labels.tif`` and, with colour areas (proposed or given),
+    ``regions_labels.tif`` and ``regions.csv`` (their names and densities): the run folder records
+    the areas it counted in, so statistics and the report use them. Returns the names written.
+    With a relative ``relief`` the table's heights are ``relative_height`` (no unit)."""
+    write_protrusions_csv(folder / "protrusions.csv", prot.table, relative=is_relative(relief))
+    write_label_tiff(folder / "protrusions_labels.tif", prot.labels, pixel_size_um=pixel_size_um,
+                     metadata={"Info": "uvps detect: protrusion labels (0 = background; id as in protrusions.csv)"})
+    names = ["protrusions", "protrusions_labels"]
+    if prot.regions is not None:
+        write_label_tiff(folder / "regions_labels.tif", prot.regions.labels, pixel_size_um=pixel_size_um,
+                         metadata={"Info": "uvps: colour areas (0 = none; names in regions.csv)"})
+        stats = region_statistics(prot.table, prot.regions, pixel_size_um=pixel_size_um, bins_um=bins_um)
+        write_regions_csv(folder / "regions.csv", stats)
+        names += ["regions_labels", "regions"]
+    return names
+
+
+# ------------------------------------------------------------------------------------------------
+# reading
+# ------------------------------------------------------------------------------------------------
+
+@dataclass
+class RunImages:
+    """What a run folder holds for protrusion work (None when the file is absent)."""
+
+    albedo: Optional[np.ndarray]      # (M, N) or (M, N, C)
+    height_um: Optional[np.ndarray]   # (M, N) float32
+    normals: Optional[np.ndarray]     # (M, N, 3) float32
+    pixel_size_um: Optional[float]
+    shape: Optional[tuple]
+
+
+def _channels_last(arr: np.ndarray) -> np.ndarray:
+    if arr.ndim == 3 and arr.shape[0] == 3:
+        return np.moveaxis(arr, 0, -1)
+    return arr
+
+
+def read_run(run_dir: Path, *, need=("albedo", "depth"), pixel_size_um=None,
+             require_pixel_size: bool = True) -> RunImages:
+    """Read ``albedo.tif``, ``depth.tif`` and ``normals.tif`` of a run folder, once.
+
+    Parameters
+    ----------
+    run_dir : Path
+    need : tuple of str
+        Files that must exist ("albedo", "depth", "normals"); a missing one raises
+        UVPSInputError naming the command that makes it.
+    pixel_size_um : float, optional
+        Overrides the TIFFs' calibration (required when they have none).
+    require_pixel_size : bool
+        False: a folder whose TIFFs carry no pixel size is read with ``pixel_size_um`` None (the
+        report finds it elsewhere) instead of raising.
+    """
+    run_dir = Path(run_dir)
+    out, px_found = {}, []
+    for name in ("albedo", "depth", "normals"):
+        path = run_dir / FILES[name][0]
+        if not path.is_file():
+            if name in need:
+                raise UVPSInputError(f"run folder {run_dir} has no {path.name}; run the '{MADE_BY[name]}' "
+                                     "command first")
+            out[name] = None
+            continue
+        data, px = read_tiff(path)
+        out[name] = np.asarray(data)
+        if px:
+            px_found.append(px)
+    albedo = _channels_last(out["albedo"]) if out["albedo"] is not None else None
+    normals = _channels_last(out["normals"]).astype(np.float32) if out["normals"] is not None else None
+    height = out["depth"].astype(np.float32) if out["depth"] is not None else None
+    shapes = {a.shape[:2] for a in (albedo, height, normals) if a is not None}
+    if len(shapes) > 1:
+        raise UVPSInputError(f"run folder {run_dir}: albedo.tif, depth.tif and normals.tif differ in size: "
+                             f"{sorted(shapes)}")
+    if pixel_size_um is not None:
+        px = check_pixel_size(pixel_size_um)
+    elif px_found:
+        px = float(px_found[0])
+    elif shapes and require_pixel_size:
+        raise UVPSInputError(f"{run_dir}: no pixel size in the TIFFs; give pixel_size_um")
+    else:
+        px = None
+    return RunImages(albedo, height, normals, px, shapes.pop() if shapes else None)
+
+
+# ------------------------------------------------------------------------------------------------
+# uvps info: what a run folder holds
+# ------------------------------------------------------------------------------------------------
+
+def describe(run_dir) -> dict:
+    """What a run folder holds: its files, the command and parameters that made it, the lights, the
+    warnings it gave, and the protrusion count.
+
+    Example
+    -------
+    >>> import tempfile, json, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "run.json").write_text(json.dumps({"version": "0", "command": "run", "params": {},
+    ...     "warnings": ["heights may be off by +-25 %"], "diagnostics": {"lights": {"source": "estimated"}}}))
+    >>> info = describe(d)
+    >>> info["command"], info["warnings"], info["files"]
+    ('run', ['heights may be off by +-25 %'], ['run.json'])
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UVPSInputError(f"run folder {run_dir} does not exist")
+    run_json = run_dir / FILES["run"][0]
+    if not run_json.is_file():
+        raise UVPSInputError(f"{run_dir} is not a run folder: it has no run.json (made by uvps run, lights, "
+                             "flatfield or normals)")
+    try:
+        log = json.loads(run_json.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UVPSInputError(f"{run_json} is not valid JSON ({exc})") from None
+    files = sorted(f for name, (f, *_rest) in FILES.items() if (run_dir / f).exists())
+    info = {"run_dir": str(run_dir), "version": log.get("version"), "command": log.get("command"),
+            "params": log.get("params", {}), "warnings": list(log.get("warnings", [])), "files": files,
+            "lights": log.get("diagnostics", {}).get("lights", {}), "timings_s": log.get("timings_s", {}),
+            "relief": relief_of(log)}
+    table = run_dir / FILES["protrusions"][0]
+    if table.is_file():
+        with open(table, encoding="utf-8") as fh:
+            info["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
+        det = log.get("diagnostics", {}).get("detect") or {}
+        rejected = det.get("rejected")
+        if det.get("n_protrusions") == info["n_protrusions"] and isinstance(rejected, dict):
+            # the detection run.json describes made this table (a later `uvps detect` does not
+            # update run.json: then only the table's count is known)
+            info["detection"] = {"candidates": info["n_protrusions"] + sum(rejected.values()),
+                                 "kept": info["n_protrusions"], "rejected": dict(rejected)}
+    return info

@@ -1,0 +1,248 @@
+"""Synthetic calibration captures of spheres under the lamps of a synthetic painting capture.
+
+A sphere capture is what a conservator takes before (or after) the painting: one or more spheres in
+the field, photographed once under every lamp position of the painting capture. Matte white spheres
+show the lamp's direction in their shading; glossy black spheres in the mirror highlight. The
+spheres here have known centres and radii, so :mod:`uvps.core.spheres` and ``uvps calibrate`` are scored
+against the lamps that rendered them.
+
+Frames follow ``docs/architecture.md`` (x right, y up, z toward the camera; mm from the image
+centre). Each sphere rests on the plane of the painting (z = 0): its centre is one radius above it.
+The camera is orthographic (viewer +z), as for the painting capture.
+
+Image model (counts, ``c`` the exposure)::
+
+    I_k = c * V * E_k * (|L_k| / |L_k - P|)^2 * beam_k(P) * [albedo * max(0, n . l) + spec(n . h)]
+          + flare + noise + black
+
+``P`` the surface point, ``n`` its normal, ``l = (L_k - P) / |L_k - P|``, ``h`` the half vector of
+``l`` and the view direction; ``spec`` a Gaussian lobe in the angle between ``n`` and ``h`` (a
+glossy sphere's highlight, saturating the sensor), ``flare`` a star of thin spikes around a
+saturated highlight (lens flare), ``V`` the vignetting. Lamps, beams, vignetting, black level and
+noise are the painting capture's (:class:`uvps.testing.synthetic.SyntheticCapture`). The background is the
+painting's albedo, seen flat, so that detection meets a textured field. An optional stand (a dark
+post in front of the lower part of each sphere) hides part of the disc.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..errors import UVPSInputError
+from ..files.outputs import atomic_output_dir
+from .synthetic import LUMINANCE, SyntheticCapture, _add_noise, _substream, _write_camera_tiff, pixel_centres_mm
+
+__all__ = ["SphereSpec", "SphereCapture", "make_sphere_capture", "write_sphere_capture", "DEFAULT_SPHERES"]
+
+#: Angular spread (deg) of a glossy sphere's highlight: the lamp's angular size and the polish.
+GLOSS_SPREAD_DEG = 1.5
+
+
+@dataclass(frozen=True)
+class SphereSpec:
+    """One sphere: ``kind`` "matte" or "glossy", its centre as fractions of the frame's width and
+    height (``(0, 0)`` the top left corner), and its radius in mm."""
+
+    kind: str
+    centre: tuple
+    radius_mm: float
+
+
+#: Two glossy spheres in opposite corners (RTI practice: two or more give the lamps' 3-D positions).
+DEFAULT_SPHERES = (SphereSpec("glossy", (0.13, 0.17), 2.5), SphereSpec("glossy", (0.87, 0.83), 2.5))
+
+
+@dataclass
+class SphereCapture:
+    """A rendered sphere capture and its truth.
+
+    ``spheres``: one dict per sphere with ``centre_px`` [col, row], ``radius_px``, ``kind`` and
+    ``centre_mm`` [x, y, z]; ``light_positions_mm`` (K, 3) the painting capture's lamps.
+    """
+
+    images: np.ndarray
+    light_positions_mm: np.ndarray
+    spheres: list
+    pixel_size_um: float
+    files: list = field(default_factory=list)
+
+
+def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec] = DEFAULT_SPHERES, *,
+                        stand: bool = False, flare: bool = True, seed: Optional[int] = None,
+                        gloss_deg: float = GLOSS_SPREAD_DEG, specular: float = 20.0,
+                        exposure: float = 0.5) -> SphereCapture:
+    """Render the spheres under the lamps of ``capture`` (uint16; RGB when the capture is).
+
+    Parameters
+    ----------
+    capture : SyntheticCapture
+        The painting capture whose lamps (positions, ``E_k``, beams), vignetting, black level, noise
+        and exposure the sphere capture shares.
+    spheres : sequence of SphereSpec
+        The spheres (:data:`DEFAULT_SPHERES`: two glossy ones in opposite corners).
+    stand : bool
+        A dark post in front of the lower part of each sphere (hides about a fifth of the disc).
+    flare : bool
+        A star of thin spikes around each saturated highlight.
+    seed : int, optional
+        Noise stream (default: the capture's seed).
+    gloss_deg : float
+        Angular spread of the glossy highlight.
+    specular : float
+        The highlight's peak relative to a white matte surface facing the lamp (saturates).
+    exposure : float
+        The exposure relative to the painting capture's (a white sphere facing a lamp is brighter
+        than the painting; at 0.5 part of a matte sphere still saturates under the lowest lamps).
+
+    Returns
+    -------
+    SphereCapture
+
+    Examples
+    --------
+    >>> from uvps.testing.synthetic import make_capture
+    >>> cap = make_capture(shape=(120, 160), n_lights=4, seed=1, rgb=False)
+    >>> sc = make_sphere_capture(cap, [SphereSpec("matte", (0.5, 0.5), 0.5)])
+    >>> sc.images.shape, sc.images.dtype, round(sc.spheres[0]["radius_px"], 1)
+    ((4, 120, 160), dtype('uint16'), 33.3)
+    """
+    spec = capture.spec
+    m, n = capture.images.shape[1:3]
+    px = float(spec.pixel_size_um)
+    px_mm = px / 1000.0
+    for s in spheres:
+        if s.kind not in ("matte", "glossy") or not s.radius_mm > 0:
+            raise UVPSInputError(f"sphere {s}: kind must be 'matte' or 'glossy' and radius_mm > 0")
+    x, y = pixel_centres_mm((m, n), px)
+    X = np.broadcast_to(x, (m, n))
+    Y = np.broadcast_to(y, (m, n))
+    P = np.stack([X, Y, np.zeros((m, n))], axis=-1)            # surface points (mm)
+    N = np.zeros((m, n, 3))
+    N[..., 2] = 1.0
+    alb = capture.albedo if capture.albedo.ndim == 2 else capture.albedo @ LUMINANCE
+    albedo = np.asarray(alb, np.float64).copy()
+    spec_w = np.zeros((m, n))                                  # specular weight per pixel
+    truth = []
+    for s in spheres:
+        c0 = s.centre[0] * (n - 1)
+        r0 = s.centre[1] * (m - 1)
+        R = s.radius_mm
+        rpx = R / px_mm
+        cx, cy = (c0 - (n - 1) / 2.0) * px_mm, ((m - 1) / 2.0 - r0) * px_mm
+        dx, dy = (X - cx) / R, (Y - cy) / R
+        inside = dx * dx + dy * dy < 1.0
+        nz = np.sqrt(np.clip(1.0 - dx * dx - dy * dy, 0.0, None))
+        N[inside] = np.stack([dx, dy, nz], axis=-1)[inside]
+        P[inside] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[inside]
+        albedo[inside] = 0.9 if s.kind == "matte" else 0.02
+        if s.kind == "glossy":
+            spec_w[inside] = 1.0
+        if stand:
+            post = (np.abs(X - cx) < 0.35 * R) & (Y < cy - 0.55 * R)
+            N[post] = (0.0, 0.0, 1.0)
+            P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
+            albedo[post] = 0.04
+            spec_w[post] = 0.0
+        truth.append({"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
+                      "centre_mm": [float(cx), float(cy), float(R)]})
+    nzs = capture.nuisances
+    lamps = capture.light_positions_mm
+    E = capture.intensities
+    vig = nzs.vignetting if nzs.vignetting is not None and nzs.vignetting.shape == (m, n) else None
+    s2 = 2.0 * math.radians(gloss_deg) ** 2
+    rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
+    rgb = capture.images.ndim == 4
+    black = (np.zeros(3 if rgb else 1, np.float32) if nzs.black_level is None
+             else np.asarray(nzs.black_level, np.float32))
+    out = np.empty((len(lamps), m, n) + ((3,) if rgb else ()), np.uint16)
+    for k, (L, e) in enumerate(zip(lamps, E)):
+        V = L - P
+        d = np.linalg.norm(V, axis=-1)
+        lv = V / d[..., None]
+        irr = e * float(L @ L) / (d * d)
+        if nzs.beam_axes is not None and nzs.beam_exponent > 0:
+            irr = irr * np.maximum(-(lv @ nzs.beam_axes[k]), 0.0) ** nzs.beam_exponent
+        ndl = np.einsum("...i,...i->...", N, lv)
+        h = lv + np.array([0.0, 0.0, 1.0])
+        h /= np.linalg.norm(h, axis=-1, keepdims=True)
+        ang = np.arccos(np.clip(np.einsum("...i,...i->...", N, h), -1.0, 1.0))
+        shade = albedo * np.maximum(ndl, 0.0) + specular * spec_w * np.exp(-ang * ang / s2) * (ndl > 0)
+        sig = irr * shade
+        if vig is not None:
+            sig = sig * vig
+        counts = (exposure * capture.exposure * sig).astype(np.float32)
+        if flare:
+            counts += _flare(counts, spec_w, rng)
+        if rgb:     # a neutral white sphere and background, seen by the capture's colour camera
+            counts = np.repeat(counts[..., None], 3, axis=2)
+        if spec.noise:
+            counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
+        counts += black if rgb else black[0]
+        out[k] = np.clip(np.rint(counts), 0, 65535)
+    files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
+    return SphereCapture(out, np.asarray(lamps, float), truth, px, files)
+
+
+def _flare(counts, glossy, rng, *, full=65535.0):
+    """A star of thin spikes (6, random rotation) around the brightest saturated highlight of each
+    glossy sphere in one image (lens flare); none when nothing saturates."""
+    add = np.zeros_like(counts)
+    sat = (counts >= full) & (glossy > 0)
+    if not sat.any():
+        return add
+    from scipy import ndimage
+
+    lab, n_lab = ndimage.label(sat)
+    m, n = counts.shape
+    for i in range(1, n_lab + 1):
+        r0, c0 = ndimage.center_of_mass(sat, lab, i)
+        size = math.sqrt((lab == i).sum())
+        length = 3.0 * size + 15.0
+        reach = int(4 * length)          # the spikes fade to 2 % of their start beyond 4 lengths
+        ra, rb = max(0, int(r0) - reach), min(m, int(r0) + reach + 1)
+        ca, cb = max(0, int(c0) - reach), min(n, int(c0) + reach + 1)
+        rr, cc = np.mgrid[ra:rb, ca:cb]
+        box = add[ra:rb, ca:cb]
+        rot = rng.uniform(0, np.pi / 3)
+        for j in range(6):
+            t = rot + j * np.pi / 3
+            u = (cc - c0) * math.cos(t) - (rr - r0) * math.sin(t)      # along the spike
+            v = (cc - c0) * math.sin(t) + (rr - r0) * math.cos(t)      # across it
+            on = (u > 0) & (np.abs(v) < 4.0)
+            box[on] += (0.6 * full * np.exp(-u[on] / length) * np.exp(-0.5 * (v[on] / 0.8) ** 2)).astype(np.float32)
+    return add
+
+
+def write_sphere_capture(sc: SphereCapture, folder, *, truth: bool = True) -> list:
+    """Write a sphere capture as ``sphere_NN.tif`` (16-bit, calibrated in um), with
+    ``truth/spheres.csv`` (``col,row,radius_px,kind``: a ``--sphere-circles`` file) and
+    ``truth/lights_positions_mm.csv`` when ``truth``. Returns the paths written."""
+    folder = Path(folder)
+    written = []
+    with atomic_output_dir(folder) as tmp:
+        for name, img in zip(sc.files, sc.images):
+            _write_camera_tiff(tmp / name, img, sc.pixel_size_um)
+            written.append(name)
+        if truth:
+            (tmp / "truth").mkdir()
+            with open(tmp / "truth" / "spheres.csv", "w", newline="", encoding="utf-8") as fh:
+                wr = csv.writer(fh)
+                wr.writerow(["col", "row", "radius_px", "kind"])
+                for s in sc.spheres:
+                    wr.writerow([f"{s['centre_px'][0]:.3f}", f"{s['centre_px'][1]:.3f}", f"{s['radius_px']:.3f}",
+                                 s["kind"]])
+            with open(tmp / "truth" / "lights_positions_mm.csv", "w", newline="", encoding="utf-8") as fh:
+                wr = csv.writer(fh)
+                wr.writerow(["x_mm", "y_mm", "z_mm"])
+                for p in sc.light_positions_mm:
+                    wr.writerow([f"{v:.6f}" for v in p])
+            (tmp / "truth" / "spheres.json").write_text(json.dumps({"spheres": sc.spheres}, indent=1),
+                                                        encoding="utf-8")
+            written += ["truth/spheres.csv", "truth/lights_positions_mm.csv", "truth/spheres.json"]
+    return [folder / w for w in written]

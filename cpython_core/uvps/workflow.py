@@ -1,0 +1,327 @@
+"""What the run command and batch share, above the library: the run's declared parameters, one
+capture run into a run folder, and a run folder's statistics and report.
+
+Not a command (it declares none): ``run``, ``flatfield``, ``lights``, ``normals`` (in
+:mod:`uvps.commands.capture`), ``stats`` (in :mod:`uvps.commands.protrusions`) and ``batch`` call it,
+so that no command calls another. It calls the library (:mod:`uvps.core`), the file layer
+(:mod:`uvps.files`) and the report (:mod:`uvps.report`).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .core.measure import empty_table
+from .core.pipeline import LAMP_BEAMS, RunOptions, given_lights, run
+from .core.regions import propose_regions, region_statistics, whole_image
+from .errors import UVPSInputError
+from .files.calibration import apply as apply_calibration, run_params
+from .files.cards import load_card
+from .files.io import read_capture
+from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
+                            report, sub_progress)
+from .files.runfolder import FILES, RunImages, read_run, write_run
+from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
+from .report.page import print_pdf, write_report
+from .spec import Param
+
+log = logging.getLogger(__name__)
+
+_RUN = RunOptions()
+
+#: The options of the photometric-stereo stages as the commands declare them (help, Fiji labels); their
+#: defaults are :class:`~uvps.core.pipeline.RunOptions`'s, the CLI flags, the bridge's keys and the Fiji
+#: fields come from here.
+OPTION_PARAMS = (
+    Param("degree", "int", _RUN.degree, minimum=1, maximum=8, label="Degree of the lamps' drop-off fit (4 suits most captures)",
+          help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
+    Param("robust", "bool", _RUN.robust, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
+          help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
+               "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
+    Param("integration", "choice", _RUN.integration, choices=("fc", "dct"), label="Integration method",
+          help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
+    Param("refine_lights", "bool", _RUN.refine_lights, help="refine each lamp after the paper's equidistant solution"),
+    Param("sample_pixels", "int", _RUN.sample_pixels, minimum=500, help="pixels sampled by the photometric residual (at most 1 in 16)"),
+    Param("estimate_intensities", "bool", _RUN.estimate_intensities,
+          help="with known lights: each lamp's intensity from the images even over the light file's own"),
+    Param("black_level", "numbers", _RUN.black_level, unit="counts", minimum=0, label="Black level",
+          help="the camera's black level left in the files (one number, or R,G,B): subtracted instead of "
+               "measuring it from the images"),
+    Param("offset", "choice", _RUN.offset, choices=("auto", "measure", "none"),
+          help="additive term (black level, stray light) when none is given (black_level, dark, a raw file's "
+               "levels): auto measures it from the images of more than 8 bits and subtracts it where the fit pins "
+               "it; measure: also on 8-bit and linearised JPEG images; none: nothing"),
+    Param("offset_degree", "int", _RUN.offset_degree, minimum=0, maximum=2,
+          help="0: a constant black level; 1-2: also stray light varying smoothly across the field"),
+    Param("lamp_beams", "choice", _RUN.lamp_beams, choices=LAMP_BEAMS,
+          help="with lamp positions given, each image's drop-off beyond the point-light model (a lamp's beam, its "
+               "aim): auto divides out what no tilt of the canvas explains (the canvas's bow kept); all divides out "
+               "all of it (narrowest beams; the bow goes from the heights too); none keeps it"),
+    Param("card", "path", label="Card: images of a flat fluorescent card under each lamp (needs the lights)",
+          help="a flat fluorescent card on the painting under each lamp position, in the capture's order (a folder "
+               "or stack, dark frame subtracted as the capture's; or a stored card): divides out each lamp's beam, "
+               "power and the vignetting; needs the lamps (--lights)"),
+)
+#: Where the capture comes from: shared by run, flatfield, lights and normals.
+CAPTURE_PARAMS = (
+    Param("images", "paths", where="inputs", positional=True, required=True,
+          label="Images (folder, multi-page TIFF, or files separated by ;)",
+          help="image files, a folder, or one multi-page TIFF"),
+    Param("lights", "path", choices=("estimate",),
+          label="Lights file (.lp, or lamp positions in mm; empty = the run folder's, else estimated)",
+          help="RTI .lp (directions) or positions file (.csv/.json, mm); 'estimate': from the images even where "
+               "the run folder has lights.json; default: the run folder's lights.json (flatfield, normals), "
+               "else estimated"),
+    Param("calibration", "path", label="Calibration folder (optional: from Calibrate Lamps)",
+          help="a calibration folder from `uvps calibrate`: its lamps (matched to the images by order), its dark "
+               "frame unless dark is given, its pixel size unless given"),
+    Param("mask", "path", label="Mask image (optional: white = the part of the painting to use)", help="mask image (non-zero = use)"),
+    Param("dark", "path", label="Dark frame (optional: a picture taken with the UV lamps off)", help="a frame with the UV lamp off (or the camera's dark frame), "
+          "subtracted from every image"),
+    Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um", label="Pixel size on the painting (0 = from the image file)",
+          help="pixel size on the painting (default: from the TIFF tags)"),
+    Param("linearize", "choice", "auto", choices=("auto", "srgb", "none"),
+          help="sRGB -> linear (auto: JPEG only)"),
+    Param("pattern", "str", label="Pattern (of a folder's image names, e.g. uv_*.tif; empty = the lamp images)",
+          help="with a folder: only its files whose names match this pattern (e.g. 'uv_*.tif'); without it, "
+               "files named as a mask, dark frame, thumbnail or reference, or of another size than most, are "
+               "left out"),
+)
+#: ``run`` adds the protrusion stages.
+PROTRUSION_PARAMS = (
+    Param("regions", "path", choices=("auto",), label="Regions: colour areas to count in (auto = from the colours, a label image, or empty = none)",
+          help="colour-area label TIFF, or 'auto' (proposed from the albedo colour): adds detection, statistics "
+               "and the report"),
+    Param("detect", "bool", False, label="Detect protrusions (also without regions)", help="detect protrusions, with statistics and the report, even without regions (counted over the whole image)"),
+    Param("n_areas", "int", minimum=1, help="number of colour areas for regions='auto' (default: chosen)"),
+    Param("bins_um", "numbers", 100.0, unit="um", minimum=0, help="width bin of the histograms, or increasing edges"),
+)
+
+#: What ``run`` writes beyond its results (normals, albedo, gradients, height, lights, drop-off maps).
+OUTPUT_PARAMS = (
+    Param("flatfield_images", "bool", False, label="Flatfield images: also write them (twice the capture's size)",
+          help="also write flatfield/: each image divided by its drop-off fit, one float32 TIFF per image "
+               "(twice the capture's size on disk; `uvps flatfield CAPTURE -o RUN` writes them later from the "
+               "run's lights.json)"),
+    Param("ome_zarr", "bool", False, label="Zarr: also write OME-Zarr image pyramids (napari, BigDataViewer)",
+          help="also write depth, normals and albedo (with the label images) as OME-Zarr pyramids "
+               "(OME-NGFF 0.4), for napari, BigDataViewer/MoBIE and web viewers of whole paintings"),
+)
+
+
+def run_options(params: dict) -> RunOptions:
+    """The :class:`~uvps.core.pipeline.RunOptions` among a request's (coerced) parameters; absent
+    ones take their default."""
+    return RunOptions(**{p.name: params[p.name] for p in OPTION_PARAMS if params.get(p.name) is not None})
+
+
+def read_request_capture(inputs: dict, params: dict, progress=None):
+    """The capture a request names (``inputs.images`` and the capture parameters)."""
+    images = inputs["images"]
+    if len(images) == 1:
+        images = images[0]
+    lights = None if params["lights"] == "estimate" else params["lights"]
+    return read_capture(images, lights=lights, mask=params["mask"], dark=params["dark"],
+                        pixel_size_um=params["pixel_size_um"], linearize=params["linearize"],
+                        pattern=params.get("pattern"), progress=progress)
+
+
+#: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
+REUSE_LIGHTS = ("flatfield", "normals")
+
+
+
+
+def run_into_folder(name: str, stages: tuple, inputs: dict, params: dict, output_dir, *, progress: Progress = None
+                ) -> CommandResult:
+    """Read a capture, run :func:`uvps.core.pipeline.run` on it and write the run folder
+    (:func:`uvps.files.runfolder.write_run`): what ``run``, ``flatfield``, ``lights`` and ``normals``
+    do (``name``, with the pipeline's ``stages``) and what ``batch`` does for each capture.
+    ``params`` are the command's, coerced (every declared key present)."""
+    run_dir = check_output_dir(output_dir)
+    t_all = time.perf_counter()
+    params, cal = run_params(params)     # the calibration's lamps, dark frame, pixel size
+    if cal is None and name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
+        # step by step: the lamps of the folder's `lights` step, not a second estimate that
+        # could differ (and costs the most time)
+        params = {**params, "lights": str(run_dir / "lights.json")}
+        log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
+    capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
+    if cal is not None:
+        capture = apply_calibration(cal, capture)
+    protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
+    regions = params.get("regions") if protrusions else None
+    if regions is not None and regions != "auto":
+        # a label image or masks, read before the run computes (and sized as the capture)
+        regions = load_regions([Path(p) for p in regions] if isinstance(regions, (list, tuple)) else Path(regions),
+                               shape=capture.images.shape[1:3])
+    todo = stages
+    if name == "run" and not params.get("flatfield_images"):
+        # the flat-fielded images are twice the capture on disk (15 GB for 10000 x 8000 x 16) and
+        # 4.3 of a 4000 x 3000 run's 16 s; the normals divide by the same drop-off in memory
+        todo = tuple(s for s in stages if s != "flatfield")
+    card = None
+    if params.get("card"):
+        # the card's images with the capture's dark frame subtracted, as the capture's were
+        card = load_card(params["card"], lights=given_lights(capture), pixel_size_um=capture.pixel_size_um,
+                         dark=params["dark"], linearize=params["linearize"])
+    result = run(capture, run_options(params), stages=todo + (("protrusions",) if protrusions else ()),
+                 dark_given=params["dark"] is not None, regions=regions, card=card,
+                 n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
+    if cal is not None:
+        result.diagnostics["calibration"] = cal.summary()
+        if result.relief:
+            result.relief = {**result.relief, "lamps": "calibration",
+                             "reason": f"the lamps come from the calibration {cal.folder} "
+                                       f"({result.diagnostics['calibration'].get('route')}), which fixes "
+                                       "their elevation and so the heights' scale"}
+    if name != "run":
+        with atomic_output_dir(run_dir) as tmp:
+            outputs = write_run(tmp, result, command=name, params=params, final=run_dir,
+                                          progress=sub_progress(progress, 0.9, 0.95))
+        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+    else:
+        # the whole result, report and figures included, is built in a new folder that replaces
+        # the old one in one step: a run folder is never a mixture of two runs
+        dropped = _earlier_results(run_dir)
+        with new_output_dir(run_dir, carry_over=carried_over) as new:
+            outputs = write_run(new, result, command=name, params=params, final=run_dir,
+                                          progress=sub_progress(progress, 0.9, 0.95))
+            out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+            if protrusions:
+                out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
+                for o in out.outputs:
+                    if Path(o.path).is_relative_to(new):
+                        o.path = str(run_dir / Path(o.path).relative_to(new))
+        if dropped:
+            out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
+                                "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
+    out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
+    out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
+    report(progress, 1.0, f"{name}: done")
+    return out
+
+
+#: What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the report's
+#: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
+#: of an earlier run (its flat-field, OME-Zarr stores, the wand's and compare's results) were made
+#: under its lamps and heights. Anything else in the folder (the user's clicks or notes, the demo's
+#: ``capture/``) is carried into the new folder unchanged.
+RUN_OWNED = frozenset(f for f, *_ in FILES.values()) | {"figures", "relight.tif"}
+
+
+def carried_over(name: str) -> bool:
+    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
+    leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
+    return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
+
+
+def _earlier_results(run_dir: Path) -> list:
+    """The manual results of an earlier run in ``run_dir`` that a new run drops (the warning names them)."""
+    names = (FILES["protrusions_manual"][0], FILES["comparison"][0])
+    return [n for n in names if (Path(run_dir) / n).is_file()]
+
+
+def _statistics_and_report(run_dir, result, params, out, progress):
+    """``run`` with colour areas or detection: statistics and the report, from the arrays in memory
+    (the files just written hold the same float32 values)."""
+    st = result.stereo
+    images = RunImages(st.albedo, result.height.height_um, st.normals, result.capture.pixel_size_um,
+                       result.height.height_um.shape)
+    r = statistics_and_report(run_dir, images, bins_um=params["bins_um"], progress=progress)
+    out.outputs += r.outputs
+    out.diagnostics["stats"] = r.diagnostics
+    out.warnings += r.warnings
+    return out
+
+
+def regions_for(spec, run_dir: Path, images, *, n_areas=None, seed=0):
+    """Colour areas from ``params.regions``: a label TIFF path, "auto", or None (the run's
+    ``regions_labels.tif`` when present, else None). Returns (RegionMap or None, proposed?)."""
+    if spec is None:
+        spec = run_dir / "regions_labels.tif"
+        if not spec.is_file():
+            return None, False
+    if isinstance(spec, str) and spec == "auto":
+        if images.albedo is None:
+            raise UVPSInputError("regions='auto' needs the run's albedo.tif")
+        return propose_regions(images.albedo, pixel_size_um=images.pixel_size_um, n_areas=n_areas, seed=seed), True
+    if isinstance(spec, (list, tuple)):
+        return load_regions([Path(p) for p in spec], shape=images.shape), False
+    return load_regions(Path(spec), shape=images.shape), False
+
+
+
+def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
+                   path: Optional[Path] = None):
+    # areas are usually registered before detection: no table yet means counts of 0, not a warning
+    path = path or run_dir / "protrusions.csv"
+    table = read_protrusions_csv(path) if path.is_file() else empty_table()
+    stats = region_statistics(table, regions, pixel_size_um=px, bins_um=bins_um)
+    write_regions_csv(tmp / "regions.csv", stats)
+    return stats
+
+
+
+def statistics(run_dir, *, table=None, regions=None, bins_um=100.0, pixel_size_um=None, pdf=False,
+               images: Optional[RunImages] = None, progress: Progress = None) -> CommandResult:
+    """Per-area statistics (``regions.csv``) and the report (``report.html``, ``figures/``).
+
+    ``regions``: a label TIFF, default the run's ``regions_labels.tif``, else the whole image;
+    ``table``: default ``protrusions.csv``, else ``protrusions_manual.csv`` when only the wand ran.
+    """
+    run_dir = Path(run_dir)
+    warnings = []
+    if table:
+        table_path = Path(table)
+        table_path = table_path if table_path.is_absolute() else run_dir / table_path
+        if not table_path.is_file():
+            raise UVPSInputError(f"table: protrusion CSV {table_path} does not exist")
+    elif (run_dir / "protrusions.csv").is_file():
+        table_path = run_dir / "protrusions.csv"
+    elif (run_dir / "protrusions_manual.csv").is_file():
+        table_path = run_dir / "protrusions_manual.csv"
+        warnings.append("no protrusions.csv: statistics of the wand count "
+                        "(protrusions_manual.csv)")
+    else:
+        raise UVPSInputError(f"run folder {run_dir} has no protrusions.csv; run the 'detect' or "
+                             "'wand' command first")
+    if images is None:
+        images = read_run(run_dir, need=(), pixel_size_um=pixel_size_um)
+    if images.shape is None:
+        raise UVPSInputError(f"run folder {run_dir} has no albedo.tif or depth.tif to size the "
+                             "colour areas")
+    regions, _ = regions_for(regions, run_dir, images)
+    if regions is None:
+        regions = whole_image(images.shape)
+        warnings.append("no colour areas (regions_labels.tif): statistics over the whole image")
+    report(progress, 0.05, "statistics")
+    with atomic_output_dir(run_dir) as tmp:
+        stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,
+                               bins_um, warnings, table_path)
+    html = write_report(run_dir, stats=stats, regions=regions, warnings=list(warnings), images=images,
+                        table=table_path, progress=sub_progress(progress, 0.1, 1.0))
+    figures = sorted((run_dir / "figures").glob("*.png"))
+    outputs = [OutputSpec("regions", str(run_dir / "regions.csv"), kind="table", units="cm^-2"),
+               OutputSpec("report", str(html), kind="html")]
+    if pdf:
+        report(progress, 0.98, "printing the report to PDF")
+        outputs.append(OutputSpec("report_pdf", str(print_pdf(html)), kind="pdf"))
+    outputs += [OutputSpec(f"figure_{p.stem}", str(p), kind="image", axes="YXS", dtype="uint8")
+                for p in figures]
+    diagnostics = {r.name: {"count": r.count, "area_cm2": r.area_cm2,
+                            "density_per_cm2": r.density_per_cm2} for r in stats.rows}
+    return CommandResult(outputs, {"areas": diagnostics, "outside": stats.outside,
+                                   "table": str(table_path),
+                                   "edges_um": [float(e) if np.isfinite(e) else None
+                                                for e in stats.edges_um]}, warnings)
+
+
+def statistics_and_report(run_dir, images: RunImages, *, bins_um=100.0, progress: Progress = None) -> CommandResult:
+    """:func:`statistics` on a run folder whose images the caller holds in memory (``run`` with
+    detection has just written them), without reading the TIFFs back."""
+    return statistics(run_dir, bins_um=bins_um, images=images, progress=progress)
