@@ -40,7 +40,7 @@ import numpy as np
 from skimage.measure import regionprops_table
 
 from benchmark_protrusions import match
-from uvps.core.detect import detect_protrusions
+from uvps.core.detect import DetectionParams, detect_protrusions
 from uvps.files.tables import read_protrusions_csv
 from uvps.testing.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
 
@@ -66,7 +66,7 @@ SCENES = {
 }
 
 
-def _detections_from_truth(cap, height_noise):
+def _detections_from_truth(cap, height_noise, params=None):
     """Centroids (x, y px), widths (um), rejection counts and time of detect_protrusions on the
     generator's true albedo, height and normals (plus white height noise)."""
     px = cap.spec.pixel_size_um
@@ -75,7 +75,7 @@ def _detections_from_truth(cap, height_noise):
         rng = np.random.default_rng(1000 + cap.spec.seed)
         h = h + rng.normal(0, height_noise, h.shape).astype(np.float32)
     t0 = time.perf_counter()
-    det = detect_protrusions(cap.albedo, h, pixel_size_um=px, normals=cap.normals)
+    det = detect_protrusions(cap.albedo, h, pixel_size_um=px, normals=cap.normals, params=params)
     elapsed = time.perf_counter() - t0
     props = regionprops_table(det.labels, properties=("centroid", "area"))
     xy = np.column_stack([props["centroid-1"], props["centroid-0"]])
@@ -162,7 +162,8 @@ def run_seed(seed, shape, args):
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
-        xy, w, rejected, elapsed = _detections_from_truth(cap, args.height_noise)
+        params = DetectionParams(shoulder_width_um=getattr(args, "shoulder_width_um", 0.0))
+        xy, w, rejected, elapsed = _detections_from_truth(cap, args.height_noise, params)
     res = score(cap, xy, w)
     res.update(seed=seed, time=elapsed, rejected=rejected)
     return res
@@ -234,6 +235,8 @@ def main(argv=None) -> int:
                          "impasto (uvps.testing.synthetic.IMPASTO); the others one impasto morphology")
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
+    ap.add_argument("--shoulder-width-um", type=float, default=0.0,
+                    help="DetectionParams.shoulder_width_um (the opt-in shoulder cue; 0 = off)")
     ap.add_argument("--pipeline", action="store_true",
                     help="end to end through `uvps run CAPTURE -o RUN --detect --lights "
                          "CAPTURE/lights_positions_mm.csv --black-level B` on the written capture")

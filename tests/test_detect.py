@@ -541,3 +541,32 @@ def test_brightness_is_the_channel_sum(dtype):
     alb = (rng.random((40, 50, 3)) * 3000).astype(dtype)
     np.testing.assert_array_equal(_brightness(alb), alb.astype(np.float32).sum(axis=2))
     assert _brightness(alb).dtype == np.float32
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
+    """A 80 um dome (20 um high) on the flank of a 400 um one (100 um high), so close that the
+    height has no saddle under it: without the curvature cue the two are one protrusion; with
+    it the small one is a protrusion of its own, near its true width, and the large one keeps
+    its centre. A lone 400 um dome and a mesa are not split (isotropy, dynamic)."""
+    px = 15.0
+    alb, h = scene((220, 220), seed=seed, noise_um=0.3)
+    big_c, small_c = (110, 90), (110, 90 + 0.75 * 200 / px)    # on the flank, 3/4 of the radius out
+    big = np.zeros_like(h)
+    add_profile(big, big_c, 400.0, px, 100.0, "dome")
+    small = np.zeros_like(h)
+    add_profile(small, small_c, 80.0, px, 20.0, "dome")
+    h += big + small                                    # the small one sits on the flank
+    sc = (110, int(round(small_c[1])))
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(shoulder_width_um=0))
+    assert off.labels.max() == 1 and off.labels[sc] == off.labels[big_c]   # today's split misses it
+    on = DetectionParams(shoulder_width_um=60.0)
+    det = detect_protrusions(alb, h, pixel_size_um=px, params=on)
+    assert det.labels.max() == 2
+    assert det.labels[sc] > 0 and det.labels[big_c] > 0 and det.labels[sc] != det.labels[big_c]
+    assert 0.5 <= width_of(det.labels, sc, px) / 80.0 <= 1.5
+    # a lone dome and a lone mesa stay one protrusion each
+    alb2, h2 = scene((220, 220), seed=seed, noise_um=0.3)
+    add_profile(h2, (110, 60), 400.0, px, 100.0, "dome")
+    add_profile(h2, (110, 165), 300.0, px, 40.0, "mesa")
+    assert detect_protrusions(alb2, h2, pixel_size_um=px, params=on).labels.max() == 2

@@ -171,6 +171,22 @@ class DetectionParams:
         rejects is measured again over the stroke's own profile continued along the stroke: the
         height minus its grey opening by a line this many times the peak's compact radius long,
         in the direction the height around it runs on (:func:`_bumps_on_strokes`). 0 disables.
+    shoulder_width_um : float
+        Width (um) of the small protrusions sought as shoulders of a taller neighbour (no saddle
+        ``split_fraction`` below them): the height cue also splits a footprint at the dome-like
+        maxima of the compact relief's curvature (minus its Laplacian of Gaussian, sigma =
+        this width / (2 sqrt 2)) that stand ``shoulder_k`` x the curvature's noise above the
+        saddle to a higher curvature peak (:func:`_shoulder_markers`). 0 (the default)
+        disables; 60 finds 60-100 um shoulders, at a cost in precision measured in
+        ``docs/benchmarks.md`` ("Detection on other shapes and surfaces").
+    shoulder_k : float
+        Least dynamic of such a curvature peak in multiples of the measured curvature noise
+        (MAD over the image), and at least the curvature of a dome ``shoulder_width_um`` wide
+        and the relief threshold high.
+    shoulder_isotropy : float
+        Least ratio of the Hessian's two (negative) eigenvalues at a shoulder peak: a dome is
+        curved down all round (ratio near 1); a mesa's or a crater's rim, a stroke's crest, only
+        across (ratio near 0).
     max_hole_fraction : float
         Largest fraction of a candidate's filled outline that may lie below its footprint
         level (cupped island rims enclose their dish).
@@ -209,6 +225,9 @@ class DetectionParams:
     ridge_compact_fraction: float = 0.5
     stroke_slope_k: float = 3.0
     along_stroke_k: float = 6.0
+    shoulder_width_um: float = 0.0
+    shoulder_k: float = 5.0
+    shoulder_isotropy: float = 0.6
     max_hole_fraction: float = 0.25
     max_crack_fraction: float = 0.08
     max_mismatch: float = 0.5
@@ -626,18 +645,87 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
     return markers, k_all
 
 
-def _height_cue(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
+def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Thresholds,
+                      px: float, p: DetectionParams) -> tuple:
+    """Markers of small protrusions that are only a shoulder of a taller neighbour, and the
+    curvature they were found on.
+
+    A dome of width ``w`` on the flank of a taller protrusion has no maximum of the height of
+    its own (or one with no saddle ``split_fraction`` below it), but its curvature does: minus
+    the Laplacian of Gaussian of the compact relief at sigma ``w / (2 sqrt 2)`` (the scale at
+    which a paraboloid of that width responds most) has a maximum on it. Kept: maxima whose
+    dynamic (``h_maxima``: how far the curvature drops before a higher peak) exceeds
+    ``shoulder_k`` x the curvature's noise (a robust MAD over the image) and the curvature
+    ``4 relief_um / (w / 2)^2`` of a paraboloid ``w`` wide and the relief threshold high,
+    where both eigenvalues of the Hessian are negative with a ratio >= ``shoulder_isotropy``
+    (curved down all round: not a mesa's or a crater's rim, not a stroke's crest), at least
+    the relief threshold high and ``w`` / px from every height marker, inside a basin. Hand-
+    written because no library detects blobs inside another's footprint: skimage's
+    ``blob_log`` finds scale-space maxima over the whole image, without the footprint, the
+    isotropy or a dynamic. Returns (markers with the shoulders added, n, curvature)."""
+    n_h = int(markers.max())
+    if p.shoulder_width_um <= 0 or not n_h:
+        return markers, n_h, None
+    w = p.shoulder_width_um / px
+    sigma = w / (2.0 * math.sqrt(2.0))
+    t64 = t.astype(np.float64)
+    curv = -ndi.gaussian_laplace(t64, sigma)
+    # the curvature's own Hessian: a blob of curvature (a dome, whatever slope or curvature
+    # of its neighbour it sits on) is curved down all round; a rim or a crest only across
+    hrr = ndi.gaussian_filter(curv, 1.0, order=(2, 0))
+    hcc = ndi.gaussian_filter(curv, 1.0, order=(0, 2))
+    hrc = ndi.gaussian_filter(curv, 1.0, order=(1, 1))
+    half_tr, det_d = 0.5 * (hrr + hcc), np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc ** 2)
+    lam_hi, lam_lo = half_tr + det_d, half_tr - det_d          # lam_lo <= lam_hi
+    iso = np.where(lam_hi < 0, lam_hi / np.minimum(lam_lo, -1e-12), 0.0)
+    noise = 1.4826 * float(np.median(np.abs(curv - np.median(curv))))
+    dyn = max(p.shoulder_k * noise, 4.0 * th.relief_um / (0.5 * w) ** 2)
+    inside = ws > 0
+    if not inside.any():
+        return markers, n_h, curv
+    hm = (h_maxima(np.where(inside, curv, curv[inside].min()), dyn) > 0) & inside
+    hm &= (t >= th.relief_um) & (iso >= p.shoulder_isotropy)
+    far = _edt(markers == 0) >= w / 2.0 + 1.0
+    lab, k = ndi.label(hm, structure=np.ones((3, 3)))
+    if not k:
+        return markers, n_h, curv
+    ok = np.zeros(k + 1, bool)
+    ok[np.unique(lab[hm & far])] = True
+    touch = np.unique(lab[hm & ~far])
+    ok[touch] = False
+    ok[0] = False
+    keep = ok[lab]
+    lut = np.zeros(k + 1, np.int32)
+    lut[ok] = np.arange(n_h + 1, n_h + 1 + int(ok.sum()), dtype=np.int32)
+    out = markers.copy()
+    out[keep] = lut[lab[keep]]
+    return out, int(out.max()), curv
+
+
+def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams) -> tuple:
     """Compact footprints of the compact-relief peaks: watershed of ``-t`` from the markers
     (splits touching clusters), then the part of each basin above ``footprint_fraction`` of its
-    peak that is connected to the marker. Returns (labels, markers, n)."""
+    peak that is connected to the marker. A basin holding shoulder markers
+    (:func:`_shoulder_markers`) is split again by a watershed of minus the curvature, so the
+    shoulder gets the part of the basin its own curvature encloses. Returns (labels, markers,
+    n, n_peaks): labels above ``n_peaks`` are shoulders."""
     markers, n_h = _peak_markers(t, th, p)
     if not n_h:
-        return np.zeros(t.shape, np.int32), markers, 0
+        return np.zeros(t.shape, np.int32), markers, 0, 0
     floor = p.footprint_fraction * th.relief_um
     ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
+    n_peaks = n_h
+    markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p)
+    if n_h > n_peaks:
+        split = np.zeros(n_peaks + 1, bool)
+        split[np.unique(ws[markers > n_peaks])] = True
+        split[0] = False
+        region = split[ws]
+        sub = watershed(-curv, np.where(region, markers, 0), mask=region)
+        ws = np.where(region, sub, ws)
     peak = _label_max(t, ws, n_h)
     cut = np.concatenate([[np.inf], p.footprint_fraction * peak])
-    return _seeded(ws, (t >= cut[ws]) & (ws > 0), markers), markers, n_h
+    return _seeded(ws, (t >= cut[ws]) & (ws > 0), markers), markers, n_h, n_peaks
 
 
 def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray:
@@ -1515,10 +1603,18 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
                 progress: Progress) -> Candidates:
     """The cues and their union (module docstring, steps 3-6)."""
     _report(progress, 0.3, "height cue")
-    hl, markers, n_h = _height_cue(surf.relief, th, p)
+    hl, markers, n_h, n_peaks = _height_cue(surf.relief, th, px, p)
     relief = np.zeros(0)
     if n_h:
+        compact = hl
         hl, relief = _local_footprints(surf.height, hl, markers, surf.relief, valid, th, p)
+        if n_h > n_peaks:
+            # a shoulder keeps the footprint its curvature drew: over a plane it has no peak
+            # of its own, so the footprints' re-drawing (and its merging of crests) takes it
+            # into its taller neighbour; its relief is the compact relief's top within it
+            sh = compact > n_peaks
+            hl = np.where(sh, compact, np.where(hl > n_peaks, 0, hl))
+            relief[n_peaks:] = np.maximum(_label_max(surf.relief, compact, n_h)[n_peaks:], 0)
     _report(progress, 0.5, "albedo cue")
     mask_albedo = _albedo_cue(lum, valid, px, th, p)
     long_lab, t_disc = _long_areas(surf, valid, th, hl > 0)
