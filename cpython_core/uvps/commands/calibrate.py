@@ -1,25 +1,6 @@
-"""The calibration folder: lamps pinned once by spheres (or a measured rig), reused for every capture
-taken with the same lamp positions (``uvps calibrate``, ``uvps run --calibration CAL``).
-
-A calibration folder ``CAL`` holds (docs/capture.md, the contract in docs/architecture.md):
-
-- ``calibration.json``: ``{"format": "uvps-calibration", "version": 1, "pixel_size_um", "image_shape",
-  "n_lamps", "route": "spheres" | "positions" | "dome" | "lp", "spheres": [...], "lamps": [...],
-  "inputs": {path: sha256}, "card": {...} or null, "dark": bool}``;
-- ``lights.json``: the run folder's format (a direction per lamp; a position in mm where two or more
-  spheres, a positions file or a 3-D dome give one), matched to a capture's images by order;
-- ``rig.dome``: the same lamps as a relight dome file (JSON; :func:`write_dome`), for RTI tools;
-- ``dark.tif``: the dark frame as given (counts), when one was;
-- ``spheres.png``: the sphere capture's mean with the spheres found drawn on it, to check.
-
-Relight's ``.dome`` (cnr-isti-vclab/relight, docs/dome.md there): a JSON object with ``label``,
-``notes``, ``imageWidth``, ``domeDiameter``, ``verticalOffset``, ``lightConfiguration``
-("directional", "spherical" or "lights3d"), ``directions``, ``positionsSphere`` and ``positions3d``
-(each a list of ``{"x", "y", "z"}``; origin the image centre, x right, y toward the top of the
-image, z up toward the camera: uvps's frame) and ``ledAdjust``. Its unit is the file's own (recent
-relight: mm; older files: cm); only the ratio to ``imageWidth`` matters to relight. uvps writes mm
-with ``imageWidth`` the field's width in mm, and reads positions in mm, or scaled by the field's
-width over ``imageWidth`` when both are known.
+"""``uvps calibrate``: lamps pinned once by spheres (or a measured rig) into a calibration folder, reused
+for every capture taken with the same lamp positions (``uvps run --calibration CAL``). The folder's
+contents and the relight ``.dome`` format: :mod:`uvps.files.calibration`.
 """
 from __future__ import annotations
 
