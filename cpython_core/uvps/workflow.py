@@ -8,6 +8,7 @@ so that no command calls another. It calls the library (:mod:`uvps.core`), the f
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -136,6 +137,14 @@ REUSE_LIGHTS = ("flatfield", "normals")
 
 
 
+def _lights_source(path) -> Optional[str]:
+    """The ``source`` a run folder's ``lights.json`` records (None when unreadable)."""
+    try:
+        return json.loads(Path(path).read_text()).get("source")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def run_into_folder(name: str, stages: tuple, inputs: dict, params: dict, output_dir, *, progress: Progress = None
                 ) -> CommandResult:
     """Read a capture, run :func:`uvps.core.pipeline.run` on it and write the run folder
@@ -150,6 +159,10 @@ def run_into_folder(name: str, stages: tuple, inputs: dict, params: dict, output
         # could differ (and costs the most time)
         params = {**params, "lights": str(run_dir / "lights.json")}
         log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
+        if _lights_source(run_dir / "lights.json") == "estimated":
+            # lamps fitted to these images' own drop-off: nothing beyond their model to divide out, as in
+            # `run`, which estimates them and divides nothing (the steps give the whole run's normals)
+            params = {**params, "lamp_beams": "none"}
     capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
     if cal is not None:
         capture = apply_calibration(cal, capture)
