@@ -273,7 +273,9 @@ def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dar
     t0 = time.perf_counter()
     inputs = {"spheres": [str(sphere_dir)]}
     if dark is not None:
-        inputs["dark"] = str(dark)
+        # the sphere capture's own dark frame (another exposure than the painting's); the run is given the
+        # painting's (--dark), as a conservator who took the two at two exposures does
+        inputs["dark"] = str(sphere_dir / "dark" / "dark.tif")
     if card is not None:
         inputs["card"] = str(card)
     COMMANDS["calibrate"](inputs, {"pixel_size_um": float(cap.spec.pixel_size_um)}, cal_dir)
@@ -390,6 +392,9 @@ def run_group(row, seed, lamps, modes, workdir, config, *, keep=False, retry_fai
                                                        card=cap_dir / "card" if mode == "spheres_card" else None)
                     params["calibration"] = str(cal_dir)
                     argv += ["--calibration", str(cal_dir)]
+                    if cap_has_dark:
+                        params["dark"] = str(dark_path)
+                        argv += ["--dark", params["dark"]]
                 except Exception as exc:  # reported as the run's failure below
                     cal_score = {"calibrate_error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
             if config.get("lamp_beams") and mode in KNOWN_LAMP_MODES:

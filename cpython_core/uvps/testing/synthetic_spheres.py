@@ -63,7 +63,8 @@ class SphereCapture:
     """A rendered sphere capture and its truth.
 
     ``spheres``: one dict per sphere with ``centre_px`` [col, row], ``radius_px``, ``kind`` and
-    ``centre_mm`` [x, y, z]; ``light_positions_mm`` (K, 3) the painting capture's lamps.
+    ``centre_mm`` [x, y, z]; ``light_positions_mm`` (K, 3) the painting capture's lamps; ``dark`` the
+    frame with the lamps off at the sphere capture's exposure (its own: the painting's is at another).
     """
 
     images: np.ndarray
@@ -71,6 +72,9 @@ class SphereCapture:
     spheres: list
     pixel_size_um: float
     files: list = field(default_factory=list)
+    #: The frame with the lamps off at the sphere capture's exposure (black level and the room's stray
+    #: light), when the painting capture has either; None otherwise.
+    dark: Optional[np.ndarray] = None
 
 
 def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec] = DEFAULT_SPHERES, *,
@@ -180,6 +184,11 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     rgb = capture.images.ndim == 4
     black = (np.zeros(3 if rgb else 1, np.float32) if nzs.black_level is None
              else np.asarray(nzs.black_level, np.float32))
+    # the room's stray light, in every picture at this capture's exposure (its dark frame holds it too)
+    stray = None
+    if nzs.stray_light is not None:
+        st = np.asarray(nzs.stray_light, np.float32)
+        stray = (exposure * capture.exposure * (st.mean(axis=-1) if st.ndim == 3 else st)).astype(np.float32)
     out = np.empty((len(lamps), m, n) + ((3,) if rgb else ()), np.uint16)
     for k, (L, e) in enumerate(zip(lamps, E)):
         ax = nzs.beam_axes[k] if beam else None
@@ -193,6 +202,8 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         counts = (exposure * capture.exposure * sig).astype(np.float32)
         if flare:
             counts += _flare(counts, glossy, rng)
+        if stray is not None:
+            counts += stray
         if rgb:     # a neutral white sphere and background, seen by the capture's colour camera
             counts = np.repeat(counts[..., None], 3, axis=2)
         if spec.noise:
@@ -200,7 +211,15 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         counts += black if rgb else black[0]
         out[k] = np.clip(np.rint(counts), 0, 65535)
     files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
-    return SphereCapture(out, np.asarray(lamps, float), truth, px, files)
+    dark = None
+    if nzs.black_level is not None or stray is not None:
+        counts = np.zeros((m, n), np.float32) if stray is None else stray.copy()
+        if rgb:
+            counts = np.repeat(counts[..., None], 3, axis=2)
+        if spec.noise:
+            counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
+        dark = np.clip(np.rint(counts + (black if rgb else black[0])), 0, 65535).astype(np.uint16)
+    return SphereCapture(out, np.asarray(lamps, float), truth, px, files, dark)
 
 
 def _coverage(u, v, radius_px, *, sub=8):
@@ -267,7 +286,8 @@ def _flare(counts, glossy, rng, *, full=65535.0):
 
 
 def write_sphere_capture(sc: SphereCapture, folder, *, truth: bool = True) -> list:
-    """Write a sphere capture as ``sphere_NN.tif`` (16-bit, calibrated in um), with
+    """Write a sphere capture as ``sphere_NN.tif`` (16-bit, calibrated in um), its ``dark/dark.tif`` when it
+    has one, with
     ``truth/spheres.csv`` (``col,row,radius_px,kind``: a ``--sphere-circles`` file) and
     ``truth/lights_positions_mm.csv`` when ``truth``. Returns the paths written."""
     folder = Path(folder)
@@ -276,6 +296,10 @@ def write_sphere_capture(sc: SphereCapture, folder, *, truth: bool = True) -> li
         for name, img in zip(sc.files, sc.images):
             _write_camera_tiff(tmp / name, img, sc.pixel_size_um)
             written.append(name)
+        if sc.dark is not None:
+            (tmp / "dark").mkdir()
+            _write_camera_tiff(tmp / "dark" / "dark.tif", sc.dark, sc.pixel_size_um)
+            written.append("dark/dark.tif")
         if truth:
             (tmp / "truth").mkdir()
             with open(tmp / "truth" / "spheres.csv", "w", newline="", encoding="utf-8") as fh:
