@@ -1423,7 +1423,7 @@ def _line_opening(h: np.ndarray, theta: float, length_px: float) -> np.ndarray:
 
 
 def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
-                 p: DetectionParams) -> tuple:
+                 p: DetectionParams, crack_px: float = 0.0) -> tuple:
     """A candidate's bump over the stroke's profile continued along the stroke.
 
     The excess ``e = h - line opening`` along the stroke's direction, the line
@@ -1435,8 +1435,17 @@ def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
     line; at most half the peak), so the ripple under a bump is not counted in its width.
     Returns (footprint, outline, peak excess um), or (None, None, 0) when the footprint reaches
     the crop's border (not closed: the height does not run on as a stroke does)."""
-    theta = _stroke_direction(h, inner, r_px)
-    e = h - _line_opening(h, theta, max(p.along_stroke_k * r_px, 9.0))
+    base = h
+    if crack_px > 0:
+        # cracks filled first (a closing by the crack width, the groove the ``crack`` rule
+        # measures): a crack crossing the line would drop the opening to its floor along the
+        # whole line and open the excess of a protrusion that merely touches it
+        k = 2 * int(math.ceil(crack_px / 2)) + 1
+        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        base = cv2.morphologyEx(h.astype(np.float32), cv2.MORPH_CLOSE, se,
+                                borderType=cv2.BORDER_REFLECT)
+    theta = _stroke_direction(base, inner, r_px)
+    e = h - _line_opening(base, theta, max(p.along_stroke_k * r_px, 9.0))
     seed = np.unravel_index(int(np.argmax(np.where(inner, e, -np.inf))), e.shape)
     peak = float(e[seed])
     parts = []
@@ -1452,6 +1461,17 @@ def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
     if foot[0].any() or foot[-1].any() or foot[:, 0].any() or foot[:, -1].any():
         return None, None, 0.0
     return foot, parts[1], peak
+
+
+def _outline_crack_fraction(h: np.ndarray, outline: np.ndarray, peak: float, floor_um: float,
+                            crack_px: float) -> float:
+    """The ``crack`` rule's quantity (:func:`_crack_fraction`) for one bump's outline in its
+    crop: the fraction of the 2-px ring around it in a crack at least half as deep as the bump
+    is high. A protrusion touching a crack keeps most of its ring on the paint; the corner of a
+    cupped island, whose lips rise toward the cracks around it, is bounded by them."""
+    ring = (_edt(~outline) <= 2) & ~outline
+    return float(_crack_fraction(outline.astype(np.int32), ring.astype(np.int32), h,
+                                 np.array([peak]), 1, crack_px, floor_um)[0])
 
 
 def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, reason, th: Thresholds,
@@ -1482,6 +1502,10 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
         region = lab[crop]
         foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um, p)
+        cracked = foot is None and f.crack_fraction[j] > 0
+        if cracked:         # open along a crack it touches: again with the cracks filled
+            foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um,
+                                                p, p.crack_width_um / px)
         if foot is None or kept[region[foot]].any():
             continue
         area = float(np.count_nonzero(foot))
@@ -1489,7 +1513,10 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
         elong = area / (math.pi * float(_edt(np.pad(foot, 1)).max()) ** 2)
         if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
                 and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
-                and th.relief_um <= peak <= 2 * f.relief[j]):
+                and th.relief_um <= peak <= 2 * f.relief[j]
+                and not (cracked and _outline_crack_fraction(
+                    surf.height[crop], outline, peak, th.relief_um,
+                    p.crack_width_um / px) > p.max_crack_fraction)):
             region[region == k] = 0
             region[outline] = k
             kept[k], reason[j] = True, ""
