@@ -1489,14 +1489,16 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     lab, reason = cand.labels.copy(), reason.copy()
     if p.along_stroke_k <= 0:
         return reason, lab
-    test = np.flatnonzero(np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h
-                          & (f.under >= th.relief_um))
+    glow = f.has_a & ~f.has_h
+    bound = np.where(f.has_h, f.relief, f.relief_disc)
+    test = np.flatnonzero(((np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h)
+                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um))
     kept = np.zeros(int(lab.max()) + 1, bool)
     kept[f.lbl[reason == ""]] = True
     slices, (m, n) = ndi.find_objects(lab), lab.shape
     for j in test:
         k, sl = int(f.lbl[j]), slices[int(f.lbl[j]) - 1]
-        r = math.sqrt(max(np.count_nonzero(cand.height[sl] == k), 1) / math.pi)
+        r = math.sqrt(max(np.count_nonzero((cand.height if f.has_h[j] else lab)[sl] == k), 1) / math.pi)
         pad = int(4 * r + 6)
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
@@ -1513,7 +1515,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
         elong = area / (math.pi * float(_edt(np.pad(foot, 1)).max()) ** 2)
         if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
                 and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
-                and th.relief_um <= peak <= 2 * f.relief[j]
+                and th.relief_um <= peak <= 2 * bound[j]
                 and not (cracked and _outline_crack_fraction(
                     surf.height[crop], outline, peak, th.relief_um,
                     p.crack_width_um / px) > p.max_crack_fraction)):
