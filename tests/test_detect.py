@@ -393,6 +393,41 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
         assert det.labels.max() == 0
 
 
+def glowing_segment(alb, h, centre, px, *, width_um, length_um, height_um):
+    """A short glowing piece of stroke along the rows (a bright paint): an elliptic bump
+    ``width_um`` x ``length_um`` with the dome's profile, in the protrusions' colour."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]]
+    a, b = width_um / 2 / px, length_um / 2 / px
+    rho = np.hypot((yy - centre[0]) / a, (xx - centre[1]) / b)
+    h += (height_um * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)).astype(np.float32)
+    wgt = np.clip((1 - rho) * a, 0, 1)[..., None]
+    alb[:] = alb * (1 - wgt) + SOAP * wgt
+
+
+@pytest.mark.parametrize("seed, off", [(0, 8), (1, 10), (2, 8)])
+def test_small_dome_on_a_taller_strokes_flank_kept_short_segment_rejected(seed, off):
+    """A glowing 90 um dome on the flank of a stroke 400 um wide and 40 um high, its top below
+    the stroke's crest, has no compact relief of its own: only the albedo finds it, and as a
+    candidate without a compact peak on a long structure the ``ridge`` rule rejected it. Over
+    the stroke's own profile continued along the stroke it is a closed round bump: kept, with
+    its width. A glowing piece of stroke as wide and as high but 300 um long, on the same flank,
+    is as closed but 3.3x longer than wide: its second moments say so (its inscribed radius,
+    on a footprint 6 px wide, does not), and it stays rejected."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=100, width_um=400.0, height_um=40.0, ripple=0.0)
+    add_dome(alb, h, (100 - off, 200), 90.0, px)
+    glowing_segment(alb, h, (100 - off, 380), px, width_um=90.0, length_um=300.0,
+                    height_um=22.5)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[100 - off, 200] == 1
+    assert abs(width_of(det.labels, (100 - off, 200), px) / 90.0 - 1) < 0.15
+    assert det.labels[100 - off, 380] == 0
+    cl, reasons = det.diagnostics["candidate_labels"], det.diagnostics["candidate_reasons"]
+    ids = np.unique(cl[cl > 0])
+    assert reasons[np.searchsorted(ids, cl[100 - off, 380])] == "ridge"
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi

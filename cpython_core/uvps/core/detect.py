@@ -1513,7 +1513,12 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
         area = float(np.count_nonzero(foot))
         eqd = 2 * math.sqrt(area / math.pi)
         elong = area / (math.pi * float(_edt(np.pad(foot, 1)).max()) ** 2)
+        # the second moments as well: on a footprint a few pixels wide the inscribed radius
+        # is pixelised (a 6 x 20 px piece of stroke reads 2x elongated), its axes are not
+        major, minor = (float(a[0]) for a in _axis_lengths(outline.astype(np.int32), 1))
         if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
+                and not (minor < p.ridge_axis_ratio * major
+                         and major * px >= p.ridge_min_length_um)
                 and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
                 and th.relief_um <= peak <= 2 * bound[j]
                 and not (cracked and _outline_crack_fraction(
