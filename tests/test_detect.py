@@ -428,6 +428,38 @@ def test_small_dome_on_a_taller_strokes_flank_kept_short_segment_rejected(seed, 
     assert reasons[np.searchsorted(ids, cl[100 - off, 380])] == "ridge"
 
 
+def cracked_paint(h, px, *, col, row, side_row=40, slant=1.0, cupping_um=40.0, half_mm=1.0):
+    """Craquelure as ``uvps.testing.synthetic`` draws it: a crack through (``col``, ``row``)
+    slanted ``slant`` columns per row and one along ``side_row`` left of it, each a groove
+    ``cupping_um / 2`` deep (gaussian, 22 um 1/e half-width), the islands between them cupped
+    (raised toward the cracks by up to ``cupping_um`` over ``half_mm``)."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]].astype(np.float64)
+    e = np.minimum(np.abs((xx - col) - slant * (yy - row)) / np.hypot(1, slant),
+                   np.where(xx < col, np.abs(yy - side_row), np.inf))
+    dish = cupping_um * np.clip(1 - e / (half_mm * 1000 / px), 0, None) ** 2
+    g = np.exp(-(e / (22.0 / px)) ** 2)
+    h += (dish * (1 - g) - 0.5 * cupping_um * g).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_protrusion_on_a_stroke_cut_by_a_crack_measured_with_the_crack_filled(seed):
+    """A glowing 200 um dome on a stroke, its flank cut by a crack of cupped paint: over the
+    stroke's continuation its excess ran open along the crack (the line opening fell into the
+    groove), so the dome was lost. With the crack filled first (a closing by
+    ``crack_width_um``) the bump closes and is kept; its outline is what the groove leaves of
+    it (about 160 um). The cupped islands' lips along the cracks and at their junction stay
+    rejected."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=120, width_um=300.0, height_um=30.0, ripple=0.0)
+    cracked_paint(h, px, col=260, row=120)
+    add_dome(alb, h, (120, 265), 200.0, px)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[120, 265] == 1
+    assert det.diagnostics["stroke_bumps_kept"] == 1
+    assert 0.7 < width_of(det.labels, (120, 265), px) / 200.0 < 1.1
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi
