@@ -35,10 +35,12 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
    ``Detection.rejected``.
 8. **Bumps on strokes** (:func:`_bumps_on_strokes`). A compact peak on a long structure that the
-   ``ridge``, ``crack`` or ``stroke`` rule rejects is measured again over the stroke's own
-   profile continued along the stroke (the height minus its opening by a line laid in the
-   direction the height around it runs on): a closed, compact bump as steep as the strokes' own
-   statistics ask is a protrusion on the stroke and is kept, outlined by that excess.
+   ``ridge``, ``crack`` or ``stroke`` rule rejects, or a glowing candidate without a compact
+   peak on one (a small protrusion on a taller stroke's flank), is measured again over the
+   stroke's own profile continued along the stroke (the height, cracks filled where they cut
+   it, minus its opening by a line laid in the direction the height around it runs on): a
+   closed, compact bump as steep as the strokes' own statistics ask is a protrusion on the
+   stroke and is kept, outlined by that excess.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -168,7 +170,8 @@ class DetectionParams:
         bumps on long structures in the image (the strokes' own statistics). 0 disables.
     along_stroke_k : float
         A compact peak on a long structure that the ``ridge``, ``crack`` or ``stroke`` rule
-        rejects is measured again over the stroke's own profile continued along the stroke: the
+        rejects (or a glowing candidate without a compact peak that ``ridge`` rejects) is
+        measured again over the stroke's own profile continued along the stroke: the
         height minus its grey opening by a line this many times the peak's compact radius long,
         in the direction the height around it runs on (:func:`_bumps_on_strokes`). 0 disables.
     shoulder_width_um : float
@@ -1478,14 +1481,24 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
                       px: float, p: DetectionParams, stroke_min: float) -> tuple:
     """Keep the closed bumps on strokes that the ``ridge``, ``crack`` and ``stroke`` rules reject.
 
-    Tested: compact peaks (height cue) with a long structure under them (``under`` >= the relief
-    threshold). Each one's excess over the stroke's continuation (:func:`_excess_bump`) must be
-    closed, ``min_width_um``-``max_width_um`` wide, at most ``ridge_elongation`` elongated, its
-    flank slope (peak / half width) at least the strokes' own least slope (:func:`_stroke_slope`)
-    and the weave's, its peak at least the relief threshold and at most twice the candidate's
-    relief over its surround (more: the line cut through another structure, a crossing stroke or
-    a bend), and it must overlap no kept candidate. A kept one is relabelled to its outline.
-    Returns (reasons, labels)."""
+    Tested: candidates with a long structure under them (``under`` >= the relief threshold):
+    compact peaks (height cue) that these rules reject, and glowing candidates without a compact
+    peak that ``ridge`` rejects (a small protrusion on the flank of a taller stroke has no
+    relief enclosed within ``L`` of its own: every level set through its top reaches the
+    stroke's crest; only the albedo finds it). Each one's excess over the stroke's continuation
+    (:func:`_excess_bump`) must be closed, ``min_width_um``-``max_width_um`` wide, at most
+    ``ridge_elongation`` elongated and, its outline, not a ridge by its second moments (axis
+    ratio below ``ridge_axis_ratio`` over ``ridge_min_length_um``: on a footprint a few pixels
+    wide the inscribed radius is pixelised, the axes are not), its flank slope (peak / half
+    width) at least the strokes' own least slope (:func:`_stroke_slope`) and the weave's, its
+    peak at least the relief threshold and at most twice the candidate's relief over its
+    surround (over a local plane for a compact peak, over the disc opening for a glowing one;
+    more: the line cut through another structure, a crossing stroke or a bend), and it must
+    overlap no kept candidate. An excess that runs open while the candidate touches a crack is
+    measured again with the cracks filled (a closing by ``crack_width_um``: a groove across the
+    line drops the opening to its floor), and is then kept only when its outline passes the
+    ``crack`` rule itself (a protrusion touches a crack, the corner of a cupped island is
+    bounded by them). A kept one is relabelled to its outline. Returns (reasons, labels)."""
     lab, reason = cand.labels.copy(), reason.copy()
     if p.along_stroke_k <= 0:
         return reason, lab
