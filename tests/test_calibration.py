@@ -233,3 +233,49 @@ def test_calibrate_stores_a_card_and_the_run_divides_it_out(tmp_path):
                         "-o", str(bad)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 1 and not bad.exists()
     assert len([ln for ln in r.stderr.splitlines() if "error" in ln]) == 1, r.stderr
+
+
+def _mirror_rays(lamps, centre, radius):
+    """The directions to each lamp from the point of a mirror sphere that reflects it toward the camera (+z)."""
+    out = []
+    for L in lamps:
+        n = np.array([0.0, 0.0, 1.0])
+        for _ in range(30):
+            v = L - (centre + radius * n)
+            h = v / np.linalg.norm(v) + (0.0, 0.0, 1.0)
+            n = h / np.linalg.norm(h)
+        out.append(L - (centre + radius * n))
+    return np.array(out)
+
+
+def test_a_dark_sphere_on_a_dark_ground_is_found_on_a_reference_picture(tmp_path):
+    """A mirror sphere on a dark ground shows only its highlights under the lamps (PSBox's sphere: no
+    circle found): a room-lit picture of it in place finds it (`--sphere-reference`), and a reference of
+    another size is refused in one line."""
+    import dataclasses
+
+    cap = make_capture(shape=(300, 400), n_lights=6, seed=4, pixel_size_um=PX, rgb=False)
+    spheres = [SphereSpec("glossy", (0.5, 0.5), 5.0)]
+    dark = make_sphere_capture(dataclasses.replace(cap, albedo=np.full_like(cap.albedo, 0.005)), spheres, stand=True)
+    write_sphere_capture(dark, tmp_path / "spheres")
+    room = make_sphere_capture(dataclasses.replace(cap, albedo=np.full_like(cap.albedo, 0.6)), spheres, stand=True,
+                               flare=False)
+    tifffile.imwrite(tmp_path / "ref.tif", np.median(room.images, axis=0).astype(np.uint16))
+    r = uvps("calibrate", "--spheres", tmp_path / "spheres", "-o", tmp_path / "A")
+    assert r.returncode == 1 and "no sphere found" in r.stderr and not (tmp_path / "A").exists()
+    COMMANDS["calibrate"]({"spheres": [str(tmp_path / "spheres")], "sphere_reference": str(tmp_path / "ref.tif")},
+                          {}, tmp_path / "C")
+    doc = json.loads((tmp_path / "C" / "calibration.json").read_text())
+    (s,) = doc["spheres"]
+    t = dark.spheres[0]
+    assert s["source"] == "reference" and s["kind"] == "glossy"
+    assert np.hypot(s["centre_px"][0] - t["centre_px"][0], s["centre_px"][1] - t["centre_px"][1]) < 0.5
+    assert abs(s["radius_px"] - t["radius_px"]) < 0.5
+    D = np.array([lp["direction"] for lp in doc["lamps"]])
+    assert _angles(D, _mirror_rays(cap.light_positions_mm, np.asarray(t["centre_mm"]), 5.0)).max() < 0.3
+    assert str(tmp_path / "ref.tif") in doc["inputs"]
+    tifffile.imwrite(tmp_path / "small.tif", np.zeros((100, 100), np.uint16))
+    r = uvps("calibrate", "--spheres", tmp_path / "spheres", "--sphere-reference", tmp_path / "small.tif",
+             "-o", tmp_path / "B")
+    assert r.returncode == 1 and "small.tif is 100 x 100 px; expected 400 x 300" in r.stderr
+    assert not (tmp_path / "B").exists()

@@ -62,7 +62,7 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     """A lens whose corners fall to 60 % (vignetting 0.4) brightens each corner sphere's side toward the
     image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
     the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
-    takes it out: directions within 0.5 deg (5 deg without it), positions within 30 % (78 % without)."""
+    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 30 % (over 200 % without)."""
     import uvps.core.spheres as spheres
 
     vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
@@ -80,7 +80,7 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     assert ang < 0.5 and pos < 30.0, (ang, pos)
     monkeypatch.setattr(spheres, "_gain", lambda g, nx, ny: np.ones_like(nx))
     ang0, pos0 = errors()
-    assert ang0 > 2.0 and pos0 > 50.0, (ang0, pos0)
+    assert ang0 > 1.0 and ang0 > 3 * ang and pos0 > 50.0, (ang, ang0, pos0)
 
 
 def test_a_small_circle_beside_the_spheres_is_left_out(painting):
@@ -182,3 +182,20 @@ def test_read_sphere_circles_errors(tmp_path):
     p.write_text("col,row,radius_px,kind\n10,20,3,shiny\n", encoding="utf-8")
     with pytest.raises(UVPSInputError, match="kind must be matte, glossy or auto"):
         read_sphere_circles(p)
+
+
+@pytest.mark.parametrize("centre", [(200.13, 199.71), (199.87, 200.29), (200.42, 200.05)])
+def test_the_generator_covers_each_rim_pixel_by_its_area(centre):
+    """A camera integrates over each pixel. A disc sampled at the pixel centres alone has a jagged rim
+    whose centroid is 0.013-0.022 px off at these sub-pixel phases (the two benchmark spheres' circles
+    were pulled 0.02-0.03 px toward each other, a few % of every lamp's distance); covered by area, the
+    disc holds pi R^2 and its centroid is its centre to 0.001 px."""
+    from uvps.testing.synthetic_spheres import _coverage
+
+    rr, cc = np.mgrid[0:400, 0:400].astype(float)
+    R = 166.7
+    f = _coverage(cc - centre[0], rr - centre[1], R)
+    assert abs(f.sum() / (np.pi * R * R) - 1) < 1e-5
+    assert abs((f * cc).sum() / f.sum() - centre[0]) < 1e-3 and abs((f * rr).sum() / f.sum() - centre[1]) < 1e-3
+    point = ((cc - centre[0]) ** 2 + (rr - centre[1]) ** 2 < R * R).astype(float)
+    assert np.hypot((point * cc).sum() / point.sum() - centre[0], (point * rr).sum() / point.sum() - centre[1]) > 0.01

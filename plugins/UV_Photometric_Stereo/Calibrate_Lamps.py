@@ -3,7 +3,9 @@ of spheres under the same lamp positions as the painting, into a calibration fol
 Pipeline reuses for every capture taken with the lamps at the same marks.
 
 Shows the sphere capture's first image with the spheres found drawn as circles (overlay and ROI
-Manager): check them; a wrong or missed one is given by a CSV of circles (col,row,radius_px).
+Manager): check them; a wrong or missed one is given by a CSV of circles (col,row,radius_px). A dark
+sphere on a dark ground shows no rim under the lamps: a room-lit picture of the spheres in place
+(Reference picture) is where they are found then.
 
 Macro: run("Calibrate Lamps", "spheres=[/data/spheres] dark=[/data/dark.tif] calibration=[/data/CAL]");
 """
@@ -28,6 +30,7 @@ def main():
     dlg = dialogs.UVPSDialog(TITLE, __doc__)
     dialogs.add_param(dlg, (COMMAND, "spheres"), key="spheres")
     dialogs.add_param(dlg, (COMMAND, "sphere_circles"), key="circles")
+    dialogs.add_param(dlg, (COMMAND, "sphere_reference"), key="reference")
     dialogs.add_param(dlg, (COMMAND, "sphere_kind"), key="kind")
     dialogs.add_param(dlg, (COMMAND, "dark"), key="dark")
     dialogs.add_param(dlg, (COMMAND, "dome"), key="dome")

@@ -19,7 +19,7 @@ from ..errors import UVPSInputError
 from ..files.io import read_capture, read_image, read_lp, read_positions, sha256_file
 from ..files.outputs import CommandResult, OutputSpec, check_output_dir, replace_dir, report, sub_progress, write_json_atomic
 from ..spec import CommandSpec, Param
-from ..core.spheres import KINDS, Sphere, calibrate_spheres, read_sphere_circles
+from ..core.spheres import KINDS, REFERENCE_RIM_FRACTION, Sphere, calibrate_spheres, detect_spheres, read_sphere_circles
 
 from ..files.calibration import FORMAT, VERSION, FILES, read_dome, write_dome
 
@@ -78,6 +78,20 @@ def _capture_files(cap) -> list:
     return seen
 
 
+def _spheres_on_reference(path, shape) -> list:
+    """The spheres found on a room-lit picture of them in place (the same camera and framing as the sphere
+    capture): for a dark sphere on a dark ground, whose rim the lamps alone do not show."""
+    ref = read_image(path)
+    if ref.shape[:2] != tuple(shape):
+        raise UVPSInputError(f"sphere reference {path} is {ref.shape[1]} x {ref.shape[0]} px; expected "
+                             f"{shape[1]} x {shape[0]} like the sphere capture (the same camera and framing)")
+    found = detect_spheres(ref[None], min_rim_fraction=REFERENCE_RIM_FRACTION)
+    if not found:
+        raise UVPSInputError(f"sphere reference {path}: no sphere found; expected the spheres in place, lit by the "
+                             "room, or give the circles with --sphere-circles (col,row,radius_px)")
+    return [Sphere(s.centre_px, s.radius_px, s.kind, "reference") for s in found]
+
+
 def _from_spheres(inputs, params, progress, pool):
     """The sphere route: (capture, LampCalibration, image names, the capture files' SHA-256 as a future).
 
@@ -89,6 +103,8 @@ def _from_spheres(inputs, params, progress, pool):
                        linearize=params["linearize"], progress=sub_progress(progress, 0.0, 0.3))
     hashes = pool.submit(_hashes, _capture_files(cap))
     given = read_sphere_circles(inputs["sphere_circles"]) if inputs["sphere_circles"] else None
+    if given is None and inputs.get("sphere_reference"):
+        given = _spheres_on_reference(inputs["sphere_reference"], cap.images.shape[1:3])
     if given is not None and params["sphere_kind"] != "auto":
         given = [Sphere(s.centre_px, s.radius_px, params["sphere_kind"] if s.kind == "auto" else s.kind, s.source)
                  for s in given]
@@ -220,7 +236,7 @@ def _calibrate(route, inputs, params, out, pool, t0, progress):
         directions, positions = cal.directions, cal.positions_mm
         spheres_json = [f.sphere.to_json() for f in cal.fits]
         lamps = cal.lamps_json()
-        hashed = [inputs["sphere_circles"]]
+        hashed = [inputs["sphere_circles"], inputs.get("sphere_reference")]
         if cal.positions_mm is None and len(cal.fits) > 1:
             warnings.append(cal.diagnostics["positions"])
     else:
@@ -268,6 +284,11 @@ SPECS = (
                     Param("sphere_circles", "path", where="inputs",
                           label="Circles of the spheres, CSV (optional: overrides the detection)",
                           help="CSV col,row,radius_px[,kind] of each sphere (pixels): overrides the detection"),
+                    Param("sphere_reference", "path", where="inputs",
+                          label="Reference picture of the spheres (optional: room-lit, to find them)",
+                          help="a picture of the spheres in place lit by the room (same camera and framing): "
+                               "the spheres are found on it, for a dark sphere on a dark ground whose rim the "
+                               "lamps do not show"),
                     Param("sphere_kind", "choice", "auto", choices=("auto",) + KINDS, label="Kind of sphere",
                           help="matte (white: shading) or glossy (black: highlight); auto: from the images"),
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",

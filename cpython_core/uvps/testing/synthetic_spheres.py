@@ -122,12 +122,20 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     x, y = pixel_centres_mm((m, n), px)
     X = np.broadcast_to(x, (m, n))
     Y = np.broadcast_to(y, (m, n))
+    # the background: the painting seen flat (and the stands, in front of the spheres)
     P = np.stack([X, Y, np.zeros((m, n))], axis=-1)            # surface points (mm)
     N = np.zeros((m, n, 3))
     N[..., 2] = 1.0
     alb = capture.albedo if capture.albedo.ndim == 2 else capture.albedo @ LUMINANCE
     albedo = np.asarray(alb, np.float64).copy()
-    spec_w = np.zeros((m, n))                                  # specular weight per pixel
+    # the spheres: the pixels they cover, with the fraction of each pixel's area they cover (a camera
+    # integrates over the pixel; sampling the rim at pixel centres alone makes it jagged, which moves
+    # a fitted circle by up to 0.02 px with the centre's sub-pixel phase)
+    cover = np.zeros((m, n))
+    sN = np.zeros((m, n, 3))
+    sP = np.zeros((m, n, 3))
+    s_alb = np.zeros((m, n))
+    spec_w = np.zeros((m, n))                                  # specular weight per sphere pixel
     truth = []
     for s in spheres:
         c0 = s.centre[0] * (n - 1)
@@ -136,49 +144,55 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         rpx = R / px_mm
         cx, cy = (c0 - (n - 1) / 2.0) * px_mm, ((m - 1) / 2.0 - r0) * px_mm
         dx, dy = (X - cx) / R, (Y - cy) / R
-        inside = dx * dx + dy * dy < 1.0
+        rho = np.sqrt(dx * dx + dy * dy)
+        frac = _coverage((X - cx) / px_mm, (Y - cy) / px_mm, rpx)
+        on = frac > 0
+        # a rim pixel shows the sphere just inside its outline
+        scale = np.minimum(1.0, (1.0 - 0.5 / rpx) / np.maximum(rho, 1e-12))
+        dx, dy = dx * scale, dy * scale
         nz = np.sqrt(np.clip(1.0 - dx * dx - dy * dy, 0.0, None))
-        N[inside] = np.stack([dx, dy, nz], axis=-1)[inside]
-        P[inside] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[inside]
-        albedo[inside] = 0.9 if s.kind == "matte" else 0.02
+        cover[on] = frac[on]
+        sN[on] = np.stack([dx, dy, nz], axis=-1)[on]
+        sP[on] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[on]
+        s_alb[on] = 0.9 if s.kind == "matte" else 0.02
         if s.kind == "glossy":
-            spec_w[inside] = 1.0
+            spec_w[on] = 1.0
         if stand:
             post = (np.abs(X - cx) < 0.35 * R) & (Y < cy - 0.55 * R)
-            N[post] = (0.0, 0.0, 1.0)
+            cover[post] = 0.0
             P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
             albedo[post] = 0.04
-            spec_w[post] = 0.0
         truth.append({"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
                       "centre_mm": [float(cx), float(cy), float(R)]})
+    idx = np.flatnonzero(cover > 0)
+    cover_s, sN, sP = cover.ravel()[idx], sN.reshape(-1, 3)[idx], sP.reshape(-1, 3)[idx]
+    s_alb, spec_s = s_alb.ravel()[idx], spec_w.ravel()[idx]
+    glossy = np.zeros(m * n)
+    glossy[idx] = spec_s * (cover_s >= 0.5)
+    glossy = glossy.reshape(m, n)
     nzs = capture.nuisances
     lamps = capture.light_positions_mm
     E = capture.intensities
     vig = nzs.vignetting if nzs.vignetting is not None and nzs.vignetting.shape == (m, n) else None
     s2 = 2.0 * math.radians(gloss_deg) ** 2
+    beam = nzs.beam_axes is not None and nzs.beam_exponent > 0
     rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
     rgb = capture.images.ndim == 4
     black = (np.zeros(3 if rgb else 1, np.float32) if nzs.black_level is None
              else np.asarray(nzs.black_level, np.float32))
     out = np.empty((len(lamps), m, n) + ((3,) if rgb else ()), np.uint16)
     for k, (L, e) in enumerate(zip(lamps, E)):
-        V = L - P
-        d = np.linalg.norm(V, axis=-1)
-        lv = V / d[..., None]
-        irr = e * float(L @ L) / (d * d)
-        if nzs.beam_axes is not None and nzs.beam_exponent > 0:
-            irr = irr * np.maximum(-(lv @ nzs.beam_axes[k]), 0.0) ** nzs.beam_exponent
-        ndl = np.einsum("...i,...i->...", N, lv)
-        h = lv + np.array([0.0, 0.0, 1.0])
-        h /= np.linalg.norm(h, axis=-1, keepdims=True)
-        ang = np.arccos(np.clip(np.einsum("...i,...i->...", N, h), -1.0, 1.0))
-        shade = albedo * np.maximum(ndl, 0.0) + specular * spec_w * np.exp(-ang * ang / s2) * (ndl > 0)
-        sig = irr * shade
+        ax = nzs.beam_axes[k] if beam else None
+        sig = _radiance(L, e, P.reshape(-1, 3), N.reshape(-1, 3), albedo.ravel(), None, ax,
+                        nzs.beam_exponent, specular, s2)
+        on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2)
+        sig[idx] = cover_s * on_s + (1.0 - cover_s) * sig[idx]
+        sig = sig.reshape(m, n)
         if vig is not None:
             sig = sig * vig
         counts = (exposure * capture.exposure * sig).astype(np.float32)
         if flare:
-            counts += _flare(counts, spec_w, rng)
+            counts += _flare(counts, glossy, rng)
         if rgb:     # a neutral white sphere and background, seen by the capture's colour camera
             counts = np.repeat(counts[..., None], 3, axis=2)
         if spec.noise:
@@ -187,6 +201,39 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         out[k] = np.clip(np.rint(counts), 0, 65535)
     files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
     return SphereCapture(out, np.asarray(lamps, float), truth, px, files)
+
+
+def _coverage(u, v, radius_px, *, sub=8):
+    """The fraction of each pixel's area inside a disc of ``radius_px`` pixels, ``(u, v)`` each pixel
+    centre's offset from the disc's centre in pixels: 1 or 0 away from the rim, on it the fraction of a
+    ``sub`` x ``sub`` grid of samples across the pixel that falls inside."""
+    r = np.sqrt(u * u + v * v)
+    frac = (r < radius_px).astype(np.float64)
+    rim = np.abs(r - radius_px) < 0.75
+    o = (np.arange(sub) + 0.5) / sub - 0.5
+    su = u[rim][:, None, None] + o[None, None, :]
+    sv = v[rim][:, None, None] + o[None, :, None]
+    frac[rim] = (su * su + sv * sv < radius_px * radius_px).mean(axis=(1, 2))
+    return frac
+
+
+def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2):
+    """``E * (|L| / |L - P|)^2 * beam * [albedo max(0, n . l) + spec]`` at points ``P`` (n, 3) with
+    normals ``N`` (n, 3): the module's image model before vignetting, exposure and noise."""
+    V = L - P
+    d = np.linalg.norm(V, axis=-1)
+    lv = V / d[..., None]
+    irr = e * float(L @ L) / (d * d)
+    if beam_axis is not None:
+        irr = irr * np.maximum(-(lv @ beam_axis), 0.0) ** beam_exponent
+    ndl = np.einsum("...i,...i->...", N, lv)
+    shade = albedo * np.maximum(ndl, 0.0)
+    if spec_w is not None:
+        h = lv + np.array([0.0, 0.0, 1.0])
+        h /= np.linalg.norm(h, axis=-1, keepdims=True)
+        ang = np.arccos(np.clip(np.einsum("...i,...i->...", N, h), -1.0, 1.0))
+        shade = shade + specular * spec_w * np.exp(-ang * ang / s2) * (ndl > 0)
+    return irr * shade
 
 
 def _flare(counts, glossy, rng, *, full=65535.0):
