@@ -101,7 +101,7 @@ def miss_reasons(cap, det, xy, lo=60.0, hi=100.0):
         r = int(np.clip(np.rint(pr["y_px"][i]), 0, cl.shape[0] - 1))
         c = int(np.clip(np.rint(pr["x_px"][i]), 0, cl.shape[1] - 1))
         k = cl[r, c]
-        why = "no candidate" if k == 0 else (reasons[np.searchsorted(ids, k)] or "merged")
+        why = "no candidate" if k == 0 else (str(reasons[np.searchsorted(ids, k)]) or "merged")
         out[why] = out.get(why, 0) + 1
     return out
 
