@@ -1487,8 +1487,8 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     relief enclosed within ``L`` of its own: every level set through its top reaches the
     stroke's crest; only the albedo finds it). Each one's excess over the stroke's continuation
     (:func:`_excess_bump`) must be closed, ``min_width_um``-``max_width_um`` wide, at most
-    ``ridge_elongation`` elongated and, its outline, not a ridge by its second moments (axis
-    ratio below ``ridge_axis_ratio`` over ``ridge_min_length_um``: on a footprint a few pixels
+    ``ridge_elongation`` elongated, its outline no ridge by its second moments (axis ratio at
+    least ``ridge_axis_ratio`` when ``ridge_min_length_um`` long: on a footprint a few pixels
     wide the inscribed radius is pixelised, the axes are not), its flank slope (peak / half
     width) at least the strokes' own least slope (:func:`_stroke_slope`) and the weave's, its
     peak at least the relief threshold and at most twice the candidate's relief over its
@@ -1511,7 +1511,8 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     slices, (m, n) = ndi.find_objects(lab), lab.shape
     for j in test:
         k, sl = int(f.lbl[j]), slices[int(f.lbl[j]) - 1]
-        r = math.sqrt(max(np.count_nonzero((cand.height if f.has_h[j] else lab)[sl] == k), 1) / math.pi)
+        own = cand.height if f.has_h[j] else lab     # a glowing one: its whole candidate
+        r = math.sqrt(max(np.count_nonzero(own[sl] == k), 1) / math.pi)
         pad = int(4 * r + 6)
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
