@@ -55,14 +55,15 @@ def test_one_matte_sphere_gives_far_directions_with_a_stand(painting):
     assert len(cal.fits) == 1 and cal.spheres[0].kind == "matte"
     assert cal.positions_mm is None
     err = _angles(cal.directions, _true_dirs(painting, sc.spheres[0]))
-    assert err.max() < 0.5, err
+    # the stand hides the rim's lower part (its circle there 0.3 px small); the shading pins the radius
+    assert err.max() < 0.3, err
 
 
 def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     """A lens whose corners fall to 60 % (vignetting 0.4) brightens each corner sphere's side toward the
     image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
     the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
-    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 30 % (over 200 % without)."""
+    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 15 % (over 200 % without)."""
     import uvps.core.spheres as spheres
 
     vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
@@ -77,7 +78,7 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
 
     ang, pos = errors()
     # spheres of 60 px radius 20 mm apart: 0.4 deg moves a lamp 300-500 mm away by a fifth of its distance
-    assert ang < 0.5 and pos < 30.0, (ang, pos)
+    assert ang < 0.5 and pos < 15.0, (ang, pos)
     monkeypatch.setattr(spheres, "_gain", lambda g, nx, ny: np.ones_like(nx))
     ang0, pos0 = errors()
     assert ang0 > 1.0 and ang0 > 3 * ang and pos0 > 50.0, (ang, ang0, pos0)

@@ -378,6 +378,17 @@ def _write_run_json(path: Path, inputs: dict, params: dict, maps, reg, timings: 
            diagnostics={"registration": reg.to_json()}).write(path)
 
 
+def _read_maps(inputs, params, run_shape):
+    """The element maps, the names to register on and to show in the composite, and the control points
+    (or None)."""
+    maps = read_element_maps(inputs["maps"], step_um=params["step_um"])
+    reference = _names_list(params["reference"], "reference", maps.names)
+    composite = _names_list(params["composite"], "composite", maps.names) or maps.names[:3]
+    cp = (read_control_points(inputs["control_points"], map_shape=maps.shape, run_shape=run_shape)
+          if inputs.get("control_points") else None)
+    return maps, reference, composite, cp
+
+
 def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress = None) -> CommandResult:
     """``elements``: register XRF element maps onto a run; element values per area and per protrusion."""
     t_all = time.perf_counter()
@@ -390,11 +401,7 @@ def cmd_elements(inputs: dict, params: dict, output_dir, *, progress: Progress =
     shape = images.shape
     regions = _run_regions(run_dir, shape)
     table = _run_protrusions(run_dir)
-    maps = read_element_maps(inputs["maps"], step_um=params["step_um"])
-    reference = _names_list(params["reference"], "reference", maps.names)
-    composite = _names_list(params["composite"], "composite", maps.names) or maps.names[:3]
-    cp = (read_control_points(inputs["control_points"], map_shape=maps.shape, run_shape=shape)
-          if inputs.get("control_points") else None)
+    maps, reference, composite, cp = _read_maps(inputs, params, shape)
     timings["reading"] = round(time.perf_counter() - t, 3)
     t = time.perf_counter()
     spot = params["spot_um"]

@@ -171,6 +171,35 @@ def _block_means(img, b):
     return img[:m * b, :n * b].reshape(m, b, n, b).mean(axis=(1, 3))
 
 
+def _log_block_means(imgs, dark, saturation, rows, cols):
+    """Each card image's log block means on the grid ``rows`` x ``cols`` (grey, dark subtracted) and its
+    saturated fraction; a saturated image or one without signal is refused, naming it."""
+    K = imgs.shape[0]
+    b = int(round(rows[1] - rows[0])) if len(rows) > 1 else 1
+    logs = np.empty((K, len(rows), len(cols)))
+    sat_frac = []
+    for k in range(K):
+        raw = np.asarray(imgs[k])
+        if saturation is not None:
+            hot = raw >= saturation
+            frac = float((hot.any(axis=-1) if raw.ndim == 3 else hot).mean())
+            sat_frac.append(frac)
+            if frac > MAX_SATURATED_FRACTION:
+                raise UVPSInputError(
+                    f"card image {k + 1} is saturated ({100 * frac:.2g} % of its pixels at or above "
+                    f"{saturation:g} counts): take the card with a shorter exposure")
+        img = raw.astype(np.float32)
+        if dark is not None:
+            img -= dark
+        grey = img.mean(axis=-1) if img.ndim == 3 else img
+        means = _block_means(grey, b)
+        if not np.all(means > 0):
+            raise UVPSInputError(f"card image {k + 1} has no signal in {int(np.sum(means <= 0))} blocks "
+                                 "(dark, or the dark frame is brighter): the card must fill the field, lit")
+        logs[k] = np.log(means)
+    return logs, sat_frac
+
+
 def calibrate_card(card_images, *, lights, pixel_size_um: float, dark=None, saturation: Optional[float] = None,
                    degree: int = DEGREE, max_relief_deg: float = MAX_RELIEF_DEG) -> CardCalibration:
     """Per-lamp flat-field gains from images of a flat fluorescent card under each lamp position.
@@ -236,28 +265,7 @@ def calibrate_card(card_images, *, lights, pixel_size_um: float, dark=None, satu
     if saturation is None and dtype.kind in "ui":
         saturation = float(np.iinfo(dtype).max)
     rows, cols, X = _grid((M, N), pixel_size_um, BLOCKS)
-    b = int(round(rows[1] - rows[0])) if len(rows) > 1 else 1
-    logs = np.empty((K, len(rows), len(cols)))
-    sat_frac = []
-    for k in range(K):
-        raw = np.asarray(imgs[k])
-        if saturation is not None:
-            hot = raw >= saturation
-            frac = float((hot.any(axis=-1) if raw.ndim == 3 else hot).mean())
-            sat_frac.append(frac)
-            if frac > MAX_SATURATED_FRACTION:
-                raise UVPSInputError(
-                    f"card image {k + 1} is saturated ({100 * frac:.2g} % of its pixels at or above "
-                    f"{saturation:g} counts): take the card with a shorter exposure")
-        img = raw.astype(np.float32)
-        if dark is not None:
-            img -= dark
-        grey = img.mean(axis=-1) if img.ndim == 3 else img
-        means = _block_means(grey, b)
-        if not np.all(means > 0):
-            raise UVPSInputError(f"card image {k + 1} has no signal in {int(np.sum(means <= 0))} blocks "
-                                 "(dark, or the dark frame is brighter): the card must fill the field, lit")
-        logs[k] = np.log(means)
+    logs, sat_frac = _log_block_means(imgs, dark, saturation, rows, cols)
     V = _vectors(model, X)
     logs -= np.log(V[..., 2])                    # over a flat card's model irradiance, equal lamps
     coeffs = fit_log_grid(logs, rows, cols, (M, N), int(degree))

@@ -232,6 +232,22 @@ def _fit(model: str, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 _DOF = {"similarity": 4, "affine": 6, "homography": 8}
 
 
+def _ransac_inliers(src, dst, ransac_px) -> dict:
+    """Each model's RANSAC inliers (OpenCV) among the matches ``src`` -> ``dst``: {model: bool mask}; the
+    largest consistent set is the common ground on which the models are then compared."""
+    ransac = {}
+    _, inl = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px,
+                                         maxIters=5000, confidence=0.999)
+    ransac["similarity"] = inl
+    _, inl = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px,
+                                  maxIters=5000, confidence=0.999)
+    ransac["affine"] = inl
+    if len(src) >= 8:
+        _, inl = cv2.findHomography(src, dst, cv2.RANSAC, ransac_px, maxIters=5000, confidence=0.999)
+        ransac["homography"] = inl
+    return {k: (v.ravel().astype(bool) if v is not None else np.zeros(len(src), bool)) for k, v in ransac.items()}
+
+
 def register(albedo_a: np.ndarray, albedo_b: np.ndarray, *, min_matches: int = 25,
              ransac_px: float = 3.0, refine: bool = True, exclude_a: Optional[np.ndarray] = None,
              exclude_b: Optional[np.ndarray] = None, progress: Progress = None) -> Registration:
@@ -287,19 +303,7 @@ at 20 px, 0.04 px at 3 px). ``rms_px``: the phase correlation (:func:`skimage.re
     if len(good) < min_matches:
         raise UVPSInputError(f"too few consistent matches between the two albedos ({len(good)} "
                              f"candidates, at least {min_matches} needed): not captures of one region?")
-    # each model's RANSAC inliers; the largest consistent set is the common ground of the choice
-    ransac = {}
-    _, inl = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px,
-                                         maxIters=5000, confidence=0.999)
-    ransac["similarity"] = inl
-    _, inl = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px,
-                                  maxIters=5000, confidence=0.999)
-    ransac["affine"] = inl
-    if len(good) >= 8:
-        _, inl = cv2.findHomography(src, dst, cv2.RANSAC, ransac_px, maxIters=5000, confidence=0.999)
-        ransac["homography"] = inl
-    ransac = {k: (v.ravel().astype(bool) if v is not None else np.zeros(len(good), bool))
-              for k, v in ransac.items()}
+    ransac = _ransac_inliers(src, dst, ransac_px)
     best = max(ransac, key=lambda k: ransac[k].sum())
     inliers = ransac[best]
     n_in = int(inliers.sum())
@@ -526,6 +530,13 @@ def _inside(xy, shape, margin):
             & (xy[:, 1] >= margin) & (xy[:, 1] <= m - 1 - margin))
 
 
+def _seen_whole(x, x_other, w, shape, shape_other, px, px_other):
+    """Indices of the protrusions at ``x`` (px, this date), ``w`` um wide, that lie whole inside this
+    date's frame and, mapped to ``x_other``, the other's (two pixels to spare)."""
+    r = 0.5 * np.nan_to_num(w)
+    return np.flatnonzero(_inside(x_other, shape_other, r / px_other + 2) & _inside(x, shape, r / px + 2))
+
+
 def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_a, shape_b,
                      pixel_size_um: float, pixel_size_um_b: Optional[float] = None, height_scale: float = 1.0,
                      sigma_factor: float = 4.5, match_radius_um: Optional[float] = None,
@@ -592,11 +603,8 @@ def classify_changes(table_a: dict, table_b: dict, b_to_a: np.ndarray, *, shape_
             if pixel_size_um_b is None else float(pixel_size_um_b))
     # only where both dates see the protrusion whole (a protrusion cut by either frame has its
     # centre and width biased at that date)
-    keep_a = (_inside(xa_in_b, shape_b, 0.5 * np.nan_to_num(wa) / px_b + 2)
-              & _inside(xa, shape_a, 0.5 * np.nan_to_num(wa) / pixel_size_um + 2))
-    keep_b = (_inside(xb_in_a, shape_a, 0.5 * np.nan_to_num(wb) / pixel_size_um + 2)
-              & _inside(xb, shape_b, 0.5 * np.nan_to_num(wb) / px_b + 2))
-    ia, ib = np.flatnonzero(keep_a), np.flatnonzero(keep_b)
+    ia = _seen_whole(xa, xa_in_b, wa, shape_a, shape_b, pixel_size_um, px_b)
+    ib = _seen_whole(xb, xb_in_a, wb, shape_b, shape_a, px_b, pixel_size_um)
     pairs, _ = match_protrusions(xa[ia], np.nan_to_num(wa[ia]), xb_in_a[ib], np.nan_to_num(wb[ib]),
                                  pixel_size_um=pixel_size_um, match_radius_um=match_radius_um)
     pa, pb = ia[pairs[:, 0]], ib[pairs[:, 1]]

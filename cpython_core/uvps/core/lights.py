@@ -390,6 +390,22 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
         history.append({"stage": "equidistant", "m_mm": float(m), "cost": c, "grazing_lights": n_grazing})
         return c * (1 + n_grazing)
 
+    m = _shared_distance(cost, m_bounds, progress)
+    eq = equidistant(m)
+    model, unc = eq, None
+    if sample is not None:
+        model, unc = _beyond_equidistant(sample, eq, R, X, history, refine=refine, normals_of=normals_of,
+                                         offset_stderr=offset_stderr, progress=progress)
+    fits = with_common(fits, grid, dropoff_common(model.positions_mm, shape, pixel_size_um))
+    az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
+    report(progress, 1.0, "lights: done")
+    return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
+                         equidistant=eq, uncertainty=unc, fits=fits)
+
+
+def _shared_distance(cost, m_bounds, progress):
+    """The paper's one parameter: the shared lamp distance ``m`` (mm) that minimises ``cost(m)`` (Eq. 2),
+    scanned on 9 log-spaced values of ``m_bounds`` and then refined between the best one's neighbours."""
     report(progress, 0.02, "lights: scanning the shared distance m")
     grid_m = np.geomspace(m_bounds[0], m_bounds[1], 9)
     costs = []
@@ -408,26 +424,25 @@ def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pix
 
     sol = least_squares(cost_refining, [np.log(grid_m[i])],
                         bounds=([np.log(lo)], [np.log(hi) + 1e-9]), diff_step=1e-3, max_nfev=10)
-    m = float(np.exp(sol.x[0]))
-    eq = equidistant(m)
-    model = eq
-    if refine and sample is not None:
+    return float(np.exp(sol.x[0]))
+
+
+def _beyond_equidistant(sample, eq, R, X, history, *, refine, normals_of, offset_stderr, progress):
+    """From the equidistant lamps on: each lamp's own position and intensity, their level, the
+    normals' integrability and the lamps' uncertainty (``refine``), else the level alone: (model,
+    uncertainty or None)."""
+    model, unc = eq, None
+    if refine:
         report(progress, 0.5, "lights: refining each light's position and intensity")
         model = _refine_each(sample, eq, R, X, history, progress=sub_progress(progress, 0.5, 0.92))
-    unc = None
-    if sample is not None:
-        model = _level(sample, model, history)
-        if refine and normals_of is not None:
-            report(progress, 0.92, "lights: integrability of the normals")
-            model = _integrable(sample, model, history, normals_of)
-        if refine:
-            report(progress, 0.93, "lights: their uncertainty")
-            unc = light_uncertainty(sample, model, R, X, w_drop=_last_drop_weight(history), offset_stderr=offset_stderr)
-    fits = with_common(fits, grid, dropoff_common(model.positions_mm, shape, pixel_size_um))
-    az_polar = np.array([azimuth_from_dropoff(f) for f in fits])
-    report(progress, 1.0, "lights: done")
-    return LightEstimate(model=model, m_mm=m, azimuth_polar_deg=az_polar, residual_history=history,
-                         equidistant=eq, uncertainty=unc, fits=fits)
+    model = _level(sample, model, history)
+    if refine and normals_of is not None:
+        report(progress, 0.92, "lights: integrability of the normals")
+        model = _integrable(sample, model, history, normals_of)
+    if refine:
+        report(progress, 0.93, "lights: their uncertainty")
+        unc = light_uncertainty(sample, model, R, X, w_drop=_last_drop_weight(history), offset_stderr=offset_stderr)
+    return model, unc
 
 
 def dropoff_common(positions_mm, shape, pixel_size_um):
@@ -729,6 +744,26 @@ def _lamp_vectors(th, X):
 
 
 @numba.njit(nogil=True, cache=True)
+def _inverse_cholesky3(A00, A01, A02, A11, A12, A22):
+    """``C = G^-1`` (lower triangular) of the Cholesky factor ``A = G G^T`` of a symmetric positive
+    definite 3 x 3 matrix, so ``A^-1 = C^T C``: (c00, c10, c11, c20, c21, c22). In :func:`_vp_rows`'s
+    per-pixel loop, where numpy's batched routines would need (P, 3, 3) temporaries."""
+    g00 = np.sqrt(A00)
+    g10 = A01 / g00
+    g20 = A02 / g00
+    g11 = np.sqrt(A11 - g10 * g10)
+    g21 = (A12 - g20 * g10) / g11
+    g22 = np.sqrt(A22 - g20 * g20 - g21 * g21)
+    c00 = 1.0 / g00
+    c11 = 1.0 / g11
+    c22 = 1.0 / g22
+    c10 = -g10 * c00 / g11
+    c21 = -g21 * c11 / g22
+    c20 = -(g20 * c00 + g21 * c10) / g22
+    return c00, c10, c11, c20, c21, c22
+
+
+@numba.njit(nogil=True, cache=True)
 def _vp_rows(L, along, scale, X, I, r, e, Zq, Zu, p0, p1):
     """Pixels ``p0:p1`` of :func:`_vp_normal_equations`: the residual ``r`` (K, P), ``e`` (K, 4, P) and
     the whitened rows ``Zq``, ``Zu`` (4K, 3P), column ``m * P + p`` (its numpy form is
@@ -773,19 +808,7 @@ def _vp_rows(L, along, scale, X, I, r, e, Zq, Zu, p0, p1):
             h2 += v[k, 2] * I[k, p]
             mu += I[k, p]
         mu /= K
-        # Cholesky A = G G^T and C = G^-1 (lower triangular), A^-1 = C^T C
-        g00 = np.sqrt(A00)
-        g10 = A01 / g00
-        g20 = A02 / g00
-        g11 = np.sqrt(A11 - g10 * g10)
-        g21 = (A12 - g20 * g10) / g11
-        g22 = np.sqrt(A22 - g20 * g20 - g21 * g21)
-        c00 = 1.0 / g00
-        c11 = 1.0 / g11
-        c22 = 1.0 / g22
-        c10 = -g10 * c00 / g11
-        c21 = -g21 * c11 / g22
-        c20 = -(g20 * c00 + g21 * c10) / g22
+        c00, c10, c11, c20, c21, c22 = _inverse_cholesky3(A00, A01, A02, A11, A12, A22)
         # b = C^T C h
         t0 = c00 * h0
         t1 = c10 * h0 + c11 * h1

@@ -596,6 +596,16 @@ SIGNIFICANT = 2.0
 OFFSET_MAX = 0.5
 
 
+def _median_signal(images, mask) -> float:
+    """The median count of up to four of the images, every 8th pixel, inside ``mask`` (a masked
+    object's background is no signal)."""
+    k = np.linspace(0, images.shape[0] - 1, min(4, images.shape[0])).astype(int)
+    sub = np.asarray(images[k, ::8, ::8], dtype=np.float32)
+    if mask is not None:
+        sub = sub[:, mask[::8, ::8]]
+    return float(np.median(sub))
+
+
 def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) -> tuple:
     """The capture with its additive term (black level, stray light) removed, and that term.
 
@@ -636,11 +646,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         term = estimate_additive(images, mask=capture.mask, saturation=capture.saturation,
                                  degree=int(options.offset_degree), dropoff_degree=int(options.degree))
     if not np.isfinite(term.median_signal):
-        k = np.linspace(0, images.shape[0] - 1, min(4, images.shape[0])).astype(int)
-        sub = np.asarray(images[k, ::8, ::8], dtype=np.float32)
-        if capture.mask is not None:                  # a masked object: its background is no signal
-            sub = sub[:, capture.mask[::8, ::8]]
-        term.median_signal = float(np.median(sub)) - float(term.mean.mean())
+        term.median_signal = _median_signal(images, capture.mask) - float(term.mean.mean())
     frac = float(term.mean.mean()) / max(term.median_signal, 1e-12)
     if not term.is_zero and (term.median_signal <= 0 or frac > OFFSET_MAX):
         raise UVPSInputError(

@@ -995,6 +995,17 @@ def _read_mask(mask, shape2d: tuple) -> np.ndarray:
     return out
 
 
+def _pixel_size_from_tags(tag_px) -> float:
+    """The pixel size the files' resolution tags give, or the one-line error asking for it."""
+    if tag_px is None:
+        raise UVPSInputError(
+            "pixel size unknown: the images carry no physical resolution (PNG/JPEG, an "
+            "uncalibrated TIFF, or a 72/96/300 dpi software default); pass --pixel-size-um "
+            "(params 'pixel_size_um')"
+        )
+    return check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
+
+
 def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=None,
                  linearize: str = "auto", memory_map: bool = True, pattern: Optional[str] = None,
                  progress: Progress = None) -> Capture:
@@ -1089,13 +1100,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         _subtract_dark(arr, Path(dark), dtype, linearize)
 
     if pixel_size_um is None:
-        if tag_px is None:
-            raise UVPSInputError(
-                "pixel size unknown: the images carry no physical resolution (PNG/JPEG, an "
-                "uncalibrated TIFF, or a 72/96/300 dpi software default); pass --pixel-size-um "
-                "(params 'pixel_size_um')"
-            )
-        pixel_size_um = check_pixel_size(tag_px, "pixel size from the TIFF resolution tags")
+        pixel_size_um = _pixel_size_from_tags(tag_px)
 
     mask_arr = _read_mask(mask, shape_img[:2]) if mask is not None else None
     directions = positions = intensities = None
