@@ -79,7 +79,31 @@ def _detections_from_truth(cap, height_noise, params=None):
     elapsed = time.perf_counter() - t0
     props = regionprops_table(det.labels, properties=("centroid", "area"))
     xy = np.column_stack([props["centroid-1"], props["centroid-0"]])
+    _detections_from_truth.last = det
     return xy, np.sqrt(4 * props["area"] / np.pi) * px, det.rejected, elapsed
+
+
+def miss_reasons(cap, det, xy, lo=60.0, hi=100.0):
+    """Why each true protrusion ``lo``-``hi`` um wide was missed, read at its true centre in the
+    detector's candidate labels: the rule that rejected the candidate there, ``merged`` (a kept
+    candidate covers it: it was counted with a neighbour, or its centroid is off), or
+    ``no candidate``. Returns {reason: count}."""
+    pr = cap.protrusions
+    px = cap.spec.pixel_size_um
+    t2d, _ = match(np.column_stack([pr["x_px"], pr["y_px"]]), pr["width_um"] / px, xy)
+    cl = det.diagnostics.get("candidate_labels")
+    reasons = det.diagnostics.get("candidate_reasons")
+    out = {}
+    if cl is None:
+        return out
+    ids = np.unique(cl[cl > 0])
+    for i in np.flatnonzero((t2d < 0) & (pr["width_um"] >= lo) & (pr["width_um"] < hi)):
+        r = int(np.clip(np.rint(pr["y_px"][i]), 0, cl.shape[0] - 1))
+        c = int(np.clip(np.rint(pr["x_px"][i]), 0, cl.shape[1] - 1))
+        k = cl[r, c]
+        why = "no candidate" if k == 0 else (str(reasons[np.searchsorted(ids, k)]) or "merged")
+        out[why] = out.get(why, 0) + 1
+    return out
 
 
 def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool):
@@ -166,6 +190,8 @@ def run_seed(seed, shape, args):
         xy, w, rejected, elapsed = _detections_from_truth(cap, args.height_noise, params)
     res = score(cap, xy, w)
     res.update(seed=seed, time=elapsed, rejected=rejected)
+    if getattr(args, "misses", False) and not args.pipeline:
+        res["misses"] = miss_reasons(cap, _detections_from_truth.last, xy)
     return res
 
 
@@ -216,6 +242,9 @@ def print_tables(results, args):
                     for r in results)
     print(f"\nfalse positives >= 60 um: {fps}")
     print(f"\nrejected candidates (all seeds): {total}\n")
+    if any("misses" in r for r in results):
+        print("Misses 60-100 um by the detector's reason at the true centre: "
+              + "; ".join(f"seed {r['seed']}: {r.get('misses', {})}" for r in results) + "\n")
     targets = [("F1 >= 0.95 for protrusions >= 60 um", worst["f1"] >= 0.95, f"{worst['f1']:.3f}"),
                ("recall >= 0.9 for 60-100 um", worst_rec_60 >= 0.9, f"{worst_rec_60:.3f}"),
                ("recall >= 0.97 above 200 um", worst["recall_200"] >= 0.97,
@@ -237,6 +266,9 @@ def main(argv=None) -> int:
                     help="white noise (um) added to the true height (truth mode only)")
     ap.add_argument("--shoulder-width-um", type=float, default=0.0,
                     help="DetectionParams.shoulder_width_um (the opt-in shoulder cue; 0 = off)")
+    ap.add_argument("--misses", action="store_true",
+                    help="(truth mode) why each missed 60-100 um protrusion was missed: the rule "
+                         "that rejected the candidate at its centre, merged, or no candidate")
     ap.add_argument("--pipeline", action="store_true",
                     help="end to end through `uvps run CAPTURE -o RUN --detect --lights "
                          "CAPTURE/lights_positions_mm.csv --black-level B` on the written capture")

@@ -393,6 +393,73 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
         assert det.labels.max() == 0
 
 
+def glowing_segment(alb, h, centre, px, *, width_um, length_um, height_um):
+    """A short glowing piece of stroke along the rows (a bright paint): an elliptic bump
+    ``width_um`` x ``length_um`` with the dome's profile, in the protrusions' colour."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]]
+    a, b = width_um / 2 / px, length_um / 2 / px
+    rho = np.hypot((yy - centre[0]) / a, (xx - centre[1]) / b)
+    h += (height_um * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)).astype(np.float32)
+    wgt = np.clip((1 - rho) * a, 0, 1)[..., None]
+    alb[:] = alb * (1 - wgt) + SOAP * wgt
+
+
+@pytest.mark.parametrize("seed, off", [(0, 8), (1, 10), (2, 8)])
+def test_small_dome_on_a_taller_strokes_flank_kept_short_segment_rejected(seed, off):
+    """A glowing 90 um dome on the flank of a stroke 400 um wide and 40 um high, its top below
+    the stroke's crest, has no compact relief of its own: only the albedo finds it, and as a
+    candidate without a compact peak on a long structure the ``ridge`` rule rejected it. Over
+    the stroke's own profile continued along the stroke it is a closed round bump: kept, with
+    its width. A glowing piece of stroke as wide and as high but 300 um long, on the same flank,
+    is as closed but 3.3x longer than wide: its second moments say so (its inscribed radius,
+    on a footprint 6 px wide, does not), and it stays rejected."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=100, width_um=400.0, height_um=40.0, ripple=0.0)
+    add_dome(alb, h, (100 - off, 200), 90.0, px)
+    glowing_segment(alb, h, (100 - off, 380), px, width_um=90.0, length_um=300.0,
+                    height_um=22.5)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[100 - off, 200] == 1
+    assert abs(width_of(det.labels, (100 - off, 200), px) / 90.0 - 1) < 0.15
+    assert det.labels[100 - off, 380] == 0
+    cl, reasons = det.diagnostics["candidate_labels"], det.diagnostics["candidate_reasons"]
+    ids = np.unique(cl[cl > 0])
+    assert reasons[np.searchsorted(ids, cl[100 - off, 380])] == "ridge"
+
+
+def cracked_paint(h, px, *, col, row, side_row=40, slant=1.0, cupping_um=40.0, half_mm=1.0):
+    """Craquelure as ``uvps.testing.synthetic`` draws it: a crack through (``col``, ``row``)
+    slanted ``slant`` columns per row and one along ``side_row`` left of it, each a groove
+    ``cupping_um / 2`` deep (gaussian, 22 um 1/e half-width), the islands between them cupped
+    (raised toward the cracks by up to ``cupping_um`` over ``half_mm``)."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]].astype(np.float64)
+    e = np.minimum(np.abs((xx - col) - slant * (yy - row)) / np.hypot(1, slant),
+                   np.where(xx < col, np.abs(yy - side_row), np.inf))
+    dish = cupping_um * np.clip(1 - e / (half_mm * 1000 / px), 0, None) ** 2
+    g = np.exp(-(e / (22.0 / px)) ** 2)
+    h += (dish * (1 - g) - 0.5 * cupping_um * g).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_protrusion_on_a_stroke_cut_by_a_crack_measured_with_the_crack_filled(seed):
+    """A glowing 200 um dome on a stroke, its flank cut by a crack of cupped paint: over the
+    stroke's continuation its excess ran open along the crack (the line opening fell into the
+    groove), so the dome was lost. With the crack filled first (a closing by
+    ``crack_width_um``) the bump closes and is kept; its outline is what the groove leaves of
+    it (about 160 um). The cupped islands' lips along the cracks and at their junction stay
+    rejected."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=120, width_um=300.0, height_um=30.0, ripple=0.0)
+    cracked_paint(h, px, col=260, row=120)
+    add_dome(alb, h, (120, 265), 200.0, px)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[120, 265] == 1
+    assert det.diagnostics["stroke_bumps_kept"] == 1
+    assert 0.7 < width_of(det.labels, (120, 265), px) / 200.0 < 1.1
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi

@@ -35,10 +35,12 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
    ``Detection.rejected``.
 8. **Bumps on strokes** (:func:`_bumps_on_strokes`). A compact peak on a long structure that the
-   ``ridge``, ``crack`` or ``stroke`` rule rejects is measured again over the stroke's own
-   profile continued along the stroke (the height minus its opening by a line laid in the
-   direction the height around it runs on): a closed, compact bump as steep as the strokes' own
-   statistics ask is a protrusion on the stroke and is kept, outlined by that excess.
+   ``ridge``, ``crack`` or ``stroke`` rule rejects, or a glowing candidate without a compact
+   peak on one (a small protrusion on a taller stroke's flank), is measured again over the
+   stroke's own profile continued along the stroke (the height, cracks filled where they cut
+   it, minus its opening by a line laid in the direction the height around it runs on): a
+   closed, compact bump as steep as the strokes' own statistics ask is a protrusion on the
+   stroke and is kept, outlined by that excess.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -168,7 +170,8 @@ class DetectionParams:
         bumps on long structures in the image (the strokes' own statistics). 0 disables.
     along_stroke_k : float
         A compact peak on a long structure that the ``ridge``, ``crack`` or ``stroke`` rule
-        rejects is measured again over the stroke's own profile continued along the stroke: the
+        rejects (or a glowing candidate without a compact peak that ``ridge`` rejects) is
+        measured again over the stroke's own profile continued along the stroke: the
         height minus its grey opening by a line this many times the peak's compact radius long,
         in the direction the height around it runs on (:func:`_bumps_on_strokes`). 0 disables.
     shoulder_width_um : float
@@ -1423,7 +1426,7 @@ def _line_opening(h: np.ndarray, theta: float, length_px: float) -> np.ndarray:
 
 
 def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
-                 p: DetectionParams) -> tuple:
+                 p: DetectionParams, crack_px: float = 0.0) -> tuple:
     """A candidate's bump over the stroke's profile continued along the stroke.
 
     The excess ``e = h - line opening`` along the stroke's direction, the line
@@ -1435,8 +1438,17 @@ def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
     line; at most half the peak), so the ripple under a bump is not counted in its width.
     Returns (footprint, outline, peak excess um), or (None, None, 0) when the footprint reaches
     the crop's border (not closed: the height does not run on as a stroke does)."""
-    theta = _stroke_direction(h, inner, r_px)
-    e = h - _line_opening(h, theta, max(p.along_stroke_k * r_px, 9.0))
+    base = h
+    if crack_px > 0:
+        # cracks filled first (a closing by the crack width, the groove the ``crack`` rule
+        # measures): a crack crossing the line would drop the opening to its floor along the
+        # whole line and open the excess of a protrusion that merely touches it
+        k = 2 * int(math.ceil(crack_px / 2)) + 1
+        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        base = cv2.morphologyEx(h.astype(np.float32), cv2.MORPH_CLOSE, se,
+                                borderType=cv2.BORDER_REFLECT)
+    theta = _stroke_direction(base, inner, r_px)
+    e = h - _line_opening(base, theta, max(p.along_stroke_k * r_px, 9.0))
     seed = np.unravel_index(int(np.argmax(np.where(inner, e, -np.inf))), e.shape)
     peak = float(e[seed])
     parts = []
@@ -1454,42 +1466,78 @@ def _excess_bump(h: np.ndarray, inner: np.ndarray, r_px: float, floor_um: float,
     return foot, parts[1], peak
 
 
+def _outline_crack_fraction(h: np.ndarray, outline: np.ndarray, peak: float, floor_um: float,
+                            crack_px: float) -> float:
+    """The ``crack`` rule's quantity (:func:`_crack_fraction`) for one bump's outline in its
+    crop: the fraction of the 2-px ring around it in a crack at least half as deep as the bump
+    is high. A protrusion touching a crack keeps most of its ring on the paint; the corner of a
+    cupped island, whose lips rise toward the cracks around it, is bounded by them."""
+    ring = (_edt(~outline) <= 2) & ~outline
+    return float(_crack_fraction(outline.astype(np.int32), ring.astype(np.int32), h,
+                                 np.array([peak]), 1, crack_px, floor_um)[0])
+
+
 def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, reason, th: Thresholds,
                       px: float, p: DetectionParams, stroke_min: float) -> tuple:
     """Keep the closed bumps on strokes that the ``ridge``, ``crack`` and ``stroke`` rules reject.
 
-    Tested: compact peaks (height cue) with a long structure under them (``under`` >= the relief
-    threshold). Each one's excess over the stroke's continuation (:func:`_excess_bump`) must be
-    closed, ``min_width_um``-``max_width_um`` wide, at most ``ridge_elongation`` elongated, its
-    flank slope (peak / half width) at least the strokes' own least slope (:func:`_stroke_slope`)
-    and the weave's, its peak at least the relief threshold and at most twice the candidate's
-    relief over its surround (more: the line cut through another structure, a crossing stroke or
-    a bend), and it must overlap no kept candidate. A kept one is relabelled to its outline.
-    Returns (reasons, labels)."""
+    Tested: candidates with a long structure under them (``under`` >= the relief threshold):
+    compact peaks (height cue) that these rules reject, and glowing candidates without a compact
+    peak that ``ridge`` rejects (a small protrusion on the flank of a taller stroke has no
+    relief enclosed within ``L`` of its own: every level set through its top reaches the
+    stroke's crest; only the albedo finds it). Each one's excess over the stroke's continuation
+    (:func:`_excess_bump`) must be closed, ``min_width_um``-``max_width_um`` wide, at most
+    ``ridge_elongation`` elongated, its outline no ridge by its second moments (axis ratio at
+    least ``ridge_axis_ratio`` when ``ridge_min_length_um`` long: on a footprint a few pixels
+    wide the inscribed radius is pixelised, the axes are not), its flank slope (peak / half
+    width) at least the strokes' own least slope (:func:`_stroke_slope`) and the weave's, its
+    peak at least the relief threshold and at most twice the candidate's relief over its
+    surround (over a local plane for a compact peak, over the disc opening for a glowing one;
+    more: the line cut through another structure, a crossing stroke or a bend), and it must
+    overlap no kept candidate. An excess that runs open while the candidate touches a crack is
+    measured again with the cracks filled (a closing by ``crack_width_um``: a groove across the
+    line drops the opening to its floor), and is then kept only when its outline passes the
+    ``crack`` rule itself (a protrusion touches a crack, the corner of a cupped island is
+    bounded by them). A kept one is relabelled to its outline. Returns (reasons, labels)."""
     lab, reason = cand.labels.copy(), reason.copy()
     if p.along_stroke_k <= 0:
         return reason, lab
-    test = np.flatnonzero(np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h
-                          & (f.under >= th.relief_um))
+    glow = f.has_a & ~f.has_h
+    bound = np.where(f.has_h, f.relief, f.relief_disc)
+    test = np.flatnonzero(((np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h)
+                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um))
     kept = np.zeros(int(lab.max()) + 1, bool)
     kept[f.lbl[reason == ""]] = True
     slices, (m, n) = ndi.find_objects(lab), lab.shape
     for j in test:
         k, sl = int(f.lbl[j]), slices[int(f.lbl[j]) - 1]
-        r = math.sqrt(max(np.count_nonzero(cand.height[sl] == k), 1) / math.pi)
+        own = cand.height if f.has_h[j] else lab     # a glowing one: its whole candidate
+        r = math.sqrt(max(np.count_nonzero(own[sl] == k), 1) / math.pi)
         pad = int(4 * r + 6)
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
         region = lab[crop]
         foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um, p)
+        cracked = foot is None and f.crack_fraction[j] > 0
+        if cracked:         # open along a crack it touches: again with the cracks filled
+            foot, outline, peak = _excess_bump(surf.height[crop], region == k, r, th.relief_um,
+                                                p, p.crack_width_um / px)
         if foot is None or kept[region[foot]].any():
             continue
         area = float(np.count_nonzero(foot))
         eqd = 2 * math.sqrt(area / math.pi)
         elong = area / (math.pi * float(_edt(np.pad(foot, 1)).max()) ** 2)
+        # the second moments as well: on a footprint a few pixels wide the inscribed radius
+        # is pixelised (a 6 x 20 px piece of stroke reads 2x elongated), its axes are not
+        major, minor = (float(a[0]) for a in _axis_lengths(outline.astype(np.int32), 1))
         if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
+                and not (minor < p.ridge_axis_ratio * major
+                         and major * px >= p.ridge_min_length_um)
                 and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
-                and th.relief_um <= peak <= 2 * f.relief[j]):
+                and th.relief_um <= peak <= 2 * bound[j]
+                and not (cracked and _outline_crack_fraction(
+                    surf.height[crop], outline, peak, th.relief_um,
+                    p.crack_width_um / px) > p.max_crack_fraction)):
             region[region == k] = 0
             region[outline] = k
             kept[k], reason[j] = True, ""
