@@ -274,8 +274,11 @@ def calibrate_from_spheres(cap, sphere_dir: Path, cal_dir: Path, spheres, *, dar
     inputs = {"spheres": [str(sphere_dir)]}
     if dark is not None:
         # the sphere capture's own dark frame (another exposure than the painting's); the run is given the
-        # painting's (--dark), as a conservator who took the two at two exposures does
-        inputs["dark"] = str(sphere_dir / "dark" / "dark.tif")
+        # painting's (--dark), as a conservator who took the two at two exposures does. With a card (taken at
+        # the painting's exposure) the painting's: calibrate subtracts one dark frame from both, and a glossy
+        # sphere's highlight does not see the smooth remainder
+        own = sphere_dir / "dark" / "dark.tif"
+        inputs["dark"] = str(own if own.is_file() and card is None else dark)
     if card is not None:
         inputs["card"] = str(card)
     COMMANDS["calibrate"](inputs, {"pixel_size_um": float(cap.spec.pixel_size_um)}, cal_dir)
