@@ -67,7 +67,7 @@ SCENES = {
 
 
 def _detections_from_truth(cap, height_noise, params=None):
-    """Centroids (x, y px), widths (um), rejection counts and time of detect_protrusions on the
+    """Centroids (x, y px), widths (um), the Detection and the time of detect_protrusions on the
     generator's true albedo, height and normals (plus white height noise)."""
     px = cap.spec.pixel_size_um
     h = cap.height_um
@@ -79,8 +79,7 @@ def _detections_from_truth(cap, height_noise, params=None):
     elapsed = time.perf_counter() - t0
     props = regionprops_table(det.labels, properties=("centroid", "area"))
     xy = np.column_stack([props["centroid-1"], props["centroid-0"]])
-    _detections_from_truth.last = det
-    return xy, np.sqrt(4 * props["area"] / np.pi) * px, det.rejected, elapsed
+    return xy, np.sqrt(4 * props["area"] / np.pi) * px, det, elapsed
 
 
 def miss_reasons(cap, det, xy, lo=60.0, hi=100.0):
@@ -187,11 +186,12 @@ def run_seed(seed, shape, args):
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
         params = DetectionParams(shoulder_width_um=getattr(args, "shoulder_width_um", 0.0))
-        xy, w, rejected, elapsed = _detections_from_truth(cap, args.height_noise, params)
+        xy, w, det, elapsed = _detections_from_truth(cap, args.height_noise, params)
+        rejected = det.rejected
     res = score(cap, xy, w)
     res.update(seed=seed, time=elapsed, rejected=rejected)
     if getattr(args, "misses", False) and not args.pipeline:
-        res["misses"] = miss_reasons(cap, _detections_from_truth.last, xy)
+        res["misses"] = miss_reasons(cap, det, xy)
     return res
 
 

@@ -209,6 +209,19 @@ def _scratch_wanted(sources: list) -> bool:
     return False
 
 
+def _check_like_first(arr, px, path, first_path, *, shape, dtype, tag_px) -> None:
+    """One image of a capture read from files: the first file's shape and dtype, its pixel size when
+    ``tag_px`` (the first file's, None: not checked) and both carry one, and a usable image
+    (:func:`_check_image`)."""
+    if tag_px is not None and px is not None and not math.isclose(px, tag_px, rel_tol=1e-4):
+        raise UVPSInputError(f"image {path} has pixel size {px:.6g} um in its TIFF tags;"
+                             f" expected {tag_px:.6g} um like {Path(first_path).name}")
+    if arr.shape != shape or arr.dtype != dtype:
+        raise UVPSInputError(f"image {path} is {arr.shape} {arr.dtype};"
+                             f" expected {shape} {dtype} like {Path(first_path).name}")
+    _check_image(arr, str(path))
+
+
 def _map_files(sources: list, progress: Progress, *, check_px: bool, mapper=None):
     """The files as a :class:`MappedStack` (-> (stack, dtype, pixel size or None)), or None when one
     of them cannot be mapped (compressed, planar, not a TIFF) or is not integer. ``mapper`` (default
@@ -224,18 +237,8 @@ def _map_files(sources: list, progress: Progress, *, check_px: bool, mapper=None
         if got is None:
             return None
         arr, px = got
-        if (check_px and tag_px is not None and px is not None
-                and not math.isclose(px, tag_px, rel_tol=1e-4)):
-            raise UVPSInputError(
-                f"image {src.path} has pixel size {px:.6g} um in its TIFF tags;"
-                f" expected {tag_px:.6g} um like {sources[0].path.name}"
-            )
-        if arr.shape != shape or arr.dtype != dtype:
-            raise UVPSInputError(
-                f"image {src.path} is {arr.shape} {arr.dtype};"
-                f" expected {shape} {dtype} like {sources[0].path.name}"
-            )
-        _check_image(arr, str(src.path))
+        _check_like_first(arr, px, src.path, sources[0].path, shape=shape, dtype=dtype,
+                          tag_px=tag_px if check_px else None)
         release(arr)
         maps.append(arr)
         report(progress, (i + 1) / (len(sources) + 1), f"mapped {src.path.name}")
@@ -1178,21 +1181,11 @@ def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: 
     out = np.empty((k,) + shape, dtype=dtype if keep else np.float32)
     for i, src in enumerate(sources):
         if i == 0:
-            img, first = first, None
+            (img, px), first = (first, tag_px), None
         else:
             img, px = _read_image_px(src.path)
-            if (check_px and tag_px is not None and px is not None
-                    and not math.isclose(px, tag_px, rel_tol=1e-4)):
-                raise UVPSInputError(
-                    f"image {src.path} has pixel size {px:.6g} um in its TIFF tags;"
-                    f" expected {tag_px:.6g} um like {sources[0].path.name}"
-                )
-        if img.shape != shape or img.dtype != dtype:
-            raise UVPSInputError(
-                f"image {src.path} is {img.shape} {img.dtype};"
-                f" expected {shape} {dtype} like {sources[0].path.name}"
-            )
-        _check_image(img, str(src.path))
+        _check_like_first(img, px, src.path, sources[0].path, shape=shape, dtype=dtype,
+                          tag_px=tag_px if check_px else None)
         out[i] = img
         if _needs_linearize(_kind(src.path), dtype, linearize):
             srgb_to_linear(out[i], _saturation_of(dtype), out=out[i])
