@@ -63,7 +63,8 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     """A lens whose corners fall to 60 % (vignetting 0.4) brightens each corner sphere's side toward the
     image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
     the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
-    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 15 % (over 200 % without)."""
+    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 6.5 % (over 200 % without;
+    8.1 % with the gain to second order only, whose 5e-4 misfit the circle takes up as a tenth of a pixel)."""
     import uvps.core.spheres as spheres
 
     vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
@@ -78,7 +79,10 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
 
     ang, pos = errors()
     # spheres of 60 px radius 20 mm apart: 0.4 deg moves a lamp 300-500 mm away by a fifth of its distance
-    assert ang < 0.5 and pos < 15.0, (ang, pos)
+    assert ang < 0.5 and pos < 6.5, (ang, pos)
+    monkeypatch.setattr(spheres, "GAIN_TERMS", 5)
+    ang2, pos2 = errors()
+    assert pos2 > 7.5 and pos2 > 1.5 * pos, (pos, pos2)
     monkeypatch.setattr(spheres, "_gain", lambda g, nx, ny: np.ones_like(nx))
     ang0, pos0 = errors()
     assert ang0 > 1.0 and ang0 > 3 * ang and pos0 > 50.0, (ang, ang0, pos0)
