@@ -135,19 +135,22 @@ def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path)
     killed = []
 
     # a small capture is written in a few milliseconds: each worker holds its new folder open for a
-    # second after writing it (before the swap), so that the kill falls inside the write, not beside it
+    # second after writing it (before the swap), so that the kill falls inside the write, not beside it.
+    # The hold wraps the name the workflow calls (it imported write_run from uvps.files.runfolder): a
+    # hold on runfolder's own name is never called, and a kill that fell after the swap found the
+    # capture whole on the rerun ("skipped", not "done")
     def hold_new_folders(seconds):
-        import uvps.files.runfolder as rf
+        import uvps.workflow as wf
 
-        original = getattr(rf, "_write_run_unheld", rf.write_run)
+        original = getattr(wf, "_write_run_unheld", wf.write_run)
 
         def write_run(*args, **kwargs):
             written = original(*args, **kwargs)
             time.sleep(seconds)
             return written
 
-        rf._write_run_unheld = original
-        rf.write_run = write_run if seconds else original
+        wf._write_run_unheld = original
+        wf.write_run = write_run if seconds else original
 
     client.run(hold_new_folders, 1.0)
 
