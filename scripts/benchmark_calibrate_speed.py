@@ -2,14 +2,15 @@
 """Speed of ``uvps calibrate`` on a large sphere capture (issue 19: under 10 s for 64 lamps at 4000 x 3000).
 
 The capture: K grey 16-bit TIFFs (uncompressed, as a camera converter writes them) of a flat painting
-(albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy spheres of 2.5 mm radius in opposite
-corners, rendered by :func:`uvps.testing.synthetic_spheres.make_sphere_capture` inside each sphere's box (the
+(albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy (``--kind matte``: matte white) spheres of 2.5 mm radius in
+opposite corners, rendered by :func:`uvps.testing.synthetic_spheres.make_sphere_capture` inside each sphere's box (the
 lamps shifted to the box's frame) and pasted into the frame; photon and read noise. ``uvps calibrate``
 is then run as a user runs it (a subprocess: start-up, reading, detection, fits, writing) and its wall
 time, the lamps' errors against the truth and the machine's load are printed.
 
     .venv/bin/python scripts/benchmark_calibrate_speed.py                       # 64 lamps, 4000 x 3000
     .venv/bin/python scripts/benchmark_calibrate_speed.py --lamps 8 --shape 600 800   # a quick trial
+    .venv/bin/python scripts/benchmark_calibrate_speed.py --kind matte                # matte spheres
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from uvps.testing.synthetic import Nuisances, SyntheticCapture, SyntheticSpec, l
 from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture
 
 
-def render(shape, lamps, px, folder: Path, seed=0):
+def render(shape, lamps, px, folder: Path, seed=0, kind="glossy"):
     """Write the capture; returns the true lamp positions (K, 3) mm."""
     rng = np.random.default_rng(seed)
     M, N = shape
@@ -57,7 +58,7 @@ def render(shape, lamps, px, folder: Path, seed=0):
                                normals=None, albedo=np.full((bm, bn), 0.3, np.float32), regions=None,
                                region_names=[], region_light=[], protrusions={}, spec=spec, exposure=exposure,
                                gain=gain, nuisances=Nuisances())
-        sc = make_sphere_capture(cap, [SphereSpec("glossy", ((c0 - ca) / (bn - 1), (r0 - ra) / (bm - 1)), r_mm)])
+        sc = make_sphere_capture(cap, [SphereSpec(kind, ((c0 - ca) / (bn - 1), (r0 - ra) / (bm - 1)), r_mm)])
         boxes.append((ra, rb, ca, cb, sc.images))
     folder.mkdir(parents=True, exist_ok=True)
     for k in range(lamps):
@@ -79,11 +80,12 @@ def main(argv=None) -> int:
     ap.add_argument("--lamps", type=int, default=64)
     ap.add_argument("--pixel-size-um", type=float, default=15.0)
     ap.add_argument("--workdir", default=None)
+    ap.add_argument("--kind", choices=("glossy", "matte"), default="glossy", help="the spheres' kind")
     args = ap.parse_args(argv)
     work = Path(args.workdir or tempfile.mkdtemp(prefix="uvps_cal_speed_"))
     cap_dir, cal_dir = work / "spheres", work / "CAL"
     t0 = time.perf_counter()
-    L = render(tuple(args.shape), args.lamps, args.pixel_size_um, cap_dir)
+    L = render(tuple(args.shape), args.lamps, args.pixel_size_um, cap_dir, kind=args.kind)
     t_make = time.perf_counter() - t0
     shutil.rmtree(cal_dir, ignore_errors=True)
     cmd = [sys.executable, "-m", "uvps", "calibrate", "--spheres", str(cap_dir), "-o", str(cal_dir)]
@@ -103,7 +105,7 @@ def main(argv=None) -> int:
     ang = np.degrees(np.arccos(np.clip((D * L).sum(1) / np.linalg.norm(L, axis=1), -1, 1)))
     P = np.array([lp["position_mm"] for lp in lights], float)
     pos = np.linalg.norm(P - L, axis=1) / np.linalg.norm(L, axis=1) * 100
-    print(f"uvps calibrate: {args.lamps} lamps, {args.shape[1]} x {args.shape[0]} px grey uint16: {wall:.1f} s wall, "
+    print(f"uvps calibrate: {args.lamps} lamps, {args.kind} spheres, {args.shape[1]} x {args.shape[0]} px grey uint16: {wall:.1f} s wall, "
           f"{cpu:.1f} s CPU, peak memory {ru1.ru_maxrss / 2 ** 20:.2f} GiB "
           f"(capture written in {t_make:.0f} s); lamps max {ang.max():.3f} deg, positions max {pos.max():.2f} %; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
