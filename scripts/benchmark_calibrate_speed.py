@@ -2,11 +2,12 @@
 """Speed of ``uvps calibrate`` on a large sphere capture (issue 19: under 10 s for 64 lamps at 4000 x 3000).
 
 The capture: K grey 16-bit TIFFs (uncompressed, as a camera converter writes them) of a flat painting
-(albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy (``--kind matte``: matte white) spheres of 2.5 mm radius in
-opposite corners, rendered by :func:`uvps.testing.synthetic_spheres.make_sphere_capture` inside each sphere's box (the
-lamps shifted to the box's frame) and pasted into the frame; photon and read noise. ``uvps calibrate``
-is then run as a user runs it (a subprocess: start-up, reading, detection, fits, writing) and its wall
-time, the lamps' errors against the truth and the machine's load are printed.
+(albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy (``--kind matte``: matte white) spheres
+of 2.5 mm radius in opposite corners, rendered by :func:`uvps.testing.synthetic_spheres.make_sphere_capture`
+inside each sphere's box (the lamps shifted to the box's frame) and pasted into the frame; photon and
+read noise. ``uvps calibrate`` is then run as a user runs it (a subprocess: start-up, reading,
+detection, fits, writing) and its wall time, the lamps' errors against the truth and the machine's
+load are printed.
 
     .venv/bin/python scripts/benchmark_calibrate_speed.py                       # 64 lamps, 4000 x 3000
     .venv/bin/python scripts/benchmark_calibrate_speed.py --lamps 8 --shape 600 800   # a quick trial
@@ -105,8 +106,8 @@ def main(argv=None) -> int:
     ang = np.degrees(np.arccos(np.clip((D * L).sum(1) / np.linalg.norm(L, axis=1), -1, 1)))
     P = np.array([lp["position_mm"] for lp in lights], float)
     pos = np.linalg.norm(P - L, axis=1) / np.linalg.norm(L, axis=1) * 100
-    print(f"uvps calibrate: {args.lamps} lamps, {args.kind} spheres, {args.shape[1]} x {args.shape[0]} px grey uint16: {wall:.1f} s wall, "
-          f"{cpu:.1f} s CPU, peak memory {ru1.ru_maxrss / 2 ** 20:.2f} GiB "
+    print(f"uvps calibrate: {args.lamps} lamps, {args.kind} spheres, {args.shape[1]} x {args.shape[0]} px grey uint16: "
+          f"{wall:.1f} s wall, {cpu:.1f} s CPU, peak memory {ru1.ru_maxrss / 2 ** 20:.2f} GiB "
           f"(capture written in {t_make:.0f} s); lamps max {ang.max():.3f} deg, positions max {pos.max():.2f} %; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     if not args.workdir:
