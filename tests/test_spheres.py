@@ -204,3 +204,51 @@ def test_the_generator_covers_each_rim_pixel_by_its_area(centre):
     assert abs((f * cc).sum() / f.sum() - centre[0]) < 1e-3 and abs((f * rr).sum() / f.sum() - centre[1]) < 1e-3
     point = ((cc - centre[0]) ** 2 + (rr - centre[1]) ** 2 < R * R).astype(float)
     assert np.hypot((point * cc).sum() / point.sum() - centre[0], (point * rr).sum() / point.sum() - centre[1]) > 0.01
+
+
+def _matte_disc(seed, radius_px=70, lamp=(0.4, -0.3, 0.86)):
+    """A matte disc's samples under one near lamp with a beam, an additive term, photon noise, a
+    saturated patch, a stand's shadow and specks: (values float32, normals)."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[-radius_px:radius_px + 1, -radius_px:radius_px + 1]
+    nx, ny = cc / radius_px, -rr / radius_px
+    inside = nx * nx + ny * ny < 0.96 ** 2
+    n = np.stack([nx, ny, np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))], -1)[inside]
+    l = np.asarray(lamp) / np.linalg.norm(lamp)
+    shading = np.clip(n @ l, 0, None) * (1 + 0.05 * n[:, 0]) * (1 + 0.02 * (3 * (n @ l) ** 2 - 1))
+    v = 300 + 20000 * shading
+    v = v + rng.normal(size=v.size) * np.sqrt(v)
+    v[n[:, 1] < -0.8] = 250.0                                    # a stand below the sphere
+    v[rng.random(v.size) < 0.01] *= 0.5                          # specks
+    v[(n @ l) > 0.995] = 65535.0                                 # a saturated patch
+    return v.astype(np.float32), n
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_matte_fit_equals_its_numpy_statement(seed):
+    from uvps.core.spheres import _fit_matte, _fit_matte_numpy
+
+    v, n = _matte_disc(seed)
+    for vv, nn in ((v, n), (v[::3], n[::3])):            # a strided subset, as the circle's first fits read
+        got, want = _fit_matte(vv, nn, 0.995 * 65535), _fit_matte_numpy(vv, nn, 0.995 * 65535)
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-9)
+        assert got[1] == pytest.approx(want[1], rel=1e-7, abs=1e-6)
+        np.testing.assert_allclose(got[2], want[2], rtol=1e-7)
+        assert got[3] == want[3] and np.array_equal(got[5], want[5])
+        assert got[4] == pytest.approx(want[4], rel=1e-9)
+        # the trim took the stand, the saturated patch and the specks out
+        assert not got[5][vv >= 0.995 * 65535].any() and not got[5][nn[:, 1] < -0.8].any()
+    assert _fit_matte(v[:10], n[:10], None) is None
+
+
+@pytest.mark.parametrize("rows, step", [(1, 1), (2, 1), (7, 2), (9, 4), (13, 3)])
+def test_projections_in_bands_equal_the_whole(rows, step):
+    from uvps.core.spheres import _mean_image, _median_over_images, _projections
+
+    rng = np.random.default_rng(rows)
+    stack = rng.random((5, rows, 11)).astype(np.float32)
+    sub = stack[:, ::step, ::step]
+    for got, want in zip(_projections(stack, step), (np.median(sub, 0), sub.max(0), sub.mean(0))):
+        assert got.shape == want.shape and np.array_equal(got, want)
+    np.testing.assert_allclose(_mean_image(stack, step), sub.astype(np.float64).mean(0), rtol=1e-12)
+    assert np.array_equal(_median_over_images(stack), np.median(stack, 0))

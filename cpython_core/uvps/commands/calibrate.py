@@ -44,14 +44,11 @@ def _spheres_png(path, images, spheres) -> None:
     import cv2
     from skimage.draw import circle_perimeter
 
-    from ..core.spheres import _grey, _to8
+    from ..core.spheres import _mean_image, _to8
 
     K, M, N = images.shape[:3]
     step = max(1, int(math.ceil(max(M, N) / 1600)))
-    med = np.zeros(images[0, ::step, ::step].shape[:2], np.float64)
-    for k in range(K):             # a running sum: the stack is read one image at a time
-        med += _grey(images[k, ::step, ::step])
-    med /= K
+    med = _mean_image(images, step)
     g = _to8(med)
     g = np.zeros(med.shape, np.uint8) if g is None else g
     rgb = np.repeat(g[..., None], 3, axis=2)
