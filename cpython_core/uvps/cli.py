@@ -15,7 +15,7 @@ from pathlib import Path
 
 from . import __version__
 from .bridge import run_bridge
-from .commands import COMMANDS
+from .commands import COMMANDS, DECLARED_IN
 from .errors import UVPSError, in_chain
 from .files.outputs import COMMITTED
 from .spec import add_parser, markdown, request_from_args, to_json
@@ -36,14 +36,15 @@ class _Parser(argparse.ArgumentParser):
         self.exit(1, f"{self.prog}: error: {message}; see {self.prog} --help\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``uvps`` parser: one sub-command per declared command, plus ``bridge`` and ``spec``."""
+def build_parser(commands=None) -> argparse.ArgumentParser:
+    """The ``uvps`` parser: one sub-command per declared command (of ``commands``, a name -> spec
+    mapping; default every one), plus ``bridge`` and ``spec``."""
     ap = _Parser(prog="uvps", description="Photometric stereo by UV-induced fluorescence "
                                  "(lights from the images, normals, albedo, height, protrusions).")
     ap.add_argument("--version", action="version", version=f"uvps {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sp = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, spec in COMMANDS.items():
+    for name, spec in (COMMANDS if commands is None else commands).items():
         if name == spec.name:
             add_parser(sp, spec)
     p = sp.add_parser("bridge", help="the file bridge for the Fiji side: run a request.json")
@@ -140,7 +141,15 @@ def quiet_library_warnings(*, verbose: bool = False) -> None:
 
 def main(argv=None) -> int:
     """``uvps`` entry point; returns the exit status (0 ok, 1 bad input, 2 compute error)."""
-    a = build_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # the command named (the first word: uvps's own options take no value) is the only one whose
+    # module is imported; a name that is not a command gets the whole parser, and its message
+    named = next((w for w in argv if not w.startswith("-")), None)
+    only = None
+    if named in DECLARED_IN:
+        spec = COMMANDS[named]
+        only = {spec.name: spec}
+    a = build_parser(only).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     quiet_library_warnings(verbose=a.verbose)
