@@ -105,10 +105,10 @@ def miss_reasons(cap, det, xy, lo=60.0, hi=100.0):
     return out
 
 
-def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool):
+def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float = 0.0):
     """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
     lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
-    ``uncalibrated``."""
+    ``uncalibrated``; with ``curl_k``, detected again by ``uvps detect -o RUN --curl-k K``."""
     capture_dir, run_dir = workdir / "capture", workdir / "run"
     write_capture(cap, capture_dir, truth=False)
     cmd = [sys.executable, "-m", "uvps", "run", str(capture_dir), "-o", str(run_dir), "--detect",
@@ -123,9 +123,14 @@ def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool):
     elapsed = time.perf_counter() - t0
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    if curl_k:
+        cmd = [sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), "--curl-k", str(curl_k)]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
     table = read_protrusions_csv(run_dir / "protrusions.csv")
     # the rejection counts, from the detector's log line on stderr
-    found = re.search(r"uvps\.detect: detect: .*rejected (\{[^}]*\})", done.stderr)
+    found = re.search(r"uvps\.core\.detect: detect: .*rejected (\{[^}]*\})", done.stderr)
     rejected = ast.literal_eval(found.group(1)) if found else {}
     return np.column_stack([table["x_px"], table["y_px"]]), table["width_um"], rejected, elapsed
 
@@ -181,7 +186,7 @@ def run_seed(seed, shape, args):
     if args.pipeline:
         cap = make_capture(spec)
         with tempfile.TemporaryDirectory(prefix="uvps_bench_") as tmp:
-            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated)
+            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated, args.curl_k)
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
@@ -272,6 +277,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pipeline", action="store_true",
                     help="end to end through `uvps run CAPTURE -o RUN --detect --lights "
                          "CAPTURE/lights_positions_mm.csv --black-level B` on the written capture")
+    ap.add_argument("--curl-k", type=float, default=0.0,
+                    help="with --pipeline: then `uvps detect -o RUN --curl-k K` (DetectionParams.curl_k: the "
+                         "detection's height without long non-integrable patches; 0 = off)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")

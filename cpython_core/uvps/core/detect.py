@@ -204,6 +204,15 @@ class DetectionParams:
         How far (um) the albedo outline may extend a height footprint.
     crack_width_um : float
         Cracks are grooves narrower than this (the ``crack`` rule's black top-hat).
+    curl_k : float
+        Curl threshold (robust standard deviations) of the non-integrable gradients left out of the
+        height a run's detection reads; 0 (the default) reads the run's height as it is. Used by
+        :func:`uvps.core.pipeline.find_protrusions` where the normals are given: the height is integrated
+        again (Frankot-Chellappa) without the gradients of patches longer than ``max_width_um``
+        whose curl exceeds it (:func:`uvps.core.integrate.nonintegrable_patches`: crack walls). Opt-in:
+        at 15 it raised end-to-end F1 on 8 of the 9 benchmark captures and lowered it on one, where the
+        ``stroke`` rule's bar fell with the cracks' relief and a stroke's ripples passed
+        (docs/benchmarks.md).
     """
 
     min_width_um: float = 30.0
@@ -236,6 +245,7 @@ class DetectionParams:
     max_mismatch: float = 0.5
     albedo_grow_um: float = 60.0
     crack_width_um: float = 90.0
+    curl_k: float = 0.0
 
 
 @dataclass
