@@ -105,6 +105,14 @@ def miss_reasons(cap, det, xy, lo=60.0, hi=100.0):
     return out
 
 
+def _checked(cmd):
+    """``subprocess.run(cmd)``, its output captured; a failure raised with the end of its stderr."""
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    return done
+
+
 def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float = 0.0):
     """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
     lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
@@ -119,15 +127,10 @@ def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: fl
         if black is not None:
             cmd += ["--black-level", ",".join(f"{float(b):g}" for b in np.atleast_1d(black))]
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    done = _checked(cmd)
     elapsed = time.perf_counter() - t0
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
     if curl_k:
-        cmd = [sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), "--curl-k", str(curl_k)]
-        done = subprocess.run(cmd, capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+        done = _checked([sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), "--curl-k", str(curl_k)])
     table = read_protrusions_csv(run_dir / "protrusions.csv")
     # the rejection counts, from the detector's log line on stderr
     found = re.search(r"uvps\.core\.detect: detect: .*rejected (\{[^}]*\})", done.stderr)

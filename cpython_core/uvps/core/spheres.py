@@ -247,23 +247,25 @@ def _grey(img) -> np.ndarray:
 # detection
 # ------------------------------------------------------------------------------------------------
 
-def _row_bands(M, step):
-    """Two bands of rows (start, stop) whose starts are on the grid of every ``step``-th row."""
+def _in_two_bands(fn, M, step=1):
+    """``[fn(r0, r1), ...]`` over two bands of ``M`` rows, side by side, one thread each (numpy's
+    reading, median and sums release the GIL); the second band starts on the grid of every
+    ``step``-th row, so a band's ``r0:r1:step`` rows are the whole's."""
     rows = len(range(0, M, step))
+    if rows < 2:
+        return [fn(0, M)]
     cut = step * (rows // 2)
-    return [(0, cut), (cut, M)] if rows >= 2 else [(0, M)]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return list(pool.map(lambda rng: fn(*rng), [(0, cut), (cut, M)]))
 
 
 def _projections(images, step):
-    """Median, maximum and mean over the images of the grey image sampled every ``step`` pixels.
-
-    Computed in two bands of rows side by side, one thread each (reading, and numpy's median over the
-    images, release the GIL): the median over 64 images of a 1000 x 750 projection is about a second
-    of a sphere capture's detection, and the three projections took 1.5 s in one thread, 0.56 s so."""
+    """Median, maximum and mean over the images of the grey image sampled every ``step`` pixels,
+    in two bands of rows side by side: the median over 64 images of a 1000 x 750 projection is
+    about a second of a sphere capture's detection, and the three took 1.5 s in one thread, 0.56 s so."""
     K = images.shape[0]
 
-    def band(rng):
-        r0, r1 = rng
+    def band(r0, r1):
         first = _grey(images[0, r0:r1:step, ::step])
         stack = np.empty((K,) + first.shape, np.float32)
         stack[0] = first
@@ -271,9 +273,7 @@ def _projections(images, step):
             stack[k] = _grey(images[k, r0:r1:step, ::step])
         return np.median(stack, axis=0), stack.max(axis=0), stack.mean(axis=0)
 
-    bands = _row_bands(images.shape[1], step)
-    with ThreadPoolExecutor(max_workers=len(bands)) as pool:
-        parts = list(pool.map(band, bands))
+    parts = _in_two_bands(band, images.shape[1], step)
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 
@@ -282,26 +282,18 @@ def _mean_image(images, step):
     sum, one image at a time, in two bands of rows side by side."""
     K = images.shape[0]
 
-    def band(rng):
-        r0, r1 = rng
+    def band(r0, r1):
         out = _grey(images[0, r0:r1:step, ::step]).astype(np.float64)
         for k in range(1, K):
             out += _grey(images[k, r0:r1:step, ::step])
         return out / K
 
-    bands = _row_bands(images.shape[1], step)
-    with ThreadPoolExecutor(max_workers=len(bands)) as pool:
-        return np.concatenate(list(pool.map(band, bands)))
+    return np.concatenate(_in_two_bands(band, images.shape[1], step))
 
 
 def _median_over_images(stack):
     """``np.median(stack, axis=0)`` of a (K, rows, cols) stack, in two bands of rows side by side."""
-    half = stack.shape[1] // 2
-    if half == 0:
-        return np.median(stack, axis=0)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        parts = list(pool.map(lambda sl: np.median(stack[:, sl], axis=0), (slice(0, half), slice(half, None))))
-    return np.concatenate(parts)
+    return np.concatenate(_in_two_bands(lambda r0, r1: np.median(stack[:, r0:r1], axis=0), stack.shape[1]))
 
 
 def _to8(img):
@@ -582,8 +574,7 @@ def _beam_columns(normals, l):
 def _solve(G, rhs):
     """The normal equations ``G x = rhs`` of a sphere's shading fit. Its columns are a handful of O(1)
     shading terms (on a 167 px disc the design's condition number is about 75, ``G``'s 5e3), so in
-    float64 they lose nothing ``numpy.linalg.lstsq`` keeps, at a fraction of its time (a matte sphere
-    capture of 64 lamps took 27.6 s in ``uvps calibrate`` with it, 14.8 s without)."""
+    float64 they lose nothing ``numpy.linalg.lstsq`` keeps, and need no copy of the rows in use."""
     try:
         return np.linalg.solve(G, rhs)
     except np.linalg.LinAlgError:
