@@ -113,10 +113,10 @@ def _checked(cmd):
     return done
 
 
-def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float = 0.0):
+def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float = None):
     """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
     lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
-    ``uncalibrated``; with ``curl_k``, detected again by ``uvps detect -o RUN --curl-k K``."""
+    ``uncalibrated``; with ``curl_k`` (not None), detected again by ``uvps detect -o RUN --curl-k K``."""
     capture_dir, run_dir = workdir / "capture", workdir / "run"
     write_capture(cap, capture_dir, truth=False)
     cmd = [sys.executable, "-m", "uvps", "run", str(capture_dir), "-o", str(run_dir), "--detect",
@@ -129,7 +129,7 @@ def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: fl
     t0 = time.perf_counter()
     done = _checked(cmd)
     elapsed = time.perf_counter() - t0
-    if curl_k:
+    if curl_k is not None:
         done = _checked([sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), "--curl-k", str(curl_k)])
     table = read_protrusions_csv(run_dir / "protrusions.csv")
     # the rejection counts, from the detector's log line on stderr
@@ -280,9 +280,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pipeline", action="store_true",
                     help="end to end through `uvps run CAPTURE -o RUN --detect --lights "
                          "CAPTURE/lights_positions_mm.csv --black-level B` on the written capture")
-    ap.add_argument("--curl-k", type=float, default=0.0,
+    ap.add_argument("--curl-k", type=float, default=None,
                     help="with --pipeline: then `uvps detect -o RUN --curl-k K` (DetectionParams.curl_k: the "
-                         "detection's height without long non-integrable patches; 0 = off)")
+                         "detection's height without long non-integrable patches; 0 = off; default: the run's own)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")

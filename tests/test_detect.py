@@ -378,9 +378,9 @@ def test_bump_on_a_stroke_measured_over_the_strokes_own_profile(seed, col):
 def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, height_um):
     """A rippled stroke alone (crests 20-40 um high, 300 um apart): its crests are closed bumps
     over the stroke's continuation too, but no steeper than the strokes' own bumps, so the
-    along-stroke cue keeps none of them. (The steepest, 0.35 x 40 um every 300 um, comes through
-    the ``stroke`` rule itself, cue or not: its crests split into many small bumps that lower the
-    strokes' median slope; ``docs/protrusions.md``.)"""
+    along-stroke cue keeps none of them, and none is detected. The steepest, 0.35 x 40 um every
+    300 um, splits into many small bumps that lower the strokes' median slope, so its crests pass
+    the slope test: the ripple test (an evenly spaced row of similar bumps) rejects them."""
     px, shape = 15.0, (200, 520)
     alb, h = scene(shape, seed=5)
     h += rippled_stroke(shape, px, row=100, width_um=width_um, height_um=height_um, ripple=ripple)
@@ -389,8 +389,58 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
     assert det.diagnostics["stroke_bumps_kept"] == 0
     assert np.array_equal(det.labels, off.labels)
     assert det.rejected["stroke"] + det.rejected["ridge"] >= 8
-    if ripple <= 0.3:
-        assert det.labels.max() == 0
+    assert det.labels.max() == 0
+    if ripple > 0.3:
+        assert det.diagnostics["ripples"] >= 20
+        no_rows = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(ripple_reach=0))
+        assert no_rows.labels.max() >= 10          # it is the ripple test that rejects them
+
+
+def _bumps(centres, eqd, on_long=None):
+    """CandidateFeatures of bumps at ``centres`` (row, col) px with equivalent diameters ``eqd``
+    (the fields :func:`uvps.core.detect._ripples` does not read are zeros)."""
+    from uvps.core.detect import CandidateFeatures
+
+    c = np.asarray(centres, np.float64)
+    k = len(c)
+    zero = np.zeros(k)
+    return CandidateFeatures(lbl=np.arange(1, k + 1), area=zero, eqd=np.broadcast_to(np.asarray(eqd, float), (k,)),
+                             relief=zero, relief_disc=zero, elongation=zero, axis_ratio=zero, major=zero,
+                             hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool),
+                             crack_fraction=zero, under=zero, tilt_deg=zero, mismatch=zero, centroid=c)
+
+
+def test_ripples_are_the_rows_of_evenly_spaced_similar_bumps():
+    """A bump is a ripple when it is the middle of an evenly spaced row of three similar ones
+    (within 1.6 x in diameter; the two others on opposite sides, 150 deg or more apart, at
+    distances within 1.5 x, within ``ripple_reach`` diameters), or the end of a row of four or
+    more: all five crests of a row are, only the middle of a row of three; a lone bump, a pair, an
+    L, an uneven row, a row whose middle is twice as wide, and a row that glows (not in the
+    strokes' population) are not."""
+    from uvps.core.detect import _ripples
+
+    p = DetectionParams()
+    t = np.radians(30.0)
+    step = 14.0 * np.array([np.sin(t), np.cos(t)])
+    row = [np.array([100.0, 100.0]) + i * step for i in range(5)]
+    lone = [[300.0, 300.0]]
+    pair = [[300.0, 100.0], [300.0, 114.0]]
+    ell = [[400.0, 100.0], [400.0, 114.0], [414.0, 100.0]]
+    uneven = [[500.0, 100.0], [500.0, 110.0], [500.0, 135.0]]
+    three = [[600.0, 100.0], [612.0, 108.0], [624.0, 116.0]]
+    centres = row + lone + pair + ell + uneven + three
+    eqd = [10.0] * len(centres)
+    f = _bumps(centres, eqd)
+    got = _ripples(f, np.ones(len(centres), bool), p)
+    assert got.tolist() == [True] * 5 + [False] * (len(centres) - 8) + [False, True, False]
+    # the middle of a row twice as wide as its neighbours: an event, not a crest
+    f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], [10.0, 20.0, 10.0])
+    assert not _ripples(f, np.ones(3, bool), p).any()
+    # a glowing row is not in the strokes' population: never a ripple, nor a neighbour
+    f = _bumps(row, 10.0)
+    on_long = np.array([True, False, True, False, True])
+    assert not _ripples(f, on_long, p).any()
+    assert not _ripples(f, np.ones(5, bool), DetectionParams(ripple_reach=0)).any()
 
 
 def glowing_segment(alb, h, centre, px, *, width_um, length_um, height_um):

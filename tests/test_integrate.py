@@ -422,10 +422,36 @@ def test_nonintegrable_patches_find_a_crack_and_leave_the_domes(seed):
     assert left_out - floor < 0.35 * (kept - floor), (floor, left_out, kept)
 
 
+def test_nonintegrable_patches_leave_a_clean_field_alone():
+    """On a noise-free field the curl's robust spread is near zero, so the relative threshold alone
+    would take the discretisation curl of any sharp feature for a non-integrable patch: the floor
+    (``CURL_FLOOR``, slope per pixel) leaves a clean field's gradients, long ridges included, alone,
+    while the crack's wrong gradients still stand far above it."""
+    from uvps.core.integrate import CURL_FLOOR, nonintegrable_patches
+
+    px = 15.0
+    rr, cc = np.mgrid[0:240, 0:320].astype(float)
+    # a long wavy ridge (a stroke 20 um high, 8 px wide) across the field and a steep dome, their
+    # exact slopes (as a renderer's normals are): the discrete curl is not zero where they bend
+    u = rr - 120 - 10 * np.sin(cc / 30.0)
+    ridge = 20.0 * np.exp(-u ** 2 / (2 * 4.0 ** 2))
+    dome = 40.0 * np.exp(-((rr - 60) ** 2 + (cc - 80) ** 2) / (2 * 3.0 ** 2))
+    dz_dr = -u / 16.0 * ridge - (rr - 60) / 9.0 * dome
+    dz_dc = u / 16.0 * ridge * (10 / 30.0) * np.cos(cc / 30.0) - (cc - 80) / 9.0 * dome
+    p, q = dz_dc / px, -dz_dr / px
+    curl = np.abs(-np.gradient(p, axis=0) - np.gradient(q, axis=1))
+    assert 1.4826 * np.median(curl) < 1e-3 * CURL_FLOOR < curl.max()    # what the floor is for
+    assert not nonintegrable_patches(p, q, min_extent_px=1000.0 / px).any()
+    assert nonintegrable_patches(p, q, min_extent_px=1000.0 / px, floor=0.0).any()   # without it
+    p2, q2, _, _, crack = _domes_and_a_crack(0, px=px)
+    assert nonintegrable_patches(p2, q2, min_extent_px=1000.0 / px)[crack].mean() > 0.75
+
+
 def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept():
     """``find_protrusions`` reads :func:`uvps.core.pipeline.detection_height`: with ``curl_k`` the normals
     integrated again without the crack's gradients (closer to the truth on the domes than the run's
-    height, which keeps them); the run's height itself without normals or with ``curl_k`` 0 (the default)."""
+    height, which keeps them; ``curl_k`` 15 is the default); the run's height itself without normals or
+    with ``curl_k`` 0."""
     from uvps.core.detect import DetectionParams
     from uvps.core.pipeline import detection_height
 
@@ -435,7 +461,8 @@ def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept(
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     run_height = frankot_chellappa(p, q, pixel_size_um=px).height_um
     assert detection_height(run_height, None, pixel_size_um=px, params=DetectionParams(curl_k=15)) is run_height
-    assert detection_height(run_height, n, pixel_size_um=px, params=DetectionParams()) is run_height    # off
+    assert detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=0)) is run_height  # off
+    assert DetectionParams().curl_k == 15
 
     def dome_error(z):
         z = z - np.median(z[~domes & ~crack])

@@ -29,7 +29,9 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
 6. **The strokes' own statistics** (:func:`_stroke_slope`). Compact peaks with a long structure
    under them (a stroke's ripples, piled ends and crossings, or a protrusion on a stroke) and
    no albedo glow; their median flank slope, measured per image, sets the least slope of a
-   protrusion among them (``stroke_slope_k`` times it; the ``stroke`` rule).
+   protrusion among them (``stroke_slope_k`` times it; the ``stroke`` rule). Among them, the
+   members of an evenly spaced row of similar bumps are a stroke's ripples (:func:`_ripples`),
+   rejected by the same rule whatever their slope.
 7. **Union** (:func:`_union`) and **rejection** (:func:`_candidate_features`,
    :func:`_apply_rules`) by the table :data:`REJECTION_RULES`, first match wins; each rejected
    candidate keeps its rule (``Detection.diagnostics["candidate_reasons"]``), the counts are
@@ -56,6 +58,7 @@ import numba
 import numpy as np
 import scipy.fft
 from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
 from skimage.morphology import h_maxima, max_tree
 from skimage.segmentation import expand_labels, watershed
 
@@ -90,9 +93,10 @@ REJECTION_RULES = (
                   "glow: flank slope relief / (width / 2)",
                   "< stroke_slope_k x the median flank slope of the bumps on long structures "
                   "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
-                  "of a brush stroke (ridge, stroke and crack: unless its excess over the "
-                  "stroke's profile continued along the stroke is a closed, steep bump, "
-                  "_bumps_on_strokes)"),
+                  "of a brush stroke; or a member of an evenly spaced row of similar such bumps "
+                  "(_ripples: a stroke's ripples) (ridge, stroke and crack: unless its excess "
+                  "over the stroke's profile continued along the stroke is a closed, steep bump, "
+                  "_bumps_on_strokes; never for a ripple)"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
                   "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
@@ -206,13 +210,18 @@ class DetectionParams:
         Cracks are grooves narrower than this (the ``crack`` rule's black top-hat).
     curl_k : float
         Curl threshold (robust standard deviations) of the non-integrable gradients left out of the
-        height a run's detection reads; 0 (the default) reads the run's height as it is. Used by
+        height a run's detection reads; 0 reads the run's height as it is. Used by
         :func:`uvps.core.pipeline.find_protrusions` where the normals are given: the height is integrated
         again (Frankot-Chellappa) without the gradients of patches longer than ``max_width_um``
-        whose curl exceeds it (:func:`uvps.core.integrate.nonintegrable_patches`: crack walls). Opt-in:
-        at 15 it raised end-to-end F1 on 8 of the 9 benchmark captures and lowered it on one, where the
-        ``stroke`` rule's bar fell with the cracks' relief and a stroke's ripples passed
-        (docs/benchmarks.md).
+        whose curl exceeds it (:func:`uvps.core.integrate.nonintegrable_patches`: crack walls, whose
+        relief would otherwise spread along the strokes and raise the ``stroke`` rule's bar).
+        15 sits above the 99th percentile of the curl outside the cracks of the benchmark's captures
+        (12) and far below its median inside them (84); end-to-end figures in docs/benchmarks.md.
+    ripple_reach : float
+        A bump on a long structure without glow is a stroke's ripple (``stroke`` rule) when it is
+        in an evenly spaced row of similar ones (the middle of three, or any of four or more), its
+        neighbours in the row within this many of its equivalent diameters (:func:`_ripples`).
+        0 disables.
     """
 
     min_width_um: float = 30.0
@@ -245,7 +254,8 @@ class DetectionParams:
     max_mismatch: float = 0.5
     albedo_grow_um: float = 60.0
     crack_width_um: float = 90.0
-    curl_k: float = 0.0
+    curl_k: float = 15.0
+    ripple_reach: float = 2.5
 
 
 @dataclass
@@ -1205,6 +1215,7 @@ class CandidateFeatures:
     under: np.ndarray           # mean relief of a long structure under it (disc top-hat - t), um
     tilt_deg: np.ndarray        # mean tilt of the normals (inf without normals)
     mismatch: np.ndarray        # height's slope off the normals' / the normals' (0 without)
+    centroid: np.ndarray        # (K, 2) row, column of each candidate's centre of area
 
 
 def _axis_lengths(lab: np.ndarray, n: int) -> tuple:
@@ -1360,8 +1371,12 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
         ratio[need] = ax_minor[lbl[need] - 1] / np.maximum(major[need], 1e-9)
     tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px)
     under = _label_mean(t_disc - t, lab, n_lab)[lbl - 1]
-    return CandidateFeatures(under=under, lbl=lbl, area=area, eqd=eqd, relief=relief, relief_disc=relief_disc,
-                             elongation=elong, axis_ratio=ratio, major=major,
+    rr, cc = np.nonzero(lab)
+    ll = lab[rr, cc]
+    centroid = np.column_stack([np.bincount(ll, rr, minlength=n_lab + 1)[lbl],
+                                np.bincount(ll, cc, minlength=n_lab + 1)[lbl]]) / area[:, None]
+    return CandidateFeatures(under=under, lbl=lbl, centroid=centroid, area=area, eqd=eqd, relief=relief,
+                             relief_disc=relief_disc, elongation=elong, axis_ratio=ratio, major=major,
                              hole_fraction=holes / (area + holes),
                              has_h=lbl <= n_h, has_a=n_alb >= np.maximum(1, 0.2 * area),
                              crack_fraction=crack, tilt_deg=tilt[lbl - 1],
@@ -1381,8 +1396,53 @@ def _stroke_slope(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionP
     return on_long, float(p.stroke_slope_k * np.median(slope[on_long]))
 
 
-def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> np.ndarray:
-    """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept)."""
+def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> np.ndarray:
+    """Which bumps on long structures are a stroke's ripples: periodic crests, not an event.
+
+    A bump ``j`` of the strokes' population (``on_long``, :func:`_stroke_slope`: no glow) is a
+    ripple when two others of that population, each 1/1.6-1.6 x its equivalent diameter ``d``,
+    lie within ``ripple_reach x d`` of it on opposite sides (their directions from it at least
+    150 deg apart) at distances within 1.5 x of each other: it is the middle of an evenly
+    spaced row of similar crests, as a brush's ripples are (every 1-2 crest widths along the
+    stroke). The ends of a row are ripples too when the row holds four or more (the other
+    member of their triple is a middle as well); a row of three keeps its ends. Every candidate
+    of the population counts as a neighbour, whatever rule rejects it, so a row stays a row
+    where some of its crests fail another test. A protrusion is an event: a row of similar,
+    non-glowing ones at even spacing is the case this test gets wrong (the glowing ones are
+    never tested). Hand-written: no library tests collinear, evenly spaced neighbours; the
+    neighbours come from :class:`scipy.spatial.cKDTree`. Returns a mask."""
+    out = np.zeros(f.lbl.size, bool)
+    pop = np.flatnonzero(on_long)
+    if p.ripple_reach <= 0 or pop.size < 3:
+        return out
+    tree = cKDTree(f.centroid[pop])
+    d = f.eqd
+    triples = []
+    cos_max = math.cos(math.radians(150.0))
+    for j, near in zip(pop, tree.query_ball_point(f.centroid[pop], p.ripple_reach * d[pop])):
+        q = pop[np.asarray(near, dtype=np.intp)]
+        q = q[(q != j) & (d[q] >= d[j] / 1.6) & (d[q] <= 1.6 * d[j])]
+        if q.size < 2:
+            continue
+        v = f.centroid[q] - f.centroid[j]
+        r = np.hypot(v[:, 0], v[:, 1])
+        cos = (v @ v.T) / np.outer(r, r)
+        ratio = r[:, None] / r[None, :]
+        a, b = np.nonzero(np.triu((cos < cos_max) & (ratio <= 1.5) & (ratio >= 1 / 1.5)))
+        if a.size:
+            out[j] = True
+            triples.append((q[a], q[b]))
+    middle = out.copy()
+    for a, b in triples:        # a row of four or more: its ends too (a row of three keeps them)
+        out[a[middle[b]]] = True
+        out[b[middle[a]]] = True
+    return out
+
+
+def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams,
+                 ripple: np.ndarray) -> np.ndarray:
+    """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept); ``ripple``:
+    :func:`_ripples`."""
     flat = (f.relief < th.relief_um) | (f.tilt_deg < 1.0)
     compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
     slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
@@ -1392,7 +1452,7 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
         "ridge": (f.elongation > p.ridge_elongation)
                  | ((f.axis_ratio < p.ridge_axis_ratio) & (f.major * px >= p.ridge_min_length_um))
                  | (~f.has_h & (f.relief_disc >= th.relief_um) & (compact < p.ridge_compact_fraction)),
-        "stroke": on_long & (slope < stroke_min),
+        "stroke": on_long & ((slope < stroke_min) | ripple),
         "crack": (f.hole_fraction > p.max_hole_fraction) | (f.crack_fraction > p.max_crack_fraction),
         "too_large": f.eqd > th.max_w,
         "artefact": f.mismatch > p.max_mismatch,
@@ -1488,7 +1548,7 @@ def _outline_crack_fraction(h: np.ndarray, outline: np.ndarray, peak: float, flo
 
 
 def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, reason, th: Thresholds,
-                      px: float, p: DetectionParams, stroke_min: float) -> tuple:
+                      px: float, p: DetectionParams, stroke_min: float, ripple: np.ndarray) -> tuple:
     """Keep the closed bumps on strokes that the ``ridge``, ``crack`` and ``stroke`` rules reject.
 
     Tested: candidates with a long structure under them (``under`` >= the relief threshold):
@@ -1515,7 +1575,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     glow = f.has_a & ~f.has_h
     bound = np.where(f.has_h, f.relief, f.relief_disc)
     test = np.flatnonzero(((np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h)
-                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um))
+                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um) & ~ripple)
     kept = np.zeros(int(lab.max()) + 1, bool)
     kept[f.lbl[reason == ""]] = True
     slices, (m, n) = ndi.find_objects(lab), lab.shape
@@ -1640,15 +1700,17 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
     feats = _candidate_features(cand, surf, normals, th, px, p)
-    first = _apply_rules(feats, th, px, p)
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
-    reason, lab = _bumps_on_strokes(cand, surf, feats, first, th, px, p, stroke_min)
+    ripple = _ripples(feats, on_long, p)
+    first = _apply_rules(feats, th, px, p, ripple)
+    reason, lab = _bumps_on_strokes(cand, surf, feats, first, th, px, p, stroke_min, ripple)
     rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
     labels, source = _finish(lab, feats, reason, h.shape)
     diag.update(candidates=int(feats.lbl.size), candidate_labels=cand.labels,
                 candidate_reasons=reason, stroke_bumps=int(on_long.sum()),
                 stroke_slope_min=stroke_min,
-                stroke_bumps_kept=int(np.sum((first != "") & (reason == ""))))
+                stroke_bumps_kept=int(np.sum((first != "") & (reason == ""))),
+                ripples=int(ripple.sum()))
     _report(progress, 1.0, "done")
     logger.info("detect: %d protrusions (%d candidates), rejected %s, noise %.3g um",
                 int(labels.max()), feats.lbl.size, rejected, surf.noise_um)

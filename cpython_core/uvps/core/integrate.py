@@ -58,6 +58,12 @@ __all__ = [
 #: many of its robust standard deviations (MAD over the image).
 CURL_OUTLIER_MAD = 15.0
 
+#: :func:`nonintegrable_patches`: and exceeds this much (slope per pixel) at least. A crack wall whose
+#: normals are 5 deg off across 1-2 px has a curl of 0.04-0.09; a clean field (noise-free, or the
+#: generator's true normals) has a robust spread near 1e-5, so without a floor the relative threshold
+#: alone took 24-42 % of such an image for long non-integrable patches.
+CURL_FLOOR = 0.02
+
 #: Integration methods accepted by :func:`integrate_normals` (``"fc"``: Frankot-Chellappa,
 #: ``"dct"``: DCT-Poisson).
 METHODS = ("fc", "dct")
@@ -613,7 +619,8 @@ def integrate_normals(
     return _dct_poisson(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask, copy=False)
 
 
-def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER_MAD, mask=None) -> np.ndarray:
+def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER_MAD, floor: float = CURL_FLOOR,
+                          mask=None) -> np.ndarray:
     """Where a gradient field is far from any surface's over a long patch: the walls of cracks.
 
     A surface's gradients have no curl, ``dp/dy = dq/dx``; photometric-stereo gradients lose that
@@ -621,8 +628,8 @@ def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER
     under most lamps and their normals came out 5 deg off at the median on the detection benchmark's
     captures). Integrated, such gradients spread a relief of their own around each crack. Agrawal,
     Raskar and Chellappa (2006) find unreliable gradients by the curl and integrate without them; here
-    the pixels whose curl exceeds ``k`` robust standard deviations of the field's curl are taken where
-    they form a connected patch (8-neighbours, grown by one pixel) longer than ``min_extent_px`` on its
+    the pixels whose curl exceeds ``k`` robust standard deviations of the field's curl, and ``floor``, are
+    taken where they form a connected patch (8-neighbours, grown by one pixel) longer than ``min_extent_px`` on its
     bounding box's long side. A protrusion's rim, where the curl of a steep dome's discretised
     gradients is high too, is no longer than the protrusion is wide, so ``min_extent_px`` is the
     widest protrusion (``DetectionParams.max_width_um``); a crack network runs for millimetres.
@@ -635,6 +642,8 @@ def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER
         Patches shorter than this (pixels) are kept.
     k : float
         Threshold in robust standard deviations (1.4826 MAD) of the curl.
+    floor : float
+        Least threshold (slope per pixel): on a clean field the robust spread is near zero.
     mask : ndarray of bool, optional
         True = use; the scale is measured inside it, and nothing outside is flagged.
 
@@ -657,9 +666,10 @@ def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER
     curl = np.abs(-np.gradient(p, axis=0) - np.gradient(q, axis=1))
     inside = np.ones(p.shape, bool) if mask is None else np.asarray(mask, bool)
     scale = 1.4826 * float(np.median(curl[inside])) if inside.any() else 0.0
-    if not scale > 0:
+    threshold = max(k * scale, floor)
+    if not threshold > 0:
         return np.zeros(p.shape, bool)
-    lab = label((curl > k * scale) & inside, connectivity=2)
+    lab = label((curl > threshold) & inside, connectivity=2)
     if lab.max() == 0:
         return np.zeros(p.shape, bool)
     props = regionprops_table(lab, properties=("label", "bbox"))
