@@ -113,7 +113,7 @@ def _checked(cmd):
     return done
 
 
-def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float = None):
+def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float | None = None):
     """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
     lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
     ``uncalibrated``; with ``curl_k`` (not None), detected again by ``uvps detect -o RUN --curl-k K``."""

@@ -436,6 +436,12 @@ def test_ripples_are_the_rows_of_evenly_spaced_similar_bumps():
     # the middle of a row twice as wide as its neighbours: an event, not a crest
     f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], [10.0, 20.0, 10.0])
     assert not _ripples(f, np.ones(3, bool), p).any()
+    # a row of three crossed at its end by another row: its first bump stays an end of three
+    f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0], [86.0, 128.0], [114.0, 128.0]], 10.0)
+    assert _ripples(f, np.ones(5, bool), p).tolist() == [False, True, True, False, False]
+    # a bump centred on another's centre (a peak inside a rim) has no direction from it
+    f = _bumps([[100.0, 100.0], [100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], 10.0)
+    assert _ripples(f, np.ones(4, bool), p).tolist() == [False, False, True, False]
     # a glowing row is not in the strokes' population: never a ripple, nor a neighbour
     f = _bumps(row, 10.0)
     on_long = np.array([True, False, True, False, True])

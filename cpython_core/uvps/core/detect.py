@@ -171,7 +171,8 @@ class DetectionParams:
     stroke_slope_k : float
         A bump on a long structure (a stroke's ripple, piled end or crossing) that does not glow
         is kept only when its flank slope exceeds this many times the median flank slope of the
-        bumps on long structures in the image (the strokes' own statistics). 0 disables.
+        bumps on long structures in the image (the strokes' own statistics). 0 disables this
+        slope test (the ripple test, ``ripple_reach``, is apart).
     along_stroke_k : float
         A compact peak on a long structure that the ``ridge``, ``crack`` or ``stroke`` rule
         rejects (or a glowing candidate without a compact peak that ``ridge`` rejects) is
@@ -1404,8 +1405,10 @@ def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> n
     lie within ``ripple_reach x d`` of it on opposite sides (their directions from it at least
     150 deg apart) at distances within 1.5 x of each other: it is the middle of an evenly
     spaced row of similar crests, as a brush's ripples are (every 1-2 crest widths along the
-    stroke). The ends of a row are ripples too when the row holds four or more (the other
-    member of their triple is a middle as well); a row of three keeps its ends. Every candidate
+    stroke). The ends of a row are ripples too when the row holds four or more (the other end
+    of their triple is the middle of the next triple along the row); a row of three keeps its
+    ends, even where another row crosses it at an end. A bump centred on ``j``'s centre has no
+    direction from it and is left out of ``j``'s rows. Every candidate
     of the population counts as a neighbour, whatever rule rejects it, so a row stays a row
     where some of its crests fail another test. A protrusion is an event: a row of similar,
     non-glowing ones at even spacing is the case this test gets wrong (the glowing ones are
@@ -1417,25 +1420,27 @@ def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> n
         return out
     tree = cKDTree(f.centroid[pop])
     d = f.eqd
-    triples = []
+    triples = []                                     # (middle, one end, the other end)
     cos_max = math.cos(math.radians(150.0))
     for j, near in zip(pop, tree.query_ball_point(f.centroid[pop], p.ripple_reach * d[pop])):
         q = pop[np.asarray(near, dtype=np.intp)]
         q = q[(q != j) & (d[q] >= d[j] / 1.6) & (d[q] <= 1.6 * d[j])]
-        if q.size < 2:
-            continue
         v = f.centroid[q] - f.centroid[j]
         r = np.hypot(v[:, 0], v[:, 1])
+        q, v, r = q[r > 0], v[r > 0], r[r > 0]       # a centroid on j's own: no direction
+        if q.size < 2:
+            continue
         cos = (v @ v.T) / np.outer(r, r)
         ratio = r[:, None] / r[None, :]
         a, b = np.nonzero(np.triu((cos < cos_max) & (ratio <= 1.5) & (ratio >= 1 / 1.5)))
-        if a.size:
-            out[j] = True
-            triples.append((q[a], q[b]))
-    middle = out.copy()
-    for a, b in triples:        # a row of four or more: its ends too (a row of three keeps them)
-        out[a[middle[b]]] = True
-        out[b[middle[a]]] = True
+        triples += [(j, int(x), int(y)) for x, y in zip(q[a], q[b])]
+    beside = {(m, e) for m, x, y in triples for e in (x, y)}     # e is beside m in a row through m
+    for m, x, y in triples:
+        out[m] = True
+        # a row of four or more, x m y z: m is also beside y in the row (m, y, z); a row of three,
+        # or another row crossing through y, keeps x
+        out[x] |= (y, m) in beside
+        out[y] |= (x, m) in beside
     return out
 
 
