@@ -463,6 +463,8 @@ def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept(
     assert detection_height(run_height, None, pixel_size_um=px, params=DetectionParams(curl_k=15)) is run_height
     assert detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=0)) is run_height  # off
     assert DetectionParams().curl_k == 15
+    clean = np.stack([-p * 0, -q * 0, np.ones_like(p)], -1)             # a flat field: nothing to leave out
+    assert detection_height(run_height, clean, pixel_size_um=px, params=DetectionParams()) is run_height
 
     def dome_error(z):
         z = z - np.median(z[~domes & ~crack])

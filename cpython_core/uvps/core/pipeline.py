@@ -564,7 +564,8 @@ def protrusion_diagnostics(prot: Protrusions, pixel_size_um: float) -> dict:
 def detection_height(height_um, normals, *, pixel_size_um: float, params: DetectionParams) -> np.ndarray:
     """The height a run's detection reads: the normals integrated again (Frankot-Chellappa) without the
     gradients of long non-integrable patches (:func:`uvps.core.integrate.nonintegrable_patches`, the
-    walls of cracks) where ``params.curl_k`` is set, else ``height_um`` itself (also without normals).
+    walls of cracks) where ``params.curl_k`` is set and there are any, else ``height_um`` itself (also
+    without normals).
     The protrusions are measured on ``height_um``.
 
     On the detection benchmark's end-to-end captures (``scripts/benchmark_detection.py --pipeline``)
@@ -581,6 +582,8 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
                                      mask=mask)
     log.info("detection: %.1f %% of the gradients (long non-integrable patches) left out of its height",
              100.0 * left_out.mean())
+    if not left_out.any():      # nothing to leave out: the run's own height (its integration, its scale)
+        return height_um
     g.p[left_out] = 0.0
     g.q[left_out] = 0.0
     return frankot_chellappa(g.p, g.q, pixel_size_um=pixel_size_um, mask=mask).height_um
