@@ -1445,13 +1445,12 @@ def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> n
 
 
 def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams,
-                 ripple: np.ndarray) -> np.ndarray:
-    """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept); ``ripple``:
-    :func:`_ripples`."""
+                 on_long: np.ndarray, stroke_min: float, ripple: np.ndarray) -> np.ndarray:
+    """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept); ``on_long``,
+    ``stroke_min``: :func:`_stroke_slope`; ``ripple``: :func:`_ripples`."""
     flat = (f.relief < th.relief_um) | (f.tilt_deg < 1.0)
     compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
     slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
-    on_long, stroke_min = _stroke_slope(f, th, px, p)
     tests = {
         "too_small": f.eqd < th.min_w,
         "ridge": (f.elongation > p.ridge_elongation)
@@ -1707,7 +1706,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     feats = _candidate_features(cand, surf, normals, th, px, p)
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
     ripple = _ripples(feats, on_long, p)
-    first = _apply_rules(feats, th, px, p, ripple)
+    first = _apply_rules(feats, th, px, p, on_long, stroke_min, ripple)
     reason, lab = _bumps_on_strokes(cand, surf, feats, first, th, px, p, stroke_min, ripple)
     rejected.update({name: int(np.sum(reason == name)) for name in REJECTION_REASONS})
     labels, source = _finish(lab, feats, reason, h.shape)
