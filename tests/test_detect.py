@@ -150,6 +150,50 @@ def test_normals_flatness_rejects_bright_spot_with_small_relief():
     assert det.labels.max() == 0 and det.rejected["flat_bright"] == 1
 
 
+def normals_of(h, px):
+    """Unit normals of a height map (um) with pixels ``px`` um: ``(-p, -q, 1)`` normalised,
+    ``p = dz/dx``, ``q = dz/dy`` with y up (the frame of docs/architecture.md)."""
+    d_row, d_col = np.gradient(h.astype(np.float64), px)
+    n = np.stack([-d_col, d_row, np.ones_like(d_col)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def test_bump_at_a_hole_in_the_measurement_rejected_protrusion_beside_one_kept():
+    """Where the photometric stereo gave nothing (NaN albedo and normals along 20 px of a crack's
+    floor), the integration's fill makes a spike 10 um high across the hole: the hole cuts it in
+    two candidates, every pixel of which lies within 2 px of the hole, so the ``artefact`` rule
+    rejects both (the mismatch test set aside: the detector's own fill of the NaN pixels already
+    bends their height away from their normals). A 150 um dome with a 2-px hole at its rim keeps its place, and so
+    does a dome whose side the mask (a choice, not a hole) cuts. With the test off
+    (``max_unmeasured_fraction=1``) the spike is counted."""
+    px = 15.0
+    alb, h = scene((160, 200), seed=3)
+    add_dome(alb, h, (50, 50), 150.0, px)
+    add_dome(alb, h, (110, 50), 150.0, px)
+    yy, xx = np.mgrid[:160, :200]
+    h += (10.0 * np.exp(-((yy - 100) ** 2 + (xx - 140) ** 2) / (2 * 1.5 ** 2))).astype(np.float32)
+    normals = normals_of(h, px)
+    hole = np.zeros((160, 200), bool)
+    hole[100, 130:150] = True                      # the crack's floor, under the spike
+    hole[50, 55:57] = True                         # at the first dome's rim (radius 5 px)
+    alb[hole] = np.nan
+    normals[hole] = np.nan
+    mask = np.ones((160, 200), bool)
+    mask[:, :48] = False                           # the second dome's left side: not analysed
+    a0, h0 = alb.copy(), h.copy()
+    p = DetectionParams(max_mismatch=np.inf)
+    det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, params=p)
+    assert det.labels.max() == 2 and det.labels[50, 50] > 0 and det.labels[110, 50] > 0
+    assert det.labels[98:103, 135:146].max() == 0 and det.rejected["artefact"] == 2
+    cut = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, mask=mask, params=p)
+    assert cut.labels[110, 50] > 0 and cut.labels[50, 50] > 0 and cut.labels.max() == 2
+    off = detect_protrusions(alb, h, pixel_size_um=px, normals=normals,
+                             params=DetectionParams(max_mismatch=np.inf, max_unmeasured_fraction=1.0))
+    assert off.labels.max() == 4 and off.labels[99, 140] > 0 and off.labels[101, 140] > 0
+    np.testing.assert_array_equal(alb, a0)
+    np.testing.assert_array_equal(h, h0)
+
+
 def test_progress_reported():
     alb, h = scene((64, 64))
     seen = []
@@ -396,27 +440,29 @@ def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, heigh
         assert no_rows.labels.max() >= 10          # it is the ripple test that rejects them
 
 
-def _bumps(centres, eqd, on_long=None):
+def _bumps(centres, eqd, relief=10.0):
     """CandidateFeatures of bumps at ``centres`` (row, col) px with equivalent diameters ``eqd``
-    (the fields :func:`uvps.core.detect._ripples` does not read are zeros)."""
+    and reliefs ``relief`` (um; the fields :func:`uvps.core.detect._ripples` does not read are
+    zeros)."""
     from uvps.core.detect import CandidateFeatures
 
     c = np.asarray(centres, np.float64)
     k = len(c)
     zero = np.zeros(k)
     return CandidateFeatures(lbl=np.arange(1, k + 1), area=zero, eqd=np.broadcast_to(np.asarray(eqd, float), (k,)),
-                             relief=zero, relief_disc=zero, elongation=zero, axis_ratio=zero, major=zero,
+                             relief=np.broadcast_to(np.asarray(relief, float), (k,)), relief_disc=zero, elongation=zero, axis_ratio=zero, major=zero,
                              hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool),
-                             crack_fraction=zero, under=zero, tilt_deg=zero, mismatch=zero, centroid=c)
+                             crack_fraction=zero, under=zero, tilt_deg=zero, mismatch=zero, centroid=c,
+                             unmeasured=zero)
 
 
 def test_ripples_are_the_rows_of_evenly_spaced_similar_bumps():
     """A bump is a ripple when it is the middle of an evenly spaced row of three similar ones
-    (within 1.6 x in diameter; the two others on opposite sides, 150 deg or more apart, at
+    (within 1.6 x in diameter and 2 x in relief; the two others on opposite sides, 150 deg or more apart, at
     distances within 1.5 x, within ``ripple_reach`` diameters), or the end of a row of four or
     more: all five crests of a row are, only the middle of a row of three; a lone bump, a pair, an
-    L, an uneven row, a row whose middle is twice as wide, and a row that glows (not in the
-    strokes' population) are not."""
+    L, an uneven row, a row whose middle is twice as wide or three times as high, and a row that
+    glows (not in the strokes' population) are not."""
     from uvps.core.detect import _ripples
 
     p = DetectionParams()
@@ -436,6 +482,11 @@ def test_ripples_are_the_rows_of_evenly_spaced_similar_bumps():
     # the middle of a row twice as wide as its neighbours: an event, not a crest
     f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], [10.0, 20.0, 10.0])
     assert not _ripples(f, np.ones(3, bool), p).any()
+    # a protrusion erupting between two crests, three times as high: an event; 1.8 x: a crest
+    f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], 10.0, [10.0, 30.0, 10.0])
+    assert not _ripples(f, np.ones(3, bool), p).any()
+    f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0]], 10.0, [10.0, 18.0, 10.0])
+    assert _ripples(f, np.ones(3, bool), p).tolist() == [False, True, False]
     # a row of three crossed at its end by another row: its first bump stays an end of three
     f = _bumps([[100.0, 100.0], [100.0, 114.0], [100.0, 128.0], [86.0, 128.0], [114.0, 128.0]], 10.0)
     assert _ripples(f, np.ones(5, bool), p).tolist() == [False, True, True, False, False]
