@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 from skimage.measure import regionprops_table
 
 from benchmark_protrusions import match
@@ -232,10 +233,11 @@ def print_tables(results, args):
     for r in results:
         for k, v in r["rejected"].items():
             total[k] = total.get(k, 0) + int(v)
-    print("\nPer width class (found / true, right / detected; worst seed's recall and precision):\n")
+    print("\nPer width class (found / true, right / detected; worst seed's recall and precision; the "
+          "recall pooled over the seeds with its 95 % Wilson interval, scipy.stats.binomtest):\n")
     print("| width (um) | " + " | ".join(f"seed {r['seed']}" for r in results)
-          + " | worst recall | worst precision |")
-    print("|---|" + "---|" * (len(results) + 2))
+          + " | worst recall | worst precision | pooled recall (95 %) |")
+    print("|---|" + "---|" * (len(results) + 3))
     worst_rec_60 = 1.0
     for lo, hi in BINS:
         cells = [r[f"bin_{lo:g}"] for r in results]
@@ -243,9 +245,14 @@ def print_tables(results, args):
         precs = [c[2] / c[3] for c in cells if c[3]]
         if lo == 60.0 and recs:
             worst_rec_60 = min(recs)
+        found, n = sum(c[0] for c in cells), sum(c[1] for c in cells)
+        pooled = "-"
+        if n:
+            ci = binomtest(found, n).proportion_ci(confidence_level=0.95, method="wilson")
+            pooled = f"{found / n:.3f} ({ci.low:.2f}-{ci.high:.2f})"
         print(f"| {lo:g}-{hi:g} | " + " | ".join(f"{c[0]} / {c[1]}, {c[2]} / {c[3]}" for c in cells)
               + f" | {min(recs) if recs else float('nan'):.3f} | "
-                f"{min(precs) if precs else float('nan'):.3f} |")
+                f"{min(precs) if precs else float('nan'):.3f} | {pooled} |")
     fps = ", ".join(f"seed {r['seed']}: {r['fp_stroke']} on strokes, {r['fp_other']} elsewhere"
                     for r in results)
     print(f"\nfalse positives >= 60 um: {fps}")

@@ -417,6 +417,24 @@ def test_bump_on_a_stroke_measured_over_the_strokes_own_profile(seed, col):
     assert abs(width_of(det.labels, (102, col), px) / 100.0 - 1) < 0.2
 
 
+def test_bump_on_a_stroke_among_holes_in_the_measurement_not_kept_by_the_along_stroke_cue():
+    """The along-stroke cue is held to the unmeasured-fraction test too: the 100 um dome of the
+    test above, ringed by 8 pixels without a measurement 4 px from its centre (NaN albedo), is
+    a candidate running along the stroke, which the shape rules reject; the cue would keep its
+    excess over the stroke's profile (it does with ``max_unmeasured_fraction=1``), but most of
+    that outline lies within 2 px of the holes, so it is not kept."""
+    px, shape, col = 15.0, (200, 520), 300
+    alb, h = scene(shape, seed=1)
+    h += rippled_stroke(shape, px, row=100, width_um=180.0, height_um=20.0, ripple=0.2)
+    add_profile(h, (102, col), 100.0, px, 25.0, "dome")
+    for t in np.radians(np.arange(0, 360, 45)):
+        alb[int(round(102 + 4 * np.sin(t))), int(round(col + 4 * np.cos(t)))] = np.nan
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(max_unmeasured_fraction=1.0))
+    assert off.labels[102, col] > 0 and off.diagnostics["stroke_bumps_kept"] == 1
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0 and det.diagnostics["stroke_bumps_kept"] == 0
+
+
 @pytest.mark.parametrize("ripple, width_um, height_um", [(0.2, 180.0, 20.0), (0.3, 240.0, 30.0),
                                                           (0.35, 300.0, 40.0)])
 def test_stroke_ripples_not_kept_by_the_along_stroke_cue(ripple, width_um, height_um):
