@@ -112,7 +112,7 @@ REJECTION_RULES = (
                   "measurement (non-finite albedo, normals or height)",
                   "mismatch > max_mismatch: relief the normals do not hold is an integration "
                   "artefact (e.g. along a crack whose walls the lamps do not light); or unmeasured "
-                  "fraction > max_unmeasured_fraction: relief the integration's fill of a hole made"),
+                  "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole"),
     RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt",
                   "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
                   "the weave's RMS slope), or tilt < 1 deg"),
@@ -356,6 +356,8 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params):
         raise UVPSInputError(f"`params` must be a DetectionParams; got {type(p).__name__}")
     if not (0 < p.min_width_um < p.max_width_um):
         raise UVPSInputError(f"need 0 < min_width_um < max_width_um; got {p.min_width_um}, {p.max_width_um}")
+    if not 0 <= p.max_unmeasured_fraction <= 1:
+        raise UVPSInputError(f"max_unmeasured_fraction must be in [0, 1]; got {p.max_unmeasured_fraction}")
     if not (0 < p.split_fraction < 1 and 0 < p.footprint_fraction < 1):
         raise UVPSInputError(f"split_fraction and footprint_fraction must be in (0, 1); got "
                              f"{p.split_fraction}, {p.footprint_fraction}")
@@ -1420,19 +1422,19 @@ def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> n
     ripple when two others of that population, each 1/1.6-1.6 x its equivalent diameter ``d``
     and 1/2-2 x its relief, lie within ``ripple_reach x d`` of it on opposite sides (their
     directions from it at least 150 deg apart) at distances within 1.5 x of each other: it is
-    the middle of an evenly
-    spaced row of similar crests, as a brush's ripples are (every 1-2 crest widths along the
-    stroke). The ends of a row are ripples too when the row holds four or more (the other end
-    of their triple is the middle of the next triple along the row); a row of three keeps its
-    ends, even where another row crosses it at an end. A bump centred on ``j``'s centre has no
-    direction from it and is left out of ``j``'s rows. Every candidate
-    of the population counts as a neighbour, whatever rule rejects it, so a row stays a row
-    where some of its crests fail another test. A protrusion is an event: a row of similar,
+    the middle of an evenly spaced row of similar crests, as a brush's ripples are (every 1-2
+    crest widths along the stroke). The ends of a row are ripples too when the row holds four
+    or more (the other end of their triple is the middle of the next triple along the row); a
+    row of three keeps its ends, even where another row crosses it at an end. A bump centred on
+    ``j``'s centre has no direction from it and is left out of ``j``'s rows. Every candidate of
+    the population counts as a neighbour, whatever rule rejects it, so a row stays a row where
+    some of its crests fail another test. A protrusion is an event: a row of similar,
     non-glowing ones at even spacing is the case this test gets wrong (the glowing ones are
     never tested). The relief keeps a protrusion that erupts through a rippled stroke out of its
     row: on the end-to-end captures of docs/benchmarks.md two weakly glowing ones 200-230 um
-    wide stood 55-70 um over their surround, between crests a fifth as high. Hand-written: no library tests collinear, evenly spaced neighbours; the
-    neighbours come from :class:`scipy.spatial.cKDTree`. Returns a mask."""
+    wide stood 55-70 um over their surround, between crests a fifth as high. Hand-written: no
+    library tests collinear, evenly spaced neighbours; the neighbours come from
+    :class:`scipy.spatial.cKDTree`. Returns a mask."""
     out = np.zeros(f.lbl.size, bool)
     pop = np.flatnonzero(on_long)
     if p.ripple_reach <= 0 or pop.size < 3:
