@@ -8,7 +8,8 @@ the cracks' gradients, ``DetectionParams.curl_k``) then :func:`uvps.core.detect.
 on it; each is timed (on these clean maps nothing is left out, so the height costs the curl only;
 where cracks are, it also costs one integration). Prints the wall time and the process's CPU time
 (on a loaded machine the CPU time is the one to compare), the number of protrusions and the
-rejection counts. ``--profile N`` prints the N costliest calls (cProfile, CPU time). The first call of a fresh install also compiles (numba, cached after).
+rejection counts. ``--profile N`` prints the N costliest calls (cProfile, CPU time). The first
+call of a fresh install also compiles (numba, cached after).
 
 ``--ps K`` then times the photometric stereo the detection follows, the same way (the process's
 CPU time, all its threads): :func:`uvps.core.pipeline.run` with its default stages (additive term,

@@ -1645,11 +1645,11 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     return reason, lab
 
 
-def _unmeasured(h: np.ndarray, lum: np.ndarray, normals) -> np.ndarray:
-    """The pixels within 2 px of one without a measurement: a non-finite height, albedo or normal
-    (the photometric stereo's holes: a crack's floor, a shadow; ``mask`` is a choice, not one
-    of them). None where every pixel has one."""
-    unknown = ~(np.isfinite(h) & np.isfinite(lum))
+def _unmeasured(measured: np.ndarray, normals) -> np.ndarray:
+    """The pixels within 2 px of one without a measurement: outside ``measured`` (a finite height
+    and albedo), or a non-finite normal (the photometric stereo's holes: a crack's floor, a
+    shadow; ``mask`` is a choice, not one of them). None where every pixel has one."""
+    unknown = ~measured
     if normals is not None:
         unknown |= ~np.isfinite(np.asarray(normals)).all(axis=2)
     if not unknown.any():
@@ -1726,9 +1726,8 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     """
     a, h, px, p = _validate(albedo, height_um, pixel_size_um, normals, mask, params)
     lum = _brightness(a if a.ndim == 2 or a.shape[2] == 3 else a[..., 0])
-    valid = np.isfinite(h) & np.isfinite(lum)
-    if mask is not None:
-        valid &= np.asarray(mask, bool)
+    measured = np.isfinite(h) & np.isfinite(lum)
+    valid = measured & np.asarray(mask, bool) if mask is not None else measured
     rejected = {r: 0 for r in REJECTION_REASONS}
     none = np.zeros(h.shape, np.int32)
     if valid.sum() < 16:
@@ -1744,7 +1743,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         return Detection(none, np.zeros(0, "<U13"), cand.mask_albedo, cand.height > 0, rejected,
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
-    unmeasured = _unmeasured(h, lum, normals)
+    unmeasured = _unmeasured(measured, normals)
     feats = _candidate_features(cand, surf, normals, th, px, p, unmeasured)
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
     ripple = _ripples(feats, on_long, p)
