@@ -587,6 +587,58 @@ def test_protrusion_on_a_stroke_cut_by_a_crack_measured_with_the_crack_filled(se
     assert 0.7 < width_of(det.labels, (120, 265), px) / 200.0 < 1.1
 
 
+def steep_stroke(shape, *, row, width_px, height_um, flank_px):
+    """A straight stroke along the rows with a flat top ``height_um`` high and smoothstep flanks
+    ``flank_px`` wide, ``width_px`` wide at its foot; no glow."""
+    yy = np.mgrid[:shape[0], :shape[1]][0].astype(np.float64)
+    s = np.clip((width_px / 2 - np.abs(yy - row)) / flank_px, 0, 1)
+    return (height_um * s * s * (3 - 2 * s)).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed, gap", [(0, 2), (1, 3), (2, 2)])
+def test_mesa_beside_a_steep_stroke_found_though_a_block_holds_both(seed, gap):
+    """A 90 um mesa 22 um high that does not glow, 2-3 px from the foot of a steep stroke 40 um
+    high: the compact relief's 5 x 5 block maxima put the mesa and the stroke in neighbouring
+    blocks, so its level sets are taken as the stroke's and it gets no relief: nothing is found
+    (``beside_long_fraction=0``). The exact level sets around it (:func:`_beside_long`) give it
+    its relief over the saddle to the stroke: found, with its width; the stroke stays out."""
+    px, shape = 15.0, (200, 400)
+    alb, h = scene(shape, seed=seed)
+    h += steep_stroke(shape, row=100, width_px=16, height_um=40.0, flank_px=3)
+    centre = (100 + 8 + gap + 3, 200 + 2 * seed)
+    add_profile(h, centre, 90.0, px, 22.0, "mesa")
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1 and det.labels[centre] == 1
+    assert abs(width_of(det.labels, centre, px) / 90.0 - 1) <= 0.15
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(beside_long_fraction=0))
+    assert off.labels.max() == 0
+
+
+def test_relief_beside_a_stroke_is_the_exact_diameter_openings():
+    """What :func:`_beside_long` gives the mesa beside a steep stroke is the compact relief of the
+    exact diameter opening of the whole image (skimage, 4-connected, threshold ``L``)."""
+    import math
+    from dataclasses import replace
+    from skimage.morphology import diameter_opening
+    from uvps.core.detect import _beside_long, _surface, _thresholds
+    px, shape = 15.0, (200, 400)
+    alb, h = scene(shape, seed=3)
+    h += steep_stroke(shape, row=100, width_px=16, height_um=40.0, flank_px=3)
+    add_profile(h, (113, 201), 90.0, px, 22.0, "mesa")
+    p, valid = DetectionParams(), np.ones(shape, bool)
+    surf = _surface(h, valid, px, p)
+    th = _thresholds(surf, px, p)
+    out = _beside_long(surf, valid, th, p)
+    raised = out > surf.relief + 1e-6
+    assert surf.relief[113, 201] < th.relief_um and raised[113, 201]
+    exact = surf.height - diameter_opening(surf.height, diameter_threshold=math.ceil(surf.length_px))
+    np.testing.assert_allclose(out[raised], exact[raised], atol=1e-4)
+    assert exact[113, 201] > 15.0
+    assert not raised[:109].any()                    # the stroke keeps the blocks' relief
+    none = _beside_long(replace(surf), valid, th, replace(p, beside_long_fraction=0.0))
+    np.testing.assert_array_equal(none, surf.relief)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_diameter_opening_matches_skimage(seed):
     from scipy import ndimage as ndi
