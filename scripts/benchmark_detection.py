@@ -114,10 +114,11 @@ def _checked(cmd):
     return done
 
 
-def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: float | None = None):
+def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, again: list | None = None):
     """The same from ``uvps run CAPTURE -o RUN --detect`` on the written capture, given the
     lamp positions (``lights_positions_mm.csv``) and the camera's black level unless
-    ``uncalibrated``; with ``curl_k`` (not None), detected again by ``uvps detect -o RUN --curl-k K``."""
+    ``uncalibrated``; with ``again`` (options such as ``["--curl-k", "15"]``), detected again by
+    ``uvps detect -o RUN`` with them."""
     capture_dir, run_dir = workdir / "capture", workdir / "run"
     write_capture(cap, capture_dir, truth=False)
     cmd = [sys.executable, "-m", "uvps", "run", str(capture_dir), "-o", str(run_dir), "--detect",
@@ -130,8 +131,8 @@ def _detections_from_pipeline(cap, workdir: Path, uncalibrated: bool, curl_k: fl
     t0 = time.perf_counter()
     done = _checked(cmd)
     elapsed = time.perf_counter() - t0
-    if curl_k is not None:
-        done = _checked([sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), "--curl-k", str(curl_k)])
+    if again:
+        done = _checked([sys.executable, "-m", "uvps", "detect", "-o", str(run_dir), *again])
     table = read_protrusions_csv(run_dir / "protrusions.csv")
     # the rejection counts, from the detector's log line on stderr
     found = re.search(r"uvps\.core\.detect: detect: .*rejected (\{[^}]*\})", done.stderr)
@@ -190,11 +191,19 @@ def run_seed(seed, shape, args):
     if args.pipeline:
         cap = make_capture(spec)
         with tempfile.TemporaryDirectory(prefix="uvps_bench_") as tmp:
-            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated, args.curl_k)
+            again = []
+            if args.curl_k is not None:
+                again += ["--curl-k", str(args.curl_k)]
+            if args.beside_long_fraction is not None:
+                again += ["--beside-long-fraction", str(args.beside_long_fraction)]
+            xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated, again)
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
-        params = DetectionParams(shoulder_width_um=getattr(args, "shoulder_width_um", 0.0))
+        opts = {"shoulder_width_um": getattr(args, "shoulder_width_um", 0.0)}
+        if getattr(args, "beside_long_fraction", None) is not None:
+            opts["beside_long_fraction"] = args.beside_long_fraction
+        params = DetectionParams(**opts)
         xy, w, det, elapsed = _detections_from_truth(cap, args.height_noise, params)
         rejected = det.rejected
     res = score(cap, xy, w)
@@ -290,6 +299,9 @@ def main(argv=None) -> int:
     ap.add_argument("--curl-k", type=float, default=None,
                     help="with --pipeline: then `uvps detect -o RUN --curl-k K` (DetectionParams.curl_k: the "
                          "detection's height without long non-integrable patches; 0 = off; default: the run's own)")
+    ap.add_argument("--beside-long-fraction", type=float, default=None,
+                    help="DetectionParams.beside_long_fraction (the exact level sets beside strokes; 0 = "
+                         "off; with --pipeline, then `uvps detect -o RUN --beside-long-fraction F`)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")
