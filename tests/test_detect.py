@@ -207,6 +207,8 @@ def test_progress_reported():
     (dict(pixel_size_um=15.0, mask=np.ones((3, 3), bool)), "mask"),
     (dict(pixel_size_um=15.0, normals=np.ones((64, 64))), "normals"),
     (dict(pixel_size_um=15.0, params=DetectionParams(min_width_um=500, max_width_um=100)), "min_width_um"),
+    (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=1.0)), "beside_long_fraction"),
+    (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=-0.1)), "beside_long_fraction"),
 ])
 def test_bad_input(kwargs, match):
     alb, h = scene((64, 64))
@@ -595,17 +597,18 @@ def steep_stroke(shape, *, row, width_px, height_um, flank_px):
     return (height_um * s * s * (3 - 2 * s)).astype(np.float32)
 
 
-@pytest.mark.parametrize("seed, gap", [(0, 2), (1, 3), (2, 2)])
-def test_mesa_beside_a_steep_stroke_found_though_a_block_holds_both(seed, gap):
+@pytest.mark.parametrize("seed, gap, col", [(0, 2, 200), (1, 3, 12), (2, 2, 388)])
+def test_mesa_beside_a_steep_stroke_found_though_blocks_join_it_to_the_stroke(seed, gap, col):
     """A 90 um mesa 22 um high that does not glow, 2-3 px from the foot of a steep stroke 40 um
-    high: the compact relief's 5 x 5 block maxima put the mesa and the stroke in neighbouring
-    blocks, so its level sets are taken as the stroke's and it gets no relief: nothing is found
+    high (in the middle of the image, or 12 px from its edge): the compact relief's 5 x 5 block
+    maxima (at 15 um per pixel) put the mesa and the stroke in neighbouring blocks, so its level
+    sets are taken as the stroke's and it gets no relief: nothing is found
     (``beside_long_fraction=0``). The exact level sets around it (:func:`_beside_long`) give it
     its relief over the saddle to the stroke: found, with its width; the stroke stays out."""
     px, shape = 15.0, (200, 400)
     alb, h = scene(shape, seed=seed)
     h += steep_stroke(shape, row=100, width_px=16, height_um=40.0, flank_px=3)
-    centre = (100 + 8 + gap + 3, 200 + 2 * seed)
+    centre = (100 + 8 + gap + 3, col)
     add_profile(h, centre, 90.0, px, 22.0, "mesa")
     det = detect_protrusions(alb, h, pixel_size_um=px)
     assert det.labels.max() == 1 and det.labels[centre] == 1
@@ -615,28 +618,50 @@ def test_mesa_beside_a_steep_stroke_found_though_a_block_holds_both(seed, gap):
 
 
 def test_relief_beside_a_stroke_is_the_exact_diameter_openings():
-    """What :func:`_beside_long` gives the mesa beside a steep stroke is the compact relief of the
-    exact diameter opening of the whole image (skimage, 4-connected, threshold ``L``)."""
+    """What :func:`_beside_long` gives two mesas beside a steep stroke (one 12 px from the
+    image's edge) is the compact relief of the exact diameter opening (skimage, 4-connected,
+    threshold ``L``, on the image mirrored at its borders as :func:`_compact_relief` pads it).
+    A dome on the stroke, which the blocks gave its relief, is left as it was; a mesa rising
+    less than ``need`` above its saddle (``beside_long_fraction`` 0.95 of its disc top-hat) is
+    not raised; a flood that covers ``max_area`` first gives up."""
     import math
     from dataclasses import replace
     from skimage.morphology import diameter_opening
-    from uvps.core.detect import _beside_long, _surface, _thresholds
+    from uvps.core.detect import _beside_long, _flood_beside, _surface, _thresholds
     px, shape = 15.0, (200, 400)
     alb, h = scene(shape, seed=3)
     h += steep_stroke(shape, row=100, width_px=16, height_um=40.0, flank_px=3)
-    add_profile(h, (113, 201), 90.0, px, 22.0, "mesa")
+    mesas = [(113, 201), (113, 12)]
+    for centre in mesas:
+        add_profile(h, centre, 90.0, px, 22.0, "mesa")
+    add_profile(h, (100, 300), 150.0, px, 10.0, "dome")           # on the stroke
     p, valid = DetectionParams(), np.ones(shape, bool)
     surf = _surface(h, valid, px, p)
     th = _thresholds(surf, px, p)
     out = _beside_long(surf, valid, th, p)
     raised = out > surf.relief + 1e-6
-    assert surf.relief[113, 201] < th.relief_um and raised[113, 201]
-    exact = surf.height - diameter_opening(surf.height, diameter_threshold=math.ceil(surf.length_px))
+    big = math.ceil(surf.length_px)
+    hp = np.pad(surf.height, big, mode="symmetric")
+    exact = (hp - diameter_opening(hp, diameter_threshold=big))[big:-big, big:-big]
+    for centre in mesas:
+        assert surf.relief[centre] < th.relief_um and raised[centre] and exact[centre] > 15.0
     np.testing.assert_allclose(out[raised], exact[raised], atol=1e-4)
-    assert exact[113, 201] > 15.0
     assert not raised[:109].any()                    # the stroke keeps the blocks' relief
-    none = _beside_long(replace(surf), valid, th, replace(p, beside_long_fraction=0.0))
-    np.testing.assert_array_equal(none, surf.relief)
+    assert surf.relief[95:106, 295:306].max() > 5.0  # the dome on it too
+    np.testing.assert_array_equal(out[95:106, 295:306], surf.relief[95:106, 295:306])
+    assert all(exact[c] < 0.95 * surf.disc[c] for c in mesas)
+    np.testing.assert_array_equal(_beside_long(surf, valid, th, replace(p, beside_long_fraction=0.95)),
+                                  surf.relief)
+    np.testing.assert_array_equal(_beside_long(surf, valid, th, replace(p, beside_long_fraction=0.0)),
+                                  surf.relief)
+    seed = np.array([113 * shape[1] + 201], np.int64)
+    args = (surf.height.astype(np.float32), surf.relief, seed, np.array([2.0], np.float32),
+            big, 17)
+    tiny = surf.relief.copy()
+    assert _flood_beside(*args, 10, float(th.relief_um), tiny) == 0   # gives up at 10 px
+    np.testing.assert_array_equal(tiny, surf.relief)
+    whole = surf.relief.copy()
+    assert _flood_beside(*args, 3490, float(th.relief_um), whole) == 1
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -14,9 +14,9 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    opening*: every level set of ``h`` whose extent reaches ``L = 1.3 x max_width_um`` stays in
    ``A``, so ``t`` holds only what is enclosed within less than ``L``: protrusions (domes, craters,
    mesas, any outline) stand out; the canvas bow, brush strokes, cupped islands and crack lips
-   (all longer than ``L``) vanish. ``A`` is computed on 5 x 5 block maxima; a small object within
-   a block of a stroke is then taken into the stroke's level sets, so around such objects the
-   exact level sets decide (:func:`_beside_long`).
+   (all longer than ``L``) vanish. ``A`` is computed on f x f block maxima (``f = L / 16`` px, 5 at
+   15 um per pixel); a small object in the block next to a stroke's is then taken into the
+   stroke's level sets, so around such objects the exact level sets decide (:func:`_beside_long`).
 3. **Height cue** (:func:`_height_cue`, :func:`_local_footprints`). Peaks of ``t`` at least the
    relief threshold ``max(min_dynamic_um, dynamic_k x smoothed noise)`` high, two peaks being two
    protrusions when the saddle between them lies ``split_fraction`` below the lower one; a
@@ -232,10 +232,10 @@ class DetectionParams:
         (12) and far below its median inside them (84); end-to-end figures in docs/benchmarks.md.
     beside_long_fraction : float
         A small object that the compact relief's block maxima join to a stroke or a crack lip
-        beside it (within a block, ~5 px) gets its exact compact relief when it rises above the
-        saddle where it joins them by at least this fraction of its height over the paint's
-        lowest envelope (the disc top-hat), and by twice the relief threshold
-        (:func:`_beside_long`). 0 disables.
+        beside it (in the next block: 5 px at 15 um per pixel) gets its exact compact relief when
+        it rises above the saddle where it joins them by at least this fraction of its height
+        over the paint's lowest envelope (the disc top-hat), and by twice the relief threshold
+        (:func:`_beside_long`). In [0, 1); 0 disables.
     ripple_reach : float
         A bump on a long structure without glow is a stroke's ripple (``stroke`` rule) when it is
         in an evenly spaced row of similar ones (the middle of three, or any of four or more), its
@@ -366,8 +366,8 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params):
         raise UVPSInputError(f"`params` must be a DetectionParams; got {type(p).__name__}")
     if not (0 < p.min_width_um < p.max_width_um):
         raise UVPSInputError(f"need 0 < min_width_um < max_width_um; got {p.min_width_um}, {p.max_width_um}")
-    if not p.beside_long_fraction >= 0:
-        raise UVPSInputError(f"beside_long_fraction must be >= 0; got {p.beside_long_fraction}")
+    if not 0 <= p.beside_long_fraction < 1:
+        raise UVPSInputError(f"beside_long_fraction must be in [0, 1); got {p.beside_long_fraction}")
     if not 0 <= p.max_unmeasured_fraction <= 1:
         raise UVPSInputError(f"max_unmeasured_fraction must be in [0, 1]; got {p.max_unmeasured_fraction}")
     if not (0 < p.split_fraction < 1 and 0 < p.footprint_fraction < 1):
@@ -642,11 +642,12 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
 
     From each seed (flat indices, highest first), a priority flood (4-connected, highest
     boundary pixel first) visits the level sets of ``h`` containing it in decreasing level. It
-    gives up on the seed when it reaches the image border, when the visited set is ``width``
-    wide before it lies ``need`` below the seed (texture, a crest: not a small compact object),
-    or when it covers ``max_area`` (larger than any protrusion) before it is long. It stops when
-    the visited set's extent reaches ``length``: the level it has fallen to, ``lam``, is where
-    the seed's level set becomes long, the exact diameter opening at the seed. The seed's own
+    gives up on the seed when the visited set is ``width`` wide before it lies ``need`` below
+    the seed (texture, a crest: not a small compact object), or when it covers ``max_area``
+    (larger than any protrusion) before it is long. It stops when the visited set's extent
+    (mirrored at the image borders, as :func:`_compact_relief` pads the image) reaches
+    ``length``: the level it has fallen to, ``lam``, is where the seed's level set becomes
+    long, the exact diameter opening at the seed. The seed's own
     hill is what the flood visited before it first climbed, over a saddle, above the seed or
     more than ``floor`` above that saddle. When the seed stands ``need`` above ``lam`` and the
     block maxima gave its hill no relief (``t`` below ``floor`` wherever the hill stands
@@ -702,12 +703,23 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
                 hi[k] = li
             r = i // n
             c = i - r * n
-            if r == 0 or r == m - 1 or c == 0 or c == n - 1:
-                break
             run_min = min(run_min, v)
             if own < 0 and (v > top or v > run_min + floor):
                 own = cnt
-            ext = max(max(rmax, r) - min(rmin, r), max(cmax, c) - min(cmin, c)) + 1
+            r_lo, r_hi, c_lo, c_hi = min(rmin, r), max(rmax, r), min(cmin, c), max(cmax, c)
+            # extent with the image mirrored at its borders, as _compact_relief pads it: a
+            # set touching a border is as long as itself and its mirror image
+            er = r_hi - r_lo + 1
+            if r_lo == 0:
+                er = max(er, 2 * (r_hi + 1))
+            if r_hi == m - 1:
+                er = max(er, 2 * (m - r_lo))
+            ec = c_hi - c_lo + 1
+            if c_lo == 0:
+                ec = max(ec, 2 * (c_hi + 1))
+            if c_hi == n - 1:
+                ec = max(ec, 2 * (n - c_lo))
+            ext = max(er, ec)
             if ext >= length:
                 lam = run_min
                 break
@@ -717,9 +729,11 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
                 break
             region[cnt] = i
             cnt += 1
-            rmin, rmax = min(rmin, r), max(rmax, r)
-            cmin, cmax = min(cmin, c), max(cmax, c)
+            rmin, rmax, cmin, cmax = r_lo, r_hi, c_lo, c_hi
             for d in range(4):
+                if (d == 0 and r == 0) or (d == 1 and r == m - 1) or (d == 2 and c == 0) or \
+                        (d == 3 and c == n - 1):
+                    continue
                 j = i - n if d == 0 else (i + n if d == 1 else (i - 1 if d == 2 else i + 1))
                 if stamp[j] == s:
                     continue
@@ -759,9 +773,10 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
 def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionParams) -> np.ndarray:
     """The compact relief with the small objects the block maxima joined to a long neighbour.
 
-    :func:`_compact_relief` opens ``f x f`` block maxima (``f`` ~5 px), so a protrusion within a
-    block of a stroke or a crack lip shares a block with it and its level sets are taken as
-    long: it gets no relief (a 90 um mesa 22 um high, 3 px from a stroke, gets 0.7 um). Here the
+    :func:`_compact_relief` opens ``f x f`` block maxima (``f = L / 16``, 5 px at 15 um per
+    pixel), so a protrusion in the block next to a stroke's or a crack lip's is joined to it and
+    its level sets are taken as long: it gets no relief (a 90 um mesa 22 um high, 3 px from a
+    stroke, gets 0.7 um). Here the
     exact level sets decide, around the objects the blocks can hide: the local maxima of the
     height (over 5 x 5 px) with no compact relief (below the relief threshold) that stand
     ``need`` above the paint's lowest envelope (the disc top-hat, :func:`_disc_tophat`), ``need``
@@ -770,15 +785,16 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     until they reach ``L``; a seed whose own hill stands ``need`` above that level, and which the
     blocks gave no relief, gets its exact compact relief there. A bump on a stroke already has
     its relief from the blocks and is left alone; a stroke's crest or the paint's texture widens
-    past ``3 f + 2`` px before it has fallen ``need``, which bounds the cost (0.1 s at
-    1600 x 1200). Hand-written: the exact diameter opening of the whole image
-    (:func:`skimage.morphology.max_tree`) takes 5 s there, and no library floods from chosen
-    seeds only. ``beside_long_fraction`` 0 leaves the compact relief as it is."""
+    past ``3 f + 2`` px before it has fallen ``need``, which bounds the cost (0.13 s at
+    4000 x 3000). Hand-written: the exact diameter opening of a whole 1600 x 1200 image
+    (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods from chosen seeds
+    only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as does ``f`` = 1 (the
+    blocks are then the pixels: the relief is exact already)."""
     t = surf.relief
-    if p.beside_long_fraction <= 0:
+    f = max(1, int(surf.length_px // 16))
+    if p.beside_long_fraction <= 0 or f == 1:
         return t
     hn = np.ascontiguousarray(surf.height, dtype=np.float32)
-    f = max(1, int(surf.length_px // 16))
     peak = hn >= cv2.dilate(hn, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
     need_all = np.maximum(2.0 * th.relief_um, p.beside_long_fraction * surf.disc)
     seeds = np.flatnonzero(peak & valid & (t < th.relief_um) & (surf.disc >= need_all))
