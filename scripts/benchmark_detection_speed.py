@@ -48,13 +48,13 @@ def main(argv=None) -> int:
                        pixel_size_um=cap.spec.pixel_size_um)
     px = cap.spec.pixel_size_um
     t0, c0 = time.perf_counter(), time.process_time()
-    height = detection_height(cap.height_um, cap.normals, pixel_size_um=px, params=DetectionParams())
+    height, left_out = detection_height(cap.height_um, cap.normals, pixel_size_um=px, params=DetectionParams())
     wall_h, cpu_h = time.perf_counter() - t0, time.process_time() - c0
     prof = cProfile.Profile(time.process_time) if args.profile else None
     t0, c0 = time.perf_counter(), time.process_time()
     if prof:
         prof.enable()
-    det = detect_protrusions(cap.albedo, height, pixel_size_um=px, normals=cap.normals)
+    det = detect_protrusions(cap.albedo, height, pixel_size_um=px, normals=cap.normals, left_out=left_out)
     if prof:
         prof.disable()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0

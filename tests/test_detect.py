@@ -195,6 +195,32 @@ def test_bump_at_a_hole_in_the_measurement_rejected_protrusion_beside_one_kept()
     np.testing.assert_array_equal(h, h0)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_protrusion_at_a_crack_left_out_of_the_height_kept_a_spike_on_it_rejected(seed):
+    """Where a run's detection height was integrated without a crack's walls (``left_out``,
+    :func:`uvps.core.pipeline.detection_height`), the height departs from the normals there by
+    construction: a 150 um dome whose rim the crack (60 um deep) runs through is rejected by the
+    ``artefact`` rule's mismatch when the band counts, and kept, with its width, when the
+    mismatch is measured over its other pixels. A spike the integration's fill made on the band
+    (the normals there are the crack's) lies wholly on it and is still rejected."""
+    px, shape = 15.0, (160, 160)
+    alb, h = scene(shape, seed=seed)
+    add_dome(alb, h, (80, 80), 150.0, px)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    crack = (60.0 * np.exp(-(xx - 84.0) ** 2 / 2.0)).astype(np.float32)
+    normals = normals_of(h - crack, px)
+    h += (10.0 * np.exp(-((yy - 30) ** 2 + (xx - 84) ** 2) / (2 * 1.5 ** 2))).astype(np.float32)
+    band = np.abs(xx - 84) <= 3
+    whole = detect_protrusions(alb, h, pixel_size_um=px, normals=normals)
+    assert whole.labels.max() == 0 and whole.rejected["artefact"] == 2
+    det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, left_out=band)
+    assert det.labels.max() == 1 and det.labels[80, 80] == 1 and det.rejected["artefact"] == 1
+    assert abs(width_of(det.labels, (80, 80), px) / 150.0 - 1) < 0.1
+    off = detect_protrusions(alb, h, pixel_size_um=px, normals=normals,
+                             params=DetectionParams(max_mismatch=np.inf))
+    assert off.labels[80, 80] > 0 and off.labels[30, 84] > 0
+
+
 def test_progress_reported():
     alb, h = scene((64, 64))
     seen = []
@@ -206,6 +232,7 @@ def test_progress_reported():
     (dict(pixel_size_um=0.0), "pixel_size_um"),
     (dict(pixel_size_um=15.0, mask=np.ones((3, 3), bool)), "mask"),
     (dict(pixel_size_um=15.0, normals=np.ones((64, 64))), "normals"),
+    (dict(pixel_size_um=15.0, left_out=np.zeros((64, 32), bool)), "left_out"),
     (dict(pixel_size_um=15.0, params=DetectionParams(min_width_um=500, max_width_um=100)), "min_width_um"),
     (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=1.0)), "beside_long_fraction"),
     (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=-0.1)), "beside_long_fraction"),
@@ -436,6 +463,25 @@ def test_bump_on_a_stroke_among_holes_in_the_measurement_not_kept_by_the_along_s
     assert off.labels[102, col] > 0 and off.diagnostics["stroke_bumps_kept"] == 1
     det = detect_protrusions(alb, h, pixel_size_um=px)
     assert det.labels.max() == 0 and det.diagnostics["stroke_bumps_kept"] == 0
+
+
+@pytest.mark.parametrize("seed, col", [(0, 200), (1, 300)])
+def test_bump_on_a_stroke_its_normals_deny_not_kept_by_the_along_stroke_cue(seed, col):
+    """The along-stroke cue is held to the mismatch test too: the 100 um dome beside the crest of
+    the rippled stroke above, present in the height but not in the normals (which see the
+    stroke alone: an integration artefact), is not kept from the shape rules' rejection; with
+    the test off, or with the normals of the height, it is."""
+    px, shape = 15.0, (200, 520)
+    alb, h = scene(shape, seed=seed)
+    h += rippled_stroke(shape, px, row=100, width_um=180.0, height_um=20.0, ripple=0.2)
+    stroke_normals = normals_of(h, px)
+    add_profile(h, (102, col), 100.0, px, 25.0, "dome")
+    det = detect_protrusions(alb, h, pixel_size_um=px, normals=stroke_normals)
+    assert det.labels.max() == 0 and det.diagnostics["stroke_bumps_kept"] == 0
+    for normals, p in ((stroke_normals, DetectionParams(max_mismatch=np.inf)), (normals_of(h, px), None)):
+        det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, params=p)
+        assert det.labels.max() == 1 and det.labels[102, col] == 1
+        assert det.diagnostics["stroke_bumps_kept"] == 1
 
 
 @pytest.mark.parametrize("ripple, width_um, height_um", [(0.2, 180.0, 20.0), (0.3, 240.0, 30.0),

@@ -460,15 +460,18 @@ def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept(
     n = np.stack([-p, -q, np.ones_like(p)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     run_height = frankot_chellappa(p, q, pixel_size_um=px).height_um
-    assert detection_height(run_height, None, pixel_size_um=px, params=DetectionParams(curl_k=15)) is run_height
-    assert detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=0)) is run_height  # off
+    for normals, params in ((None, DetectionParams(curl_k=15)), (n, DetectionParams(curl_k=0))):  # none, off
+        got = detection_height(run_height, normals, pixel_size_um=px, params=params)
+        assert got.height_um is run_height and got.left_out is None
     assert DetectionParams().curl_k == 15
     clean = np.stack([-p * 0, -q * 0, np.ones_like(p)], -1)             # a flat field: nothing to leave out
-    assert detection_height(run_height, clean, pixel_size_um=px, params=DetectionParams()) is run_height
+    got = detection_height(run_height, clean, pixel_size_um=px, params=DetectionParams())
+    assert got.height_um is run_height and got.left_out is None
 
     def dome_error(z):
         z = z - np.median(z[~domes & ~crack])
         return np.median(np.abs(z - h)[domes])
 
-    got = detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=15))
+    got, left_out = detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=15))
     assert dome_error(got) < 0.5 * dome_error(run_height), (dome_error(got), dome_error(run_height))
+    assert left_out[crack].mean() > 0.75 and not left_out[domes].any()

@@ -350,7 +350,7 @@ def _report(progress: Progress, fraction: float, message: str) -> None:
         progress(float(fraction), message)
 
 
-def _validate(albedo, height_um, pixel_size_um, normals, mask, params):
+def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=None):
     h = np.asarray(height_um)
     if h.ndim != 2:
         raise UVPSInputError(f"`height_um` must be (M, N); got shape {h.shape}")
@@ -362,6 +362,8 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params):
         raise UVPSInputError(f"`normals` must be (M, N, 3) with (M, N) = {h.shape}; got shape {np.shape(normals)}")
     if mask is not None and np.shape(mask) != h.shape:
         raise UVPSInputError(f"`mask` must be (M, N) = {h.shape}; got shape {np.shape(mask)}")
+    if left_out is not None and np.shape(left_out) != h.shape:
+        raise UVPSInputError(f"`left_out` must be (M, N) = {h.shape}; got shape {np.shape(left_out)}")
     p = params if params is not None else DetectionParams()
     if not isinstance(p, DetectionParams):
         raise UVPSInputError(f"`params` must be a DetectionParams; got {type(p).__name__}")
@@ -1485,13 +1487,33 @@ def _hole_area(lab: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(hi[own], weights=size[own].astype(np.float64), minlength=n + 1)[1:n + 1]
 
 
-def _normals_features(normals, h, lab, n, px: float) -> tuple:
+def _normals_features(normals, h, lab, n, px: float, left_out=None) -> tuple:
     """Per label 1..n: the mean tilt of the normals (deg) and how far the height's slope departs
     from the normals' (``p = -nx/nz``, ``q = -ny/nz`` in the frame of ``docs/architecture.md``),
     a common tilt over the label set aside: mean |e - mean e| / mean |g - mean g|, ``e`` the
-    difference of the two slopes and ``g`` the normals' slope. Without normals: inf and 0."""
+    difference of the two slopes and ``g`` the normals' slope. Without normals: inf and 0.
+
+    ``left_out``: pixels whose gradients the height was integrated without (a crack's walls,
+    :func:`uvps.core.pipeline.detection_height`): the height departs from the normals there by
+    construction, so a label's mismatch is measured over its other pixels when they are at
+    least half of it (a label mostly on such pixels keeps the mismatch over all of them)."""
     if normals is None:
         return np.full(n, np.inf), np.zeros(n)
+    tilt, mismatch = _slope_features(normals, h, lab, n, px)
+    if left_out is None or not left_out.any():
+        return tilt, mismatch
+    kept = np.where(left_out, 0, lab)
+    area = np.bincount(lab.ravel(), minlength=n + 1)[1:n + 1]
+    rest = np.bincount(kept.ravel(), minlength=n + 1)[1:n + 1]
+    use = (rest >= 0.5 * area) & (rest < area)
+    if use.any():
+        _, mm_rest = _slope_features(normals, h, np.where(use[np.maximum(kept, 1) - 1], kept, 0), n, px)
+        mismatch = np.where(use, mm_rest, mismatch)
+    return tilt, mismatch
+
+
+def _slope_features(normals, h, lab, n, px: float) -> tuple:
+    """:func:`_normals_features` over every pixel of each label."""
     rr, cc = np.nonzero(lab)                         # only the candidates' pixels
     lb = lab[rr, cc]
     nrm = np.asarray(normals)[rr, cc].astype(np.float64)
@@ -1513,9 +1535,11 @@ def _normals_features(normals, h, lab, n, px: float) -> tuple:
 
 
 def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds, px: float,
-                        p: DetectionParams, unmeasured: np.ndarray = None) -> CandidateFeatures:
+                        p: DetectionParams, unmeasured: np.ndarray = None,
+                        left_out: np.ndarray = None) -> CandidateFeatures:
     """Measure every candidate (a height candidate's relief is the one over its local plane);
-    ``unmeasured``: :func:`_unmeasured` (None: every pixel measured)."""
+    ``unmeasured``: :func:`_unmeasured` (None: every pixel measured); ``left_out``:
+    :func:`_normals_features`."""
     lab, n_h, t_disc = cand.labels, cand.n_h, cand.t_disc
     n_lab = int(lab.max())
     area_all = np.bincount(lab.ravel(), minlength=n_lab + 1)[1:]
@@ -1544,7 +1568,7 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
         ax_major, ax_minor = _axis_lengths(lab, n_lab)
         major[need] = ax_major[lbl[need] - 1]
         ratio[need] = ax_minor[lbl[need] - 1] / np.maximum(major[need], 1e-9)
-    tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px)
+    tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px, left_out)
     under = _label_mean(t_disc - t, lab, n_lab)[lbl - 1]
     rr, cc = np.nonzero(lab)
     ll = lab[rr, cc]
@@ -1763,7 +1787,8 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     glow = f.has_a & ~f.has_h
     bound = np.where(f.has_h, f.relief, f.relief_disc)
     test = np.flatnonzero(((np.isin(reason, ("ridge", "crack", "stroke")) & f.has_h)
-                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um) & ~ripple)
+                           | ((reason == "ridge") & glow)) & (f.under >= th.relief_um) & ~ripple
+                          & (f.mismatch <= p.max_mismatch))
     kept = np.zeros(int(lab.max()) + 1, bool)
     kept[f.lbl[reason == ""]] = True
     slices, (m, n) = ndi.find_objects(lab), lab.shape
@@ -1834,7 +1859,7 @@ def _finish(lab, f: CandidateFeatures, reason, shape) -> tuple:
 
 
 def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=None, params=None,
-                       progress: Progress = None) -> Detection:
+                       left_out=None, progress: Progress = None) -> Detection:
     """Detect metal-soap protrusions from the albedo and the height map.
 
     Parameters
@@ -1851,6 +1876,11 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     mask : (M, N) bool, optional
         True = analyse; False pixels never belong to a protrusion.
     params : DetectionParams, optional
+    left_out : (M, N) bool array, optional
+        With normals: the pixels whose gradients ``height_um`` was integrated without
+        (:func:`uvps.core.pipeline.detection_height`: a crack's walls, whose normals are wrong).
+        The height departs from the normals there by construction, so the ``artefact`` rule's
+        mismatch is measured over a candidate's other pixels (when they are at least half of it).
     progress : callable, optional
         ``progress(fraction, message)``.
 
@@ -1883,7 +1913,7 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     >>> int(det.labels.max()), str(det.source[0])
     (1, 'height')
     """
-    a, h, px, p = _validate(albedo, height_um, pixel_size_um, normals, mask, params)
+    a, h, px, p = _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out)
     lum = _brightness(a if a.ndim == 2 or a.shape[2] == 3 else a[..., 0])
     measured = np.isfinite(h) & np.isfinite(lum)
     valid = measured & np.asarray(mask, bool) if mask is not None else measured
@@ -1904,7 +1934,8 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
     unmeasured = _unmeasured(measured, normals)
-    feats = _candidate_features(cand, surf, normals, th, px, p, unmeasured)
+    feats = _candidate_features(cand, surf, normals, th, px, p, unmeasured,
+                                None if left_out is None else np.asarray(left_out, bool))
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
     ripple = _ripples(feats, on_long, p)
     first = _apply_rules(feats, th, px, p, on_long, stroke_min, ripple)

@@ -20,7 +20,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -561,12 +561,19 @@ def protrusion_diagnostics(prot: Protrusions, pixel_size_um: float) -> dict:
             "pixel_size_um": pixel_size_um}
 
 
-def detection_height(height_um, normals, *, pixel_size_um: float, params: DetectionParams) -> np.ndarray:
+class DetectionHeight(NamedTuple):
+    """What :func:`detection_height` returns."""
+    height_um: np.ndarray               # the height the detection reads
+    left_out: Optional[np.ndarray]      # bool, the pixels whose gradients it was integrated without
+
+
+def detection_height(height_um, normals, *, pixel_size_um: float, params: DetectionParams) -> DetectionHeight:
     """The height a run's detection reads: the normals integrated again (Frankot-Chellappa) without the
     gradients of long non-integrable patches (:func:`uvps.core.integrate.nonintegrable_patches`, the
     walls of cracks) where ``params.curl_k`` is set and there are any, else ``height_um`` itself (also
-    without normals).
-    The protrusions are measured on ``height_um``.
+    without normals), with those patches (``left_out``; None when nothing was left out).
+    The protrusions are measured on ``height_um``; the detection's ``artefact`` rule compares the
+    height's slope with the normals' away from the patches.
 
     On the detection benchmark's end-to-end captures (``scripts/benchmark_detection.py --pipeline``)
     the crack walls' normals are 5 deg off at the median and their relief spreads along the strokes
@@ -574,7 +581,7 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
     ``stroke`` rule's bar above 9 of the 13 protrusions it missed on seed 1.
     """
     if normals is None or not params.curl_k > 0:
-        return height_um
+        return DetectionHeight(height_um, None)
     valid = np.isfinite(height_um)
     mask = None if valid.all() else valid
     g = gradients_from_normals(normals, mask=mask)
@@ -583,10 +590,10 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
     log.info("detection: %.1f %% of the gradients (long non-integrable patches) left out of its height",
              100.0 * left_out.mean())
     if not left_out.any():      # nothing to leave out: the run's own height (its integration, its scale)
-        return height_um
+        return DetectionHeight(height_um, None)
     g.p[left_out] = 0.0
     g.q[left_out] = 0.0
-    return frankot_chellappa(g.p, g.q, pixel_size_um=pixel_size_um, mask=mask).height_um
+    return DetectionHeight(frankot_chellappa(g.p, g.q, pixel_size_um=pixel_size_um, mask=mask).height_um, left_out)
 
 
 def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, regions=None, n_areas=None,
@@ -606,8 +613,9 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
                              f"got {type(regions).__name__}")
     mask = regions.labels > 0 if regions is not None else None
     params = params or DetectionParams()
-    det = detect_protrusions(albedo, detection_height(height_um, normals, pixel_size_um=pixel_size_um, params=params),
-                             pixel_size_um=pixel_size_um, normals=normals, mask=mask, params=params,
+    dh = detection_height(height_um, normals, pixel_size_um=pixel_size_um, params=params)
+    det = detect_protrusions(albedo, dh.height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
+                             params=params, left_out=dh.left_out,
                              progress=sub_progress(progress, 0.0, 0.85))
     report(progress, 0.9, "measuring")
     source = {i + 1: str(s) for i, s in enumerate(det.source)}
