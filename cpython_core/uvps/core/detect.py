@@ -133,7 +133,10 @@ class DetectionParams:
         Accepted equivalent-circle diameters of a protrusion; ``max_width_um`` also sets the
         compact-relief length ``L = 1.3 x max_width_um``.
     smooth_um : float
-        Gaussian sigma applied to the height before detection (noise), in um.
+        Gaussian sigma applied to the height before detection (noise), in um. 7.5 (half a pixel
+        at 15 um per pixel) keeps the saddle, 1-2 um deep, between touching protrusions 60-100 um
+        wide that 10 smoothed away (``docs/benchmarks.md``); the height's noise sets the relief
+        threshold through it.
     min_dynamic_um : float
         Floor of the relief threshold (um): a protrusion rises at least this much.
     dynamic_k : float
@@ -246,7 +249,7 @@ class DetectionParams:
 
     min_width_um: float = 30.0
     max_width_um: float = 1000.0
-    smooth_um: float = 10.0
+    smooth_um: float = 7.5
     min_dynamic_um: float = 1.0
     dynamic_k: float = 5.0
     split_fraction: float = 0.15
