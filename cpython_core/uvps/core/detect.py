@@ -114,7 +114,9 @@ REJECTION_RULES = (
                   "unmeasured fraction: the part of the footprint within 2 px of a pixel with no "
                   "measurement (non-finite albedo, normals or height)",
                   "mismatch > max_mismatch: relief the normals do not hold is an integration "
-                  "artefact (e.g. along a crack whose walls the lamps do not light); or unmeasured "
+                  "artefact (e.g. along a crack whose walls the lamps do not light; the pixels "
+                  "left out of the height's integration, left_out, set aside when the rest is at "
+                  "least half the footprint); or unmeasured "
                   "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole"),
     RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt",
                   "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
@@ -1773,7 +1775,9 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     ``ridge_elongation`` elongated, its outline no ridge by its second moments (axis ratio at
     least ``ridge_axis_ratio`` when ``ridge_min_length_um`` long: on a footprint a few pixels
     wide the inscribed radius is pixelised, the axes are not), its flank slope (peak / half
-    width) at least the strokes' own least slope (:func:`_stroke_slope`) and the weave's, its
+    width) at least the strokes' own least slope (:func:`_stroke_slope`) and the weave's, the
+    candidate's mismatch with the normals at most ``max_mismatch`` (a bump the integration made
+    on a crack's lip is no protrusion, whichever rule rejected it first), its
     peak at least the relief threshold and at most twice the candidate's relief over its
     surround (over a local plane for a compact peak, over the disc opening for a glowing one;
     more: the line cut through another structure, a crossing stroke or a bend), and it must
