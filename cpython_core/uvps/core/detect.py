@@ -602,6 +602,11 @@ def _diameter_opening(image: np.ndarray, threshold: int) -> np.ndarray:
                             int(threshold)).reshape(img.shape)
 
 
+def _block_factor(length_px: float) -> int:
+    """The side ``f`` of the blocks :func:`_compact_relief` opens: ``length_px / f`` is ~16 px."""
+    return max(1, int(length_px // 16))
+
+
 def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float) -> np.ndarray:
     """Relief enclosed within ``length_px``: ``hn - min(hn, A)``, A the diameter opening.
 
@@ -615,7 +620,7 @@ def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float) -> np.n
     not cut a lip or a stroke into compact pieces, also joins crowded protrusions into long
     chains; the ``crack`` rule deals with such pieces instead.)
     """
-    f = max(1, int(length_px // 16))
+    f = _block_factor(length_px)
     m, n = hn.shape
     pad = int(math.ceil(length_px / f))
     coarse = cv2.copyMakeBorder(_block_max(hn, f), pad, pad, pad, pad, cv2.BORDER_REFLECT)
@@ -655,12 +660,12 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
     (larger than any protrusion) before it is long. It stops when the visited set's extent
     (mirrored at the image borders, as :func:`_compact_relief` pads the image) reaches
     ``length``: the level it has fallen to, ``lam``, is where the seed's level set becomes
-    long, the exact diameter opening at the seed. The seed's own
-    hill is what the flood visited before it first climbed, over a saddle, above the seed or
-    more than ``floor`` above that saddle. When the seed stands ``need`` above ``lam`` and the
-    block maxima gave its hill no relief (``t`` below ``floor`` wherever the hill stands
-    ``floor`` above ``lam``), those pixels of the hill get ``h - lam``: the exact compact relief
-    (tested against :func:`skimage.morphology.diameter_opening`)."""
+    long, the exact diameter opening at the seed. The seed's own hill is what the flood visited
+    before it first climbed, over a saddle, above the seed or more than ``floor`` above that
+    saddle. When the seed stands ``need`` above ``lam`` and the block maxima gave its hill no
+    relief (``t`` below ``floor`` wherever the hill stands ``floor`` above ``lam``), those pixels
+    of the hill get ``h - lam``: the exact compact relief (tested against
+    :func:`skimage.morphology.diameter_opening`)."""
     m, n = h.shape
     hf = h.ravel()
     tf = t.ravel()
@@ -749,22 +754,21 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     :func:`_compact_relief` opens ``f x f`` block maxima (``f = L / 16``, 5 px at 15 um per
     pixel), so a protrusion in the block next to a stroke's or a crack lip's is joined to it and
     its level sets are taken as long: it gets no relief (a 90 um mesa 22 um high, 3 px from a
-    stroke, gets 0.7 um). Here the
-    exact level sets decide, around the objects the blocks can hide: the local maxima of the
-    height (over 5 x 5 px) with no compact relief (below the relief threshold) that stand
-    ``need`` above the paint's lowest envelope (the disc top-hat, :func:`_disc_tophat`), ``need``
-    being ``beside_long_fraction`` of that height and at least twice the relief threshold. A
-    priority flood from each (:func:`_flood_beside`) falls through the level sets containing it
-    until they reach ``L``; a seed whose own hill stands ``need`` above that level, and which the
-    blocks gave no relief, gets its exact compact relief there. A bump on a stroke already has
-    its relief from the blocks and is left alone; a stroke's crest or the paint's texture widens
-    past ``3 f + 2`` px before it has fallen ``need``, which bounds the cost (0.17 s at
-    4000 x 3000). Hand-written: the exact diameter opening of a whole 1600 x 1200 image
-    (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods from chosen seeds
-    only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as does ``f`` = 1 (the
-    blocks are then the pixels: the relief is exact already)."""
+    stroke, gets 0.7 um). Here the exact level sets decide, around the objects the blocks can
+    hide: the local maxima of the height (over 5 x 5 px) with no compact relief (below the
+    relief threshold) that stand ``need`` above the paint's lowest envelope (the disc top-hat,
+    :func:`_disc_tophat`), ``need`` being ``beside_long_fraction`` of that height and at least
+    twice the relief threshold. A priority flood from each (:func:`_flood_beside`) falls through
+    the level sets containing it until they reach ``L``; a seed whose own hill stands ``need``
+    above that level, and which the blocks gave no relief, gets its exact compact relief there.
+    A bump on a stroke already has its relief from the blocks and is left alone; a stroke's
+    crest or the paint's texture widens past ``3 f + 2`` px before it has fallen ``need``, which
+    bounds the cost (0.17 s at 4000 x 3000). Hand-written: the exact diameter opening of a whole
+    1600 x 1200 image (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods
+    from chosen seeds only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as
+    does ``f`` = 1 (the blocks are then the pixels: the relief is exact already)."""
     t = surf.relief
-    f = max(1, int(surf.length_px // 16))
+    f = _block_factor(surf.length_px)
     if p.beside_long_fraction <= 0 or f == 1:
         return t
     hn = np.ascontiguousarray(surf.height, dtype=np.float32)
