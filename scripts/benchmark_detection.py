@@ -196,6 +196,8 @@ def run_seed(seed, shape, args):
                 again += ["--curl-k", str(args.curl_k)]
             if args.beside_long_fraction is not None:
                 again += ["--beside-long-fraction", str(args.beside_long_fraction)]
+            for name, value in getattr(args, "params", {}).items():
+                again += ["--" + name.replace("_", "-"), str(value)]
             xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated, again)
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
@@ -203,7 +205,7 @@ def run_seed(seed, shape, args):
         opts = {"shoulder_width_um": getattr(args, "shoulder_width_um", 0.0)}
         if getattr(args, "beside_long_fraction", None) is not None:
             opts["beside_long_fraction"] = args.beside_long_fraction
-        params = DetectionParams(**opts)
+        params = DetectionParams(**opts, **getattr(args, "params", {}))
         xy, w, det, elapsed = _detections_from_truth(cap, args.height_noise, params)
         rejected = det.rejected
     res = score(cap, xy, w)
@@ -279,6 +281,21 @@ def print_tables(results, args):
         print(f"| {name} | {value} | {'yes' if met else 'no'} |")
 
 
+def _params(ap, items) -> dict:
+    """``--param NAME=VALUE`` items as DetectionParams overrides (VALUE as the field's type)."""
+    fields = DetectionParams.__dataclass_fields__
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or name not in fields:
+            ap.error(f"--param {item!r}: expected NAME=VALUE with NAME a DetectionParams field")
+        try:
+            out[name] = type(getattr(DetectionParams(), name))(value)
+        except ValueError:
+            ap.error(f"--param {item!r}: {value!r} is not a {type(getattr(DetectionParams(), name)).__name__}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -302,10 +319,14 @@ def main(argv=None) -> int:
     ap.add_argument("--beside-long-fraction", type=float, default=None,
                     help="DetectionParams.beside_long_fraction (the exact level sets beside strokes; 0 = "
                          "off; with --pipeline, then `uvps detect -o RUN --beside-long-fraction F`)")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="any other DetectionParams field, e.g. smooth_um=10 (repeatable; with --pipeline, "
+                         "then `uvps detect -o RUN --NAME VALUE`)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")
     args = ap.parse_args(argv)
+    args.params = _params(ap, args.param)
     if args.pipeline:
         mode = ("end to end (`uvps run CAPTURE -o RUN --detect`: lamps and black level estimated "
                 "from the images)" if args.uncalibrated else "end to end (`uvps run CAPTURE -o RUN "
@@ -314,7 +335,8 @@ def main(argv=None) -> int:
     else:
         mode = f"true albedo, height and normals, height noise {args.height_noise} um"
     print(f"SyntheticSpec.realistic('top', **SCENES[{args.scene!r}]), {args.shape[0]} x {args.shape[1]} px at 15 um/px, "
-          f"seeds {args.seeds}; {mode}; detect_protrusions defaults.\n")
+          f"seeds {args.seeds}; {mode}; detect_protrusions defaults"
+          + (f" but {args.params}" if args.params else "") + ".\n")
     results = [run_seed(s, args.shape, args) for s in args.seeds]
     print_tables(results, args)
     return 0

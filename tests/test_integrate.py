@@ -475,3 +475,34 @@ def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept(
     got, left_out = detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(curl_k=15))
     assert dome_error(got) < 0.5 * dome_error(run_height), (dome_error(got), dome_error(run_height))
     assert left_out[crack].mean() > 0.75 and not left_out[domes].any()
+
+
+def test_find_protrusions_hands_the_left_out_patches_to_the_detector(monkeypatch):
+    """A run's detection reads the height integrated without the crack's gradients and is told
+    which pixels those are (``detect_protrusions(left_out=)``: the ``artefact`` rule's mismatch is
+    measured away from them); without normals it is told nothing."""
+    from uvps.core import pipeline
+    from uvps.core.detect import DetectionParams
+
+    px = 15.0
+    p, q, h, domes, crack = _domes_and_a_crack(1, px=px)
+    n = np.stack([-p, -q, np.ones_like(p)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    run_height = frankot_chellappa(p, q, pixel_size_um=px).height_um
+    seen = []
+    real = pipeline.detect_protrusions
+
+    def spy(albedo, height_um, **kwargs):
+        seen.append((height_um, kwargs.get("left_out")))
+        return real(albedo, height_um, **kwargs)
+
+    monkeypatch.setattr(pipeline, "detect_protrusions", spy)
+    albedo = np.ones(h.shape, np.float32)
+    want = pipeline.detection_height(run_height, n, pixel_size_um=px, params=DetectionParams())
+    pipeline.find_protrusions(albedo, run_height, n, pixel_size_um=px)
+    pipeline.find_protrusions(albedo, run_height, None, pixel_size_um=px)
+    (got_h, got_out), (plain_h, plain_out) = seen
+    np.testing.assert_array_equal(got_out, want.left_out)
+    np.testing.assert_allclose(got_h, want.height_um)
+    assert got_out[crack].mean() > 0.75
+    assert plain_h is run_height and plain_out is None

@@ -43,8 +43,9 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    peak on one (a small protrusion on a taller stroke's flank), is measured again over the
    stroke's own profile continued along the stroke (the height, cracks filled where they cut
    it, minus its opening by a line laid in the direction the height around it runs on): a
-   closed, compact bump as steep as the strokes' own statistics ask is a protrusion on the
-   stroke and is kept, outlined by that excess.
+   closed, compact bump as steep as the strokes' own statistics ask, whose height the normals
+   hold (the ``artefact`` rule's mismatch), is a protrusion on the stroke and is kept, outlined
+   by that excess.
 
 Every length option is in micrometres and converted with ``pixel_size_um``.
 """
@@ -98,8 +99,8 @@ REJECTION_RULES = (
                   "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
                   "of a brush stroke; or a member of an evenly spaced row of similar such bumps "
                   "(_ripples: a stroke's ripples) (ridge, stroke and crack: unless its excess "
-                  "over the stroke's profile continued along the stroke is a closed, steep bump, "
-                  "_bumps_on_strokes; never for a ripple)"),
+                  "over the stroke's profile continued along the stroke is a closed, steep bump "
+                  "whose mismatch is within max_mismatch, _bumps_on_strokes; never for a ripple)"),
     RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
                   "top-hat over crack_width_um) at least half as deep as it is high; hole fraction: "
                   "area enclosed by the footprint but below its level / filled area",
@@ -135,10 +136,11 @@ class DetectionParams:
         Accepted equivalent-circle diameters of a protrusion; ``max_width_um`` also sets the
         compact-relief length ``L = 1.3 x max_width_um``.
     smooth_um : float
-        Gaussian sigma applied to the height before detection (noise), in um. 7.5 (half a pixel
-        at 15 um per pixel) keeps the saddle, 1-2 um deep, between touching protrusions 60-100 um
-        wide that 10 smoothed away (``docs/benchmarks.md``); the height's noise sets the relief
-        threshold through it.
+        Gaussian sigma applied to the height (and to the brightness for the albedo cue) before
+        detection, in um; below 0.3 px (at more than 25 um per pixel at 7.5) nothing is
+        smoothed. 7.5 (half a pixel at 15 um per pixel) keeps more of the saddles, a micrometre
+        or two deep, between touching protrusions 60-100 um wide than 10 did
+        (``docs/benchmarks.md``); the height's noise sets the relief threshold through it.
     min_dynamic_um : float
         Floor of the relief threshold (um): a protrusion rises at least this much.
     dynamic_k : float
@@ -189,7 +191,8 @@ class DetectionParams:
         rejects (or a glowing candidate without a compact peak that ``ridge`` rejects) is
         measured again over the stroke's own profile continued along the stroke: the
         height minus its grey opening by a line this many times the peak's compact radius long,
-        in the direction the height around it runs on (:func:`_bumps_on_strokes`). 0 disables.
+        in the direction the height around it runs on (:func:`_bumps_on_strokes`); kept only
+        when its mismatch with the normals is within ``max_mismatch``. 0 disables.
     shoulder_width_um : float
         Width (um) of the small protrusions sought as shoulders of a taller neighbour (no saddle
         ``split_fraction`` below them): the height cue also splits a footprint at the dome-like
@@ -215,7 +218,9 @@ class DetectionParams:
     max_mismatch : float
         With normals: largest mean departure of the height's slope from the normals' over a
         candidate (a common tilt set aside), relative to the spread of the normals' slope over
-        it (0 for a height integrated exactly).
+        it (0 for a height integrated exactly); measured away from ``left_out`` pixels when they
+        are less than half the candidate (:func:`detect_protrusions`). The along-stroke cue
+        keeps no candidate above it.
     max_unmeasured_fraction : float
         Largest fraction of a candidate's footprint that may lie within 2 px of a pixel without
         a measurement (non-finite albedo, normals or height; not ``mask``): where the lamps gave
@@ -603,7 +608,8 @@ def _diameter_opening(image: np.ndarray, threshold: int) -> np.ndarray:
 
 
 def _block_factor(length_px: float) -> int:
-    """The side ``f`` of the blocks :func:`_compact_relief` opens: ``length_px / f`` is ~16 px."""
+    """The side ``f`` of the blocks :func:`_compact_relief` opens: ``length_px / f`` is 16-32 px
+    (``f`` = 1 below 32 px)."""
     return max(1, int(length_px // 16))
 
 
@@ -1516,7 +1522,8 @@ def _normals_features(normals, h, lab, n, px: float, left_out=None) -> tuple:
     rest = np.bincount(kept.ravel(), minlength=n + 1)[1:n + 1]
     use = (rest >= 0.5 * area) & (rest < area)
     if use.any():
-        _, mm_rest = _slope_features(normals, h, np.where(use[np.maximum(kept, 1) - 1], kept, 0), n, px)
+        lut = np.concatenate([[False], use])            # a lookup: np.isin sorts the image
+        _, mm_rest = _slope_features(normals, h, np.where(lut[kept], kept, 0), n, px)
         mismatch = np.where(use, mm_rest, mismatch)
     return tilt, mismatch
 
@@ -1887,11 +1894,12 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     mask : (M, N) bool, optional
         True = analyse; False pixels never belong to a protrusion.
     params : DetectionParams, optional
-    left_out : (M, N) bool array, optional
+    left_out : (M, N) bool, optional
         With normals: the pixels whose gradients ``height_um`` was integrated without
         (:func:`uvps.core.pipeline.detection_height`: a crack's walls, whose normals are wrong).
         The height departs from the normals there by construction, so the ``artefact`` rule's
         mismatch is measured over a candidate's other pixels (when they are at least half of it).
+        Ignored without normals.
     progress : callable, optional
         ``progress(fraction, message)``.
 

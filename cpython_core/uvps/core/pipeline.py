@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["RunOptions", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
-           "estimate_capture_lights", "find_protrusions", "given_lights"]
+           "estimate_capture_lights", "find_protrusions", "given_lights", "detection_height", "DetectionHeight"]
 
 #: ``lamp_beams``: auto, all, none (see :func:`uvps.core.lights.beyond_model`).
 LAMP_BEAMS = ("auto", "all", "none")
@@ -571,14 +571,20 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
     """The height a run's detection reads: the normals integrated again (Frankot-Chellappa) without the
     gradients of long non-integrable patches (:func:`uvps.core.integrate.nonintegrable_patches`, the
     walls of cracks) where ``params.curl_k`` is set and there are any, else ``height_um`` itself (also
-    without normals), with those patches (``left_out``; None when nothing was left out).
+    without normals).
     The protrusions are measured on ``height_um``; the detection's ``artefact`` rule compares the
-    height's slope with the normals' away from the patches.
+    height's slope with the normals' away from the patches (``detect_protrusions(left_out=)``).
 
     On the detection benchmark's end-to-end captures (``scripts/benchmark_detection.py --pipeline``)
     the crack walls' normals are 5 deg off at the median and their relief spreads along the strokes
     (stroke bumps 7.8 um high at the median against 1.4 um in the true height), which set the
     ``stroke`` rule's bar above 9 of the 13 protrusions it missed on seed 1.
+
+    Returns
+    -------
+    DetectionHeight
+        ``height_um``: the height to detect on; ``left_out``: the patches left out (bool), None
+        when nothing was.
     """
     if normals is None or not params.curl_k > 0:
         return DetectionHeight(height_um, None)
