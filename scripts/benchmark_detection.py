@@ -191,21 +191,13 @@ def run_seed(seed, shape, args):
     if args.pipeline:
         cap = make_capture(spec)
         with tempfile.TemporaryDirectory(prefix="uvps_bench_") as tmp:
-            again = []
-            if args.curl_k is not None:
-                again += ["--curl-k", str(args.curl_k)]
-            if args.beside_long_fraction is not None:
-                again += ["--beside-long-fraction", str(args.beside_long_fraction)]
-            for name, value in getattr(args, "params", {}).items():
-                again += ["--" + name.replace("_", "-"), str(value)]
+            again = [a for name, value in args.params.items()
+                     for a in ("--" + name.replace("_", "-"), str(value))]
             xy, w, rejected, elapsed = _detections_from_pipeline(cap, Path(tmp), args.uncalibrated, again)
     else:
         # the scene does not depend on the lamps: 3 noise-free images are enough for the truth
         cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
-        opts = {"shoulder_width_um": getattr(args, "shoulder_width_um", 0.0)}
-        if getattr(args, "beside_long_fraction", None) is not None:
-            opts["beside_long_fraction"] = args.beside_long_fraction
-        params = DetectionParams(**opts, **getattr(args, "params", {}))
+        params = DetectionParams(**args.params)
         xy, w, det, elapsed = _detections_from_truth(cap, args.height_noise, params)
         rejected = det.rejected
     res = score(cap, xy, w)
@@ -305,8 +297,9 @@ def main(argv=None) -> int:
                          "impasto (uvps.testing.synthetic.IMPASTO); the others one impasto morphology")
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
-    ap.add_argument("--shoulder-width-um", type=float, default=0.0,
-                    help="DetectionParams.shoulder_width_um (the opt-in shoulder cue; 0 = off)")
+    ap.add_argument("--shoulder-width-um", type=float, default=None,
+                    help="DetectionParams.shoulder_width_um (the opt-in shoulder cue; 0 = off; with --pipeline, "
+                         "then `uvps detect -o RUN --shoulder-width-um W`)")
     ap.add_argument("--misses", action="store_true",
                     help="(truth mode) why each missed 60-100 um protrusion was missed: the rule "
                          "that rejected the candidate at its centre, merged, or no candidate")
@@ -326,7 +319,10 @@ def main(argv=None) -> int:
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")
     args = ap.parse_args(argv)
-    args.params = _params(ap, args.param)
+    # the named options are DetectionParams fields too: one dict of overrides for both modes
+    named = {"shoulder_width_um": args.shoulder_width_um, "curl_k": args.curl_k,
+             "beside_long_fraction": args.beside_long_fraction}
+    args.params = {**{k: v for k, v in named.items() if v is not None}, **_params(ap, args.param)}
     if args.pipeline:
         mode = ("end to end (`uvps run CAPTURE -o RUN --detect`: lamps and black level estimated "
                 "from the images)" if args.uncalibrated else "end to end (`uvps run CAPTURE -o RUN "

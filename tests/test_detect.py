@@ -195,6 +195,17 @@ def test_bump_at_a_hole_in_the_measurement_rejected_protrusion_beside_one_kept()
     np.testing.assert_array_equal(h, h0)
 
 
+def dome_at_a_crack(seed, crack_col, px=15.0, shape=(160, 160)):
+    """A 150 um dome at (80, 80), and normals that see a crack 60 um deep along column
+    ``crack_col`` that the height does not (a run's detection height, integrated without the
+    crack's walls): (albedo, height, normals, the band of 7 columns left out)."""
+    alb, h = scene(shape, seed=seed)
+    add_dome(alb, h, (80, 80), 150.0, px)
+    xx = np.mgrid[:shape[0], :shape[1]][1]
+    normals = normals_of(h - (60.0 * np.exp(-(xx - crack_col) ** 2 / 2.0)).astype(np.float32), px)
+    return alb, h, normals, np.abs(xx - crack_col) <= 3
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_protrusion_at_a_crack_left_out_of_the_height_kept_a_spike_on_it_rejected(seed):
     """Where a run's detection height was integrated without a crack's walls (``left_out``,
@@ -203,14 +214,10 @@ def test_protrusion_at_a_crack_left_out_of_the_height_kept_a_spike_on_it_rejecte
     ``artefact`` rule's mismatch when the band counts, and kept, with its width, when the
     mismatch is measured over its other pixels. A spike the integration's fill made on the band
     (the normals there are the crack's) lies wholly on it and is still rejected."""
-    px, shape = 15.0, (160, 160)
-    alb, h = scene(shape, seed=seed)
-    add_dome(alb, h, (80, 80), 150.0, px)
-    yy, xx = np.mgrid[:shape[0], :shape[1]]
-    crack = (60.0 * np.exp(-(xx - 84.0) ** 2 / 2.0)).astype(np.float32)
-    normals = normals_of(h - crack, px)
+    px = 15.0
+    alb, h, normals, band = dome_at_a_crack(seed, 84.0, px)
+    yy, xx = np.mgrid[:160, :160]
     h += (10.0 * np.exp(-((yy - 30) ** 2 + (xx - 84) ** 2) / (2 * 1.5 ** 2))).astype(np.float32)
-    band = np.abs(xx - 84) <= 3
     whole = detect_protrusions(alb, h, pixel_size_um=px, normals=normals)
     assert whole.labels.max() == 0 and whole.rejected["artefact"] == 2
     det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, left_out=band)
@@ -221,19 +228,14 @@ def test_protrusion_at_a_crack_left_out_of_the_height_kept_a_spike_on_it_rejecte
     assert off.labels[80, 80] > 0 and off.labels[30, 84] > 0
 
 
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_protrusion_mostly_on_the_left_out_band_keeps_its_whole_mismatch(seed):
     """The mismatch is measured away from ``left_out`` only where that leaves at least half of
     the candidate: the dome of the test above with the crack 2 px from its centre lies 70 % on
     the band, so its mismatch is taken over all of it and it is rejected, band or not (it is
     found with the mismatch test off)."""
-    px, shape = 15.0, (160, 160)
-    alb, h = scene(shape, seed=seed)
-    add_dome(alb, h, (80, 80), 150.0, px)
-    yy, xx = np.mgrid[:shape[0], :shape[1]]
-    normals = normals_of(h - (60.0 * np.exp(-(xx - 82.0) ** 2 / 2.0)).astype(np.float32), px)
-    band = np.abs(xx - 82) <= 3
+    px = 15.0
+    alb, h, normals, band = dome_at_a_crack(seed, 82.0, px)
     det = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, left_out=band)
     assert det.labels.max() == 0 and det.rejected["artefact"] == 1
     off = detect_protrusions(alb, h, pixel_size_um=px, normals=normals, left_out=band,

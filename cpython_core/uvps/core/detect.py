@@ -1514,22 +1514,6 @@ def _normals_features(normals, h, lab, n, px: float, left_out=None) -> tuple:
     least half of it (a label mostly on such pixels keeps the mismatch over all of them)."""
     if normals is None:
         return np.full(n, np.inf), np.zeros(n)
-    tilt, mismatch = _slope_features(normals, h, lab, n, px)
-    if left_out is None or not left_out.any():
-        return tilt, mismatch
-    kept = np.where(left_out, 0, lab)
-    area = np.bincount(lab.ravel(), minlength=n + 1)[1:n + 1]
-    rest = np.bincount(kept.ravel(), minlength=n + 1)[1:n + 1]
-    use = (rest >= 0.5 * area) & (rest < area)
-    if use.any():
-        lut = np.concatenate([[False], use])            # a lookup: np.isin sorts the image
-        _, mm_rest = _slope_features(normals, h, np.where(lut[kept], kept, 0), n, px)
-        mismatch = np.where(use, mm_rest, mismatch)
-    return tilt, mismatch
-
-
-def _slope_features(normals, h, lab, n, px: float) -> tuple:
-    """:func:`_normals_features` over every pixel of each label."""
     rr, cc = np.nonzero(lab)                         # only the candidates' pixels
     lb = lab[rr, cc]
     nrm = np.asarray(normals)[rr, cc].astype(np.float64)
@@ -1541,6 +1525,12 @@ def _slope_features(normals, h, lab, n, px: float) -> tuple:
     d_col = (hp[rr + 1, cc + 2] - hp[rr + 1, cc]) / (2 * px)
     d_row = (hp[rr + 2, cc + 1] - hp[rr, cc + 1]) / (2 * px)
     e = (d_col - g[0], -d_row - g[1])                # y is up: dz/dy = -dz/d(row)
+    if left_out is not None:                         # the mismatch over the pixels off the band,
+        off = left_out[rr, cc]                       # where they are at least half the label
+        area = np.bincount(lb, minlength=n + 1)
+        rest = np.bincount(lb[~off], minlength=n + 1)
+        keep = ~off | (rest < 0.5 * area)[lb]
+        lb, g, e = lb[keep], (g[0][keep], g[1][keep]), (e[0][keep], e[1][keep])
 
     def spread(vx, vy):
         mx = np.concatenate([[0.0], _label_mean(vx, lb, n)])[lb]
