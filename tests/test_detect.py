@@ -258,6 +258,7 @@ def test_progress_reported():
     (dict(pixel_size_um=15.0, params=DetectionParams(min_width_um=500, max_width_um=100)), "min_width_um"),
     (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=1.0)), "beside_long_fraction"),
     (dict(pixel_size_um=15.0, params=DetectionParams(beside_long_fraction=-0.1)), "beside_long_fraction"),
+    (dict(pixel_size_um=15.0, params=DetectionParams(weak_split_fraction=-0.1)), "weak_split_fraction"),
 ])
 def test_bad_input(kwargs, match):
     alb, h = scene((64, 64))
@@ -365,6 +366,132 @@ def test_touching_pair_split_with_widths_within_10_percent():
     for (a, b), centre in (((big, small), p1), ((small, big), p2)):
         visible = np.sqrt(4 * np.count_nonzero((a > b) & (a > 0)) / np.pi) * px
         assert abs(width_of(det.labels, centre, px) / visible - 1) <= 0.10
+
+
+def dome_on_a_flank(seed, off, px=15.0):
+    """A dome 90 um wide and 18 um high on the flank of one 150 um wide and 40 um high, centres
+    0.7 x the sum of the radii apart, the higher surface winning (as the generator's clusters):
+    the saddle between them lies 10-15 % of the small one's relief below it. Returns (albedo,
+    height, centre of the big one, centre of the small one, the small one's part above the big)."""
+    alb, h = scene((120, 120), seed=seed)
+    w1, w2 = 150.0, 90.0
+    d = 0.7 * (w1 + w2) / 2 / px
+    c1, c2 = (60 + off, 60 - d / 2 + off), (60 + off, 60 + d / 2 + off)
+    big, small = np.zeros_like(h), np.zeros_like(h)
+    add_profile(big, c1, w1, px, 40.0, "dome")
+    add_profile(small, c2, w2, px, 18.0, "dome")
+    h += np.maximum(big, small)
+    visible = np.sqrt(4 * np.count_nonzero((small > big) & (small > 0)) / np.pi) * px
+    return alb, h, tuple(int(round(v)) for v in c1), tuple(int(round(v)) for v in c2), visible
+
+
+@pytest.mark.parametrize("seed, off", [(0, 0.0), (1, 0.0), (2, 0.5), (0, 0.5)])
+def test_small_dome_on_a_taller_ones_flank_split_on_a_weak_saddle(seed, off):
+    """The small dome of :func:`dome_on_a_flank` stands less than ``split_fraction`` above its
+    saddle: alone that criterion counts the two as one protrusion. As a weak peak
+    (``weak_split_fraction``, the default) in a round, pit-free pair it is its own, as wide as the
+    part of it above its neighbour (76-83 um; its footprint is 0.84-0.95 of that)."""
+    px = 15.0
+    alb, h, p1, p2, visible = dome_on_a_flank(seed, off)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 2 and det.labels[p1] > 0 and det.labels[p2] > 0
+    assert det.labels[p1] != det.labels[p2]
+    assert abs(width_of(det.labels, p2, px) / visible - 1) <= 0.2
+    one = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(weak_split_fraction=0))
+    assert one.labels.max() == 1 and one.labels[p1] == one.labels[p2] == 1
+
+
+def lumpy_crater(h, centre, width_um, px, lump=0.16):
+    """A crater (a dome 0.22 x its width high, its caldera 0.5 of that deep and 0.45 of its
+    radius wide) with two lumps ``lump`` x its height on opposite sides of its rim."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]].astype(np.float64)
+    height = 0.22 * width_um
+    rho = np.hypot(yy - centre[0], xx - centre[1]) / (width_um / 2 / px)
+    prof = np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.3, 0)
+    prof = prof - 0.5 * np.clip(1 - (rho / 0.45) ** 2, 0, None) ** 2
+    r = width_um / 4 / px
+    for s in (-1, 1):
+        prof = prof + lump * np.exp(-((yy - centre[0] - s * 0.6 * r) ** 2
+                                      + (xx - centre[1] - s * 0.8 * r) ** 2) / (2 * (0.5 * r) ** 2))
+    h += (height * prof).astype(np.float32)
+
+
+@pytest.mark.parametrize("width_um, seed, off", [(150.0, 0, 0.0), (150.0, 1, 0.4), (200.0, 1, 0.0)])
+def test_crater_whose_rim_has_two_lumps_stays_one_protrusion(width_um, seed, off, monkeypatch):
+    """The lumps of :func:`lumpy_crater`'s rim are weak peaks over the rim between them, of a
+    height: the crater stays one protrusion, with its width. Were every weak peak up to its
+    neighbour's height its own (``WEAK_HOST_RATIO`` 1), the rim would be split in two."""
+    from uvps.core import detect as detect_mod
+    px = 15.0
+    alb, h = scene((100, 100), seed=seed)
+    lumpy_crater(h, (50 + off, 50 + 0.7 * off), width_um, px)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 1
+    assert abs(width_of(det.labels, (50, 50), px) / width_um - 1) <= 0.15
+    monkeypatch.setattr(detect_mod, "WEAK_HOST_RATIO", 1.0)
+    assert detect_protrusions(alb, h, pixel_size_um=px).labels.max() == 2
+
+
+def rippled_pile(h, centre, px, *, length_um=300.0, width_um=90.0, height_um=14.0, ripple=0.2,
+                 wavelength_um=80.0, angle=0.0):
+    """A pile of paint ``length_um`` long along ``angle`` (rad), ``width_um`` wide, rippled
+    along its length by ``1 + ripple cos(2 pi u / wavelength_um)``; no glow."""
+    yy, xx = np.mgrid[:h.shape[0], :h.shape[1]].astype(np.float64)
+    y, x = (yy - centre[0]) * px, (xx - centre[1]) * px
+    u = x * np.cos(angle) + y * np.sin(angle)
+    v = -x * np.sin(angle) + y * np.cos(angle)
+    rho2 = (u / (length_um / 2)) ** 2 + (v / (width_um / 2)) ** 2
+    prof = np.clip(1 - rho2, 0, None) ** 1.2 * (1 + ripple * np.cos(2 * np.pi * u / wavelength_um))
+    h += (height_um * prof).astype(np.float32)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.8])
+def test_rippled_pile_not_split_into_round_pieces(angle, monkeypatch):
+    """A pile 300 um long and 90 um wide whose ripples are weak peaks, those beside the middle one
+    under three quarters of its height: together the pieces are elongated (minor axis <
+    ``ridge_axis_ratio`` of the major), so they stay one candidate, a ridge, and nothing is
+    found. Were the pieces kept (the elongation test off), two round pieces would pass as
+    protrusions."""
+    from dataclasses import replace
+    from uvps.core import detect as detect_mod
+    px = 15.0
+    alb, h = scene((100, 100), seed=0)
+    rippled_pile(h, (50.2, 50.4), px, angle=angle)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 0 and det.rejected["ridge"] >= 1
+    orig = detect_mod._weak_splits
+    monkeypatch.setattr(detect_mod, "_weak_splits", lambda t, ws, weak, p: orig(
+        t, ws, weak, replace(p, ridge_axis_ratio=0.0)))
+    assert detect_protrusions(alb, h, pixel_size_um=px).labels.max() == 2
+
+
+@pytest.mark.slow
+def test_cluster_members_on_a_taller_ones_flank_on_cupped_paint_get_their_own_relief():
+    """The generator's ``top`` scene, seed 1 (1200 x 1600 px at 15 um): a cluster on a cupped
+    island, two members 60 and 73 um wide (15 and 18 um high) downhill of one 104 um wide, 1-2 px
+    from its flank. The compact relief's 5 x 5 block maxima give them the taller one's level, and
+    none of them is a maximum of the height over 5 x 5 px, so they got no relief of their own.
+    Seeded from the 3 x 3 maxima, the exact level sets give each its relief over the saddle where
+    it joins the cluster, which is less than ``0.3`` of its height over the paint's lowest
+    envelope but more than ``beside_long_fraction`` (0.15): each of the four members is found on
+    its own. At 0.3 the three are one."""
+    from uvps.testing.synthetic import SyntheticSpec, make_capture
+    cap = make_capture(SyntheticSpec.realistic("top", shape=(1200, 1600), seed=1), n_lights=3,
+                       noise=False, cast_shadows=False)
+    pr = cap.protrusions
+    first = int(np.argmin(np.hypot(pr["y_px"] - 1161, pr["x_px"] - 1031)))
+    members = np.flatnonzero(pr["cluster"] == pr["cluster"][first])
+    assert members.size == 4 and np.sort(np.round(pr["width_um"][members])).tolist() == [60, 73, 88, 104]
+    centres = [(int(round(pr["y_px"][i])), int(round(pr["x_px"][i]))) for i in members]
+
+    def labels_at(**kw):
+        det = detect_protrusions(cap.albedo, cap.height_um, pixel_size_um=15.0, normals=cap.normals,
+                                 params=DetectionParams(**kw))
+        return [int(det.labels[c]) for c in centres]
+
+    found = labels_at()
+    assert all(found) and len(set(found)) == 4
+    assert len(set(labels_at(beside_long_fraction=0.3))) == 2
 
 
 def test_unseen_two_scale_weave_measured_and_not_detected():

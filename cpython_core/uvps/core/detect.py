@@ -19,10 +19,12 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    stroke's level sets, so around such objects the exact level sets decide (:func:`_beside_long`).
 3. **Height cue** (:func:`_height_cue`, :func:`_local_footprints`). Peaks of ``t`` at least the
    relief threshold ``max(min_dynamic_um, dynamic_k x smoothed noise)`` high, two peaks being two
-   protrusions when the saddle between them lies ``split_fraction`` below the lower one; a
-   watershed of ``-t`` from them splits touching clusters. Each footprint is then re-drawn over
-   a robust plane through its surround (a protrusion on a slope keeps its whole relief), where
-   the relief exceeds ``footprint_fraction`` of its peak.
+   protrusions when the saddle between them lies ``split_fraction`` below the lower one, or
+   ``weak_split_fraction`` below it when the lower one is at most three quarters as high and
+   the two do not lie along a ridge (:func:`_weak_splits`); a watershed of ``-t`` from them
+   splits touching clusters. Each footprint is then re-drawn over a robust plane through its
+   surround (a protrusion on a slope keeps its whole relief), where the relief exceeds
+   ``footprint_fraction`` of its peak.
 4. **Albedo cue** (:func:`_albedo_cue`). Brightness contrast ``L / L_bg - 1`` above
    ``albedo_contrast`` whose component matches a disc template (:func:`cv2.matchTemplate`). It
    only adds: a protrusion that does not fluoresce is found by its relief alone.
@@ -148,6 +150,12 @@ class DetectionParams:
     split_fraction : float
         Two touching peaks are separate protrusions when the saddle between them lies at least
         this fraction of the lower peak's relief below it.
+    weak_split_fraction : float
+        A peak whose saddle lies between this and ``split_fraction`` of its relief below it is a
+        protrusion of its own when it is at most three quarters as high as the tallest peak it
+        touches (a cluster member on a taller neighbour's flank; the lumps of a crater's rim are
+        of a height) and the two are not elongated together as a ridge (a rippled pile of
+        paint) (:func:`_weak_splits`). In [0, 1); 0 (or ``split_fraction`` and above) disables.
     crest_fraction : float
         Over a footprint's local plane, touching peaks whose saddle lies less than this fraction
         of the lower one's relief below it are one crest (a lip or a stroke cut into bumps).
@@ -242,11 +250,11 @@ class DetectionParams:
         15 sits above the 99th percentile of the curl outside the cracks of the benchmark's captures
         (12) and far below its median inside them (84); end-to-end figures in docs/benchmarks.md.
     beside_long_fraction : float
-        A small object that the compact relief's block maxima join to a stroke or a crack lip
-        beside it (in the next block: 5 px at 15 um per pixel) gets its exact compact relief when
-        it rises above the saddle where it joins them by at least this fraction of its height
-        over the paint's lowest envelope (the disc top-hat), and by twice the relief threshold
-        (:func:`_beside_long`). In [0, 1); 0 disables.
+        A small object that the compact relief's block maxima join to a stroke, a crack lip or a
+        taller neighbour beside it (in the next block: 5 px at 15 um per pixel) gets its exact
+        compact relief when it rises above the saddle where it joins them by at least this
+        fraction of its height over the paint's lowest envelope (the disc top-hat), and by twice
+        the relief threshold (:func:`_beside_long`). In [0, 1); 0 disables.
     ripple_reach : float
         A bump on a long structure without glow is a stroke's ripple (``stroke`` rule) when it is
         in an evenly spaced row of similar ones (the middle of three, or any of four or more), its
@@ -287,7 +295,8 @@ class DetectionParams:
     crack_width_um: float = 90.0
     curl_k: float = 15.0
     ripple_reach: float = 2.5
-    beside_long_fraction: float = 0.3
+    beside_long_fraction: float = 0.15
+    weak_split_fraction: float = 0.10
 
 
 @dataclass
@@ -381,6 +390,8 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=
         raise UVPSInputError(f"need 0 < min_width_um < max_width_um; got {p.min_width_um}, {p.max_width_um}")
     if not 0 <= p.beside_long_fraction < 1:
         raise UVPSInputError(f"beside_long_fraction must be in [0, 1); got {p.beside_long_fraction}")
+    if not 0 <= p.weak_split_fraction < 1:
+        raise UVPSInputError(f"weak_split_fraction must be in [0, 1); got {p.weak_split_fraction}")
     if not 0 <= p.max_unmeasured_fraction <= 1:
         raise UVPSInputError(f"max_unmeasured_fraction must be in [0, 1]; got {p.max_unmeasured_fraction}")
     if not (0 < p.split_fraction < 1 and 0 < p.footprint_fraction < 1):
@@ -740,8 +751,14 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
             cnt = own
         ok = True
         for q in range(cnt):
-            if hf[region[q]] - lam >= floor and tf[region[q]] >= floor:
+            j = region[q]
+            if hf[j] - lam >= floor and tf[j] >= floor:
                 ok = False
+                break
+            r = j // n
+            c = j - r * n
+            if hf[j] - lam >= floor and (r == 0 or r == m - 1 or c == 0 or c == n - 1):
+                ok = False          # cut by the image's edge: as likely a stroke leaving it
                 break
         if not ok:
             continue
@@ -761,7 +778,8 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     pixel), so a protrusion in the block next to a stroke's or a crack lip's is joined to it and
     its level sets are taken as long: it gets no relief (a 90 um mesa 22 um high, 3 px from a
     stroke, gets 0.7 um). Here the exact level sets decide, around the objects the blocks can
-    hide: the local maxima of the height (over 5 x 5 px) with no compact relief (below the
+    hide: the local maxima of the height (over 3 x 3 px: a dome within 2 px of a taller
+    neighbour's flank is one, not over 5 x 5) with no compact relief (below the
     relief threshold) that stand ``need`` above the paint's lowest envelope (the disc top-hat,
     :func:`_disc_tophat`), ``need`` being ``beside_long_fraction`` of that height and at least
     twice the relief threshold. A priority flood from each (:func:`_flood_beside`) falls through
@@ -778,7 +796,7 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     if p.beside_long_fraction <= 0 or f == 1:
         return t
     hn = np.ascontiguousarray(surf.height, dtype=np.float32)
-    peak = hn >= cv2.dilate(hn, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    peak = hn >= cv2.dilate(hn, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
     need_all = np.maximum(2.0 * th.relief_um, p.beside_long_fraction * surf.disc)
     seeds = np.flatnonzero(peak & valid & (t < th.relief_um) & (surf.disc >= need_all))
     if not seeds.size:
@@ -847,27 +865,99 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
     the saddle to any higher peak (``h_maxima`` of ``log(t + relief_um)``: a relative dynamic,
     so a crater's rim or a mesa's rippled top stays one peak and touching protrusions split).
     Per raised area (a path to a higher peak over a saddle above half the threshold stays
-    inside it), which is much cheaper than the full-image reconstruction."""
+    inside it), which is much cheaper than the full-image reconstruction. With
+    ``weak_split_fraction`` below ``split_fraction``, the peaks whose dynamic lies between the
+    two are returned too, flagged weak (:func:`_weak_splits` decides on them).
+    Returns (markers, n, weak: per id 1..n whether the peak is weak, index 0 unused)."""
     m, n = t.shape
     low = t >= 0.5 * th.relief_um
     comp, ncomp = ndi.label(low, structure=np.ones((3, 3)))
     markers = np.zeros((m, n), np.int32)
+    weak = [False]
     if not ncomp:
-        return markers, 0
+        return markers, 0, np.asarray(weak)
     top = _label_max(t, comp, ncomp)
     dyn = -math.log(1.0 - p.split_fraction)
+    use_weak = 0 < p.weak_split_fraction < p.split_fraction
+    dyn_w = -math.log(1.0 - p.weak_split_fraction) if use_weak else 0.0
     k_all = 0
     for k_comp, sl in enumerate(ndi.find_objects(comp)):
         if top[k_comp] < th.relief_um:
             continue
         inside = comp[sl] == k_comp + 1
         sub = np.where(inside, np.log(t[sl].astype(np.float64) + th.relief_um), -1.0)
-        hm = h_maxima(sub, dyn) & inside & (t[sl] >= th.relief_um)
+        hm = h_maxima(sub, dyn).astype(bool) & inside & (t[sl] >= th.relief_um)
         lab, k = ndi.label(hm, structure=np.ones((3, 3)))
+        if dyn_w:
+            hw = h_maxima(sub, dyn_w).astype(bool) & inside & (t[sl] >= th.relief_um)
+            lw, kw = ndi.label(hw, structure=np.ones((3, 3)))
+            strong = np.zeros(kw + 1, bool)
+            strong[lw[hm]] = True                   # the strong peaks' own components
+            strong[0] = True
+            extra = ~strong[lw]
+            n_w = int(kw + 1 - np.count_nonzero(strong))
+            if n_w:
+                lut = np.zeros(kw + 1, np.int32)
+                lut[~strong] = np.arange(k + 1, k + 1 + n_w)
+                lab = np.where(extra, lut[lw], lab)
+                weak.extend([False] * k + [True] * n_w)
+                k += n_w
+            else:
+                weak.extend([False] * k)
+        else:
+            weak.extend([False] * k)
         if k:
             markers[sl][lab > 0] = lab[lab > 0] + k_all
             k_all += k
-    return markers, k_all
+    return markers, k_all, np.asarray(weak)
+
+
+#: A weak peak (:func:`_weak_splits`) at most this fraction of the relief of the tallest peak it
+#: touches stays its own protrusion: a small dome on a taller one's flank. Lumps of one object
+#: (a crater's rim, a pile's ripples) are of about the same height and stay one.
+WEAK_HOST_RATIO = 0.75
+
+
+def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionParams) -> np.ndarray:
+    """Which weak peaks (:func:`_peak_markers`) stay protrusions of their own.
+
+    A weak peak stands between ``weak_split_fraction`` and ``split_fraction`` of its relief
+    above the saddle to a higher one: a cluster member on a taller neighbour's flank (60-100 um
+    wide, its saddle 1-2 um deep), or one of the lumps of a crater's rim or of the ripples of a
+    pile of paint. It is kept when its relief is at most :data:`WEAK_HOST_RATIO` of the tallest
+    basin of ``ws`` it touches (a small member on a taller one: the lumps of one object are of
+    a height) and its basin and those it touches are not elongated together (the minor axis of
+    their second moments at least ``ridge_axis_ratio`` of the major: two touching domes are
+    >= 0.5, a rippled pile is a ridge). Hand-written: no library splits on a dynamic under a
+    shape condition. Returns a boolean per id 0..n (index 0 unused): kept."""
+    keep = ~weak
+    n = weak.size - 1
+    if n < 1 or not weak.any():
+        return keep
+    pairs = []                                  # basins side by side (8-connected)
+    for a, b in ((ws[:, :-1], ws[:, 1:]), (ws[:-1], ws[1:]), (ws[:-1, :-1], ws[1:, 1:]),
+                 (ws[:-1, 1:], ws[1:, :-1])):
+        sel = (a > 0) & (b > 0) & (a != b)
+        pairs.append(np.column_stack([a[sel], b[sel]]))
+    pairs = np.unique(np.concatenate(pairs), axis=0)
+    top = np.concatenate([[0.0], _label_max(t, ws, n)])
+    boxes = ndi.find_objects(ws, max_label=n)
+    is_g = np.zeros(n + 1, bool)
+    for q in np.flatnonzero(weak[1:]) + 1:
+        group = np.unique(np.concatenate([[q], pairs[pairs[:, 0] == q, 1],
+                                          pairs[pairs[:, 1] == q, 0]]))
+        if boxes[q - 1] is None or top[q] > WEAK_HOST_RATIO * top[group].max():
+            keep[q] = False
+            continue
+        sls = [boxes[g - 1] for g in group if boxes[g - 1] is not None]
+        r0, r1 = min(s[0].start for s in sls), max(s[0].stop for s in sls)
+        c0, c1 = min(s[1].start for s in sls), max(s[1].stop for s in sls)
+        is_g[group] = True
+        rr, cc = np.nonzero(is_g[ws[r0:r1, c0:c1]])
+        is_g[group] = False
+        ev = np.linalg.eigvalsh(np.cov(np.vstack([rr, cc]))) if rr.size > 2 else np.ones(2)
+        keep[q] = ev[1] <= 0 or math.sqrt(max(ev[0], 0.0) / ev[1]) >= p.ridge_axis_ratio
+    return keep
 
 
 def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Thresholds,
@@ -934,11 +1024,20 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams) ->
     (:func:`_shoulder_markers`) is split again by a watershed of minus the curvature, so the
     shoulder gets the part of the basin its own curvature encloses. Returns (labels, markers,
     n, n_peaks): labels above ``n_peaks`` are shoulders."""
-    markers, n_h = _peak_markers(t, th, p)
+    markers, n_h, weak = _peak_markers(t, th, p)
     if not n_h:
         return np.zeros(t.shape, np.int32), markers, 0, 0
     floor = p.footprint_fraction * th.relief_um
     ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
+    if weak.any():
+        keep = _weak_splits(t, ws, weak, p)
+        if not keep[1:].all():
+            lut = np.zeros(n_h + 1, np.int32)
+            lut[keep] = np.arange(int(keep.sum()), dtype=np.int32)
+            lut[0] = 0
+            markers = lut[markers]
+            n_h = int(markers.max())
+            ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     n_peaks = n_h
     markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p)
     if n_h > n_peaks:
