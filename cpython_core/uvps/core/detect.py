@@ -152,10 +152,11 @@ class DetectionParams:
         this fraction of the lower peak's relief below it.
     weak_split_fraction : float
         A peak whose saddle lies between this and ``split_fraction`` of its relief below it is a
-        protrusion of its own when it is at most three quarters as high as the tallest peak it
-        touches (a cluster member on a taller neighbour's flank; the lumps of a crater's rim are
-        of a height) and the two are not elongated together as a ridge (a rippled pile of
-        paint) (:func:`_weak_splits`). In [0, 1); 0 (or ``split_fraction`` and above) disables.
+        protrusion of its own when it is at most :data:`WEAK_HOST_RATIO` (3/4) as high as the
+        tallest peak it touches (a cluster member on a taller neighbour's flank; the lumps of a
+        crater's rim are of a height) and the two are not elongated together as a ridge (a
+        rippled pile of paint) (:func:`_weak_splits`). In [0, 1); 0 (or ``split_fraction`` and
+        above) disables.
     crest_fraction : float
         Over a footprint's local plane, touching peaks whose saddle lies less than this fraction
         of the lower one's relief below it are one crest (a lip or a stroke cut into bumps).
@@ -682,7 +683,8 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
     saddle. When the seed stands ``need`` above ``lam`` and the block maxima gave its hill no
     relief (``t`` below ``floor`` wherever the hill stands ``floor`` above ``lam``), those pixels
     of the hill get ``h - lam``: the exact compact relief (tested against
-    :func:`skimage.morphology.diameter_opening`)."""
+    :func:`skimage.morphology.diameter_opening`); not when a pixel of the hill that high lies on
+    the image's border."""
     m, n = h.shape
     hf = h.ravel()
     tf = t.ravel()
@@ -787,9 +789,12 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     above that level, and which the blocks gave no relief, gets its exact compact relief there.
     A bump on a stroke already has its relief from the blocks and is left alone; a stroke's
     crest or the paint's texture widens past ``3 f + 2`` px before it has fallen ``need``, which
-    bounds the cost (0.17 s at 4000 x 3000). Hand-written: the exact diameter opening of a whole
-    1600 x 1200 image (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods
-    from chosen seeds only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as
+    bounds the cost (0.17 s at 4000 x 3000 with 5 x 5 seeds at 0.3). A hill that reaches the
+    image's edge is left as it was: cut by the edge, a ripple crest of a stroke that leaves the
+    image is as compact as a protrusion (the edge of ``valid`` inside the image is not an edge).
+    Hand-written: the exact diameter opening of a whole 1600 x 1200 image
+    (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods from chosen seeds
+    only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as
     does ``f`` = 1 (the blocks are then the pixels: the relief is exact already)."""
     t = surf.relief
     f = _block_factor(surf.length_px)
