@@ -754,13 +754,13 @@ def _flood_beside(h, t, seeds, need, length, width, max_area, floor, out):  # pr
         ok = True
         for q in range(cnt):
             j = region[q]
-            if hf[j] - lam >= floor and tf[j] >= floor:
-                ok = False
-                break
+            if hf[j] - lam < floor:
+                continue
             r = j // n
             c = j - r * n
-            if hf[j] - lam >= floor and (r == 0 or r == m - 1 or c == 0 or c == n - 1):
-                ok = False          # cut by the image's edge: as likely a stroke leaving it
+            # relief from the blocks already, or cut by the image's edge (a stroke leaving it?)
+            if tf[j] >= floor or r == 0 or r == m - 1 or c == 0 or c == n - 1:
+                ok = False
                 break
         if not ok:
             continue
@@ -794,8 +794,8 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
     image is as compact as a protrusion (the edge of ``valid`` inside the image is not an edge).
     Hand-written: the exact diameter opening of a whole 1600 x 1200 image
     (:func:`skimage.morphology.max_tree`) takes 5 s, and no library floods from chosen seeds
-    only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as
-    does ``f`` = 1 (the blocks are then the pixels: the relief is exact already)."""
+    only. ``beside_long_fraction`` 0 leaves the compact relief as it is, as does ``f`` = 1 (the
+    blocks are then the pixels: the relief is exact already)."""
     t = surf.relief
     f = _block_factor(surf.length_px)
     if p.beside_long_fraction <= 0 or f == 1:
@@ -893,24 +893,19 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
         sub = np.where(inside, np.log(t[sl].astype(np.float64) + th.relief_um), -1.0)
         hm = h_maxima(sub, dyn).astype(bool) & inside & (t[sl] >= th.relief_um)
         lab, k = ndi.label(hm, structure=np.ones((3, 3)))
-        if dyn_w:
+        n_w = 0
+        if dyn_w:                                   # the weak peaks: numbered after the strong
             hw = h_maxima(sub, dyn_w).astype(bool) & inside & (t[sl] >= th.relief_um)
             lw, kw = ndi.label(hw, structure=np.ones((3, 3)))
             strong = np.zeros(kw + 1, bool)
             strong[lw[hm]] = True                   # the strong peaks' own components
             strong[0] = True
-            extra = ~strong[lw]
-            n_w = int(kw + 1 - np.count_nonzero(strong))
-            if n_w:
-                lut = np.zeros(kw + 1, np.int32)
-                lut[~strong] = np.arange(k + 1, k + 1 + n_w)
-                lab = np.where(extra, lut[lw], lab)
-                weak.extend([False] * k + [True] * n_w)
-                k += n_w
-            else:
-                weak.extend([False] * k)
-        else:
-            weak.extend([False] * k)
+            n_w = kw + 1 - int(np.count_nonzero(strong))
+            lut = np.zeros(kw + 1, np.int32)
+            lut[~strong] = np.arange(k + 1, k + 1 + n_w)
+            lab = np.where(strong[lw], lab, lut[lw])
+        weak.extend([False] * k + [True] * n_w)
+        k += n_w
         if k:
             markers[sl][lab > 0] = lab[lab > 0] + k_all
             k_all += k
@@ -939,18 +934,18 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
     n = weak.size - 1
     if n < 1 or not weak.any():
         return keep
-    pairs = []                                  # basins side by side (8-connected)
+    pairs = []                                  # basins side by side (8-connected), both ways
     for a, b in ((ws[:, :-1], ws[:, 1:]), (ws[:-1], ws[1:]), (ws[:-1, :-1], ws[1:, 1:]),
                  (ws[:-1, 1:], ws[1:, :-1])):
         sel = (a > 0) & (b > 0) & (a != b)
-        pairs.append(np.column_stack([a[sel], b[sel]]))
-    pairs = np.unique(np.concatenate(pairs), axis=0)
+        pairs += [np.column_stack([a[sel], b[sel]]), np.column_stack([b[sel], a[sel]])]
+    pairs = np.unique(np.concatenate(pairs), axis=0)        # sorted by the first basin
+    start = np.searchsorted(pairs[:, 0], np.arange(n + 2))
     top = np.concatenate([[0.0], _label_max(t, ws, n)])
     boxes = ndi.find_objects(ws, max_label=n)
     is_g = np.zeros(n + 1, bool)
     for q in np.flatnonzero(weak[1:]) + 1:
-        group = np.unique(np.concatenate([[q], pairs[pairs[:, 0] == q, 1],
-                                          pairs[pairs[:, 1] == q, 0]]))
+        group = np.concatenate([[q], pairs[start[q]:start[q + 1], 1]])
         if boxes[q - 1] is None or top[q] > WEAK_HOST_RATIO * top[group].max():
             keep[q] = False
             continue
@@ -1036,11 +1031,8 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams) ->
     ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     if weak.any():
         keep = _weak_splits(t, ws, weak, p)
-        if not keep[1:].all():
-            lut = np.zeros(n_h + 1, np.int32)
-            lut[keep] = np.arange(int(keep.sum()), dtype=np.int32)
-            lut[0] = 0
-            markers = lut[markers]
+        if not keep[1:].all():                      # renumber the markers kept, 1..n
+            markers = np.where(keep, np.cumsum(keep) - 1, 0).astype(np.int32)[markers]
             n_h = int(markers.max())
             ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     n_peaks = n_h
