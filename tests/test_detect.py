@@ -65,6 +65,30 @@ def test_small_protrusion_at_60_um():
     assert det.labels[50, 50] > 0 and det.labels[110, 110] > 0
 
 
+@pytest.mark.parametrize("seed, angle", [(0, 0.0), (1, 2.0), (2, 4.0)])
+def test_footprint_takes_its_own_glow_not_the_bright_paint_beside_it(seed, angle):
+    """A 90 um dome that does not glow, its foot 2 px from a flat spot of bright paint 300 um
+    wide with a glowing dome on it: the spot is within ``albedo_grow_um`` of the first dome's
+    footprint but is not its glow (it overlaps another footprint), so the first dome's outline
+    stays its own: centred, its width within 10 % of the footprint's."""
+    px = 15.0
+    alb, h = scene(seed=seed)
+    spot = rho_map(h.shape, (80, 60), 10.0) < 1                  # bright paint, no relief
+    alb[spot] = SOAP
+    add_dome(alb, h, (80, 60), 120.0, px)                        # glowing, on the spot
+    centre = (80 + 15 * np.sin(angle), 60 + 15 * np.cos(angle))  # 10 + 2 + 3 px away
+    add_dome(alb, h, centre, 90.0, px, weak=True)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.labels.max() == 2
+    lab = det.labels[int(round(centre[0])), int(round(centre[1]))]
+    assert lab > 0 and lab != det.labels[80, 60]
+    rr, cc = np.nonzero(det.labels == lab)
+    assert np.hypot(rr.mean() - centre[0], cc.mean() - centre[1]) < 0.5
+    assert not (spot & (det.labels == lab)).any()
+    # the footprint ends at 10 % of the dome's height: rho = sqrt(1 - 0.1 ** (1 / 1.2))
+    assert abs(eq_diameter(det.labels == lab) * px / (90.0 * np.sqrt(1 - 0.1 ** (1 / 1.2))) - 1) < 0.1
+
+
 def test_weak_protrusion_found_from_height_only():
     px = 15.0
     alb, h = scene(seed=1)

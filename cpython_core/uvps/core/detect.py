@@ -238,7 +238,8 @@ class DetectionParams:
         false positives made so lay 91-100 % within 2 px of such pixels, and no protrusion
         found has more than a fifth of its footprint there.
     albedo_grow_um : float
-        How far (um) the albedo outline may extend a height footprint.
+        How far (um) the albedo outline may extend a height footprint: by the pixels of its
+        own glow (an albedo component that overlaps the footprint), not of bright paint beside it.
     crack_width_um : float
         Cracks are grooves narrower than this (the ``crack`` rule's black top-hat).
     curl_k : float
@@ -1442,13 +1443,21 @@ def _long_areas(surf: Surface, valid, th: Thresholds, taken: np.ndarray) -> tupl
 def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarray,
            grow_px: float) -> tuple:
     """One label image of every candidate: height footprints (1..n_h) extended by the albedo
-    pixels within ``grow_px``, then the albedo components touching none of them, then long
-    raised areas touching neither. Returns (labels, n_albedo_only, n_long)."""
+    pixels within ``grow_px`` of their own glow (an albedo component that overlaps the
+    footprint: a bright area of paint beside a protrusion that does not glow is not its
+    outline), then the albedo components within ``grow_px`` of none of them, then long raised
+    areas touching neither. Returns (labels, n_albedo_only, n_long)."""
     near = _expand_labels(hl, grow_px) if n_h else hl    # nearest footprint: exact
-    lab = np.where(hl > 0, hl, np.where(mask_albedo, near, 0)).astype(np.int32)
     acomp, na = ndi.label(mask_albedo, structure=np.ones((3, 3)))
-    joined = np.zeros(na + 1, bool)                      # lookups: np.isin sorts the image
-    joined[acomp[lab > 0]] = True                        # what lies beyond grow_px is dropped
+    # a footprint takes the albedo pixels of a component that overlaps it (its own glow)
+    both = mask_albedo & (hl > 0)
+    own = np.unique(acomp[both].astype(np.int64) * (n_h + 1) + hl[both])
+    ext = mask_albedo & (hl == 0) & (near > 0)
+    ok = np.isin(acomp[ext].astype(np.int64) * (n_h + 1) + near[ext], own)   # few pixels
+    lab = hl.astype(np.int32, copy=True)
+    lab.ravel()[np.flatnonzero(ext.ravel())[ok]] = near[ext][ok]
+    joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
+    joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
     if na:
         lab = np.where(acomp > 0, acomp + n_h, lab).astype(np.int32)
