@@ -1071,3 +1071,50 @@ def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
     add_profile(h2, (110, 60), 400.0, px, 100.0, "dome")
     add_profile(h2, (110, 165), 300.0, px, 40.0, "mesa")
     assert detect_protrusions(alb2, h2, pixel_size_um=px, params=on).labels.max() == 2
+
+
+def shouldered_dome(seed, frac, small_um):
+    """:func:`test_shoulder_of_a_taller_neighbour_found_by_its_curvature`'s scene: an 80 um dome
+    ``small_um`` high on the flank of a 400 um one (100 um high), ``frac`` of its radius out."""
+    px = 15.0
+    alb, h = scene((220, 220), seed=seed, noise_um=0.3)
+    big_c, small_c = (110, 90), (110, 90 + frac * 200 / px)
+    add_profile(h, big_c, 400.0, px, 100.0, "dome")
+    small = np.zeros_like(h)
+    add_profile(small, small_c, 80.0, px, small_um, "dome")
+    return alb, h + small, big_c, (110, int(round(small_c[1])))
+
+
+@pytest.mark.parametrize("seed, small_um", [(0, 10.0), (1, 10.0), (0, 15.0), (1, 15.0)])
+def test_lump_near_a_protrusions_top_is_no_shoulder(seed, small_um, monkeypatch):
+    """A lump 0.4 of the radius out on a 400 um dome stands at 80-90 % of its height: part of
+    the dome's outline (a crater's rim or a mesa's edge is lumpy so), not a smaller protrusion
+    on its flank; the shoulder cue keeps it in the dome. Without the height condition
+    (``WEAK_HOST_RATIO`` raised to 10) its curvature would split it off."""
+    from uvps.core import detect as detect_mod
+    alb, h, big_c, sc = shouldered_dome(seed, 0.4, small_um)
+    on = DetectionParams(shoulder_width_um=60.0)
+    det = detect_protrusions(alb, h, pixel_size_um=15.0, params=on)
+    assert det.labels.max() == 1 and det.labels[sc] == det.labels[big_c]
+    monkeypatch.setattr(detect_mod, "WEAK_HOST_RATIO", 10.0)
+    assert detect_protrusions(alb, h, pixel_size_um=15.0, params=on).labels.max() == 2
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_no_shoulder_on_a_long_structure(seed):
+    """The shoulder cue seeks smaller protrusions on a taller one's flank, not lumps of a stroke:
+    where the disc top-hat stands above the compact relief by the relief threshold and a
+    quarter of the shoulder's relief (the ``stroke`` rule's measure of a long structure under
+    it), no shoulder is marked. The same footprint with no long structure under it gets one."""
+    from uvps.core.detect import _height_cue, _surface, _thresholds
+    px = 15.0
+    alb, h, big_c, sc = shouldered_dome(seed, 0.75, 20.0)
+    p = DetectionParams(shoulder_width_um=60.0)
+    valid = np.ones(h.shape, bool)
+    surf = _surface(h, valid, px, p)
+    th = _thresholds(surf, px, p)
+    labels, markers, n, n_peaks = _height_cue(surf.relief, th, px, p, surf.relief)
+    assert n == n_peaks + 1 and labels[sc] > n_peaks and labels[big_c] <= n_peaks
+    on_stroke = surf.relief + 30.0                       # as if it all stood on a stroke's crest
+    labels, markers, n, n_peaks = _height_cue(surf.relief, th, px, p, on_stroke)
+    assert n == n_peaks and labels[sc] == labels[big_c]

@@ -208,8 +208,9 @@ class DetectionParams:
         maxima of the compact relief's curvature (minus its Laplacian of Gaussian, sigma =
         this width / (2 sqrt 2)) that stand ``shoulder_k`` x the curvature's noise above the
         saddle to a higher curvature peak (:func:`_shoulder_markers`). 0 (the default)
-        disables; 60 finds 60-100 um shoulders, at a cost in precision measured in
-        ``docs/benchmarks.md`` ("Detection on other shapes and surfaces").
+        disables; 60 finds 60-100 um shoulders (``docs/benchmarks.md``, "Detection on other
+        shapes and surfaces"). A shoulder is at most :data:`WEAK_HOST_RATIO` of its basin's
+        peak high and on no long structure (:func:`_shoulder_markers`).
     shoulder_k : float
         Least dynamic of such a curvature peak in multiples of the measured curvature noise
         (MAD over the image), and at least the curvature of a dome ``shoulder_width_um`` wide
@@ -962,7 +963,7 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
 
 
 def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Thresholds,
-                      px: float, p: DetectionParams) -> tuple:
+                      px: float, p: DetectionParams, disc: np.ndarray = None) -> tuple:
     """Markers of small protrusions that are only a shoulder of a taller neighbour, and the
     curvature they were found on.
 
@@ -975,7 +976,12 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     ``4 relief_um / (w / 2)^2`` of a paraboloid ``w`` wide and the relief threshold high,
     where both eigenvalues of the Hessian are negative with a ratio >= ``shoulder_isotropy``
     (curved down all round: not a mesa's or a crater's rim, not a stroke's crest), at least
-    the relief threshold high and ``w`` / px from every height marker, inside a basin. Hand-
+    the relief threshold high and ``w`` / px from every height marker, inside a basin; at most
+    :data:`WEAK_HOST_RATIO` of the basin's peak high (a smaller protrusion on a taller one's
+    flank: a lump of a crater's rim or of a mesa's edge stands near the peak's height), and,
+    given the disc top-hat ``disc``, on no long structure (the mean of ``disc - t`` over it
+    below the relief threshold and a quarter of its height, the measure of
+    :func:`_stroke_slope`: a stroke's lump is no protrusion's shoulder). Hand-
     written because no library detects blobs inside another's footprint: skimage's
     ``blob_log`` finds scale-space maxima over the whole image, without the footprint, the
     isotropy or a dynamic. Returns (markers with the shoulders added, n, curvature)."""
@@ -1010,6 +1016,16 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     touch = np.unique(lab[hm & ~far])
     ok[touch] = False
     ok[0] = False
+    # a shoulder is a smaller protrusion on a taller one's flank: at most WEAK_HOST_RATIO of the
+    # basin's peak (a lump of a crater's rim or of a mesa's edge stands near the peak's height)
+    host = np.concatenate([[0.0], _label_max(t, ws, int(ws.max()))])
+    top = np.concatenate([[0.0], _label_max(t, lab, k)])
+    host_of = np.zeros(k + 1)
+    np.maximum.at(host_of, lab[hm], host[ws[hm]])
+    ok &= top <= WEAK_HOST_RATIO * host_of
+    if disc is not None:        # not on a long structure (a stroke's lump), as _stroke_slope's
+        under = np.concatenate([[0.0], _label_mean(disc - t, lab, k)])
+        ok &= under < np.maximum(th.relief_um, 0.25 * top)
     keep = ok[lab]
     lut = np.zeros(k + 1, np.int32)
     lut[ok] = np.arange(n_h + 1, n_h + 1 + int(ok.sum()), dtype=np.int32)
@@ -1018,7 +1034,8 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     return out, int(out.max()), curv
 
 
-def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams) -> tuple:
+def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams,
+                disc: np.ndarray = None) -> tuple:
     """Compact footprints of the compact-relief peaks: watershed of ``-t`` from the markers
     (splits touching clusters), then the part of each basin above ``footprint_fraction`` of its
     peak that is connected to the marker. A basin holding shoulder markers
@@ -1037,7 +1054,7 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams) ->
             n_h = int(markers.max())
             ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     n_peaks = n_h
-    markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p)
+    markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p, disc)
     if n_h > n_peaks:
         split = np.zeros(n_peaks + 1, bool)
         split[np.unique(ws[markers > n_peaks])] = True
@@ -2073,7 +2090,7 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
                 progress: Progress) -> Candidates:
     """The cues and their union (module docstring, steps 3-6)."""
     _report(progress, 0.3, "height cue")
-    hl, markers, n_h, n_peaks = _height_cue(surf.relief, th, px, p)
+    hl, markers, n_h, n_peaks = _height_cue(surf.relief, th, px, p, surf.disc)
     relief = np.zeros(0)
     if n_h:
         compact = hl
