@@ -70,7 +70,8 @@ def test_footprint_takes_its_own_glow_not_the_bright_paint_beside_it(seed, angle
     """A 90 um dome that does not glow, its foot 2 px from a flat spot of bright paint 300 um
     wide with a glowing dome on it: the spot is within ``albedo_grow_um`` of the first dome's
     footprint but is not its glow (it overlaps another footprint), so the first dome's outline
-    stays its own: centred, its width within 10 % of the footprint's."""
+    stays its own: centred, its width within 10 % of the footprint's. The glowing dome still
+    takes its own glow beyond its footprint (a spot pixel 6 px from its centre, on the far side)."""
     px = 15.0
     alb, h = scene(seed=seed)
     spot = rho_map(h.shape, (80, 60), 10.0) < 1                  # bright paint, no relief
@@ -87,6 +88,9 @@ def test_footprint_takes_its_own_glow_not_the_bright_paint_beside_it(seed, angle
     assert not (spot & (det.labels == lab)).any()
     # the footprint ends at 10 % of the dome's height: rho = sqrt(1 - 0.1 ** (1 / 1.2))
     assert abs(eq_diameter(det.labels == lab) * px / (90.0 * np.sqrt(1 - 0.1 ** (1 / 1.2))) - 1) < 0.1
+    far = (int(round(80 - 6 * np.sin(angle))), int(round(60 - 6 * np.cos(angle))))
+    assert spot[far] and det.mask_height[80, 60] and not det.mask_height[far]
+    assert det.labels[far] == det.labels[80, 60]
 
 
 def test_weak_protrusion_found_from_height_only():
@@ -1087,13 +1091,14 @@ def shouldered_dome(seed, frac, small_um):
 
 @pytest.mark.parametrize("seed, small_um", [(0, 10.0), (1, 10.0), (0, 15.0), (1, 15.0)])
 def test_lump_near_a_protrusions_top_is_no_shoulder(seed, small_um, monkeypatch):
-    """A lump 0.4 of the radius out on a 400 um dome stands at 80-90 % of its height: part of
-    the dome's outline (a crater's rim or a mesa's edge is lumpy so), not a smaller protrusion
-    on its flank; the shoulder cue keeps it in the dome. Without the height condition
-    (``WEAK_HOST_RATIO`` raised to 10) its curvature would split it off."""
+    """A lump 0.4 of the radius out on a 400 um dome, on its flank at 80 % of its height, tops
+    out near the dome's own: part of the dome's outline (a crater's rim or a mesa's edge is
+    lumpy so), not a smaller protrusion on its flank; the shoulder cue keeps it in the dome.
+    Without the height condition (``WEAK_HOST_RATIO`` raised to 10) its curvature would split it
+    off (the weak splits off, so the split is the shoulder cue's)."""
     from uvps.core import detect as detect_mod
     alb, h, big_c, sc = shouldered_dome(seed, 0.4, small_um)
-    on = DetectionParams(shoulder_width_um=60.0)
+    on = DetectionParams(shoulder_width_um=60.0, weak_split_fraction=0.0)
     det = detect_protrusions(alb, h, pixel_size_um=15.0, params=on)
     assert det.labels.max() == 1 and det.labels[sc] == det.labels[big_c]
     monkeypatch.setattr(detect_mod, "WEAK_HOST_RATIO", 10.0)

@@ -916,7 +916,8 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
 
 #: A weak peak (:func:`_weak_splits`) at most this fraction of the relief of the tallest peak it
 #: touches stays its own protrusion: a small dome on a taller one's flank. Lumps of one object
-#: (a crater's rim, a pile's ripples) are of about the same height and stay one.
+#: (a crater's rim, a pile's ripples) are of about the same height and stay one. The shoulder
+#: cue (:func:`_shoulder_markers`) holds a shoulder to the same fraction of its basin's peak.
 WEAK_HOST_RATIO = 0.75
 
 
@@ -980,8 +981,9 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     :data:`WEAK_HOST_RATIO` of the basin's peak high (a smaller protrusion on a taller one's
     flank: a lump of a crater's rim or of a mesa's edge stands near the peak's height), and,
     given the disc top-hat ``disc``, on no long structure (the mean of ``disc - t`` over it
-    below the relief threshold and a quarter of its height, the measure of
-    :func:`_stroke_slope`: a stroke's lump is no protrusion's shoulder). Hand-
+    below the larger of the relief threshold and a quarter of its height: the measure of
+    :func:`_stroke_slope`, though its height here is the compact relief at the curvature peak,
+    the neighbour's flank under it included; a stroke's lump is no protrusion's shoulder). Hand-
     written because no library detects blobs inside another's footprint: skimage's
     ``blob_log`` finds scale-space maxima over the whole image, without the footprint, the
     isotropy or a dynamic. Returns (markers with the shoulders added, n, curvature)."""
@@ -1040,8 +1042,9 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams,
     (splits touching clusters), then the part of each basin above ``footprint_fraction`` of its
     peak that is connected to the marker. A basin holding shoulder markers
     (:func:`_shoulder_markers`) is split again by a watershed of minus the curvature, so the
-    shoulder gets the part of the basin its own curvature encloses. Returns (labels, markers,
-    n, n_peaks): labels above ``n_peaks`` are shoulders."""
+    shoulder gets the part of the basin its own curvature encloses; ``disc`` (the disc top-hat)
+    goes to :func:`_shoulder_markers` for its long-structure test (None: no such test).
+    Returns (labels, markers, n, n_peaks): labels above ``n_peaks`` are shoulders."""
     markers, n_h, weak = _peak_markers(t, th, p)
     if not n_h:
         return np.zeros(t.shape, np.int32), markers, 0, 0
@@ -1459,11 +1462,12 @@ def _long_areas(surf: Surface, valid, th: Thresholds, taken: np.ndarray) -> tupl
 
 def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarray,
            grow_px: float) -> tuple:
-    """One label image of every candidate: height footprints (1..n_h) extended by the albedo
-    pixels within ``grow_px`` of their own glow (an albedo component that overlaps the
+    """One label image of every candidate: height footprints (1..n_h) extended by the pixels
+    of their own glow within ``grow_px`` of them (an albedo component that overlaps the
     footprint: a bright area of paint beside a protrusion that does not glow is not its
     outline), then the albedo components within ``grow_px`` of none of them, then long raised
-    areas touching neither. Returns (labels, n_albedo_only, n_long)."""
+    areas touching neither. An albedo component within ``grow_px`` of a footprint that it does
+    not overlap is neither an outline nor a candidate. Returns (labels, n_albedo_only, n_long)."""
     near = _expand_labels(hl, grow_px) if n_h else hl    # nearest footprint: exact
     acomp, na = ndi.label(mask_albedo, structure=np.ones((3, 3)))
     # a footprint takes the albedo pixels of a component that overlaps it (its own glow)
@@ -1472,7 +1476,7 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     ext = mask_albedo & (hl == 0) & (near > 0)
     ok = np.isin(acomp[ext].astype(np.int64) * (n_h + 1) + near[ext], own)   # few pixels
     lab = hl.astype(np.int32, copy=True)
-    lab.ravel()[np.flatnonzero(ext.ravel())[ok]] = near[ext][ok]
+    lab[ext] = np.where(ok, near[ext], 0)
     joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
     joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
