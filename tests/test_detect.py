@@ -1055,14 +1055,7 @@ def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
     it the small one is a protrusion of its own, near its true width, and the large one keeps
     its centre. A lone 400 um dome and a mesa are not split (isotropy, dynamic)."""
     px = 15.0
-    alb, h = scene((220, 220), seed=seed, noise_um=0.3)
-    big_c, small_c = (110, 90), (110, 90 + 0.75 * 200 / px)    # on the flank, 3/4 of the radius out
-    big = np.zeros_like(h)
-    add_profile(big, big_c, 400.0, px, 100.0, "dome")
-    small = np.zeros_like(h)
-    add_profile(small, small_c, 80.0, px, 20.0, "dome")
-    h += big + small                                    # the small one sits on the flank
-    sc = (110, int(round(small_c[1])))
+    alb, h, big_c, sc = shouldered_dome(seed, 0.75, 20.0)     # on the flank, 3/4 of the radius out
     off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(shoulder_width_um=0))
     assert off.labels.max() == 1 and off.labels[sc] == off.labels[big_c]   # today's split misses it
     on = DetectionParams(shoulder_width_um=60.0)

@@ -1027,7 +1027,7 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     ok &= top <= WEAK_HOST_RATIO * host_of
     if disc is not None:        # not on a long structure (a stroke's lump), as _stroke_slope's
         under = np.concatenate([[0.0], _label_mean(disc - t, lab, k)])
-        ok &= under < np.maximum(th.relief_um, 0.25 * top)
+        ok &= ~_on_long_structure(under, top, th)
     keep = ok[lab]
     lut = np.zeros(k + 1, np.int32)
     lut[ok] = np.arange(n_h + 1, n_h + 1 + int(ok.sum()), dtype=np.int32)
@@ -1717,6 +1717,13 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
                              mismatch=mismatch[lbl - 1], unmeasured=unm)
 
 
+def _on_long_structure(under: np.ndarray, relief: np.ndarray, th: Thresholds) -> np.ndarray:
+    """Whether an object of ``relief`` stands on a long structure: the disc top-hat exceeds the
+    compact relief under it (``under``, its mean) by the relief threshold and a quarter of its
+    relief (the larger of the two)."""
+    return under >= np.maximum(th.relief_um, 0.25 * relief)
+
+
 def _stroke_slope(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> tuple:
     """The strokes' own statistics: which candidates are bumps on a long structure (a compact
     peak with a long structure under it at least the relief threshold and a quarter of its
@@ -1724,7 +1731,7 @@ def _stroke_slope(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionP
     ``stroke_slope_k`` x their median flank slope (inf-free: 0 with fewer than 8 of them, then
     no candidate is tested). Returns (on_long mask, least slope)."""
     slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
-    on_long = f.has_h & ~f.has_a & (f.under >= np.maximum(th.relief_um, 0.25 * f.relief))
+    on_long = f.has_h & ~f.has_a & _on_long_structure(f.under, f.relief, th)
     if p.stroke_slope_k <= 0 or on_long.sum() < 8:
         return on_long, 0.0
     return on_long, float(p.stroke_slope_k * np.median(slope[on_long]))
