@@ -140,6 +140,52 @@ def test_canvas_weave_not_detected_but_dome_on_it_is():
     assert det2.labels.max() == 1 and det2.labels[120, 120] == 1
 
 
+def reason_at(det, rc):
+    """The rejection rule of the candidate at pixel ``rc`` ("" = kept, None = no candidate)."""
+    cl, reasons = det.diagnostics["candidate_labels"], det.diagnostics["candidate_reasons"]
+    if cl[rc] == 0:
+        return None
+    return str(reasons[np.searchsorted(np.unique(cl[cl > 0]), cl[rc])])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_glowing_low_dome_on_a_weave_kept_a_bump_cut_from_glowing_paint_rejected(seed):
+    """On a weave 7 um high every 450 um (its bar: a flank slope of 2 x its RMS slope, 0.137),
+    a glowing dome 90 um wide and 5.5 um high (flank slope 0.12) holds all its glow: the weave
+    does not glow, so it meets the paint's floor (0.1) instead and is kept. The same dome not
+    glowing, and a glowing one 4 um high (0.09, under the floor), are the weave. A bump 12 um
+    high on a band of glowing paint takes the band's glow within 60 um into its outline (its
+    slope then 0.1-0.137) but holds a few percent of the band's glow: the weave; with the
+    own-glow test off (``own_glow_fraction`` near 0) it would be kept."""
+    px = 15.0
+    alb, h = scene((240, 240), seed=seed)
+    yy, xx = np.mgrid[:240, :240] * px
+    k = 2 * np.pi / 450.0
+    h += (7.0 * np.sin(k * xx + seed) * np.sin(k * yy)).astype(np.float32)
+    alb[30:70, 20:220] = SOAP                                # a band of glowing paint
+    r = 45.0 / px
+
+    def bump(centre, height_um, glow):
+        rho = rho_map(h.shape, centre, r)
+        h[:] += (height_um * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)).astype(np.float32)
+        if glow:
+            wgt = np.clip((1 - rho) * r, 0, 1)[..., None]
+            alb[:] = alb * (1 - wgt) + SOAP * wgt
+
+    bump((150, 60), 5.5, True)
+    bump((150, 120), 5.5, False)
+    bump((150, 180), 4.0, True)
+    bump((50, 60), 12.0, False)
+    bump((50, 180), 12.0, False)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert det.diagnostics["slope_min"] > 0.125
+    assert det.labels.max() == 1 and det.labels[150, 60] == 1
+    assert abs(width_of(det.labels, (150, 60), px) / 90.0 - 1) < 0.15
+    assert [reason_at(det, rc) for rc in ((150, 120), (150, 180), (50, 60), (50, 180))] == ["weave"] * 4
+    off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(own_glow_fraction=1e-4))
+    assert off.labels[50, 60] > 0 and off.labels[50, 180] > 0
+
+
 @pytest.mark.parametrize("px", [7.5, 15.0, 25.0])
 def test_defaults_work_at_other_pixel_sizes(px):
     n = int(round(2400 / px))
@@ -707,7 +753,7 @@ def _bumps(centres, eqd, relief=10.0):
     return CandidateFeatures(lbl=np.arange(1, k + 1), area=zero, eqd=np.broadcast_to(np.asarray(eqd, float), (k,)),
                              relief=np.broadcast_to(np.asarray(relief, float), (k,)), relief_disc=zero,
                              elongation=zero, axis_ratio=zero, major=zero,
-                             hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool),
+                             hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool), own_glow=zero,
                              crack_fraction=zero, under=zero, tilt_deg=zero, mismatch=zero, centroid=c,
                              unmeasured=zero)
 

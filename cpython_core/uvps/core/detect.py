@@ -121,9 +121,12 @@ REJECTION_RULES = (
                   "left out of the height's integration, left_out, set aside when the rest is at "
                   "least half the footprint); or unmeasured "
                   "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole"),
-    RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt",
+    RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt; own glow: "
+                  "of the albedo components it overlaps, the part inside it",
                   "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
-                  "the weave's RMS slope), or tilt < 1 deg"),
+                  "the weave's RMS slope) unless it glows and its own glow is at least "
+                  "own_glow_fraction (the weave does not glow; a piece of a glowing stroke holds "
+                  "a small part of the glowing paint it is cut from), or tilt < 1 deg"),
 )
 REJECTION_REASONS = tuple(r.name for r in REJECTION_RULES)
 
@@ -175,6 +178,14 @@ class DetectionParams:
     min_relief_ratio : float
         Floor of relief / width (half the flank slope): paint texture is flatter than this,
         protrusions are 0.1-0.4.
+    own_glow_fraction : float
+        A glowing candidate (at least 20 % of it from the albedo cue) that holds at least this
+        fraction of the albedo components it overlaps (its glow is its own spot, shared at most
+        with a touching neighbour) is not tested against the weave's slope: the weave does not
+        glow, and a glowing protrusion on a piled stroke end's foot rises 4-5 um over the local
+        plane through its ring, a third of its height. A piece of a glowing stroke holds 3-18 %
+        of the glowing paint it is cut from, a protrusion 38-100 % of its glow
+        (``docs/benchmarks.md``, "Detection on other shapes and surfaces"). Above 1 disables.
     albedo_contrast : float
         Relative brightness above the local background for the albedo mask (0.15 = 15 %).
     template_ncc : float
@@ -278,6 +289,7 @@ class DetectionParams:
     weave_max_period_um: float = 3000.0
     weave_slope_k: float = 2.0
     min_relief_ratio: float = 0.05
+    own_glow_fraction: float = 1.0 / 3.0
     albedo_contrast: float = 0.15
     template_ncc: float = 0.5
     template_scales: int = 4
@@ -395,6 +407,8 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=
         raise UVPSInputError(f"beside_long_fraction must be in [0, 1); got {p.beside_long_fraction}")
     if not 0 <= p.weak_split_fraction < 1:
         raise UVPSInputError(f"weak_split_fraction must be in [0, 1); got {p.weak_split_fraction}")
+    if not p.own_glow_fraction > 0:
+        raise UVPSInputError(f"own_glow_fraction must be > 0 (above 1 disables); got {p.own_glow_fraction}")
     if not 0 <= p.max_unmeasured_fraction <= 1:
         raise UVPSInputError(f"max_unmeasured_fraction must be in [0, 1]; got {p.max_unmeasured_fraction}")
     if not (0 < p.split_fraction < 1 and 0 < p.footprint_fraction < 1):
@@ -1467,9 +1481,11 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     footprint: a bright area of paint beside a protrusion that does not glow is not its
     outline), then the albedo components within ``grow_px`` of none of them, then long raised
     areas touching neither. An albedo component within ``grow_px`` of a footprint that it does
-    not overlap is neither an outline nor a candidate. Returns (labels, n_albedo_only, n_long)."""
+    not overlap is neither an outline nor a candidate. Returns (labels, n_albedo_only, n_long,
+    the albedo components: ``mask_albedo`` labelled, 8-connected)."""
     near = _expand_labels(hl, grow_px) if n_h else hl    # nearest footprint: exact
     acomp, na = ndi.label(mask_albedo, structure=np.ones((3, 3)))
+    glow = acomp
     # a footprint takes the albedo pixels of a component that overlaps it (its own glow)
     both = mask_albedo & (hl > 0)
     own = np.unique(acomp[both].astype(np.int64) * (n_h + 1) + hl[both])
@@ -1490,7 +1506,7 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     lcomp, nl = ndi.label(keep, structure=np.ones((3, 3)))
     if nl:
         lab = np.where(lcomp > 0, lcomp + n_h + na, lab).astype(np.int32)
-    return lab, na, nl
+    return lab, na, nl, glow
 
 
 # --------------------------------------------------------------------------------------------
@@ -1510,6 +1526,7 @@ class Candidates:
     height_relief: np.ndarray   # (n_h,) relief of each height footprint over its local plane
     mask_albedo: np.ndarray     # (M, N) bool
     t_disc: np.ndarray          # (M, N) disc top-hat of the height (um)
+    glow: np.ndarray = None     # (M, N) int32 components of mask_albedo (8-connected)
 
 
 @dataclass
@@ -1527,6 +1544,7 @@ class CandidateFeatures:
     hole_fraction: np.ndarray
     has_h: np.ndarray           # a compact peak (height cue)
     has_a: np.ndarray           # >= 20 % of its pixels from the albedo cue
+    own_glow: np.ndarray        # its albedo pixels / the area of the albedo components it overlaps
     crack_fraction: np.ndarray  # of its 2-px ring in a crack at least half as deep as it is high
     under: np.ndarray           # mean relief of a long structure under it (disc top-hat - t), um
     tilt_deg: np.ndarray        # mean tilt of the normals (inf without normals)
@@ -1693,6 +1711,8 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
     elong = area / (np.pi * _inscribed_radius(lab, n_lab)[lbl - 1] ** 2)
     holes = _hole_area(lab, n_lab)[lbl - 1]
     n_alb = np.bincount(lab[cand.mask_albedo], minlength=n_lab + 1)[lbl]
+    own_glow = (_own_glow(lab, n_lab, cand.glow)[lbl - 1] if cand.glow is not None
+                else np.zeros(lbl.size))
     major = np.zeros(lbl.size)
     ratio = np.ones(lbl.size)
     need = (eqd >= th.min_w) & (eqd <= th.max_w) & (elong <= p.ridge_elongation)
@@ -1713,8 +1733,22 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
                              relief_disc=relief_disc, elongation=elong, axis_ratio=ratio, major=major,
                              hole_fraction=holes / (area + holes),
                              has_h=lbl <= n_h, has_a=n_alb >= np.maximum(1, 0.2 * area),
+                             own_glow=own_glow,
                              crack_fraction=crack, tilt_deg=tilt[lbl - 1],
                              mismatch=mismatch[lbl - 1], unmeasured=unm)
+
+
+def _own_glow(lab: np.ndarray, n_lab: int, glow: np.ndarray) -> np.ndarray:
+    """Per label 1..n_lab, its pixels in the albedo components ``glow`` over the area of the
+    components it overlaps (0 where it overlaps none): a protrusion's glow is its own spot, a
+    piece of a glowing stroke holds a small part of the glowing paint it is cut from."""
+    size = np.bincount(glow.ravel())
+    both = (glow > 0) & (lab > 0)
+    pairs = np.unique(glow[both].astype(np.int64) * (n_lab + 1) + lab[both])
+    comp, owner = pairs // (n_lab + 1), pairs % (n_lab + 1)
+    total = np.bincount(owner, weights=size[comp], minlength=n_lab + 1)[1:]
+    inside = np.bincount(lab[both], minlength=n_lab + 1)[1:]
+    return np.where(total > 0, inside / np.maximum(total, 1), 0.0)
 
 
 def _on_long_structure(under: np.ndarray, relief: np.ndarray, th: Thresholds) -> np.ndarray:
@@ -1805,7 +1839,9 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
         "too_large": f.eqd > th.max_w,
         "artefact": (f.mismatch > p.max_mismatch) | (f.unmeasured > p.max_unmeasured_fraction),
         "flat_bright": flat & f.has_a & ~f.has_h,
-        "weave": flat | (slope < th.slope_min),
+        # the weave does not glow: a candidate whose glow is its own meets the paint's floor
+        "weave": flat | (slope < np.where(f.has_a & (f.own_glow >= p.own_glow_fraction),
+                                          2 * p.min_relief_ratio, th.slope_min)),
     }
     reason = np.full(f.lbl.size, "", dtype="<U13")
     for rule in REJECTION_RULES:
@@ -2117,8 +2153,8 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
     mask_albedo = _albedo_cue(lum, valid, px, th, p)
     long_lab, t_disc = _long_areas(surf, valid, th, hl > 0)
     _report(progress, 0.7, "union")
-    lab, n_a, n_l = _union(hl, n_h, mask_albedo, long_lab, max(2.0, p.albedo_grow_um / px))
-    return Candidates(lab, n_h, n_a, n_l, hl, relief, mask_albedo, t_disc)
+    lab, n_a, n_l, glow = _union(hl, n_h, mask_albedo, long_lab, max(2.0, p.albedo_grow_um / px))
+    return Candidates(lab, n_h, n_a, n_l, hl, relief, mask_albedo, t_disc, glow)
 
 
 def _diagnostics(surf: Surface, th: Thresholds, cand: Candidates, px: float) -> dict:
