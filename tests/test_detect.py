@@ -869,6 +869,54 @@ def test_protrusion_on_a_stroke_cut_by_a_crack_measured_with_the_crack_filled(se
     assert 0.7 < width_of(det.labels, (120, 265), px) / 200.0 < 1.1
 
 
+@pytest.mark.parametrize("seed, dx", [(0, 0.0), (1, 0.5), (2, -0.5)])
+def test_pocket_between_touching_protrusions_no_crack_a_groove_that_runs_on_one(seed, dx, monkeypatch):
+    """A glowing dome 90 um wide and 18 um high between two taller ones it touches (135 um wide
+    and 25 um high, 150 um and 45 um; the height their maximum, as the generator's clusters):
+    the pockets of paint between the three, narrower than ``crack_width_um``, are deep under the
+    black top-hat's closing and took more than 8 % of the small dome's ring, so the ``crack``
+    rule rejected it. A crack runs on through the paint, a pocket ends with the protrusions
+    around it: counted only where the groove runs on (``_grooves_run_on``) the small dome is
+    kept, its own protrusion; nothing is kept on the cracked paint beside them. With every
+    groove pixel counted again (the patched ``_grooves_run_on``) the small dome is rejected
+    again."""
+    from uvps.core import detect
+
+    px, shape = 15.0, (200, 400)
+    alb, h = scene(shape, seed=seed)
+    cracked_paint(h, px, col=300, row=100)
+    centres, widths, heights = [(100, 100 + dx), (96, 94 + dx), (99, 106 + dx)], [90.0, 135.0, 150.0], [18.0, 25.0, 45.0]
+    rhos = [rho_map(shape, c, w / 2 / px) for c, w in zip(centres, widths)]
+    h += np.max([z * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)
+                 for rho, z in zip(rhos, heights)], axis=0).astype(np.float32)
+    for rho, w in zip(rhos, widths):
+        wgt = np.clip((1 - rho) * w / 2 / px, 0, 1)[..., None]
+        alb[:] = alb * (1 - wgt) + SOAP * wgt
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    found = [det.labels[int(round(r)), int(round(c))] for r, c in centres]
+    assert min(found) > 0 and len(set(found)) == 3
+    assert np.all(det.labels[:, 250:] == 0)                         # nothing on the cracked paint
+    monkeypatch.setattr(detect, "_grooves_run_on",                  # every groove pixel of its ring
+                        lambda lab, ring, hn, depth, sl, k, need, level, reach_px, floor_um:
+                        int(np.count_nonzero((ring == k) & (depth >= need) & (hn < level))))
+    every = detect_protrusions(alb, h, pixel_size_um=px)
+    assert every.labels[100, 100] == 0 and reason_at(every, (100, 100)) == "crack"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bump_cut_by_a_crack_loses_its_piece_beyond_it(seed):
+    """A bump 200 um wide and 30 um high that a crack of cupped paint cuts in two: the crack
+    runs on through the paint, so the piece beyond it, whose ring lies along the crack, is
+    still rejected by the ``crack`` rule when only grooves that run on count."""
+    px, shape = 15.0, (200, 400)
+    alb, h = scene(shape, seed=seed)
+    cracked_paint(h, px, col=300, row=100)
+    rho = rho_map(shape, (150, 350), 200.0 / 2 / px)               # the crack passes (150, 350)
+    h += (30.0 * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    assert reason_at(det, (150, 346)) == "crack"
+
+
 def steep_stroke(shape, *, row, width_px, height_um, flank_px):
     """A straight stroke along the rows with a flat top ``height_um`` high and smoothstep flanks
     ``flank_px`` wide, ``width_px`` wide at its foot; no glow."""
