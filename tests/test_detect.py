@@ -540,6 +540,31 @@ def test_rippled_pile_not_split_into_round_pieces(angle, monkeypatch):
     assert detect_protrusions(alb, h, pixel_size_um=px).labels.max() == 2
 
 
+@pytest.mark.parametrize("host", [0, 2])
+def test_weak_member_between_two_taller_ones_is_judged_with_its_tallest_host(host):
+    """A weak peak between two taller protrusions in a row (a cluster member between its two
+    neighbours): the three basins together are 3x longer than wide, but the member and its
+    tallest neighbour, the pair the test is about, are 2x: a round pair, so it is split. A
+    member whose tallest neighbour lies along a pile with it (the pair itself elongated) stays
+    joined. ``_weak_splits`` on basins drawn by hand: 8 x 8 px squares in a row."""
+    from uvps.core.detect import DetectionParams, _weak_splits
+
+    ws = np.zeros((20, 40), np.int32)
+    for k in range(3):
+        ws[6:14, 8 + 8 * k:16 + 8 * k] = k + 1
+    top = [25.0, 11.0, 20.0]
+    top[host] = 30.0
+    t = np.zeros(ws.shape)
+    for k in range(3):
+        t[ws == k + 1] = np.linspace(1.0, top[k], np.count_nonzero(ws == k + 1))
+    weak = np.array([False, False, True, False])
+    assert _weak_splits(t, ws, weak, DetectionParams())[2]
+    pile = np.zeros((20, 40), np.int32)                   # the member and its host: 4 x 16 px each
+    pile[8:12, 4:20], pile[8:12, 20:36] = 2, 1
+    t2 = np.where(pile == 1, 30.0, np.where(pile == 2, 11.0, 0.0))
+    assert not _weak_splits(t2, pile, np.array([False, False, True]), DetectionParams())[2]
+
+
 @pytest.mark.slow
 def test_cluster_members_on_a_taller_ones_flank_on_cupped_paint_get_their_own_relief():
     """The generator's ``top`` scene, seed 1 (1200 x 1600 px at 15 um): a cluster on a cupped
@@ -897,7 +922,7 @@ def test_pocket_between_touching_protrusions_no_crack_a_groove_that_runs_on_one(
     assert min(found) > 0 and len(set(found)) == 3
     assert np.all(det.labels[:, 250:] == 0)                         # nothing on the cracked paint
     monkeypatch.setattr(detect, "_grooves_run_on",                  # every groove pixel of its ring
-                        lambda lab, ring, hn, depth, sl, k, need, level, reach_px, floor_um:
+                        lambda lab, ring, hn, depth, sl, k, need, level, reach_px, floor_um, known=None:
                         int(np.count_nonzero((ring == k) & (depth >= need) & (hn < level))))
     every = detect_protrusions(alb, h, pixel_size_um=px)
     assert every.labels[100, 100] == 0 and reason_at(every, (100, 100)) == "crack"
@@ -915,6 +940,29 @@ def test_bump_cut_by_a_crack_loses_its_piece_beyond_it(seed):
     h += (30.0 * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)).astype(np.float32)
     det = detect_protrusions(alb, h, pixel_size_um=px)
     assert reason_at(det, (150, 346)) == "crack"
+
+
+def test_groove_counts_as_a_crack_where_it_runs_on_or_where_a_crack_is_known():
+    """``_crack_fraction`` on one disc (11 px wide, 20 um high) with a groove 2 px wide and 20 um
+    deep in the ring along its side: a groove 13 px long, ending with the disc, is a pocket (0); one
+    running the whole image is a crack (> 8 % of the ring); the short one counts again when the
+    pixels along it are known to be a crack's (``known``: a run's ``left_out`` band, where the
+    integration filled the rest of the groove)."""
+    from uvps.core.detect import _crack_fraction, _expand_labels
+
+    yy, xx = np.mgrid[:80, :80]
+    lab = (np.hypot(yy - 40, xx - 40) <= 5.5).astype(np.int32)
+    ring = _expand_labels(lab, 2.0) * (lab == 0)
+    hn = np.where(lab > 0, 20.0, 0.0).astype(np.float32)
+
+    def frac(rows, known=None):
+        h = hn - (20.0 * ((xx >= 46) & (xx <= 47) & (yy >= rows[0]) & (yy < rows[1]))).astype(np.float32)
+        return _crack_fraction(lab, ring, h, np.array([20.0]), 1, 6.0, 1.0, check_above=0.08,
+                               known=known)[0]
+
+    assert frac((34, 47)) == 0.0
+    assert frac((0, 80)) > 0.08
+    assert frac((34, 47), known=np.abs(xx - 47) <= 1) > 0.08
 
 
 def steep_stroke(shape, *, row, width_px, height_um, flank_px):

@@ -948,9 +948,10 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
     wide, its saddle 1-2 um deep), or one of the lumps of a crater's rim or of the ripples of a
     pile of paint. It is kept when its relief is at most :data:`WEAK_HOST_RATIO` of the tallest
     basin of ``ws`` it touches (a small member on a taller one: the lumps of one object are of
-    a height) and its basin and those it touches are not elongated together (the minor axis of
-    their second moments at least ``ridge_axis_ratio`` of the major: two touching domes are
-    >= 0.5, a rippled pile is a ridge). Hand-written: no library splits on a dynamic under a
+    a height) and its basin and the tallest basin it touches are not elongated together (the
+    minor axis of their second moments at least ``ridge_axis_ratio`` of the major: two touching
+    domes are >= 0.5, a rippled pile is a ridge; a member between two neighbours in a row is
+    judged with the taller one alone, the row of three being 3x longer than wide). Hand-written: no library splits on a dynamic under a
     shape condition. Returns a boolean per id 0..n (index 0 unused): kept."""
     keep = ~weak
     n = weak.size - 1
@@ -971,6 +972,7 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
         if boxes[q - 1] is None or top[q] > WEAK_HOST_RATIO * top[group].max():
             keep[q] = False
             continue
+        group = np.array([q, group[1:][np.argmax(top[group[1:]])]]) if group.size > 1 else group
         sls = [boxes[g - 1] for g in group if boxes[g - 1] is not None]
         r0, r1 = min(s[0].start for s in sls), max(s[0].stop for s in sls)
         c0, c1 = min(s[1].start for s in sls), max(s[1].stop for s in sls)
@@ -1606,7 +1608,8 @@ def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
 
 
 def _crack_fraction(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, relief: np.ndarray,
-                    n: int, crack_px: float, floor_um: float, check_above: float = None) -> np.ndarray:
+                    n: int, crack_px: float, floor_um: float, check_above: float = None,
+                    known: np.ndarray = None) -> np.ndarray:
     """Per label, the fraction of the 2-px ring around it lying in a crack: a groove narrower
     than ``crack_px`` (black top-hat: closing by that disc, minus the height) at least half as
     deep as the label is high (and ``floor_um``), below the ring's mean height (a notch between
@@ -1616,7 +1619,10 @@ def _crack_fraction(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, relief: n
 
     With ``check_above``, a label whose fraction exceeds it is measured again counting only the
     grooves that run on (:func:`_grooves_run_on`): a crack is a line that runs on beyond the
-    label, the pocket between touching protrusions is closed by them."""
+    label, the pocket between touching protrusions is closed by them. ``known``: pixels known
+    to be a crack's (a run's ``left_out`` band: its walls' gradients were left out of the
+    height, so the height there is the integration's fill and the groove may not run on in
+    it); a groove within 2 px of them is a crack's."""
     k = 2 * int(math.ceil(crack_px / 2)) + 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     depth = cv2.morphologyEx(hn, cv2.MORPH_CLOSE, se, borderType=cv2.BORDER_REFLECT) - hn
@@ -1634,19 +1640,20 @@ def _crack_fraction(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, relief: n
         for i in redo:
             if slices[i] is not None:
                 frac[i] = _grooves_run_on(lab, ring, hn, depth, slices[i], i + 1, need[i + 1],
-                                          level[i + 1], 2.0 * crack_px, floor_um) / max(total[i], 1)
+                                          level[i + 1], 2.0 * crack_px, floor_um,
+                                          known) / max(total[i], 1)
     return frac
 
 
 def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np.ndarray,
                     sl: tuple, k: int, need: float, level: float, reach_px: float,
-                    floor_um: float) -> int:
+                    floor_um: float, known: np.ndarray = None) -> int:
     """How many of label ``k``'s ring pixels (``ring``'s slice ``sl`` holds them) lie in a groove
     (``depth`` >= ``need``, ``hn`` below ``level``: :func:`_crack_fraction`'s test) that runs on
     at least ``reach_px`` beyond the label: the groove's component (8-connected, in the label's
     crop padded by that much), followed where it is at least half as deep (and ``floor_um``: a
     crack's depth under the black top-hat varies along it), reaches a pixel that far from it,
-    or the image's border. A crack is a line through the
+    the image's border, or within 2 px of a pixel of ``known`` (a crack's, :func:`_crack_fraction`). A crack is a line through the
     paint; the pocket between touching protrusions, which the black top-hat reads as deep too,
     ends where they do. On the true maps of docs/benchmarks.md the ring pixels that rejected
     three 88-95 um protrusions lay in such pockets, none on a crack, while the pieces of paint
@@ -1668,6 +1675,8 @@ def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np
     far[-1] |= crop[0].stop == m
     far[:, 0] |= crop[1].start == 0
     far[:, -1] |= crop[1].stop == nc
+    if known is not None and known[crop].any():
+        far |= cv2.dilate(known[crop].view(np.uint8), np.ones((5, 5), np.uint8)).view(bool)
     runs = np.zeros(n_comp + 1, bool)
     runs[comp[groove & far]] = True
     runs[0] = False
@@ -1760,7 +1769,7 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
     rel_all = np.zeros(n_lab)
     rel_all[lbl - 1] = relief
     crack = _crack_fraction(lab, ring2, surf.height, rel_all, n_lab, p.crack_width_um / px,
-                            th.relief_um, check_above=p.max_crack_fraction)[lbl - 1]
+                            th.relief_um, check_above=p.max_crack_fraction, known=left_out)[lbl - 1]
     relief_disc = (_label_max(t_disc, lab, n_lab) - _label_mean(t_disc, ring, n_lab))[lbl - 1]
     elong = area / (np.pi * _inscribed_radius(lab, n_lab)[lbl - 1] ** 2)
     holes = _hole_area(lab, n_lab)[lbl - 1]
