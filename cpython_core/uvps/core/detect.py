@@ -183,9 +183,10 @@ class DetectionParams:
     own_glow_fraction : float
         A glowing candidate (at least 20 % of it from the albedo cue) that holds at least this
         fraction of the albedo components it overlaps (its glow is its own spot, shared at most
-        with a touching neighbour) is not tested against the weave's slope: the weave does not
-        glow, and a glowing protrusion on a piled stroke end's foot rises 4-5 um over the local
-        plane through its ring, a third of its height. A piece of a glowing stroke holds 3-18 %
+        with a touching neighbour; an albedo-only candidate is its whole component, so for it
+        the exemption holds whenever it glows) meets ``2 x min_relief_ratio`` instead of the
+        weave's slope: the weave does not glow, and a glowing protrusion on a piled stroke end's
+        foot rises 4-5 um over the local plane through its ring, a third of its height. A piece of a glowing stroke holds 3-18 %
         of the glowing paint it is cut from, a protrusion 38-100 % of its glow
         (``docs/benchmarks.md``, "Detection on other shapes and surfaces"). Above 1 disables.
     albedo_contrast : float
@@ -1657,7 +1658,10 @@ def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np
     paint; the pocket between touching protrusions, which the black top-hat reads as deep too,
     ends where they do. On the true maps of docs/benchmarks.md the ring pixels that rejected
     three 88-95 um protrusions lay in such pockets, none on a crack, while the pieces of paint
-    the rule rejects lay on cracks all round. Hand-written: a component's reach from an object
+    the rule rejects lay on cracks all round. The groove is followed only below the ring's mean
+    height (``level``): on steeply tilted paint a crack climbing away from the label can be cut
+    short of ``reach_px`` and read as a pocket; and where the height was not measured it holds
+    the median fill, which ends a groove too. Hand-written: a component's reach from an object
     is no library's measurement."""
     m, nc = lab.shape
     pad = int(math.ceil(reach_px)) + 1
@@ -1676,7 +1680,7 @@ def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np
     far[:, 0] |= crop[1].start == 0
     far[:, -1] |= crop[1].stop == nc
     if known is not None and known[crop].any():
-        far |= cv2.dilate(known[crop].view(np.uint8), np.ones((5, 5), np.uint8)).view(bool)
+        far |= cv2.dilate(known[crop].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     runs = np.zeros(n_comp + 1, bool)
     runs[comp[groove & far]] = True
     runs[0] = False
@@ -2017,8 +2021,10 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     overlap no kept candidate. An excess that runs open while the candidate touches a crack is
     measured again with the cracks filled (a closing by ``crack_width_um``: a groove across the
     line drops the opening to its floor), and is then kept only when its outline passes the
-    ``crack`` rule itself (a protrusion touches a crack, the corner of a cupped island is
-    bounded by them). Like every candidate, at most ``max_unmeasured_fraction`` of the outline
+    ``crack`` rule's raw count (every groove pixel of its ring in its crop, without the running
+    test of :func:`_grooves_run_on`: a protrusion touches a crack, the corner of a cupped island
+    is bounded by them). "Touches a crack" is a crack fraction above 0; one whose grooves over
+    ``max_crack_fraction`` were all pockets reads 0 and is not measured again. Like every candidate, at most ``max_unmeasured_fraction`` of the outline
     may lie near pixels without a measurement (``unmeasured``, :func:`_unmeasured`). A kept one
     is relabelled to its outline. Returns (reasons, labels)."""
     lab, reason = cand.labels.copy(), reason.copy()
