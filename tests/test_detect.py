@@ -776,7 +776,8 @@ def _bumps(centres, eqd, relief=10.0):
     return CandidateFeatures(lbl=np.arange(1, k + 1), area=zero, eqd=np.broadcast_to(np.asarray(eqd, float), (k,)),
                              relief=np.broadcast_to(np.asarray(relief, float), (k,)), relief_disc=zero,
                              elongation=zero, axis_ratio=zero, major=zero,
-                             hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool), own_glow=zero,
+                             hole_fraction=zero, has_h=np.ones(k, bool), has_a=np.zeros(k, bool),
+                             own_glow=zero,
                              crack_fraction=zero, under=zero, tilt_deg=zero, mismatch=zero, centroid=c,
                              unmeasured=zero)
 
@@ -908,7 +909,8 @@ def test_pocket_between_touching_protrusions_no_crack_a_groove_that_runs_on_one(
     px, shape = 15.0, (200, 400)
     alb, h = scene(shape, seed=seed)
     cracked_paint(h, px, col=300, row=100)
-    centres, widths, heights = [(100, 100 + dx), (96, 94 + dx), (99, 106 + dx)], [90.0, 135.0, 150.0], [18.0, 25.0, 45.0]
+    centres = [(100, 100 + dx), (96, 94 + dx), (99, 106 + dx)]
+    widths, heights = [90.0, 135.0, 150.0], [18.0, 25.0, 45.0]
     rhos = [rho_map(shape, c, w / 2 / px) for c, w in zip(centres, widths)]
     h += np.max([z * np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.2, 0)
                  for rho, z in zip(rhos, heights)], axis=0).astype(np.float32)

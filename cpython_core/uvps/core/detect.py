@@ -186,9 +186,10 @@ class DetectionParams:
         with a touching neighbour; an albedo-only candidate is its whole component, so for it
         the exemption holds whenever it glows) meets ``2 x min_relief_ratio`` instead of the
         weave's slope: the weave does not glow, and a glowing protrusion on a piled stroke end's
-        foot rises 4-5 um over the local plane through its ring, a third of its height. A piece of a glowing stroke holds 3-18 %
-        of the glowing paint it is cut from, a protrusion 38-100 % of its glow
-        (``docs/benchmarks.md``, "Detection on other shapes and surfaces"). Above 1 disables.
+        foot rises 4-5 um over the local plane through its ring, a third of its height. A piece
+        of a glowing stroke holds 3-18 % of the glowing paint it is cut from, a protrusion
+        38-100 % of its glow (``docs/benchmarks.md``, "Detection on other shapes and surfaces").
+        Above 1 disables.
     albedo_contrast : float
         Relative brightness above the local background for the albedo mask (0.15 = 15 %).
     template_ncc : float
@@ -952,8 +953,9 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
     a height) and its basin and the tallest basin it touches are not elongated together (the
     minor axis of their second moments at least ``ridge_axis_ratio`` of the major: two touching
     domes are >= 0.5, a rippled pile is a ridge; a member between two neighbours in a row is
-    judged with the taller one alone, the row of three being 3x longer than wide). Hand-written: no library splits on a dynamic under a
-    shape condition. Returns a boolean per id 0..n (index 0 unused): kept."""
+    judged with the taller one alone, the row of three being 3x longer than wide). Hand-written:
+    no library splits on a dynamic under a shape condition. Returns a boolean per id 0..n
+    (index 0 unused): kept."""
     keep = ~weak
     n = weak.size - 1
     if n < 1 or not weak.any():
@@ -1654,15 +1656,15 @@ def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np
     at least ``reach_px`` beyond the label: the groove's component (8-connected, in the label's
     crop padded by that much), followed where it is at least half as deep (and ``floor_um``: a
     crack's depth under the black top-hat varies along it), reaches a pixel that far from it,
-    the image's border, or within 2 px of a pixel of ``known`` (a crack's, :func:`_crack_fraction`). A crack is a line through the
-    paint; the pocket between touching protrusions, which the black top-hat reads as deep too,
-    ends where they do. On the true maps of docs/benchmarks.md the ring pixels that rejected
-    three 88-95 um protrusions lay in such pockets, none on a crack, while the pieces of paint
-    the rule rejects lay on cracks all round. The groove is followed only below the ring's mean
-    height (``level``): on steeply tilted paint a crack climbing away from the label can be cut
-    short of ``reach_px`` and read as a pocket; and where the height was not measured it holds
-    the median fill, which ends a groove too. Hand-written: a component's reach from an object
-    is no library's measurement."""
+    the image's border, or within 2 px of a pixel of ``known`` (a crack's,
+    :func:`_crack_fraction`). A crack is a line through the paint; the pocket between touching
+    protrusions, which the black top-hat reads as deep too, ends where they do. On the true
+    maps of docs/benchmarks.md the ring pixels that rejected three 88-95 um protrusions lay in
+    such pockets, none on a crack, while the pieces of paint the rule rejects lay on cracks all
+    round. The groove is followed only below the ring's mean height (``level``): on steeply
+    tilted paint a crack climbing away from the label can be cut short of ``reach_px`` and read
+    as a pocket; and where the height was not measured it holds the median fill, which ends a
+    groove too. Hand-written: a component's reach from an object is no library's measurement."""
     m, nc = lab.shape
     pad = int(math.ceil(reach_px)) + 1
     crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
@@ -2024,9 +2026,10 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     ``crack`` rule's raw count (every groove pixel of its ring in its crop, without the running
     test of :func:`_grooves_run_on`: a protrusion touches a crack, the corner of a cupped island
     is bounded by them). "Touches a crack" is a crack fraction above 0; one whose grooves over
-    ``max_crack_fraction`` were all pockets reads 0 and is not measured again. Like every candidate, at most ``max_unmeasured_fraction`` of the outline
-    may lie near pixels without a measurement (``unmeasured``, :func:`_unmeasured`). A kept one
-    is relabelled to its outline. Returns (reasons, labels)."""
+    ``max_crack_fraction`` were all pockets reads 0 and is not measured again. Like every
+    candidate, at most ``max_unmeasured_fraction`` of the outline may lie near pixels without a
+    measurement (``unmeasured``, :func:`_unmeasured`). A kept one is relabelled to its outline.
+    Returns (reasons, labels)."""
     lab, reason = cand.labels.copy(), reason.copy()
     if p.along_stroke_k <= 0:
         return reason, lab
