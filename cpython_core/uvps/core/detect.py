@@ -1536,7 +1536,7 @@ class Candidates:
     height_relief: np.ndarray   # (n_h,) relief of each height footprint over its local plane
     mask_albedo: np.ndarray     # (M, N) bool
     t_disc: np.ndarray          # (M, N) disc top-hat of the height (um)
-    glow: np.ndarray = None     # (M, N) int32 components of mask_albedo (8-connected)
+    glow: np.ndarray            # (M, N) int32 components of mask_albedo (8-connected)
 
 
 @dataclass
@@ -1780,8 +1780,8 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
     elong = area / (np.pi * _inscribed_radius(lab, n_lab)[lbl - 1] ** 2)
     holes = _hole_area(lab, n_lab)[lbl - 1]
     n_alb = np.bincount(lab[cand.mask_albedo], minlength=n_lab + 1)[lbl]
-    own_glow = (_own_glow(lab, n_lab, cand.glow)[lbl - 1] if cand.glow is not None
-                else np.zeros(lbl.size))
+    glow_area = _glow_area(lab, n_lab, cand.glow)[lbl - 1]
+    own_glow = np.where(glow_area > 0, n_alb / np.maximum(glow_area, 1), 0.0)
     major = np.zeros(lbl.size)
     ratio = np.ones(lbl.size)
     need = (eqd >= th.min_w) & (eqd <= th.max_w) & (elong <= p.ridge_elongation)
@@ -1807,17 +1807,16 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
                              mismatch=mismatch[lbl - 1], unmeasured=unm)
 
 
-def _own_glow(lab: np.ndarray, n_lab: int, glow: np.ndarray) -> np.ndarray:
-    """Per label 1..n_lab, its pixels in the albedo components ``glow`` over the area of the
-    components it overlaps (0 where it overlaps none): a protrusion's glow is its own spot, a
-    piece of a glowing stroke holds a small part of the glowing paint it is cut from."""
+def _glow_area(lab: np.ndarray, n_lab: int, glow: np.ndarray) -> np.ndarray:
+    """Per label 1..n_lab, the area of the albedo components (``glow``) it overlaps (0 where it
+    overlaps none). A candidate's albedo pixels over it are its own glow
+    (``CandidateFeatures.own_glow``): a protrusion's glow is its own spot, a piece of a glowing
+    stroke holds a small part of the glowing paint it is cut from."""
     size = np.bincount(glow.ravel())
     both = (glow > 0) & (lab > 0)
     pairs = np.unique(glow[both].astype(np.int64) * (n_lab + 1) + lab[both])
     comp, owner = pairs // (n_lab + 1), pairs % (n_lab + 1)
-    total = np.bincount(owner, weights=size[comp], minlength=n_lab + 1)[1:]
-    inside = np.bincount(lab[both], minlength=n_lab + 1)[1:]
-    return np.where(total > 0, inside / np.maximum(total, 1), 0.0)
+    return np.bincount(owner, weights=size[comp], minlength=n_lab + 1)[1:]
 
 
 def _on_long_structure(under: np.ndarray, relief: np.ndarray, th: Thresholds) -> np.ndarray:
