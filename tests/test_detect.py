@@ -782,6 +782,59 @@ def _bumps(centres, eqd, relief=10.0):
                              unmeasured=zero)
 
 
+def test_weave_rule_takes_a_glowing_candidates_relief_over_its_ring_mean():
+    """The ``weave`` rule on hand-made candidate features: a glowing crater 70 um wide whose
+    relief over its local plane is 2 um (its top: the plane cannot follow the stroke's curved
+    flank it sits on) and 9.7 um over the disc opening (over the mean of its ring) is kept when
+    its glow is its own (slope 9.7 / 35 = 0.28 against the paint's floor, 0.1); the same without
+    glow, or glowing with a twentieth of the glowing paint it overlaps (a piece of a glowing
+    stroke), is the weave (2 / 35 = 0.06 against 0.136), and so is a glowing one 2 um high by
+    both measures."""
+    from dataclasses import replace
+
+    from uvps.core.detect import Thresholds, _apply_rules
+
+    k = 4
+    f = replace(_bumps([[50.0, 50.0 + 40 * i] for i in range(k)], 4.65, 2.0),
+                relief_disc=np.array([9.7, 9.7, 9.7, 2.0]), tilt_deg=np.full(k, 18.0),
+                has_a=np.array([True, False, True, True]), own_glow=np.array([0.5, 0.0, 0.05, 0.5]))
+    th = Thresholds(relief_um=1.0, slope_min=0.136, min_w=2.0, max_w=66.7)
+    none = np.zeros(k, bool)
+    reason = _apply_rules(f, th, 15.0, DetectionParams(), none, 0.0, none)
+    assert reason.tolist() == ["", "weave", "weave", "weave"]
+    off = _apply_rules(f, th, 15.0, DetectionParams(own_glow_fraction=1.01), none, 0.0, none)
+    assert off.tolist() == ["weave"] * k
+
+
+@pytest.mark.slow
+def test_glowing_crater_on_a_curved_stroke_flank_kept_by_its_relief_over_its_ring():
+    """The generator's scene with strokes up to 40 um high at twice the density (the benchmark's
+    ``strokes_40um_x2``), seed 2: a crater 88 um wide and 13 um high on a stroke's flank. The
+    plane through the ring around its footprint cannot follow the flank's curvature (the relief
+    over it runs on, the footprint is not closed), so it kept its compact relief, 2 um over
+    70 um, and the ``weave`` rule rejected it. It glows and holds its glow: measured by its
+    relief over its ring's mean (the disc opening's), it is found. With the own-glow test off
+    (``own_glow_fraction`` above 1) it is the weave again."""
+    from uvps.testing.synthetic import IMPASTO, SyntheticSpec, make_capture
+
+    spec = SyntheticSpec.realistic("top", shape=(1200, 1600), seed=2,
+                                   **{k: IMPASTO[k] for k in ("ridge_width_um", "ridge_height_um",
+                                                              "ridge_density")})
+    cap = make_capture(spec, n_lights=3, noise=False, cast_shadows=False)
+    pr = cap.protrusions
+    i = int(np.argmin(np.hypot(pr["y_px"] - 888, pr["x_px"] - 952)))
+    assert pr["crater"][i] and 85 < pr["width_um"][i] < 92
+    c = (int(round(pr["y_px"][i])), int(round(pr["x_px"][i])))
+
+    def detect(**kw):
+        return detect_protrusions(cap.albedo, cap.height_um, pixel_size_um=15.0,
+                                  normals=cap.normals, params=DetectionParams(**kw))
+
+    assert detect().labels[c] > 0
+    off = detect(own_glow_fraction=1.01)
+    assert off.labels[c] == 0 and reason_at(off, c) == "weave"
+
+
 def test_ripples_are_the_rows_of_evenly_spaced_similar_bumps():
     """A bump is a ripple when it is the middle of an evenly spaced row of three similar ones
     (within 1.6 x in diameter and 2 x in relief; the two others on opposite sides, 150 deg or

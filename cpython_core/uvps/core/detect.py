@@ -128,7 +128,8 @@ REJECTION_RULES = (
                   "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
                   "the weave's RMS slope) unless it glows and its own glow is at least "
                   "own_glow_fraction (the weave does not glow; a piece of a glowing stroke holds "
-                  "a small part of the glowing paint it is cut from), or tilt < 1 deg"),
+                  "a small part of the glowing paint it is cut from): then max(relief, relief over "
+                  "the disc opening) / (width / 2) < 2 min_relief_ratio; or tilt < 1 deg"),
 )
 REJECTION_REASONS = tuple(r.name for r in REJECTION_RULES)
 
@@ -185,8 +186,10 @@ class DetectionParams:
         fraction of the albedo components it overlaps (its glow is its own spot, shared at most
         with a touching neighbour; an albedo-only candidate is its whole component, so for it
         the exemption holds whenever it glows) meets ``2 x min_relief_ratio`` instead of the
-        weave's slope: the weave does not glow, and a glowing protrusion on a piled stroke end's
-        foot rises 4-5 um over the local plane through its ring, a third of its height. A piece
+        weave's slope, with the larger of its local relief and its relief over the disc opening
+        (over the mean of its ring): the weave does not glow, a glowing protrusion on a piled
+        stroke end's foot rises 4-5 um over the local plane through its ring, a third of its
+        height, and one on a stroke's curved flank keeps only its top as its relief. A piece
         of a glowing stroke holds 3-18 % of the glowing paint it is cut from, a protrusion
         38-100 % of its glow (``docs/benchmarks.md``, "Detection on other shapes and surfaces").
         Above 1 disables.
@@ -1897,6 +1900,12 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
     flat = (f.relief < th.relief_um) | (f.tilt_deg < 1.0)
     compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
     slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
+    # the weave does not glow: a candidate whose glow is its own meets the paint's floor, its
+    # relief the larger of the local one and the one over the disc opening (on a stroke's
+    # curved flank the plane through its ring, or the compact relief, leaves it only its top)
+    own = f.has_a & (f.own_glow >= p.own_glow_fraction)
+    weave = np.where(own, np.maximum(f.relief, f.relief_disc) / np.maximum(f.eqd * px / 2, 1e-12)
+                     < 2 * p.min_relief_ratio, slope < th.slope_min)
     tests = {
         "too_small": f.eqd < th.min_w,
         "ridge": (f.elongation > p.ridge_elongation)
@@ -1907,9 +1916,7 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
         "too_large": f.eqd > th.max_w,
         "artefact": (f.mismatch > p.max_mismatch) | (f.unmeasured > p.max_unmeasured_fraction),
         "flat_bright": flat & f.has_a & ~f.has_h,
-        # the weave does not glow: a candidate whose glow is its own meets the paint's floor
-        "weave": flat | (slope < np.where(f.has_a & (f.own_glow >= p.own_glow_fraction),
-                                          2 * p.min_relief_ratio, th.slope_min)),
+        "weave": flat | weave,
     }
     reason = np.full(f.lbl.size, "", dtype="<U13")
     for rule in REJECTION_RULES:
