@@ -1899,13 +1899,14 @@ def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionPa
     ``stroke_min``: :func:`_stroke_slope`; ``ripple``: :func:`_ripples`."""
     flat = (f.relief < th.relief_um) | (f.tilt_deg < 1.0)
     compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
-    slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
+    half = np.maximum(f.eqd * px / 2, 1e-12)
+    slope = f.relief / half
     # the weave does not glow: a candidate whose glow is its own meets the paint's floor, its
     # relief the larger of the local one and the one over the disc opening (on a stroke's
     # curved flank the plane through its ring, or the compact relief, leaves it only its top)
     own = f.has_a & (f.own_glow >= p.own_glow_fraction)
-    weave = np.where(own, np.maximum(f.relief, f.relief_disc) / np.maximum(f.eqd * px / 2, 1e-12)
-                     < 2 * p.min_relief_ratio, slope < th.slope_min)
+    weave = np.where(own, np.maximum(f.relief, f.relief_disc) / half < 2 * p.min_relief_ratio,
+                     slope < th.slope_min)
     tests = {
         "too_small": f.eqd < th.min_w,
         "ridge": (f.elongation > p.ridge_elongation)
