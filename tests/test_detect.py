@@ -1277,6 +1277,100 @@ def shouldered_dome(seed, frac, small_um):
     return alb, h + small, big_c, (110, int(round(small_c[1])))
 
 
+def test_shoulder_curvature_and_isotropy_are_scipys():
+    """The shoulder cue's curvature (OpenCV's separable filter) is minus scipy's Laplacian of
+    Gaussian, and its isotropy at chosen pixels is the ratio of the eigenvalues of scipy's
+    Gaussian-derivative Hessian, border pixels included."""
+    from scipy import ndimage as ndi
+    from uvps.core.detect import _isotropy_at, _log_curvature
+    rng = np.random.default_rng(3)
+    t = ndi.gaussian_filter(rng.normal(size=(60, 70)), 2.0).astype(np.float32)
+    for sigma in (1.0, 60.0 / 15.0 / (2 * np.sqrt(2)), 2.5):
+        np.testing.assert_allclose(_log_curvature(t, sigma),
+                                   -ndi.gaussian_laplace(t.astype(np.float64), sigma), atol=1e-12)
+    c = _log_curvature(t, 1.4)
+    hrr, hcc, hrc = (ndi.gaussian_filter(c, 1.0, order=o) for o in ((2, 0), (0, 2), (1, 1)))
+    half, dd = 0.5 * (hrr + hcc), np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc ** 2)
+    iso = np.where(half + dd < 0, (half + dd) / np.minimum(half - dd, -1e-12), 0.0)
+    rows, cols = np.nonzero(np.ones(t.shape, bool))
+    got = _isotropy_at(c, rows, cols).reshape(t.shape)
+    assert 0.05 < np.mean(iso > 0) < 0.95                 # both kinds of pixel are tested
+    np.testing.assert_allclose(got, iso, atol=1e-9)
+
+
+def _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc):
+    """:func:`uvps.core.detect._shoulder_markers` as its docstring defines it, on the whole
+    image at once (scipy's filters, one ``h_maxima``): the oracle for its crops."""
+    from scipy import ndimage as ndi
+    from skimage.morphology import h_maxima
+    from uvps.core.detect import WEAK_HOST_RATIO
+    n_h = int(markers.max())
+    w = p.shoulder_width_um / px
+    curv = -ndi.gaussian_laplace(t.astype(np.float64), w / (2 * np.sqrt(2)))
+    hrr, hcc, hrc = (ndi.gaussian_filter(curv, 1.0, order=o) for o in ((2, 0), (0, 2), (1, 1)))
+    half, dd = 0.5 * (hrr + hcc), np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc ** 2)
+    iso = np.where(half + dd < 0, (half + dd) / np.minimum(half - dd, -1e-12), 0.0)
+    noise = 1.4826 * np.median(np.abs(curv - np.median(curv)))
+    dyn = max(p.shoulder_k * noise, 4.0 * th.relief_um / (0.5 * w) ** 2)
+    inside = ws > 0
+    hm = (h_maxima(np.where(inside, curv, curv[inside].min()), dyn) > 0) & inside
+    hm &= (t >= th.relief_um) & (iso >= p.shoulder_isotropy)
+    far = ndi.distance_transform_edt(markers == 0) >= w / 2 + 1
+    lab, k = ndi.label(hm, structure=np.ones((3, 3)))
+    idx = np.arange(1, k + 1)
+    host = ndi.maximum(t, ws, np.arange(ws.max() + 1))
+    ok = np.asarray(ndi.minimum(far, lab, idx), bool)
+    top = np.asarray(ndi.maximum(t, lab, idx))
+    ok &= top <= WEAK_HOST_RATIO * np.asarray(ndi.maximum(host[ws], lab, idx))
+    under = np.asarray(ndi.mean(disc - t, lab, idx))
+    ok &= under < np.maximum(th.relief_um, 0.25 * top)
+    out = markers.copy()
+    lut = np.zeros(k + 1, np.int32)
+    lut[1:][ok] = np.arange(n_h + 1, n_h + 1 + ok.sum())
+    out[lut[lab] > 0] = lut[lab][lut[lab] > 0]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_shoulder_markers_on_crops_are_the_whole_images(seed):
+    """The shoulder cue measures the curvature's maxima only on the raised areas holding a
+    basin tall enough to host a shoulder, each on its own crop: the markers are those of the
+    whole image at once. A scene with shouldered domes (found), lone domes, a mesa, a low bump
+    under the height a host needs, and a stroke whose disc top-hat marks it long."""
+    from skimage.segmentation import watershed
+    from uvps.core.detect import _peak_markers, _shoulder_markers, _surface, _thresholds
+    px = 15.0
+    rng = np.random.default_rng(seed)
+    alb, h = scene((300, 420), seed=seed, noise_um=0.3)
+    for k in range(4):                              # shouldered domes, the shoulder 15-20 um high
+        c = (60 + 180 * (k // 2), 70 + 200 * (k % 2))
+        add_profile(h, c, 400.0, px, 100.0, "dome")
+        small = np.zeros_like(h)
+        add_profile(small, (c[0] + rng.integers(-3, 4), c[1] + 10), 80.0, px, 15.0 + 5 * rng.random(), "dome")
+        h += small
+    add_profile(h, (150, 380), 200.0, px, 30.0, "dome")
+    add_profile(h, (150, 160), 300.0, px, 40.0, "mesa")
+    add_profile(h, (240, 380), 90.0, px, 4.0, "dome")
+    p = DetectionParams(shoulder_width_um=60.0)
+    surf = _surface(h, np.ones(h.shape, bool), px, p)
+    th = _thresholds(surf, px, p)
+    t = surf.relief
+    markers, n_h, _ = _peak_markers(t, th, p)
+    ws = watershed(-t, markers, mask=(t >= p.footprint_fraction * th.relief_um) | (markers > 0))
+    disc = surf.relief.copy()
+    disc[:, 300:] += 30.0 * (np.arange(h.shape[0]) > 200)[:, None]   # a long structure there
+    got, n, curv = _shoulder_markers(t, ws, markers, th, px, p, disc)
+    want = _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc)
+    assert n > n_h                                  # shoulders were marked
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(curv, -ndi_laplace(t, 60.0 / px / (2 * np.sqrt(2))), atol=1e-9)
+
+
+def ndi_laplace(t, sigma):
+    from scipy import ndimage as ndi
+    return ndi.gaussian_laplace(t.astype(np.float64), sigma)
+
+
 @pytest.mark.parametrize("seed, small_um", [(0, 10.0), (1, 10.0), (0, 15.0), (1, 15.0)])
 def test_lump_near_a_protrusions_top_is_no_shoulder(seed, small_um, monkeypatch):
     """A lump 0.4 of the radius out on a 400 um dome, on its flank at 80 % of its height, tops
