@@ -298,7 +298,7 @@ def main(argv=None) -> int:
     ap.add_argument("--height-noise", type=float, default=0.0,
                     help="white noise (um) added to the true height (truth mode only)")
     ap.add_argument("--shoulder-width-um", type=float, default=None,
-                    help="DetectionParams.shoulder_width_um (the opt-in shoulder cue; 0 = off; with --pipeline, "
+                    help="DetectionParams.shoulder_width_um (the shoulder cue; 0 = off; with --pipeline, "
                          "then `uvps detect -o RUN --shoulder-width-um W`)")
     ap.add_argument("--misses", action="store_true",
                     help="(truth mode) why each missed 60-100 um protrusion was missed: the rule "

@@ -1,4 +1,6 @@
 """Tests of uvps.core.detect on analytic scenes: domes, calderas, ridges, primer spots, weave."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -467,15 +469,21 @@ def test_small_dome_on_a_taller_ones_flank_split_on_a_weak_saddle(seed, off):
     """The small dome of :func:`dome_on_a_flank` stands less than ``split_fraction`` above its
     saddle: alone that criterion counts the two as one protrusion. As a weak peak
     (``weak_split_fraction``, the default) in a round, pit-free pair it is its own, as wide as the
-    part of it above its neighbour (76-83 um; its footprint is 0.84-0.95 of that)."""
+    part of it above its neighbour (76-83 um; its footprint is 0.84-0.95 of that). The shoulder
+    cue is off here, so the split is the weak peak's (with it on, it splits the pair too in three
+    of the four cases; the defaults, both on, split it)."""
     px = 15.0
     alb, h, p1, p2, visible = dome_on_a_flank(seed, off)
-    det = detect_protrusions(alb, h, pixel_size_um=px)
+    no_shoulder = DetectionParams(shoulder_width_um=0)
+    det = detect_protrusions(alb, h, pixel_size_um=px, params=no_shoulder)
     assert det.labels.max() == 2 and det.labels[p1] > 0 and det.labels[p2] > 0
     assert det.labels[p1] != det.labels[p2]
     assert abs(width_of(det.labels, p2, px) / visible - 1) <= 0.2
-    one = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(weak_split_fraction=0))
+    one = detect_protrusions(alb, h, pixel_size_um=px,
+                             params=replace(no_shoulder, weak_split_fraction=0))
     assert one.labels.max() == 1 and one.labels[p1] == one.labels[p2] == 1
+    both = detect_protrusions(alb, h, pixel_size_um=px).labels     # the defaults: both cues
+    assert both.max() == 2 and both[p1] != both[p2] and both[p2] > 0
 
 
 def lumpy_crater(h, centre, width_um, px, lump=0.16):
@@ -1248,12 +1256,14 @@ def test_shoulder_of_a_taller_neighbour_found_by_its_curvature(seed):
     """A 80 um dome (20 um high) on the flank of a 400 um one (100 um high), so close that the
     height has no saddle under it: without the curvature cue the two are one protrusion; with
     it the small one is a protrusion of its own, near its true width, and the large one keeps
-    its centre. A lone 400 um dome and a mesa are not split (isotropy, dynamic)."""
+    its centre. A lone 400 um dome and a mesa are not split (isotropy, dynamic). The cue is on
+    by default (60 um)."""
     px = 15.0
     alb, h, big_c, sc = shouldered_dome(seed, 0.75, 20.0)     # on the flank, 3/4 of the radius out
     off = detect_protrusions(alb, h, pixel_size_um=px, params=DetectionParams(shoulder_width_um=0))
-    assert off.labels.max() == 1 and off.labels[sc] == off.labels[big_c]   # today's split misses it
-    on = DetectionParams(shoulder_width_um=60.0)
+    assert off.labels.max() == 1 and off.labels[sc] == off.labels[big_c]   # the peaks miss it
+    on = DetectionParams()
+    assert on.shoulder_width_um == 60.0
     det = detect_protrusions(alb, h, pixel_size_um=px, params=on)
     assert det.labels.max() == 2
     assert det.labels[sc] > 0 and det.labels[big_c] > 0 and det.labels[sc] != det.labels[big_c]

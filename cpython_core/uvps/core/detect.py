@@ -21,8 +21,10 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
    relief threshold ``max(min_dynamic_um, dynamic_k x smoothed noise)`` high, two peaks being two
    protrusions when the saddle between them lies ``split_fraction`` below the lower one, or
    ``weak_split_fraction`` below it when the lower one is at most three quarters as high and
-   the two do not lie along a ridge (:func:`_weak_splits`); a watershed of ``-t`` from them
-   splits touching clusters. Each footprint is then re-drawn over a robust plane through its
+   the two do not lie along a ridge (:func:`_weak_splits`); a smaller dome on a taller one's
+   flank with no peak of its own is marked by the blob its curvature makes there
+   (:func:`_shoulder_markers`). A watershed of ``-t`` from the markers splits touching
+   clusters. Each footprint is then re-drawn over a robust plane through its
    surround (a protrusion on a slope keeps its whole relief), where the relief exceeds
    ``footprint_fraction`` of its peak.
 4. **Albedo cue** (:func:`_albedo_cue`). Brightness contrast ``L / L_bg - 1`` above
@@ -225,9 +227,9 @@ class DetectionParams:
         ``split_fraction`` below them): the height cue also splits a footprint at the dome-like
         maxima of the compact relief's curvature (minus its Laplacian of Gaussian, sigma =
         this width / (2 sqrt 2)) that stand ``shoulder_k`` x the curvature's noise above the
-        saddle to a higher curvature peak (:func:`_shoulder_markers`). 0 (the default)
-        disables; 60 finds 60-100 um shoulders (``docs/benchmarks.md``, "Detection on other
-        shapes and surfaces"). A shoulder is at most :data:`WEAK_HOST_RATIO` of its basin's
+        saddle to a higher curvature peak (:func:`_shoulder_markers`). The default, 60,
+        finds 60-100 um shoulders (``docs/benchmarks.md``, "Detection on other shapes and
+        surfaces"); 0 disables. A shoulder is at most :data:`WEAK_HOST_RATIO` of its basin's
         peak high and on no long structure (:func:`_shoulder_markers`).
     shoulder_k : float
         Least dynamic of such a curvature peak in multiples of the measured curvature noise
@@ -309,7 +311,7 @@ class DetectionParams:
     ridge_compact_fraction: float = 0.5
     stroke_slope_k: float = 3.0
     along_stroke_k: float = 6.0
-    shoulder_width_um: float = 0.0
+    shoulder_width_um: float = 60.0
     shoulder_k: float = 5.0
     shoulder_isotropy: float = 0.6
     max_hole_fraction: float = 0.25
