@@ -1306,6 +1306,12 @@ def test_shoulder_curvature_and_isotropy_are_scipys():
     got = _isotropy_at(c, rows, cols).reshape(t.shape)
     assert 0.05 < np.mean(iso > 0) < 0.95                 # both kinds of pixel are tested
     np.testing.assert_allclose(got, iso, atol=1e-9)
+    tiny = c[:3, :5]                                      # smaller than the kernel: reflected again
+    hrr, hcc, hrc = (ndi.gaussian_filter(tiny, 1.0, order=o) for o in ((2, 0), (0, 2), (1, 1)))
+    half, dd = 0.5 * (hrr + hcc), np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc ** 2)
+    iso = np.where(half + dd < 0, (half + dd) / np.minimum(half - dd, -1e-12), 0.0)
+    rows, cols = np.nonzero(np.ones(tiny.shape, bool))
+    np.testing.assert_allclose(_isotropy_at(tiny, rows, cols).reshape(tiny.shape), iso, atol=1e-9)
 
 
 def _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc):
@@ -1345,18 +1351,19 @@ def _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc):
 def test_shoulder_markers_on_crops_are_the_whole_images(seed):
     """The shoulder cue measures the curvature's maxima only on the raised areas holding a
     basin tall enough to host a shoulder, each on its own crop: the markers are those of the
-    whole image at once. A scene with shouldered domes (found), lone domes, a mesa, a low bump
-    under the height a host needs, and a stroke whose disc top-hat marks it long."""
+    whole image at once. A scene with shouldered domes (one cut by the image's top edge, so its
+    crop is clipped there), lone domes, a mesa and a low bump; then the same with a long
+    structure under one shoulder (the disc top-hat raised there), which both refuse."""
     from skimage.segmentation import watershed
     from uvps.core.detect import _peak_markers, _shoulder_markers, _surface, _thresholds
     px = 15.0
     rng = np.random.default_rng(seed)
     alb, h = scene((300, 420), seed=seed, noise_um=0.3)
     for k in range(4):                              # shouldered domes, the shoulder 15-20 um high
-        c = (60 + 180 * (k // 2), 70 + 200 * (k % 2))
+        c = (6 if k == 0 else 60 + 180 * (k // 2), 70 + 200 * (k % 2))
         add_profile(h, c, 400.0, px, 100.0, "dome")
         small = np.zeros_like(h)
-        add_profile(small, (c[0] + rng.integers(-3, 4), c[1] + 10), 80.0, px, 15.0 + 5 * rng.random(), "dome")
+        add_profile(small, (c[0] + rng.integers(0, 4), c[1] + 10), 80.0, px, 15.0 + 5 * rng.random(), "dome")
         h += small
     add_profile(h, (150, 380), 200.0, px, 30.0, "dome")
     add_profile(h, (150, 160), 300.0, px, 40.0, "mesa")
@@ -1368,12 +1375,14 @@ def test_shoulder_markers_on_crops_are_the_whole_images(seed):
     markers, n_h, _ = _peak_markers(t, th, p)
     ws = watershed(-t, markers, mask=(t >= p.footprint_fraction * th.relief_um) | (markers > 0))
     disc = surf.relief.copy()
-    disc[:, 300:] += 30.0 * (np.arange(h.shape[0]) > 200)[:, None]   # a long structure there
     got, n, curv = _shoulder_markers(t, ws, markers, th, px, p, disc)
-    want = _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc)
-    assert n > n_h                                  # shoulders were marked
-    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got, _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc))
+    assert n - n_h >= 3                             # shoulders were marked
     np.testing.assert_allclose(curv, -ndi_laplace(t, 60.0 / px / (2 * np.sqrt(2))), atol=1e-9)
+    disc[200:, 255:300] += 30.0                     # a long structure under the last shoulder
+    got2, n2, _ = _shoulder_markers(t, ws, markers, th, px, p, disc)
+    np.testing.assert_array_equal(got2, _shoulders_on_the_whole_image(t, ws, markers, th, px, p, disc))
+    assert n2 == n - 1 and got2[240, 280] <= n_h
 
 
 def ndi_laplace(t, sigma):

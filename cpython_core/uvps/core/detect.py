@@ -1006,7 +1006,7 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     ``4 relief_um / (w / 2)^2`` of a paraboloid ``w`` wide and the relief threshold high,
     where both eigenvalues of the Hessian are negative with a ratio >= ``shoulder_isotropy``
     (curved down all round: not a mesa's or a crater's rim, not a stroke's crest), at least
-    the relief threshold high and ``w`` / px from every height marker, inside a basin; at most
+    the relief threshold high and ``w / 2 + 1`` px from every height marker, inside a basin; at most
     :data:`WEAK_HOST_RATIO` of the basin's peak high (a smaller protrusion on a taller one's
     flank: a lump of a crater's rim or of a mesa's edge stands near the peak's height), and,
     given the disc top-hat ``disc``, on no long structure (the mean of ``disc - t`` over it
@@ -1039,18 +1039,17 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     area, n_area = ndi.label(inside, structure=np.ones((3, 3)))
     able = np.zeros(n_area + 1, bool)
     able[area[(host >= th.relief_um / WEAK_HOST_RATIO)[ws] & inside]] = True
-    able[0] = False
     fill = float(curv[inside].min())
     pad = int(math.ceil(w / 2.0 + 2.0))
     m, n = t.shape
     hm = np.zeros(t.shape, bool)
     far = np.zeros(t.shape, bool)
-    for k, sl in enumerate(ndi.find_objects(area)):
-        if not able[k + 1]:
+    for i, sl in enumerate(ndi.find_objects(area)):
+        if not able[i + 1]:
             continue
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
-        own = area[crop] == k + 1
+        own = area[crop] == i + 1
         c = curv[crop]
         peaks = (h_maxima(np.where(own, c, fill), dyn) > 0) & own & (t[crop] >= th.relief_um)
         hm[crop] |= peaks
@@ -1081,8 +1080,6 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     return out, int(out.max()), curv
 
 
-
-
 def _gaussian_kernels(sigma: float) -> tuple:
     """The Gaussian and its first and second derivatives at ``sigma`` px, radius
     ``int(4 sigma + 0.5)``: the kernels of ``scipy.ndimage.gaussian_filter1d`` (orders 0-2,
@@ -1103,6 +1100,7 @@ def _log_curvature(t: np.ndarray, sigma: float) -> np.ndarray:
     return -(cv2.sepFilter2D(t64, cv2.CV_64F, g, d2, borderType=cv2.BORDER_REFLECT)
              + cv2.sepFilter2D(t64, cv2.CV_64F, d2, g, borderType=cv2.BORDER_REFLECT))
 
+
 def _isotropy_at(curv: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """At the given pixels, the ratio of the two eigenvalues of the Hessian of ``curv`` (its
     Gaussian derivatives at sigma 1 px, as ``scipy.ndimage.gaussian_filter(curv, 1, order=...)``
@@ -1113,9 +1111,9 @@ def _isotropy_at(curv: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nda
     neighbourhood because only the curvature's maxima need it: the three filters over the
     whole image cost ~1.5 s at 4000 x 3000."""
     g, d1, d2 = _gaussian_kernels(1.0)
-    def reflect(i, size):                       # scipy's "reflect" border: (d c b a | a b c d)
-        i = np.where(i < 0, -i - 1, i)
-        return np.where(i >= size, 2 * size - i - 1, i)
+    def reflect(i, size):       # scipy's "reflect" border (d c b a | a b c d | d c b a), any size
+        i = np.mod(i, 2 * size)
+        return np.where(i >= size, 2 * size - 1 - i, i)
 
     off = np.arange(-(g.size // 2), g.size // 2 + 1)
     rr = reflect(rows[:, None] + off, curv.shape[0])
@@ -1127,6 +1125,7 @@ def _isotropy_at(curv: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nda
     half_tr, det_d = 0.5 * (hrr + hcc), np.sqrt(0.25 * (hrr - hcc) ** 2 + hrc ** 2)
     lam_hi, lam_lo = half_tr + det_d, half_tr - det_d          # lam_lo <= lam_hi
     return np.where(lam_hi < 0, lam_hi / np.minimum(lam_lo, -1e-12), 0.0)
+
 
 def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams,
                 disc: np.ndarray = None) -> tuple:
