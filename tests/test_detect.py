@@ -506,7 +506,7 @@ def test_crater_whose_rim_has_two_lumps_stays_one_protrusion(width_um, seed, off
     """The lumps of :func:`lumpy_crater`'s rim are weak peaks over the rim between them, of a
     height: the crater stays one protrusion, with its width. Were every weak peak up to its
     neighbour's height its own (``WEAK_HOST_RATIO`` 1), the rim would be split in two."""
-    from uvps.core import detect as detect_mod
+    from uvps.core.detect import height as detect_mod     # the height cue's module reads them
     px = 15.0
     alb, h = scene((100, 100), seed=seed)
     lumpy_crater(h, (50 + off, 50 + 0.7 * off), width_um, px)
@@ -538,7 +538,7 @@ def test_rippled_pile_not_split_into_round_pieces(angle, monkeypatch):
     found. Were the pieces kept (the elongation test off), two round pieces would pass as
     protrusions."""
     from dataclasses import replace
-    from uvps.core import detect as detect_mod
+    from uvps.core.detect import height as detect_mod     # the height cue's module reads them
     px = 15.0
     alb, h = scene((100, 100), seed=0)
     rippled_pile(h, (50.2, 50.4), px, angle=angle)
@@ -965,7 +965,7 @@ def test_pocket_between_touching_protrusions_no_crack_a_groove_that_runs_on_one(
     kept, its own protrusion; nothing is kept on the cracked paint beside them. With every
     groove pixel counted again (the patched ``_grooves_run_on``) the small dome is rejected
     again."""
-    from uvps.core import detect
+    from uvps.core.detect import features as detect     # the features' module calls it
 
     px, shape = 15.0, (200, 400)
     alb, h = scene(shape, seed=seed)
@@ -1397,7 +1397,7 @@ def test_lump_near_a_protrusions_top_is_no_shoulder(seed, small_um, monkeypatch)
     lumpy so), not a smaller protrusion on its flank; the shoulder cue keeps it in the dome.
     Without the height condition (``WEAK_HOST_RATIO`` raised to 10) its curvature would split it
     off (the weak splits off, so the split is the shoulder cue's)."""
-    from uvps.core import detect as detect_mod
+    from uvps.core.detect import height as detect_mod     # the height cue's module reads them
     alb, h, big_c, sc = shouldered_dome(seed, 0.4, small_um)
     on = DetectionParams(shoulder_width_um=60.0, weak_split_fraction=0.0)
     det = detect_protrusions(alb, h, pixel_size_um=15.0, params=on)
