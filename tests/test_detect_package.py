@@ -10,7 +10,8 @@ import pytest
 
 import uvps.core.detect as detect
 from uvps.core.detect import DetectionParams, detect_protrusions
-from uvps.core.detect.params import PARAM_RANGES
+from uvps.core.detect.params import CUE_RANGES
+from uvps.core.detect.rules import PARAM_RANGES, RULES
 from uvps.errors import UVPSInputError
 
 PACKAGE = Path(detect.__file__).parent
@@ -64,3 +65,56 @@ def test_every_option_has_a_range_and_is_checked():
     detect_protrusions(alb, h, pixel_size_um=15.0, params=DetectionParams(
         max_mismatch=np.inf, stroke_slope_k=0, along_stroke_k=0, shoulder_width_um=0, ripple_reach=0,
         weave_factor=0, beside_long_fraction=0, weak_split_fraction=0, own_glow_fraction=2.0))
+
+
+def test_each_option_range_is_declared_once():
+    """A rule owns its options' ranges; the cues' are in CUE_RANGES; none in both."""
+    owned = [k for r in RULES for k in r.params]
+    assert len(owned) == len(set(owned)) and not set(owned) & set(CUE_RANGES)
+    feats = {f.name for f in fields(detect.CandidateFeatures)}
+    for r in RULES:
+        assert set(r.reads) <= feats, r.name
+        assert r.words and r.quantity and r.test
+
+
+def test_texts_generated_from_the_rules_are_current():
+    """docs/architecture.md's and docs/protrusions.md's rule tables and the Fiji side's words
+    are written from the declarations (``python scripts/detection_docs.py``)."""
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import detection_docs
+    stale = [str(p) for p, t in detection_docs.expected().items() if p.read_text(encoding="utf-8") != t]
+    assert stale == [], "stale: run python scripts/detection_docs.py"
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "jython_lib"))
+    from uvps_fiji import bridge_logic
+    assert bridge_logic.REJECTION_WORDS == {r.name: r.words for r in RULES}
+    assert set(bridge_logic.REJECTION_WORDS) == set(detect.REJECTION_REASONS)
+
+
+def test_each_rule_reads_the_features_it_declares():
+    """Run on a few made-up candidates, each rule's test reads only the features it declares."""
+    from uvps.core.detect import Thresholds
+    from uvps.core.detect.rules import RuleContext
+
+    n = 4
+    rng = np.random.default_rng(0)
+    vals = {f.name: rng.uniform(0.1, 3.0, n) for f in fields(detect.CandidateFeatures)}
+    vals.update(lbl=np.arange(1, n + 1), has_h=np.array([True, False, True, False]),
+                has_a=np.array([True, True, False, False]), centroid=rng.uniform(0, 50, (n, 2)))
+    feats = detect.CandidateFeatures(**vals)
+
+    class Reads:
+        def __init__(self):
+            self.seen = set()
+
+        def __getattr__(self, name):
+            self.seen.add(name)
+            return getattr(feats, name)
+
+    ctx = RuleContext(Thresholds(1.0, 0.1, 2.0, 60.0), 15.0, DetectionParams(),
+                      np.ones(n, bool), 0.2, np.zeros(n, bool))
+    for r in RULES:
+        spy = Reads()
+        out = r.fails(spy, ctx)
+        assert out.shape == (n,) and out.dtype == bool, r.name
+        assert spy.seen <= set(r.reads), (r.name, spy.seen - set(r.reads))

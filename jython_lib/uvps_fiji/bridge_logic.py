@@ -16,6 +16,10 @@ import json
 import os
 import tempfile
 
+# the detection's rejection rules in a conservator's words, generated from the rules' declarations
+# (uvps.core.detect.rules.RULES) by scripts/detection_docs.py
+from uvps_fiji.rejection_words import REJECTION_WORDS  # noqa: F401
+
 try:  # Python 2 / Jython
     STRING_TYPES = (basestring,)  # noqa: F821
 except NameError:  # Python 3
@@ -1066,13 +1070,6 @@ def first_image(paths):
     return items[0] if os.path.isfile(items[0]) else None
 
 
-#: The detection's rejection rules (uvps.core.detect.REJECTION_RULES) in a conservator's words.
-REJECTION_WORDS = {"too_small": "narrower than the smallest width",
-                   "too_large": "wider than the largest width",
-                   "ridge": "ridges and brush strokes", "crack": "crack edges and cupped rims",
-                   "flat_bright": "bright but flat (bare primer)",
-                   "artefact": "height artefacts the normals do not show",
-                   "weave": "canvas weave"}
 
 
 def cli_flag(name):

@@ -9,6 +9,7 @@ place, or temporary files renamed).
 from __future__ import annotations
 
 import dataclasses
+import math
 import logging
 import re
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 from ..core.compare import compare_detections
 from ..files.comparison import write_comparison_csv
 from ..core.detect import DetectionParams
+from ..core.detect.rules import PARAM_RANGES, RULES
 from ..errors import UVPSInputError
 from ..core.measure import measure_protrusions
 from ..files.tables import read_protrusions_csv, write_label_tiff, write_protrusions_csv
@@ -267,17 +269,25 @@ _DETECTION_LABELS = {"dynamic_k": "Sensitivity (relief / height noise; lower fin
 
 def _detection_params() -> tuple:
     """Every field of :class:`uvps.core.detect.DetectionParams` as a parameter of ``detect`` (type and
-    default from the dataclass, help from its numpydoc Attributes section)."""
+    default from the dataclass, help from its numpydoc Attributes section, the rule that owns it and
+    its bounds from the rules' declarations, :data:`uvps.core.detect.rules.PARAM_RANGES`)."""
     doc = DetectionParams.__doc__ or ""
     helps = {}
     for m in re.finditer(r"^    ([a-z_, ]+) : \w+\n((?:        .*\n)+)", doc, re.M):
         text = " ".join(m.group(2).split())
         for name in m.group(1).split(","):
             helps[name.strip()] = text.split(". ")[0].rstrip(".")
+    owner = {k: r.name for r in RULES for k in r.params}
     out = []
     for f in dataclasses.fields(DetectionParams):
         kind = {bool: "bool", int: "int", float: "float"}.get(type(f.default), "float")
-        out.append(Param(f.name, kind, f.default, help=helps.get(f.name, "detection option"),
+        rng = PARAM_RANGES[f.name]
+        lo = rng.lo if not isinstance(rng.lo, str) and math.isfinite(rng.lo) else None
+        hi = (rng.hi if not isinstance(rng.hi, str) and math.isfinite(rng.hi) and not rng.hi_open
+              else None)
+        text = helps.get(f.name, "detection option") + (f" (rule {owner[f.name]})" if f.name in owner else "")
+        out.append(Param(f.name, kind, f.default, help=text, minimum=lo, maximum=hi,
+                         exclusive_minimum=bool(lo is not None and rng.lo_open),
                          unit="um" if f.name.endswith("_um") else "", label=_DETECTION_LABELS.get(f.name, "")))
     return tuple(out)
 

@@ -54,7 +54,7 @@ a stated property of a protrusion, and each cue is one function (``docs/architec
 Every length option is in micrometres and converted with ``pixel_size_um``.
 
 The stages are one module each: :mod:`.surface` (with :mod:`.weave`), :mod:`.height` (with
-:mod:`.footprints`), :mod:`.albedo`, :mod:`.candidates`, :mod:`.features`, :mod:`.rules`,
+:mod:`.footprints`), :mod:`.albedo`, :mod:`.candidates`, :mod:`.features`, :mod:`.strokes`, :mod:`.rules`,
 :mod:`.along_stroke`, composed by :mod:`.detector`; the options and the result are in
 :mod:`.params`, the compiled kernels with their numpy twins in :mod:`._kernels`
 (``docs/architecture.md``, "Detection cues").
@@ -62,7 +62,8 @@ The stages are one module each: :mod:`.surface` (with :mod:`.weave`), :mod:`.hei
 from __future__ import annotations
 
 from .detector import detect_protrusions
-from .params import REJECTION_REASONS, REJECTION_RULES, Detection, DetectionParams, RejectionRule
+from .params import Detection, DetectionParams
+from .rules import REJECTION_REASONS, REJECTION_RULES, RejectionRule
 
 # the stages' own names that the tests and benchmarks read as ``uvps.core.detect.<name>``
 from ._common import Thresholds, _edt, _expand_labels, _holes, _median  # noqa: F401,E402
@@ -73,7 +74,8 @@ from .features import (CandidateFeatures, _axis_lengths, _crack_fraction,  # noq
                        _hole_area, _inscribed_radius)
 from .height import (WEAK_HOST_RATIO, _height_cue, _isotropy_at, _log_curvature,  # noqa: F401,E402
                      _peak_markers, _shoulder_markers, _weak_splits)
-from .rules import _apply_rules, _ripples  # noqa: F401,E402
+from .rules import _apply_rules  # noqa: F401,E402
+from .strokes import _ripples  # noqa: F401,E402
 from .surface import _beside_long, _diameter_opening, _surface, _thresholds  # noqa: F401,E402
 from .weave import _fit_sinusoids, _sinusoids  # noqa: F401,E402
 

@@ -3,6 +3,7 @@ continued along the stroke (module docstring of :mod:`uvps.core.detect`, step 8)
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -12,6 +13,7 @@ from ._common import Thresholds, _edt
 from .candidates import Candidates
 from .features import CandidateFeatures, _axis_lengths, _crack_fraction
 from .params import DetectionParams
+from .rules import RuleContext, _rescue_fails
 from .surface import Surface
 
 
@@ -21,6 +23,24 @@ from .surface import Surface
 RESCUE_PEAK_BOUND = 2.0
 #: The shortest line (px) of the opening: shorter, a 3-4 px bump's own top would stay in it.
 MIN_LINE_PX = 9.0
+
+
+class _Bump(NamedTuple):
+    """A bump's own measurements, as the rules marked ``rescue`` read them (:func:`.rules._rescue_fails`):
+    its footprint's equivalent diameter and elongation (px), its outline's axes (px), its peak
+    excess (um), its outline's crack fraction (0 unless it was drawn with the cracks filled),
+    hole fraction 0, the candidate's mismatch, its outline's unmeasured and total pixels."""
+
+    eqd: float
+    elongation: float
+    major: float
+    minor: float
+    relief: float
+    crack_fraction: float
+    hole_fraction: float
+    mismatch: float
+    unmeasured_px: int
+    area_px: int
 
 
 def _stroke_direction(h: np.ndarray, inner: np.ndarray, r_px: float) -> float:
@@ -141,6 +161,7 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
     kept = np.zeros(int(lab.max()) + 1, bool)
     kept[f.lbl[reason == ""]] = True
     slices, (m, n) = ndi.find_objects(lab), lab.shape
+    ctx = RuleContext(th, px, p, on_long=True, stroke_min=stroke_min, ripple=False)
     for j in test:
         k, sl = int(f.lbl[j]), slices[int(f.lbl[j]) - 1]
         own = cand.height if f.has_h[j] else lab     # a glowing one: its whole candidate
@@ -162,16 +183,15 @@ def _bumps_on_strokes(cand: Candidates, surf: Surface, f: CandidateFeatures, rea
         # the second moments as well: on a footprint a few pixels wide the inscribed radius
         # is pixelised (a 6 x 20 px piece of stroke reads 2x elongated), its axes are not
         major, minor = (float(a[0]) for a in _axis_lengths(outline.astype(np.int32), 1))
-        if (th.min_w <= eqd <= th.max_w and elong <= p.ridge_elongation
-                and not (minor < p.ridge_axis_ratio * major
-                         and major * px >= p.ridge_min_length_um)
-                and peak / (eqd * px / 2) >= max(stroke_min, th.slope_min)
-                and th.relief_um <= peak <= RESCUE_PEAK_BOUND * bound[j]
-                and not (cracked and _outline_crack_fraction(
-                    surf.height[crop], outline, peak, th.relief_um,
-                    p.crack_width_um / px) > p.max_crack_fraction)
-                and not (unmeasured is not None and np.count_nonzero(unmeasured[crop][outline])
-                         > p.max_unmeasured_fraction * np.count_nonzero(outline))):
+        crack = 0.0
+        if cracked:
+            crack = _outline_crack_fraction(surf.height[crop], outline, peak, th.relief_um,
+                                            p.crack_width_um / px)
+        unm = 0 if unmeasured is None else np.count_nonzero(unmeasured[crop][outline])
+        bump = _Bump(eqd=eqd, elongation=elong, major=major, minor=minor, relief=peak,
+                     crack_fraction=crack, hole_fraction=0.0, mismatch=f.mismatch[j],
+                     unmeasured_px=unm, area_px=np.count_nonzero(outline))
+        if not _rescue_fails(bump, ctx) and peak <= RESCUE_PEAK_BOUND * bound[j]:
             region[region == k] = 0
             region[outline] = k
             kept[k], reason[j] = True, ""

@@ -13,8 +13,9 @@ from .albedo import _brightness
 from .along_stroke import _bumps_on_strokes
 from .candidates import Candidates, _candidates
 from .features import CandidateFeatures, _candidate_features, _unmeasured
-from .params import Detection, Progress, REJECTION_REASONS, REJECTION_RULES, _report, _validate
-from .rules import _apply_rules, _ripples, _stroke_slope
+from .params import Detection, Progress, _report, _validate
+from .rules import PARAM_RANGES, REJECTION_REASONS, REJECTION_RULES, _apply_rules
+from .strokes import _ripples, _stroke_slope
 from .surface import Surface, _beside_long, _surface, _thresholds
 
 logger = logging.getLogger(__name__)
@@ -91,7 +92,8 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     >>> int(det.labels.max()), str(det.source[0])
     (1, 'height')
     """
-    a, h, px, p = _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out)
+    a, h, px, p = _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out,
+                            ranges=PARAM_RANGES)
     lum = _brightness(a if a.ndim == 2 or a.shape[2] == 3 else a[..., 0])
     measured = np.isfinite(h) & np.isfinite(lum)
     valid = measured & np.asarray(mask, bool) if mask is not None else measured

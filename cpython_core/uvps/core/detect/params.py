@@ -13,64 +13,6 @@ from ...errors import UVPSInputError, check_pixel_size
 Progress = Optional[Callable[[float, str], None]]
 
 
-class RejectionRule(NamedTuple):
-    """One row of the rejection table: the rule's name, the quantity it tests, the test."""
-
-    name: str
-    quantity: str
-    test: str
-
-
-#: The rejection table, applied in this order (a candidate keeps the first rule it fails).
-REJECTION_RULES = (
-    RejectionRule("too_small", "equivalent diameter 2 sqrt(area / pi)", "< min_width_um"),
-    RejectionRule("ridge", "elongation area / (pi r_in^2) (r_in: largest inscribed radius); "
-                  "minor / major axis; compact fraction (relief within L / relief over the "
-                  "surround, for raised areas without a compact peak)",
-                  "elongation > ridge_elongation, or axis ratio < ridge_axis_ratio with a major "
-                  "axis >= ridge_min_length_um, or compact fraction < ridge_compact_fraction"),
-    RejectionRule("stroke", "on a long structure (the disc top-hat exceeds the compact relief under "
-                  "it by the relief threshold and a quarter of its relief), without the albedo's "
-                  "glow: flank slope relief / (width / 2)",
-                  "< stroke_slope_k x the median flank slope of the bumps on long structures "
-                  "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
-                  "of a brush stroke; or a member of an evenly spaced row of similar such bumps "
-                  "(_ripples: a stroke's ripples) (ridge, stroke and crack: unless its excess "
-                  "over the stroke's profile continued along the stroke is a closed, steep bump "
-                  "whose mismatch is within max_mismatch, _bumps_on_strokes; never for a ripple)"),
-    RejectionRule("crack", "crack fraction: of the 2-px ring around it, the part in a crack (black "
-                  "top-hat over crack_width_um) at least half as deep as it is high, counted where "
-                  "the groove runs on 2 crack widths beyond it (a pocket between touching "
-                  "protrusions ends with them); hole fraction: "
-                  "area enclosed by the footprint but below its level / filled area",
-                  "crack fraction > max_crack_fraction (a piece of a cupped island's rim or of a "
-                  "stroke cut off by a crack), or hole fraction > max_hole_fraction (a crater's "
-                  "floor stands above the paint, a cupped island's rim encloses its dish)"),
-    RejectionRule("too_large", "equivalent diameter", "> max_width_um"),
-    RejectionRule("flat_bright", "relief (um) of a candidate found by the albedo only; mean tilt",
-                  "relief < relief threshold or tilt < 1 deg: bare primer"),
-    RejectionRule("artefact", "mismatch: over the footprint, mean |e - mean e| / mean |g - mean g|, "
-                  "g the normals' slope, e the height's slope minus g (with normals only); "
-                  "unmeasured fraction: the part of the footprint within 2 px of a pixel with no "
-                  "measurement (non-finite albedo, normals or height)",
-                  "mismatch > max_mismatch: relief the normals do not hold is an integration "
-                  "artefact (e.g. along a crack whose walls the lamps do not light; the pixels "
-                  "left out of the height's integration, left_out, set aside when the rest is at "
-                  "least half the footprint); or unmeasured "
-                  "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole"),
-    RejectionRule("weave", "relief (um); flank slope relief / (width / 2); mean tilt; own glow: "
-                  "of the albedo components it overlaps, the part inside it",
-                  "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
-                  "the weave's RMS slope) unless it glows and its own glow is at least "
-                  "own_glow_fraction (the weave does not glow; a piece of a glowing stroke holds "
-                  "a small part of the glowing paint it is cut from): then max(relief, relief over "
-                  "the disc opening) / (width / 2) < 2 min_relief_ratio; or tilt < 1 deg"),
-)
-
-
-REJECTION_REASONS = tuple(r.name for r in REJECTION_RULES)
-
-
 @dataclass
 class DetectionParams:
     """Options of :func:`detect_protrusions`. Lengths and heights in um.
@@ -300,7 +242,7 @@ def _report(progress: Progress, fraction: float, message: str) -> None:
         progress(float(fraction), message)
 
 
-def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=None):
+def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=None, *, ranges):
     h = np.asarray(height_um)
     if h.ndim != 2:
         raise UVPSInputError(f"`height_um` must be (M, N); got shape {h.shape}")
@@ -317,7 +259,7 @@ def _validate(albedo, height_um, pixel_size_um, normals, mask, params, left_out=
     p = params if params is not None else DetectionParams()
     if not isinstance(p, DetectionParams):
         raise UVPSInputError(f"`params` must be a DetectionParams; got {type(p).__name__}")
-    _check_params(p)
+    _check_params(p, ranges)
     if min(h.shape) < 8:
         raise UVPSInputError(f"`height_um` must be at least 8 x 8 pixels; got {h.shape}")
     return a, h, px, p
@@ -346,11 +288,9 @@ def _num(v) -> str:
 
 
 INF = math.inf
-#: The range of each option that no rejection rule owns (the rules declare theirs in
-#: :mod:`.rules`); :func:`_check_params` checks every field of :class:`DetectionParams`.
-PARAM_RANGES = {
-    "min_width_um": Range(0.0, "max_width_um", True, True),
-    "max_width_um": Range("min_width_um", INF, True, True),
+#: The range of each option of the cues (the rejection rules declare theirs, :mod:`.rules`;
+#: :data:`uvps.core.detect.rules.PARAM_RANGES` joins the two).
+CUE_RANGES = {
     "smooth_um": Range(0.0, INF, hi_open=True),
     "min_dynamic_um": Range(0.0, INF, hi_open=True),
     "dynamic_k": Range(0.0, INF, hi_open=True),
@@ -361,37 +301,23 @@ PARAM_RANGES = {
     "weave_factor": Range(0.0, INF, note="0 disables"),
     "weave_min_period_um": Range(0.0, "weave_max_period_um", True, True),
     "weave_max_period_um": Range("weave_min_period_um", INF, True, True),
-    "weave_slope_k": Range(0.0, INF, hi_open=True),
-    "min_relief_ratio": Range(0.0, INF, hi_open=True),
-    "own_glow_fraction": Range(0.0, INF, lo_open=True, note="above 1 disables"),
     "albedo_contrast": Range(0.0, INF, True, True),
     "template_ncc": Range(-1.0, 1.0),
     "template_scales": Range(1, INF, hi_open=True),
-    "ridge_elongation": Range(0.0, INF, lo_open=True),
-    "ridge_axis_ratio": Range(0.0, 1.0),
-    "ridge_min_length_um": Range(0.0, INF),
-    "ridge_compact_fraction": Range(0.0, 1.0),
-    "stroke_slope_k": Range(0.0, INF, hi_open=True, note="0 disables"),
     "along_stroke_k": Range(0.0, INF, hi_open=True, note="0 disables"),
     "shoulder_width_um": Range(0.0, INF, hi_open=True, note="0 disables"),
     "shoulder_k": Range(0.0, INF, hi_open=True),
     "shoulder_isotropy": Range(0.0, 1.0),
-    "max_hole_fraction": Range(0.0, 1.0),
-    "max_crack_fraction": Range(0.0, 1.0),
-    "max_mismatch": Range(0.0, INF, note="inf disables"),
-    "max_unmeasured_fraction": Range(0.0, 1.0),
     "albedo_grow_um": Range(0.0, INF, hi_open=True),
-    "crack_width_um": Range(0.0, INF, True, True),
     "curl_k": Range(0.0, INF, hi_open=True, note="0 reads the run's height as it is"),
-    "ripple_reach": Range(0.0, INF, hi_open=True, note="0 disables"),
     "beside_long_fraction": Range(0.0, 1.0, hi_open=True, note="0 disables"),
 }
 
 
-def _check_params(p: DetectionParams, ranges: dict = None) -> None:
-    """Every field of ``p`` within its :class:`Range` (``ranges``: :data:`PARAM_RANGES`), or a
-    one-line :class:`UVPSInputError` naming it and the range."""
-    ranges = PARAM_RANGES if ranges is None else ranges
+def _check_params(p: DetectionParams, ranges: dict) -> None:
+    """Every field of ``p`` within its :class:`Range` (``ranges``: name -> Range, every field:
+    :data:`uvps.core.detect.rules.PARAM_RANGES`), or a one-line :class:`UVPSInputError` naming
+    it and the range."""
     for name, r in ranges.items():
         v = getattr(p, name)
         lo = getattr(p, r.lo) if isinstance(r.lo, str) else r.lo

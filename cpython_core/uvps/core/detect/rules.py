@@ -1,129 +1,262 @@
-"""Rules: the strokes' own statistics, the ripple test and the rejection table applied
-(module docstring of :mod:`uvps.core.detect`, steps 6-7)."""
+"""Rules: the rejection table, each rule declared once (module docstring of
+:mod:`uvps.core.detect`, step 7).
+
+A :class:`Rule` holds the rule's name, the words that explain a rejection to a conservator, the
+quantity it tests and the test in prose, the :class:`~.params.DetectionParams` fields it owns
+with their ranges, the :class:`~.features.CandidateFeatures` it reads, and the test itself. From
+the table :data:`RULES` come :data:`REJECTION_RULES` (the public rows), the validation of the
+options (:data:`PARAM_RANGES`), the CLI's help (``uvps.commands.protrusions``), the docs' tables
+(:func:`rules_markdown`, ``scripts/detection_docs.py``), the Fiji wording
+(``jython_lib/uvps_fiji/rejection_words.py``), and the along-stroke rescue's checks
+(:mod:`.along_stroke` calls the rules marked ``rescue`` on a bump's own measurements).
+"""
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from ._common import Thresholds, _on_long_structure
+from ._common import Thresholds
 from .features import CandidateFeatures
-from .params import DetectionParams, REJECTION_RULES
-
+from .params import CUE_RANGES, INF, DetectionParams, Range
 
 #: A candidate whose normals tilt less than this on average (deg) is flat (``flat_bright``,
 #: ``weave``): bare primer and the paint between protrusions lie within a degree of the canvas
 #: plane, while a protrusion 0.1-0.4 as high as it is wide tilts its flanks by 10-40 deg.
 FLAT_TILT_DEG = 1.0
-#: The strokes' own least slope is measured only over at least this many bumps on long
-#: structures: a median of fewer is one stroke's accident, not the image's statistics (with
-#: fewer, the slope test tests nothing; the ripple test still runs).
-STROKE_MIN_BUMPS = 8
-#: The ripple test (:func:`_ripples`): two neighbours in a row are similar crests when their
-#: equivalent diameters are within 1.6 x and their reliefs within 2 x of the bump's (a brush's
-#: ripples vary by about that much along a stroke), on opposite sides when their directions from
-#: it are at least 150 deg apart (a stroke curves a little over three crests), and evenly spaced
-#: when their distances are within 1.5 x of each other.
-RIPPLE_WIDTH_RATIO = 1.6
-RIPPLE_RELIEF_RATIO = 2.0
-RIPPLE_OPPOSITE_DEG = 150.0
-RIPPLE_SPACING_RATIO = 1.5
 
 
-def _stroke_slope(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams) -> tuple:
-    """The strokes' own statistics: which candidates are bumps on a long structure (a compact
-    peak with a long structure under it at least the relief threshold and a quarter of its
-    relief high, no albedo glow), and the least flank slope a protrusion among them must have:
-    ``stroke_slope_k`` x their median flank slope (inf-free: 0 with fewer than 8 of them, then
-    no candidate is tested). Returns (on_long mask, least slope)."""
-    slope = f.relief / np.maximum(f.eqd * px / 2, 1e-12)
-    on_long = f.has_h & ~f.has_a & _on_long_structure(f.under, f.relief, th)
-    if p.stroke_slope_k <= 0 or on_long.sum() < STROKE_MIN_BUMPS:
-        return on_long, 0.0
-    return on_long, float(p.stroke_slope_k * np.median(slope[on_long]))
+class RejectionRule(NamedTuple):
+    """One row of the rejection table: the rule's name, the quantity it tests, the test."""
+
+    name: str
+    quantity: str
+    test: str
 
 
-def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> np.ndarray:
-    """Which bumps on long structures are a stroke's ripples: periodic crests, not an event.
+class RuleContext(NamedTuple):
+    """What a rule's test reads beside the features: the thresholds, the pixel size, the
+    options, the strokes' own statistics (:func:`.strokes._stroke_slope`, :func:`.strokes._ripples`),
+    and whether the candidate is a bump measured by the along-stroke rescue (``bump``: its own
+    footprint's measurements, see :data:`RULES`)."""
 
-    A bump ``j`` of the strokes' population (``on_long``, :func:`_stroke_slope`: no glow) is a
-    ripple when two others of that population, each 1/1.6-1.6 x its equivalent diameter ``d``
-    and 1/2-2 x its relief, lie within ``ripple_reach x d`` of it on opposite sides (their
-    directions from it at least 150 deg apart) at distances within 1.5 x of each other: it is
-    the middle of an evenly spaced row of similar crests, as a brush's ripples are (every 1-2
-    crest widths along the stroke). The ends of a row are ripples too when the row holds four
-    or more (the other end of their triple is the middle of the next triple along the row); a
-    row of three keeps its ends, even where another row crosses it at an end. A bump centred on
-    ``j``'s centre has no direction from it and is left out of ``j``'s rows. Every candidate of
-    the population counts as a neighbour, whatever rule rejects it, so a row stays a row where
-    some of its crests fail another test. A protrusion is an event: a row of similar,
-    non-glowing ones at even spacing is the case this test gets wrong (the glowing ones are
-    never tested). The relief keeps a protrusion that erupts through a rippled stroke out of its
-    row: on the end-to-end captures of docs/benchmarks.md two weakly glowing ones 200-230 um
-    wide stood 55-70 um over their surround, between crests a fifth as high. Hand-written: no
-    library tests collinear, evenly spaced neighbours; the neighbours come from
-    :class:`scipy.spatial.cKDTree`. Returns a mask."""
-    out = np.zeros(f.lbl.size, bool)
-    pop = np.flatnonzero(on_long)
-    if p.ripple_reach <= 0 or pop.size < 3:
-        return out
-    tree = cKDTree(f.centroid[pop])
-    d = f.eqd
-    triples = []                                     # (middle, one end, the other end)
-    cos_max = math.cos(math.radians(RIPPLE_OPPOSITE_DEG))
-    for j, near in zip(pop, tree.query_ball_point(f.centroid[pop], p.ripple_reach * d[pop])):
-        q = pop[np.asarray(near, dtype=np.intp)]
-        q = q[(q != j) & (d[q] >= d[j] / RIPPLE_WIDTH_RATIO) & (d[q] <= RIPPLE_WIDTH_RATIO * d[j])
-              & (f.relief[q] >= f.relief[j] / RIPPLE_RELIEF_RATIO)
-              & (f.relief[q] <= RIPPLE_RELIEF_RATIO * f.relief[j])]
-        v = f.centroid[q] - f.centroid[j]
-        r = np.hypot(v[:, 0], v[:, 1])
-        q, v, r = q[r > 0], v[r > 0], r[r > 0]       # a centroid on j's own: no direction
-        if q.size < 2:
-            continue
-        cos = (v @ v.T) / np.outer(r, r)
-        ratio = r[:, None] / r[None, :]
-        a, b = np.nonzero(np.triu((cos < cos_max) & (ratio <= RIPPLE_SPACING_RATIO)
-                                  & (ratio >= 1 / RIPPLE_SPACING_RATIO)))
-        triples += [(j, int(x), int(y)) for x, y in zip(q[a], q[b])]
-    beside = {(m, e) for m, x, y in triples for e in (x, y)}     # e is beside m in a row through m
-    for m, x, y in triples:
-        out[m] = True
-        # a row of four or more, x m y z: m is also beside y in the row (m, y, z); a row of three,
-        # or another row crossing through y, keeps x
-        out[x] |= (y, m) in beside
-        out[y] |= (x, m) in beside
-    return out
+    th: Thresholds
+    px: float
+    p: DetectionParams
+    on_long: object = False
+    stroke_min: float = 0.0
+    ripple: object = False
+    bump: bool = False
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One rejection rule, declared once."""
+
+    name: str
+    words: str                  # a rejection in a conservator's words (Fiji's Log)
+    quantity: str               # what it measures (docs, REJECTION_RULES)
+    test: str                   # its test (docs, REJECTION_RULES)
+    params: dict                # the DetectionParams fields it owns -> Range
+    reads: tuple                # the CandidateFeatures fields it reads
+    fails: Callable             # (features, RuleContext) -> bool per candidate
+    rescue: bool = False        # re-applied by the along-stroke rescue to a bump
+
+
+def _slope(f, c: RuleContext):
+    """Flank slope relief / (width / 2)."""
+    return f.relief / np.maximum(f.eqd * c.px / 2, 1e-12)
+
+
+def _too_small(f, c: RuleContext):
+    return f.eqd < c.th.min_w
+
+
+def _too_large(f, c: RuleContext):
+    return f.eqd > c.th.max_w
+
+
+def _ridge(f, c: RuleContext):
+    """For a bump (``c.bump``) the axes are compared as ``minor < ridge_axis_ratio x major`` (its
+    outline's second moments) and the compact-fraction clause is not tested (its excess is
+    compact by construction), as the rescue always did."""
+    p = c.p
+    long_axes = f.major * c.px >= p.ridge_min_length_um
+    if c.bump:
+        return (f.elongation > p.ridge_elongation) | ((f.minor < p.ridge_axis_ratio * f.major) & long_axes)
+    compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
+    return ((f.elongation > p.ridge_elongation) | ((f.axis_ratio < p.ridge_axis_ratio) & long_axes)
+            | (~f.has_h & (f.relief_disc >= c.th.relief_um) & (compact < p.ridge_compact_fraction)))
+
+
+def _stroke(f, c: RuleContext):
+    return c.on_long & ((_slope(f, c) < c.stroke_min) | c.ripple)
+
+
+def _crack(f, c: RuleContext):
+    return (f.hole_fraction > c.p.max_hole_fraction) | (f.crack_fraction > c.p.max_crack_fraction)
+
+
+def _flat(f, c: RuleContext):
+    return (f.relief < c.th.relief_um) | (f.tilt_deg < FLAT_TILT_DEG)
+
+
+def _flat_bright(f, c: RuleContext):
+    return _flat(f, c) & f.has_a & ~f.has_h
+
+
+def _artefact(f, c: RuleContext):
+    """For a bump the unmeasured share is compared as counts, ``unmeasured pixels >
+    max_unmeasured_fraction x outline pixels``, as the rescue always did."""
+    p = c.p
+    if c.bump:
+        return (f.mismatch > p.max_mismatch) | (f.unmeasured_px > p.max_unmeasured_fraction * f.area_px)
+    return (f.mismatch > p.max_mismatch) | (f.unmeasured > p.max_unmeasured_fraction)
+
+
+def _weave(f, c: RuleContext):
+    """For a bump: relief under the threshold or slope under ``slope_min`` (no tilt, no glow:
+    a bump on a stroke meets the weave's slope whatever its glow), as the rescue always did."""
+    slope = _slope(f, c)
+    if c.bump:
+        return (f.relief < c.th.relief_um) | (slope < c.th.slope_min)
+    # the weave does not glow: a candidate whose glow is its own meets the paint's floor, its
+    # relief the larger of the local one and the one over the disc opening (on a stroke's
+    # curved flank the plane through its ring, or the compact relief, leaves it only its top)
+    own = f.has_a & (f.own_glow >= c.p.own_glow_fraction)
+    half = np.maximum(f.eqd * c.px / 2, 1e-12)
+    weave = np.where(own, np.maximum(f.relief, f.relief_disc) / half < 2 * c.p.min_relief_ratio,
+                     slope < c.th.slope_min)
+    return _flat(f, c) | weave
+
+
+#: The rejection table, applied in this order (a candidate keeps the first rule it fails).
+RULES = (
+    Rule("too_small", "narrower than the smallest width",
+         "equivalent diameter 2 sqrt(area / pi)", "< min_width_um",
+         {"min_width_um": Range(0.0, "max_width_um", True, True)}, ("eqd",), _too_small, rescue=True),
+    Rule("ridge", "ridges and brush strokes",
+         "elongation area / (pi r_in^2) (r_in: largest inscribed radius); "
+         "minor / major axis; compact fraction (relief within L / relief over the "
+         "surround, for raised areas without a compact peak)",
+         "elongation > ridge_elongation, or axis ratio < ridge_axis_ratio with a major "
+         "axis >= ridge_min_length_um, or compact fraction < ridge_compact_fraction",
+         {"ridge_elongation": Range(0.0, INF, lo_open=True), "ridge_axis_ratio": Range(0.0, 1.0),
+          "ridge_min_length_um": Range(0.0, INF), "ridge_compact_fraction": Range(0.0, 1.0)},
+         ("elongation", "axis_ratio", "major", "has_h", "relief", "relief_disc"), _ridge, rescue=True),
+    Rule("stroke", "ripples, piled ends and crossings of brush strokes",
+         "on a long structure (the disc top-hat exceeds the compact relief under "
+         "it by the relief threshold and a quarter of its relief), without the albedo's "
+         "glow: flank slope relief / (width / 2)",
+         "< stroke_slope_k x the median flank slope of the bumps on long structures "
+         "(measured per image, at least 8 of them): a ripple, a piled end or a crossing "
+         "of a brush stroke; or a member of an evenly spaced row of similar such bumps "
+         "(_ripples: a stroke's ripples) (ridge, stroke and crack: unless its excess "
+         "over the stroke's profile continued along the stroke is a closed, steep bump "
+         "whose mismatch is within max_mismatch, _bumps_on_strokes; never for a ripple)",
+         {"stroke_slope_k": Range(0.0, INF, hi_open=True, note="0 disables"),
+          "ripple_reach": Range(0.0, INF, hi_open=True, note="0 disables")},
+         ("relief", "eqd", "has_h", "has_a", "under", "centroid"), _stroke, rescue=True),
+    Rule("crack", "crack edges and cupped rims",
+         "crack fraction: of the 2-px ring around it, the part in a crack (black "
+         "top-hat over crack_width_um) at least half as deep as it is high, counted where "
+         "the groove runs on 2 crack widths beyond it (a pocket between touching "
+         "protrusions ends with them); hole fraction: "
+         "area enclosed by the footprint but below its level / filled area",
+         "crack fraction > max_crack_fraction (a piece of a cupped island's rim or of a "
+         "stroke cut off by a crack), or hole fraction > max_hole_fraction (a crater's "
+         "floor stands above the paint, a cupped island's rim encloses its dish)",
+         {"max_crack_fraction": Range(0.0, 1.0), "max_hole_fraction": Range(0.0, 1.0),
+          "crack_width_um": Range(0.0, INF, True, True)},
+         ("crack_fraction", "hole_fraction"), _crack, rescue=True),
+    Rule("too_large", "wider than the largest width", "equivalent diameter", "> max_width_um",
+         {"max_width_um": Range("min_width_um", INF, True, True)}, ("eqd",), _too_large, rescue=True),
+    Rule("flat_bright", "bright but flat (bare primer)",
+         "relief (um) of a candidate found by the albedo only; mean tilt",
+         "relief < relief threshold or tilt < 1 deg: bare primer",
+         {}, ("relief", "tilt_deg", "has_a", "has_h"), _flat_bright),
+    Rule("artefact", "height artefacts the normals do not show",
+         "mismatch: over the footprint, mean |e - mean e| / mean |g - mean g|, "
+         "g the normals' slope, e the height's slope minus g (with normals only); "
+         "unmeasured fraction: the part of the footprint within 2 px of a pixel with no "
+         "measurement (non-finite albedo, normals or height)",
+         "mismatch > max_mismatch: relief the normals do not hold is an integration "
+         "artefact (e.g. along a crack whose walls the lamps do not light; the pixels "
+         "left out of the height's integration, left_out, set aside when the rest is at "
+         "least half the footprint); or unmeasured "
+         "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole",
+         {"max_mismatch": Range(0.0, INF, note="inf disables"), "max_unmeasured_fraction": Range(0.0, 1.0)},
+         ("mismatch", "unmeasured"), _artefact, rescue=True),
+    Rule("weave", "canvas weave",
+         "relief (um); flank slope relief / (width / 2); mean tilt; own glow: "
+         "of the albedo components it overlaps, the part inside it",
+         "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
+         "the weave's RMS slope) unless it glows and its own glow is at least "
+         "own_glow_fraction (the weave does not glow; a piece of a glowing stroke holds "
+         "a small part of the glowing paint it is cut from): then max(relief, relief over "
+         "the disc opening) / (width / 2) < 2 min_relief_ratio; or tilt < 1 deg",
+         {"weave_slope_k": Range(0.0, INF, hi_open=True), "min_relief_ratio": Range(0.0, INF, hi_open=True),
+          "own_glow_fraction": Range(0.0, INF, lo_open=True, note="above 1 disables")},
+         ("relief", "relief_disc", "eqd", "tilt_deg", "has_a", "own_glow"), _weave, rescue=True),
+)
+RULES_BY_NAME = {r.name: r for r in RULES}
+REJECTION_RULES = tuple(RejectionRule(r.name, r.quantity, r.test) for r in RULES)
+REJECTION_REASONS = tuple(r.name for r in RULES)
+#: Every option's range: the rules' own and the cues' (:data:`.params.CUE_RANGES`).
+PARAM_RANGES = {**{k: v for r in RULES for k, v in r.params.items()}, **CUE_RANGES}
+#: The rejection words in a conservator's words (Fiji's Log: ``rejection_words.py``).
+REJECTION_WORDS = {r.name: r.words for r in RULES}
 
 
 def _apply_rules(f: CandidateFeatures, th: Thresholds, px: float, p: DetectionParams,
                  on_long: np.ndarray, stroke_min: float, ripple: np.ndarray) -> np.ndarray:
-    """The rule of :data:`REJECTION_RULES` each candidate fails first ("" = kept); ``on_long``,
-    ``stroke_min``: :func:`_stroke_slope`; ``ripple``: :func:`_ripples`."""
-    flat = (f.relief < th.relief_um) | (f.tilt_deg < FLAT_TILT_DEG)
-    compact = np.where(f.relief_disc > 0, f.relief / np.maximum(f.relief_disc, 1e-12), 1.0)
-    half = np.maximum(f.eqd * px / 2, 1e-12)
-    slope = f.relief / half
-    # the weave does not glow: a candidate whose glow is its own meets the paint's floor, its
-    # relief the larger of the local one and the one over the disc opening (on a stroke's
-    # curved flank the plane through its ring, or the compact relief, leaves it only its top)
-    own = f.has_a & (f.own_glow >= p.own_glow_fraction)
-    weave = np.where(own, np.maximum(f.relief, f.relief_disc) / half < 2 * p.min_relief_ratio,
-                     slope < th.slope_min)
-    tests = {
-        "too_small": f.eqd < th.min_w,
-        "ridge": (f.elongation > p.ridge_elongation)
-                 | ((f.axis_ratio < p.ridge_axis_ratio) & (f.major * px >= p.ridge_min_length_um))
-                 | (~f.has_h & (f.relief_disc >= th.relief_um) & (compact < p.ridge_compact_fraction)),
-        "stroke": on_long & ((slope < stroke_min) | ripple),
-        "crack": (f.hole_fraction > p.max_hole_fraction) | (f.crack_fraction > p.max_crack_fraction),
-        "too_large": f.eqd > th.max_w,
-        "artefact": (f.mismatch > p.max_mismatch) | (f.unmeasured > p.max_unmeasured_fraction),
-        "flat_bright": flat & f.has_a & ~f.has_h,
-        "weave": flat | weave,
-    }
+    """The rule of :data:`RULES` each candidate fails first ("" = kept); ``on_long``,
+    ``stroke_min``: :func:`.strokes._stroke_slope`; ``ripple``: :func:`.strokes._ripples`."""
+    ctx = RuleContext(th, px, p, on_long, stroke_min, ripple)
     reason = np.full(f.lbl.size, "", dtype="<U13")
-    for rule in REJECTION_RULES:
-        reason[tests[rule.name] & (reason == "")] = rule.name
+    for rule in RULES:
+        reason[rule.fails(f, ctx) & (reason == "")] = rule.name
     return reason
+
+
+def _rescue_fails(bump, ctx: RuleContext) -> bool:
+    """Whether a bump of the along-stroke rescue (its own measurements: ``eqd``,
+    ``elongation``, ``major``, ``minor``, ``relief``, ``crack_fraction``, ``hole_fraction``,
+    ``mismatch``, ``unmeasured_px``, ``area_px``) fails one of the rules marked ``rescue``."""
+    ctx = ctx._replace(bump=True)
+    return any(bool(r.fails(bump, ctx)) for r in RULES if r.rescue)
+
+
+def _defaults() -> DetectionParams:
+    return DetectionParams()
+
+
+def rules_markdown() -> str:
+    """The rejection table as Markdown, from :data:`RULES` (``docs/architecture.md`` and
+    ``docs/protrusions.md`` hold it between ``<!-- rules:begin -->`` and ``<!-- rules:end -->``;
+    ``scripts/detection_docs.py`` writes it, ``tests/test_detect_package.py`` checks it)."""
+    d = _defaults()
+    rows = ["| rule | in a conservator's words | quantity | rejected when | options (default, range) |",
+            "|---|---|---|---|---|"]
+    for r in RULES:
+        opts = ", ".join(f"`{k}` ({getattr(d, k):g}, {v.text()})" for k, v in r.params.items()) or "-"
+        cells = (f"`{r.name}`{' *' if r.rescue else ''}", r.words, r.quantity, r.test, opts)
+        rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return ("\n".join(rows) + "\n\nApplied in this order; a candidate keeps the first rule it fails. "
+            "* the along-stroke rescue re-applies the rule to a bump's own measurements "
+            "(`rules._rescue_fails`: the `ridge` rule compares its axes as `minor < "
+            "ridge_axis_ratio x major` without the compact-fraction clause, `artefact` its "
+            "unmeasured pixels as counts, `weave` its relief and slope without the tilt and the "
+            "glow exemption). Generated from `uvps.core.detect.rules.RULES` by "
+            "`scripts/detection_docs.py`.\n")
+
+
+def jython_words_module() -> str:
+    """``jython_lib/uvps_fiji/rejection_words.py``: :data:`REJECTION_WORDS` for the Fiji side
+    (Jython 2.7 cannot import this package), written by ``scripts/detection_docs.py``."""
+    body = "".join(f"    {r.name!r}: {r.words!r},\n" for r in RULES)
+    return ('"""The detection\'s rejection rules in a conservator\'s words, for the Fiji Log.\n\n'
+            "Generated from ``uvps.core.detect.rules.RULES`` by ``scripts/detection_docs.py``: do not edit\n"
+            '(``tests/test_detect_package.py`` fails when it is stale)."""\n\n'
+            "REJECTION_WORDS = {\n" + body + "}\n")
