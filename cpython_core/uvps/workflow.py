@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -131,8 +132,39 @@ def read_request_capture(inputs: dict, params: dict, progress=None):
                         pattern=params.get("pattern"), progress=progress)
 
 
+@dataclass(frozen=True)
+class CaptureStep:
+    """What a command that reads a capture and writes a run folder is (declared once, with the
+    command: ``uvps.commands.capture``; ``batch`` runs :data:`RUN`). :func:`run_into_folder`
+    reads only this, never the command's name.
+
+    Attributes
+    ----------
+    name : str
+        The command (its files' ``run.json`` record and the progress messages).
+    stages : tuple
+        The pipeline's stages (:func:`uvps.core.pipeline.run`).
+    reuse_lights : bool
+        With no lights given, take the run folder's ``lights.json`` (its ``lights`` step's lamps,
+        not a second estimate that could differ; lamps it estimated divide no beams out).
+    whole_run : bool
+        The whole run: protrusions with ``regions`` or ``detect``, the ``flatfield`` stage only
+        with ``flatfield_images``, and the whole folder (report included) built anew and
+        swapped in in one step; a step (False) moves its files into the folder one by one.
+    """
+
+    name: str
+    stages: tuple
+    reuse_lights: bool = False
+    whole_run: bool = False
+
+
+RUN = CaptureStep("run", ("flatfield", "normals", "height"), whole_run=True)
+FLATFIELD = CaptureStep("flatfield", ("flatfield",), reuse_lights=True)
+LIGHTS = CaptureStep("lights", ())
+NORMALS = CaptureStep("normals", ("normals",), reuse_lights=True)
 #: Step-by-step commands that take the run folder's ``lights.json`` when no lights are given.
-REUSE_LIGHTS = ("flatfield", "normals")
+REUSE_LIGHTS = tuple(s.name for s in (RUN, FLATFIELD, LIGHTS, NORMALS) if s.reuse_lights)
 
 
 
@@ -145,38 +177,31 @@ def _lights_source(path) -> Optional[str]:
         return None
 
 
-def run_into_folder(name: str, stages: tuple, inputs: dict, params: dict, output_dir, *, progress: Progress = None
-                ) -> CommandResult:
+def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *, progress: Progress = None
+                    ) -> CommandResult:
     """Read a capture, run :func:`uvps.core.pipeline.run` on it and write the run folder
     (:func:`uvps.files.runfolder.write_run`): what ``run``, ``flatfield``, ``lights`` and ``normals``
-    do (``name``, with the pipeline's ``stages``) and what ``batch`` does for each capture.
+    do (``step``, their declaration) and what ``batch`` does for each capture (:data:`RUN`).
     ``params`` are the command's, coerced (every declared key present)."""
     run_dir = check_output_dir(output_dir)
     t_all = time.perf_counter()
     params, cal = run_params(params)     # the calibration's lamps, dark frame, pixel size
-    if cal is None and name in REUSE_LIGHTS and params["lights"] is None and (run_dir / "lights.json").is_file():
-        # step by step: the lamps of the folder's `lights` step, not a second estimate that
-        # could differ (and costs the most time)
-        params = {**params, "lights": str(run_dir / "lights.json")}
-        log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
-        if _lights_source(run_dir / "lights.json") == "estimated":
-            # lamps fitted to these images' own drop-off: nothing beyond their model to divide out, as in
-            # `run`, which estimates them and divides nothing (the steps give the whole run's normals)
-            params = {**params, "lamp_beams": "none"}
+    if cal is None and step.reuse_lights:
+        params = _folder_lights(run_dir, params)
     capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
     if cal is not None:
         capture = apply_calibration(cal, capture)
-    protrusions = name == "run" and bool(params.get("regions") or params.get("detect"))
+    protrusions = step.whole_run and bool(params.get("regions") or params.get("detect"))
     regions = params.get("regions") if protrusions else None
     if regions is not None and regions != "auto":
         # a label image or masks, read before the run computes (and sized as the capture)
         regions = load_regions([Path(p) for p in regions] if isinstance(regions, (list, tuple)) else Path(regions),
                                shape=capture.images.shape[1:3])
-    todo = stages
-    if name == "run" and not params.get("flatfield_images"):
+    todo = step.stages
+    if step.whole_run and not params.get("flatfield_images"):
         # the flat-fielded images are twice the capture on disk (15 GB for 10000 x 8000 x 16) and
         # 4.3 of a 4000 x 3000 run's 16 s; the normals divide by the same drop-off in memory
-        todo = tuple(s for s in stages if s != "flatfield")
+        todo = tuple(s for s in step.stages if s != "flatfield")
     card = None
     if params.get("card"):
         # the card's images with the capture's dark frame subtracted, as the capture's were
@@ -186,36 +211,62 @@ def run_into_folder(name: str, stages: tuple, inputs: dict, params: dict, output
                  dark_given=params["dark"] is not None, regions=regions, card=card,
                  n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
     if cal is not None:
-        result.diagnostics["calibration"] = cal.summary()
-        if result.relief:
-            result.relief = {**result.relief, "lamps": "calibration",
-                             "reason": f"the lamps come from the calibration {cal.folder} "
-                                       f"({result.diagnostics['calibration'].get('route')}), which fixes "
-                                       "their elevation and so the heights' scale"}
-    if name != "run":
-        with atomic_output_dir(run_dir) as tmp:
-            outputs = write_run(tmp, result, command=name, params=params, final=run_dir,
-                                          progress=sub_progress(progress, 0.9, 0.95))
-        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-    else:
-        # the whole result, report and figures included, is built in a new folder that replaces
-        # the old one in one step: a run folder is never a mixture of two runs
-        dropped = _earlier_results(run_dir)
-        with new_output_dir(run_dir, carry_over=carried_over) as new:
-            outputs = write_run(new, result, command=name, params=params, final=run_dir,
-                                          progress=sub_progress(progress, 0.9, 0.95))
-            out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-            if protrusions:
-                out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
-                for o in out.outputs:
-                    if Path(o.path).is_relative_to(new):
-                        o.path = str(run_dir / Path(o.path).relative_to(new))
-        if dropped:
-            out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
-                                "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
+        _with_calibration(result, cal)
+    out = _write_folder(step, run_dir, result, params, protrusions, progress)
     out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
     out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
-    report(progress, 1.0, f"{name}: done")
+    report(progress, 1.0, f"{step.name}: done")
+    return out
+
+
+def _folder_lights(run_dir: Path, params: dict) -> dict:
+    """A step's params with the run folder's ``lights.json`` when none are given (step by step:
+    the lamps of the folder's ``lights`` step, not a second estimate that could differ, and costs
+    the most time)."""
+    if params["lights"] is not None or not (run_dir / "lights.json").is_file():
+        return params
+    params = {**params, "lights": str(run_dir / "lights.json")}
+    log.info("lights from %s (the run folder's; give lights to override)", params["lights"])
+    if _lights_source(run_dir / "lights.json") == "estimated":
+        # lamps fitted to these images' own drop-off: nothing beyond their model to divide out, as in
+        # `run`, which estimates them and divides nothing (the steps give the whole run's normals)
+        params = {**params, "lamp_beams": "none"}
+    return params
+
+
+def _with_calibration(result, cal) -> None:
+    """Record the calibration in the run's diagnostics and its relief's origin (in place)."""
+    result.diagnostics["calibration"] = cal.summary()
+    if result.relief:
+        result.relief = {**result.relief, "lamps": "calibration",
+                         "reason": f"the lamps come from the calibration {cal.folder} "
+                                   f"({result.diagnostics['calibration'].get('route')}), which fixes "
+                                   "their elevation and so the heights' scale"}
+
+
+def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protrusions: bool,
+                  progress) -> CommandResult:
+    """Write the run's files into ``run_dir``: a step's moved in one by one; the whole run's (report
+    included) built in a new folder that replaces the old one in one step, so that a run folder is
+    never a mixture of two runs."""
+    if not step.whole_run:
+        with atomic_output_dir(run_dir) as tmp:
+            outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
+                                progress=sub_progress(progress, 0.9, 0.95))
+        return CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+    dropped = _earlier_results(run_dir)
+    with new_output_dir(run_dir, carry_over=carried_over) as new:
+        outputs = write_run(new, result, command=step.name, params=params, final=run_dir,
+                            progress=sub_progress(progress, 0.9, 0.95))
+        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        if protrusions:
+            out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
+            for o in out.outputs:
+                if Path(o.path).is_relative_to(new):
+                    o.path = str(run_dir / Path(o.path).relative_to(new))
+    if dropped:
+        out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
+                            "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
     return out
 
 

@@ -39,7 +39,7 @@ from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, 
 from ..core.measure import COLUMNS
 from ..files.tables import atomic_write_text, read_protrusions_csv
 from ..files.outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
-from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, run_into_folder
+from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..core.regions import UM2_PER_CM2
 from ..files.tables import load_regions, read_region_names
 from ..spec import CommandSpec, Param, coerce_value
@@ -131,8 +131,6 @@ def list_captures(items) -> list:
 
 #: The parameters of ``uvps run`` (all of them but its images): each capture runs with them.
 RUN_PARAMS = tuple(p for p in CAPTURE_PARAMS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS if p.where == "params")
-#: What ``uvps run`` computes: the pipeline's stages (the flat-fielded images only when asked).
-RUN_STAGES = ("flatfield", "normals", "height")
 
 
 def _run_param_names() -> tuple:
@@ -289,7 +287,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
             record["status"] = "skipped"
         else:
             log.info("%s: running (%s)", name, why)
-            result = run_into_folder("run", RUN_STAGES, {"images": [str(folder)]}, params, tmp)
+            result = run_into_folder(RUN, {"images": [str(folder)]}, params, tmp)
             write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
                                                      "params": _jsonable(params), "files": _side_files(params)})
             _swap_into_place(tmp, target)

@@ -18,19 +18,21 @@ from ..files import runfolder
 from ..files.io import write_imagej_tiff
 from ..files.outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
 from ..spec import CommandSpec, Param
-from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, run_into_folder
+from ..workflow import (CAPTURE_PARAMS, FLATFIELD, LIGHTS, NORMALS, OPTION_PARAMS, OUTPUT_PARAMS,
+                        PROTRUSION_PARAMS, RUN, CaptureStep, run_into_folder)
 
 log = logging.getLogger(__name__)
 
 _LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
 
 
-def _capture_command(name: str, stages: tuple):
+def _capture_command(step: CaptureStep):
     def cmd(inputs, params, output_dir, *, progress=None):
-        return run_into_folder(name, stages, inputs, params, output_dir, progress=progress)
+        return run_into_folder(step, inputs, params, output_dir, progress=progress)
 
-    cmd.__name__ = f"cmd_{name}"
-    cmd.__doc__ = f"``{name}``: read a capture and write {', '.join(stages) or 'the lights'} into the run folder."
+    cmd.__name__ = f"cmd_{step.name}"
+    cmd.__doc__ = (f"``{step.name}``: read a capture and write {', '.join(step.stages) or 'the lights'} "
+                   "into the run folder.")
     return cmd
 
 
@@ -119,7 +121,7 @@ _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True
 _STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
 
 SPECS = (
-    CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
+    CommandSpec("run", "the whole pipeline on a capture", _capture_command(RUN),
                 menu="Run Whole Pipeline", params=_RUN_LIGHTS + OPTION_PARAMS + PROTRUSION_PARAMS + OUTPUT_PARAMS,
                 description="Lights (estimated or given), flat-field, normals and albedo, height; with regions or "
                             "detect also colour areas, protrusions, statistics and report.html (without either, "
@@ -127,11 +129,11 @@ SPECS = (
                             "--flatfield-images (or later by `uvps flatfield`).",
                 output_note="the whole folder is replaced by this run's in one step, keeping files uvps does not "
                             "write"),
-    CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command("flatfield", ("flatfield",)),
+    CommandSpec("flatfield", "drop-off fits and flat-fielded images", _capture_command(FLATFIELD),
                 menu="Flat Field", params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
-    CommandSpec("lights", "light directions and positions", _capture_command("lights", ()),
+    CommandSpec("lights", "light directions and positions", _capture_command(LIGHTS),
                 menu="Estimate Lights", params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
-    CommandSpec("normals", "normals, albedo and gradients", _capture_command("normals", ("normals",)),
+    CommandSpec("normals", "normals, albedo and gradients", _capture_command(NORMALS),
                 menu="Normals and Albedo", params=CAPTURE_PARAMS + OPTION_PARAMS),
     CommandSpec("integrate", "height from <run>/normals.tif", _cmd_integrate,
                 menu="Integrate Height", params=tuple(p for p in _STEREO if p.name == "integration") + (_PX_OVERRIDE,)),
