@@ -20,6 +20,12 @@ from .surface import Surface
 GLOW_SHARE = 0.2
 
 
+#: The ring (px) around a candidate whose height is its surround (the ``crack`` rule's ring; the
+#: relief's ring is at least this and a quarter of the smallest width + 1 px): 2 px clears the
+#: foot's last pixel and its smoothing, and stays on the paint next to it.
+RING_PX = 2.0
+
+
 @dataclass
 class CandidateFeatures:
     """Per-candidate quantities tested by :data:`REJECTION_RULES` (lengths in px, heights in um)."""
@@ -246,9 +252,9 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
     lbl = np.flatnonzero(area_all) + 1
     area = area_all[lbl - 1].astype(np.float64)
     eqd = np.sqrt(4 * area / np.pi)
-    ring_w = max(2.0, 0.25 * th.min_w + 1)
+    ring_w = max(RING_PX, 0.25 * th.min_w + 1)
     ring = _expand_labels(lab, ring_w) * (lab == 0)
-    ring2 = ring if ring_w == 2.0 else _expand_labels(lab, 2.0) * (lab == 0)
+    ring2 = ring if ring_w == RING_PX else _expand_labels(lab, RING_PX) * (lab == 0)
     t = surf.relief
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     is_h = cand.kind[lbl] == HEIGHT

@@ -13,6 +13,12 @@ from .height import _seeded
 from .params import DetectionParams
 
 
+#: A member's footprint over the plane is closed when at most this share of it lies beyond twice
+#: its compact radius (+ 2 px) from its peak: a protrusion's relief over the plane through its
+#: ring ends near its foot; relief running on into a lip or a stroke puts far more out there.
+OPEN_SHARE = 0.1
+
+
 def _local_footprints(hn, hl, markers, t, valid, th: Thresholds, p: DetectionParams) -> tuple:
     """Re-draw the height footprints over a robust local plane through their surround.
 
@@ -78,7 +84,7 @@ def _refine_group(h, hl, markers, cur, usable, reach, ring_w, p: DetectionParams
         lvl = np.where(np.isfinite(pk), p.footprint_fraction * pk, np.inf)
         new = _seeded(ws, (ws > 0) & (d >= lvl[ws]), root[mk])
         outside = np.bincount(new[(new > 0) & (root[near] != new)], minlength=size)
-        ok = outside <= 0.1 * np.bincount(new.ravel(), minlength=size)
+        ok = outside <= OPEN_SHARE * np.bincount(new.ravel(), minlength=size)
         closed[members] = ok[root[members]]
         new = np.where(closed[new], new, np.where(closed[compact], 0, compact))
         cur = new > 0
