@@ -1198,7 +1198,10 @@ def diagnostic_lines(command, diagnostics, user_gave_lights=False, table=None):
     # must not read as "N candidates, N kept, 0 rejected"
     if command in ("run", "detect"):
         lines += detection_lines(d.get("detect") if command == "run" else d)
-    if command == "wand" and "n_points" in d:
+    if command == "wand" and d.get("summary"):
+        # "7 clicks: 5 outlined, 2 not (bare paint at (412, 300) px; ...)": only the outlined count
+        lines.append(d["summary"])
+    elif command == "wand" and "n_points" in d:
         lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
     title = menu_title(command, table)
     return ["uvps %s %s" % (title, line) for line in lines]

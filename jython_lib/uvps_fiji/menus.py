@@ -54,7 +54,9 @@ def run_command(command, values, inputs=None, params=None, request_dir=None, ski
     got_params.update(params or {})
     response = runner.call(command, got_inputs, got_params, run_folder(values),
                            request_dir=request_dir)
-    if response.text or not spec.get("output"):
+    if (response.text or not spec.get("output")) \
+            and response.text != (response.diagnostics or {}).get("summary"):
+        # (a summary the diagnostics carry is one of the Log lines below)
         IJ.log(bridge_logic.response_text(response))
     report_response(command, response, table,
                     user_gave_lights=bool(optional_path(values.get("lights"))))
@@ -208,9 +210,10 @@ def wand_points(values, request_dir):
 
 def wand_count(values):
     """``wand``: the manual method; one wand selection per click on the albedo, then counted.
-    Clicks that added no protrusion (inside an earlier click's outline, or outlined as their own
-    pixel only) are the core's one warning line in the Log; the grey (R+G+B)/3 image the wand
-    works on opens as ``albedo (R+G+B)/3`` for wanding by hand."""
+    Only clicks that outlined a protrusion are counted; the Log's line "7 clicks: 5 outlined, 2 not
+    (bare paint at (x, y) px; ...)" names the others, which stay in the table as clicks (``counted``
+    0, and why) with no outline. The grey (R+G+B)/3 image the wand works on opens as
+    ``albedo (R+G+B)/3`` for wanding by hand."""
     out = run_folder(values)
     albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
