@@ -141,7 +141,7 @@ def wand_one(seed, shape, pipeline, tolerances):
         area = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
         return np.where(ids > 0, area[ids], 0) / true_area
 
-    judged = judge_clicks(contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px), clicks, height=_h,
+    judged = judge_clicks(contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px), clicks, height=_h, albedo=alb,
                           max_width_px=MAX_WIDTH_UM / px)
     out["relative 0.5 (default)"] = ratios(judged.labels)
     for tol in tolerances:
@@ -199,7 +199,7 @@ def wand_off_one(seed, shape, pipeline, n_bare=100, n_bumps=30):
     out = {}
     for kind, clicks in (("bare paint", np.array(plain).reshape(-1, 2)), ("height only", np.array(bumps).reshape(-1, 2))):
         labels = contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px)
-        judged = judge_clicks(labels, clicks, height=h, max_width_px=MAX_WIDTH_UM / px)
+        judged = judge_clicks(labels, clicks, height=h, albedo=alb, max_width_px=MAX_WIDTH_UM / px)
         out[kind] = (judged.status, judged.relief_ratio)
     return out
 

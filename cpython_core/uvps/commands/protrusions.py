@@ -108,7 +108,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                                  fraction=CONTRAST_FRACTION if tolerance is None else tolerance,
                                  max_width_px=params["max_width_um"] / images.pixel_size_um)
     report(progress, 0.6, "judging the outlines")
-    judged = judge_clicks(labels, seeds, height=images.height_um,
+    judged = judge_clicks(labels, seeds, height=images.height_um, albedo=images.albedo,
                           max_width_px=params["max_width_um"] / images.pixel_size_um)
     report(progress, 0.7, "measuring")
     table = _click_table(judged, seeds, images, regions)

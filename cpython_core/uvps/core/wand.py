@@ -322,6 +322,15 @@ def _grow_by_contrast(grey, finite, y, x, frac, max_w):
 #: protrusions start at 9.7.
 RAISED_RATIO = 8.0
 
+#: A raised outline counts when it is a clear step in the albedo (its median differs from the ring's around it by
+#: at least this many times the ring's spread, 1.4826 MAD) ...
+CLEAR_CONTRAST = 3.0
+#: ... or else agrees with the bump in the height at the click (intersection over union of the albedo outline and
+#: the half-height outline of the height at least this): the paint's texture outlined over a bump in the height
+#: alone is raised by the bump, not by itself. Measured by ``scripts/benchmark_protrusions.py --wand-off``: such
+#: outlines 1.9-2.4 and 0.07-0.22; outlines of protrusions >= 100 um 2 % below 2.65 and 2 % below 0.41.
+MATCH_IOU = 0.3
+
 #: Why a click is not counted (the ``status`` of :class:`WandClicks`), in words.
 NOT_COUNTED = {"bare paint": "no protrusion outlined: bare paint",
                "height only": "no contrast in the albedo the wand outlines on: a bump in the height only",
@@ -405,13 +414,43 @@ def _relief_ratio(height, labels, lab, sl, *, gap=0.0):
     return relief / spread
 
 
-def judge_clicks(labels, seeds, *, height=None, max_width_px=None, min_ratio=RAISED_RATIO) -> WandClicks:
+def _contrast_and_match(grey, height, labels, lab, sl, x, y, max_width_px):
+    """The outline's albedo contrast over its ring's spread, and its IoU with the height's outline at the click."""
+    m, n = labels.shape
+    area = int(np.count_nonzero(labels[sl] == lab))
+    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
+    pad = int(np.ceil(radius)) + 1
+    r0, r1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)
+    c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)
+    crop = labels[r0:r1, c0:c1]
+    g = grey[r0:r1, c0:c1]
+    inside = crop == lab
+    dist = ndi.distance_transform_edt(~inside)
+    ring = (dist > 0) & (dist <= radius) & (crop == 0) & np.isfinite(g)
+    contrast = 0.0
+    if ring.sum() >= 8:
+        vals = g[ring]
+        spread = 1.4826 * float(np.median(np.abs(vals - np.median(vals))))
+        step = abs(float(np.nanmedian(g[inside])) - float(np.median(vals)))
+        contrast = step / spread if spread > 0 else float("inf")
+    iou = 0.0
+    if height is not None and np.isfinite(height[y, x]):
+        bump = contrast_select(height, [(x, y)], max_width_px=max_width_px) == 1
+        region = labels == lab
+        iou = float(np.count_nonzero(bump & region)) / max(1, int(np.count_nonzero(bump | region)))
+    return contrast, iou
+
+
+def judge_clicks(labels, seeds, *, height=None, albedo=None, max_width_px=None, min_ratio=RAISED_RATIO) -> WandClicks:
     """Decide which clicks of the wand outlined a protrusion: only those are counted.
 
     A click is counted when the wand outlined more than its own pixel around it (it had a contrast in
     the albedo), the outline is its own (not an earlier click's) and, with a ``height``, the outline
     stands above the paint around it (:data:`RAISED_RATIO`): a protrusion is raised, the outline of
-    the paint's own texture or of a bare primer spot is not. A click without contrast in the albedo
+    the paint's own texture or of a bare primer spot is not. With the ``albedo`` too, a raised
+    outline must also be a clear step in the albedo (:data:`CLEAR_CONTRAST`) or agree with the bump
+    in the height at the click (:data:`MATCH_IOU`): the paint's texture outlined over a bump that
+    shows in the height alone is not counted. A click without contrast in the albedo
     is "height only" when the height shows a raised bump there (outlined on the height as
     :func:`contrast_select` does on the albedo), else "bare paint".
 
@@ -423,6 +462,8 @@ def judge_clicks(labels, seeds, *, height=None, max_width_px=None, min_ratio=RAI
         The clicks ``(x_px, y_px)``.
     height : (M, N) array, optional
         The height map (micrometres, or relative: only ratios are used).
+    albedo : (M, N) or (M, N, 3) array, optional
+        The image the wand outlined on (RGB: the mean of R, G, B).
     max_width_px : float, optional
         The widest protrusion, for outlining a bump in the height.
     min_ratio : float
@@ -435,6 +476,9 @@ def judge_clicks(labels, seeds, *, height=None, max_width_px=None, min_ratio=RAI
     labels = np.asarray(labels)
     pts = _as_seed_array(seeds, "seeds")
     h = None if height is None else np.asarray(height, dtype=np.float64)
+    grey = None if albedo is None else np.asarray(albedo, dtype=np.float64)
+    if grey is not None and grey.ndim == 3:
+        grey = grey.mean(axis=2)
     n = len(pts)
     out = np.zeros(labels.shape, np.int32)
     counted = np.zeros(n, bool)
@@ -468,6 +512,14 @@ def judge_clicks(labels, seeds, *, height=None, max_width_px=None, min_ratio=RAI
                 note[i] = (f"the albedo outline ({int(area[lab])} px) is not raised above the paint around it "
                            f"(relief {ratio[i]:.1f} x its spread; below {min_ratio:g}): the paint's texture")
                 continue
+            if grey is not None:
+                contrast, iou = _contrast_and_match(grey, h, labels, lab, sl, x, y, max_width_px)
+                if contrast < CLEAR_CONTRAST and iou < MATCH_IOU:
+                    status[i] = "height only"
+                    note[i] = (f"the albedo outline ({int(area[lab])} px) is a faint one ({contrast:.1f} x the paint's "
+                               f"spread) over a bump of the height it does not match (overlap {iou:.2f}): "
+                               "the paint's texture over a bump in the height only")
+                    continue
         status[i], counted[i] = "outlined", True
         out[sl][labels[sl] == lab] = lab
     return WandClicks(out, counted, status, note, repeats, ratio)
