@@ -139,5 +139,5 @@ def test_judging_unit_cases():
     assert judged.repeats.tolist() == [0, 0, 1, 0]
     assert "not raised" in judged.note[1] and "no contrast" in judged.note[3]
     assert (judged.labels > 0).sum() == (labels == 1).sum() and set(np.unique(judged.labels)) == {0, 1}
-    assert judged.summary(clicks) == ("4 clicks: 1 outlined, 3 not (bare paint at (110, 60) px; repeat of click 1 "
+    assert judged.summary(clicks) == ("4 clicks: 1 outlined, 3 not (bare paint at (110, 60) px; click 3 repeats click 1 "
                                       "at (41, 61) px; bare paint at (75, 20) px)")

@@ -375,8 +375,8 @@ class WandClicks:
         text = f"{n} click{'s' if n != 1 else ''}: {k} outlined"
         missed = [i for i in range(n) if not self.counted[i]]
         if missed:
-            items = [(f"repeat of click {self.repeats[i]}" if self.status[i] == "repeat" else self.status[i])
-                     + f" at ({int(seeds[i][0])}, {int(seeds[i][1])}) px" for i in missed[:8]]
+            items = [(f"click {i + 1} repeats click {self.repeats[i]}" if self.status[i] == "repeat"
+                      else self.status[i]) + f" at ({int(seeds[i][0])}, {int(seeds[i][1])}) px" for i in missed[:8]]
             more = f"; and {len(missed) - 8} more" if len(missed) > 8 else ""
             text += f", {len(missed)} not ({'; '.join(items)}{more})"
         return text
