@@ -208,8 +208,8 @@ def wand_off_report(args) -> None:
     runs = [wand_off_one(s, tuple(args.shape), args.pipeline) for s in args.seeds]
     print(f"Synthetic captures {args.shape[0]}x{args.shape[1]} px at 15 um/px, 12 lamps, 30 domes added to the "
           f"height alone, seeds {args.seeds}; albedo and height from uvps run with {args.pipeline or 'true'} lights.\n")
-    print("| clicks on | clicks | counted | worst seed | judged bare paint | judged height only | albedo outlines not "
-          "raised (largest relief ratio) |")
+    print("| clicks on | clicks | counted | worst seed | judged bare paint | judged height only | "
+          "albedo outlines judged (largest relief ratio) |")
     print("|---|---|---|---|---|---|---|")
     for kind in ("bare paint", "height only"):
         st = [np.array(r[kind][0]) for r in runs]
