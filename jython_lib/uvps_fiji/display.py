@@ -179,7 +179,7 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     Returns
     -------
     int
-        The number of protrusions.
+        The number of protrusions (rows with ``counted`` 0, the wand's clicks not counted, are none).
     """
     table = open_table(csv_path, title)
     labels_imp = None
@@ -208,7 +208,7 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
             overlay.add(roi.clone())
         imp.setOverlay(overlay)
     IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
-    return table.size()
+    return len(rois)   # the counted rows (a wand table also lists the clicks it did not count)
 
 
 def outlines_on(title, run_dir):
