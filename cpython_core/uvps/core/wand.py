@@ -516,9 +516,10 @@ def judge_clicks(labels, seeds, *, height=None, albedo=None, max_width_px=None, 
                 contrast, iou = _contrast_and_match(grey, h, labels, lab, sl, x, y, max_width_px)
                 if contrast < CLEAR_CONTRAST and iou < MATCH_IOU:
                     status[i] = "height only"
-                    note[i] = (f"the albedo outline ({int(area[lab])} px) is a faint one ({contrast:.1f} x the paint's "
-                               f"spread) over a bump of the height it does not match (overlap {iou:.2f}): "
-                               "the paint's texture over a bump in the height only")
+                    note[i] = (f"the albedo outline ({int(area[lab])} px) is faint ({contrast:.1f} x the paint's "
+                               f"spread) and does not match the bump in the height (overlap {iou:.2f}): the bump "
+                               "shows in the height only; if it is a protrusion click its brightest part or use "
+                               "method imagej with a tolerance")
                     continue
         status[i], counted[i] = "outlined", True
         out[sl][labels[sl] == lab] = lab
