@@ -18,7 +18,13 @@ With ``--wand``, the manual method instead: a click at the centre of every true 
 least 100 um on the albedo that ``uvps run`` computes with the true lamps (``--pipeline true``'s
 maps; ``--pipeline estimated`` for estimated lamps), outlined by ``uvps wand``'s default (the
 relative wand, :func:`uvps.core.wand.contrast_select`) and by ImageJ's wand at fixed tolerances (in the
-albedo's counts); the share of clicks outlined within 0.5-2x the true footprint's area.
+albedo's counts); the share of clicks outlined within 0.5-2x the true footprint's area. The
+relative wand's row counts a click only where ``uvps wand`` counts it (:func:`uvps.core.wand.judge_clicks`).
+
+With ``--wand-off``, clicks off every protrusion, none of which ``uvps wand`` may count: on bare paint
+at least 1 mm from any protrusion (the true albedo within 12 % of its colour area's paint), and on
+bumps in the height alone (domes added to the height at other such points, the albedo unchanged,
+the capture rendered again).
 
 Example::
 
@@ -119,7 +125,7 @@ def run_one(seed, shape, height_noise, albedo_noise, params, pipeline=None):
 def wand_one(seed, shape, pipeline, tolerances):
     """Area ratios (outlined / true footprint) of the clicks at the true centres of protrusions
     >= 100 um: the relative wand's default and ImageJ's wand at each of ``tolerances``."""
-    from uvps.core.wand import MAX_WIDTH_UM, contrast_select, wand_select
+    from uvps.core.wand import MAX_WIDTH_UM, contrast_select, judge_clicks, wand_select
 
     cap = make_capture(shape=shape, seed=seed, n_lights=12)
     alb, _h = pipeline_maps(cap, true_lights=(pipeline != "estimated"))
@@ -135,10 +141,85 @@ def wand_one(seed, shape, pipeline, tolerances):
         area = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
         return np.where(ids > 0, area[ids], 0) / true_area
 
-    out["relative 0.5 (default)"] = ratios(contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px))
+    judged = judge_clicks(contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px), clicks, height=_h, albedo=alb,
+                          max_width_px=MAX_WIDTH_UM / px)
+    out["relative 0.5 (default)"] = ratios(judged.labels)
     for tol in tolerances:
         out[f"ImageJ {tol:g}"] = ratios(wand_select(alb, clicks, tolerance=tol))
     return out
+
+
+def wand_off_one(seed, shape, pipeline, n_bare=100, n_bumps=30):
+    """Clicks off every protrusion and how ``uvps wand``'s default judges them: ``{kind: (status per
+    click, relief ratio per click)}``. Bare paint: points >= 1 mm from any protrusion's rim (the true
+    albedo within 12 % of its colour area's paint). Height only: domes 100-300 um wide and 0.15-0.35 x
+    as high added to the height at other such points, with the albedo unchanged, and the capture
+    rendered again (:func:`uvps.testing.synthetic.render_images`, the capture's lamps, exposure and
+    noise)."""
+    import dataclasses
+
+    from scipy import ndimage as ndi
+
+    from uvps.core.wand import MAX_WIDTH_UM, contrast_select, judge_clicks
+    from uvps.testing.synthetic import render_images
+
+    cap = make_capture(shape=shape, seed=seed, n_lights=12)
+    pr, px = cap.protrusions, cap.spec.pixel_size_um
+    m, n = cap.height_um.shape
+    far = np.ones((m, n), bool)
+    far[np.floor(pr["y_px"]).astype(int), np.floor(pr["x_px"]).astype(int)] = False
+    dist_um = ndi.distance_transform_edt(far) * px
+    paint = np.zeros_like(cap.albedo)
+    for lab in np.unique(cap.regions):
+        sel = cap.regions == lab
+        paint[sel] = np.median(cap.albedo[sel], axis=0)
+    bare = (dist_um >= 1000.0 + pr["width_um"].max() / 2 + 300) \
+        & np.all(np.abs(cap.albedo - paint) < 0.12 * np.abs(paint).max(), axis=-1)
+    bare[:30], bare[-30:], bare[:, :30], bare[:, -30:] = False, False, False, False
+    ys, xs = np.nonzero(bare)
+    rng = np.random.default_rng(seed)
+    spots = []
+    for k in rng.permutation(len(xs)):                       # spots >= 0.6 mm apart
+        if all(np.hypot(xs[k] - x, ys[k] - y) * px >= 600 for x, y in spots):
+            spots.append((int(xs[k]), int(ys[k])))
+        if len(spots) == n_bare + n_bumps:
+            break
+    bumps, plain = spots[:n_bumps], spots[n_bumps:]
+    height = cap.height_um.astype(np.float64).copy()
+    yy, xx = np.mgrid[:m, :n]
+    for x, y in bumps:
+        w = rng.uniform(100, 300) / px
+        rho2 = ((xx - x) ** 2 + (yy - y) ** 2) / (w / 2) ** 2
+        height += np.where(rho2 < 1, rng.uniform(0.15, 0.35) * w * px * (1 - rho2), 0.0)
+    images = render_images(height, cap.albedo, pixel_size_um=px, light_positions_mm=cap.light_positions_mm,
+                           intensities=cap.intensities, rng=seed, gain=cap.gain, exposure=cap.exposure, read_noise=cap.spec.read_noise,
+                           dtype=cap.images.dtype)
+    cap = dataclasses.replace(cap, images=images, height_um=height.astype(np.float32))
+    alb, h = pipeline_maps(cap, true_lights=(pipeline != "estimated"))
+    out = {}
+    for kind, clicks in (("bare paint", np.array(plain).reshape(-1, 2)), ("height only", np.array(bumps).reshape(-1, 2))):
+        labels = contrast_select(alb, clicks, max_width_px=MAX_WIDTH_UM / px)
+        judged = judge_clicks(labels, clicks, height=h, albedo=alb, max_width_px=MAX_WIDTH_UM / px)
+        out[kind] = (judged.status, judged.relief_ratio)
+    return out
+
+
+def wand_off_report(args) -> None:
+    runs = [wand_off_one(s, tuple(args.shape), args.pipeline) for s in args.seeds]
+    print(f"Synthetic captures {args.shape[0]}x{args.shape[1]} px at 15 um/px, 12 lamps, 30 domes added to the "
+          f"height alone, seeds {args.seeds}; albedo and height from uvps run with {args.pipeline or 'true'} lights.\n")
+    print("| clicks on | clicks | counted | worst seed | judged bare paint | judged height only | "
+          "albedo outlines judged (largest relief ratio) |")
+    print("|---|---|---|---|---|---|---|")
+    for kind in ("bare paint", "height only"):
+        st = [np.array(r[kind][0]) for r in runs]
+        rat = np.concatenate([r[kind][1] for r in runs])
+        allst = np.concatenate(st) if st else np.zeros(0)
+        worst = max((np.count_nonzero(s == "outlined") for s in st), default=0)
+        fin = rat[np.isfinite(rat)]
+        print(f"| {kind} | {allst.size} | {np.count_nonzero(allst == 'outlined')} | {worst} | "
+              f"{np.count_nonzero(allst == 'bare paint')} | {np.count_nonzero(allst == 'height only')} | "
+              f"{fin.size} ({fin.max() if fin.size else float('nan'):.1f}) |")
 
 
 def wand_report(args) -> None:
@@ -208,11 +289,16 @@ def main(argv=None) -> int:
                          "12-lamp capture, with lights estimated from the images or the true ones "
                          "(--levels is then ignored)")
     ap.add_argument("--wand", action="store_true", help="the manual method's outlines instead of detection")
+    ap.add_argument("--wand-off", action="store_true",
+                    help="clicks off every protrusion (bare paint, height-only bumps): how many the wand counts")
     ap.add_argument("--wand-tolerances", nargs="+", default=["0.05", "1000", "3000"],
                     help="ImageJ wand tolerances (albedo counts) compared with the relative wand")
     args = ap.parse_args(argv)
     if args.wand:
         wand_report(args)
+        return 0
+    if args.wand_off:
+        wand_off_report(args)
         return 0
     if args.pipeline:
         args.levels = ["pipeline"]

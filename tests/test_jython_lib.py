@@ -773,3 +773,23 @@ def test_menu_titles_come_from_the_declarations(spec_table):
         assert titles[command.group(1)] == title, path.name
     assert scripts >= 14
     assert bl.menu_title("no-such-command", spec_table) == "no-such-command"
+
+
+def test_the_question_before_a_run_replaces_manual_work_names_it(tmp_path):
+    """Run Whole Pipeline asks before replacing a run folder that holds manual work: the files, the wand's
+    counted and clicked, and what each answer does."""
+    assert bl.manual_work_in(str(tmp_path)) == []
+    (tmp_path / "protrusions_manual.csv").write_text(
+        "id,x_px,y_px,width_um,counted,note\n1,5,5,100,1,\n2,9,9,,0,no contrast in the albedo: nothing outlined\n")
+    (tmp_path / "comparison.csv").write_text("label\n")
+    found = bl.manual_work_in(str(tmp_path))
+    assert found == ["protrusions_manual.csv (1 counted of 2 clicks)", "comparison.csv"]
+    text = bl.manual_work_question(str(tmp_path), found)
+    assert str(tmp_path) in text and "protrusions_manual.csv (1 counted of 2 clicks), comparison.csv" in text
+    assert "earlier/<date>_<run id>/" in text and bl.KEEP_AND_RUN in text and bl.DO_NOT_RUN in text
+
+
+def test_the_wand_summary_is_one_log_line():
+    d = {"n_points": 7, "n_protrusions": 5, "summary": "7 clicks: 5 outlined, 2 not (bare paint at (4, 5) px; "
+         "height only at (8, 9) px)"}
+    assert bl.diagnostic_lines("wand", d) == ["uvps Wand Count: " + d["summary"]]

@@ -194,7 +194,11 @@ def test_wand_default_outlines_each_clicked_protrusion_and_names_repeated_clicks
     ratio = area * capture.spec.pixel_size_um ** 2 / (np.pi * (p["width_um"][big] / 2) ** 2)
     assert np.mean((ratio >= 0.5) & (ratio <= 2)) >= 0.9, ratio
     assert res.diagnostics["n_protrusions"] == len(pts) and res.diagnostics["repeated_clicks"] == [len(pts) + 1]
-    assert any(f"#{len(pts) + 1} at ({pts[0][0]}, {pts[0][1]}) px" in w and "repeated" in w for w in res.warnings)
+    assert res.text == (f"{len(pts) + 1} clicks: {len(pts)} outlined, 1 not (click {len(pts) + 1} repeats click 1 "
+                        f"at ({pts[0][0]}, {pts[0][1]}) px)")
+    # the repeat stays in the table as a click, not counted
+    rows = read_protrusions_csv(run / "protrusions_manual.csv", clicks=True)
+    assert rows["counted"].tolist() == ["1"] * len(pts) + ["0"] and "click 1" in rows["note"][-1]
     assert not (run / "protrusions.csv").exists() or "wand" not in (run / "protrusions.csv").read_text()
 
 

@@ -68,7 +68,7 @@ def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture,
                           "--pixel-size-um", "30", "--lights", str(lights)], capture_output=True, text=True, timeout=600)
     assert old.returncode == 0, old.stderr
     (run / "notes.txt").write_text("the conservator's own notes")             # not the run's: carried over
-    (run / "protrusions_manual.csv").write_text("id\n")                        # an earlier wand's result: dropped
+    (run / "protrusions_manual.csv").write_text("id\n")                        # an earlier wand's result: set aside
     before = _snapshot(run)
     ran_over = interrupted = 0
     for marker in POINTS:
@@ -89,8 +89,13 @@ def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture,
             assert log["params"]["pixel_size_um"] == 15.0
             assert "protrusions_manual.csv" not in after and (run / "notes.txt").read_text().startswith("the")
             assert {"report.html", "run.json", "depth.tif", "regions.csv"} <= set(after)
-            assert set(after) - {"notes.txt"} == {k for k in before if k != "protrusions_manual.csv"} - {"notes.txt"}
-            for rel in after:
+            # the manual count moved aside with the run it was measured on, byte for byte
+            (aside,) = {k.split("/")[1] for k in after if k.startswith("earlier/")}
+            for name in ("protrusions_manual.csv", "run.json", "depth.tif", "albedo.tif"):
+                assert after[f"earlier/{aside}/{name}"] == before[name], name
+            now = {k for k in after if not k.startswith("earlier/")}
+            assert now - {"notes.txt"} == {k for k in before if k != "protrusions_manual.csv"} - {"notes.txt"}
+            for rel in now:
                 if rel != "notes.txt":
                     assert (run / rel).stat().st_mtime >= t0, rel                # every file of this run
             break       # the folder is new now; the old-folder comparison ends here

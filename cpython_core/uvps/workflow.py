@@ -26,7 +26,7 @@ from .files.cards import load_card
 from .files.io import read_capture
 from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
                             report, sub_progress)
-from .files.runfolder import FILES, RunImages, read_run, write_run
+from .files.runfolder import FILES, RunImages, manual_work, read_run, set_aside_manual_work, write_run
 from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
 from .report.page import print_pdf, write_report
 from .spec import Param
@@ -254,8 +254,10 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
             outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
                                 progress=sub_progress(progress, 0.9, 0.95))
         return CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-    dropped = _earlier_results(run_dir)
+    # the manual work of the earlier run moves aside with the run it was measured on
+    # (earlier/<date>_<run id>/): nothing a user made is lost by a re-run
     with new_output_dir(run_dir, carry_over=carried_over) as new:
+        kept = set_aside_manual_work(run_dir, new)
         outputs = write_run(new, result, command=step.name, params=params, final=run_dir,
                             progress=sub_progress(progress, 0.9, 0.95))
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
@@ -264,17 +266,21 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
             for o in out.outputs:
                 if Path(o.path).is_relative_to(new):
                     o.path = str(run_dir / Path(o.path).relative_to(new))
-    if dropped:
-        out.warnings.append(f"the earlier {' and '.join(dropped)} in {run_dir} were measured on the earlier "
-                            "run's heights and are not kept; run `uvps wand` / `uvps compare` again")
+    if kept is not None:
+        out.diagnostics["earlier_manual_work"] = str(run_dir / kept.relative_to(new))
+        out.warnings.append(f"the manual work in {run_dir} ({', '.join(manual_work(kept))}) was measured on the "
+                            f"earlier run: kept with that run in {run_dir / kept.relative_to(new)}; this run "
+                            "has no manual count of its own until one is made on it")
     return out
 
 
 #: What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the report's
 #: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
-#: of an earlier run (its flat-field, OME-Zarr stores, the wand's and compare's results) were made
-#: under its lamps and heights. Anything else in the folder (the user's clicks or notes, the demo's
-#: ``capture/``) is carried into the new folder unchanged.
+#: of an earlier run (its flat-field, OME-Zarr stores) were made under its lamps and heights; the
+#: manual work among them (the wand's count, a comparison) moves to ``earlier/<date>_<run id>/`` with
+#: the files it was measured on (:func:`uvps.files.runfolder.set_aside_manual_work`). Anything else in
+#: the folder (the user's clicks or notes, ``earlier/``, the demo's ``capture/``) is carried into the
+#: new folder unchanged.
 RUN_OWNED = frozenset(f for f, *_ in FILES.values()) | {"figures", "relight.tif"}
 
 
@@ -282,12 +288,6 @@ def carried_over(name: str) -> bool:
     """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
     leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
     return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
-
-
-def _earlier_results(run_dir: Path) -> list:
-    """The manual results of an earlier run in ``run_dir`` that a new run drops (the warning names them)."""
-    names = (FILES["protrusions_manual"][0], FILES["comparison"][0])
-    return [n for n in names if (Path(run_dir) / n).is_file()]
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):

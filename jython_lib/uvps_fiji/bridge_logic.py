@@ -1195,10 +1195,15 @@ def diagnostic_lines(command, diagnostics, user_gave_lights=False, table=None):
     # must not read as "N candidates, N kept, 0 rejected"
     if command in ("run", "detect"):
         lines += detection_lines(d.get("detect") if command == "run" else d)
-    if command == "wand" and "n_points" in d:
+    if command == "wand" and "n_points" in d and not d.get("summary"):
         lines.append("wand: %d clicks, %d protrusions" % (d["n_points"], d.get("n_protrusions", 0)))
     title = menu_title(command, table)
-    return ["uvps %s %s" % (title, line) for line in lines]
+    out = ["uvps %s %s" % (title, line) for line in lines]
+    if command == "wand" and d.get("summary"):
+        # "uvps Wand Count: 7 clicks: 5 outlined, 2 not (bare paint at (412, 300) px; ...)": only
+        # the outlined are counted
+        out.append("uvps %s: %s" % (title, d["summary"]))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1362,6 +1367,55 @@ def stack_layout(title, n_images, n_channels, bit_depth, labels=None, lamps_hint
             "Hyperstack, channels=3 (order xyczt), or set Channels per lamp to 3 (to use them "
             "as %d grey images, set it to 1)" % (title, n_images, n_images // 3, n_images))
     return {"lamps": n_images, "channels": 1, "regroup": False, "why": "grey stack"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Manual work in a run folder that a new run would replace (uvps.files.runfolder.MANUAL_FILES)
+# ---------------------------------------------------------------------------------------------
+
+#: What a person made in a run folder: the wand's count and a comparison (the core moves them aside,
+#: with the run they were measured on, into earlier/<date>_<run id>/ when a new run replaces the folder).
+MANUAL_WORK = ("protrusions_manual.csv", "comparison.csv")
+#: The buttons of the question asked before a run replaces a folder holding manual work.
+KEEP_AND_RUN, DO_NOT_RUN = "Keep it and run", "Do not run"
+
+
+def manual_work_in(run_dir):
+    """The manual files (:data:`MANUAL_WORK`) ``run_dir`` holds, each with a few words: the wand's
+    count as "protrusions_manual.csv (5 counted of 7 clicks)"."""
+    found = []
+    for name in MANUAL_WORK:
+        path = os.path.join(run_dir, name)
+        if not os.path.isfile(path):
+            continue
+        if name == MANUAL_WORK[0]:
+            counts = _click_counts(path)
+            if counts is not None:
+                name = "%s (%d counted of %d clicks)" % (name, counts[1], counts[0])
+        found.append(name)
+    return found
+
+
+def _click_counts(path):
+    """(clicks, counted) of a wand table, or None when unreadable."""
+    import csv
+    try:
+        with open(path) as fh:
+            rows = list(csv.DictReader(fh))
+    except (IOError, OSError, csv.Error):
+        return None
+    counted = [r for r in rows if (r.get("counted") or "1").strip() not in ("0", "no", "false")]
+    return len(rows), len(counted)
+
+
+def manual_work_question(run_dir, found):
+    """The question asked before a new run replaces ``run_dir`` that holds manual work ``found``."""
+    return ("The run folder\n%s\nholds manual work: %s.\n\n"
+            "It was measured on this folder's present run. A new run replaces the run; the manual work\n"
+            "is kept, byte for byte, with the run it was measured on in earlier/<date>_<run id>/\n"
+            "(Run Info and the report list it there).\n\n"
+            "%s: run, keeping the manual work aside.  %s: change nothing."
+            % (run_dir, ", ".join(found), KEEP_AND_RUN, DO_NOT_RUN))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -97,9 +97,11 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, kind="auto", run
 
     The outline is traced in the label image (``protrusions_labels.tif``) from the centroid with
     ImageJ's Wand when the centroid lies inside its own label; otherwise (ring-shaped label, no
-    label image) a circle of the row's ``width_um`` around the centroid is used.
+    label image) a circle of the row's ``width_um`` around the centroid is used. Rows whose
+    ``counted`` is 0 (the wand's clicks that outlined no protrusion) get none.
     """
     xs = _column(table, "x_px")
+    counted = _column(table, "counted")
     ys = _column(table, "y_px")
     if xs is None or ys is None:
         raise BridgeError("the protrusion table has no x_px, y_px columns")
@@ -112,6 +114,8 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, kind="auto", run
             pixel_size_um = cal.pixelWidth
     rois = []
     for i in range(len(xs)):
+        if counted is not None and not counted[i] > 0:
+            continue
         label = int(ids[i]) if ids is not None else i + 1
         x, y = int(math.floor(xs[i])), int(math.floor(ys[i]))
         roi = None
@@ -175,7 +179,7 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     Returns
     -------
     int
-        The number of protrusions.
+        The number of protrusions (rows with ``counted`` 0, the wand's clicks not counted, are none).
     """
     table = open_table(csv_path, title)
     labels_imp = None
@@ -204,7 +208,7 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
             overlay.add(roi.clone())
         imp.setOverlay(overlay)
     IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
-    return table.size()
+    return len(rois)   # the counted rows (a wand table also lists the clicks it did not count)
 
 
 def outlines_on(title, run_dir):

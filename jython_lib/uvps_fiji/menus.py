@@ -54,7 +54,9 @@ def run_command(command, values, inputs=None, params=None, request_dir=None, ski
     got_params.update(params or {})
     response = runner.call(command, got_inputs, got_params, run_folder(values),
                            request_dir=request_dir)
-    if response.text or not spec.get("output"):
+    if (response.text or not spec.get("output")) \
+            and response.text != (response.diagnostics or {}).get("summary"):
+        # (a summary the diagnostics carry is one of the Log lines below)
         IJ.log(bridge_logic.response_text(response))
     report_response(command, response, table,
                     user_gave_lights=bool(optional_path(values.get("lights"))))
@@ -208,9 +210,10 @@ def wand_points(values, request_dir):
 
 def wand_count(values):
     """``wand``: the manual method; one wand selection per click on the albedo, then counted.
-    Clicks that added no protrusion (inside an earlier click's outline, or outlined as their own
-    pixel only) are the core's one warning line in the Log; the grey (R+G+B)/3 image the wand
-    works on opens as ``albedo (R+G+B)/3`` for wanding by hand."""
+    Only clicks that outlined a protrusion are counted; the Log's line "7 clicks: 5 outlined, 2 not
+    (bare paint at (x, y) px; ...)" names the others, which stay in the table as clicks (``counted``
+    0, and why) with no outline. The grey (R+G+B)/3 image the wand works on opens as
+    ``albedo (R+G+B)/3`` for wanding by hand."""
     out = run_folder(values)
     albedo_path = _run_file(values, "albedo.tif")
     request_dir = runner.new_request_dir()
@@ -283,9 +286,34 @@ def relight(values):
     return response
 
 
+def confirm_replacing(out, title):
+    """Before a run replaces the run folder ``out``: when it holds manual work (the wand's count, a
+    comparison), ask whether to run, keeping it aside with the run it was measured on (the core moves
+    it to ``earlier/<date>_<run id>/``), or to change nothing (a cancel). Asked whenever ImageJ has a
+    display, from a macro too: a re-run is the moment the clicks of an afternoon could be lost."""
+    from java.awt import Frame, GraphicsEnvironment
+    from ij.gui import YesNoCancelDialog
+
+    found = bridge_logic.manual_work_in(out)
+    if not found:
+        return
+    if not GraphicsEnvironment.isHeadless():
+        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), title + ": manual work in the run folder",
+                                   bridge_logic.manual_work_question(out, found),
+                                   bridge_logic.KEEP_AND_RUN, bridge_logic.DO_NOT_RUN)
+        if not dialog.yesPressed():
+            raise BridgeError("cancelled: %s is unchanged, its manual work (%s) in place; to keep both runs side "
+                              "by side, choose another run folder" % (out, ", ".join(found)),
+                              error_type="Cancelled")
+    IJ.log("uvps %s: the manual work in %s (%s) is kept with the run it was measured on, in its "
+           "earlier/ folder" % (title, out, ", ".join(found)))
+
+
 def run_whole_pipeline(values):
-    """``run``: capture -> lights, flat-field, normals, albedo, height (+ areas, detection)."""
+    """``run``: capture -> lights, flat-field, normals, albedo, height (+ areas, detection). A run
+    folder holding manual work is replaced only when the user says so (:func:`confirm_replacing`)."""
     out = run_folder(values)
+    confirm_replacing(out, "Run Whole Pipeline")
     response = _capture_call("run", values)
     display.show_normals(response.file("normals.tif"), titled("normals", out))
     _show_lights(response, out)

@@ -165,21 +165,22 @@ def imagej_home(tmp_path):
 @pytest.fixture
 def run_macro(imagej_env, tmp_path, request):
     """Return ``run_macro(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None,
-    plain=False, env=None)``.
+    plain=False, env=None, props=None)``.
 
     Runs ``macro_text`` in a fresh ImageJ JVM (``-batch``) and returns a MacroResult. ``home``
     defaults to this test's ``imagej_home`` (uvps installed). With ``screenshot_dir`` every dialog
     is saved there as ``<title>.png`` and confirmed with OK instead of halting the JVM. On
     timeout the whole process group is killed and the test fails. ``plain=True`` runs ImageJ as
     a user would (main class ``ij.ImageJ``, no ``-Duvps.test``: no dialog guard, no status 4);
-    ``env`` adds environment variables.
+    ``env`` adds environment variables, ``props`` Java system properties (e.g.
+    ``{"uvps.screenshot.button": "No"}``: the button that answers a dialog).
     """
     counter = [0]
     user_home = tmp_path / "user_home"
     user_home.mkdir(exist_ok=True)
 
     def _run(macro_text, *, timeout=120, home=None, arg="", screenshot_dir=None,
-             plain=False, env=None):
+             plain=False, env=None, props=None):
         if home is None:
             home = request.getfixturevalue("imagej_home")
         counter[0] += 1
@@ -189,6 +190,7 @@ def run_macro(imagej_env, tmp_path, request):
         cmd.append("-Duser.home=%s" % user_home)
         if screenshot_dir is not None:
             cmd.append("-Duvps.screenshot.dir=%s" % Path(screenshot_dir).resolve())
+        cmd += ["-D%s=%s" % kv for kv in sorted((props or {}).items())]
         cmd += ["-cp", imagej_env.classpath, "ij.ImageJ" if plain else "UvpsTestLauncher",
                 "-ijpath", str(Path(home).resolve()), "-batch", str(macro), arg]
         env = dict(os.environ, DISPLAY=imagej_env.display, **(env or {}))

@@ -361,7 +361,7 @@ def truth_run(capture_dir, tmp_path):
 
 
 def _check_manual(run, clicked):
-    found = _read_csv(run / "protrusions_manual.csv")
+    found = [r for r in _read_csv(run / "protrusions_manual.csv") if r["counted"] == "1"]
     assert len(found) == len(clicked)
     for truth in clicked:
         x, y, w = float(truth["x_px"]), float(truth["y_px"]), float(truth["width_um"])
@@ -390,7 +390,8 @@ def test_wand_count_from_a_point_selection(run_macro, truth_run):
            q(run)), timeout=TIMEOUT).check()
     lines = _log_lines(result)
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
-    assert "rois %d" % len(clicked) in lines and "rows %d" % len(clicked) in lines
+    # the repeated click stays in the table as a click (counted 0), with no outline
+    assert "rois %d" % len(clicked) in lines and "rows %d" % (len(clicked) + 1) in lines
     # Outlines traced in the label image (4 = traced), not circles.
     assert "type 4 manual 1 - truth run" in lines
     _check_manual(run, clicked)
@@ -464,6 +465,104 @@ def test_wand_count_without_points_fails_clearly(run_macro, truth_run):
                        timeout=TIMEOUT)
     assert result.returncode == PYTHON_EXCEPTION_STATUS
     assert "uvps Wand Count failed (BridgeError): no points: click the protrusions" in result.stdout
+
+
+def _far_from_protrusions(capture_dir, n):
+    """``n`` points of the capture's bare paint, each as far as the field allows from any protrusion."""
+    from scipy import ndimage as ndi
+
+    rows = _read_csv(capture_dir / "truth" / "protrusions.csv")
+    far = np.ones(SHAPE, bool)
+    for r in rows:
+        far[int(float(r["y_px"])), int(float(r["x_px"]))] = False
+    dist = ndi.distance_transform_edt(far)
+    dist[:10], dist[-10:], dist[:, :10], dist[:, -10:] = 0, 0, 0, 0
+    out = []
+    for _ in range(n):
+        y, x = np.unravel_index(np.argmax(dist), dist.shape)
+        out.append((int(x), int(y)))
+        yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+        dist[(yy - y) ** 2 + (xx - x) ** 2 < 40 ** 2] = 0
+    return out
+
+
+def test_wand_count_counts_only_what_it_outlines(run_macro, truth_run, capture_dir):
+    """Clicks on bare paint stay in the table as clicks (counted 0, and why), get no outline and are
+    not counted; the Log says "7 clicks: 5 outlined, 2 not (bare paint at (x, y) px; ...)"."""
+    run, clicked = truth_run
+    bare = _far_from_protrusions(capture_dir, 2)
+    xs = [float(r["x_px"]) for r in clicked] + [x for x, _ in bare]
+    ys = [float(r["y_px"]) for r in clicked] + [y for _, y in bare]
+    result = run_macro(
+        'open("%s");\n'
+        'makeSelection("point", newArray(%s), newArray(%s));\n'
+        'run("Wand Count", "run=%s");\n'
+        'print("rois " + roiManager("count"));\n'
+        'print("rows " + Table.size("Manual protrusions - truth run"));\n'
+        % (run / "albedo.tif", ",".join("%.2f" % v for v in xs), ",".join("%.2f" % v for v in ys), q(run)),
+        timeout=TIMEOUT).check()
+    lines = _log_lines(result)
+    summary = ("uvps Wand Count: %d clicks: %d outlined, 2 not (bare paint at (%d, %d) px; bare paint at (%d, %d) px)"
+               % (len(xs), len(clicked), bare[0][0], bare[0][1], bare[1][0], bare[1][1]))
+    assert summary in lines, lines
+    assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
+    assert "rois %d" % len(clicked) in lines and "rows %d" % len(xs) in lines, lines
+    rows = _read_csv(run / "protrusions_manual.csv")
+    assert [r["counted"] for r in rows] == ["1"] * len(clicked) + ["0", "0"]
+    assert all(r["note"] and r["width_um"] == "" for r in rows[len(clicked):])
+    _check_manual(run, clicked)
+
+
+def _snapshot(folder):
+    import hashlib
+
+    return dict((str(p.relative_to(folder)), hashlib.sha256(p.read_bytes()).hexdigest())
+                for p in sorted(folder.rglob("*")) if p.is_file())
+
+
+@pytest.fixture
+def run_with_manual_work(reference_run, capture_dir, tmp_path):
+    """A run folder made by the core, with a wand count (real clicks) and its comparison made on it."""
+    import shutil
+
+    from uvps.commands import COMMANDS
+
+    run = tmp_path / "my run"
+    shutil.copytree(str(reference_run), str(run))
+    rows = sorted(_read_csv(capture_dir / "truth" / "protrusions.csv"), key=lambda r: -float(r["width_um"]))[:4]
+    COMMANDS["wand"]({"points": [[float(r["x_px"]), float(r["y_px"])] for r in rows]}, {}, run)
+    COMMANDS["compare"]({"a": str(run / "protrusions_manual.csv"), "b": str(run / "protrusions.csv")}, {}, run)
+    return run
+
+
+@pytest.mark.parametrize("answer", ["Keep it and run", "Do not run"])
+def test_run_whole_pipeline_asks_before_replacing_a_folder_with_manual_work(run_macro, run_with_manual_work,
+                                                                            capture_dir, tmp_path, answer):
+    """The question names the manual work; "Keep it and run" runs and keeps it, byte for byte, with
+    the run it was measured on in earlier/; "Do not run" changes nothing and says cancelled."""
+    run = run_with_manual_work
+    before = _snapshot(run)
+    shots = tmp_path / "shots"
+    result = run_macro('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s degree=4 '
+                       'regions=auto");\nprint("went on");\n' % (q(capture_dir), q(run)),
+                       screenshot_dir=shots, props={"uvps.screenshot.button": answer}, timeout=TIMEOUT)
+    lines = _log_lines(result)
+    assert [p.name for p in result.screenshots] == ["Run_Whole_Pipeline_manual_work_in_the_run_folder.png"], \
+        result.stderr
+    if answer == "Do not run":
+        assert result.returncode == PYTHON_EXCEPTION_STATUS and "went on" not in lines
+        assert any(ln.startswith("uvps Run Whole Pipeline failed (Cancelled): cancelled: %s is unchanged" % run)
+                   for ln in lines), lines
+        assert _snapshot(run) == before
+        return
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "went on" in lines
+    (kept,) = sorted((run / "earlier").iterdir())
+    for name in ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comparison.csv", "run.json",
+                 "albedo.tif", "depth.tif", "protrusions.csv"):
+        assert _snapshot(kept)[name] == before[name], name
+    assert not (run / "protrusions_manual.csv").exists()
+    assert any("kept with that run in %s" % kept in ln for ln in lines), lines
 
 
 def test_colour_areas_from_rois_in_the_roi_manager(run_macro, truth_run):
@@ -635,11 +734,10 @@ def test_wand_points_in_um_repeated_clicks_and_the_wand_image(run_macro, truth_r
     lines = _log_lines(result)
     assert ("uvps Wand Count: %d clicks from the file %s, read in um (the albedo's pixel size is "
             "15 um): its X, Y fit the image only in um" % (len(xs), points)) in lines, lines
-    # the repeated click: one line (the core's warning, naming it), nothing else about it
+    # the repeated click: one line naming it, nothing else about it
     about = [ln for ln in lines if "#%d " % len(xs) in ln or "click %d " % len(xs) in ln]
-    assert about == ["uvps Wand Count warning: 1 of %d clicks fell inside an earlier click's outline "
-                     "and add no protrusion (repeated clicks: #%d at (%d, %d) px)"
-                     % (len(xs), len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))], lines
+    assert about == ["uvps Wand Count: %d clicks: %d outlined, 1 not (click %d repeats click 1 at (%d, %d) px)"
+                     % (len(xs), len(clicked), len(xs), int(xs[-1] + 0.5), int(ys[-1] + 0.5))], lines
     assert "uvps Wand Count: %d protrusions" % len(clicked) in lines
     _check_manual(run, clicked)
     albedo = tifffile.imread(str(run / "albedo.tif")).astype(np.float64)

@@ -9,7 +9,7 @@ import numpy as np
 from ..errors import UVPSInputError
 from ..files.io import read_positions
 from ..files.outputs import CommandResult, OutputSpec, Progress, atomic_output_dir
-from ..files.runfolder import describe, relief_of
+from ..files.runfolder import describe, earlier_line, relief_of
 from ..spec import CommandSpec, Param
 
 
@@ -44,6 +44,11 @@ def info_text(info: dict) -> str:
                      f"({det['candidates'] - det['kept']} rejected by the detection's rules)")
     elif "n_protrusions" in info:
         lines.append(f"protrusions: {info['n_protrusions']}")
+    if info.get("manual"):
+        m = info["manual"]
+        lines.append(f"manual:     protrusions_manual.csv: {m['counted']} counted of {m['clicks']} clicks (this run)")
+    for item in info.get("earlier") or ():
+        lines.append(f"earlier:    {earlier_line(item)}")
     lines += [f"warning:    {w}" for w in info["warnings"]] or ["warnings:   none"]
     return "\n".join(lines)
 

@@ -22,7 +22,7 @@ from ..core.detect import DetectionParams
 from ..core.detect.rules import PARAM_RANGES, RULES
 from ..errors import UVPSInputError
 from ..core.measure import measure_protrusions
-from ..files.tables import read_protrusions_csv, write_label_tiff, write_protrusions_csv
+from ..files.tables import CLICK_COLUMNS, read_protrusions_csv, write_label_tiff, write_protrusions_csv
 from ..files.outputs import CommandResult, OutputSpec, Progress, atomic_output_dir, report, sub_progress
 from ..core.pipeline import find_protrusions, protrusion_diagnostics
 from ..core.regions import propose_regions, whole_image
@@ -31,7 +31,8 @@ from ..report.page import plot_comparison_map
 from ..files.runfolder import is_relative, output_spec, read_run, relief_in, write_protrusions
 from ..spec import CommandSpec, Param
 from ..workflow import _stats_and_csv, regions_for, statistics
-from ..core.wand import CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, read_seed_file, read_seeds, wand_select
+from ..core.wand import (CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, judge_clicks, read_seed_file,
+                         read_seeds, wand_select)
 
 log = logging.getLogger(__name__)
 
@@ -77,13 +78,15 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
 
 def _cmd_wand(inputs: dict, params: dict, output_dir, *,
              progress: Progress = None) -> CommandResult:
-    """Manual protrusions: each clicked point outlined on the albedo, then measured.
+    """Manual protrusions: each clicked point outlined on the albedo, judged, and the protrusions measured.
 
     ``method="relative"`` (default): the region that keeps ``tolerance`` (default 0.5) of the
     click's own contrast against its surroundings (:func:`uvps.core.wand.contrast_select`);
     ``method="imagej"``: ImageJ's wand with ``tolerance`` in albedo units
-    (:func:`uvps.core.wand.wand_select`). Writes ``protrusions_manual.csv`` and
-    ``protrusions_manual_labels.tif`` (never the automated ``protrusions.csv``).
+    (:func:`uvps.core.wand.wand_select`). A click counts only where it outlined a protrusion
+    (:func:`uvps.core.wand.judge_clicks`: an outline, its own, raised above the paint). Writes
+    ``protrusions_manual.csv`` (one row per click: ``counted`` 1 or 0 and, for 0, why) and
+    ``protrusions_manual_labels.tif`` (the counted outlines; never the automated ``protrusions.csv``).
     """
     run_dir = Path(output_dir)
     warnings = []
@@ -106,33 +109,72 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
         labels = contrast_select(images.albedo, seeds,
                                  fraction=CONTRAST_FRACTION if tolerance is None else tolerance,
                                  max_width_px=params["max_width_um"] / images.pixel_size_um)
+    report(progress, 0.6, "judging the outlines")
+    judged = judge_clicks(labels, seeds, height=images.height_um, albedo=images.albedo,
+                          max_width_px=params["max_width_um"] / images.pixel_size_um)
     report(progress, 0.7, "measuring")
-    table = measure_protrusions(labels, albedo=images.albedo, height_um=images.height_um,
-                                pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
+    table = _click_table(judged, seeds, images, regions)
     with atomic_output_dir(run_dir) as tmp:
-        write_protrusions_csv(tmp / "protrusions_manual.csv", table, relative=is_relative(relief_in(run_dir)))
-        _write_labels(tmp / "protrusions_manual_labels.tif", labels, images.pixel_size_um,
-                      "uvps wand: manual protrusion labels (id as in protrusions_manual.csv)")
-    report(progress, 1.0, f"{len(table['id'])} protrusions")
-    repeated, single = _wand_clicks(seeds, labels)
-    if repeated:
-        warnings.append(f"{len(repeated)} of {len(seeds)} clicks fell inside an earlier click's outline and add no "
-                        f"protrusion (repeated clicks: {_click_list(repeated)})")
+        write_protrusions_csv(tmp / "protrusions_manual.csv", table, relative=is_relative(relief_in(run_dir)),
+                              extra=CLICK_COLUMNS)
+        _write_labels(tmp / "protrusions_manual_labels.tif", judged.labels, images.pixel_size_um,
+                      "uvps wand: manual protrusion labels (id = the click's number in protrusions_manual.csv; "
+                      "clicks not counted have no pixels)")
+    summary = judged.summary(seeds)
+    report(progress, 1.0, summary)
+    single = [i for i, st in enumerate(judged.status) if st != "outlined" and st != "repeat"
+              and not np.isfinite(judged.relief_ratio[i])]
     if single and params["method"] == "imagej":
-        warnings.append(f"{len(single)} clicks selected only their own pixel ({_click_list(single)}): a tolerance of "
-                        f"{tolerance:g} albedo units is below the albedo's pixel-to-pixel variation; raise it, or use "
-                        "the default method 'relative'")
-    elif single:
-        warnings.append(f"{len(single)} clicks could not be outlined (no contrast against their surroundings: "
-                        f"{_click_list(single)}); click the protrusion's brightest part, or use method 'imagej' "
-                        "with a tolerance")
+        warnings.append(f"{len(single)} clicks selected only their own pixel "
+                        f"({_click_list([(i, tuple(seeds[i])) for i in single])}): if they are protrusions, a "
+                        f"tolerance of {tolerance:g} albedo units is below the albedo's pixel-to-pixel variation; "
+                        "raise it, or use the default method 'relative'")
+    n_counted = int(np.count_nonzero(judged.counted))
     return CommandResult([output_spec(run_dir, "protrusions_manual"), output_spec(run_dir, "protrusions_manual_labels")],
-                         {"n_points": int(len(seeds)), "n_protrusions": int(len(table["id"])),
-                          "repeated_clicks": [int(i) + 1 for i, _ in repeated],
-                          "not_outlined_clicks": [int(i) + 1 for i, _ in single],
+                         {"n_points": int(len(seeds)), "n_protrusions": n_counted, "summary": summary,
+                          "not_counted": [{"click": i + 1, "x_px": int(seeds[i][0]), "y_px": int(seeds[i][1]),
+                                           "status": judged.status[i], "why": judged.note[i]}
+                                          for i in range(len(seeds)) if not judged.counted[i]],
+                          "repeated_clicks": [i + 1 for i, st in enumerate(judged.status) if st == "repeat"],
+                          "not_outlined_clicks": [i + 1 for i, st in enumerate(judged.status)
+                                                  if st in ("bare paint", "height only")],
                           "method": params["method"], "pixel_size_um": images.pixel_size_um,
                           "points_unit": clicks.unit, "points_unit_said": clicks.said,
-                          "points_px": seeds.tolist()}, warnings)
+                          "points_px": seeds.tolist()}, warnings, text=summary)
+
+
+def _click_table(judged, seeds, images, regions) -> dict:
+    """``protrusions_manual.csv``: one row per click, in click order (``id`` = the click's number). A
+    counted click's row is its outline measured (:func:`uvps.core.measure.measure_protrusions`); a click
+    not counted keeps its position, ``counted`` 0 and why (``note``), and no measurement."""
+    measured = measure_protrusions(judged.labels, albedo=images.albedo, height_um=images.height_um,
+                                   pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
+    row_of = {int(k): j for j, k in enumerate(measured["id"])}
+    n = len(seeds)
+    table = {c: np.empty(n, dtype=measured[c].dtype) for c in measured}
+    reg = regions.labels if regions is not None else None
+    for i, (x, y) in enumerate(seeds):
+        j = row_of.get(i + 1)
+        for c in measured:
+            if j is not None:
+                table[c][i] = measured[c][j]
+            elif c in ("id",):
+                table[c][i] = i + 1
+            elif c == "x_px":
+                table[c][i] = float(x)
+            elif c == "y_px":
+                table[c][i] = float(y)
+            elif c == "region":
+                table[c][i] = int(reg[y, x]) if reg is not None else 0
+            elif c == "source":
+                table[c][i] = "wand"
+            elif c == "crater":
+                table[c][i] = 0
+            else:
+                table[c][i] = np.nan
+    table["counted"] = np.array([1 if c else 0 for c in judged.counted], dtype=np.int64)
+    table["note"] = np.array(judged.note, dtype=object)
+    return table
 
 
 def _clicks(points, images, unit: str) -> SeedFile:
@@ -141,16 +183,6 @@ def _clicks(points, images, unit: str) -> SeedFile:
     if isinstance(points, (list, tuple, np.ndarray)):
         return SeedFile(read_seeds(points), "px", True)
     return read_seed_file(points, pixel_size_um=images.pixel_size_um, units=unit, shape=images.shape)
-
-
-def _wand_clicks(seeds, labels):
-    """Clicks (0-based index, (x, y)) that repeat an earlier click's outline, and those whose
-    outline is their own pixel only."""
-    ids = labels[seeds[:, 1], seeds[:, 0]] if len(seeds) else np.zeros(0, int)
-    area = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
-    repeated = [(i, tuple(seeds[i])) for i, lab in enumerate(ids) if lab and lab != i + 1]
-    single = [(i, tuple(seeds[i])) for i, lab in enumerate(ids) if lab == i + 1 and area[lab] == 1]
-    return repeated, single
 
 
 def _click_list(items, limit=8) -> str:

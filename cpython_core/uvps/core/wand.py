@@ -40,8 +40,8 @@ from ..errors import UVPSInputError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["wand_select", "contrast_select", "read_seeds", "read_seed_file", "SeedFile", "CONTRAST_FRACTION",
-           "MAX_WIDTH_UM"]
+__all__ = ["wand_select", "contrast_select", "judge_clicks", "WandClicks", "read_seeds", "read_seed_file", "SeedFile",
+           "CONTRAST_FRACTION", "MAX_WIDTH_UM", "RAISED_RATIO"]
 
 _CONNECTIVITY = {4: 4, 8: 8, "4": 4, "8": 8, "4-connected": 4, "8-connected": 8, "legacy": "legacy"}
 
@@ -313,6 +313,217 @@ def _grow_by_contrast(grey, finite, y, x, frac, max_w):
     region = ndi.binary_fill_holes(region, structure=ndi.generate_binary_structure(2, 1))
     rr, cc = np.nonzero(region)
     return rr + r0, cc + c0
+
+
+#: An outline is counted as a protrusion when it stands above the paint around it: the 90th percentile of its
+#: height above a plane through the ring around it is at least this many times the ring's own spread about
+#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/benchmarks.md,
+#: "The wand counts only what it outlines"): outlines of the paint's texture reach 5.7, outlines of
+#: protrusions start at 9.7.
+RAISED_RATIO = 8.0
+
+#: A raised outline counts when it is a clear step in the albedo (its median differs from the ring's around it by
+#: at least this many times the ring's spread, 1.4826 MAD) ...
+CLEAR_CONTRAST = 3.0
+#: ... or else agrees with the bump in the height at the click (intersection over union of the albedo outline and
+#: the half-height outline of the height at least this): the paint's texture outlined over a bump in the height
+#: alone is raised by the bump, not by itself. Measured by ``scripts/benchmark_protrusions.py --wand-off``: such
+#: outlines 1.9-2.4 and 0.07-0.22; outlines of protrusions >= 100 um 2 % below 2.65 and 2 % below 0.41.
+MATCH_IOU = 0.3
+
+#: Why a click is not counted (the ``status`` of :class:`WandClicks`), in words.
+NOT_COUNTED = {"bare paint": "no protrusion outlined: bare paint",
+               "height only": "no contrast in the albedo the wand outlines on: a bump in the height only",
+               "repeat": "inside an earlier click's outline"}
+
+
+@dataclass
+class WandClicks:
+    """What each click of the wand outlined, from :func:`judge_clicks`.
+
+    Attributes
+    ----------
+    labels : (M, N) int32
+        The counted outlines only: click ``i`` (0-based) has label ``i + 1``; clicks not counted
+        have no pixels.
+    counted : (S,) bool
+        The click outlined a protrusion (it is a row of the count).
+    status : list of str
+        ``"outlined"``, or why not: ``"bare paint"`` (no contrast in the albedo, or an outline not
+        raised above the paint around it: the paint's own texture), ``"height only"`` (no contrast
+        in the albedo, but a bump in the height) or ``"repeat"`` (inside an earlier click's outline).
+    note : list of str
+        The reason in words ("" for a counted click), without commas (a CSV cell ImageJ's
+        ResultsTable reads as one).
+    repeats : (S,) int
+        For a repeat, the 1-based number of the earlier click; else 0.
+    relief_ratio : (S,) float
+        The outline's relief over its surroundings' spread (NaN where nothing was outlined).
+    """
+
+    labels: np.ndarray
+    counted: np.ndarray
+    status: list
+    note: list
+    repeats: np.ndarray
+    relief_ratio: np.ndarray
+
+    def summary(self, seeds) -> str:
+        """``"7 clicks: 5 outlined, 2 not (bare paint at (412, 300) px; height only at (80, 95) px)"``."""
+        seeds = np.asarray(seeds).reshape(-1, 2)
+        n, k = len(self.counted), int(np.count_nonzero(self.counted))
+        text = f"{n} click{'s' if n != 1 else ''}: {k} outlined"
+        missed = [i for i in range(n) if not self.counted[i]]
+        if missed:
+            items = [(f"click {i + 1} repeats click {self.repeats[i]}" if self.status[i] == "repeat"
+                      else self.status[i]) + f" at ({int(seeds[i][0])}, {int(seeds[i][1])}) px" for i in missed[:8]]
+            more = f"; and {len(missed) - 8} more" if len(missed) > 8 else ""
+            text += f", {len(missed)} not ({'; '.join(items)}{more})"
+        return text
+
+
+def _relief_ratio(height, labels, lab, sl, *, gap=0.0):
+    """The relief of ``labels == lab`` (bounding box ``sl``) over the spread of the ring around it,
+    clear of other labels (see :data:`RAISED_RATIO`); 0 when the ring is too small to tell. ``gap``
+    (in units of the ring's width) leaves the flanks of an outline drawn at half height out of the ring."""
+    from .measure import _surround_plane
+
+    m, n = height.shape
+    area = int(np.count_nonzero(labels[sl] == lab))
+    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
+    pad = int(np.ceil((1 + gap) * radius)) + 1
+    r0, r1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)
+    c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)
+    crop = labels[r0:r1, c0:c1]
+    h = height[r0:r1, c0:c1]
+    finite = np.isfinite(h)
+    inside = crop == lab
+    dist = ndi.distance_transform_edt(~inside)
+    ring = (dist > gap * radius) & (dist <= (1 + gap) * radius) & (crop == 0) & finite
+    inside &= finite
+    if ring.sum() < 8 or not inside.any():
+        return 0.0
+    ri, ci = np.nonzero(ring)
+    plane = _surround_plane(ri, ci, h[ring])
+    resid = h[ring] - plane(ri, ci)
+    spread = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    ii, jj = np.nonzero(inside)
+    relief = float(np.percentile(h[inside] - plane(ii, jj), 90))
+    if not spread > 0:
+        return float("inf") if relief > 0 else 0.0
+    return relief / spread
+
+
+def _contrast_and_match(grey, height, labels, lab, sl, x, y, max_width_px):
+    """The outline's albedo contrast over its ring's spread, and its IoU with the height's outline at the click."""
+    m, n = labels.shape
+    area = int(np.count_nonzero(labels[sl] == lab))
+    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
+    pad = int(np.ceil(radius)) + 1
+    r0, r1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)
+    c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)
+    crop = labels[r0:r1, c0:c1]
+    g = grey[r0:r1, c0:c1]
+    inside = crop == lab
+    dist = ndi.distance_transform_edt(~inside)
+    ring = (dist > 0) & (dist <= radius) & (crop == 0) & np.isfinite(g)
+    contrast = 0.0
+    if ring.sum() >= 8:
+        vals = g[ring]
+        spread = 1.4826 * float(np.median(np.abs(vals - np.median(vals))))
+        step = abs(float(np.nanmedian(g[inside])) - float(np.median(vals)))
+        contrast = step / spread if spread > 0 else float("inf")
+    iou = 0.0
+    if height is not None and np.isfinite(height[y, x]):
+        bump = contrast_select(height, [(x, y)], max_width_px=max_width_px) == 1
+        region = labels == lab
+        iou = float(np.count_nonzero(bump & region)) / max(1, int(np.count_nonzero(bump | region)))
+    return contrast, iou
+
+
+def judge_clicks(labels, seeds, *, height=None, albedo=None, max_width_px=None, min_ratio=RAISED_RATIO) -> WandClicks:
+    """Decide which clicks of the wand outlined a protrusion: only those are counted.
+
+    A click is counted when the wand outlined more than its own pixel around it (it had a contrast in
+    the albedo), the outline is its own (not an earlier click's) and, with a ``height``, the outline
+    stands above the paint around it (:data:`RAISED_RATIO`): a protrusion is raised, the outline of
+    the paint's own texture or of a bare primer spot is not. With the ``albedo`` too, a raised
+    outline must also be a clear step in the albedo (:data:`CLEAR_CONTRAST`) or agree with the bump
+    in the height at the click (:data:`MATCH_IOU`): the paint's texture outlined over a bump that
+    shows in the height alone is not counted. A click without contrast in the albedo
+    is "height only" when the height shows a raised bump there (outlined on the height as
+    :func:`contrast_select` does on the albedo), else "bare paint".
+
+    Parameters
+    ----------
+    labels : (M, N) int
+        The wand's labels (:func:`contrast_select` or :func:`wand_select`): click ``i`` has ``i + 1``.
+    seeds : (S, 2) array_like
+        The clicks ``(x_px, y_px)``.
+    height : (M, N) array, optional
+        The height map (micrometres, or relative: only ratios are used).
+    albedo : (M, N) or (M, N, 3) array, optional
+        The image the wand outlined on (RGB: the mean of R, G, B).
+    max_width_px : float, optional
+        The widest protrusion, for outlining a bump in the height.
+    min_ratio : float
+        :data:`RAISED_RATIO`.
+
+    Returns
+    -------
+    WandClicks
+    """
+    labels = np.asarray(labels)
+    pts = _as_seed_array(seeds, "seeds")
+    h = None if height is None else np.asarray(height, dtype=np.float64)
+    grey = None if albedo is None else np.asarray(albedo, dtype=np.float64)
+    if grey is not None and grey.ndim == 3:
+        grey = grey.mean(axis=2)
+    n = len(pts)
+    out = np.zeros(labels.shape, np.int32)
+    counted = np.zeros(n, bool)
+    status, note = [""] * n, [""] * n
+    repeats = np.zeros(n, np.int64)
+    ratio = np.full(n, np.nan)
+    area = np.bincount(labels.ravel(), minlength=n + 1)
+    slices = ndi.find_objects(labels)
+    for i, (x, y) in enumerate(pts):
+        lab = int(labels[y, x])
+        if lab and lab != i + 1:
+            status[i], repeats[i] = "repeat", lab
+            note[i] = f"inside the outline of click {lab}: not counted again"
+            continue
+        if not lab or area[lab] <= 1:
+            status[i] = "bare paint"
+            note[i] = "no contrast in the albedo: nothing outlined"
+            if h is not None and np.isfinite(h[y, x]):
+                bump = contrast_select(h, [(x, y)], max_width_px=max_width_px)
+                box = ndi.find_objects(bump)[0]
+                if np.count_nonzero(bump[box]) > 1 and _relief_ratio(h, bump, 1, box, gap=2.0) >= min_ratio:
+                    status[i] = "height only"
+                    note[i] = ("no contrast in the albedo the wand outlines on: a bump in the height only "
+                               "(the manual count is of the albedo)")
+            continue
+        sl = slices[lab - 1]
+        if h is not None:
+            ratio[i] = _relief_ratio(h, labels, lab, sl)
+            if not ratio[i] >= min_ratio:
+                status[i] = "bare paint"
+                note[i] = (f"the albedo outline ({int(area[lab])} px) is not raised above the paint around it "
+                           f"(relief {ratio[i]:.1f} x its spread; below {min_ratio:g}): the paint's texture")
+                continue
+            if grey is not None:
+                contrast, iou = _contrast_and_match(grey, h, labels, lab, sl, x, y, max_width_px)
+                if contrast < CLEAR_CONTRAST and iou < MATCH_IOU:
+                    status[i] = "height only"
+                    note[i] = (f"the albedo outline ({int(area[lab])} px) is faint ({contrast:.1f} x the paint's "
+                               f"spread) and does not match the bump in the height (overlap {iou:.2f}): the bump "
+                               "shows in the height only; if it is a protrusion click its brightest part or use "
+                               "method imagej with a tolerance")
+                    continue
+        status[i], counted[i] = "outlined", True
+        out[sl][labels[sl] == lab] = lab
+    return WandClicks(out, counted, status, note, repeats, ratio)
 
 
 def _as_seed_array(arr, name: str) -> np.ndarray:

@@ -7,6 +7,7 @@ ImageJ TIFFs with the pixel size in um; channel-first on disk (``CYX``), channel
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -25,7 +26,7 @@ from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file,
 from .tables import write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import row_bands
-from .outputs import OutputSpec, Progress, report, write_json_atomic
+from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
 from ..core.regions import region_statistics
 from .tables import write_regions_csv
 
@@ -51,6 +52,20 @@ FILES = {
     "normals_zarr": ("normals.ome.zarr", "folder", "CYX", "1"),
     "albedo_zarr": ("albedo.ome.zarr", "folder", None, "counts"),
 }
+#: What a person made in a run folder: the wand's count and outlines, a comparison and its map. A new
+#: ``run`` does not replace them: they move aside with the run they were measured on
+#: (:func:`set_aside_manual_work`). The first three say that there is manual work.
+MANUAL_FILES = ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comparison.csv",
+                "figures/comparison_map.png")
+#: What manual work was measured on, moved aside with it: the run's record, its images (the albedo
+#: outlined, the height measured) and the automated count and areas a comparison used.
+MEASURED_ON = ("run.json", "lights.json", "albedo.tif", "depth.tif", "normals.tif", "protrusions.csv",
+               "protrusions_labels.tif", "regions_labels.tif", "regions.csv", "report.html")
+#: The subfolder of a run folder that holds earlier runs' manual work, one folder each.
+EARLIER = "earlier"
+#: The record of one set-aside folder.
+EARLIER_RECORD = "earlier.json"
+
 #: The command that writes each image a later command needs (for the "run X first" message).
 MADE_BY = {"albedo": "normals", "normals": "normals", "depth": "integrate"}
 
@@ -321,6 +336,127 @@ def write_protrusions(folder: Path, prot, pixel_size_um: float, *, bins_um=100.0
 
 
 # ------------------------------------------------------------------------------------------------
+# manual work across re-runs
+# ------------------------------------------------------------------------------------------------
+
+def manual_work(run_dir) -> list:
+    """The manual files (:data:`MANUAL_FILES`: the wand's count, a comparison) ``run_dir`` holds."""
+    return [f for f in MANUAL_FILES[:3] if (Path(run_dir) / f).is_file()]
+
+
+def _run_identity(run_dir: Path) -> tuple:
+    """(written, run id) of the run in ``run_dir``: run.json's time of writing (UTC) and the first 8
+    hex digits of its SHA-256 (two runs' records differ in their timings and parameters)."""
+    record = run_dir / FILES["run"][0]
+    if record.is_file():
+        stamp = record.stat().st_mtime
+        digest = hashlib.sha256(record.read_bytes()).hexdigest()[:8]
+    else:                           # manual work in a folder that never held a run
+        stamp = max((run_dir / f).stat().st_mtime for f in manual_work(run_dir))
+        digest = "no-run"
+    return time.strftime("%Y-%m-%d_%H%M", time.gmtime(stamp)), digest
+
+
+def set_aside_manual_work(old, new) -> Optional[Path]:
+    """Keep the manual work of run folder ``old`` in ``new/earlier/<date>_<run id>/`` with the run it
+    was measured on, before ``new`` replaces ``old``.
+
+    A re-run makes a new albedo and height: a manual count outlined and measured on the earlier ones,
+    and a comparison with the earlier automated count, belong to that run, not to the new one. So
+    they are not deleted, nor left beside the new run as if measured on it: the files of
+    :data:`MANUAL_FILES` and :data:`MEASURED_ON` that ``old`` holds are hard-linked (copied where a
+    link is refused) into ``new/earlier/<date>_<run id>/`` (``<date>``: when the earlier run.json was
+    written, UTC; ``<run id>``: its SHA-256's first 8 hex digits), byte for byte, with
+    ``earlier.json`` recording what and why. The folders of ``old/earlier/`` are kept too. Nothing
+    is written when ``old`` holds no manual work.
+
+    Returns
+    -------
+    Path or None
+        The folder in ``new`` (under ``earlier/``) that holds the manual work.
+    """
+    old, new = Path(old), Path(new)
+    present = manual_work(old) if old.is_dir() else []
+    if not present:
+        return None
+    if (old / EARLIER).is_dir() and not (new / EARLIER).exists():
+        _link_tree(old / EARLIER, new / EARLIER)
+    written, run_id = _run_identity(old)
+    dest = new / EARLIER / f"{written}_{run_id}"
+    k = 2
+    while dest.exists():
+        dest = new / EARLIER / f"{written}_{run_id}-{k}"
+        k += 1
+    dest.mkdir(parents=True)
+    files = []
+    for name in MANUAL_FILES + MEASURED_ON:
+        src = old / name
+        if src.is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            _link_or_copy(src, dest / name)
+            files.append(name)
+    try:
+        run = json.loads((old / FILES["run"][0]).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        run = {}
+    write_json_atomic(dest / EARLIER_RECORD, {
+        "set_aside_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "reason": "a new run of the folder made a new albedo and height; this manual work was measured on "
+                  "the earlier run, kept here with it",
+        "measured_on": {"run_id": run_id, "written_utc": written.replace("_", " "), "command": run.get("command"),
+                        "version": run.get("version")},
+        "manual_files": present, "files": files})
+    return dest
+
+
+def _clicks_of(path: Path) -> dict:
+    """``{"clicks": n, "counted": k}`` of a wand table (a table without ``counted``: every row counted)."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return {}
+    counted = sum(1 for r in rows if (r.get("counted") or "1").strip() not in ("0", "no", "false"))
+    return {"clicks": len(rows), "counted": counted}
+
+
+def earlier_work(run_dir) -> list:
+    """The manual work of earlier runs kept in ``run_dir/earlier/`` (:func:`set_aside_manual_work`),
+    oldest first: ``{"folder": "earlier/<name>", "measured_on": date, "run_id", "manual_files",
+    "clicks", "counted"}`` each."""
+    base = Path(run_dir) / EARLIER
+    out = []
+    if not base.is_dir():
+        return out
+    for folder in sorted(p for p in base.iterdir() if p.is_dir()):
+        try:
+            rec = json.loads((folder / EARLIER_RECORD).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            rec = {}
+        on = rec.get("measured_on") or {}
+        item = {"folder": f"{EARLIER}/{folder.name}", "measured_on": on.get("written_utc"),
+                "run_id": on.get("run_id"), "manual_files": rec.get("manual_files") or manual_work(folder)}
+        if (folder / MANUAL_FILES[0]).is_file():
+            item.update(_clicks_of(folder / MANUAL_FILES[0]))
+        out.append(item)
+    return out
+
+
+def earlier_line(item: dict) -> str:
+    """One line on an :func:`earlier_work` item, for ``uvps info``, the CLI and the Log."""
+    what = []
+    for f in item["manual_files"]:
+        if f == MANUAL_FILES[0] and "clicks" in item:
+            what.append(f"{f} ({item['counted']} counted of {item['clicks']} clicks)")
+        elif f != MANUAL_FILES[1]:
+            what.append(f)
+    when = f"the run of {item['measured_on']} UTC" if item.get("measured_on") else "an earlier run"
+    return f"{item['folder']}/: {', '.join(what) or 'files'}, measured on {when} (not on this run)"
+
+
+# ------------------------------------------------------------------------------------------------
 # reading
 # ------------------------------------------------------------------------------------------------
 
@@ -434,4 +570,8 @@ def describe(run_dir) -> dict:
             # update run.json: then only the table's count is known)
             info["detection"] = {"candidates": info["n_protrusions"] + sum(rejected.values()),
                                  "kept": info["n_protrusions"], "rejected": dict(rejected)}
+    manual = run_dir / MANUAL_FILES[0]
+    if manual.is_file():
+        info["manual"] = _clicks_of(manual)
+    info["earlier"] = earlier_work(run_dir)
     return info

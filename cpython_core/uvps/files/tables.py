@@ -45,7 +45,12 @@ def table_to_csv_text(table: Mapping, columns: Sequence[str]) -> str:
     return buf.getvalue()
 
 
-def write_protrusions_csv(path, table: Mapping, *, relative: bool = False) -> None:
+#: The wand's table (``protrusions_manual.csv``) holds one row per click: ``counted`` says whether the click
+#: outlined a protrusion (1) or not (0), ``note`` why not. Only counted rows are protrusions.
+CLICK_COLUMNS = ("counted", "note")
+
+
+def write_protrusions_csv(path, table: Mapping, *, relative: bool = False, extra: Sequence[str] = ()) -> None:
     """Write a protrusion table as CSV (columns :data:`COLUMNS`, in order), atomically.
 
     Parameters
@@ -57,23 +62,33 @@ def write_protrusions_csv(path, table: Mapping, *, relative: bool = False) -> No
     relative : bool
         The run's relief has no scale (``uvps.files.runfolder.relief_of``): the ``height_um`` column is
         written as :data:`RELATIVE_HEIGHT` (no unit), so no table says micrometres it does not have.
+    extra : sequence of str
+        Further columns written after :data:`COLUMNS` (the wand's :data:`CLICK_COLUMNS`).
     """
-    missing = [c for c in COLUMNS if c not in table]
+    columns = tuple(COLUMNS) + tuple(extra)
+    missing = [c for c in columns if c not in table]
     if missing:
         raise UVPSInputError(f"protrusion table lacks columns {missing}")
-    lengths = {len(table[c]) for c in COLUMNS}
+    lengths = {len(table[c]) for c in columns}
     if len(lengths) > 1:
         raise UVPSInputError(f"protrusion table columns differ in length: {sorted(lengths)}")
     if relative:
         table = {**table, RELATIVE_HEIGHT: table["height_um"]}
         atomic_write_text(path, table_to_csv_text(table, [RELATIVE_HEIGHT if c == "height_um" else c
-                                                          for c in COLUMNS]))
+                                                          for c in columns]))
         return
-    atomic_write_text(path, table_to_csv_text(table, COLUMNS))
+    atomic_write_text(path, table_to_csv_text(table, columns))
 
 
-def read_protrusions_csv(path) -> dict:
+def _not_counted(cell: str) -> bool:
+    return cell.strip().lower() in ("0", "no", "false")
+
+
+def read_protrusions_csv(path, *, clicks: bool = False) -> dict:
     """Read ``protrusions.csv`` back into a column table.
+
+    A table with a ``counted`` column (the wand's ``protrusions_manual.csv``: one row per click) gives
+    its counted rows only, the protrusions; ``clicks=True`` gives every row (the clicks, counted or not).
 
     Only ``x_px``, ``y_px`` and ``width_um`` are required (so a table from another tool can be
     compared); the other columns of :data:`COLUMNS` get defaults (``id`` = 1..n, NaN, 0, "").
@@ -95,6 +110,9 @@ def read_protrusions_csv(path) -> dict:
                              "x_px,y_px,width_um")
     header = [h.strip() for h in rows[0]]
     body = [r for r in rows[1:] if any(cell.strip() for cell in r)]
+    if "counted" in header and not clicks:
+        k = header.index("counted")
+        body = [r for r in body if not (k < len(r) and _not_counted(r[k]))]
     missing = [c for c in ("x_px", "y_px", "width_um") if c not in header]
     if missing:
         raise UVPSInputError(f"protrusion table {path} lacks columns {missing}; got {header}")

@@ -36,7 +36,7 @@ from ..files.tables import atomic_write_text, read_protrusions_csv
 from ..files.outputs import Progress, atomic_path, report
 from ..core.regions import bin_names, region_statistics, whole_image
 from ..files.tables import load_regions
-from ..files.runfolder import read_run
+from ..files.runfolder import earlier_work, read_run
 from .text import (Facts, Raw, area_table_html, cm2, density, facts_of, height,
                           largest_table_html, methods_html, protrusion_definition,
                           provenance_html, sig, summary_html, width as width_fmt,
@@ -989,6 +989,7 @@ def _html(run_dir: Path, facts: Facts, table, table_path: Path, page: _Page, war
     fignum = {name: k for k, name in enumerate(drawn, start=1)}
     parts.append(_tables_html(run_dir, facts, table, table_path, regions, stats, colours,
                               comparison_html, fignum))
+    parts.append(_earlier_html(run_dir))
     parts.append(methods_html(facts, len(regions.ids) if regions is not None else None,
                               _region_source(facts, regions)))
     parts.append("<section class='appendix' id='not-drawn'><h2>Appendix B: figures not drawn"
@@ -1035,6 +1036,27 @@ def _tables_html(run_dir, facts, table, table_path, regions, stats, colours, com
     out.append(comparison_html)
     out.append("</section>")
     return "\n".join(out)
+
+
+def _earlier_html(run_dir: Path) -> str:
+    """Manual work measured on earlier runs of this folder (``earlier/``), named as such: its counts
+    are not this run's."""
+    items = earlier_work(run_dir)
+    if not items:
+        return ""
+    e = html.escape
+    rows = []
+    for it in items:
+        files = ", ".join(f"<a href='{e(it['folder'])}/{e(f)}'>{e(f)}</a>" for f in it["manual_files"])
+        count = (f"{it['counted']} counted of {it['clicks']} clicks" if "clicks" in it else "")
+        rows.append(f"<li><code>{e(it['folder'])}/</code>: {files}"
+                    + (f" ({e(count)})" if count else "")
+                    + f", measured on the run of {e(it.get('measured_on') or 'an unknown date')} UTC"
+                    + (f" (run id {e(it['run_id'])})" if it.get("run_id") else "") + "</li>")
+    return ("<section id='earlier'><h2>Manual work measured on earlier runs</h2>"
+            "<p>These were made on an earlier run of this folder (its albedo and height), kept with the "
+            "files they were measured on; their counts are not this run's and are left out of the figures "
+            "and tables above.</p><ul>" + "".join(rows) + "</ul></section>")
 
 
 def _detection_defaults() -> dict:
