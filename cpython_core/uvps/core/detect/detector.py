@@ -18,7 +18,9 @@ from .rules import PARAM_RANGES, REJECTION_REASONS, REJECTION_RULES, _apply_rule
 from .strokes import _ripples, _stroke_slope
 from .surface import Surface, _beside_long, _surface, _thresholds
 
-logger = logging.getLogger(__name__)
+# the package's name, not the module's: the detector's summary line reads "uvps.core.detect: detect: ..."
+# in the Log and the CLI as it did when the detector was one module
+logger = logging.getLogger("uvps.core.detect")
 
 
 def _finish(lab, f: CandidateFeatures, reason, shape) -> tuple:
