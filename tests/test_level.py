@@ -211,3 +211,24 @@ def test_a_bowed_canvas_form_removes_the_bow_plane_keeps_it(tmp_path):
     t = cap.height_um - cap.height_um.mean()
     t_flat, _ = level_height(t.astype(np.float32), method="form", pixel_size_um=60.0)
     assert np.corrcoef(out["form"].ravel(), t_flat.ravel())[0, 1] > 0.9
+
+
+def test_uvps_changes_levels_itself_so_a_levelled_and_a_raw_date_compare_alike():
+    """`uvps changes` removes the smooth difference of the two dates (block medians): a date levelled
+    and one not give the same change map and height scale as two levelled ones."""
+    from uvps.core.changes import level_heights
+    cap = make_capture(shape=(200, 260), n_lights=8, seed=2, pixel_size_um=PX)
+    a = (cap.height_um - np.median(cap.height_um)).astype(np.float32)
+    x, y = _grid(a.shape)
+    ramp = (3.3 * x + 0.4 * y).astype(np.float32)                       # the demo's plane
+    b = a.copy()
+    b[80:90, 100:110] += 12.0                                           # something grew
+    valid = np.ones(a.shape, bool)
+    off = np.ones(a.shape, bool)
+    off[75:95, 95:115] = False
+    both_levelled = level_heights(a, b, valid, off, block_px=34)
+    one_raw = level_heights(a, b + ramp, valid, off, block_px=34)
+    assert one_raw.height_scale == pytest.approx(both_levelled.height_scale, abs=0.01)
+    inner = (slice(40, -40), slice(40, -40))                            # the bilinear block grid's edges aside
+    np.testing.assert_allclose(one_raw.change_um[inner], both_levelled.change_um[inner], atol=0.3)
+    assert one_raw.change_um[85, 105] == pytest.approx(12.0, abs=1.5)
