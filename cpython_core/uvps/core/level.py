@@ -25,8 +25,9 @@ in [-1, 1] over the pixel centres, and the surface is
 Robust to protrusions: the fit is iteratively reweighted with Tukey's biweight (4.685 robust
 standard deviations, 1.4826 MAD of the residuals): protrusions tens of micrometres high cluster
 in some colour areas, and on one side of the field they would tilt a plain least-squares plane
-toward them (on the demo, 0.02 um/mm; craters, masked-out edges and pixels integrated through a
-zero gradient pull the same way). It costs a few extra solves on a sample of at most
+toward them (150 domes 40 um high over the right third of a 1 um/mm plane: 2.13 um/mm, the reweighted
+fit 1.00; on the demo the two differ by 0.01 um/mm); craters, masked-out edges and pixels integrated
+through a zero gradient pull the same way. It costs a few extra solves on a sample of at most
 :data:`FIT_SAMPLES` pixels (milliseconds), so it is always on.
 """
 from __future__ import annotations
