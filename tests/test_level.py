@@ -164,7 +164,7 @@ def test_the_report_info_and_fiji_log_state_the_plane_and_why(biased_runs):
     html = (runs["plane"] / "report.html").read_text(encoding="utf-8")
     log = json.loads((runs["plane"] / "run.json").read_text())
     assert "<b>Levelled</b>: the best plane removed (" in html
-    assert f"{log['level']['slope_x_um_per_mm']:.2f} \u00b5m/mm to the right" in html
+    assert f"slope {log['level']['slope_x_um_per_mm']:+.2f} \u00b5m/mm toward the right" in html
     assert "17.5 \u00b5m per mm for each degree" in html
     assert "<b>Not levelled</b>" in (runs["none"] / "report.html").read_text(encoding="utf-8")
     from uvps.commands.info import info_text

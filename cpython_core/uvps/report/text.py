@@ -346,7 +346,7 @@ def level_sentence(f: Facts) -> str:
     slope = math.hypot(sx, sy)
     tilt = math.degrees(math.atan(slope / 1000.0))
     unit = "\u00b5m/mm" if not f.relative else "units per mm"
-    plane = (f"{fixed(sx, 2)} {unit} to the right and {fixed(sy, 2)} {unit} upward, a tilt of "
+    plane = (f"slope {sx:+.2f} {unit} toward the right and {sy:+.2f} {unit} upward, a tilt of "
              f"{sig(tilt, 2) if tilt >= 0.01 else fixed(tilt, 3)}\u00b0")
     fm = f.field_mm
     ramp = (f", {height(slope * max(fm))} \u00b5m across this {fixed(max(fm), 0)} mm field"
@@ -366,7 +366,7 @@ def level_sentence(f: Facts) -> str:
                 f"removed, {height(rms) if rms is not None else '?'} {unit.split('/')[0]} rms: the canvas's "
                 f"bow with it; its plane {plane}{ramp}. The heights as integrated are <code>depth.tif</code> "
                 f"plus that form (run.json <code>level</code>). {why}")
-    return (f" <b>Not levelled</b> (<code>--level none</code>): the heights hold a plane of {plane}{ramp}; "
+    return (f" <b>Not levelled</b> (<code>--level none</code>): the heights hold a plane ({plane}{ramp}). "
             f"{bias} (<code>--level plane</code> removes it).")
 
 
