@@ -133,6 +133,7 @@ def test_a_lamp_bias_ramps_the_raw_heights_and_depth_tif_is_level(biased_runs):
     # the raw is kept: the plane run.json records gives back the unlevelled run's depth.tif
     log = json.loads((runs["plane"] / "run.json").read_text())
     assert log["level"]["method"] == "plane" and log["params"]["level"] == "plane"
+    assert "17.5 um/mm per deg" in log["level"]["why"] and "removed, so the relief shows" in log["level"]["why"]
     assert (log["level"]["slope_x_um_per_mm"], log["level"]["slope_y_um_per_mm"]) == pytest.approx(
         _plane(raw, 60.0), abs=0.3)
     np.testing.assert_allclose(raw_height(levelled, log["level"]), raw, atol=0.01)

@@ -114,6 +114,16 @@ class Levelling:
         lv = legendre.legvander(v, self.degree)           # (rows, d + 1)
         return (lv @ self.coeffs.T @ lu.T).astype(np.float32)
 
+    def why(self) -> str:
+        """What a tilt of the lamps does to the plane, with this map's figures (run.json ``level.why``)."""
+        width_mm = max(self.shape) * self.pixel_size_um / 1000.0
+        return (f"a mean bias of the normals of d deg (the lamps' directions off by that much on average; a "
+                f"calibration leaves a few tenths of a degree) is a slope of tan(d), {tilt_slope_um_per_mm(1.0):.1f} "
+                f"um/mm per deg: over this field's {width_mm:.3g} mm a ramp of {width_mm:.3g} tan(d) mm. This best "
+                f"plane is tilted {self.tilt_deg:.3g} deg ({width_mm * math.tan(math.radians(self.tilt_deg)) * 1000:.3g}"
+                " um across the field): such a bias, or the painting's own tilt against the camera; "
+                + ("removed, so the relief shows" if self.method != "none" else "not removed (level none)"))
+
     def to_json(self) -> dict:
         """``run.json``'s ``level``."""
         return {"method": self.method, "degree": int(self.degree),
@@ -123,6 +133,7 @@ class Levelling:
                 "removed_rms_um": round(float(self.removed_rms_um), 4),
                 "shape": [int(s) for s in self.shape], "pixel_size_um": float(self.pixel_size_um),
                 "legendre_coeffs_um": [[float(c) for c in row] for row in self.coeffs],
+                "why": self.why(),
                 "raw": "raw height = depth.tif + this surface: numpy.polynomial.legendre.legval2d(u, v, "
                        "legendre_coeffs_um), u = 2 col / (N - 1) - 1, v = 1 - 2 row / (M - 1) "
                        "(uvps.core.level.raw_height)"}
