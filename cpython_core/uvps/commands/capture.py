@@ -47,7 +47,7 @@ def _cmd_integrate(inputs, params, output_dir, *, progress=None):
     with atomic_output_dir(run_dir) as tmp:
         runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method,
                                relief=runfolder.relief_in(run_dir), level=level)
-    runfolder.set_level(run_dir, level)
+        runfolder.set_level(run_dir, level, into=tmp)
     report(progress, 1.0, "integrate: done")
     diagnostics = {**integration_diagnostics(res), "level": level.to_json()}
     return CommandResult([runfolder.output_spec(run_dir, "depth")], diagnostics, [])

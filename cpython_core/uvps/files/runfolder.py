@@ -319,9 +319,11 @@ def level_words(level: Optional[dict]) -> str:
     return f"Not levelled (level none): the heights as integrated, best plane {plane}."
 
 
-def set_level(run_dir: Path, level) -> None:
-    """Record ``level`` (:class:`uvps.core.level.Levelling`) in an existing ``run.json`` (a command
-    that rewrites ``depth.tif`` in a run folder: ``integrate``); nothing when there is none."""
+def set_level(run_dir: Path, level, *, into: Optional[Path] = None) -> None:
+    """Record ``level`` (:class:`uvps.core.level.Levelling`) in the run folder's ``run.json`` (a command
+    that rewrites ``depth.tif`` in a run folder: ``integrate``), written to ``into`` (the temporary
+    folder ``depth.tif`` is moved in from, so the two arrive together; default ``run_dir``); nothing
+    when the folder has none."""
     path = Path(run_dir) / FILES["run"][0]
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -329,7 +331,7 @@ def set_level(run_dir: Path, level) -> None:
         return
     if isinstance(data, dict):
         data["level"] = level.to_json()
-        write_json_atomic(path, data)
+        write_json_atomic(Path(into or run_dir) / FILES["run"][0], data)
 
 
 def level_of(run_dir) -> Optional[dict]:
