@@ -18,6 +18,7 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import empty_table
+from .core.level import LEVELS
 from .core.pipeline import LAMP_BEAMS, RunOptions, given_lights, run
 from .core.regions import propose_regions, region_statistics, whole_image
 from .errors import UVPSInputError
@@ -46,6 +47,10 @@ OPTION_PARAMS = (
                "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
     Param("integration", "choice", _RUN.integration, choices=("fc", "dct"), label="Integration method",
           help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
+    Param("level", "choice", _RUN.level, choices=LEVELS, label="Level the height (remove the best plane, or a form)",
+          help="what is removed from the height map (recorded in run.json level, so the raw height is rebuilt): "
+               "plane (default): the best plane, the ramp a mean normal bias of 0.1-0.2 deg gives (17.5 um/mm per "
+               "deg); form: a Legendre polynomial of degree 3 too (a canvas's bow); none: the heights as integrated"),
     Param("refine_lights", "bool", _RUN.refine_lights, help="refine each lamp after the paper's equidistant solution"),
     Param("sample_pixels", "int", _RUN.sample_pixels, minimum=500, help="pixels sampled by the photometric residual (at most 1 in 16)"),
     Param("estimate_intensities", "bool", _RUN.estimate_intensities,

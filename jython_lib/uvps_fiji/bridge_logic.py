@@ -1022,6 +1022,32 @@ def relief_scale(run_dir):
     return "relative" if scale == "relative" else "absolute"
 
 
+def level_line(run_dir):
+    """One Log line on what was removed from the run's ``depth.tif`` (run.json ``level``, written by
+    the core's ``uvps.core.level``), or "" when the run records none (a folder from before levelling)."""
+    try:
+        fh = open(os.path.join(run_dir, "run.json"), "r")
+        try:
+            log = json.load(fh)
+        finally:
+            fh.close()
+    except (IOError, OSError, ValueError):
+        return ""
+    level = log.get("level") if isinstance(log, dict) else None
+    if not isinstance(level, dict) or level.get("slope_x_um_per_mm") is None:
+        return ""
+    plane = "x %+.3g, y %+.3g um/mm (x right, y up)" % (float(level["slope_x_um_per_mm"]),
+                                                          float(level.get("slope_y_um_per_mm") or 0.0))
+    method = level.get("method")
+    if method == "plane":
+        return ("height levelled: its best plane removed (%s); raw height = depth.tif + that plane "
+                "(run.json level)" % plane)
+    if method == "form":
+        return ("height levelled: a Legendre form of degree %s removed (best plane %s); raw height = "
+                "depth.tif + that form (run.json level)" % (level.get("degree"), plane))
+    return "height not levelled (level none): it holds a plane of %s" % plane
+
+
 #: How the height map is named and labelled: (window name, value unit, bar label).
 HEIGHT_WORDS = {"absolute": ("height (um)", u"\u00b5m", u"height (\u00b5m)"),
                 "relative": ("relative height", "relative", "relative height (no unit)")}

@@ -105,7 +105,11 @@ def height_title(run_dir):
 
 
 def show_height(path, run_dir):
-    """The height map titled by :func:`height_title`, its unit on the colour bar."""
+    """The height map titled by :func:`height_title`, its unit on the colour bar; the Log says what
+    levelling removed (``bridge_logic.level_line``)."""
+    line = bridge_logic.level_line(run_dir)
+    if line:
+        IJ.log("uvps: " + line)
     return display.show_height(path, height_title(run_dir), bridge_logic.relief_scale(run_dir))
 
 

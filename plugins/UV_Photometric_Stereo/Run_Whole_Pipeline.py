@@ -1,10 +1,12 @@
 """Run Whole Pipeline: capture -> lights, flat-field, normals, albedo, height, and optionally
 colour areas, protrusion detection and the report, in one call.
 
+The height is levelled by default (its best plane removed, recorded in run.json so the raw height
+is rebuilt; Level: form also removes a bow, none keeps the heights as integrated).
 Opens the normals, the height, the lamps' top view and the albedo (with protrusion outlines when
 detection ran); everything is written into the run folder (run.json records the parameters).
 
-Macro: run("Run Whole Pipeline", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4 integration=[Frankot-Chellappa (FFT)] regions=auto detect");
+Macro: run("Run Whole Pipeline", "capture=[Folder or files] images=[/data/capture] run=[/data/run] degree=4 integration=[Frankot-Chellappa (FFT)] level=plane regions=auto detect");
 (add "flatfield" to also write the flat-fielded images, "zarr" for OME-Zarr pyramids of the results,
 "calibration=[/data/CAL]" for the lamps of Calibrate Lamps)
 """
@@ -33,6 +35,7 @@ def main():
     dialogs.add_param(dlg, (COMMAND, "calibration"), key="calibration")
     dialogs.add_param(dlg, (COMMAND, "robust"), key="robust")
     dialogs.add_param(dlg, (COMMAND, "integration"), key="integration")
+    dialogs.add_param(dlg, (COMMAND, "level"), key="level")
     dialogs.add_param(dlg, (COMMAND, "regions"), key="regions")
     dialogs.add_param(dlg, (COMMAND, "detect"), key="detect")
     dialogs.add_param(dlg, (COMMAND, "flatfield_images"), key="flatfield")

@@ -170,6 +170,11 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
         assert "depth unit ?m" in lines or "depth unit um" in lines, lines
         assert "bar unit height (?m)" in lines, lines           # the unit on the colour bar
     assert "depth lut 68,1,84 253,231,37" in lines            # viridis, dark purple to yellow
+    level = json.loads((out / "run.json").read_text())["level"]
+    assert level["method"] == "plane"                           # levelled by default, and the Log says so
+    assert ("uvps: height levelled: its best plane removed (x %+.3g, y %+.3g um/mm (x right, y up)); raw "
+            "height = depth.tif + that plane (run.json level)"
+            % (level["slope_x_um_per_mm"], level["slope_y_um_per_mm"])) in lines, lines
     assert "albedo type 4" in lines                             # ImagePlus.COLOR_RGB
     assert "normals type 4" in lines                            # colour, not 3 grey slices
     for name in ("normals.tif", "albedo.tif", "depth.tif", "lights.json", "protrusions.csv",
@@ -241,7 +246,7 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
          % (q(capture_dir), q(out)), ["flatfield"]),
         ('Normals and Albedo', 'capture=[Folder or files] images=%s run=%s degree=4'
          % (q(capture_dir), q(out)), ["normals.tif", "albedo.tif", "gradients.tif"]),
-        ('Integrate Height', 'run=%s integration=[DCT Poisson (Neumann)]' % q(out),
+        ('Integrate Height', 'run=%s integration=[DCT Poisson (Neumann)] level=form' % q(out),
          ["depth.tif"]),
         ('Colour Areas', 'run=%s source=Automatic number=0' % q(out),
          ["regions_labels.tif", "regions.csv"]),
@@ -268,6 +273,10 @@ def test_each_menu_item_from_a_batch_macro(run_macro, capture_dir, reference_run
             assert (out / name).exists(), (cmd, name)
     assert "tables %d %d" % (N_LIGHTS, len(_read_csv(out / "comparison.csv"))) in lines
     assert "relight 24" in lines                                # an RGB image, not 3 grey slices
+    # the Level field reached the core, which recorded what it removed, and the Log says so
+    assert json.loads((out / "run.json").read_text())["level"]["method"] == "form"
+    assert any(ln.startswith("uvps: height levelled: a Legendre form of degree 3 removed (best plane x ")
+               for ln in lines), lines
     # Steps after Estimate Lights reuse its lamps, and say so.
     for title in ("Flat Field", "Normals and Albedo"):
         assert ("uvps %s lights: %d lamps from the run folder's %s (not estimated again; give a "

@@ -12,6 +12,7 @@ import logging
 import numpy as np
 
 from ..core.integrate import integrate_normals
+from ..core.level import level_height
 from ..core.pipeline import integration_diagnostics
 from ..core.relight import relight
 from ..files import runfolder
@@ -23,7 +24,7 @@ from ..workflow import (CAPTURE_PARAMS, FLATFIELD, LIGHTS, NORMALS, OPTION_PARAM
 
 log = logging.getLogger(__name__)
 
-_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
+_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration", "level"))
 
 
 def _capture_command(step: CaptureStep):
@@ -42,11 +43,16 @@ def _cmd_integrate(inputs, params, output_dir, *, progress=None):
     images = runfolder.read_run(run_dir, need=("normals",), pixel_size_um=params["pixel_size_um"])
     report(progress, 0.2, "integrating")
     res = integrate_normals(images.normals, pixel_size_um=images.pixel_size_um, method=params["integration"])
+    # levelled as a run's (uvps.core.level); the run.json of the folder records what was removed
+    _, level = level_height(res.height_um, method=params["level"], pixel_size_um=images.pixel_size_um,
+                            out=res.height_um)
     with atomic_output_dir(run_dir) as tmp:
         runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method,
-                               relief=runfolder.relief_in(run_dir))
+                               relief=runfolder.relief_in(run_dir), level=level)
+        runfolder.set_level(run_dir, level, into=tmp)
     report(progress, 1.0, "integrate: done")
-    return CommandResult([runfolder.output_spec(run_dir, "depth")], integration_diagnostics(res), [])
+    diagnostics = {**integration_diagnostics(res), "level": level.to_json()}
+    return CommandResult([runfolder.output_spec(run_dir, "depth")], diagnostics, [])
 
 
 def _cmd_relight(inputs, params, output_dir, *, progress=None):
@@ -118,7 +124,7 @@ _RUN_LIGHTS = tuple(dataclasses.replace(
 
 _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                      help="pixel size (default: the run's TIFF calibration)")
-_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
+_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration", "level"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command(RUN),
@@ -134,9 +140,9 @@ SPECS = (
     CommandSpec("lights", "light directions and positions", _capture_command(LIGHTS),
                 menu="Estimate Lights", params=CAPTURE_PARAMS + _LIGHT_OPTIONS),
     CommandSpec("normals", "normals, albedo and gradients", _capture_command(NORMALS),
-                menu="Normals and Albedo", params=CAPTURE_PARAMS + OPTION_PARAMS),
+                menu="Normals and Albedo", params=CAPTURE_PARAMS + tuple(p for p in OPTION_PARAMS if p.name != "level")),
     CommandSpec("integrate", "height from <run>/normals.tif", _cmd_integrate,
-                menu="Integrate Height", params=tuple(p for p in _STEREO if p.name == "integration") + (_PX_OVERRIDE,)),
+                menu="Integrate Height", params=tuple(p for p in _STEREO if p.name in ("integration", "level")) + (_PX_OVERRIDE,)),
     CommandSpec("relight", "render under a virtual raking light", _cmd_relight, menu="Relight", params=(
         Param("azimuth_deg", "float", 315.0, unit="deg", label="Azimuth (from image right, counter-clockwise)", help="the light's azimuth, "
               "counter-clockwise from +x (right)"),

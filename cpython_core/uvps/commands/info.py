@@ -38,6 +38,8 @@ def info_text(info: dict) -> str:
     elif "height_uncertainty_relative" in info["lights"]:
         lines.append(f"heights:    uncertain by +-{100 * info['lights']['height_uncertainty_relative']:.1f} % "
                      "(from the estimated lamps)")
+    if info.get("level"):
+        lines.append(f"levelling:  {info['level']}")
     if "detection" in info:
         det = info["detection"]
         lines.append(f"protrusions: {det['kept']} kept of {det['candidates']} candidates "

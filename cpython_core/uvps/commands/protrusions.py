@@ -28,7 +28,8 @@ from ..core.pipeline import find_protrusions, protrusion_diagnostics
 from ..core.regions import propose_regions, whole_image
 from ..files.tables import load_regions
 from ..report.page import plot_comparison_map
-from ..files.runfolder import is_relative, output_spec, read_run, relief_in, write_protrusions
+from ..core.level import raw_height
+from ..files.runfolder import is_relative, level_of, output_spec, read_run, relief_in, write_protrusions
 from ..spec import CommandSpec, Param
 from ..workflow import _stats_and_csv, regions_for, statistics
 from ..core.wand import (CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, judge_clicks, read_seed_file,
@@ -66,7 +67,9 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
     images = read_run(run_dir, need=("albedo", "depth"), pixel_size_um=params["pixel_size_um"])
     regions, proposed = regions_for(params["regions"], run_dir, images, n_areas=params["n_areas"],
                                      seed=params["seed"])
-    prot = find_protrusions(images.albedo, images.height_um, images.normals, pixel_size_um=images.pixel_size_um,
+    # the heights as integrated, as `run`'s detection reads them (depth.tif + the levelled-out surface)
+    height = raw_height(images.height_um, level) if (level := level_of(run_dir)) else images.height_um
+    prot = find_protrusions(images.albedo, height, images.normals, pixel_size_um=images.pixel_size_um,
                             regions=regions, params=det_params, progress=sub_progress(progress, 0.1, 0.9))
     prot.proposed = proposed
     with atomic_output_dir(run_dir) as tmp:

@@ -33,6 +33,7 @@ from .integrate import (IntegrationResult, frankot_chellappa, gradients_from_nor
 from .stack import Capture
 from .lights import (LightEstimate, LightModel, beyond_model, dropoff_common, estimate_lights, intensities_from_levels,
                      refine_intensities, sample_pixels)
+from .level import LEVELS, Levelling, level_height
 from .measure import measure_protrusions
 from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additive
 from .progress import Progress, report, sub_progress
@@ -69,13 +70,14 @@ class RunOptions:
     offset_degree: int = 0                #: 0 constant; 1-2 also stray light across the field
     lamp_beams: str = "auto"              #: known positions: the drop-off beyond the model divided out (LAMP_BEAMS)
     card: Optional[str] = None            #: the card the caller loaded (recorded; the card itself is ``run(card=)``)
+    level: str = "plane"                  #: what is removed from the height (uvps.core.level.LEVELS)
 
     def __post_init__(self):
         # the ranges uvps.workflow.OPTION_PARAMS declares (tests/test_spec.py holds the two together)
         for name, lo, hi in (("degree", 1, 8), ("sample_pixels", 500, None), ("offset_degree", 0, 2)):
             setattr(self, name, _whole(name, getattr(self, name), lo, hi))
         for name, choices in (("integration", ("fc", "dct")), ("offset", ("auto", "measure", "none")),
-                              ("lamp_beams", LAMP_BEAMS + (True, False))):    # true / false: older run folders
+                              ("lamp_beams", LAMP_BEAMS + (True, False)), ("level", LEVELS)):    # true / false: older run folders
             if getattr(self, name) not in choices or (name != "lamp_beams" and isinstance(getattr(self, name), bool)):
                 shown = ", ".join(c for c in choices if isinstance(c, str))
                 raise UVPSInputError(f"{name} must be one of {shown}; got {getattr(self, name)!r}")
@@ -140,6 +142,7 @@ class RunResult:
     warnings: list = field(default_factory=list)
     timings_s: dict = field(default_factory=dict)
     relief: dict = field(default_factory=dict)   # run.json "relief" (:func:`relief_of_lights`)
+    level: Optional[Levelling] = None            # what was removed from the height (run.json "level")
 
 
 #: Stages :func:`run` knows, in order. "flatfield" computes nothing in memory: the flat-fielded
@@ -243,7 +246,6 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
                                        method=options.integration, mask=res.capture.mask)
         res.timings_s["integrate"] = _since(t0)
-        res.diagnostics["integration"] = integration_diagnostics(res.height)
     if "protrusions" in stages:
         t0 = time.perf_counter()
         res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,
@@ -252,6 +254,17 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
                                            progress=sub_progress(progress, *span["protrusions"]))
         res.timings_s["protrusions"] = _since(t0)
         res.diagnostics["detect"] = protrusion_diagnostics(res.protrusions, res.capture.pixel_size_um)
+    if res.height is not None:
+        # after the detection, which reads the heights as integrated (each protrusion over its own local
+        # plane; its rules were tuned on them, uvps detect rebuilds them from run.json's level): the best
+        # plane (or form) removed in place, and recorded. A mean normal bias below what any lamp
+        # calibration promises ramps the heights across the field (uvps.core.level).
+        t0 = time.perf_counter()
+        _, res.level = level_height(res.height.height_um, method=options.level,
+                                    pixel_size_um=res.capture.pixel_size_um, mask=res.capture.mask,
+                                    out=res.height.height_um)
+        res.timings_s["level"] = _since(t0)
+        res.diagnostics["integration"] = integration_diagnostics(res.height)
     report(progress, 1.0, "done")
     return res
 

@@ -102,14 +102,16 @@ class RunLog:
     warnings: list = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
     relief: Optional[dict] = None      # the relief's scale (:func:`relief_of`); None: not a run of a capture
+    level: Optional[dict] = None       # what was removed from depth.tif (:meth:`uvps.core.level.Levelling.to_json`)
 
     def time(self, stage, t0):
         self.timings_s[stage] = round(time.perf_counter() - t0, 3)
 
     def write(self, path):
         data = {"version": __version__, **asdict(self)}
-        if data["relief"] is None:
-            del data["relief"]
+        for key in ("relief", "level"):
+            if data[key] is None:
+                del data[key]
         write_json_atomic(path, data)
 
 
@@ -193,7 +195,8 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
         write_stereo(folder, result.stereo, cap.pixel_size_um)
         names += ["normals", "albedo", "gradients"]
     if result.height is not None:
-        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method, relief=relief)
+        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method, relief=relief,
+                     level=getattr(result, "level", None))
         names.append("depth")
     if result.protrusions is not None:
         names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
@@ -209,6 +212,8 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     log.timings_s = dict(result.timings_s)
     log.diagnostics = dict(result.diagnostics)
     log.relief = relief
+    if getattr(result, "level", None) is not None:
+        log.level = result.level.to_json()
     log.write(folder / "run.json")
     names.append("run")
     # dtypes of label images are read from the files just written
@@ -299,15 +304,59 @@ def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
 RELATIVE_UNIT = "relative"
 
 
-def write_height(folder: Path, height_um, pixel_size_um: float, method: str, *, relief: Optional[dict] = None) -> None:
+def write_height(folder: Path, height_um, pixel_size_um: float, method: str, *, relief: Optional[dict] = None,
+                 level=None) -> None:
     """``depth.tif``: height in micrometres (median 0); with a relative ``relief`` (:func:`relief_of`)
-    the same map labelled relative: ImageJ value unit "relative" and the Info saying why."""
+    the same map labelled relative: ImageJ value unit "relative" and the Info saying why. ``level``
+    (:class:`uvps.core.level.Levelling`): what was removed, said in the Info (:func:`level_words`)."""
+    levelled = "" if level is None else " " + level_words(level.to_json())
     if is_relative(relief):
-        meta = {"Info": f"uvps relative height ({method}), median 0: NOT micrometres. {relief.get('reason', '')}",
-                "vunit": RELATIVE_UNIT}
+        meta = {"Info": f"uvps relative height ({method}), median 0: NOT micrometres.{levelled} "
+                        f"{relief.get('reason', '')}", "vunit": RELATIVE_UNIT}
     else:
-        meta = {"Info": f"uvps height in micrometres ({method}), median 0", "vunit": "um"}
+        meta = {"Info": f"uvps height in micrometres ({method}), median 0.{levelled}", "vunit": "um"}
     write_imagej_tiff(folder / "depth.tif", height_um, axes="YX", pixel_size_um=pixel_size_um, metadata=meta)
+
+
+def level_words(level: Optional[dict]) -> str:
+    """One sentence on what was removed from ``depth.tif`` (run.json ``level``), for its Info, the Log
+    and ``uvps info``; "" when nothing is recorded (a folder written before levelling)."""
+    if not isinstance(level, dict) or "method" not in level:
+        return ""
+    sx, sy = level.get("slope_x_um_per_mm"), level.get("slope_y_um_per_mm")
+    plane = f"x {sx:+.3g}, y {sy:+.3g} um/mm (x right, y up)" if sx is not None and sy is not None else "?"
+    method = level["method"]
+    if method == "plane":
+        return (f"Levelled: the best plane ({plane}) removed; raw = this + that plane (run.json level).")
+    if method == "form":
+        return (f"Levelled: a Legendre form of degree {level.get('degree')} removed ({level.get('removed_rms_um', 0):.3g}"
+                f" um rms; best plane {plane}); raw = this + that form (run.json level).")
+    return f"Not levelled (level none): the heights as integrated, best plane {plane}."
+
+
+def set_level(run_dir: Path, level, *, into: Optional[Path] = None) -> None:
+    """Record ``level`` (:class:`uvps.core.level.Levelling`) in the run folder's ``run.json`` (a command
+    that rewrites ``depth.tif`` in a run folder: ``integrate``), written to ``into`` (the temporary
+    folder ``depth.tif`` is moved in from, so the two arrive together; default ``run_dir``); nothing
+    when the folder has none."""
+    path = Path(run_dir) / FILES["run"][0]
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return
+    if isinstance(data, dict):
+        data["level"] = level.to_json()
+        write_json_atomic(Path(into or run_dir) / FILES["run"][0], data)
+
+
+def level_of(run_dir) -> Optional[dict]:
+    """run.json's ``level`` of a run folder (None: not recorded, a folder written before levelling)."""
+    try:
+        data = json.loads((Path(run_dir) / FILES["run"][0]).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    level = data.get("level") if isinstance(data, dict) else None
+    return level if isinstance(level, dict) else None
 
 
 def height_unit(path) -> str:
@@ -558,7 +607,7 @@ def describe(run_dir) -> dict:
     info = {"run_dir": str(run_dir), "version": log.get("version"), "command": log.get("command"),
             "params": log.get("params", {}), "warnings": list(log.get("warnings", [])), "files": files,
             "lights": log.get("diagnostics", {}).get("lights", {}), "timings_s": log.get("timings_s", {}),
-            "relief": relief_of(log)}
+            "relief": relief_of(log), "level": level_words(log.get("level"))}
     table = run_dir / FILES["protrusions"][0]
     if table.is_file():
         with open(table, encoding="utf-8") as fh:

@@ -816,7 +816,11 @@ def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: fl
     lab = _protrusion_labels(inputs)
     scale = height_scale(height, relative=rel)
     what = "Relative height (no unit: the heights' scale is not known)" if rel else "Height (\u00b5m)"
-    _figure_step(page, "height.png", f"{what} from the normals, median 0, with the counted "
+    lev = facts.run.get("level") if isinstance(facts.run.get("level"), dict) else {}
+    levelled = {"plane": ", levelled (its best plane removed: see How sure)",
+                "form": ", levelled (a smooth form removed, the bow with it: see How sure)",
+                "none": ", not levelled"}.get(str(lev.get("method")), "")
+    _figure_step(page, "height.png", f"{what} from the normals{levelled}, median 0, with the counted "
                  f"protrusions outlined in red. {scale.words()}", plot_height, height,
                  figdir / "height.png", pixel_size_um=px, labels=lab, relative=rel)
     centre, width_um, what = _detail_target(height, table, px)

@@ -332,7 +332,42 @@ def _heights_item(f: Facts) -> str:
     noise = (f.diagnostics.get("detect") or {}).get("noise_um")
     if noise is not None:
         s += f"; height noise {sig(noise, 1)} \u00b5m"
-    return s + "."
+    return s + "." + level_sentence(f)
+
+
+def level_sentence(f: Facts) -> str:
+    """What was removed from the heights (run.json ``level``, :mod:`uvps.core.level`) and why: a mean
+    bias of the normals of d deg is a slope of tan(d), 17.5 um per mm per degree, a ramp across the
+    field larger than the relief; "" for a run that records none."""
+    lev = f.run.get("level")
+    if not isinstance(lev, dict) or lev.get("slope_x_um_per_mm") is None:
+        return ""
+    sx, sy = float(lev["slope_x_um_per_mm"]), float(lev.get("slope_y_um_per_mm") or 0.0)
+    slope = math.hypot(sx, sy)
+    tilt = math.degrees(math.atan(slope / 1000.0))
+    unit = "\u00b5m/mm" if not f.relative else "units per mm"
+    plane = (f"slope {sx:+.2f} {unit} toward the right and {sy:+.2f} {unit} upward, a tilt of "
+             f"{sig(tilt, 2) if tilt >= 0.01 else fixed(tilt, 3)}\u00b0")
+    fm = f.field_mm
+    ramp = (f", {height(slope * max(fm))} \u00b5m across this {fixed(max(fm), 0)} mm field"
+            if fm is not None and not f.relative else "")
+    bias = ("A mean bias of the normals of d\u00b0 (the lamps' directions off by that much on average) tilts "
+            "the heights by tan(d), 17.5 \u00b5m per mm for each degree; a calibration leaves a few tenths of a "
+            "degree, enough to ramp the heights across the field more than the paint's relief rises")
+    why = (bias + ", so the plane is removed (as surface metrology removes the form, ISO 25178) and the relief "
+           "shows; the painting's own tilt goes with it.")
+    method = lev.get("method")
+    if method == "plane":
+        return (f" <b>Levelled</b>: the best plane removed ({plane}{ramp}); the heights as integrated are "
+                f"<code>depth.tif</code> plus that plane (run.json <code>level</code>). {why}")
+    if method == "form":
+        rms = lev.get("removed_rms_um")
+        return (f" <b>Levelled</b>: a smooth form (2-D Legendre polynomial of degree {e(str(lev.get('degree')))}) "
+                f"removed, {height(rms) if rms is not None else '?'} {unit.split('/')[0]} rms: the canvas's "
+                f"bow with it; its plane {plane}{ramp}. The heights as integrated are <code>depth.tif</code> "
+                f"plus that form (run.json <code>level</code>). {why}")
+    return (f" <b>Not levelled</b> (<code>--level none</code>): the heights hold a plane ({plane}{ramp}). "
+            f"{bias} (<code>--level plane</code> removes it).")
 
 
 def _excluded_item(f: Facts, stats, table) -> str:
@@ -553,7 +588,12 @@ def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
     integ = {"fc": "Frankot\u2013Chellappa (Fourier, mirrored borders)",
              "dct": "DCT Poisson (Neumann borders)"}.get(str(p.get("integration")),
                                                          str(p.get("integration", "?")))
-    items.append(f"Height by integrating the normals: {e(integ)}; the median height is set to 0"
+    lev = f.run.get("level") if isinstance(f.run.get("level"), dict) else {}
+    levelled = {"plane": "; the best plane (robust least squares over the valid pixels) removed",
+                "form": f"; a 2-D Legendre form of degree {e(str(lev.get('degree')))} (robust least squares) "
+                        "removed",
+                "none": "; not levelled"}.get(str(lev.get("method")), "")
+    items.append(f"Height by integrating the normals: {e(integ)}{levelled}; the median height is set to 0"
                  + (", relative units" if f.relative else ", in \u00b5m") + ".")
     if n_areas is not None:
         items.append(f"Colour areas: {n_areas}, {e(region_source)}.")
