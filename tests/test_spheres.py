@@ -185,7 +185,7 @@ def test_read_sphere_circles_errors(tmp_path):
     with pytest.raises(UVPSInputError, match="line 2: radius_px must be > 0"):
         read_sphere_circles(p)
     p.write_text("col,row,radius_px,kind\n10,20,3,shiny\n", encoding="utf-8")
-    with pytest.raises(UVPSInputError, match="kind must be matte, glossy or auto"):
+    with pytest.raises(UVPSInputError, match="kind must be matte, glossy, mirror or auto"):
         read_sphere_circles(p)
 
 
