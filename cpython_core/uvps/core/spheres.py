@@ -70,6 +70,8 @@ KINDS = ("matte", "glossy", "mirror")
 MIRROR_CORE_DEG = 2.5
 #: A highlight's samples at or above this fraction of the saturation level are its saturated core.
 SATURATED_CORE = 0.955
+#: A saturated core under this many pixels is placed with its edge's partly lit pixels (:func:`_fit_mirror`).
+SMALL_CORE_PX = 200
 #: The reduced projection for detection is at most this many pixels on its long side.
 DETECT_LONG_SIDE = 1000
 #: A sphere's radius at least this many pixels of the full image (smaller ones cannot give a direction
@@ -83,6 +85,9 @@ MIN_RIM_FRACTION = 0.6
 #: taken to show them: a stand and a dark background behind one side may hide half a rim there (the
 #: PSBox mirror sphere's ``ref.JPG``: 0.51), so the circle in spheres.png is the check.
 REFERENCE_RIM_FRACTION = 0.45
+#: The same for a circle found by :func:`_ransac_circle` when the Hough transform found none (a dark
+#: sphere on a dark ground crossed by flare spikes, a holder below it: 0.37 of its rays on the rim).
+RANSAC_RIM_FRACTION = 0.33
 #: A detected circle under this fraction of the largest one's radius is not a calibration sphere
 #: (spheres of one capture are of one size or close; on a painting's relief a 14 px bump beside two
 #: 90 px spheres was found as a third, and the lamps came 29 deg off). Give unequal spheres with
@@ -457,13 +462,15 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
                      key=lambda c: -c[2])
     found = []
     clipped = []
-    for (x, y, r) in circles:
+
+    def consider(x, y, r, need=min_rim_fraction):
+        """Refine one proposed circle (reduced pixels) and keep it if ``need`` of its rays meet its rim."""
         centre, radius = (x * step, y * step), r * step
         if found and radius < MIN_RADIUS_RATIO * max(o.radius_px for o in found):
-            continue                    # left out below anyway: not worth its crops
+            return                    # left out below anyway: not worth its crops
         if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
                for o in found + clipped):
-            continue
+            return
         box = _crop_box(centre, radius, (M, N))
         crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
         # the rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
@@ -475,10 +482,11 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
             # a dark sphere on a dark ground: its rim in the mean and the mean's logarithm, where the
             # median and the maximum find too little of it (the PSBox mirror spheres)
             mean = crops.mean(axis=0)
-            refs += [r_ for r_ in (_refine_circle(crop, at, radius) for crop in (mean, _log_view(mean)))
+            refs += [r_ for r_ in (_refine_circle(crop, at, radius)
+                                   for crop in (mean, _log_view(mean), _log_view(_median_over_images(crops))))
                      if r_ is not None]
         if not refs:
-            continue
+            return
         ref = max(refs, key=lambda r_: r_[2])
         # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
         # where the two find the same circle, a ray on the rim in either counts
@@ -489,12 +497,24 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
         # a sphere cut by the frame: its rim is sought on the rays whose rim lies in the frame
         theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
         in_frame = _rim_in_frame(s, theta, (M, N))
-        if rim[in_frame].sum() < min_rim_fraction * max(in_frame.sum(), 0.5 * len(theta)):
-            continue
+        if rim[in_frame].sum() < need * max(in_frame.sum(), 0.5 * len(theta)):
+            return
         if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
                                      < 0.8 * (rr + o.radius_px) for o in found + clipped):
-            continue
+            return
         (found if in_frame.all() else clipped).append(s)
+
+    for (x, y, r) in circles:
+        consider(x, y, r)
+    if not found and not clipped:
+        # nothing the Hough transform proposed is a rim: a dark sphere on a dark ground crossed by a
+        # flare's spikes, whose rim is a broken arc among straight edges; a RANSAC circle on the edge
+        # points of the logarithm of the median and of the mean; its rim need only be a third of the rays
+        # (the fit then asks a highlight in every image, or Lambert's shading)
+        for proj in logs[::-1]:
+            c = _ransac_circle(proj, min_r, max_r)
+            if c is not None:
+                consider(*c, need=min(min_rim_fraction, RANSAC_RIM_FRACTION))
     if found:
         # calibration spheres are of one size or close; a circle far smaller is the painting's own (a
         # protrusion, a blob of paint) and would pull every lamp's position with a wrong ray
@@ -512,6 +532,42 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
         clipped_out.extend(sorted(clipped, key=lambda s: (s.centre_px[1], s.centre_px[0])))
     report(progress, 0.5, f"sphere detection: {len(found)} circle(s)")
     return sorted(found, key=lambda s: (s.centre_px[1], s.centre_px[0]))
+
+
+def _ransac_circle(img, min_r, max_r):
+    """The circle (x, y, r) through most edge points of a view (Canny at Otsu's threshold) by RANSAC
+    (``skimage.measure.ransac`` with ``CircleModel``, 3000 trials), when at least a third of its
+    perimeter is edge; else None."""
+    import cv2
+    from skimage.measure import CircleModel, ransac
+
+    img8 = _to8(img)
+    if img8 is None:
+        return None
+    img8 = cv2.GaussianBlur(img8, (0, 0), 1.5)
+    hi, _ = cv2.threshold(img8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    y, x = np.nonzero(cv2.Canny(img8, 0.5 * hi, hi))
+    if x.size < 30:
+        return None
+    pts = np.column_stack([x, y]).astype(np.float64)
+    if len(pts) > 20000:
+        pts = pts[np.random.default_rng(0).choice(len(pts), 20000, replace=False)]
+
+    def radius(m):
+        return float(m.radius) if hasattr(m, "radius") else float(m.params[2])
+
+    def valid(m, *_):
+        return min_r <= radius(m) <= max_r
+
+    model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=1.5, max_trials=3000,
+                        is_model_valid=valid, rng=0)
+    if model is None or inl is None:
+        return None
+    r = radius(model)
+    if inl.sum() < 2 * math.pi * r / 3:
+        return None
+    centre = model.center if hasattr(model, "center") else model.params[:2]
+    return float(centre[0]), float(centre[1]), r
 
 
 def _log_view(img):
@@ -654,7 +710,8 @@ def _highlight_core(v, w, disc: "_Disc", sat):
     core = core & group
     nz = disc.normal_map[..., 2][core]
     area = float(np.sum(1.0 / np.maximum(nz, 0.05)))          # pixels on the sphere, foreshortening out
-    ang = math.degrees(math.asin(min(1.0, math.sqrt(area / math.pi) / disc.radius_px)))
+    # less half a pixel: a lamp's image a pixel across on a small sphere spreads over two or three
+    ang = math.degrees(math.asin(min(1.0, max(0.0, math.sqrt(area / math.pi) - 0.5) / disc.radius_px)))
     return core, ang, peak
 
 
@@ -1014,10 +1071,10 @@ def _fit_mirror(v, w, disc: _Disc, sat):
     """A mirror's highlight: the centre of its core (:func:`_highlight_core`) as a normal, its peak,
     sample count and centroid uncertainty in pixels; None when the disc shows no highlight.
 
-    A saturated core is flat: each of its samples counts alike (the published PSBox directions take
-    the median position of the samples at or above 250 counts; a flare's spikes and a scratch's streak,
-    opened off the core, do not pull it); an unsaturated one is weighted by its counts above the static
-    part. Each sample counts per unit of solid angle (``1 / n_z``), so the limb's foreshortening does not
+    A saturated core is flat: each of its samples counts alike, and the samples of its edge (two pixels
+    around it) by the fraction of the core's level they reach (the published PSBox directions take the
+    position of the samples at or above 250 counts; a flare's spikes and a scratch's streak, opened
+    off the core, do not pull it); an unsaturated one is weighted by its counts above the static part. Each sample counts per unit of solid angle (``1 / n_z``), so the limb's foreshortening does not
     pull the centre."""
     found = _highlight_core(v, w, disc, sat)
     if found is None:
@@ -1028,13 +1085,27 @@ def _fit_mirror(v, w, disc: _Disc, sat):
     flat = sat is not None and bool(np.any(v >= SATURATED_CORE * sat))
     nw = disc.normal_map
     if flat:
-        # the median normal of a flat core: a streak or a spike left on one side moves it by a part of its
-        # width at most
+        # a flat core and its edge: each sample weighted by the fraction of the saturated level it reaches
+        # (a pixel the lamp's image half covers counts half), so that a core of a few pixels is placed to
+        # a fraction of one (by its pixels alone, 0.9 deg off on a 1.2 deg lamp image 80 px from a
+        # sphere's centre)
+        if core.sum() < SMALL_CORE_PX:
+            edge = ndimage.binary_dilation(core, structure=np.ones((3, 3), bool), iterations=2) & disc.inside
+            top = float(np.median(img[core]))
+            wt = np.where(edge, np.clip(img / max(top, 1e-12), 0.0, 1.0), 0.0)
+        else:
+            wt = None
+    else:
+        wt = np.where(core, img, 0.0)
+    if wt is None:
+        # a large flat core: its median normal (a streak or a flare's glow left on one side moves it by a
+        # part of their width at most; PSBox: 0.02-0.39 deg from the published directions on their
+        # circle, its mean 0.19-1.07)
         nn = nw[core]
         nx, ny = float(np.median(nn[:, 0])), float(np.median(nn[:, 1]))
         nm = np.array([nx, ny, math.sqrt(max(0.0, 1.0 - nx * nx - ny * ny))])
     else:
-        wn = np.where(core, img, 0.0) / np.maximum(nw[..., 2], 0.05)
+        wn = wt / np.maximum(nw[..., 2], 0.05)
         nm = (wn[..., None] * nw).sum(axis=(0, 1)).astype(np.float64)
     if not np.linalg.norm(nm) > 0:
         return None
