@@ -125,6 +125,16 @@ def test_calibrate_bad_inputs_write_nothing(scene, tmp_path):
     r = uvps("calibrate", "--spheres", root / "cap", "-o", out)
     assert r.returncode == 1 and "no sphere found in the sphere capture" in r.stderr and "uv_00.tif" in r.stderr
     assert not out.exists()
+    # every sphere cut by the frame: one line naming the capture and its first image, nothing written
+    _, cap, _ = scene
+    write_sphere_capture(make_sphere_capture(cap, [SphereSpec("glossy", (0.98, 0.5), 3.0)]), tmp_path / "cut",
+                         truth=False)
+    r = uvps("calibrate", "--spheres", tmp_path / "cut", "-o", out)
+    errors = [ln for ln in r.stderr.splitlines() if not ln.startswith("INFO ")]
+    assert r.returncode == 1 and len(errors) == 1, r.stderr
+    last = errors[0]
+    assert "every sphere found is cut by the frame" in last and str(tmp_path / "cut") in last and "sphere_00.tif" in last
+    assert not out.exists()
     # neither spheres nor a rig
     r = uvps("calibrate", "-o", out)
     assert r.returncode == 1 and "needs exactly one of spheres" in r.stderr
