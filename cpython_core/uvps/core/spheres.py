@@ -9,6 +9,11 @@ two or more spheres, its 3-D position (the bas-relief ambiguity of a sphere-free
   trimmed of what does not follow the model (a stand hiding part of the sphere, specks, the
   terminator): ``l_k = b / |b|``. It holds behind a UV-blocking filter (the sphere's own
   fluorescence or the visible light reflected by it are both Lambertian enough).
+- **Mirror (chrome) sphere**: the lamp's own small image, usually saturated with a flare star
+  around it: the centre of its saturated core (:func:`_fit_mirror`: the core's median normal, or for
+  a core of a few pixels the mean with its edge's partly lit pixels weighted by how lit they are),
+  its flare spikes and a scratch's streak opened off; what every image shows (a window, a lit object
+  the sphere reflects) is not the highlight (:func:`_static_part`).
 - **Glossy black sphere**: the lamp's mirror highlight. Its centre is the intensity-weighted mean
   of the normals under the highlight, weighted per unit of solid angle (``1 / n_z`` per pixel), so
   the foreshortening near the limb does not pull it; a saturated highlight counts as a disc, and thin
@@ -23,9 +28,13 @@ its covariance.
 Spheres are found by circle detection (OpenCV's gradient Hough transform, ``HOUGH_GRADIENT_ALT``,
 on a reduced maximum projection of the capture), their rims then located along 720 rays at full
 resolution and fitted by a RANSAC circle (``skimage.measure.ransac``): a stand, a flare spike or a
-highlight crossing the rim are outliers. Each candidate must then behave as a sphere (a highlight in
-every image, or a shading that Lambert's law fits). A wrong or missed detection is overridden by
-given circles (:func:`read_sphere_circles`, ``--sphere-circles``).
+highlight crossing the rim are outliers. A dark sphere on a dark ground is sought in the logarithm of
+the mean and the median too, and when the Hough transform proposes nothing, by a RANSAC circle on
+their edge points (:func:`_ransac_circle`). A circle cut by the frame is left out (all of them: the
+capture is refused). The kind (matte, glossy, mirror) is told from the images (:func:`_kind_of`) or
+given. Each candidate must then behave as a sphere (a highlight in every image, or a shading that
+Lambert's law fits). A wrong or missed detection is overridden by given circles
+(:func:`read_sphere_circles`, ``--sphere-circles``).
 
 Frames follow docs/architecture.md: pixel centre ``(r, c)`` at ``X = (c - (N - 1) / 2) px``,
 ``Y = ((M - 1) / 2 - r) px`` (mm); a sphere's normal at ``(r, c)`` is
@@ -443,7 +452,10 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
     lit background and a matte one as a shaded disc, without the highlights and flare spikes (whose
     ring in the maximum projection is a circle too, inside a sphere already found); then the maximum
     (a mirror sphere on black, only its highlights; a matte sphere whose shading matches the ground
-    in the median) and the mean add the circles the median missed.
+    in the median) and the mean add the circles the median missed, and the logarithm of the mean and
+    the median a dark sphere's rim on a dark ground (a ratio, a few counts); the largest circles are
+    tried first. When none of them is a rim, a RANSAC circle on the edges of the logarithms
+    (:func:`_ransac_circle`) is tried with :data:`RANSAC_RIM_FRACTION` of the rim.
     """
     K, M, N = images.shape[:3]
     step = max(1, int(math.ceil(max(M, N) / DETECT_LONG_SIDE)))
