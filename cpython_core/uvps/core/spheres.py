@@ -214,7 +214,7 @@ _RAD_NAMES = ("radius_px", "radius", "r", "r_px")
 def read_sphere_circles(path) -> list:
     """Spheres given by hand: a CSV with columns ``col,row,radius_px`` (centre column and row and
     radius, in pixels of the full image; ``x,y,radius`` also accepted) and optionally ``kind``
-    (matte or glossy; empty or auto = decided from the images).
+    (matte, glossy or mirror; empty or auto = decided from the images).
 
     Examples
     --------
