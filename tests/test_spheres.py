@@ -185,7 +185,7 @@ def test_read_sphere_circles_errors(tmp_path):
     with pytest.raises(UVPSInputError, match="line 2: radius_px must be > 0"):
         read_sphere_circles(p)
     p.write_text("col,row,radius_px,kind\n10,20,3,shiny\n", encoding="utf-8")
-    with pytest.raises(UVPSInputError, match="kind must be matte, glossy or auto"):
+    with pytest.raises(UVPSInputError, match="kind must be matte, glossy, mirror or auto"):
         read_sphere_circles(p)
 
 
@@ -252,3 +252,124 @@ def test_projections_in_bands_equal_the_whole(rows, step):
         assert got.shape == want.shape and np.array_equal(got, want)
     np.testing.assert_allclose(_mean_image(stack, step), sub.astype(np.float64).mean(0), rtol=1e-12)
     assert np.array_equal(_median_over_images(stack), np.median(stack, 0))
+
+
+# ------------------------------------------------------------------------------------------------
+# spheres as real captures show them: the kind from the highlight, a flare star, a holder hiding the
+# lower third, a dark sphere on a dark ground, a sphere in a corner, a sphere cut by the frame
+# ------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def high_lamps():
+    """Lamps at 55-80 deg: every highlight above the lower third of the disc (a holder hides it)."""
+    return make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, black_level=300.0,
+                        elevation_deg=(55.0, 80.0))
+
+
+@pytest.fixture(scope="module")
+def dark_ground():
+    """Black cloth under the spheres: the ground at 3 % albedo, a glossy sphere's 2 %, a chrome one's 0.5 %."""
+    cap = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, black_level=300.0)
+    cap.albedo[:] = 0.03
+    return cap
+
+
+def _calibrated(sc, **kw):
+    return calibrate_spheres(sc.images.astype(np.float32) - 300.0, pixel_size_um=PX, saturation=65535.0 - 300.0, **kw)
+
+
+def _ray_errors(cal, lamps, truth):
+    """Each sphere's rays against the lamps: from the highlight's surface point (glossy, mirror) or the
+    sphere's centre (matte)."""
+    out = []
+    for f in cal.fits:
+        t = min(truth, key=lambda t_: np.hypot(*np.subtract(t_["centre_px"], f.sphere.centre_px)))
+        start = np.asarray(t["centre_mm"]) if f.sphere.kind == "matte" else f.points_mm
+        out.append(_angles(f.directions, lamps - start))
+    return out
+
+
+@pytest.mark.parametrize("kind, limit", [("mirror", 0.4), ("glossy", 0.3), ("matte", 0.2)])
+def test_the_kind_is_told_by_the_highlight_with_a_flare_star(painting, kind, limit):
+    """A chrome ball shows the lamp's small image, a black glossy one a lobe, a white matte one Lambert
+    shading; the saturated highlights carry a flare star of six spikes. Nothing but the images given."""
+    sc = make_sphere_capture(painting, [SphereSpec(kind, (0.5, 0.5), 4.0)], flare=True)
+    if kind != "matte":         # the star is there: spikes beyond the highlight's core
+        assert (sc.images > 0.3 * 65535).sum() > 3 * (sc.images >= 65535).sum()
+    cal = _calibrated(sc)
+    assert [s.kind for s in cal.spheres] == [kind]
+    (err,) = _ray_errors(cal, painting.light_positions_mm, sc.spheres)
+    assert err.max() < limit, err
+
+
+@pytest.mark.parametrize("kind, limit", [("mirror", 0.6), ("glossy", 0.4), ("matte", 0.25)])
+def test_a_holder_hiding_the_lower_third(painting, high_lamps, kind, limit):
+    """A holder across the sphere's width hides the lower third of its disc (a cork ring, a clamp): the
+    rim is found on the rest, the kind and the rays as without it."""
+    cap = painting if kind == "matte" else high_lamps
+    sc = make_sphere_capture(cap, [SphereSpec(kind, (0.5, 0.45), 4.0)], stand=True, stand_top=1 / 3,
+                             stand_half_width=1.2)
+    cal = _calibrated(sc)
+    assert [s.kind for s in cal.spheres] == [kind]
+    true = sc.spheres[0]
+    assert np.hypot(*np.subtract(cal.spheres[0].centre_px, true["centre_px"])) < 0.5
+    assert abs(cal.spheres[0].radius_px - true["radius_px"]) < 0.5
+    (err,) = _ray_errors(cal, cap.light_positions_mm, sc.spheres)
+    assert err.max() < limit, err
+
+
+@pytest.mark.parametrize("kind", ["mirror", "glossy"])
+def test_a_dark_sphere_on_a_dark_ground_without_a_reference(dark_ground, kind):
+    sc = make_sphere_capture(dark_ground, [SphereSpec(kind, (0.5, 0.5), 4.0)])
+    cal = _calibrated(sc)
+    assert [(s.kind, s.source) for s in cal.spheres] == [(kind, "detected")]
+    assert np.hypot(*np.subtract(cal.spheres[0].centre_px, sc.spheres[0]["centre_px"])) < 0.5
+    (err,) = _ray_errors(cal, dark_ground.light_positions_mm, sc.spheres)
+    assert err.max() < 0.4, err
+
+
+def test_two_mirror_spheres_in_the_corners_agree_and_place_the_lamps(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("mirror", (0.13, 0.17), 3.0), SphereSpec("mirror", (0.87, 0.83), 3.0)])
+    cal = _calibrated(sc)
+    assert [s.kind for s in cal.spheres] == ["mirror", "mirror"] and cal.positions_mm is not None
+    for err in _ray_errors(cal, painting.light_positions_mm, sc.spheres):
+        assert err.max() < 0.7, err
+    assert _angles(cal.directions, painting.light_positions_mm).max() < 0.5
+
+
+def test_the_kind_given_applies_to_detected_spheres_before_the_fit(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("mirror", (0.5, 0.5), 4.0)])
+    cal = _calibrated(sc, kind="glossy")
+    assert cal.spheres[0].kind == "glossy" and cal.spheres[0].source == "detected"
+    (err,) = _ray_errors(cal, painting.light_positions_mm, sc.spheres)
+    assert err.max() < 0.5, err
+    # a wrong kind given is tried as given, and refused naming the image and what to give
+    with pytest.raises(UVPSInputError, match=r"sphere capture s_00\.tif: the matte sphere at .*--sphere-kind"):
+        _calibrated(sc, kind="matte", files=[f"s_{k:02d}.tif" for k in range(8)])
+
+
+def test_a_room_reflection_every_image_shows_is_not_the_highlight(painting):
+    """A saturated spot in every image (a window, a fixed lamp) on the sphere: not the lamp's."""
+    sc = make_sphere_capture(painting, [SphereSpec("mirror", (0.5, 0.5), 4.0)])
+    t = sc.spheres[0]
+    images = sc.images.copy()
+    c, r, R = t["centre_px"][0], t["centre_px"][1], t["radius_px"]
+    rr, cc = np.mgrid[0:images.shape[1], 0:images.shape[2]]
+    spot = (cc - (c - 0.6 * R)) ** 2 + (rr - (r - 0.2 * R)) ** 2 < 5.0 ** 2     # larger than the lamps' images
+    images[:, spot] = 65535
+    sc.images = images
+    cal = _calibrated(sc)
+    assert cal.spheres[0].kind == "mirror"
+    (err,) = _ray_errors(cal, painting.light_positions_mm, sc.spheres)
+    assert err.max() < 0.4, err
+
+
+def test_spheres_cut_by_the_frame_are_refused(painting):
+    sc = make_sphere_capture(painting, [SphereSpec("glossy", (0.97, 0.5), 4.0)])
+    with pytest.raises(UVPSInputError, match=r"sphere capture spheres, s_00\.tif: every sphere found is cut by the "
+                                             r"frame .*photograph it again"):
+        _calibrated(sc, files=[f"s_{k:02d}.tif" for k in range(8)], capture="spheres")
+    # one whole sphere beside it is used, the cut one left out
+    sc = make_sphere_capture(painting, [SphereSpec("glossy", (0.97, 0.5), 4.0), SphereSpec("glossy", (0.3, 0.5), 4.0)])
+    cal = _calibrated(sc)
+    assert len(cal.spheres) == 1 and abs(cal.spheres[0].centre_px[0] - sc.spheres[1]["centre_px"][0]) < 0.5

@@ -56,7 +56,7 @@ def _spheres_png(path, images, spheres) -> None:
         for dr in (-1, 0, 1):
             rr, cc = circle_perimeter(int(round(s.centre_px[1] / step)), int(round(s.centre_px[0] / step)),
                                       max(1, int(round(s.radius_px / step)) + dr), shape=med.shape)
-            rgb[rr, cc] = (255, 60, 0) if s.kind == "glossy" else (0, 200, 255)
+            rgb[rr, cc] = (0, 200, 255) if s.kind == "matte" else (255, 60, 0)
     # a picture to look at: fast PNG compression (level 1 is a third of the default's time)
     if not cv2.imwrite(str(path), rgb[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 1]):
         raise OSError(f"could not write {path}")
@@ -105,19 +105,16 @@ def _from_spheres(inputs, params, progress, pool):
     if given is not None and params["sphere_kind"] != "auto":
         given = [Sphere(s.centre_px, s.radius_px, params["sphere_kind"] if s.kind == "auto" else s.kind, s.source)
                  for s in given]
+    capture_name = str(images[0]) if len(images) == 1 else f"{images[0]} (and {len(images) - 1} more)"
     names = [Path(f).name for f in cap.files]
     saturation = cap.saturation
     if saturation is not None and inputs["dark"] is not None:
         # a saturated sample is at the file's maximum before the dark frame is subtracted
         saturation = saturation - float(np.max(read_image(inputs["dark"])))
+    # the kind given applies to detected spheres too, before their fit
     cal = calibrate_spheres(cap.images, pixel_size_um=cap.pixel_size_um, spheres=given, saturation=saturation,
-                            files=names, progress=sub_progress(progress, 0.3, 0.9))
-    if given is None and params["sphere_kind"] != "auto":
-        wrong = [f.sphere for f in cal.fits if f.sphere.kind != params["sphere_kind"]]
-        if wrong:
-            raise UVPSInputError(f"sphere_kind is {params['sphere_kind']} but the sphere at "
-                                 f"({wrong[0].centre_px[0]:.0f}, {wrong[0].centre_px[1]:.0f}) px looks "
-                                 f"{wrong[0].kind}; give the circles and kinds with --sphere-circles")
+                            files=names, kind=params["sphere_kind"], capture=capture_name,
+                            progress=sub_progress(progress, 0.3, 0.9))
     return cap, cal, names, hashes
 
 
@@ -287,7 +284,9 @@ SPECS = (
                                "the spheres are found on it, for a dark sphere on a dark ground whose rim the "
                                "lamps do not show"),
                     Param("sphere_kind", "choice", "auto", choices=("auto",) + KINDS, label="Kind of sphere",
-                          help="matte (white: shading) or glossy (black: highlight); auto: from the images"),
+                          help="matte (white or grey: shading), glossy (black: a highlight's lobe) or mirror "
+                               "(chrome: the lamp's small image); auto: from the highlight; applies to detected "
+                               "spheres and to given circles without a kind"),
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",
                           help="a frame with the UV lamps off: subtracted from the sphere capture and kept in "
                                "the calibration for the captures that use it"),

@@ -9,6 +9,11 @@ two or more spheres, its 3-D position (the bas-relief ambiguity of a sphere-free
   trimmed of what does not follow the model (a stand hiding part of the sphere, specks, the
   terminator): ``l_k = b / |b|``. It holds behind a UV-blocking filter (the sphere's own
   fluorescence or the visible light reflected by it are both Lambertian enough).
+- **Mirror (chrome) sphere**: the lamp's own small image, usually saturated with a flare star
+  around it: the centre of its saturated core (:func:`_fit_mirror`: the core's median normal, or for
+  a core of a few pixels the mean with its edge's partly lit pixels weighted by how lit they are),
+  its flare spikes and a scratch's streak opened off; what every image shows (a window, a lit object
+  the sphere reflects) is not the highlight (:func:`_static_part`).
 - **Glossy black sphere**: the lamp's mirror highlight. Its centre is the intensity-weighted mean
   of the normals under the highlight, weighted per unit of solid angle (``1 / n_z`` per pixel), so
   the foreshortening near the limb does not pull it; a saturated highlight counts as a disc, and thin
@@ -23,9 +28,13 @@ its covariance.
 Spheres are found by circle detection (OpenCV's gradient Hough transform, ``HOUGH_GRADIENT_ALT``,
 on a reduced maximum projection of the capture), their rims then located along 720 rays at full
 resolution and fitted by a RANSAC circle (``skimage.measure.ransac``): a stand, a flare spike or a
-highlight crossing the rim are outliers. Each candidate must then behave as a sphere (a highlight in
-every image, or a shading that Lambert's law fits). A wrong or missed detection is overridden by
-given circles (:func:`read_sphere_circles`, ``--sphere-circles``).
+highlight crossing the rim are outliers. A dark sphere on a dark ground is sought in the logarithm of
+the mean and the median too, and when the Hough transform proposes nothing, by a RANSAC circle on
+their edge points (:func:`_ransac_circle`). A circle cut by the frame is left out (all of them: the
+capture is refused). The kind (matte, glossy, mirror) is told from the images (:func:`_kind_of`) or
+given. Each candidate must then behave as a sphere (a highlight in every image, or a shading that
+Lambert's law fits). A wrong or missed detection is overridden by given circles
+(:func:`read_sphere_circles`, ``--sphere-circles``).
 
 Frames follow docs/architecture.md: pixel centre ``(r, c)`` at ``X = (c - (N - 1) / 2) px``,
 ``Y = ((M - 1) / 2 - r) px`` (mm); a sphere's normal at ``(r, c)`` is
@@ -62,7 +71,16 @@ log = logging.getLogger(__name__)
 __all__ = ["Sphere", "SphereFit", "LampCalibration", "detect_spheres", "read_sphere_circles", "fit_sphere",
            "triangulate", "calibrate_spheres"]
 
-KINDS = ("matte", "glossy")
+KINDS = ("matte", "glossy", "mirror")
+#: A specular sphere whose highlight's core (its saturated samples, or those above half its peak when
+#: none saturates) is under this angular radius in the sphere's normals is a mirror (a chrome or
+#: steel ball: the lamp's own image, 0.5-2 deg); above it a glossy sphere's lobe (a black ball's
+#: polish spreads it: 3-10 deg). The PSBox mirror sphere's saturated cores: 0.9-1.4 deg.
+MIRROR_CORE_DEG = 2.5
+#: A highlight's samples at or above this fraction of the saturation level are its saturated core.
+SATURATED_CORE = 0.955
+#: A saturated core under this many pixels is placed with its edge's partly lit pixels (:func:`_fit_mirror`).
+SMALL_CORE_PX = 200
 #: The reduced projection for detection is at most this many pixels on its long side.
 DETECT_LONG_SIDE = 1000
 #: A sphere's radius at least this many pixels of the full image (smaller ones cannot give a direction
@@ -76,6 +94,9 @@ MIN_RIM_FRACTION = 0.6
 #: taken to show them: a stand and a dark background behind one side may hide half a rim there (the
 #: PSBox mirror sphere's ``ref.JPG``: 0.51), so the circle in spheres.png is the check.
 REFERENCE_RIM_FRACTION = 0.45
+#: The same for a circle found by :func:`_ransac_circle` when the Hough transform found none (a dark
+#: sphere on a dark ground crossed by flare spikes, a holder below it: 0.37 of its rays on the rim).
+RANSAC_RIM_FRACTION = 0.33
 #: A detected circle under this fraction of the largest one's radius is not a calibration sphere
 #: (spheres of one capture are of one size or close; on a painting's relief a 14 px bump beside two
 #: 90 px spheres was found as a third, and the lamps came 29 deg off). Give unequal spheres with
@@ -193,7 +214,7 @@ _RAD_NAMES = ("radius_px", "radius", "r", "r_px")
 def read_sphere_circles(path) -> list:
     """Spheres given by hand: a CSV with columns ``col,row,radius_px`` (centre column and row and
     radius, in pixels of the full image; ``x,y,radius`` also accepted) and optionally ``kind``
-    (matte or glossy; empty or auto = decided from the images).
+    (matte, glossy or mirror; empty or auto = decided from the images).
 
     Examples
     --------
@@ -232,7 +253,7 @@ def read_sphere_circles(path) -> list:
             raise UVPSInputError(f"sphere circles file {path} line {i}: radius_px must be > 0 and every value finite")
         kind = (row.get(kk) or "auto").strip().lower() if kk else "auto"
         if kind not in KINDS + ("auto", ""):
-            raise UVPSInputError(f"sphere circles file {path} line {i}: kind must be matte, glossy or auto; "
+            raise UVPSInputError(f"sphere circles file {path} line {i}: kind must be matte, glossy, mirror or auto; "
                                  f"got {kind!r}")
         out.append(Sphere((c, r), rad, kind or "auto", "given"))
     return out
@@ -367,6 +388,20 @@ def _refine_circle(proj, centre, radius):
     fitted = _circle(pts[inl])
     if fitted is None:
         return None
+    # the RANSAC's band (1 % of the radius) is loose for a large sphere: a stand's edge or a holder
+    # that follows the rim within it pulls the circle (the PSBox mirror sphere's cork stand: 3 px down,
+    # 0.5 deg on every lamp); the circle is refitted to the points within 2.5 robust standard
+    # deviations of it until they stop changing
+    for _ in range(5):
+        d = np.hypot(pts[:, 0] - fitted[0], pts[:, 1] - fitted[1]) - fitted[2]
+        s_ = 1.4826 * np.median(np.abs(d[inl])) + 1e-6
+        keep = np.abs(d) < max(0.5, 2.5 * s_)
+        if keep.sum() < max(30, 0.3 * len(theta) * ok.mean()) or np.array_equal(keep, inl):
+            break
+        refit = _circle(pts[keep])
+        if refit is None:
+            break
+        inl, fitted = keep, refit
     xc, yc, r = fitted
     rays = np.zeros(len(theta), bool)
     rays[np.flatnonzero(ok)[inl]] = True
@@ -388,7 +423,8 @@ def _circle(points):
     return tuple(float(v) for v in model.params)
 
 
-def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progress: Progress = None) -> list:
+def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progress: Progress = None,
+                   clipped_out: Optional[list] = None) -> list:
     """Find the spheres of a sphere capture: circles of the capture's maximum projection.
 
     Parameters
@@ -397,7 +433,11 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
         The sphere capture (counts), or a room-lit reference picture as a stack of one.
     min_rim_fraction : float
         The fraction of the rays from a circle's centre that must meet the rim on it
-        (:data:`MIN_RIM_FRACTION`; :data:`REFERENCE_RIM_FRACTION` for a reference picture).
+        (:data:`MIN_RIM_FRACTION`; :data:`REFERENCE_RIM_FRACTION` for a reference picture); for a
+        circle cut by the frame, of the rays whose rim lies in the frame.
+    clipped_out : list, optional
+        Receives the circles found cut by the frame (left out of the result: a sphere's disc must be
+        whole for its normals, and its rim on one side only leaves its centre loose).
 
     Returns
     -------
@@ -412,7 +452,10 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
     lit background and a matte one as a shaded disc, without the highlights and flare spikes (whose
     ring in the maximum projection is a circle too, inside a sphere already found); then the maximum
     (a mirror sphere on black, only its highlights; a matte sphere whose shading matches the ground
-    in the median) and the mean add the circles the median missed.
+    in the median) and the mean add the circles the median missed, and the logarithm of the mean and
+    the median a dark sphere's rim on a dark ground (a ratio, a few counts); the largest circles are
+    tried first. When none of them is a rim, a RANSAC circle on the edges of the logarithms
+    (:func:`_ransac_circle`) is tried with :data:`RANSAC_RIM_FRACTION` of the rim.
     """
     K, M, N = images.shape[:3]
     step = max(1, int(math.ceil(max(M, N) / DETECT_LONG_SIDE)))
@@ -420,38 +463,70 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
     report(progress, 0.4, "sphere detection: projections")
     min_r = max(4.0, MIN_RADIUS_PX / step)
     max_r = 0.55 * min(projections[0].shape)
+    # the logarithm of the mean and the median besides: a dark sphere on a dark ground (a black or mirror
+    # sphere on black cloth) differs from it by a ratio, not by counts, and its rim, a few counts in the
+    # linear projections under the highlights' range, is an edge like any other in the logarithm (the
+    # PSBox mirror sphere's: found only so)
+    logs = [_log_view(p) for p in (projections[2], projections[0])]
+    # the largest circles first: a highlight's or a reflection's small ring inside a sphere would
+    # otherwise stand for it
+    circles = sorted((c for proj in list(projections) + logs for c in _hough(proj, min_r, max_r)),
+                     key=lambda c: -c[2])
     found = []
-    for proj in projections:
-        circles = _hough(proj, min_r, max_r)
-        for (x, y, r) in circles:
-            centre, radius = (x * step, y * step), r * step
-            if found and radius < MIN_RADIUS_RATIO * max(o.radius_px for o in found):
-                continue                    # left out below anyway: not worth its crops
-            if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
-                   for o in found):
-                continue
-            box = _crop_box(centre, radius, (M, N))
-            crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
-            # the rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
-            # median a glossy sphere's dark disc; the fit with more rim points on its circle wins
-            refs = [_refine_circle(crop, (centre[0] - box[2], centre[1] - box[0]), radius)
-                    for crop in (_median_over_images(crops), crops.max(axis=0))]
-            refs = [r_ for r_ in refs if r_ is not None]
-            if not refs:
-                continue
-            ref = max(refs, key=lambda r_: r_[2])
-            # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
-            # where the two find the same circle, a ray on the rim in either counts
-            rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
-                                        < 1.0 and abs(r_[1] - ref[1]) < 1.0])
-            if rim.mean() < min_rim_fraction:
-                continue
-            (xc, yc), rr = ref[:2]
-            s = Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected")
-            if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
-                                         < 0.8 * (rr + o.radius_px) for o in found):
-                continue
-            found.append(s)
+    clipped = []
+
+    def consider(x, y, r, need=min_rim_fraction):
+        """Refine one proposed circle (reduced pixels) and keep it if ``need`` of its rays meet its rim."""
+        centre, radius = (x * step, y * step), r * step
+        if found and radius < MIN_RADIUS_RATIO * max(o.radius_px for o in found):
+            return                    # left out below anyway: not worth its crops
+        if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
+               for o in found + clipped):
+            return
+        box = _crop_box(centre, radius, (M, N))
+        crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
+        # the rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
+        # median a glossy sphere's dark disc; the fit with more rim points on its circle wins
+        at = (centre[0] - box[2], centre[1] - box[0])
+        refs = [r_ for r_ in (_refine_circle(crop, at, radius) for crop in (_median_over_images(crops),
+                                                                            crops.max(axis=0))) if r_ is not None]
+        if not refs or max(r_[2] for r_ in refs) < min_rim_fraction:
+            # a dark sphere on a dark ground: its rim in the mean and the mean's logarithm, where the
+            # median and the maximum find too little of it (the PSBox mirror spheres)
+            mean = crops.mean(axis=0)
+            refs += [r_ for r_ in (_refine_circle(crop, at, radius)
+                                   for crop in (mean, _log_view(mean), _log_view(_median_over_images(crops))))
+                     if r_ is not None]
+        if not refs:
+            return
+        ref = max(refs, key=lambda r_: r_[2])
+        # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
+        # where the two find the same circle, a ray on the rim in either counts
+        rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
+                                    < 1.0 and abs(r_[1] - ref[1]) < 1.0])
+        (xc, yc), rr = ref[:2]
+        s = Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected")
+        # a sphere cut by the frame: its rim is sought on the rays whose rim lies in the frame
+        theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+        in_frame = _rim_in_frame(s, theta, (M, N))
+        if rim[in_frame].sum() < need * max(in_frame.sum(), 0.5 * len(theta)):
+            return
+        if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
+                                     < 0.8 * (rr + o.radius_px) for o in found + clipped):
+            return
+        (found if in_frame.all() else clipped).append(s)
+
+    for (x, y, r) in circles:
+        consider(x, y, r)
+    if not found and not clipped:
+        # nothing the Hough transform proposed is a rim: a dark sphere on a dark ground crossed by a
+        # flare's spikes, whose rim is a broken arc among straight edges; a RANSAC circle on the edge
+        # points of the logarithm of the median and of the mean; its rim need only be a third of the rays
+        # (the fit then asks a highlight in every image, or Lambert's shading)
+        for proj in logs[::-1]:
+            c = _ransac_circle(proj, min_r, max_r)
+            if c is not None:
+                consider(*c, need=min(min_rim_fraction, RANSAC_RIM_FRACTION))
     if found:
         # calibration spheres are of one size or close; a circle far smaller is the painting's own (a
         # protrusion, a blob of paint) and would pull every lamp's position with a wrong ray
@@ -462,8 +537,65 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
                      "largest (%.1f px): left out", s.centre_px[0], s.centre_px[1], s.radius_px,
                      100 * MIN_RADIUS_RATIO, largest)
         found = [s for s in found if s not in small]
+    if clipped:
+        log.info("sphere detection: %d circle(s) cut by the frame left out: %s", len(clipped),
+                 ", ".join(f"({s.centre_px[0]:.0f}, {s.centre_px[1]:.0f}) r {s.radius_px:.0f} px" for s in clipped))
+    if clipped_out is not None:
+        clipped_out.extend(sorted(clipped, key=lambda s: (s.centre_px[1], s.centre_px[0])))
     report(progress, 0.5, f"sphere detection: {len(found)} circle(s)")
     return sorted(found, key=lambda s: (s.centre_px[1], s.centre_px[0]))
+
+
+def _ransac_circle(img, min_r, max_r):
+    """The circle (x, y, r) through most edge points of a view (Canny at Otsu's threshold) by RANSAC
+    (``skimage.measure.ransac`` with ``CircleModel``, 3000 trials), when at least a third of its
+    perimeter is edge; else None."""
+    import cv2
+    from skimage.measure import CircleModel, ransac
+
+    img8 = _to8(img)
+    if img8 is None:
+        return None
+    img8 = cv2.GaussianBlur(img8, (0, 0), 1.5)
+    hi, _ = cv2.threshold(img8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    y, x = np.nonzero(cv2.Canny(img8, 0.5 * hi, hi))
+    if x.size < 30:
+        return None
+    pts = np.column_stack([x, y]).astype(np.float64)
+    if len(pts) > 20000:
+        pts = pts[np.random.default_rng(0).choice(len(pts), 20000, replace=False)]
+
+    def radius(m):
+        return float(m.radius) if hasattr(m, "radius") else float(m.params[2])
+
+    def valid(m, *_):
+        return min_r <= radius(m) <= max_r
+
+    model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=1.5, max_trials=3000,
+                        is_model_valid=valid, rng=0)
+    if model is None or inl is None:
+        return None
+    r = radius(model)
+    if inl.sum() < 2 * math.pi * r / 3:
+        return None
+    centre = model.center if hasattr(model, "center") else model.params[:2]
+    return float(centre[0]), float(centre[1]), r
+
+
+def _log_view(img):
+    """The logarithm of a projection, offset by a tenth of its first quartile (at least 1e-3 of its
+    range): dark grounds' and dark spheres' ratios as edges, the noise of the darkest counts kept down."""
+    img = np.maximum(np.asarray(img, np.float32), 0)
+    q1, top = np.percentile(img, (25, 99.9))
+    return np.log(img + max(0.1 * float(q1), 1e-3 * float(top), 1e-6))
+
+
+def _rim_in_frame(sphere: Sphere, theta, shape):
+    """Which rays' rim points (angles ``theta``, counter-clockwise from +x, y up) lie in the frame."""
+    M, N = shape
+    c = sphere.centre_px[0] + sphere.radius_px * np.cos(theta)
+    r = sphere.centre_px[1] - sphere.radius_px * np.sin(theta)
+    return (c >= -0.5) & (c <= N - 0.5) & (r >= -0.5) & (r <= M - 0.5)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -516,15 +648,83 @@ def _disc_values(crops, outer, disc: _Disc) -> np.ndarray:
     return _grey(crops[:, rows, cols])
 
 
-def _kind_of(stack_vals) -> str:
-    """matte or glossy from the disc's values (K, P): the lit fraction of a matte disc is large (a
-    hemisphere under each lamp), a glossy one's only its highlight."""
+def _static_part(vals) -> np.ndarray:
+    """What every image of the disc shows (P,): the median over the images (the lowest of two), so
+    that a reflection of the room, a window or a fixed lamp, the same under every lamp, is not taken
+    for the lamp's highlight (the PSBox mirror sphere reflects a saturated spot and a lit figure in
+    all twelve images). A highlight covers a sample in fewer than half the images."""
+    return np.median(vals, axis=0) if len(vals) >= 3 else vals.min(axis=0)
+
+
+def _kind_of(stack_vals, disc: "_Disc" = None, sat=None) -> str:
+    """matte, glossy or mirror from the disc's values (K, P).
+
+    Matte: a lit fraction of the disc that only shading gives (a hemisphere under each lamp: over 15 %
+    of the disc above a quarter of its range in the median image); a specular sphere's lit part is
+    its highlight, a few per cent at most. Then a mirror's highlight is the lamp's small image, a
+    glossy sphere's a lobe: the median over the images of the highlight core's angular radius in the
+    sphere's normals (:func:`_highlight_core`) under :data:`MIRROR_CORE_DEG` is a mirror.
+    """
     fr = []
     for v in stack_vals:
         base = np.percentile(v, 5)
         peak = np.percentile(v, 99.9) - base
         fr.append(np.mean(v - base > 0.25 * peak) if peak > 0 else 0.0)
-    return "matte" if np.median(fr) > 0.15 else "glossy"
+    if np.median(fr) > 0.15:
+        return "matte"
+    if disc is None:
+        return "glossy"
+    static = _static_part(stack_vals)
+    radii = []
+    for v in stack_vals:
+        core = _highlight_core(v, v - static, disc, sat)
+        if core is not None:
+            radii.append(core[1])
+    if not radii:
+        return "glossy"
+    return "mirror" if np.median(radii) < MIRROR_CORE_DEG else "glossy"
+
+
+def _highlight_core(v, w, disc: "_Disc", sat):
+    """A highlight's core on the disc's box: (mask, angular radius in degrees, peak) or None.
+
+    The core is the saturated samples that the static part does not explain (``w`` above half its
+    peak), or, when none saturates, ``w`` above half its peak; opened by a disc of radius 2 px (a
+    flare's spikes and a scratch's streak, a few pixels wide, come off; the lamp's image stays) and
+    its largest component kept. Its angular radius is that of a disc of its area on the sphere, seen
+    at its mean normal (foreshortening taken out)."""
+    peak = float(w.max()) if w.size else 0.0
+    sub = w[::4] if w.size >= 4000 else w
+    noise = 1.4826 * float(np.median(np.abs(sub - np.median(sub)))) + 1e-6
+    if not peak > 10 * noise:
+        return None
+    img = np.zeros(disc.shape, np.float32)
+    img[disc.rows, disc.cols] = w
+    core = np.zeros(disc.shape, bool)
+    if sat is not None and np.any(v >= sat):
+        # near saturation: a JPEG's blocks ring a clipped area down by a few counts (250 of 255 in sRGB
+        # is 0.955 of the linear maximum)
+        core[disc.rows, disc.cols] = (v >= SATURATED_CORE * sat) & (w > 0.5 * peak)
+    if core.sum() < 3:
+        core = img >= 0.5 * peak
+    if core.sum() > 12:
+        opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
+        core = opened if opened.any() else core
+    lab, n = ndimage.label(core)
+    if n == 0:
+        return None
+    sizes = ndimage.sum(core, lab, index=np.arange(1, n + 1))
+    best = lab == 1 + int(np.argmax(sizes))
+    # a highlight split by a scratch's streak or a flare's dark ray is one highlight: the parts within
+    # the largest part's own radius of it are kept with it; a speck or a reflection elsewhere is not
+    reach = max(2, int(math.ceil(math.sqrt(best.sum() / math.pi))))
+    group = ndimage.binary_dilation(best, structure=_DISK2, iterations=max(1, reach // 2))
+    core = core & group
+    nz = disc.normal_map[..., 2][core]
+    area = float(np.sum(1.0 / np.maximum(nz, 0.05)))          # pixels on the sphere, foreshortening out
+    # less half a pixel: a lamp's image a pixel across on a small sphere spreads over two or three
+    ang = math.degrees(math.asin(min(1.0, max(0.0, math.sqrt(area / math.pi) - 0.5) / disc.radius_px)))
+    return core, ang, peak
 
 
 def _near_column(normals, b):
@@ -879,7 +1079,58 @@ def _gain(g, nx, ny):
     return out
 
 
-def _fit_glossy(v, disc: _Disc, sat):
+def _fit_mirror(v, w, disc: _Disc, sat):
+    """A mirror's highlight: the centre of its core (:func:`_highlight_core`) as a normal, its peak,
+    sample count and centroid uncertainty in pixels; None when the disc shows no highlight.
+
+    A saturated core is flat: each of its samples counts alike, and the samples of its edge (two pixels
+    around it) by the fraction of the core's level they reach (the published PSBox directions take the
+    position of the samples at or above 250 counts; a flare's spikes and a scratch's streak, opened
+    off the core, do not pull it); an unsaturated one is weighted by its counts above the static part. Each sample counts per unit of solid angle (``1 / n_z``), so the limb's foreshortening does not
+    pull the centre."""
+    found = _highlight_core(v, w, disc, sat)
+    if found is None:
+        return None
+    core, _, peak = found
+    img = np.zeros(disc.shape, np.float32)
+    img[disc.rows, disc.cols] = w
+    flat = sat is not None and bool(np.any(v >= SATURATED_CORE * sat))
+    nw = disc.normal_map
+    if flat:
+        # a flat core and its edge: each sample weighted by the fraction of the saturated level it reaches
+        # (a pixel the lamp's image half covers counts half), so that a core of a few pixels is placed to
+        # a fraction of one (by its pixels alone, 0.9 deg off on a 1.2 deg lamp image 80 px from a
+        # sphere's centre)
+        if core.sum() < SMALL_CORE_PX:
+            edge = ndimage.binary_dilation(core, structure=np.ones((3, 3), bool), iterations=2) & disc.inside
+            top = float(np.median(img[core]))
+            wt = np.where(edge, np.clip(img / max(top, 1e-12), 0.0, 1.0), 0.0)
+        else:
+            wt = None
+    else:
+        wt = np.where(core, img, 0.0)
+    if wt is None:
+        # a large flat core: its median normal (a streak or a flare's glow left on one side moves it by a
+        # part of their width at most; PSBox: 0.02-0.39 deg from the published directions on their
+        # circle, its mean 0.19-1.07)
+        nn = nw[core]
+        nx, ny = float(np.median(nn[:, 0])), float(np.median(nn[:, 1]))
+        nm = np.array([nx, ny, math.sqrt(max(0.0, 1.0 - nx * nx - ny * ny))])
+    else:
+        wn = wt / np.maximum(nw[..., 2], 0.05)
+        nm = (wn[..., None] * nw).sum(axis=(0, 1)).astype(np.float64)
+    if not np.linalg.norm(nm) > 0:
+        return None
+    nm /= np.linalg.norm(nm)
+    n_used = int(core.sum())
+    r_core = math.sqrt(n_used / math.pi)
+    # the core's edge falls on the pixel grid: its centroid moves by about 0.3 px over sqrt(n) pixels of
+    # edge; a floor of 0.05 px for the circle's own
+    sigma_px = 0.05 + 0.3 * math.sqrt(max(r_core, 1.0)) / math.sqrt(max(n_used, 1))
+    return nm, peak, n_used, sigma_px
+
+
+def _fit_glossy(v, disc: _Disc, sat, static=None):
     """The highlight's centre as a normal, its peak, sample count and centroid uncertainty in pixels;
     None when the disc shows no highlight.
 
@@ -894,6 +1145,14 @@ def _fit_glossy(v, disc: _Disc, sat):
     noise = 1.4826 * np.median(np.abs(sub - base)) + 1.0
     w = v - base
     peak = float(w.max())
+    # with ``static`` (:func:`_static_part`), a saturated spot every image shows (a reflection of the
+    # room) is not the lamp's; only the core's choice uses it: as the lobe's weights, the median of a
+    # few lamps' images, which holds parts of their lobes and of the diffuse shading, moved the lamps
+    # placed by two glossy spheres under 6 lamps from 9 % to 18 % of their distance
+    moving = np.ones(v.shape, bool)
+    if static is not None:
+        ws = v - static
+        moving = ws > 0.5 * float(ws.max())
     if peak < 10 * noise:
         return None
     shape = disc.shape
@@ -902,7 +1161,7 @@ def _fit_glossy(v, disc: _Disc, sat):
     core = img >= 0.5 * peak
     if sat is not None and (v >= sat).any():
         core = np.zeros(shape, bool)
-        core[disc.rows, disc.cols] = v >= sat
+        core[disc.rows, disc.cols] = (v >= sat) & moving
     if core.sum() > 12:
         opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
         core = opened if opened.any() else core
@@ -968,7 +1227,8 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     crops = np.stack([images[k, outer[0]:outer[1], outer[2]:outer[3]] for k in range(K)])
     vals = _disc_values(crops, outer, disc)
     sat = None if saturation is None else 0.995 * float(saturation)
-    kind = sphere.kind if sphere.kind in KINDS else _kind_of(vals)
+    kind = sphere.kind if sphere.kind in KINDS else _kind_of(vals, disc, sat)
+    static = None if kind == "matte" else _static_part(vals)
     sphere = Sphere(tuple(sphere.centre_px), float(sphere.radius_px), kind, sphere.source)
     where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
     if kind == "matte":
@@ -994,7 +1254,8 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
             if fit is None or fit[4] > 0.2:
                 raise UVPSInputError(f"sphere capture {name}: the matte {where} shows no lit part that Lambert's "
                                      "law fits (no sphere there, the lamp off, or the sphere not matte); "
-                                     "give the circles with --sphere-circles")
+                                     "give the kind with --sphere-kind (glossy or mirror for a highlight) or the "
+                                     "circles with --sphere-circles")
             b, _, cov, n_used, rms, _ = fit
             nb = np.linalg.norm(b)
             d = b / nb
@@ -1002,10 +1263,12 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
             sig[k] = math.degrees(math.sqrt(max(np.trace(P @ cov @ P), 0.0)) / nb)
             dirs[k], pts[k], strength[k], npx[k], resid[k] = d, disc.centre_mm, nb, n_used, rms
         else:
-            fit = _fit_glossy(vals[k], disc, sat)
+            fit = (_fit_mirror(vals[k], vals[k] - static, disc, sat) if kind == "mirror"
+                   else _fit_glossy(vals[k], disc, sat, static))
             if fit is None:
-                raise UVPSInputError(f"sphere capture {name}: no highlight on the glossy {where} (no sphere there, "
-                                     "or the lamp off); give the circles with --sphere-circles")
+                raise UVPSInputError(f"sphere capture {name}: no highlight on the {kind} {where} (no sphere there, "
+                                     "or the lamp off); give the kind with --sphere-kind (matte for a shaded "
+                                     "sphere) or the circles with --sphere-circles")
             nm, peak, n_used, sigma_px = fit
             d = 2 * nm[2] * nm - np.array([0.0, 0.0, 1.0])
             dirs[k] = d / np.linalg.norm(d)
@@ -1101,7 +1364,8 @@ def _from_rays(fits, dirs, sig, K, diag) -> LampCalibration:
 
 
 def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequence[Sphere]] = None,
-                      saturation=None, files=None, progress: Progress = None) -> LampCalibration:
+                      saturation=None, files=None, kind: str = "auto", capture: Optional[str] = None,
+                      progress: Progress = None) -> LampCalibration:
     """Every lamp's direction, and with two or more spheres its position, from a sphere capture.
 
     Parameters
@@ -1116,6 +1380,11 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         Counts at/above which a sample is saturated.
     files : list of str, optional
         Image names for the messages.
+    kind : {"auto", "matte", "glossy", "mirror"}
+        The spheres' kind, for detected spheres and given ones without their own (before the fit);
+        auto: from the images (:func:`_kind_of`).
+    capture : str, optional
+        The capture's name (folder or file) for the messages.
     progress : callable, optional
 
     Returns
@@ -1136,14 +1405,27 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
     calibration keeps directions only and says so in ``diagnostics["positions"]``.
     """
     K, M, N = images.shape[:3]
+    if kind not in KINDS + ("auto",):
+        raise UVPSInputError(f"sphere kind must be auto, {', '.join(KINDS)}; got {kind!r}")
     given = spheres is not None
+    first = files[0] if files else "the first image"
+    first = f"{capture}, {first}" if capture else first
     if spheres is None:
-        spheres = detect_spheres(images, progress=progress)
+        clipped = []
+        spheres = detect_spheres(images, progress=progress, clipped_out=clipped)
+        if not spheres and clipped:
+            s = clipped[0]
+            raise UVPSInputError(f"sphere capture {first}: every sphere found is cut by the frame (the one at "
+                                 f"({s.centre_px[0]:.0f}, {s.centre_px[1]:.0f}) px, radius {s.radius_px:.0f} px, "
+                                 f"in {N} x {M} images); expected at least one sphere whole in the frame: "
+                                 "photograph it again with a margin around it")
         if not spheres:
-            first = files[0] if files else "the first image"
-            raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}); expected a matte "
-                                 "or glossy sphere in the frame, or give the circles with --sphere-circles "
-                                 "(col,row,radius_px)")
+            raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}); expected a "
+                                 "matte, glossy or mirror sphere whole in the frame, or give the circles with "
+                                 "--sphere-circles (col,row,radius_px) or a room-lit picture of them with "
+                                 "--sphere-reference")
+    if kind != "auto":
+        spheres = [Sphere(s.centre_px, s.radius_px, kind if s.kind == "auto" else s.kind, s.source) for s in spheres]
     for s in spheres:
         c, r = s.centre_px
         if not (0 <= c < N and 0 <= r < M):
@@ -1166,9 +1448,9 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
                          s.centre_px[0], s.centre_px[1], s.radius_px)
             report(progress, 0.5 + 0.4 * (i + 1) / len(spheres), f"sphere {i + 1} of {len(spheres)}")
     if not fits:
-        raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from "
-                             f"{files[0] if files else 'the first image'}): the circles found show no highlight "
-                             "or Lambertian shading; give the circles with --sphere-circles (col,row,radius_px)")
+        raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}): the circles found "
+                             "show no highlight or Lambertian shading; give the kind with --sphere-kind or the "
+                             "circles with --sphere-circles (col,row,radius_px)")
     diag = {"spheres": [f.sphere.to_json() for f in fits],
             "direction_spread_deg": None, "positions": "one sphere: far-light directions"}
     dirs = np.array([f.directions for f in fits])                        # (S, K, 3)

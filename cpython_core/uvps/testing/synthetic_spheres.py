@@ -17,7 +17,8 @@ Image model (counts, ``c`` the exposure)::
 
 ``P`` the surface point, ``n`` its normal, ``l = (L_k - P) / |L_k - P|``, ``h`` the half vector of
 ``l`` and the view direction; ``spec`` a Gaussian lobe in the angle between ``n`` and ``h`` (a
-glossy sphere's highlight, saturating the sensor), ``flare`` a star of thin spikes around a
+glossy sphere's highlight, saturating the sensor; a mirror sphere's is flat out to
+:data:`MIRROR_FLAT_DEG`, the lamp's own image, with a sharp edge), ``flare`` a star of thin spikes around a
 saturated highlight (lens flare), ``V`` the vignetting. Lamps, beams, vignetting, black level and
 noise are the painting capture's (:class:`uvps.testing.synthetic.SyntheticCapture`). The background is the
 painting's albedo, seen flat, so that detection meets a textured field. An optional stand (a dark
@@ -42,11 +43,18 @@ __all__ = ["SphereSpec", "SphereCapture", "make_sphere_capture", "write_sphere_c
 
 #: Angular spread (deg) of a glossy sphere's highlight: the lamp's angular size and the polish.
 GLOSS_SPREAD_DEG = 1.5
+#: A mirror (chrome) sphere shows the lamp's own image: flat out to this angle between the normal and
+#: the half vector (half the lamp's angular radius: a 40 mm lamp at 500 mm), then a Gaussian edge of
+#: :data:`MIRROR_EDGE_DEG` (the polish and the lens).
+MIRROR_FLAT_DEG = 1.15
+MIRROR_EDGE_DEG = 0.2
+#: Albedo of each kind's diffuse part: a white matte sphere, a black glossy one, a chrome one.
+ALBEDO = {"matte": 0.9, "glossy": 0.02, "mirror": 0.005}
 
 
 @dataclass(frozen=True)
 class SphereSpec:
-    """One sphere: ``kind`` "matte" or "glossy", its centre as fractions of the frame's width and
+    """One sphere: ``kind`` "matte", "glossy" or "mirror", its centre as fractions of the frame's width and
     height (``(0, 0)`` the top left corner), and its radius in mm."""
 
     kind: str
@@ -78,7 +86,8 @@ class SphereCapture:
 
 
 def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec] = DEFAULT_SPHERES, *,
-                        stand: bool = False, flare: bool = True, seed: Optional[int] = None,
+                        stand: bool = False, stand_top: float = 0.55, stand_half_width: float = 0.35,
+                        flare: bool = True, seed: Optional[int] = None,
                         gloss_deg: float = GLOSS_SPREAD_DEG, specular: float = 20.0,
                         exposure: float = 0.5) -> SphereCapture:
     """Render the spheres under the lamps of ``capture`` (uint16; RGB when the capture is).
@@ -92,6 +101,9 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         The spheres (:data:`DEFAULT_SPHERES`: two glossy ones in opposite corners).
     stand : bool
         A dark post in front of the lower part of each sphere (hides about a fifth of the disc).
+    stand_top, stand_half_width : float
+        The post's top below the sphere's centre and its half width, in radii (0.33 and 1.2: a
+        holder hiding the lower third of the disc across its width).
     flare : bool
         A star of thin spikes around each saturated highlight.
     seed : int, optional
@@ -121,8 +133,8 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     px = float(spec.pixel_size_um)
     px_mm = px / 1000.0
     for s in spheres:
-        if s.kind not in ("matte", "glossy") or not s.radius_mm > 0:
-            raise UVPSInputError(f"sphere {s}: kind must be 'matte' or 'glossy' and radius_mm > 0")
+        if s.kind not in ALBEDO or not s.radius_mm > 0:
+            raise UVPSInputError(f"sphere {s}: kind must be 'matte', 'glossy' or 'mirror' and radius_mm > 0")
     x, y = pixel_centres_mm((m, n), px)
     X = np.broadcast_to(x, (m, n))
     Y = np.broadcast_to(y, (m, n))
@@ -140,6 +152,8 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     sP = np.zeros((m, n, 3))
     s_alb = np.zeros((m, n))
     spec_w = np.zeros((m, n))                                  # specular weight per sphere pixel
+    spread = np.full((m, n), math.radians(gloss_deg))           # the highlight's angular spread
+    flat = np.zeros((m, n))                                     # its flat top (a mirror's lamp image)
     truth = []
     for s in spheres:
         c0 = s.centre[0] * (n - 1)
@@ -158,11 +172,14 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         cover[on] = frac[on]
         sN[on] = np.stack([dx, dy, nz], axis=-1)[on]
         sP[on] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[on]
-        s_alb[on] = 0.9 if s.kind == "matte" else 0.02
-        if s.kind == "glossy":
+        s_alb[on] = ALBEDO[s.kind]
+        if s.kind != "matte":
             spec_w[on] = 1.0
+        if s.kind == "mirror":
+            spread[on] = math.radians(MIRROR_EDGE_DEG)
+            flat[on] = math.radians(MIRROR_FLAT_DEG)
         if stand:
-            post = (np.abs(X - cx) < 0.35 * R) & (Y < cy - 0.55 * R)
+            post = (np.abs(X - cx) < stand_half_width * R) & (Y < cy - stand_top * R)
             cover[post] = 0.0
             P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
             albedo[post] = 0.04
@@ -171,6 +188,8 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     idx = np.flatnonzero(cover > 0)
     cover_s, sN, sP = cover.ravel()[idx], sN.reshape(-1, 3)[idx], sP.reshape(-1, 3)[idx]
     s_alb, spec_s = s_alb.ravel()[idx], spec_w.ravel()[idx]
+    s2 = 2.0 * spread.ravel()[idx] ** 2
+    a0 = flat.ravel()[idx]
     glossy = np.zeros(m * n)
     glossy[idx] = spec_s * (cover_s >= 0.5)
     glossy = glossy.reshape(m, n)
@@ -178,7 +197,6 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     lamps = capture.light_positions_mm
     E = capture.intensities
     vig = nzs.vignetting if nzs.vignetting is not None and nzs.vignetting.shape == (m, n) else None
-    s2 = 2.0 * math.radians(gloss_deg) ** 2
     beam = nzs.beam_axes is not None and nzs.beam_exponent > 0
     rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
     rgb = capture.images.ndim == 4
@@ -194,7 +212,7 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         ax = nzs.beam_axes[k] if beam else None
         sig = _radiance(L, e, P.reshape(-1, 3), N.reshape(-1, 3), albedo.ravel(), None, ax,
                         nzs.beam_exponent, specular, s2)
-        on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2)
+        on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2, a0)
         sig[idx] = cover_s * on_s + (1.0 - cover_s) * sig[idx]
         sig = sig.reshape(m, n)
         if vig is not None:
@@ -236,7 +254,7 @@ def _coverage(u, v, radius_px, *, sub=8):
     return frac
 
 
-def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2):
+def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2, flat=0.0):
     """``E * (|L| / |L - P|)^2 * beam * [albedo max(0, n . l) + spec]`` at points ``P`` (n, 3) with
     normals ``N`` (n, 3): the module's image model before vignetting, exposure and noise."""
     V = L - P
@@ -251,7 +269,8 @@ def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2
         h = lv + np.array([0.0, 0.0, 1.0])
         h /= np.linalg.norm(h, axis=-1, keepdims=True)
         ang = np.arccos(np.clip(np.einsum("...i,...i->...", N, h), -1.0, 1.0))
-        shade = shade + specular * spec_w * np.exp(-ang * ang / s2) * (ndl > 0)
+        off = np.maximum(ang - flat, 0.0)
+        shade = shade + specular * spec_w * np.exp(-off * off / s2) * (ndl > 0)
     return irr * shade
 
 
