@@ -17,7 +17,7 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import empty_table
-from .core.pipeline import LAMP_BEAMS, RunOptions, given_lights, run
+from .core.pipeline import LAMP_BEAMS, SAMPLE_MODES, RunOptions, given_lights, run
 from .core.regions import propose_regions, region_statistics, whole_image
 from .errors import UVPSInputError
 from .files.calibration import apply as apply_calibration, run_params
@@ -43,6 +43,11 @@ OPTION_PARAMS = (
     Param("robust", "bool", _RUN.robust, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
           help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
                "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
+    Param("samples", "choice", _RUN.samples, choices=SAMPLE_MODES,
+          label="Samples: which the normals use (auto: by the input)",
+          help="which samples each pixel's normal is solved from: screened leaves out saturated, dark and "
+               "attached-shadow samples; all keeps every one (plain least squares); auto: all on 8-bit input "
+               "(JPEGs: a tone curve), screened on linear input (more than 8 bits, camera raw)"),
     Param("integration", "choice", _RUN.integration, choices=("fc", "dct"), label="Integration method",
           help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
     Param("refine_lights", "bool", _RUN.refine_lights, help="refine each lamp after the paper's equidistant solution"),

@@ -22,7 +22,7 @@ from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_
 
 log = logging.getLogger(__name__)
 
-_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration"))
+_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "samples", "integration"))
 
 
 def _capture_command(name: str, stages: tuple):
@@ -116,7 +116,7 @@ _RUN_LIGHTS = tuple(dataclasses.replace(
 
 _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                      help="pixel size (default: the run's TIFF calibration)")
-_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration"))
+_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "samples", "integration"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command("run", ("flatfield", "normals", "height")),
