@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from uvps.core.pipeline import RunOptions, run
-from uvps.core.stereo import solve_normals
+from uvps.core.stereo import EVERY_SAMPLE, solve_normals
 from uvps.files.io import read_capture
 
 #: ``../shared/data`` beside the project's checkout (a worktree one level deeper: two levels up)
@@ -77,13 +77,14 @@ def methods(variants):
     out = {"defaults": defaults,
            "plain LS": lambda cap: plain_ls(cap.images, cap.light_directions, cap.light_intensities)}
     if variants:
-        none = dict(saturation=None, dark_fraction=0.0, shadow_cos=-1e30)
+        none = dict(EVERY_SAMPLE)
         out.update({
             "core, no rule": lambda cap: core(cap, **none),
+            "core, 0-count samples out": lambda cap: core(cap, **{**none, "dark_fraction": 0.0}),
             "core, saturation only": lambda cap: core(cap, **{**none, "saturation": cap.saturation}),
             "core, dark 2 % only": lambda cap: core(cap, **{**none, "dark_fraction": 0.02}),
             "core, shadow test only": lambda cap: core(cap, **{**none, "shadow_cos": 0.05}),
-            "core, all rules": lambda cap: core(cap, saturation=cap.saturation),
+            "core, all rules (screened)": lambda cap: core(cap, saturation=cap.saturation),
             "--robust": lambda cap: defaults(cap, robust=True),
         })
     return out
@@ -118,7 +119,6 @@ def diligent_capture(obj: Path, tmp: Path):
     cap = read_capture([str(obj / n) for n in names], lights=str(lp), mask=str(obj / "mask.png"),
                        pixel_size_um=100.0)
     gt = loadmat(obj / "Normal_gt.mat")["Normal_gt"].astype(np.float64)
-    gt = gt * np.array([1.0, 1.0, 1.0])
     return cap, gt
 
 

@@ -42,7 +42,7 @@ OPTION_PARAMS = (
           help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
     Param("robust", "bool", _RUN.robust, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
           help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
-               "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
+               "(cast shadows, highlights; many lights); the samples rule applies as without it"),
     Param("samples", "choice", _RUN.samples, choices=SAMPLE_MODES,
           label="Samples: which the normals use (auto: by the input)",
           help="which samples each pixel's normal is solved from: screened leaves out saturated, dark and "
