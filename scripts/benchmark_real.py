@@ -2,7 +2,7 @@
 """Normals on real photographs: ``uvps run``'s defaults against plain least squares.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/benchmark_real.py [--data ../shared/data]
-        [--diligent DIR] [--variants]
+        [--diligent DIR [--jpeg]] [--variants]
 
 Two measures, both on real photographs nobody here made:
 
@@ -13,7 +13,8 @@ Two measures, both on real photographs nobody here made:
   biased the same way in both halves.
 * **Ground truth** (``--diligent``: a DiLiGenT ``pmsData`` folder, each object ``<name>PNG/`` with its
   16-bit PNGs, ``light_directions.txt``, ``light_intensities.txt``, ``mask.png`` and ``Normal_gt.mat``): the
-  mean angular error against the measured normals inside the mask, every lamp used.
+  mean angular error against the measured normals inside the mask, every lamp used; with ``--jpeg`` also each
+  object encoded as 8-bit sRGB JPEGs (an RTI capture's encoding), to tell the encoding from the surface.
 
 "defaults" is :func:`uvps.core.pipeline.run` with ``RunOptions()`` (what ``uvps run --lights`` does), on
 the capture as :func:`uvps.files.io.read_capture` reads it. "plain LS" is least squares on the mean of
@@ -122,6 +123,26 @@ def diligent_capture(obj: Path, tmp: Path):
     return cap, gt
 
 
+def as_jpeg(obj: Path, tmp: Path, quality=90) -> Path:
+    """The object's images encoded as an RTI capture's are: 8-bit sRGB JPEGs (OpenCV, ``quality``), 16-bit
+    counts scaled by 1/65535 (no gain), with its mask, light files and normals beside them."""
+    import shutil
+    import cv2
+
+    out = tmp / f"{obj.name}"
+    out.mkdir()
+    names = (obj / "filenames.txt").read_text().split()
+    for n in names:
+        lin = np.clip(cv2.imread(str(obj / n), cv2.IMREAD_UNCHANGED).astype(np.float64) / 65535.0, 0, 1)
+        enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+        cv2.imwrite(str(out / (Path(n).stem + ".jpg")), np.round(255 * enc).astype(np.uint8),
+                    [cv2.IMWRITE_JPEG_QUALITY, quality])
+    (out / "filenames.txt").write_text("\n".join(Path(n).stem + ".jpg" for n in names) + "\n")
+    for f in ("light_directions.txt", "light_intensities.txt", "mask.png", "Normal_gt.mat"):
+        shutil.copy(obj / f, out / f)
+    return out
+
+
 def ground_truth(cap, gt, fns):
     row = {}
     for name, fn in fns.items():
@@ -137,6 +158,7 @@ def main(argv=None):
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--diligent", help="a DiLiGenT pmsData folder (objects <name>PNG/ with Normal_gt.mat)")
     ap.add_argument("--variants", action="store_true", help="also the core's sample rules one by one")
+    ap.add_argument("--jpeg", action="store_true", help="DiLiGenT's objects also encoded as 8-bit sRGB JPEGs")
     args = ap.parse_args(argv)
     fns = methods(args.variants)
     data = Path(args.data)
@@ -160,10 +182,12 @@ def main(argv=None):
             for obj in sorted(Path(args.diligent).glob("*PNG")):
                 if not (obj / "Normal_gt.mat").is_file():
                     continue
-                cap, gt = diligent_capture(obj, Path(tmp))
-                row = ground_truth(cap, gt, fns)
-                print(f"| {obj.name[:-3]} | {cap.images.shape[0]} | "
-                      + " | ".join(f"{m:.2f} / {md:.2f}" for m, md, _, _ in row.values()) + " |", flush=True)
+                for label, src in [("", obj)] + ([(" as JPEG", None)] if args.jpeg else []):
+                    src = src or as_jpeg(obj, Path(tmp))
+                    cap, gt = diligent_capture(src, Path(tmp))
+                    row = ground_truth(cap, gt, fns)
+                    print(f"| {obj.name[:-3]}{label} | {cap.images.shape[0]} | "
+                          + " | ".join(f"{m:.2f} / {md:.2f}" for m, md, _, _ in row.values()) + " |", flush=True)
     return 0
 
 

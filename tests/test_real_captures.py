@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from uvps.core.irradiance import LightModel
-from uvps.core.pipeline import RunOptions, run, sample_mode
+from uvps.core.pipeline import SCREENED_RESIDUAL_MAX, RunOptions, run, sample_mode
 from uvps.core.stereo import EVERY_SAMPLE, solve_normals
 from uvps.files.io import read_capture
 
@@ -32,13 +32,26 @@ def _plain_ls(images, D):
     return (b / np.linalg.norm(b, axis=1, keepdims=True)).reshape(grey.shape[1:] + (3,))
 
 
-def test_the_sample_rules_follow_the_input_unless_given():
-    assert sample_mode("auto", "uint8")[0] == "all" and "uint8" in sample_mode("auto", "uint8")[1]
-    for depth in ("uint16", "raw", "float32"):
-        assert sample_mode("auto", depth)[0] == "screened"
-    assert sample_mode("screened", "uint8")[0] == "screened" and sample_mode("all", "uint16")[0] == "all"
+def test_the_sample_rules_follow_how_well_the_fit_holds_unless_given():
+    assert sample_mode("auto", 0.09)[0] == "screened"                 # DiLiGenT's ball
+    mode, why = sample_mode("auto", 0.66)                             # the lion relief's RTI capture
+    assert mode == "all" and "66 %" in why
+    assert sample_mode("auto", SCREENED_RESIDUAL_MAX)[0] == "screened"
+    assert sample_mode("screened", 0.9)[0] == "screened" and sample_mode("all", 0.01)[0] == "all"
     with pytest.raises(Exception, match="samples must be one of auto, screened, all"):
         RunOptions(samples="some")
+
+
+def test_a_capture_the_model_holds_for_keeps_the_rules():
+    """A synthetic capture (the lamp-and-matte model holds, 0.6 % unexplained): screened, its normals as before."""
+    from uvps.testing.synthetic import make_capture
+
+    syn = make_capture(shape=(120, 160), n_lights=8, seed=2)
+    cap = syn.as_capture(lights="positions")
+    res = run(cap, RunOptions(), stages=("normals",))
+    assert res.diagnostics["normals"]["samples"] == "screened"
+    again = run(cap, RunOptions(samples="screened"), stages=("normals",))
+    assert np.array_equal(res.stereo.normals, again.stereo.normals, equal_nan=True)
 
 
 def test_every_sample_is_plain_least_squares_zeros_and_saturated_ones_too():
@@ -96,9 +109,12 @@ def test_run_json_and_report_say_which_samples_and_why(tmp_path):
 
     lion = DATA / "lion_relief_rti"
     out = tmp_path / "run"
-    COMMANDS["run"]({"images": [str(lion / "jpg")]}, {"pixel_size_um": 100.0, "lights": str(lion / "dirs.lp")}, out)
+    COMMANDS["run"]({"images": [str(lion / "jpg")]}, {"pixel_size_um": 100.0, "lights": str(lion / "dirs.lp"),
+                                                      "detect": True}, out)
     normals = json.loads((out / "run.json").read_text())["diagnostics"]["normals"]
-    assert normals["samples"] == "all" and "uint8 input" in normals["samples_reason"]
+    assert normals["samples"] == "all" and "% of the signal unexplained" in normals["samples_reason"]
+    assert "every sample kept, as plain least squares" in (out / "report.html").read_text()
+    assert "Samples: the fit leaving out saturated and shadowed samples left" in (out / "report.html").read_text()
     out2 = tmp_path / "run2"
     COMMANDS["run"]({"images": [str(lion / "jpg")]}, {"pixel_size_um": 100.0, "lights": str(lion / "dirs.lp"),
                                                        "samples": "screened"}, out2)

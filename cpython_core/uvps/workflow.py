@@ -44,10 +44,10 @@ OPTION_PARAMS = (
           help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
                "(cast shadows, highlights; many lights); the samples rule applies as without it"),
     Param("samples", "choice", _RUN.samples, choices=SAMPLE_MODES,
-          label="Samples: which the normals use (auto: by the input)",
+          label="Samples: which the normals use (auto: by how well the fit holds)",
           help="which samples each pixel's normal is solved from: screened leaves out saturated, dark and "
-               "attached-shadow samples; all keeps every one (plain least squares); auto: all on 8-bit input "
-               "(JPEGs: a tone curve), screened on linear input (more than 8 bits, camera raw)"),
+               "attached-shadow samples; all keeps every one (plain least squares); auto: screened, unless that fit "
+               "leaves over 25 % of the signal unexplained (the lamps and a matte surface do not hold): then all"),
     Param("integration", "choice", _RUN.integration, choices=("fc", "dct"), label="Integration method",
           help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
     Param("refine_lights", "bool", _RUN.refine_lights, help="refine each lamp after the paper's equidistant solution"),

@@ -41,7 +41,7 @@ from .stereo import EVERY_SAMPLE, StereoResult, solve_normals
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunOptions", "SAMPLE_MODES", "sample_mode", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
+__all__ = ["RunOptions", "SAMPLE_MODES", "SCREENED_RESIDUAL_MAX", "sample_mode", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions", "given_lights", "detection_height", "DetectionHeight"]
 
@@ -427,10 +427,14 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
     """Normals and albedo; stops the run when the lamps fit no pixel."""
     t0 = time.perf_counter()
     cap = res.capture
-    mode, reason = sample_mode(res.options.samples, cap.bit_depth)
-    rules = {"saturation": cap.saturation} if mode == "screened" else dict(EVERY_SAMPLE)
+    rules = {"screened": {"saturation": cap.saturation}, "all": dict(EVERY_SAMPLE)}
+    first = "all" if res.options.samples == "all" else "screened"
     st = solve_normals(cap.images, res.lights.model, pixel_size_um=cap.pixel_size_um, mask=cap.mask,
-                       robust=res.options.robust, progress=progress, **rules)
+                       robust=res.options.robust, progress=progress, **rules[first])
+    mode, reason = sample_mode(res.options.samples, st.residual_rms if res.options.samples == "auto" else None)
+    if mode != first:   # the model does not hold: every sample (a second solve, only then)
+        st = solve_normals(cap.images, res.lights.model, pixel_size_um=cap.pixel_size_um, mask=cap.mask,
+                           robust=res.options.robust, progress=progress, **rules[mode])
     res.timings_s["normals"] = _since(t0)
     res.diagnostics["normals"] = {"n_invalid": st.n_invalid, "residual_rms": st.residual_rms,
                                   "samples": mode, "samples_reason": reason}
@@ -450,27 +454,36 @@ def _run_normals(res: RunResult, progress: Progress) -> None:
     res.warnings += fit["warnings"]
 
 
-def sample_mode(samples: str, bit_depth: str) -> tuple:
+#: ``samples="auto"``: the screened solve's rms relative residual above which the lamps and a matte surface do not
+#: hold and every sample is used instead (:func:`sample_mode`). Real photographs (``scripts/benchmark_real.py``):
+#: DiLiGenT's ball 0.089 (16-bit) and 0.105 (encoded as 8-bit sRGB JPEGs), where the rules bring the error against
+#: its measured normals from 4.11 to 3.27 deg (JPEG: 4.13 to 3.45) and its halves closer; the RTI captures
+#: lion relief 0.66 and painted icon 0.80, where every rule makes the halves of their lamps agree less (icon 2.44 ->
+#: 3.62 deg, lion 1.14 -> 2.10). Synthetic captures 0.006-0.034.
+SCREENED_RESIDUAL_MAX = 0.25
+
+
+def sample_mode(samples: str, screened_residual: Optional[float] = None) -> tuple:
     """Which samples the normals use, and why: ``("screened" | "all", reason)``.
 
     "screened": saturated samples (any channel), samples darker than 2 % of the pixel's brightest and those
     the first solve puts in attached shadow are left out (:func:`uvps.core.stereo.solve_normals`'s rules).
-    "all": plain least squares over every sample (:data:`uvps.core.stereo.EVERY_SAMPLE`). "auto" chooses by
-    the input, as measured on real photographs (``scripts/benchmark_real.py``, docs/benchmarks.md "Normals on
-    real photographs"): on linear input (more than 8 bits, camera raw, float) the rules bring DiLiGenT's
-    ball (16-bit, 96 lamps, measured normals) from 4.11 to 3.27 deg mean error; on 8-bit input (sRGB JPEGs
-    linearised, a tone curve's remnant left) they cost the halves of a real RTI capture's lamps their
-    agreement (painted icon 2.44 -> 3.62 deg, lion relief 1.14 -> 2.10), every rule on its own doing so.
+    "all": plain least squares over every sample (:data:`uvps.core.stereo.EVERY_SAMPLE`). "auto": screened,
+    unless the screened solve leaves more than :data:`SCREENED_RESIDUAL_MAX` of the signal unexplained
+    (``screened_residual``): the rules leave samples out as outliers of the lamp-and-matte model, and where
+    the model explains little, that choice follows its misfit and only adds noise (docs/benchmarks.md,
+    "Normals on real photographs").
     """
-    if samples == "screened" or samples == "all":
+    if samples in ("screened", "all"):
         return samples, f"samples={samples} was given"
-    if bit_depth in EIGHT_BIT:
-        return "all", (f"{bit_depth} input (a JPEG's or 8-bit file's tone curve): every sample, as plain least squares; "
-                       "leaving out its saturated and shadowed samples made two halves of a real capture's lamps "
-                       "agree less (docs/benchmarks.md, \"Normals on real photographs\")")
-    return "screened", (f"{bit_depth} (linear) input: saturated, dark and attached-shadow samples left out, which brings "
-                        "real objects' normals closer to their measured ones (DiLiGenT's ball 4.11 -> 3.27 deg; "
-                        "docs/benchmarks.md, \"Normals on real photographs\")")
+    if screened_residual is not None and screened_residual > SCREENED_RESIDUAL_MAX:
+        return "all", (f"the fit leaving out saturated and shadowed samples left {100 * screened_residual:.0f} % of "
+                       f"the signal unexplained (over {100 * SCREENED_RESIDUAL_MAX:.0f} %: the lamps and a matte "
+                       "surface do not hold), so every sample is kept, as plain least squares: on real captures "
+                       "like this the left-out samples made two halves of the lamps agree less")
+    shown = "" if screened_residual is None else f" (the fit leaves {100 * screened_residual:.0f} % unexplained)"
+    return "screened", (f"saturated, dark and attached-shadow samples left out{shown}: on a real object with "
+                        "measured normals (DiLiGenT's ball) this is 3.3 deg off against 4.1 with every sample")
 
 
 def fit_checks(st, n_px: int, *, lights_source: str, pixel_size_um: float, robust: bool = False) -> dict:
