@@ -120,3 +120,25 @@ def test_run_json_and_report_say_which_samples_and_why(tmp_path):
                                                        "samples": "screened"}, out2)
     normals2 = json.loads((out2 / "run.json").read_text())["diagnostics"]["normals"]
     assert normals2["samples"] == "screened" and "samples=screened was given" in normals2["samples_reason"]
+
+
+@needs_data
+def test_a_dome_without_its_light_file_is_refused_naming_the_lamps_that_leave_the_field_dark(tmp_path):
+    """The lion relief's dome (240 lamps, 48 below 15 deg of elevation) without dirs.lp: the lamps are not estimated
+    (no pixel is lit by every lamp); the one-line refusal names the lamps that leave the most pixels dark."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(DATA / "lion_relief_rti" / "jpg"), "-o", str(out),
+                        "--pixel-size-um", "100"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("INFO")]
+    assert len(lines) == 1 and "lamps leaving the most of them dark or saturated: image " in lines[0], r.stderr
+    low = [int(k) for k in __import__("re").findall(r"(\d+) \(\d+ %\)", lines[0])]
+    D = np.array([ln.split()[1:4] for ln in (DATA / "lion_relief_rti" / "dirs.lp").read_text().split("\n")[1:]
+                  if ln.strip()], float)
+    elevation = np.degrees(np.arcsin(np.clip(D[:, 2] / np.linalg.norm(D, axis=1), -1, 1)))
+    # the named lamps are the dome's lowest two rings (1-13 and 19-21 deg; its median lamp is far higher)
+    assert low and np.all(elevation[np.array(low) - 1] < 22.0) and np.median(elevation) > 35.0
+    assert not out.exists()
