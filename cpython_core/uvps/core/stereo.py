@@ -7,7 +7,9 @@ Lambertian model (paper Eq. 1; Woodham 1978), near point lights (Huang et al. 20
 For each pixel, ``b = albedo * n`` solves the weighted normal equations ``(sum w V V^T) b = sum w V I``
 on the grey (channel-mean) intensities; ``n = b / |b|``. The RGB albedo (the fluorescence colour) is
 then fitted per channel with the normal fixed. Shadowed (attached shadow or too dark) and saturated
-samples are always left out per pixel; a pixel with fewer than three usable lights is NaN and counted.
+samples are left out per pixel (unless :data:`EVERY_SAMPLE` turns the rules off: plain least squares, which
+the pipeline uses where the model does not hold, :func:`uvps.core.pipeline.sample_mode`); a pixel with fewer
+than three usable lights is NaN and counted.
 ``robust=True`` is rank-trimmed least squares: each pixel keeps only its samples ranked between the
 25th and 90th percentile of its brightness (relative to each light's irradiance there), so cast
 shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
