@@ -52,6 +52,18 @@ def test_too_few_lit_pixels_is_bad_input_with_a_next_step(monkeypatch):
         lights.sample_pixels(images, [None] * 4, mask=mask, saturation=65535.0, pixel_size_um=15.0)
 
 
+def test_too_few_lit_pixels_names_the_lamps_that_leave_the_field_dark(monkeypatch):
+    """A dome's low lamps light part of the field each: the refusal says which lamps (1-based) and how much."""
+    monkeypatch.setattr(lights, "_eval_points", lambda fit, r, c: np.zeros(len(r)))
+    images = np.full((5, 60, 60), 1000, np.uint16)
+    images[1, :, :29] = 20                          # low lamps: each lights part of the field
+    images[3, :, 29:58] = 20
+    images[4, :, 56:] = 20
+    with pytest.raises(UVPSInputError, match=r"too few pixels lit by every light .*\(0 of .*lamps leaving the most of "
+                                             r"them dark or saturated: image 2 \(48 %\), 4 \(48 %\)\)"):
+        lights.sample_pixels(images, [None] * 5, saturation=65535.0, pixel_size_um=15.0)
+
+
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("cmp")

@@ -95,3 +95,31 @@ def test_a_raw_file_libraw_cannot_read_is_one_line_and_nothing_written(tmp_path)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "uv_01.nef" in lines[0] and "LibRaw cannot read it" in lines[0], r.stderr
     assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
+
+
+def test_a_raw_file_of_another_sensor_size_is_one_line_and_nothing_written(tmp_path):
+    """A raw file from another camera (another sensor size) among a capture's: refused naming it, exit 1."""
+    _, folder = _raw_capture(tmp_path, n=3)
+    (folder / "uv_02.dng").unlink()
+    write_dng(folder / "uv_02.dng", _ramps(M=64, N=80))
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(folder / "uv_00.dng"), str(folder / "uv_01.dng"),
+                        str(folder / "uv_02.dng"), "-o", str(out), "--pixel-size-um", "15"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "uv_02.dng" in lines[0] and "(64, 80, 3)" in lines[0], r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
+
+
+def test_the_raw_metadata_is_recorded_colour_matrix_and_sizes_too(tmp_path):
+    """run.json's raw levels: black per CFA channel, white, the sensor's and the image's size, the camera's colour
+    matrices and white balance (recorded, not applied: the counts stay the camera's channels)."""
+    _, folder = _raw_capture(tmp_path, n=3)
+    c = read_capture(folder, pixel_size_um=15.0)
+    lv = c.raw["levels"][0]
+    assert lv["black_level"] == [BLACK] * 4 and lv["white_level"] == WHITE
+    assert lv["image_px"] == [128, 96] and lv["sensor_px"][0] >= 128 and lv["sensor_px"][1] >= 96
+    assert np.asarray(lv["colour_matrix"]).shape == (3, 4) and np.asarray(lv["rgb_xyz_matrix"]).shape == (4, 3)
+    assert len(lv["camera_white_balance"]) == 4
+    assert c.raw["develop"]["colour"] == "camera raw (no colour matrix)"

@@ -19,7 +19,7 @@ import numpy as np
 
 from .core.measure import empty_table
 from .core.level import LEVELS
-from .core.pipeline import LAMP_BEAMS, RunOptions, given_lights, run
+from .core.pipeline import LAMP_BEAMS, SAMPLE_MODES, RunOptions, given_lights, run
 from .core.regions import propose_regions, region_statistics, whole_image
 from .errors import UVPSInputError
 from .files.calibration import apply as apply_calibration, run_params
@@ -44,7 +44,12 @@ OPTION_PARAMS = (
           help="Legendre degree of each image's drop-off fit (the lamp's fall-off across the field)"),
     Param("robust", "bool", _RUN.robust, label="Robust: rank-trimmed (leave out highlights and cast shadows)",
           help="rank-trimmed stereo: per pixel, leave out the darkest 25 % and brightest 10 % of samples "
-               "(cast shadows, highlights; many lights); shadowed and saturated samples are dropped either way"),
+               "(cast shadows, highlights; many lights); the samples rule applies as without it"),
+    Param("samples", "choice", _RUN.samples, choices=SAMPLE_MODES,
+          label="Samples: which the normals use (auto: by how well the fit holds)",
+          help="which samples each pixel's normal is solved from: screened leaves out saturated, dark and "
+               "attached-shadow samples; all keeps every one (plain least squares); auto: screened, unless that fit "
+               "leaves over 25 % of the signal unexplained (the lamps and a matte surface do not hold): then all"),
     Param("integration", "choice", _RUN.integration, choices=("fc", "dct"), label="Integration method",
           help="height integration: fc (Frankot-Chellappa) or dct (Poisson, Neumann boundary)"),
     Param("level", "choice", _RUN.level, choices=LEVELS, label="Level the height (remove the best plane, or a form)",

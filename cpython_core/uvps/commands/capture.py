@@ -24,7 +24,7 @@ from ..workflow import (CAPTURE_PARAMS, FLATFIELD, LIGHTS, NORMALS, OPTION_PARAM
 
 log = logging.getLogger(__name__)
 
-_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "integration", "level"))
+_LIGHT_OPTIONS = tuple(p for p in OPTION_PARAMS if p.name not in ("robust", "samples", "integration", "level"))
 
 
 def _capture_command(step: CaptureStep):
@@ -124,7 +124,7 @@ _RUN_LIGHTS = tuple(dataclasses.replace(
 
 _PX_OVERRIDE = Param("pixel_size_um", "float", minimum=0, exclusive_minimum=True, unit="um",
                      help="pixel size (default: the run's TIFF calibration)")
-_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "integration", "level"))
+_STEREO = tuple(p for p in OPTION_PARAMS if p.name in ("robust", "samples", "integration", "level"))
 
 SPECS = (
     CommandSpec("run", "the whole pipeline on a capture", _capture_command(RUN),

@@ -265,17 +265,33 @@ def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=
     q = I / F
     q /= np.median(q, axis=1, keepdims=True)
     med = np.median(q, axis=0)
-    ok = (~sat.any(axis=0)) & (I.min(axis=0) > 0) & (q.min(axis=0) > 0.55 * med) & (q.max(axis=0) < 1.8 * med)
+    lit = (~sat) & (I > 0) & (q > 0.55 * med) & (q < 1.8 * med)          # (K, candidates)
+    ok = lit.all(axis=0)
     if mask is not None:
         ok &= mask[r, c]
+        lit = lit[:, mask[r, c]]
     idx = np.flatnonzero(ok)[:n]
     if idx.size < 100:
         raise UVPSInputError(f"too few pixels lit by every light to refine the light positions ({idx.size} of "
-                             f"{cand.size} sampled are unsaturated and lit in every image, 100 needed): check the "
-                             "images' exposure (dark or saturated images), the mask, and that every lamp lights the "
-                             "whole field; or give measured lamp positions (--lights)")
+                             f"{cand.size} sampled are unsaturated and lit in every image, 100 needed"
+                             f"{_unlit_lamps(lit)}): check the images' exposure (dark or saturated images), the "
+                             "mask, and that every lamp lights the whole field; or give measured lamp positions "
+                             "(--lights)")
     X = pixel_coordinates_mm(r[idx], c[idx], (M, N), pixel_size_um)
     return PixelSample(I[:, idx], X, r[idx], c[idx])
+
+
+def _unlit_lamps(lit: np.ndarray, most: int = 8) -> str:
+    """Which lamps leave the sampled pixels dark or saturated, for a refusal: ``lit`` (K, P) bool.
+    The lamps (1-based, in the capture's order) leaving more than a quarter of them unlit, else the worst."""
+    if lit.size == 0:
+        return ""
+    unlit = 1.0 - lit.mean(axis=1)
+    order = np.argsort(-unlit, kind="stable")
+    bad = [k for k in order if unlit[k] > 0.25] or [int(order[0])]
+    shown = ", ".join(f"{k + 1} ({100 * unlit[k]:.0f} %)" for k in bad[:most])
+    more = f" and {len(bad) - most} more" if len(bad) > most else ""
+    return f"; lamps leaving the most of them dark or saturated: image {shown}{more}"
 
 
 def _eval_points(fit: DropoffFit, r, c):

@@ -7,7 +7,9 @@ Lambertian model (paper Eq. 1; Woodham 1978), near point lights (Huang et al. 20
 For each pixel, ``b = albedo * n`` solves the weighted normal equations ``(sum w V V^T) b = sum w V I``
 on the grey (channel-mean) intensities; ``n = b / |b|``. The RGB albedo (the fluorescence colour) is
 then fitted per channel with the normal fixed. Shadowed (attached shadow or too dark) and saturated
-samples are always left out per pixel; a pixel with fewer than three usable lights is NaN and counted.
+samples are left out per pixel (unless :data:`EVERY_SAMPLE` turns the rules off: plain least squares, which
+the pipeline uses where the model does not hold, :func:`uvps.core.pipeline.sample_mode`); a pixel with fewer
+than three usable lights is NaN and counted.
 ``robust=True`` is rank-trimmed least squares: each pixel keeps only its samples ranked between the
 25th and 90th percentile of its brightness (relative to each light's irradiance there), so cast
 shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
@@ -32,7 +34,7 @@ from .progress import Progress, report
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StereoResult", "solve_normals"]
+__all__ = ["StereoResult", "solve_normals", "EVERY_SAMPLE"]
 
 
 @dataclass
@@ -44,6 +46,11 @@ class StereoResult:
     n_used: np.ndarray         # (M, N) uint8: lights used per pixel
     n_invalid: int             # pixels with fewer than 3 usable lights (inside the mask)
     residual_rms: float        # rms relative residual over solved pixels
+
+
+#: :func:`solve_normals`'s sample rules off: plain least squares over every sample (no saturation, dark or
+#: attached-shadow test; samples of 0 counts kept). Pass as ``**EVERY_SAMPLE``.
+EVERY_SAMPLE = {"saturation": None, "dark_fraction": -1.0, "shadow_cos": float("-inf")}
 
 
 #: Pixels per band of :func:`solve_normals`: a band in flight holds its samples as float32
@@ -97,11 +104,12 @@ def _light_vectors(near, L, E, dirs, x, y, V, vn):  # pragma: no cover - compile
 
 @numba.njit(inline="always", **_JIT)
 def _usable_samples(grey, bright, vn, thr, use_p, sat, lo, hi, ratio, w):  # pragma: no cover - compiled
-    """``w[k]`` 1 for a sample that is lit (above ``thr``), not saturated and, with ranks (``hi`` > 0),
+    """``w[k]`` 1 for a sample that is lit (above ``thr``, and above 0 unless ``thr`` < 0), not saturated and, with ranks (``hi`` > 0),
     within the kept brightness ranks ``lo .. hi - 1``; else 0."""
     K = grey.shape[0]
     for k in range(K):
-        ok = grey[k] > thr and grey[k] > 0 and use_p
+        # thr < 0 (every sample, :data:`EVERY_SAMPLE`): a sample of 0 counts is kept like any other
+        ok = grey[k] > thr and (thr < 0 or grey[k] > 0) and use_p
         if sat > 0 and bright[k] >= sat:
             ok = False
         w[k] = 1.0 if ok else 0.0
@@ -284,7 +292,8 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     shadow_cos : float
         Samples whose predicted ``n . l`` (unit vectors) is below this are treated as attached shadow.
     dark_fraction : float
-        Samples darker than this fraction of the pixel's brightest sample are left out (shadow).
+        Samples darker than this fraction of the pixel's brightest sample are left out (shadow); a
+        negative value keeps every sample, 0 counts too (:data:`EVERY_SAMPLE`).
     chunk_pixels : int, optional
         Pixels per band (default :data:`CHUNK_PIXELS`): each band in flight holds about ``K * chunk_pixels * (4 C + 40)`` bytes.
     workers : int, optional

@@ -389,12 +389,28 @@ def _rawpy():
 
 
 def _raw_levels(raw, path) -> dict:
+    """A raw file's metadata as :func:`read_raw` uses it (levels, its mosaic) and records it (the camera's colour
+    matrices and white balance, not applied: the counts stay the sensor's); refuses what it cannot read linearly."""
+    colours = int(raw.num_colors)
+    if colours != 3:
+        raise UVPSInputError(f"{path}: a {colours}-colour sensor ({raw.color_desc.decode('ascii', 'replace')}) is not "
+                             "supported; expected a 3-colour (RGB) mosaic")
+    if raw.raw_type != _rawpy().RawType.Flat:
+        raise UVPSInputError(f"{path}: a {raw.raw_type.name} raw file (several values per pixel: Foveon, sRAW, a "
+                             "linear DNG) is not supported; expected one colour mosaic (Bayer) value per pixel")
     black = [float(v) for v in raw.black_level_per_channel]
     white = float(raw.white_level)
     if not white > max(black):
         raise UVPSInputError(f"{path}: its white level ({white:g}) is not above its black level ({max(black):g})")
+    sz = raw.sizes
     return {"black_level": black, "white_level": white, "cfa": raw.color_desc.decode("ascii", "replace"),
-            "pattern": np.asarray(raw.raw_pattern).tolist() if raw.raw_pattern is not None else None}
+            "pattern": np.asarray(raw.raw_pattern).tolist() if raw.raw_pattern is not None else None,
+            "sensor_px": [int(sz.raw_width), int(sz.raw_height)], "image_px": [int(sz.width), int(sz.height)],
+            "margins_px": [int(sz.left_margin), int(sz.top_margin)],
+            # recorded, not applied: the counts stay in the camera's channels (RAW_DEVELOP)
+            "colour_matrix": np.round(np.asarray(raw.color_matrix, float), 6).tolist(),
+            "rgb_xyz_matrix": np.round(np.asarray(raw.rgb_xyz_matrix, float), 6).tolist(),
+            "camera_white_balance": [float(v) for v in raw.camera_whitebalance]}
 
 
 def read_raw(path: PathLike) -> np.ndarray:

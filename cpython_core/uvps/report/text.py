@@ -581,10 +581,15 @@ def methods_html(f: Facts, n_areas: Optional[int], region_source: str) -> str:
         lam += ("; each lamp's drop-off beyond the point-light model divided out, but for what a tilt of the "
                 "canvas explains (its bow kept)")
     items.append(lam + ".")
+    samples = (d.get("normals") or {}).get("samples")
+    kept = ("every sample kept, as plain least squares" if samples == "all"
+            else "shadowed and saturated samples left out")
+    why = (d.get("normals") or {}).get("samples_reason")
     items.append("Normals and albedo by least squares at every pixel over the lamps lighting it "
-                 + ("(rank-trimmed: each pixel's darkest and brightest samples left out)"
-                    if p.get("robust") else "(shadowed and saturated samples left out)")
-                 + "; the albedo is the fluorescence with the shading removed.")
+                 + (f"(rank-trimmed: each pixel's darkest and brightest samples left out; {kept})"
+                    if p.get("robust") else f"({kept})")
+                 + "; the albedo is the fluorescence with the shading removed."
+                 + (f" Samples: {e(why)}." if why else ""))
     integ = {"fc": "Frankot\u2013Chellappa (Fourier, mirrored borders)",
              "dct": "DCT Poisson (Neumann borders)"}.get(str(p.get("integration")),
                                                          str(p.get("integration", "?")))
