@@ -230,7 +230,8 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
 
     p = paintings[1]
     out = tmp_path / "out"
-    res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)
+    res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client,
+                    painting_chunk_px=128)
     assert [r["status"] for r in res.records] == ["done"] * 6
     painting = out / "painting"
     refined = read_truth_layout(painting / "layout.csv")
@@ -267,6 +268,24 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
         purity.append(counts.max() / counts.sum())
     print("area purity", [round(x, 3) for x in purity])
     assert min(purity) > 0.8
+    # the painting-wide maps, chunk by chunk (128 px) on the cluster: the height within 2 um rms of
+    # the truth after one plane, also on the overlap bands (no seams)
+    import zarr
+    from uvps.testing.painting import score_height
+
+    h = np.asarray(zarr.open_group(str(painting / "height.ome.zarr"), mode="r")["0"])
+    assert h.shape == tuple(meta["shape_px"]) and h.shape[1] > 256
+    hs = score_height(h, meta["origin_px"], p.whole.height_um, truth["layout"], truth["tile_shape"])
+    print("height", hs)
+    assert hs["rms_um"] < 2.0 and hs["overlap_rms_um"] < 2.0
+    alb = zarr.open_group(str(painting / "albedo.ome.zarr"), mode="r")
+    assert alb.attrs["multiscales"][0]["axes"][0]["name"] == "c" and alb["0"].shape == (3,) + h.shape
+    ids = np.unique(np.asarray(alb["labels/protrusions/0"]))
+    n_kept = len(_rows(painting / "painting_protrusions.csv"))
+    assert ids.max() <= n_kept and len(ids) - 1 >= 0.95 * n_kept
+    normals = np.asarray(zarr.open_group(str(painting / "normals.ome.zarr"), mode="r")["0"])
+    inside = np.isfinite(normals[2])
+    np.testing.assert_allclose(np.sqrt((normals[:, inside] ** 2).sum(axis=0)), 1, atol=1e-4)
     # a re-run: the tiles skipped, the painting stitched again into a new folder, nothing left over
     before = (painting / "painting.json").stat().st_ino
     res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)
@@ -274,3 +293,58 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
     assert (painting / "painting.json").stat().st_ino != before
     assert read_truth_layout(painting / "layout.csv") == refined
     assert not [q for q in out.iterdir() if q.name.startswith(".")]
+
+
+def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintings, tmp_path):
+    """Tile run folders holding the truth (each tile's height off by its own offset and plane, as
+    integration leaves it): the blended maps do not depend on the chunking, and the aligned
+    height is the painting's within a fraction of a micrometre, also on the overlaps."""
+    import dask
+    from uvps.core.mosaic import align_heights
+    from uvps.commands.painting_maps import MapContext, PlacedTile, painting_array
+    from uvps.files.io import write_imagej_tiff
+    from uvps.testing.painting import score_height
+
+    p = paintings[3]
+    rng = np.random.default_rng(7)
+    reg = register_tiles({t.name: _tile_view(p, t) for t in p.tiles}, p.nominal_corners(), max_shift_px=60)
+    heights = {}
+    for t in p.tiles:
+        d = tmp_path / t.name
+        d.mkdir()
+        rr, cc = np.mgrid[0:200, 0:240]
+        h = t.capture.height_um + rng.normal(0, 20) + rng.normal(0, 0.05) * cc + rng.normal(0, 0.05) * rr
+        heights[t.name] = h.astype(np.float32)
+        write_imagej_tiff(d / "depth.tif", heights[t.name], axes="YX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "albedo.tif", np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32),
+                          axes="CYX", pixel_size_um=15.0)
+    planes = align_heights(heights, reg.corners, reg.pairs)
+    x0 = min(c[0] for c in reg.corners.values())
+    y0 = min(c[1] for c in reg.corners.values())
+    shape = (int(np.ceil(max(c[1] for c in reg.corners.values()) + 200 - y0)),
+             int(np.ceil(max(c[0] for c in reg.corners.values()) + 240 - x0)))
+    from uvps.commands.painting import tile_gains
+    gains = tile_gains({t.name: (t.capture.albedo * t.exposure).astype(np.float32) for t in p.tiles}, reg)
+    ctx = MapContext([PlacedTile(t.name, str(tmp_path / t.name), reg.corners[t.name][0] - x0,
+                                 reg.corners[t.name][1] - y0, (200, 240), gains[t.name], planes[t.name])
+                      for t in p.tiles], (x0, y0), shape)
+    with dask.config.set(scheduler="synchronous"):
+        h64 = painting_array("height", ctx, chunk_px=64).compute()
+        h_one = painting_array("height", ctx, chunk_px=4096).compute()
+        a64 = painting_array("albedo", ctx, chunk_px=64).compute()
+        a_one = painting_array("albedo", ctx, chunk_px=4096).compute()
+    np.testing.assert_array_equal(h64, h_one)
+    np.testing.assert_array_equal(a64, a_one)
+    s = score_height(h64, (x0, y0), p.whole.height_um, p.true_corners(), p.tile_shape)
+    print("aligned truth heights", s)
+    assert s["rms_um"] < 0.5 and s["overlap_rms_um"] < 0.5
+    # the exposure drift measured on the overlaps and divided out: the blended albedo is the
+    # painting's times one exposure (the tiles' geometric mean)
+    from scipy import ndimage
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    truth_g = ndimage.map_coordinates(p.whole.albedo[..., 1], [rr + y0, cc + x0], order=1)
+    got = a64[1]
+    ok = ndimage.binary_erosion(got > 0, iterations=3)
+    ratio = got[ok] / truth_g[ok] / np.exp(np.mean(np.log([t.exposure for t in p.tiles])))
+    # (the tiles' exposures differ by up to 30 %; what is left is interpolation at edges and texture)
+    assert abs(np.median(ratio) - 1) < 0.005 and np.percentile(ratio, 95) / np.percentile(ratio, 5) < 1.03

@@ -354,7 +354,8 @@ def _clean_temporaries(out_dir: Path) -> None:
 
 
 def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=None, grid=None,
-              painting_regions=None, client=None, scheduler: Optional[str] = None,
+              painting_regions=None, painting_chunk_px: Optional[int] = None, client=None,
+              scheduler: Optional[str] = None,
               n_workers: Optional[int] = None, processes: bool = True,
               progress: Progress = None) -> BatchResult:
     """Run every capture as ``uvps run`` would, on a Dask cluster, and sum them up.
@@ -378,6 +379,8 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     painting_regions : path, optional
         A painting-wide label TIFF in the layout's frame: the painting's colour areas (default:
         proposed on the painting's albedo with ``regions="auto"``, else one area).
+    painting_chunk_px : int, optional
+        The painting maps' chunk side (default :data:`uvps.files.omezarr.CHUNK_PX`).
     client : distributed.Client, optional
         Use this client; else one on ``scheduler``; else a ``LocalCluster`` of ``n_workers``
         processes (default :func:`default_workers`), one thread each (``processes=False``: threads).
@@ -432,21 +435,25 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                        "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
             records[j.name] = rec
             _report_counts(progress, records, len(jobs))
+        result = BatchResult([records[j.name] for j in jobs], out_dir,
+                             cluster.info if cluster else {"workers": 0})
+        result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
+                           if r["status"] == "failed"]
+        if layout is not None:
+            failed = [r["capture"] for r in result.records if r["status"] == "failed"]
+            if failed:
+                # the painting of an earlier batch would not be this batch's: removed whole
+                shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
+                result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
+            else:
+                # on the same cluster: the painting's map chunks are its tasks
+                with cluster.client.as_current():
+                    result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings,
+                                            painting_chunk_px)
     finally:
         if cluster is not None:
             cluster.close()
         _clean_temporaries(out_dir)
-    result = BatchResult([records[j.name] for j in jobs], out_dir,
-                         cluster.info if cluster else {"workers": 0})
-    result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records if r["status"] == "failed"]
-    if layout is not None:
-        failed = [r["capture"] for r in result.records if r["status"] == "failed"]
-        if failed:
-            # the painting of an earlier batch would not be this batch's: removed whole
-            shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
-            result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
-        else:
-            result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings)
     result.elapsed_s = round(time.perf_counter() - t0, 3)
     write_summary(result, params)
     if result.count("failed") == len(jobs):
@@ -631,7 +638,8 @@ def grid_layout(grid: str, jobs) -> dict:
     return _checked_tiles(tiles)
 
 
-def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progress, warnings) -> dict:
+def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progress, warnings,
+            chunk_px=None) -> dict:
     """Register and merge the tiles into ``OUT/painting/`` (:func:`uvps.commands.painting.stitch_painting`)."""
     from .painting import stitch_painting
 
@@ -647,7 +655,7 @@ def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progres
                                  "the tiles of a painting need one pixel size")
     regions = painting_regions or ("auto" if params.get("regions") == "auto" else None)
     res = stitch_painting(out_dir, {t.name: (t.x0, t.y0, t.shape) for t in layout.values()}, pixel_size_um=ref,
-                          regions=regions, n_areas=params.get("n_areas"), progress=progress)
+                          regions=regions, n_areas=params.get("n_areas"), chunk_px=chunk_px, progress=progress)
     warnings += res.warnings
     return res.as_dict()
 

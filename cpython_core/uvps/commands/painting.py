@@ -63,6 +63,7 @@ class PaintingResult:
     pixel_size_um: float
     overview_step: int
     warnings: list
+    heights: Optional[dict] = None
 
     def as_dict(self) -> dict:
         return {
@@ -77,7 +78,7 @@ class PaintingResult:
                        "residual_px": None if p.residual_px is None else round(p.residual_px, 3),
                        "why_not_used": p.why or None} for p in self.registration.pairs],
             "max_residual_px": round(self.registration.max_residual_px, 3),
-            "areas": self.areas}
+            "height_planes": self.heights, "areas": self.areas}
 
 
 def _channels_last(a: np.ndarray) -> np.ndarray:
@@ -186,7 +187,8 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
     is compared pairwise and the most central survives.
 
     Returns ``(rows kept, rows of every tile)``: each row a dict of the tile table's columns plus
-    ``tile``, ``X``, ``Y`` (painting pixels) and ``edge_px``.
+    ``tile``, ``X``, ``Y`` (painting pixels), ``edge_px`` and ``kept_as`` (the index, among every
+    tile's rows, of the copy kept).
     """
     rows = []
     for name, t in tables.items():
@@ -196,6 +198,7 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
                          "X": float(t["x_px"][i]) + corners[name][0], "Y": float(t["y_px"][i]) + corners[name][1],
                          "edge_px": float(edge[i])})
     keep = np.ones(len(rows), bool)
+    into = np.arange(len(rows))
     if rows:
         tile_of = np.array([r["tile"] for r in rows])
         X, Y = np.array([r["X"] for r in rows]), np.array([r["Y"] for r in rows])
@@ -222,7 +225,14 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
                     used_a.add(p)
                     used_b.add(q)
                     i, j = ia[p], ib[q]
-                    keep[j if E[i] >= E[j] else i] = False
+                    lose, win = (j, i) if E[i] >= E[j] else (i, j)
+                    keep[lose] = False
+                    into[lose] = win
+    for k, r in enumerate(rows):      # the copy each detection ended up as (corners: followed)
+        root = k
+        while into[root] != root:
+            root = into[root]
+        r["kept_as"] = int(root)
     return [r for r, k in zip(rows, keep) if k], rows
 
 
@@ -252,7 +262,8 @@ def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n
 
 
 def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None, n_areas: Optional[int] = None,
-                    max_shift_px: Optional[float] = None, progress=None) -> PaintingResult:
+                    max_shift_px: Optional[float] = None, maps: bool = True, chunk_px: Optional[int] = None,
+                    progress=None) -> PaintingResult:
     """Register the tiles of ``out_dir`` (their run folders), merge them into one painting, write
     ``out_dir/painting/`` (all old or all new).
 
@@ -271,6 +282,11 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         Areas to propose (``regions="auto"``).
     max_shift_px : float, optional
         Largest stage error between neighbours (default: a quarter of the smaller tile side).
+    maps : bool
+        Also write the painting-wide maps (OME-Zarr, chunk by chunk on Dask: on the current
+        ``distributed`` client when there is one, :mod:`uvps.commands.painting_maps`).
+    chunk_px : int, optional
+        The maps' chunk side (default :data:`uvps.files.omezarr.CHUNK_PX`).
 
     Returns
     -------
@@ -311,6 +327,8 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             raise UVPSInputError(f"mosaic: tile {k} has no protrusions.csv; run with --regions or --detect")
         tables[k] = read_protrusions_csv(path)
     kept, every = merge_protrusions(tables, corners, shapes, pixel_size_um=pixel_size_um)
+    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
+        r["painting_id"] = k
     m, n = labels.shape
     for r in kept:
         rr = min(m - 1, max(0, int((r["Y"] - origin[1]) // step)))
@@ -341,12 +359,70 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         _write_regions(tmp / PAINTING_REGIONS, areas, len(kept), float(covered.sum()) * cm2, names)
         write_label_tiff(tmp / "regions_overview.tif", labels, pixel_size_um=pixel_size_um * step,
                          metadata={"origin_px": list(origin), "step": step})
+        if maps:
+            report(progress, 0.85, "painting: the painting-wide maps")
+            result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape, labels,
+                                         step, pixel_size_um, chunk_px)
         write_json_atomic(tmp / "painting.json", result.as_dict())
         swap_into_place(tmp, target)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     report(progress, 1.0, "painting: done")
     return result
+
+
+def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, reg, origin, shape, labels, step,
+                pixel_size_um, chunk_px) -> dict:
+    """albedo.ome.zarr (with the protrusion and colour-area labels), normals.ome.zarr and
+    height.ome.zarr of the painting, chunk by chunk; returns each tile's height plane."""
+    from ..core.mosaic import align_heights
+    from ..files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
+    from .painting_maps import MapContext, PlacedTile, painting_array
+
+    chunk_px = int(chunk_px or CHUNK_PX)
+    names = list(corners)
+    heights = {k: _memmap(out_dir / k / "depth.tif") for k in names}
+    planes = align_heights(heights, corners, reg.pairs)
+    del heights
+    luts = {}
+    for k in names:
+        mine = [r for r in every if r["tile"] == k]
+        top = max([int(r["id"]) for r in mine], default=0)
+        lut = np.zeros(top + 1, np.uint32)
+        for r in mine:
+            lut[int(r["id"])] = every[r["kept_as"]]["painting_id"]
+        luts[k] = lut
+    placed = [PlacedTile(k, str(out_dir / k), corners[k][0] - origin[0], corners[k][1] - origin[1], tuple(shapes[k]),
+                         gains[k], planes[k], luts[k]) for k in names]
+    first = read_albedo(out_dir / names[0])
+    ctx = MapContext(placed, tuple(origin), tuple(shape), channels=first.shape[2] if first.ndim == 3 else 1)
+    del first
+    rctx = MapContext([PlacedTile(t.name, t.run_dir, t.x, t.y, t.shape) for t in placed], tuple(origin),
+                      tuple(shape), regions=labels, step=step)
+    origin_um = (origin[1] * pixel_size_um, origin[0] * pixel_size_um)
+    alb = painting_array("albedo", ctx, chunk_px=chunk_px)
+    if ctx.channels == 1:
+        alb = alb[0]
+    label_images = [(LABELS[0], painting_array("protrusions", ctx, chunk_px=chunk_px)),
+                    (LABELS[1], painting_array("regions", rctx, chunk_px=chunk_px))]
+    write_dask_ome_zarr(tmp / "albedo.ome.zarr", ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"), alb,
+                        pixel_size_um, chunk_px=chunk_px, labels=label_images, origin_um=origin_um)
+    write_dask_ome_zarr(tmp / "normals.ome.zarr", ZarrImage("normals", "", ("nx", "ny", "nz"), kind="normals"),
+                        painting_array("normals", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
+                        origin_um=origin_um)
+    write_dask_ome_zarr(tmp / "height.ome.zarr", ZarrImage("height", "", (), unit="micrometer"),
+                        painting_array("height", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
+                        origin_um=origin_um)
+    return {k: [round(v, 6) for v in planes[k]] for k in names}
+
+
+def _memmap(path: Path):
+    import tifffile
+
+    try:
+        return tifffile.memmap(path, mode="r")
+    except (ValueError, OSError):
+        return read_tiff(path)[0]
 
 
 def swap_into_place(tmp: Path, target: Path) -> None:
@@ -385,8 +461,8 @@ def _write_protrusions(path: Path, kept: list, origin) -> None:
     buf = StringIO()
     wr = csv.writer(buf, lineterminator="\n")
     wr.writerow(cols)
-    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
-        vals = {"painting_id": k, "tile": r["tile"], "tile_id": int(r["id"]), "x_px": r["X"], "y_px": r["Y"],
+    for r in sorted(kept, key=lambda r: r["painting_id"]):
+        vals = {"painting_id": r["painting_id"], "tile": r["tile"], "tile_id": int(r["id"]), "x_px": r["X"], "y_px": r["Y"],
                 "x_tile_px": r["x_px"], "y_tile_px": r["y_px"], "edge_px": r["edge_px"], "area": r["area"]}
         wr.writerow([_cell(vals[c] if c in vals else r.get(c)) for c in cols])
     atomic_write_text(path, buf.getvalue())

@@ -266,3 +266,76 @@ def _solve(names, nominal, pairs, min_confidence, max_residual_px):
         log.info("mosaic: pair %s dropped (%.1f px)", worst.name, worst_r)
     corners = {k: (float(sol[idx[k], 0]), float(sol[idx[k], 1])) for k in names}
     return corners, pairs
+
+
+#: Scale of the planes' coordinates: x, y in thousands of painting pixels (a well-conditioned system).
+PLANE_SCALE_PX = 1000.0
+
+
+def _bilinear(img, rows, cols) -> np.ndarray:
+    return ndimage.map_coordinates(np.asarray(img, np.float64), [rows, cols], order=1, mode="nearest")
+
+
+def align_heights(heights: dict, corners: dict, pairs, *, step: int = 4, margin: int = 8) -> dict:
+    """Per-tile offset and plane that make the tiles' heights agree on their overlaps.
+
+    A tile's height from its own normals is known up to a constant and a low-order form (its
+    integration's plane): with ``h_t`` tile ``t``'s height at painting pixel ``(X, Y)``, one
+    least squares over every used pair's overlap (sampled every ``step`` pixels, ``margin`` pixels
+    in from both tiles' edges, where integration errs most) finds ``(a_t, b_t, c_t)`` such that
+    ``h_t + a_t + b_t x + c_t y`` (``x, y`` = painting pixels / :data:`PLANE_SCALE_PX`) agree; then
+    the painting-wide plane of the aligned surface is removed (levelled as one surface).
+
+    ``heights``: ``{tile: (M, N) array}`` (a memory map is read only on its overlaps);
+    ``corners``: the registered corners; ``pairs``: the registration's :class:`PairShift` list.
+    Returns ``{tile: (a, b, c)}``.
+    """
+    names = list(heights)
+    idx = {n: i for i, n in enumerate(names)}
+    n = len(names)
+    blocks, rhs = [], []
+    for p in pairs:
+        if not p.used:
+            continue
+        ha, hb = heights[p.a], heights[p.b]
+        (xa, ya), (xb, yb) = corners[p.a], corners[p.b]
+        box = overlap_box((xa, ya), ha.shape, (xb, yb), hb.shape)
+        if box is None:
+            continue
+        x_lo, y_lo, x_hi, y_hi = box
+        X, Y = np.meshgrid(np.arange(np.ceil(x_lo) + margin, x_hi - margin, step),
+                           np.arange(np.ceil(y_lo) + margin, y_hi - margin, step))
+        X, Y = X.ravel(), Y.ravel()
+        if X.size < 3:
+            continue
+        va, vb = _bilinear(ha, Y - ya, X - xa), _bilinear(hb, Y - yb, X - xb)
+        ok = np.isfinite(va) & np.isfinite(vb)
+        X, Y, va, vb = X[ok], Y[ok], va[ok], vb[ok]
+        A = np.zeros((X.size, 3 * n))
+        basis = np.column_stack([np.ones(X.size), X / PLANE_SCALE_PX, Y / PLANE_SCALE_PX])
+        A[:, 3 * idx[p.a]:3 * idx[p.a] + 3] = basis
+        A[:, 3 * idx[p.b]:3 * idx[p.b] + 3] = -basis
+        blocks.append(A)
+        rhs.append(vb - va)
+    gauge = np.zeros((3, 3 * n))
+    for k in range(3):
+        gauge[k, k::3] = 1.0
+    A = np.vstack(blocks + [gauge * 1e3]) if blocks else gauge
+    b = np.concatenate(rhs + [np.zeros(3)]) if rhs else np.zeros(3)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    coef = {k: sol[3 * idx[k]:3 * idx[k] + 3].copy() for k in names}
+    # level the aligned surface as one: the plane of every tile's samples (inner grid), removed
+    pts, vals = [], []
+    for k in names:
+        h = heights[k]
+        M, N = h.shape
+        rr, cc = np.meshgrid(np.arange(margin, M - margin, 4 * step), np.arange(margin, N - margin, 4 * step),
+                             indexing="ij")
+        X, Y = cc.ravel() + corners[k][0], rr.ravel() + corners[k][1]
+        v = np.asarray(h[rr.ravel(), cc.ravel()], np.float64)
+        v = v + coef[k][0] + coef[k][1] * X / PLANE_SCALE_PX + coef[k][2] * Y / PLANE_SCALE_PX
+        ok = np.isfinite(v)
+        pts.append(np.column_stack([np.ones(ok.sum()), X[ok] / PLANE_SCALE_PX, Y[ok] / PLANE_SCALE_PX]))
+        vals.append(v[ok])
+    plane, *_ = np.linalg.lstsq(np.vstack(pts), np.concatenate(vals), rcond=None)
+    return {k: tuple(float(v) for v in coef[k] - plane) for k in names}

@@ -278,3 +278,32 @@ def score_painting(truth: dict, found: dict, corners: dict, tile_shape, *, pixel
         twice += bool(np.any(t2f[near] >= 0))   # -2: cut by the edge
     return {"true": int(big.sum()), "detected": int(cls.sum()), "recall": rec, "precision": prec, "f1": f1,
             "twice": int(twice), "count_ratio": float(cls.sum() / big.sum()) if big.any() else float("nan")}
+
+
+def score_height(height: np.ndarray, origin, truth_height: np.ndarray, corners: dict, tile_shape, *,
+                 margin: int = 4) -> dict:
+    """Height error of a painting-wide map (pixel (0, 0) at ``origin`` = (x, y) in the truth's
+    frame) against the truth, after removing one least-squares plane from the difference: rms over
+    the painting and over the overlap bands (pixels two or more tiles cover), ``margin`` pixels in
+    from the painting's outer edge (where every tile's integration errs alike)."""
+    M, N = height.shape
+    rr, cc = np.mgrid[0:M, 0:N].astype(np.float64)
+    Y, X = rr + origin[1], cc + origin[0]
+    truth = ndimage.map_coordinates(np.asarray(truth_height, np.float64), [Y, X], order=1, mode="nearest")
+    cover = np.zeros((M, N), int)
+    inner = np.zeros((M, N), bool)
+    tm, tn = tile_shape
+    for x0, y0 in corners.values():
+        inside = (X >= x0) & (X <= x0 + tn - 1) & (Y >= y0) & (Y <= y0 + tm - 1)
+        cover += inside
+    union = cover > 0
+    inner = ndimage.binary_erosion(union, iterations=margin) & np.isfinite(height)
+    d = (np.asarray(height, np.float64) - truth)[inner]
+    A = np.column_stack([np.ones(d.size), X[inner], Y[inner]])
+    coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+    res = np.full((M, N), np.nan)
+    res[inner] = d - A @ coef
+    band = inner & (cover >= 2)
+    return {"rms_um": float(np.sqrt(np.nanmean(res[inner] ** 2))),
+            "overlap_rms_um": float(np.sqrt(np.nanmean(res[band] ** 2))) if band.any() else float("nan"),
+            "p99_abs_um": float(np.nanpercentile(np.abs(res[inner]), 99))}
