@@ -348,3 +348,25 @@ def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintin
     ratio = got[ok] / truth_g[ok] / np.exp(np.mean(np.log([t.exposure for t in p.tiles])))
     # (the tiles' exposures differ by up to 30 %; what is left is interpolation at edges and texture)
     assert abs(np.median(ratio) - 1) < 0.005 and np.percentile(ratio, 95) / np.percentile(ratio, 5) < 1.03
+
+
+def test_a_painting_wide_label_image_gives_the_areas_in_the_layout_frame(paintings, written, tmp_path):
+    """The painting's own colour areas (the truth's label TIFF, in the layout's frame, names in a
+    CSV beside it) sampled at the painting's pixels; one that does not cover the painting is refused."""
+    from uvps.commands.painting import _region_labels
+    from uvps.errors import UVPSInputError
+    from uvps.files.tables import write_label_tiff
+
+    p = paintings[1]
+    labels = p.whole.regions
+    write_label_tiff(tmp_path / "areas.tif", labels, pixel_size_um=15.0)
+    (tmp_path / "areas.csv").write_text("label,name\n" + "".join(
+        f"{i + 1},{n}\n" for i, n in enumerate(p.whole.region_names)))
+    origin, covered = (40.3, 20.7), np.ones((300, 400), bool)
+    got, names = _region_labels(str(tmp_path / "areas.tif"), None, covered, 1, origin, pixel_size_um=15.0,
+                                n_areas=None)
+    np.testing.assert_array_equal(got, labels[21:321, 40:440])
+    assert set(names.values()) <= set(p.whole.region_names) and len(names) >= 2
+    with pytest.raises(UVPSInputError, match=r"painting regions: areas.tif \(\d+ x \d+ px\) does not cover"):
+        _region_labels(str(tmp_path / "areas.tif"), None, np.ones((400, 700), bool), 1, origin,
+                       pixel_size_um=15.0, n_areas=None)

@@ -64,6 +64,7 @@ class PaintingResult:
     overview_step: int
     warnings: list
     heights: Optional[dict] = None
+    timings: Optional[dict] = None
 
     def as_dict(self) -> dict:
         return {
@@ -78,7 +79,7 @@ class PaintingResult:
                        "residual_px": None if p.residual_px is None else round(p.residual_px, 3),
                        "why_not_used": p.why or None} for p in self.registration.pairs],
             "max_residual_px": round(self.registration.max_residual_px, 3),
-            "height_planes": self.heights, "areas": self.areas}
+            "height_planes": self.heights, "timings": self.timings, "areas": self.areas}
 
 
 def _channels_last(a: np.ndarray) -> np.ndarray:
@@ -247,7 +248,11 @@ def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n
         rm = propose_regions(overview, pixel_size_um=pixel_size_um * step, n_areas=n_areas, mask=covered)
         return rm.labels.astype(np.int32), dict(rm.names)
     # a painting-wide label image in the layout's frame: sampled at the overview's pixels
-    rm = load_regions(Path(regions))
+    import tifffile
+
+    with tifffile.TiffFile(regions) as tif:      # its own size: it is the painting's, not a tile's
+        own = (int(tif.pages[0].imagelength), int(tif.pages[0].imagewidth))
+    rm = load_regions(Path(regions), shape=own)
     lab = rm.labels
     m, n = covered.shape
     rr = (origin[1] + (np.arange(m) + 0.5) * step - 0.5).round().astype(int)
@@ -292,6 +297,10 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     -------
     PaintingResult
     """
+    import time
+
+    t0 = time.perf_counter()
+    timings = {}
     out_dir = Path(out_dir)
     names = list(tiles)
     shapes = {k: tuple(tiles[k][2]) for k in names}
@@ -304,6 +313,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     if max_shift_px is None:
         max_shift_px = 0.25 * min(min(s) for s in shapes.values())
     reg = register_tiles(albedo, nominal, max_shift_px=max_shift_px)
+    timings["register_s"] = round(time.perf_counter() - t0, 3)
     warnings = list(reg.warnings)
     for w in warnings:
         log.warning("%s", w)
@@ -349,6 +359,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         areas[nm] = {"label": int(lab), "tiles": len(seen), "area_cm2": a, "count": c,
                      "density_per_cm2": c / a if a else None}
     result = PaintingResult(reg, gains, origin, shape, len(kept), len(every), areas, pixel_size_um, step, warnings)
+    timings["merge_s"] = round(time.perf_counter() - t0 - sum(timings.values()), 3)
     report(progress, 0.8, "painting: writing")
     target = out_dir / PAINTING_DIR
     tmp = out_dir / f".{PAINTING_DIR}.batch-tmp-{uuid.uuid4().hex[:8]}"
@@ -361,8 +372,12 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
                          metadata={"origin_px": list(origin), "step": step})
         if maps:
             report(progress, 0.85, "painting: the painting-wide maps")
+            t_maps = time.perf_counter()
             result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape, labels,
                                          step, pixel_size_um, chunk_px)
+            timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
+        timings["total_s"] = round(time.perf_counter() - t0, 3)
+        result.timings = timings
         write_json_atomic(tmp / "painting.json", result.as_dict())
         swap_into_place(tmp, target)
     finally:
