@@ -207,11 +207,12 @@ def test_a_grid_gives_the_nominal_layout_in_the_captures_order(written):
 
 @pytest.fixture(scope="module")
 def client():
-    """Two worker processes of one thread each, as `uvps batch` starts on this 2-core machine."""
+    """Two worker processes of one thread each, as `uvps batch` starts on this 2-core machine (its
+    HTTP server on a free port: two clusters starting at once on this machine race for 8787)."""
     import distributed
 
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as c:
         yield c
 
 
@@ -286,6 +287,11 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
     normals = np.asarray(zarr.open_group(str(painting / "normals.ome.zarr"), mode="r")["0"])
     inside = np.isfinite(normals[2])
     np.testing.assert_allclose(np.sqrt((normals[:, inside] ** 2).sum(axis=0)), 1, atol=1e-4)
+    # the painting report: its figures and tables
+    page = (painting / "report.html").read_text()
+    for fig in ("painting_overview", "painting_density", "painting_tiles", "painting_widths"):
+        assert (painting / "figures" / f"{fig}.png").stat().st_size > 5000 and f"figures/{fig}.png" in page
+    assert "r1c1-r1c2" in page and names[0] in page
     # a re-run: the tiles skipped, the painting stitched again into a new folder, nothing left over
     before = (painting / "painting.json").stat().st_ino
     res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)

@@ -87,16 +87,42 @@ def _channels_last(a: np.ndarray) -> np.ndarray:
     return np.moveaxis(a, 0, -1) if a.ndim == 3 and a.shape[0] in (3, 4) and a.shape[-1] not in (3, 4) else a
 
 
+class AlbedoTile:
+    """A tile's ``albedo.tif`` on disk (memory-mapped): read window by window, or whole for one
+    tile at a time; never all tiles at once."""
+
+    def __init__(self, run_dir: Path):
+        path = Path(run_dir) / "albedo.tif"
+        if not path.is_file():
+            raise UVPSInputError(f"mosaic: tile {Path(run_dir).name} has no albedo.tif to register on")
+        self.path = path
+        data = self._data()
+        self.channels = data.shape[0] if data.ndim == 3 else 1
+        self.shape = tuple(data.shape[-2:])
+
+    def _data(self):
+        return _memmap(self.path)
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Grey (mean of the channels) float64 of rows r0:r1, columns c0:c1."""
+        w = np.asarray(self._data()[..., r0:r1, c0:c1], np.float64)
+        return w.mean(axis=0) if w.ndim == 3 else w
+
+    def full(self) -> np.ndarray:
+        """(M, N) or (M, N, C) float32."""
+        return _channels_last(np.asarray(self._data())).astype(np.float32)
+
+
 def read_albedo(run_dir: Path) -> np.ndarray:
     """A tile's ``albedo.tif``, (M, N) or (M, N, C) float32."""
-    path = run_dir / "albedo.tif"
-    if not path.is_file():
-        raise UVPSInputError(f"mosaic: tile {run_dir.name} has no albedo.tif to register on")
-    return _channels_last(read_tiff(path)[0]).astype(np.float32)
+    return AlbedoTile(run_dir).full()
 
 
-def _grey(a: np.ndarray) -> np.ndarray:
-    return a.mean(axis=2) if a.ndim == 3 else a
+def _win(img, r0, r1, c0, c1) -> np.ndarray:
+    if hasattr(img, "window"):
+        return img.window(r0, r1, c0, c1)
+    w = np.asarray(img[r0:r1, c0:c1], np.float64)
+    return w.mean(axis=2) if w.ndim == 3 else w
 
 
 def tile_gains(albedo: dict, reg: Registration) -> dict:
@@ -110,12 +136,12 @@ def tile_gains(albedo: dict, reg: Registration) -> dict:
             continue
         ca, cb = reg.corners[p.a], reg.corners[p.b]
         ra, rb = (round(ca[0]), round(ca[1])), (round(cb[0]), round(cb[1]))
-        box = overlap_box(ra, albedo[p.a].shape, rb, albedo[p.b].shape)
+        box = overlap_box(ra, albedo[p.a].shape[:2], rb, albedo[p.b].shape[:2])
         if box is None:
             continue
         x_lo, y_lo, x_hi, y_hi = box
-        ga = _grey(albedo[p.a])[y_lo - ra[1]:y_hi - ra[1], x_lo - ra[0]:x_hi - ra[0]]
-        gb = _grey(albedo[p.b])[y_lo - rb[1]:y_hi - rb[1], x_lo - rb[0]:x_hi - rb[0]]
+        ga = _win(albedo[p.a], y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0])
+        gb = _win(albedo[p.b], y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0])
         ok = (ga > 0) & (gb > 0) & np.isfinite(ga) & np.isfinite(gb)
         if ok.sum() < 100:
             continue
@@ -146,10 +172,12 @@ def blend_overview(albedo: dict, corners: dict, gains: dict, origin, shape, step
     import cv2
 
     m, n = -(-shape[0] // step), -(-shape[1] // step)
-    first = next(iter(albedo.values()))
-    acc = np.zeros((m, n) + first.shape[2:], np.float64)
-    wsum = np.zeros((m, n), np.float64)
+    acc = wsum = None
     for name, a in albedo.items():
+        a = a.full() if hasattr(a, "full") else np.asarray(a)      # one tile at a time
+        if acc is None:
+            acc = np.zeros((m, n) + a.shape[2:], np.float64)
+            wsum = np.zeros((m, n), np.float64)
         w = feather(a.shape[:2])
         a = np.nan_to_num(a / gains[name])
         if step > 1:
@@ -268,7 +296,7 @@ def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n
 
 def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None, n_areas: Optional[int] = None,
                     max_shift_px: Optional[float] = None, maps: bool = True, chunk_px: Optional[int] = None,
-                    progress=None) -> PaintingResult:
+                    report_html: bool = True, progress=None) -> PaintingResult:
     """Register the tiles of ``out_dir`` (their run folders), merge them into one painting, write
     ``out_dir/painting/`` (all old or all new).
 
@@ -292,6 +320,8 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         ``distributed`` client when there is one, :mod:`uvps.commands.painting_maps`).
     chunk_px : int, optional
         The maps' chunk side (default :data:`uvps.files.omezarr.CHUNK_PX`).
+    report_html : bool
+        Also write ``report.html`` and ``figures/`` (:mod:`uvps.report.painting`).
 
     Returns
     -------
@@ -306,10 +336,9 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     shapes = {k: tuple(tiles[k][2]) for k in names}
     nominal = {k: (float(tiles[k][0]), float(tiles[k][1])) for k in names}
     report(progress, 0.0, "painting: registering the tiles")
-    albedo = {k: read_albedo(out_dir / k) for k in names}
+    albedo = {k: AlbedoTile(out_dir / k) for k in names}
     for k in names:
-        if albedo[k].shape[:2] != shapes[k]:
-            shapes[k] = albedo[k].shape[:2]
+        shapes[k] = tuple(albedo[k].shape)
     if max_shift_px is None:
         max_shift_px = 0.25 * min(min(s) for s in shapes.values())
     reg = register_tiles(albedo, nominal, max_shift_px=max_shift_px)
@@ -378,6 +407,11 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
         timings["total_s"] = round(time.perf_counter() - t0, 3)
         result.timings = timings
+        if report_html:
+            from ..report.painting import write_painting_report
+            write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas,
+                                  registration=reg, shapes=shapes, origin=origin, step=step,
+                                  pixel_size_um=pixel_size_um, warnings=warnings)
         write_json_atomic(tmp / "painting.json", result.as_dict())
         swap_into_place(tmp, target)
     finally:
@@ -409,9 +443,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
         luts[k] = lut
     placed = [PlacedTile(k, str(out_dir / k), corners[k][0] - origin[0], corners[k][1] - origin[1], tuple(shapes[k]),
                          gains[k], planes[k], luts[k]) for k in names]
-    first = read_albedo(out_dir / names[0])
-    ctx = MapContext(placed, tuple(origin), tuple(shape), channels=first.shape[2] if first.ndim == 3 else 1)
-    del first
+    ctx = MapContext(placed, tuple(origin), tuple(shape), channels=AlbedoTile(out_dir / names[0]).channels)
     rctx = MapContext([PlacedTile(t.name, t.run_dir, t.x, t.y, t.shape) for t in placed], tuple(origin),
                       tuple(shape), regions=labels, step=step)
     origin_um = (origin[1] * pixel_size_um, origin[0] * pixel_size_um)

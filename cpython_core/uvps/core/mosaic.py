@@ -80,11 +80,27 @@ def overlap_box(ca, shape_a, cb, shape_b) -> Optional[tuple]:
     return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
 
 
-def _prepare(img: np.ndarray, sigma: float) -> np.ndarray:
-    """Grey, high-passed (a tile's flat-field residue and exposure are not the painting's)."""
-    g = np.asarray(img, np.float64)
-    if g.ndim == 3:
-        g = g.mean(axis=2)
+class ArrayTile:
+    """A tile's image held in memory, (M, N) or (M, N, C): what :func:`register_tiles` reads windows
+    of. A tile on disk provides the same two members (``shape``, ``window``) and is read window by
+    window, so registering a painting never holds more than two overlaps."""
+
+    def __init__(self, a):
+        self.a = np.asarray(a)
+        self.shape = self.a.shape[:2]
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Grey (mean of the channels) float64 of rows r0:r1, columns c0:c1."""
+        w = np.asarray(self.a[r0:r1, c0:c1], np.float64)
+        return w.mean(axis=2) if w.ndim == 3 else w
+
+
+def _tile(img):
+    return img if hasattr(img, "window") else ArrayTile(img)
+
+
+def _high_pass(g: np.ndarray, sigma: float) -> np.ndarray:
+    """High-passed window (a tile's flat-field residue and exposure are not the painting's)."""
     g = np.nan_to_num(g)
     return g - ndimage.gaussian_filter(g, sigma)
 
@@ -143,7 +159,8 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     Parameters
     ----------
     images : dict
-        ``{tile: (M, N) or (M, N, C) array}``: what to register on (the tiles' albedo).
+        ``{tile: (M, N) or (M, N, C) array}``, or objects with ``shape`` and ``window(r0, r1,
+        c0, c1)`` (grey, read from disk): what to register on (the tiles' albedo).
     guess : dict
         ``{tile: (x, y)}`` nominal corners in painting pixels (the stage's).
     max_shift_px : float
@@ -165,13 +182,13 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
         confidence and residual.
     """
     names = list(images)
-    shapes = {n: np.asarray(images[n]).shape[:2] for n in names}
-    grey = {n: _prepare(images[n], sigma) for n in names}
+    tiles = {n: _tile(images[n]) for n in names}
+    shapes = {n: tuple(tiles[n].shape[:2]) for n in names}
     nominal = {n: (float(guess[n][0]), float(guess[n][1])) for n in names}
     current = dict(nominal)
     pairs = []
     for k in range(max(1, passes)):
-        pairs = _measure(grey, shapes, nominal if k == 0 else current, max_shift_px if k == 0 else 4.0)
+        pairs = _measure(tiles, shapes, nominal if k == 0 else current, max_shift_px if k == 0 else 4.0, sigma)
         current, pairs = _solve(names, nominal, pairs, min_confidence, max_residual_px)
     warnings = []
     for p in pairs:
@@ -180,8 +197,8 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     return Registration(current, pairs, warnings)
 
 
-def _measure(grey, shapes, corners, max_shift) -> list:
-    names = list(grey)
+def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
+    names = list(tiles)
     out = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
@@ -191,8 +208,8 @@ def _measure(grey, shapes, corners, max_shift) -> list:
             if box is None:
                 continue
             x_lo, y_lo, x_hi, y_hi = box
-            wa = grey[a][y_lo - ra[1]:y_hi - ra[1], x_lo - ra[0]:x_hi - ra[0]]
-            wb = grey[b][y_lo - rb[1]:y_hi - rb[1], x_lo - rb[0]:x_hi - rb[0]]
+            wa = _high_pass(tiles[a].window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), sigma)
+            wb = _high_pass(tiles[b].window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), sigma)
             p = PairShift(a, b, overlap_px=int(wa.size))
             if min(wa.shape) < 8:
                 p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
