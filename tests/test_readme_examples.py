@@ -1,6 +1,6 @@
 """The README's example commands, as written, on a demo capture (a real subprocess each).
 
-The files they name (`captures/region1/`, `spheres/` (two glossy spheres under its lamps), `raw_capture/` (DNG files), `xrf_maps/` (element maps), `areas.tif`, `lights.lp`, `clicks.csv`, ...) are made from a
+The files they name (`captures/region1/`, `painting/` (tiles of a painting and their layout), `spheres/` (two glossy spheres under its lamps), `raw_capture/` (DNG files), `xrf_maps/` (element maps), `areas.tif`, `lights.lp`, `clicks.csv`, ...) are made from a
 synthetic capture in a fresh folder, as a user would have them; nothing else is changed in a command
 but `uvps` itself, which runs as `python -m uvps`. The one line that needs a Dask scheduler at
 `tcp://host:8786` is left out, and `uvps changes` runs after the two runs it compares.
@@ -19,6 +19,7 @@ import pytest
 import tifffile
 
 from uvps.files.io import write_imagej_tiff
+from uvps.testing.painting import make_painting, write_painting
 from uvps.testing.synthetic import make_capture, render_element_maps, write_capture, write_raw_capture
 from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
@@ -70,6 +71,9 @@ def _sandbox(root: Path) -> None:
     for date in ("capture_2019", "capture_2024"):
         shutil.copytree(region, root / date)
         shutil.copy(region / "lights_positions_mm.csv", root / date / "lamps_mm.csv")   # measured positions
+    # a painting in 3 x 2 tiles of a rig, its stage off by up to 12 px: painting/tiles/, painting/layout.csv
+    write_painting(make_painting(grid=(3, 2), tile_shape=(120, 160), stage_error_px=12.0, n_lights=6, seed=4),
+                   root / "painting")
 
 
 @pytest.mark.slow
@@ -96,3 +100,5 @@ def test_the_readmes_examples_run_as_written(tmp_path):
     assert (tmp_path / "runs" / "batch_summary.csv").is_file() and (tmp_path / "runs" / "region1" / "run.json").is_file()
     assert (tmp_path / "run_2019" / "report.html").is_file()
     assert (tmp_path / "changes_2019_2024" / "changes.csv").is_file()
+    assert {"layout.csv", "painting_protrusions.csv", "height.ome.zarr"} <= {
+        p.name for p in (tmp_path / "painting_run" / "painting").iterdir()}

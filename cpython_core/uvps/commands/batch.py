@@ -8,10 +8,10 @@ complete (its inputs' SHA-256 and the parameters unchanged) is skipped unless ``
 that fails is listed with its one-line error; the others go on. ``OUT/batch_summary.csv`` and
 ``OUT/batch.json`` sum up the batch (counts and densities per colour area).
 
-With a mosaic layout (each tile's offset in the painting, in pixels) the tiles' protrusion tables are
-merged into ``OUT/painting_protrusions.csv`` (painting coordinates, each protrusion of an overlap
-once) and ``OUT/painting_regions.csv`` (counts, areas and densities per colour-area name, the
-overlaps' areas counted once). See docs/batch.md.
+With a mosaic layout (each tile's nominal corner in the painting, in pixels) or a regular grid, the
+tiles are registered on their overlaps and merged into ``OUT/painting/``: the refined layout, one
+protrusion table (painting coordinates, each protrusion of an overlap once) and one density table
+per colour area of the painting (:mod:`uvps.commands.painting`). See docs/painting.md.
 
 Dask is imported inside the functions that use it: importing it costs every other command about a
 second.
@@ -35,13 +35,10 @@ import tifffile
 
 from .. import __version__
 from ..errors import UVPSComputeError, UVPSError, UVPSInputError
-from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, read_tiff, sha256_file
-from ..core.measure import COLUMNS
-from ..files.tables import atomic_write_text, read_protrusions_csv
+from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, sha256_file
+from ..files.tables import atomic_write_text
 from ..files.outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
-from ..core.regions import UM2_PER_CM2
-from ..files.tables import load_regions, read_region_names
 from ..spec import CommandSpec, Param, coerce_value
 
 log = logging.getLogger(__name__)
@@ -53,6 +50,8 @@ PER_CAPTURE_FILES = ("lights", "mask", "dark", "regions")
 _KEYWORDS = {p.name: p.choices for p in CAPTURE_PARAMS + PROTRUSION_PARAMS if p.name in PER_CAPTURE_FILES}
 #: What a batch writes beside the run folders.
 SUMMARY, BATCH_JSON = "batch_summary.csv", "batch.json"
+#: The painting of a mosaic batch: ``OUT/painting/`` (see :mod:`uvps.commands.painting`).
+PAINTING_DIR = "painting"
 PAINTING_PROTRUSIONS, PAINTING_REGIONS = "painting_protrusions.csv", "painting_regions.csv"
 #: Written last into each run folder: the request it was run with (for the skip rule).
 REQUEST_RECORD = "batch_request.json"
@@ -352,8 +351,10 @@ def _clean_temporaries(out_dir: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=None, client=None,
-              scheduler: Optional[str] = None, n_workers: Optional[int] = None, processes: bool = True,
+def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=None, grid=None,
+              painting_regions=None, painting_chunk_px: Optional[int] = None, client=None,
+              scheduler: Optional[str] = None,
+              n_workers: Optional[int] = None, processes: bool = True,
               progress: Progress = None) -> BatchResult:
     """Run every capture as ``uvps run`` would, on a Dask cluster, and sum them up.
 
@@ -369,7 +370,15 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     force : bool
         Run captures whose run folder is complete too.
     mosaic : path, optional
-        Layout CSV (``capture,x_px,y_px``): merge the tiles (:func:`merge_mosaic`).
+        Layout CSV (``capture,x_px,y_px``, the stage's nominal corners): register the tiles and
+        merge them into ``OUT/painting/`` (:func:`uvps.commands.painting.stitch_painting`).
+    grid : str, optional
+        Instead of a layout, a regular grid ``"COLUMNS,ROWS,OVERLAP[,ORDER]"`` (:func:`grid_layout`).
+    painting_regions : path, optional
+        A painting-wide label TIFF in the layout's frame: the painting's colour areas (default:
+        proposed on the painting's albedo with ``regions="auto"``, else one area).
+    painting_chunk_px : int, optional
+        The painting maps' chunk side (default :data:`uvps.files.omezarr.CHUNK_PX`).
     client : distributed.Client, optional
         Use this client; else one on ``scheduler``; else a ``LocalCluster`` of ``n_workers``
         processes (default :func:`default_workers`), one thread each (``processes=False``: threads).
@@ -396,7 +405,13 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     if not folders:
         raise UVPSInputError("captures: no capture folders given")
     jobs = make_jobs(folders, params)
-    layout = read_layout(mosaic, jobs) if mosaic else None
+    if mosaic and grid:
+        raise UVPSInputError("mosaic: give a layout (--mosaic) or a grid (--grid), not both")
+    layout = read_layout(mosaic, jobs) if mosaic else grid_layout(grid, jobs) if grid else None
+    if painting_regions and layout is None:
+        raise UVPSInputError("painting regions: a painting-wide label image needs --mosaic or --grid")
+    if painting_regions and not Path(painting_regions).is_file():
+        raise UVPSInputError(f"painting regions: {painting_regions} does not exist")
     out_dir.mkdir(exist_ok=True)
     _clean_temporaries(out_dir)
     records = {j.name: {"capture": j.name, "folder": str(j.folder), "status": "failed", "error": j.error,
@@ -418,20 +433,25 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                        "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
             records[j.name] = rec
             _report_counts(progress, records, len(jobs))
+        result = BatchResult([records[j.name] for j in jobs], out_dir,
+                             cluster.info if cluster else {"workers": 0})
+        result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
+                           if r["status"] == "failed"]
+        if layout is not None:
+            failed = [r["capture"] for r in result.records if r["status"] == "failed"]
+            if failed:
+                # the painting of an earlier batch would not be this batch's: removed whole
+                shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
+                result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
+            else:
+                # on the same cluster: the painting's map chunks are its tasks
+                with cluster.client.as_current():
+                    result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings,
+                                            painting_chunk_px)
     finally:
         if cluster is not None:
             cluster.close()
         _clean_temporaries(out_dir)
-    result = BatchResult([records[j.name] for j in jobs], out_dir,
-                         cluster.info if cluster else {"workers": 0})
-    result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records if r["status"] == "failed"]
-    if layout is not None:
-        _remove(out_dir, (PAINTING_PROTRUSIONS, PAINTING_REGIONS))
-        failed = [r["capture"] for r in result.records if r["status"] == "failed"]
-        if failed:
-            result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
-        else:
-            result.mosaic = merge_mosaic(out_dir, layout)
     result.elapsed_s = round(time.perf_counter() - t0, 3)
     write_summary(result, params)
     if result.count("failed") == len(jobs):
@@ -455,11 +475,6 @@ def all_failed(records, summary: Path) -> UVPSError:
                                f"and in {summary})")
     exc.details = [f"{r['capture']}: {r['error']}" for r in records]
     return exc
-
-
-def _remove(folder: Path, names) -> None:
-    for n in names:
-        (folder / n).unlink(missing_ok=True)
 
 
 def _report_counts(progress, records, total):
@@ -570,169 +585,82 @@ def read_layout(path, jobs) -> dict:
     missing = [j.name for j in jobs if j.name not in tiles]
     if missing:
         raise UVPSInputError(f"mosaic: capture {missing[0]} is not in the layout {path.name}")
+    return _checked_tiles(tiles)
+
+
+def _checked_tiles(tiles: dict) -> dict:
+    """One image size for all tiles, each overlapping another: else one line naming the tile."""
+    first = next(iter(tiles.values()))
+    for t in tiles.values():
+        if tuple(t.shape) != tuple(first.shape):
+            raise UVPSInputError(f"mosaic: tile {t.name} is {t.shape[1]} x {t.shape[0]} px, tile {first.name} "
+                                 f"{first.shape[1]} x {first.shape[0]} px; the tiles of a painting need one image size")
     for t in tiles.values():
         if len(tiles) > 1 and not any(t.overlap(u) for u in tiles.values() if u is not t):
             raise UVPSInputError(f"mosaic: tile {t.name} at ({t.x0:g}, {t.y0:g}) overlaps no other tile")
     return tiles
 
 
-def _tile_regions(run_dir: Path, shape) -> tuple:
-    """``(labels (M, N), {label: name})`` of a tile's run folder; the whole tile when it has none."""
-    labels_tif = run_dir / "regions_labels.tif"
-    given = json.loads((run_dir / REQUEST_RECORD).read_text(encoding="utf-8"))["params"].get("regions")
-    if not labels_tif.is_file() and given not in (None, "auto") and Path(given).is_file():
-        # a label TIFF given to run is not copied into the run folder: read it (names beside it)
-        regions = load_regions(Path(given), shape=shape)
-        return regions.labels.astype(np.int64), dict(regions.names)
-    if labels_tif.is_file():
-        labels = np.asarray(read_tiff(labels_tif)[0]).astype(np.int64)
-        names = read_region_names(run_dir / "regions.csv") if (run_dir / "regions.csv").is_file() else {}
-        return labels, {i: names.get(i, f"area {i}") for i in np.unique(labels) if i}
-    names = read_region_names(run_dir / "regions.csv") if (run_dir / "regions.csv").is_file() else {}
-    return np.ones(shape, np.int64), {1: names.get(1, "whole image")}
+#: Orders of a grid's tiles (the captures' order): row by row left to right, or serpentine (every
+#: other row right to left, as many stages move), or column by column.
+GRID_ORDERS = ("rows", "snake", "columns")
+
+
+def grid_layout(grid: str, jobs) -> dict:
+    """The nominal layout of a regular grid: ``"COLUMNS,ROWS,OVERLAP[,ORDER]"`` (overlap a fraction of
+    the tile, e.g. ``4,3,0.2``; ORDER one of :data:`GRID_ORDERS`, default ``rows``), the captures
+    taken in their order (by name for a folder of captures) as the grid's tiles."""
+    parts = [p.strip() for p in str(grid).split(",")]
+    try:
+        cols, rows, overlap = int(parts[0]), int(parts[1]), float(parts[2])
+        order = parts[3] if len(parts) > 3 else "rows"
+        if len(parts) > 4 or order not in GRID_ORDERS or cols < 1 or rows < 1 or not 0 < overlap < 1:
+            raise ValueError
+    except (ValueError, IndexError):
+        raise UVPSInputError(f"mosaic: grid {grid!r}: expected COLUMNS,ROWS,OVERLAP[,ORDER] (e.g. 4,3,0.2,rows; "
+                             f"overlap a fraction in (0, 1), order one of {', '.join(GRID_ORDERS)})") from None
+    if cols * rows != len(jobs):
+        raise UVPSInputError(f"mosaic: grid {grid!r} has {cols * rows} tiles, the batch {len(jobs)} captures")
+    shapes = {j.name: _first_image_shape(j.folder) for j in jobs}
+    M, N = next(iter(shapes.values()))
+    step_x, step_y = round(N * (1 - overlap)), round(M * (1 - overlap))
+    tiles = {}
+    for k, j in enumerate(jobs):
+        if order == "columns":
+            c, r = divmod(k, rows)
+        else:
+            r, c = divmod(k, cols)
+            if order == "snake" and r % 2:
+                c = cols - 1 - c
+        tiles[j.name] = Tile(j.name, float(c * step_x), float(r * step_y), shapes[j.name])
+    return _checked_tiles(tiles)
+
+
+def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progress, warnings,
+            chunk_px=None) -> dict:
+    """Register and merge the tiles into ``OUT/painting/`` (:func:`uvps.commands.painting.stitch_painting`)."""
+    from .painting import stitch_painting
+
+    pxs = {}
+    for t in layout.values():
+        px, shape = _run_meta(out_dir / t.name)
+        pxs[t.name] = px
+        t.shape = tuple(shape)
+    ref_name, ref = next(iter(pxs.items()))
+    for name, px in pxs.items():
+        if abs(px - ref) > 1e-6 * ref:
+            raise UVPSInputError(f"mosaic: tile {name} has {px:g} um pixels, tile {ref_name} {ref:g} um; "
+                                 "the tiles of a painting need one pixel size")
+    regions = painting_regions or ("auto" if params.get("regions") == "auto" else None)
+    res = stitch_painting(out_dir, {t.name: (t.x0, t.y0, t.shape) for t in layout.values()}, pixel_size_um=ref,
+                          regions=regions, n_areas=params.get("n_areas"), chunk_px=chunk_px, progress=progress)
+    warnings += res.warnings
+    return res.as_dict()
 
 
 def _run_meta(run_dir: Path) -> tuple:
     p = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))["params"]
     return float(p["pixel_size_um"]), tuple(int(n) for n in p["image_shape"][:2])
-
-
-def _owned(tile: Tile, tiles) -> np.ndarray:
-    """(M, N) bool: the tile's pixels it owns, those farther from its edge than from any other
-    covering tile's (ties: the tile first in the layout)."""
-    M, N = tile.shape
-    own = np.ones((M, N), bool)
-    order = list(tiles)
-    for other in tiles.values():
-        ov = other.overlap(tile) if other is not tile else None
-        if ov is None:
-            continue
-        x_lo, y_lo, x_hi, y_hi = ov
-        c0, c1 = int(np.ceil(x_lo - tile.x0)), int(np.ceil(x_hi - tile.x0))
-        r0, r1 = int(np.ceil(y_lo - tile.y0)), int(np.ceil(y_hi - tile.y0))
-        rr, cc = np.mgrid[r0:r1, c0:c1]
-        mine = tile.edge_distance(cc, rr)
-        theirs = other.edge_distance(cc + tile.x0 - other.x0, rr + tile.y0 - other.y0)
-        first = order.index(other.name) < order.index(tile.name)
-        lose = (theirs > mine) | ((theirs == mine) & first)
-        own[r0:r1, c0:c1] &= ~lose
-    return own
-
-
-def merge_mosaic(out_dir: Path, tiles: dict) -> dict:
-    """Merge the tiles' protrusion tables and colour areas into the painting's.
-
-    Rule for the overlaps: two protrusions of two tiles are one when their centres (in painting
-    pixels) lie closer than half the larger of their widths; matched pairs are taken closest first,
-    each protrusion in at most one pair per tile pair, and the one farther from its own tile's edge
-    is kept (the other tile saw it nearer its border, where it may be cut). Areas: each painting
-    pixel counts once, for the tile whose edge it is farthest from (the same rule), under that tile's
-    area name. Areas are merged by NAME (``regions.csv``), not by colour.
-
-    Writes ``painting_protrusions.csv`` and ``painting_regions.csv``; returns what the merge did.
-    """
-    pxs, rows, areas = {}, [], {}
-    for t in tiles.values():
-        run_dir = out_dir / t.name
-        px, shape = _run_meta(run_dir)
-        pxs[t.name] = px
-        if tuple(shape) != tuple(t.shape):
-            t.shape = tuple(shape)
-    ref = next(iter(pxs.values()))
-    for name, px in pxs.items():
-        if abs(px - ref) > 1e-6 * ref:
-            raise UVPSInputError(f"mosaic: tile {name} has {px:g} um pixels, the first tile {ref:g} um; "
-                                 "a layout needs one pixel size")
-    for t in tiles.values():
-        run_dir = out_dir / t.name
-        if not (run_dir / "protrusions.csv").is_file():
-            raise UVPSInputError(f"mosaic: tile {t.name} has no protrusions.csv; run with regions or detect")
-        table = read_protrusions_csv(run_dir / "protrusions.csv")
-        labels, names = _tile_regions(run_dir, t.shape)
-        own = _owned(t, tiles)
-        for lab, nm in names.items():
-            areas.setdefault(nm, [0, 0, set()])
-            areas[nm][0] += int(np.count_nonzero(own & (labels == lab)))
-            areas[nm][2].add(t.name)
-        edge = t.edge_distance(table["x_px"], table["y_px"])
-        for i in range(len(table["id"])):
-            rows.append({"tile": t.name, **{c: table[c][i] for c in COLUMNS},
-                         "X": table["x_px"][i] + t.x0, "Y": table["y_px"][i] + t.y0, "edge_px": float(edge[i]),
-                         "area": names.get(int(table["region"][i]), "")})
-    keep = _deduplicate(rows, tiles, ref)
-    kept = [r for r, k in zip(rows, keep) if k]
-    for r in kept:
-        if r["area"] in areas:
-            areas[r["area"]][1] += 1
-    _write_painting(out_dir, kept, areas, ref)
-    return {"tiles": len(tiles), "tile_protrusions": len(rows), "duplicates_removed": len(rows) - len(kept),
-            "n_protrusions": len(kept), "pixel_size_um": ref,
-            "areas": {n: {"count": c, "area_cm2": a * ref**2 / UM2_PER_CM2} for n, (a, c, _) in areas.items()}}
-
-
-def _deduplicate(rows, tiles, px_um) -> np.ndarray:
-    """Which rows to keep (see :func:`merge_mosaic`)."""
-    keep = np.ones(len(rows), bool)
-    if not rows:
-        return keep
-    tile_of = np.array([r["tile"] for r in rows])
-    X, Y = np.array([r["X"] for r in rows]), np.array([r["Y"] for r in rows])
-    W = np.nan_to_num(np.array([r["width_um"] for r in rows], float)) / px_um
-    E = np.array([r["edge_px"] for r in rows])
-    names = list(tiles)
-    for a_i, a in enumerate(names):
-        for b in names[a_i + 1:]:
-            ov = tiles[a].overlap(tiles[b])
-            if ov is None:
-                continue
-            ia, ib = np.flatnonzero(tile_of == a), np.flatnonzero(tile_of == b)
-            if not len(ia) or not len(ib):
-                continue
-            d = np.hypot(X[ia, None] - X[None, ib], Y[ia, None] - Y[None, ib])
-            limit = 0.5 * np.maximum(W[ia, None], W[None, ib])
-            pairs = sorted(zip(*np.nonzero(d < limit)), key=lambda p: d[p])
-            used_a, used_b = set(), set()
-            for p, q in pairs:
-                if p in used_a or q in used_b:
-                    continue
-                used_a.add(p)
-                used_b.add(q)
-                i, j = ia[p], ib[q]
-                keep[j if E[i] >= E[j] else i] = False
-    return keep
-
-
-def _write_painting(out_dir: Path, kept, areas, px_um) -> None:
-    cols = ["painting_id", "tile", "tile_id", "x_px", "y_px", "x_tile_px", "y_tile_px", "edge_px", "area"]
-    cols += [c for c in COLUMNS if c not in ("id", "x_px", "y_px", "region")]
-    buf = StringIO()
-    wr = csv.writer(buf, lineterminator="\n")
-    wr.writerow(cols)
-    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
-        vals = {"painting_id": k, "tile": r["tile"], "tile_id": int(r["id"]), "x_px": r["X"], "y_px": r["Y"],
-                "x_tile_px": r["x_px"], "y_tile_px": r["y_px"], "edge_px": r["edge_px"], "area": r["area"]}
-        wr.writerow([_cell(_plain(vals[c] if c in vals else r[c])) for c in cols])
-    atomic_write_text(out_dir / PAINTING_PROTRUSIONS, buf.getvalue())
-    buf = StringIO()
-    wr = csv.writer(buf, lineterminator="\n")
-    wr.writerow(["name", "tiles", "area_cm2", "count", "density_per_cm2"])
-    cm2 = px_um**2 / UM2_PER_CM2
-    for name, (a_px, count, seen) in areas.items():
-        a = a_px * cm2
-        wr.writerow([name, len(seen), _cell(a), count, _cell(count / a if a else None)])
-    total_a = sum(v[0] for v in areas.values()) * cm2
-    total = len(kept)
-    wr.writerow(["all areas", len({t for v in areas.values() for t in v[2]}), _cell(total_a), total,
-                 _cell(total / total_a if total_a else None)])
-    atomic_write_text(out_dir / PAINTING_REGIONS, buf.getvalue())
-
-
-def _plain(v):
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, float) and not np.isfinite(v):
-        return None
-    return v
 
 
 # ------------------------------------------------------------------------------------------------
@@ -744,13 +672,16 @@ def _cmd_batch(inputs: dict, params: dict, output_dir, *, progress: Progress = N
     own = {p.name for p in BATCH_PARAMS}
     run_params = {k: v for k, v in params.items() if k not in own}
     res = run_batch(inputs["captures"], output_dir, run_params, force=params["force"], mosaic=params["mosaic"],
+                    grid=params["grid"], painting_regions=params["painting_regions"],
                     scheduler=params["scheduler"], n_workers=params["workers"], progress=progress)
     out = res.out_dir
     outputs = [OutputSpec("batch_summary", str(out / SUMMARY), kind="table"),
                OutputSpec("batch", str(out / BATCH_JSON), kind="json")]
     if res.mosaic:
-        outputs += [OutputSpec("painting_protrusions", str(out / PAINTING_PROTRUSIONS), kind="table", units="um"),
-                    OutputSpec("painting_regions", str(out / PAINTING_REGIONS), kind="table", units="cm^-2")]
+        painting = out / PAINTING_DIR
+        outputs += [OutputSpec("painting_protrusions", str(painting / PAINTING_PROTRUSIONS), kind="table", units="um"),
+                    OutputSpec("painting_regions", str(painting / PAINTING_REGIONS), kind="table", units="cm^-2"),
+                    OutputSpec("painting_layout", str(painting / "layout.csv"), kind="table", units="px")]
     outputs += [OutputSpec(r["capture"], str(out / r["capture"]), kind="folder") for r in res.records
                 if r["status"] != "failed"]
     lines = [f"{r['capture']}: {r['status']}" + (f", {r['n_protrusions']} protrusions" if r.get("n_protrusions")
@@ -759,8 +690,9 @@ def _cmd_batch(inputs: dict, params: dict, output_dir, *, progress: Progress = N
     lines.append(f"{res.count('done')} done, {res.count('skipped')} skipped, {res.count('failed')} failed in "
                  f"{res.elapsed_s:.1f} s on {res.cluster.get('workers')} workers; summary: {out / SUMMARY}")
     if res.mosaic:
-        lines.append(f"painting: {res.mosaic['n_protrusions']} protrusions ({res.mosaic['duplicates_removed']} "
-                     f"seen twice in overlaps); {out / PAINTING_REGIONS}")
+        lines.append(f"painting: {res.mosaic['tiles']} tiles registered (largest pair residual "
+                     f"{res.mosaic['max_residual_px']:.2f} px), {res.mosaic['n_protrusions']} protrusions "
+                     f"({res.mosaic['duplicates_removed']} seen twice in overlaps); {out / PAINTING_DIR}")
     diagnostics = {"counts": {s: res.count(s) for s in ("done", "skipped", "failed")}, "cluster": res.cluster,
                    "captures": res.records, "mosaic": res.mosaic, "elapsed_s": res.elapsed_s}
     return CommandResult(outputs, diagnostics, list(res.warnings), text="\n".join(lines))
@@ -777,8 +709,15 @@ BATCH_PARAMS = (
           "(default: one per core, at most one per capture)"),
     Param("force", "bool", False, help="run every capture again, even those whose run folder is complete"),
     Param("mosaic", "path", label="Mosaic layout CSV (optional)",
-          help="layout CSV (capture,x_px,y_px: each tile's offset in the painting, in pixels): merge the tiles "
-               "into painting_protrusions.csv and painting_regions.csv"),
+          help="layout CSV (capture,x_px,y_px: each tile's nominal corner in the painting, in pixels): register "
+               "the tiles and merge them into OUT/painting/ (refined layout.csv, painting_protrusions.csv, "
+               "painting_regions.csv)"),
+    Param("grid", "str", label="Mosaic grid COLUMNS,ROWS,OVERLAP[,ORDER] (optional)",
+          help="instead of a layout: the captures (in order) are a regular grid, e.g. 4,3,0.2 (overlap a "
+               "fraction of the tile) or 4,3,0.2,snake (orders: rows, snake, columns)"),
+    Param("painting_regions", "path", label="Painting-wide colour-area label TIFF (optional)",
+          help="a label TIFF in the layout's frame (names in a CSV beside it): the painting's colour areas; "
+               "default: proposed on the painting's albedo with --regions auto"),
 )
 
 
@@ -793,7 +732,7 @@ def _batch_spec() -> CommandSpec:
                     "whole or not at all, complete ones are skipped (unless --force), a failing capture is "
                     "listed with its error. lights, mask, dark and regions name one file for all captures or "
                     "a file name found in each capture folder. Writes batch_summary.csv and batch.json; with "
-                    "--mosaic also painting_protrusions.csv and painting_regions.csv (docs/batch.md).")
+                    "--mosaic or --grid the tiles are registered and merged into OUT/painting/ (docs/painting.md).")
 
 
 SPECS = (_batch_spec(),)

@@ -267,3 +267,79 @@ def read_tiff_pixel_size(path: Path) -> Optional[float]:
     """The pixel size (um) a TIFF written by uvps records, or None."""
     with tifffile.TiffFile(path) as tif:
         return _tiff_pixel_size_um(tif)
+
+
+def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, chunk_px: int = CHUNK_PX,
+                        labels=(), origin_um=(0.0, 0.0)) -> Path:
+    """Write a Dask array ((Y, X) or (C, Y, X), chunked ``chunk_px`` a side) as an OME-Zarr image
+    pyramid, chunk by chunk: no level is ever whole in memory, and on a ``distributed`` cluster the
+    chunks are computed and written by its workers (they must see ``final``'s folder).
+
+    Level 0 is ``data``; level k halves level k-1 as :func:`write_ome_zarr` does (read back from
+    the store, 2 x 2 chunks of level k-1 per chunk of level k). ``labels``: ``(ZarrImage,
+    dask array)`` pairs attached as OME-Zarr labels of this image. ``origin_um``: the (y, x)
+    translation of pixel (0, 0). Written to a temporary folder and renamed into place.
+    """
+    zarr = _zarr()
+    final = Path(final)
+    tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
+    try:
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
+        levels = _store_pyramid(root, image, data, chunk_px)
+        low = np.asarray(root[str(len(levels) - 1)])
+        ms = _multiscales(image.name, levels, data.ndim == 3, pixel_size_um)
+        _translate(ms, origin_um, data.ndim == 3)
+        channels = list(image.channels[:data.shape[0]]) if data.ndim == 3 else []
+        root.attrs.update({"multiscales": ms, "omero": _omero(image, channels, low),
+                           "uvps": {"unit": image.unit, "version": __version__}})
+        if labels:
+            group = root.create_group("labels")
+            for lb, arr in labels:
+                sub = group.create_group(lb.name)
+                lv = _store_pyramid(sub, lb, arr, chunk_px)
+                ms = _multiscales(lb.name, lv, False, pixel_size_um)
+                _translate(ms, origin_um, False)
+                sub.attrs.update({"multiscales": ms,
+                                  "image-label": {"version": NGFF_VERSION, "source": {"image": "../../"}}})
+            group.attrs["labels"] = [lb.name for lb, _ in labels]
+        del root
+        replace_dir(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def _translate(ms: list, origin_um, channel: bool) -> None:
+    for d in ms[0]["datasets"]:
+        t = d["coordinateTransformations"][1]["translation"]
+        t[-2] += float(origin_um[0])
+        t[-1] += float(origin_um[1])
+
+
+def _store_pyramid(group, image: ZarrImage, data, chunk_px: int) -> list:
+    """Every level of ``data`` (a Dask array) stored into ``group`` chunk by chunk."""
+    import dask.array as da
+    from numcodecs import Blosc
+
+    lead = data.shape[:-2]
+    levels = _levels(data.shape[-2:])
+    dtype = np.dtype(np.float32) if image.kind != "label" else np.dtype(np.uint32)
+    compressor = Blosc(cname="zstd", clevel=3, shuffle=Blosc.SHUFFLE)
+    arrays = [group.create_array(
+        str(k), shape=lead + (rows, cols), chunks=(1,) * len(lead) + (min(chunk_px, rows), min(chunk_px, cols)),
+        dtype=dtype, compressors=compressor, fill_value=0, chunk_key_encoding={"name": "v2", "separator": "/"},
+        config={"write_empty_chunks": True}) for k, (rows, cols) in enumerate(levels)]
+    level = data.astype(dtype).rechunk((1,) * len(lead) + (chunk_px, chunk_px))
+    da.store(level, arrays[0], lock=False)
+    for k in range(1, len(levels)):
+        # normals are renormalised over their channels: a block holds all of them
+        lead_chunks = tuple(lead) if image.kind == "normals" else (1,) * len(lead)
+        prev = da.from_array(arrays[k - 1], chunks=lead_chunks + (2 * chunk_px, 2 * chunk_px))
+        rows, cols = levels[k]
+        half = prev.map_blocks(lambda b: _halve(b, image.kind).astype(dtype, copy=False), dtype=dtype,
+                               chunks=prev.chunks[:-2] + (tuple(c // 2 for c in prev.chunks[-2]),
+                                                          tuple(c // 2 for c in prev.chunks[-1])))
+        half = half[..., :rows, :cols].rechunk((1,) * len(lead) + (chunk_px, chunk_px))
+        da.store(half, arrays[k], lock=False)
+    return levels

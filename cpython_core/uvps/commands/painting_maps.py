@@ -1,0 +1,149 @@
+"""The painting-wide maps of a mosaic: albedo, normals, height and labels, chunk by chunk on Dask.
+
+Each map is a Dask array over the painting (pixel (0, 0) at the refined layout's smallest corner)
+whose every chunk is computed from the tiles that cover it only, reading just their windows
+(memory-mapped TIFFs of the tiles' run folders), so neither the painting nor a whole level is ever
+in memory; the chunks are written into OME-Zarr stores (:func:`uvps.files.omezarr.write_dask_ome_zarr`)
+by the cluster's workers. A tile is placed at its registered corner, sub-pixel (bilinear
+interpolation; labels: nearest pixel), and the overlaps are feathered: each tile weighted by
+1 + its pixel's distance to the tile's nearest edge. The albedo is divided by the tile's gain
+(its exposure relative to the others), the height takes the tile's offset and plane
+(:func:`uvps.core.mosaic.align_heights`), the normals are renormalised after blending. Labels are
+not blended: each pixel takes the label of the tile it is most central in, the protrusion labels
+renumbered to the painting's ids (a duplicate of an overlap takes the id of the copy kept), the
+colour areas from the painting's overview.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import tifffile
+from scipy import ndimage
+
+from ..core.mosaic import PLANE_SCALE_PX
+
+
+@dataclass
+class PlacedTile:
+    """A tile as the maps need it: its run folder, corner (painting pixels from the origin), shape,
+    gain, height plane ``(a, b, c)`` and protrusion-label lookup (tile id -> painting id)."""
+
+    name: str
+    run_dir: str
+    x: float
+    y: float
+    shape: tuple
+    gain: float = 1.0
+    plane: tuple = (0.0, 0.0, 0.0)
+    lut: Optional[np.ndarray] = None
+
+
+@dataclass
+class MapContext:
+    """Everything a chunk needs (pickled to the workers once per task)."""
+
+    tiles: list
+    origin: tuple                 # (x, y) of painting pixel (0, 0) in the layout's frame
+    shape: tuple                  # (rows, cols)
+    regions: Optional[np.ndarray] = None   # the overview's colour-area labels
+    step: int = 1
+    channels: int = 3
+    _cache: dict = field(default_factory=dict, repr=False)
+
+
+#: Each map's TIFF in a tile's run folder and how it is placed.
+SOURCES = {"albedo": "albedo.tif", "normals": "normals.tif", "height": "depth.tif",
+           "protrusions": "protrusions_labels.tif"}
+
+
+def _open(path: str) -> np.ndarray:
+    try:
+        return tifffile.memmap(path, mode="r")
+    except (ValueError, OSError):
+        return tifffile.imread(path)
+
+
+def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """One chunk ``[r0:r1, c0:c1]`` of a painting map (``kind`` one of :data:`SOURCES` or ``"regions"``)."""
+    R, C = r1 - r0, c1 - c0
+    rows = np.arange(r0, r1, dtype=np.float64)[:, None]
+    cols = np.arange(c0, c1, dtype=np.float64)[None, :]
+    label = kind in ("protrusions", "regions")
+    nch = ctx.channels if kind == "albedo" else 3 if kind == "normals" else 1
+    acc = np.zeros((nch, R, C))
+    wsum = np.zeros((R, C))
+    best = np.zeros((R, C))
+    out_label = np.zeros((R, C), np.uint32)
+    for t in ctx.tiles:
+        M, N = t.shape
+        if t.y > r1 or t.y + M - 1 < r0 or t.x > c1 or t.x + N - 1 < c0:
+            continue
+        ty, tx = rows - t.y, cols - t.x
+        w = 1.0 + np.minimum(np.minimum(ty, M - 1 - ty), np.minimum(tx, N - 1 - tx))
+        w = np.where(w >= 1.0, w, 0.0) * np.ones((R, C))
+        if not w.any():
+            continue
+        if kind == "regions":
+            wsum += w
+            continue
+        wr0, wc0 = max(0, int(np.floor(r0 - t.y)) - 1), max(0, int(np.floor(c0 - t.x)) - 1)
+        wr1, wc1 = min(M, int(np.ceil(r1 - t.y)) + 2), min(N, int(np.ceil(c1 - t.x)) + 2)
+        data = _open(str(Path(t.run_dir) / SOURCES[kind]))
+        win = np.asarray(data[..., wr0:wr1, wc0:wc1], np.float64)
+        if win.ndim == 2:
+            win = win[None]
+        rr = np.broadcast_to(ty - wr0, (R, C))
+        cc = np.broadcast_to(tx - wc0, (R, C))
+        if label:
+            vals = ndimage.map_coordinates(win[0], [rr, cc], order=0, mode="nearest").astype(np.int64)
+            vals = t.lut[np.clip(vals, 0, len(t.lut) - 1)] if t.lut is not None else vals
+            take = w > best
+            out_label[take] = vals[take]
+            best = np.maximum(best, w)
+            continue
+        for ch in range(min(nch, win.shape[0])):
+            v = ndimage.map_coordinates(win[ch], [rr, cc], order=1, mode="nearest")
+            if kind == "albedo":
+                v = v / t.gain
+            elif kind == "height":
+                a, b, c = t.plane
+                v = v + a + b * (cols + ctx.origin[0]) / PLANE_SCALE_PX + c * (rows + ctx.origin[1]) / PLANE_SCALE_PX
+            acc[ch] += np.nan_to_num(v) * w
+        wsum += w
+    covered = wsum > 0
+    if kind == "protrusions":
+        return out_label
+    if kind == "regions":
+        lab = ctx.regions
+        ri = np.clip((np.arange(r0, r1) // ctx.step), 0, lab.shape[0] - 1)
+        ci = np.clip((np.arange(c0, c1) // ctx.step), 0, lab.shape[1] - 1)
+        out = lab[np.ix_(ri, ci)].astype(np.uint32)
+        out[~covered] = 0
+        return out
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (acc / wsum).astype(np.float32)
+    if kind == "normals":
+        norm = np.sqrt((out ** 2).sum(axis=0))
+        out = out / np.where(norm > 0, norm, 1)
+    out[:, ~covered] = 0.0 if kind == "albedo" else np.nan
+    return out if kind in ("albedo", "normals") else out[0]
+
+
+def painting_array(kind: str, ctx: MapContext, *, chunk_px: int):
+    """The painting map ``kind`` as a lazy Dask array (chunks of ``chunk_px`` a side)."""
+    import dask.array as da
+
+    M, N = ctx.shape
+    nch = ctx.channels if kind == "albedo" else 3 if kind == "normals" else 0
+    dtype = np.uint32 if kind in ("protrusions", "regions") else np.float32
+    lead = (nch,) if nch else ()
+    template = da.zeros(lead + (M, N), chunks=lead + (chunk_px, chunk_px), dtype=dtype)
+
+    def block(_, block_info=None):
+        loc = block_info[None]["array-location"]
+        return render_chunk(kind, ctx, loc[-2][0], loc[-2][1], loc[-1][0], loc[-1][1])
+
+    return template.map_blocks(block, dtype=dtype)

@@ -1,0 +1,358 @@
+"""Registration of a painting's overlapping tiles: pairwise shifts, then one global solution.
+
+A painting photographed in tiles by a moving rig (camera and lamps together, on a copy stand or an
+XY stage) comes with each tile's nominal corner in the painting (the stage's positions), off by the
+stage's error. As Fiji's Grid/Collection Stitching and BigStitcher do (Preibisch, Saalfeld and
+Tomancak, Bioinformatics 2009, "Globally optimal stitching of tiled 3D microscopic image
+acquisitions"), each pair of overlapping tiles is registered on its overlap (phase correlation,
+sub-pixel, ``skimage.registration.phase_cross_correlation``; the peak's 2 x 2 wrap-around
+candidates told apart by the normalised cross-correlation of what they would make overlap, which
+is also the pair's confidence), then all pairs are reconciled by one weighted least-squares over
+the tiles' corners, dropping the pair that disagrees most with the solution while it disagrees by
+more than ``max_residual_px`` and the tiles stay connected. A pair with nothing to register (blank
+paint: confidence below ``min_confidence``) keeps its nominal relative offset, as a weak link.
+
+Frames: corners ``(x, y)`` in painting pixels (x to the right = column, y down = row: the layout's
+and the tables' ``x_px``, ``y_px``); a tile's pixel ``(r, c)`` is the painting's ``(y + r, x + c)``.
+The solution's frame is the nominal layout's: the mean correction over the tiles is zero.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from scipy import ndimage
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PairShift:
+    """One overlapping pair's measurement.
+
+    ``dx, dy``: the correction of ``b``'s corner relative to ``a``'s (painting pixels): the pair
+    says ``corner_b - corner_a = guess_b - guess_a + (dx, dy)``. ``confidence``: normalised
+    cross-correlation of the overlap once shifted (-1..1). ``used``: kept by the global solution;
+    ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
+    """
+
+    a: str
+    b: str
+    dx: float = 0.0
+    dy: float = 0.0
+    confidence: float = 0.0
+    overlap_px: int = 0
+    used: bool = False
+    residual_px: Optional[float] = None
+    why: str = ""
+    dropped: bool = False
+
+    @property
+    def fallback(self) -> bool:
+        """Not registered (nothing to register): its nominal relative offset is a weak link."""
+        return not self.used and not self.dropped
+
+    @property
+    def name(self) -> str:
+        return f"{self.a}-{self.b}"
+
+
+@dataclass
+class Registration:
+    """Refined corners ``{tile: (x, y)}`` and the pairs that gave them."""
+
+    corners: dict
+    pairs: list
+    warnings: list = field(default_factory=list)
+
+    @property
+    def max_residual_px(self) -> float:
+        r = [p.residual_px for p in self.pairs if p.used and p.residual_px is not None]
+        return float(max(r)) if r else 0.0
+
+
+def overlap_box(ca, shape_a, cb, shape_b) -> Optional[tuple]:
+    """``(x_lo, y_lo, x_hi, y_hi)`` of two tiles' overlap in painting pixels, or None."""
+    x_lo, y_lo = max(ca[0], cb[0]), max(ca[1], cb[1])
+    x_hi, y_hi = min(ca[0] + shape_a[1], cb[0] + shape_b[1]), min(ca[1] + shape_a[0], cb[1] + shape_b[0])
+    return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
+
+
+class ArrayTile:
+    """A tile's image held in memory, (M, N) or (M, N, C): what :func:`register_tiles` reads windows
+    of. A tile on disk provides the same two members (``shape``, ``window``) and is read window by
+    window, so registering a painting never holds more than two overlaps."""
+
+    def __init__(self, a):
+        self.a = np.asarray(a)
+        self.shape = self.a.shape[:2]
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Grey (mean of the channels) float64 of rows r0:r1, columns c0:c1."""
+        w = np.asarray(self.a[r0:r1, c0:c1], np.float64)
+        return w.mean(axis=2) if w.ndim == 3 else w
+
+
+def _tile(img):
+    return img if hasattr(img, "window") else ArrayTile(img)
+
+
+def _high_pass(g: np.ndarray, sigma: float) -> np.ndarray:
+    """High-passed window (a tile's flat-field residue and exposure are not the painting's)."""
+    g = np.nan_to_num(g)
+    return g - ndimage.gaussian_filter(g, sigma)
+
+
+def _ncc(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    d = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / d) if d > 0 else 0.0
+
+
+def _common(wa, wb, sy: int, sx: int):
+    """The parts of ``wa`` and ``wb`` that a shift of ``b`` by ``(sy, sx)`` makes coincide
+    (``wb[u - s]`` against ``wa[u]``)."""
+    H, W = wa.shape
+    ya, yb = max(0, sy), max(0, -sy)
+    xa, xb = max(0, sx), max(0, -sx)
+    h, w = H - abs(sy), W - abs(sx)
+    if h <= 0 or w <= 0:
+        return None, None
+    return wa[ya:ya + h, xa:xa + w], wb[yb:yb + h, xb:xb + w]
+
+
+def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, upsample: int = 20,
+               min_common_px: int = 400) -> tuple:
+    """Shift ``(dy, dx)`` of the painting between two windows of one nominal overlap, and its confidence.
+
+    ``win_a`` and ``win_b`` show the same nominal region of the painting from tiles a and b; the
+    result is ``e_b - e_a`` (b's corner error minus a's), so that ``win_b[u - s] = win_a[u]``.
+    Phase correlation gives the shift modulo the window; the candidates within ``max_shift_px``
+    are scored by the normalised cross-correlation of their common part (at least
+    ``min_common_px`` pixels), the best is returned with that score as confidence.
+    """
+    from skimage.registration import phase_cross_correlation   # lazily: skimage's import is slow
+
+    H, W = win_a.shape
+    s, _, _ = phase_cross_correlation(win_a, win_b, upsample_factor=upsample, normalization="phase")
+    best = (0.0, 0.0, -1.0, 0)
+    for ky in (-1, 0, 1):
+        for kx in (-1, 0, 1):
+            sy, sx = s[0] + ky * H, s[1] + kx * W
+            if abs(sy) > max_shift_px + 1 or abs(sx) > max_shift_px + 1:
+                continue
+            ca, cb = _common(win_a, win_b, int(round(sy)), int(round(sx)))
+            if ca is None or ca.size < min_common_px:
+                continue
+            c = _ncc(ca, cb)
+            if c > best[2]:
+                best = (float(sy), float(sx), c, int(ca.size))
+    return best
+
+
+def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min_confidence: float = 0.3,
+                   max_residual_px: float = 2.0, passes: int = 2, sigma: float = 8.0) -> Registration:
+    """Refine the tiles' corners from their overlaps.
+
+    Parameters
+    ----------
+    images : dict
+        ``{tile: (M, N) or (M, N, C) array}``, or objects with ``shape`` and ``window(r0, r1,
+        c0, c1)`` (grey, read from disk): what to register on (the tiles' albedo).
+    guess : dict
+        ``{tile: (x, y)}`` nominal corners in painting pixels (the stage's).
+    max_shift_px : float
+        Largest correction of one tile relative to a neighbour (twice the stage's error).
+    min_confidence : float
+        Pairs whose best normalised cross-correlation is lower have nothing to register (blank
+        paint): their nominal relative offset is kept as a weak link, and a warning names them.
+    max_residual_px : float
+        A pair whose shift disagrees with the global solution by more is dropped (worst first,
+        as long as every tile stays linked) and named in a warning.
+    passes : int
+        Measure, solve, then measure again on the overlaps of the solution (the second pass sees
+        the whole common area, not what the stage's error left of the nominal overlap).
+
+    Returns
+    -------
+    Registration
+        Corners in the nominal layout's frame (mean correction zero), every pair with its shift,
+        confidence and residual.
+    """
+    names = list(images)
+    tiles = {n: _tile(images[n]) for n in names}
+    shapes = {n: tuple(tiles[n].shape[:2]) for n in names}
+    nominal = {n: (float(guess[n][0]), float(guess[n][1])) for n in names}
+    current = dict(nominal)
+    pairs = []
+    for k in range(max(1, passes)):
+        pairs = _measure(tiles, shapes, nominal if k == 0 else current, max_shift_px if k == 0 else 4.0, sigma)
+        current, pairs = _solve(names, nominal, pairs, min_confidence, max_residual_px)
+    warnings = []
+    for p in pairs:
+        if not p.used:
+            warnings.append(f"mosaic: pair {p.name}: {p.why}")
+    return Registration(current, pairs, warnings)
+
+
+def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
+    names = list(tiles)
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            ra = (round(corners[a][0]), round(corners[a][1]))
+            rb = (round(corners[b][0]), round(corners[b][1]))
+            box = overlap_box(ra, shapes[a], rb, shapes[b])
+            if box is None:
+                continue
+            x_lo, y_lo, x_hi, y_hi = box
+            wa = _high_pass(tiles[a].window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), sigma)
+            wb = _high_pass(tiles[b].window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), sigma)
+            p = PairShift(a, b, overlap_px=int(wa.size))
+            if min(wa.shape) < 8:
+                p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
+            else:
+                sy, sx, conf, _ = pair_shift(wa, wb, max_shift_px=max_shift)
+                # the windows show the painting at (corner - rounded corner) past the box, so
+                # corner_b - corner_a = rounded_b - rounded_a + (sx, sy)
+                p.dx, p.dy = sx + rb[0] - ra[0], sy + rb[1] - ra[1]
+                p.confidence = conf
+            out.append(p)
+    return out
+
+
+def _connected(names, links) -> bool:
+    idx = {n: i for i, n in enumerate(names)}
+    parent = list(range(len(names)))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in links:
+        parent[find(idx[a])] = find(idx[b])
+    return len({find(i) for i in range(len(names))}) == 1
+
+
+def _solve(names, nominal, pairs, min_confidence, max_residual_px):
+    """Weighted least squares of the corners from the pairs' offsets (``p.dx, p.dy`` hold the
+    measured ``corner_b - corner_a``); gauge: mean correction from ``nominal`` zero."""
+    idx = {n: i for i, n in enumerate(names)}
+    n = len(names)
+    q = np.array([nominal[k] for k in names])
+    for p in pairs:
+        p.dropped = False
+        p.used = p.confidence >= min_confidence and not p.why
+        if not p.used and not p.why:
+            p.why = (f"nothing to register in the overlap (confidence {p.confidence:.2f} < {min_confidence:g}, "
+                     "blank paint?); nominal offset kept")
+    while True:
+        rows, rhs, w = [], [], []
+        links = [p for p in pairs if not p.dropped]
+        for p in links:
+            row = np.zeros(n)
+            row[idx[p.b]], row[idx[p.a]] = 1.0, -1.0
+            rows.append(row)
+            if p.used:
+                rhs.append((p.dx, p.dy))
+                w.append(max(p.confidence, 0.05))
+            else:   # the stage's relative offset, weakly
+                rhs.append(tuple(q[idx[p.b]] - q[idx[p.a]]))
+                w.append(1e-3)
+        rows.append(np.full(n, 1.0 / n))
+        rhs.append(tuple(q.mean(axis=0)))
+        w.append(1.0)
+        A, B, sw = np.array(rows), np.array(rhs), np.sqrt(np.array(w))[:, None]
+        sol, *_ = np.linalg.lstsq(A * sw, B * sw, rcond=None)
+        res = np.hypot(*(A[:-1] @ sol - B[:-1]).T)
+        worst, worst_r = None, max_residual_px
+        for p, r in zip(links, res):
+            p.residual_px = float(r) if p.used else None
+            if p.used and r > worst_r:
+                if _connected(names, [(o.a, o.b) for o in links if o is not p]):
+                    worst, worst_r = p, r
+        if worst is None:
+            break
+        worst.used, worst.dropped, worst.residual_px = False, True, float(worst_r)
+        worst.why = (f"its shift ({worst.dx:.1f}, {worst.dy:.1f}) px disagrees with the global solution by "
+                     f"{worst_r:.1f} px; dropped")
+        log.info("mosaic: pair %s dropped (%.1f px)", worst.name, worst_r)
+    corners = {k: (float(sol[idx[k], 0]), float(sol[idx[k], 1])) for k in names}
+    return corners, pairs
+
+
+#: Scale of the planes' coordinates: x, y in thousands of painting pixels (a well-conditioned system).
+PLANE_SCALE_PX = 1000.0
+
+
+def _bilinear(img, rows, cols) -> np.ndarray:
+    return ndimage.map_coordinates(np.asarray(img, np.float64), [rows, cols], order=1, mode="nearest")
+
+
+def align_heights(heights: dict, corners: dict, pairs, *, step: int = 4, margin: int = 8) -> dict:
+    """Per-tile offset and plane that make the tiles' heights agree on their overlaps.
+
+    A tile's height from its own normals is known up to a constant and a low-order form (its
+    integration's plane): with ``h_t`` tile ``t``'s height at painting pixel ``(X, Y)``, one
+    least squares over every used pair's overlap (sampled every ``step`` pixels, ``margin`` pixels
+    in from both tiles' edges, where integration errs most) finds ``(a_t, b_t, c_t)`` such that
+    ``h_t + a_t + b_t x + c_t y`` (``x, y`` = painting pixels / :data:`PLANE_SCALE_PX`) agree; then
+    the painting-wide plane of the aligned surface is removed (levelled as one surface).
+
+    ``heights``: ``{tile: (M, N) array}`` (a memory map is read only on its overlaps);
+    ``corners``: the registered corners; ``pairs``: the registration's :class:`PairShift` list.
+    Returns ``{tile: (a, b, c)}``.
+    """
+    names = list(heights)
+    idx = {n: i for i, n in enumerate(names)}
+    n = len(names)
+    blocks, rhs = [], []
+    for p in pairs:
+        if not p.used:
+            continue
+        ha, hb = heights[p.a], heights[p.b]
+        (xa, ya), (xb, yb) = corners[p.a], corners[p.b]
+        box = overlap_box((xa, ya), ha.shape, (xb, yb), hb.shape)
+        if box is None:
+            continue
+        x_lo, y_lo, x_hi, y_hi = box
+        X, Y = np.meshgrid(np.arange(np.ceil(x_lo) + margin, x_hi - margin, step),
+                           np.arange(np.ceil(y_lo) + margin, y_hi - margin, step))
+        X, Y = X.ravel(), Y.ravel()
+        if X.size < 3:
+            continue
+        va, vb = _bilinear(ha, Y - ya, X - xa), _bilinear(hb, Y - yb, X - xb)
+        ok = np.isfinite(va) & np.isfinite(vb)
+        X, Y, va, vb = X[ok], Y[ok], va[ok], vb[ok]
+        A = np.zeros((X.size, 3 * n))
+        basis = np.column_stack([np.ones(X.size), X / PLANE_SCALE_PX, Y / PLANE_SCALE_PX])
+        A[:, 3 * idx[p.a]:3 * idx[p.a] + 3] = basis
+        A[:, 3 * idx[p.b]:3 * idx[p.b] + 3] = -basis
+        blocks.append(A)
+        rhs.append(vb - va)
+    gauge = np.zeros((3, 3 * n))
+    for k in range(3):
+        gauge[k, k::3] = 1.0
+    A = np.vstack(blocks + [gauge * 1e3]) if blocks else gauge
+    b = np.concatenate(rhs + [np.zeros(3)]) if rhs else np.zeros(3)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    coef = {k: sol[3 * idx[k]:3 * idx[k] + 3].copy() for k in names}
+    # level the aligned surface as one: the plane of every tile's samples (inner grid), removed
+    pts, vals = [], []
+    for k in names:
+        h = heights[k]
+        M, N = h.shape
+        rr, cc = np.meshgrid(np.arange(margin, M - margin, 4 * step), np.arange(margin, N - margin, 4 * step),
+                             indexing="ij")
+        X, Y = cc.ravel() + corners[k][0], rr.ravel() + corners[k][1]
+        v = np.asarray(h[rr.ravel(), cc.ravel()], np.float64)
+        v = v + coef[k][0] + coef[k][1] * X / PLANE_SCALE_PX + coef[k][2] * Y / PLANE_SCALE_PX
+        ok = np.isfinite(v)
+        pts.append(np.column_stack([np.ones(ok.sum()), X[ok] / PLANE_SCALE_PX, Y[ok] / PLANE_SCALE_PX]))
+        vals.append(v[ok])
+    plane, *_ = np.linalg.lstsq(np.vstack(pts), np.concatenate(vals), rcond=None)
+    return {k: tuple(float(v) for v in coef[k] - plane) for k in names}

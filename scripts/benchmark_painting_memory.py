@@ -1,0 +1,101 @@
+"""Peak memory and time of a painting's stitching alone, at two painting sizes.
+
+The generator's painting (:mod:`uvps.testing.painting`) at COLUMNS x ROWS tiles is written as the
+run folders a batch would leave (each tile's true albedo times its exposure, its true height off by
+its own offset and plane, its normals, its protrusions), then
+:func:`uvps.commands.painting.stitch_painting` runs on them in a fresh process with Dask's
+synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
+memory during the stitching (``VmHWM`` after the imports, the peak reset through
+``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
+
+    OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 3 2 --tile 600 800
+    OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def write_runs(args, root: Path) -> dict:
+    from uvps.files.io import write_imagej_tiff
+    from uvps.files.tables import write_label_tiff
+    from uvps.testing.painting import make_painting
+
+    p = make_painting(grid=tuple(args.grid), tile_shape=tuple(args.tile), overlap=args.overlap, n_lights=3,
+                      seed=args.seed, protrusion_density=100.0)
+    rng = np.random.default_rng(args.seed)
+    M, N = p.tile_shape
+    rr, cc = np.mgrid[0:M, 0:N]
+    for t in p.tiles:
+        d = root / t.name
+        d.mkdir(parents=True)
+        h = t.capture.height_um + rng.normal(0, 20) + rng.normal(0, 0.02) * cc + rng.normal(0, 0.02) * rr
+        write_imagej_tiff(d / "depth.tif", h.astype(np.float32), axes="YX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "albedo.tif", np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32),
+                          axes="CYX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "normals.tif", np.moveaxis(t.capture.normals, -1, 0).astype(np.float32), axes="CYX",
+                          pixel_size_um=15.0)
+        write_label_tiff(d / "protrusions_labels.tif", np.zeros((M, N), np.int32), pixel_size_um=15.0)
+        pr = t.capture.protrusions
+        with open(d / "protrusions.csv", "w", newline="") as fh:
+            wr = csv.writer(fh)
+            wr.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
+            for i in range(len(pr["id"])):
+                wr.writerow([int(pr["id"][i]), pr["x_px"][i], pr["y_px"][i], pr["width_um"][i], pr["height_um"][i]])
+    return {t.name: [t.nominal[0], t.nominal[1], list(p.tile_shape)] for t in p.tiles}
+
+
+CHILD = """
+import json, resource, sys, time
+import dask, matplotlib.figure, skimage.registration, zarr
+from uvps.commands.painting import stitch_painting
+import uvps.report.painting
+
+def hwm_mb():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+
+before = hwm_mb()
+with open("/proc/self/clear_refs", "w") as fh:     # reset the peak (Linux >= 4.0): the stitching's own
+    fh.write("5")
+rss0 = hwm_mb()
+tiles = {k: (v[0], v[1], tuple(v[2])) for k, v in json.loads(sys.argv[2]).items()}
+t0 = time.perf_counter()
+with dask.config.set(scheduler="synchronous"):
+    res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
+print(json.dumps({"elapsed_s": time.perf_counter() - t0, "peak_rss_mb": hwm_mb(), "rss_after_imports_mb": rss0,
+                  "peak_during_imports_mb": before,
+                  "shape": list(res.shape), "timings": res.timings, "n_protrusions": res.n_protrusions}))
+"""
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--grid", type=int, nargs=2, default=[3, 2])
+    ap.add_argument("--tile", type=int, nargs=2, default=[600, 800])
+    ap.add_argument("--overlap", type=float, default=0.4)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-maps", action="store_true", help="registration, counts and report only")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="uvps_stitch_") as tmp:
+        tiles = write_runs(args, Path(tmp))
+        done = subprocess.run([sys.executable, "-c", CHILD, tmp, json.dumps(tiles),
+                               "no-maps" if args.no_maps else "maps"], capture_output=True, text=True)
+        if done.returncode:
+            raise SystemExit(done.stderr)
+        out = json.loads(done.stdout.strip().splitlines()[-1])
+        out["grid"], out["tile"], out["maps"] = args.grid, args.tile, not args.no_maps
+        print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

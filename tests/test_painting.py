@@ -1,0 +1,378 @@
+"""A painting in overlapping tiles: the generator, the tiles' registration, one set of counts.
+
+Fast tests register and merge the generator's tiles directly; the slow one runs a 3 x 2 painting
+through `uvps batch --mosaic` on a real Dask LocalCluster and scores it against the truth."""
+import csv
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from uvps.core.mosaic import PairShift, _solve, register_tiles
+from uvps.commands.painting import merge_protrusions
+from uvps.testing.painting import make_painting, read_truth_layout, score_painting, write_painting
+
+
+@pytest.fixture(scope="module")
+def paintings():
+    """Three seeds of a 3 x 2 painting of 200 x 240 px tiles, 40 % overlap, stage off by up to 30 px."""
+    return {seed: make_painting(seed=seed) for seed in (1, 2, 3)}
+
+
+def _tile_view(painting, t):
+    """What the tile's albedo looks like to the registration: the mean of its images (the rig's
+    lamps shade every tile alike, not the painting), exposure drift included."""
+    return t.capture.images.astype(np.float32).mean(axis=0)
+
+
+def test_the_generator_renders_tiles_of_one_painting_under_a_moving_rig(paintings, tmp_path):
+    p = paintings[1]
+    assert p.grid == (3, 2) and len(p.tiles) == 6 and p.tile_shape == (200, 240)
+    err = np.array([np.subtract(t.true, t.nominal) for t in p.tiles])
+    assert np.abs(err).max() <= 30 + 1e-9 and np.abs(err).max() > 10      # the stage is off, up to 30 px
+    np.testing.assert_allclose(err.mean(axis=0), 0, atol=1e-9)            # the nominal layout's frame
+    assert len({round(t.exposure, 3) for t in p.tiles}) == 6               # exposure drifts between tiles
+    for t in p.tiles:                                                      # the lamps ride with the rig
+        np.testing.assert_array_equal(t.capture.light_positions_mm, p.tiles[0].capture.light_positions_mm)
+    # a tile shows the painting at its true corner, sub-pixel (checked with scipy's linear
+    # interpolation, against the corner rounded: the true corner fits better)
+    from scipy import ndimage
+    t = p.tiles[4]
+    rr, cc = np.mgrid[0:200, 0:240].astype(float)
+    inner = np.s_[5:-5, 5:-5]
+    at_true = ndimage.map_coordinates(p.whole.albedo[..., 1], [rr + t.true[1], cc + t.true[0]], order=1)
+    at_round = ndimage.map_coordinates(p.whole.albedo[..., 1], [rr + round(t.true[1]), cc + round(t.true[0])],
+                                       order=0)
+    tile = t.capture.albedo[..., 1]
+    assert np.abs(tile - at_true)[inner].mean() < 0.5 * np.abs(tile - at_round)[inner].mean()
+    # the truth in painting pixels: each tile's protrusions are the painting's, moved by its corner
+    ids = set(p.whole.protrusions["id"].tolist())
+    for t in p.tiles:
+        tp = t.capture.protrusions
+        assert set(tp["id"].tolist()) <= ids
+        k = np.searchsorted(p.whole.protrusions["id"], tp["id"])
+        np.testing.assert_allclose(tp["x_px"] + t.true[0], p.whole.protrusions["x_px"][k])
+    out = write_painting(p, tmp_path / "painting")
+    assert sorted(q.name for q in (out / "tiles").iterdir()) == [t.name for t in p.tiles]
+    nominal, true = read_truth_layout(out / "layout.csv"), read_truth_layout(out / "truth" / "layout.csv")
+    assert nominal["r2c2"] == pytest.approx(p.tiles[4].nominal, abs=1e-4)
+    assert true["r2c2"] == pytest.approx(p.tiles[4].true, abs=1e-4)
+    assert tifffile.imread(out / "truth" / "height_um.tif").shape == p.whole.height_um.shape
+    assert len(list((out / "tiles" / "r1c1").glob("uv_*.tif"))) == 8
+    meta = json.loads((out / "truth" / "painting.json").read_text())
+    assert meta["grid"] == [3, 2] and meta["stage_error_px"] == 30
+
+
+def _corner_errors(corners, painting):
+    return {t.name: float(np.hypot(*np.subtract(corners[t.name], t.true))) for t in painting.tiles}
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_registration_brings_the_corners_within_half_a_pixel_of_the_truth(paintings, seed):
+    p = paintings[seed]
+    images = {t.name: _tile_view(p, t) for t in p.tiles}
+    nominal = p.nominal_corners()
+    before = _corner_errors(nominal, p)
+    reg = register_tiles(images, nominal, max_shift_px=60)
+    after = _corner_errors(reg.corners, p)
+    print(f"seed {seed}: worst corner error {max(before.values()):.1f} px nominal, {max(after.values()):.3f} px refined")
+    assert max(before.values()) > 10
+    assert max(after.values()) < 0.5, after
+    assert not reg.warnings and all(q.used and q.confidence > 0.5 for q in reg.pairs)
+    assert len(reg.pairs) == 11          # 7 edge neighbours and 4 diagonals overlap at 40 %
+    assert reg.max_residual_px < 0.5
+
+
+def test_a_blank_overlap_keeps_its_nominal_offset_and_names_the_pair():
+    """Two tiles of blank paint (noise only) in their overlap: nothing to register there."""
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(1000, 5, (100, 120)), rng.normal(1000, 5, (100, 120))
+    reg = register_tiles({"left": a, "right": b}, {"left": (0.0, 0.0), "right": (80.0, 3.0)}, max_shift_px=30)
+    assert reg.corners["left"] == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert reg.corners["right"] == pytest.approx((80.0, 3.0), abs=1e-6)
+    assert len(reg.warnings) == 1 and reg.warnings[0].startswith("mosaic: pair left-right: nothing to register")
+
+
+def test_an_inconsistent_pair_is_dropped_by_the_global_solution():
+    """Four tiles in a 2 x 2 grid; the diagonal pair's shift is off by 12 px (a repeated motif
+    registered on the wrong copy): dropped, named, and the corners follow the other pairs."""
+    true = {"a": (0.0, 0.0), "b": (100.5, 1.0), "c": (-1.0, 80.25), "d": (99.0, 81.0)}
+    nominal = {"a": (0.0, 0.0), "b": (100.0, 0.0), "c": (0.0, 80.0), "d": (100.0, 80.0)}
+
+    def pair(u, v, off=(0.0, 0.0)):
+        return PairShift(u, v, dx=true[v][0] - true[u][0] + off[0], dy=true[v][1] - true[u][1] + off[1],
+                         confidence=0.9)
+
+    pairs = [pair("a", "b"), pair("a", "c"), pair("b", "d"), pair("c", "d"), pair("a", "d", (12.0, 0.0)),
+             pair("b", "c")]
+    corners, pairs = _solve(list(nominal), nominal, pairs, 0.3, 2.0)
+    bad = [q for q in pairs if not q.used]
+    assert [q.name for q in bad] == ["a-d"] and "disagrees with the global solution" in bad[0].why
+    shift = np.mean([np.subtract(corners[k], true[k]) for k in true], axis=0)
+    for k in true:                       # up to the frame (the mean correction from nominal is zero)
+        assert np.subtract(corners[k], true[k]) == pytest.approx(shift, abs=1e-9)
+
+
+def test_protrusions_of_the_overlaps_are_counted_once(paintings):
+    """The tiles' true protrusion tables, at the true corners: every protrusion of the painting a
+    tile saw, once, the copy farther from its tile's edge kept."""
+    p = paintings[2]
+    tables = {}
+    for t in p.tiles:
+        tp = t.capture.protrusions
+        tables[t.name] = {"id": tp["id"], "x_px": tp["x_px"], "y_px": tp["y_px"], "width_um": tp["width_um"],
+                          "height_um": tp["height_um"]}
+    corners = p.true_corners()
+    shapes = {t.name: p.tile_shape for t in p.tiles}
+    kept, every = merge_protrusions(tables, corners, shapes, pixel_size_um=15.0)
+    seen = set().union(*(set(t["id"].tolist()) for t in tables.values()))
+    assert len(every) > len(kept) == len(seen)
+    assert sorted(int(r["id"]) for r in kept) == sorted(seen)
+    for r in kept:                       # the copy kept is the most central one
+        copies = [q for q in every if q["id"] == r["id"]]
+        assert r["edge_px"] == max(q["edge_px"] for q in copies)
+        assert r["X"] == pytest.approx(p.whole.protrusions["x_px"][p.whole.protrusions["id"] == r["id"]][0])
+    truth = {c: p.whole.protrusions[c] for c in ("x_px", "y_px", "width_um")}
+    found = {c: np.array([r[k] for r in kept]) for c, k in (("x_px", "X"), ("y_px", "Y"), ("width_um", "width_um"))}
+    s = score_painting(truth, found, corners, p.tile_shape, pixel_size_um=15.0)
+    assert s["f1"] == 1.0 and s["twice"] == 0 and s["count_ratio"] == 1.0
+
+
+@pytest.fixture(scope="module")
+def written(paintings, tmp_path_factory):
+    return write_painting(paintings[1], tmp_path_factory.mktemp("painting") / "p1")
+
+
+PARAMS = {"lights": "lights_positions_mm.csv", "regions": "auto"}
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda rows: rows + ["r1c1,500,500"], "layout names tile 'r1c1' twice"),
+    (lambda rows: rows + ["r9c9,500,500"], "layout names tile 'r9c9', which is not among the captures"),
+    (lambda rows: [r if not r.startswith("r2c3") else "r2c3,2000,2000" for r in rows],
+     "tile r2c3 at (2000, 2000) overlaps no other tile"),
+])
+def test_a_bad_layout_is_one_line_naming_the_tile_before_any_work(written, tmp_path, edit, message):
+    from uvps.commands.batch import run_batch
+    from uvps.errors import UVPSInputError
+
+    rows = (written / "layout.csv").read_text().strip().splitlines()
+    (tmp_path / "layout.csv").write_text("\n".join([rows[0]] + edit(rows[1:])) + "\n")
+    with pytest.raises(UVPSInputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        run_batch([written / "tiles"], tmp_path / "out", PARAMS, mosaic=tmp_path / "layout.csv")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_tile_of_another_image_size_is_refused_before_any_work(paintings, written, tmp_path):
+    import shutil
+    from uvps.commands.batch import run_batch
+    from uvps.errors import UVPSInputError
+    from uvps.testing.synthetic import make_capture, write_capture
+
+    tiles = tmp_path / "tiles"
+    shutil.copytree(written / "tiles", tiles)
+    shutil.rmtree(tiles / "r2c3")
+    write_capture(make_capture(shape=(180, 240), n_lights=8, seed=5), tiles / "r2c3", truth=False)
+    with pytest.raises(UVPSInputError, match=r"^mosaic: tile r2c3 is 240 x 180 px, tile r1c1 240 x 200 px"):
+        run_batch([tiles], tmp_path / "out", PARAMS, mosaic=written / "layout.csv")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("grid,message", [
+    ("3,2", "expected COLUMNS,ROWS,OVERLAP"), ("3,2,1.5", "expected COLUMNS,ROWS,OVERLAP"),
+    ("3,2,0.4,diagonal", "order one of rows, snake, columns"), ("4,2,0.4", "has 8 tiles, the batch 6 captures"),
+])
+def test_a_bad_grid_is_one_line_before_any_work(written, tmp_path, grid, message):
+    from uvps.commands.batch import run_batch
+    from uvps.errors import UVPSInputError
+
+    with pytest.raises(UVPSInputError, match=message):
+        run_batch([written / "tiles"], tmp_path / "out", PARAMS, grid=grid)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_grid_gives_the_nominal_layout_in_the_captures_order(written):
+    from uvps.commands.batch import grid_layout, list_captures, make_jobs
+
+    jobs = make_jobs(list_captures([written / "tiles"]), PARAMS)
+    tiles = grid_layout("3,2,0.4", jobs)
+    nominal = read_truth_layout(written / "layout.csv")
+    x0, y0 = nominal["r1c1"]
+    for name, t in tiles.items():          # the generator's nominal grid, up to its margin
+        assert (t.x0 + x0, t.y0 + y0) == pytest.approx(nominal[name])
+    snake = grid_layout("3,2,0.4,snake", jobs)
+    assert (snake["r2c1"].x0, snake["r2c3"].x0) == (tiles["r2c3"].x0, tiles["r2c1"].x0)
+
+
+@pytest.fixture(scope="module")
+def client():
+    """Two worker processes of one thread each, as `uvps batch` starts on this 2-core machine (its
+    HTTP server on a free port: two clusters starting at once on this machine race for 8787)."""
+    import distributed
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as c:
+        yield c
+
+
+def _rows(path):
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.mark.slow
+def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, written, client, tmp_path):
+    """`uvps batch --mosaic` on Dask: refined corners within 0.5 px of the truth (stage off by up to
+    30 px), F1 >= 0.95 for protrusions >= 60 um, none twice, the count within 5 %, one set of
+    colour areas for the painting; a re-run skips the tiles and swaps in a new painting folder."""
+    from uvps.commands.batch import run_batch
+    from uvps.testing.painting import painting_truth, read_table
+
+    p = paintings[1]
+    out = tmp_path / "out"
+    res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client,
+                    painting_chunk_px=128)
+    assert [r["status"] for r in res.records] == ["done"] * 6
+    painting = out / "painting"
+    refined = read_truth_layout(painting / "layout.csv")
+    assert list(refined) == [t.name for t in p.tiles]
+    err = _corner_errors(refined, p)
+    print("corner errors", {k: round(v, 3) for k, v in err.items()})
+    assert max(err.values()) < 0.5
+    log = json.loads((out / "batch.json").read_text())
+    pairs = log["mosaic"]["pairs"]
+    assert len(pairs) == 11 and all(q["used"] and q["residual_px"] < 0.5 for q in pairs)
+    assert {"a", "b", "dx_px", "dy_px", "confidence", "residual_px"} <= set(pairs[0])
+    truth = painting_truth(written)
+    s = score_painting(read_table(written / "truth" / "protrusions.csv"),
+                       read_table(painting / "painting_protrusions.csv"), truth["layout"], truth["tile_shape"],
+                       pixel_size_um=15.0)
+    print("painting scores", s)
+    assert s["f1"] >= 0.95 and s["twice"] == 0 and abs(s["count_ratio"] - 1) <= 0.05
+    # one set of colour areas: proposed once on the painting's albedo, each mostly one paint
+    regions = _rows(painting / "painting_regions.csv")
+    names = [r["name"] for r in regions[:-1]]
+    assert len(names) == len(set(names)) >= 3 and regions[-1]["name"] == "all areas"
+    assert sum(int(r["count"]) for r in regions[:-1]) == int(regions[-1]["count"]) == \
+        len(_rows(painting / "painting_protrusions.csv"))
+    overview = tifffile.imread(painting / "regions_overview.tif")
+    meta = json.loads((painting / "painting.json").read_text())
+    ox, oy = meta["origin_px"]
+    true_regions = p.whole.regions
+    rr = np.clip(np.arange(overview.shape[0]) + int(round(oy)), 0, true_regions.shape[0] - 1)
+    cc = np.clip(np.arange(overview.shape[1]) + int(round(ox)), 0, true_regions.shape[1] - 1)
+    tr = true_regions[np.ix_(rr, cc)]
+    purity = []
+    for lab in np.unique(overview[overview > 0]):
+        counts = np.bincount(tr[overview == lab])
+        purity.append(counts.max() / counts.sum())
+    print("area purity", [round(x, 3) for x in purity])
+    assert min(purity) > 0.8
+    # the painting-wide maps, chunk by chunk (128 px) on the cluster: the height within 2 um rms of
+    # the truth after one plane, also on the overlap bands (no seams)
+    import zarr
+    from uvps.testing.painting import score_height
+
+    h = np.asarray(zarr.open_group(str(painting / "height.ome.zarr"), mode="r")["0"])
+    assert h.shape == tuple(meta["shape_px"]) and h.shape[1] > 256
+    hs = score_height(h, meta["origin_px"], p.whole.height_um, truth["layout"], truth["tile_shape"])
+    print("height", hs)
+    assert hs["rms_um"] < 2.0 and hs["overlap_rms_um"] < 2.0
+    alb = zarr.open_group(str(painting / "albedo.ome.zarr"), mode="r")
+    assert alb.attrs["multiscales"][0]["axes"][0]["name"] == "c" and alb["0"].shape == (3,) + h.shape
+    ids = np.unique(np.asarray(alb["labels/protrusions/0"]))
+    n_kept = len(_rows(painting / "painting_protrusions.csv"))
+    assert ids.max() <= n_kept and len(ids) - 1 >= 0.95 * n_kept
+    normals = np.asarray(zarr.open_group(str(painting / "normals.ome.zarr"), mode="r")["0"])
+    inside = np.isfinite(normals[2])
+    np.testing.assert_allclose(np.sqrt((normals[:, inside] ** 2).sum(axis=0)), 1, atol=1e-4)
+    # the painting report: its figures and tables
+    page = (painting / "report.html").read_text()
+    for fig in ("painting_overview", "painting_density", "painting_tiles", "painting_widths"):
+        assert (painting / "figures" / f"{fig}.png").stat().st_size > 5000 and f"figures/{fig}.png" in page
+    assert "r1c1-r1c2" in page and names[0] in page
+    # a re-run: the tiles skipped, the painting stitched again into a new folder, nothing left over
+    before = (painting / "painting.json").stat().st_ino
+    res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)
+    assert [r["status"] for r in res.records] == ["skipped"] * 6
+    assert (painting / "painting.json").stat().st_ino != before
+    assert read_truth_layout(painting / "layout.csv") == refined
+    assert not [q for q in out.iterdir() if q.name.startswith(".")]
+
+
+def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintings, tmp_path):
+    """Tile run folders holding the truth (each tile's height off by its own offset and plane, as
+    integration leaves it): the blended maps do not depend on the chunking, and the aligned
+    height is the painting's within a fraction of a micrometre, also on the overlaps."""
+    import dask
+    from uvps.core.mosaic import align_heights
+    from uvps.commands.painting_maps import MapContext, PlacedTile, painting_array
+    from uvps.files.io import write_imagej_tiff
+    from uvps.testing.painting import score_height
+
+    p = paintings[3]
+    rng = np.random.default_rng(7)
+    reg = register_tiles({t.name: _tile_view(p, t) for t in p.tiles}, p.nominal_corners(), max_shift_px=60)
+    heights = {}
+    for t in p.tiles:
+        d = tmp_path / t.name
+        d.mkdir()
+        rr, cc = np.mgrid[0:200, 0:240]
+        h = t.capture.height_um + rng.normal(0, 20) + rng.normal(0, 0.05) * cc + rng.normal(0, 0.05) * rr
+        heights[t.name] = h.astype(np.float32)
+        write_imagej_tiff(d / "depth.tif", heights[t.name], axes="YX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "albedo.tif", np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32),
+                          axes="CYX", pixel_size_um=15.0)
+    planes = align_heights(heights, reg.corners, reg.pairs)
+    x0 = min(c[0] for c in reg.corners.values())
+    y0 = min(c[1] for c in reg.corners.values())
+    shape = (int(np.ceil(max(c[1] for c in reg.corners.values()) + 200 - y0)),
+             int(np.ceil(max(c[0] for c in reg.corners.values()) + 240 - x0)))
+    from uvps.commands.painting import tile_gains
+    gains = tile_gains({t.name: (t.capture.albedo * t.exposure).astype(np.float32) for t in p.tiles}, reg)
+    ctx = MapContext([PlacedTile(t.name, str(tmp_path / t.name), reg.corners[t.name][0] - x0,
+                                 reg.corners[t.name][1] - y0, (200, 240), gains[t.name], planes[t.name])
+                      for t in p.tiles], (x0, y0), shape)
+    with dask.config.set(scheduler="synchronous"):
+        h64 = painting_array("height", ctx, chunk_px=64).compute()
+        h_one = painting_array("height", ctx, chunk_px=4096).compute()
+        a64 = painting_array("albedo", ctx, chunk_px=64).compute()
+        a_one = painting_array("albedo", ctx, chunk_px=4096).compute()
+    np.testing.assert_array_equal(h64, h_one)
+    np.testing.assert_array_equal(a64, a_one)
+    s = score_height(h64, (x0, y0), p.whole.height_um, p.true_corners(), p.tile_shape)
+    print("aligned truth heights", s)
+    assert s["rms_um"] < 0.5 and s["overlap_rms_um"] < 0.5
+    # the exposure drift measured on the overlaps and divided out: the blended albedo is the
+    # painting's times one exposure (the tiles' geometric mean)
+    from scipy import ndimage
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    truth_g = ndimage.map_coordinates(p.whole.albedo[..., 1], [rr + y0, cc + x0], order=1)
+    got = a64[1]
+    ok = ndimage.binary_erosion(got > 0, iterations=3)
+    ratio = got[ok] / truth_g[ok] / np.exp(np.mean(np.log([t.exposure for t in p.tiles])))
+    # (the tiles' exposures differ by up to 30 %; what is left is interpolation at edges and texture)
+    assert abs(np.median(ratio) - 1) < 0.005 and np.percentile(ratio, 95) / np.percentile(ratio, 5) < 1.03
+
+
+def test_a_painting_wide_label_image_gives_the_areas_in_the_layout_frame(paintings, written, tmp_path):
+    """The painting's own colour areas (the truth's label TIFF, in the layout's frame, names in a
+    CSV beside it) sampled at the painting's pixels; one that does not cover the painting is refused."""
+    from uvps.commands.painting import _region_labels
+    from uvps.errors import UVPSInputError
+    from uvps.files.tables import write_label_tiff
+
+    p = paintings[1]
+    labels = p.whole.regions
+    write_label_tiff(tmp_path / "areas.tif", labels, pixel_size_um=15.0)
+    (tmp_path / "areas.csv").write_text("label,name\n" + "".join(
+        f"{i + 1},{n}\n" for i, n in enumerate(p.whole.region_names)))
+    origin, covered = (40.3, 20.7), np.ones((300, 400), bool)
+    got, names = _region_labels(str(tmp_path / "areas.tif"), None, covered, 1, origin, pixel_size_um=15.0,
+                                n_areas=None)
+    np.testing.assert_array_equal(got, labels[21:321, 40:440])
+    assert set(names.values()) <= set(p.whole.region_names) and len(names) >= 2
+    with pytest.raises(UVPSInputError, match=r"painting regions: areas.tif \(\d+ x \d+ px\) does not cover"):
+        _region_labels(str(tmp_path / "areas.tif"), None, np.ones((400, 700), bool), 1, origin,
+                       pixel_size_um=15.0, n_areas=None)
