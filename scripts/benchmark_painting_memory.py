@@ -3,7 +3,7 @@
 The generator's painting (:mod:`uvps.testing.painting`) at COLUMNS x ROWS tiles is written as the
 run folders a batch would leave (each tile's true albedo times its exposure, its true height off by
 its own offset and plane, its normals, its protrusions), then
-:func:`uvps.commands.painting.stitch_painting` runs on them in a fresh process with Dask's
+:func:`uvps.painting.stitch_painting` runs on them in a fresh process with Dask's
 synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
 memory during the stitching (``VmHWM`` after the imports, the peak reset through
 ``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
@@ -56,7 +56,7 @@ def write_runs(args, root: Path) -> dict:
 CHILD = """
 import json, resource, sys, time
 import dask, matplotlib.figure, skimage.registration, zarr
-from uvps.commands.painting import stitch_painting
+from uvps.painting import stitch_painting
 import uvps.report.painting
 
 def hwm_mb():

@@ -10,7 +10,7 @@ import pytest
 import tifffile
 
 from uvps.core.mosaic import PairShift, _solve, register_tiles
-from uvps.commands.painting import merge_protrusions
+from uvps.painting import merge_protrusions
 from uvps.testing.painting import make_painting, read_truth_layout, score_painting, write_painting
 
 
@@ -307,7 +307,7 @@ def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintin
     height is the painting's within a fraction of a micrometre, also on the overlaps."""
     import dask
     from uvps.core.mosaic import align_heights
-    from uvps.commands.painting_maps import MapContext, PlacedTile, painting_array
+    from uvps.painting_maps import MapContext, PlacedTile, painting_array
     from uvps.files.io import write_imagej_tiff
     from uvps.testing.painting import score_height
 
@@ -329,7 +329,7 @@ def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintin
     y0 = min(c[1] for c in reg.corners.values())
     shape = (int(np.ceil(max(c[1] for c in reg.corners.values()) + 200 - y0)),
              int(np.ceil(max(c[0] for c in reg.corners.values()) + 240 - x0)))
-    from uvps.commands.painting import tile_gains
+    from uvps.painting import tile_gains
     gains = tile_gains({t.name: (t.capture.albedo * t.exposure).astype(np.float32) for t in p.tiles}, reg)
     ctx = MapContext([PlacedTile(t.name, str(tmp_path / t.name), reg.corners[t.name][0] - x0,
                                  reg.corners[t.name][1] - y0, (200, 240), gains[t.name], planes[t.name])
@@ -359,7 +359,7 @@ def test_painting_maps_are_the_same_chunk_by_chunk_and_the_heights_align(paintin
 def test_a_painting_wide_label_image_gives_the_areas_in_the_layout_frame(paintings, written, tmp_path):
     """The painting's own colour areas (the truth's label TIFF, in the layout's frame, names in a
     CSV beside it) sampled at the painting's pixels; one that does not cover the painting is refused."""
-    from uvps.commands.painting import _region_labels
+    from uvps.painting import _region_labels
     from uvps.errors import UVPSInputError
     from uvps.files.tables import write_label_tiff
 

@@ -11,7 +11,7 @@ that fails is listed with its one-line error; the others go on. ``OUT/batch_summ
 With a mosaic layout (each tile's nominal corner in the painting, in pixels) or a regular grid, the
 tiles are registered on their overlaps and merged into ``OUT/painting/``: the refined layout, one
 protrusion table (painting coordinates, each protrusion of an overlap once) and one density table
-per colour area of the painting (:mod:`uvps.commands.painting`). See docs/painting.md.
+per colour area of the painting (:mod:`uvps.painting`). See docs/painting.md.
 
 Dask is imported inside the functions that use it: importing it costs every other command about a
 second.
@@ -50,7 +50,7 @@ PER_CAPTURE_FILES = ("lights", "mask", "dark", "regions")
 _KEYWORDS = {p.name: p.choices for p in CAPTURE_PARAMS + PROTRUSION_PARAMS if p.name in PER_CAPTURE_FILES}
 #: What a batch writes beside the run folders.
 SUMMARY, BATCH_JSON = "batch_summary.csv", "batch.json"
-#: The painting of a mosaic batch: ``OUT/painting/`` (see :mod:`uvps.commands.painting`).
+#: The painting of a mosaic batch: ``OUT/painting/`` (see :mod:`uvps.painting`).
 PAINTING_DIR = "painting"
 PAINTING_PROTRUSIONS, PAINTING_REGIONS = "painting_protrusions.csv", "painting_regions.csv"
 #: Written last into each run folder: the request it was run with (for the skip rule).
@@ -371,7 +371,7 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
         Run captures whose run folder is complete too.
     mosaic : path, optional
         Layout CSV (``capture,x_px,y_px``, the stage's nominal corners): register the tiles and
-        merge them into ``OUT/painting/`` (:func:`uvps.commands.painting.stitch_painting`).
+        merge them into ``OUT/painting/`` (:func:`uvps.painting.stitch_painting`).
     grid : str, optional
         Instead of a layout, a regular grid ``"COLUMNS,ROWS,OVERLAP[,ORDER]"`` (:func:`grid_layout`).
     painting_regions : path, optional
@@ -638,8 +638,8 @@ def grid_layout(grid: str, jobs) -> dict:
 
 def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progress, warnings,
             chunk_px=None) -> dict:
-    """Register and merge the tiles into ``OUT/painting/`` (:func:`uvps.commands.painting.stitch_painting`)."""
-    from .painting import stitch_painting
+    """Register and merge the tiles into ``OUT/painting/`` (:func:`uvps.painting.stitch_painting`)."""
+    from ..painting import stitch_painting
 
     pxs = {}
     for t in layout.values():

@@ -23,7 +23,7 @@ import numpy as np
 import tifffile
 from scipy import ndimage
 
-from ..core.mosaic import PLANE_SCALE_PX
+from .core.mosaic import PLANE_SCALE_PX
 
 
 @dataclass

@@ -32,13 +32,13 @@ from typing import Optional
 
 import numpy as np
 
-from ..core.measure import COLUMNS
-from ..core.mosaic import Registration, overlap_box, register_tiles
-from ..core.regions import UM2_PER_CM2
-from ..errors import UVPSInputError
-from ..files.io import read_tiff
-from ..files.outputs import report, write_json_atomic
-from ..files.tables import atomic_write_text, read_protrusions_csv, write_label_tiff
+from .core.measure import COLUMNS
+from .core.mosaic import Registration, overlap_box, register_tiles
+from .core.regions import UM2_PER_CM2
+from .errors import UVPSInputError
+from .files.io import read_tiff
+from .files.outputs import report, write_json_atomic
+from .files.tables import atomic_write_text, read_protrusions_csv, write_label_tiff
 
 log = logging.getLogger(__name__)
 
@@ -267,8 +267,8 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
 
 def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n_areas):
     """Colour areas of the painting at overview scale: ``(labels (m, n) int, names)``."""
-    from ..core.regions import propose_regions
-    from ..files.tables import load_regions
+    from .core.regions import propose_regions
+    from .files.tables import load_regions
 
     if regions in (None, "", "auto"):
         if regions in (None, ""):
@@ -317,7 +317,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         Largest stage error between neighbours (default: a quarter of the smaller tile side).
     maps : bool
         Also write the painting-wide maps (OME-Zarr, chunk by chunk on Dask: on the current
-        ``distributed`` client when there is one, :mod:`uvps.commands.painting_maps`).
+        ``distributed`` client when there is one, :mod:`uvps.painting_maps`).
     chunk_px : int, optional
         The maps' chunk side (default :data:`uvps.files.omezarr.CHUNK_PX`).
     report_html : bool
@@ -408,7 +408,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         timings["total_s"] = round(time.perf_counter() - t0, 3)
         result.timings = timings
         if report_html:
-            from ..report.painting import write_painting_report
+            from .report.painting import write_painting_report
             write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas,
                                   registration=reg, shapes=shapes, origin=origin, step=step,
                                   pixel_size_um=pixel_size_um, warnings=warnings)
@@ -424,8 +424,8 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                 pixel_size_um, chunk_px) -> dict:
     """albedo.ome.zarr (with the protrusion and colour-area labels), normals.ome.zarr and
     height.ome.zarr of the painting, chunk by chunk; returns each tile's height plane."""
-    from ..core.mosaic import align_heights
-    from ..files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
+    from .core.mosaic import align_heights
+    from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
     from .painting_maps import MapContext, PlacedTile, painting_array
 
     chunk_px = int(chunk_px or CHUNK_PX)
