@@ -223,8 +223,8 @@ FIT_COEFFICIENTS = ("width_px", "width_rel", "rim", "peak", "height_rel", "surfa
 FIT_EXPONENTS = ("rim_exponent", "peak_exponent")
 #: Held, not fitted: the outline's exponent 0.5, the area of a footprint counted on the pixel grid
 #: (its edge pixels, about pi w / p of them, each in or out: the area's sd grows as sqrt(w / p) p^2,
-#: the width's as p (p / w)^0.5). Fitted freely it lands anywhere from 0.5 to 4 at the same likelihood
-#: (the few-pixel widths pin the term's size, not its slope). The surface term's coefficient is held
+#: the width's as p (p / w)^0.5). Freed, on the small and clean pairs it ran to the bound 4 at the same
+#: likelihood (within 0.3): the few-pixel widths pin the term's size, not its slope. The surface term's coefficient is held
 #: at 1.33, its fit on the clean moved pairs alone: freed, the pooled likelihood drops it to 0.24 and
 #: one fit pair's heights (real scene, seed 10: its wide protrusions 2-4 % lower at B) then repeat
 #: 1.9 x worse than the model, a warning; the likelihood pools protrusions, the warning judges pairs.
