@@ -1026,3 +1026,17 @@ def test_protrusions_on_strokes():
 def test_impasto_options_checked(overrides, match):
     with pytest.raises(UVPSInputError, match=match):
         make_capture(shape=(64, 80), n_lights=3, **overrides)
+
+
+def test_width_median_moves_the_protrusion_widths_and_its_default_changes_nothing():
+    from uvps.testing.synthetic import make_capture
+    base = dict(shape=(360, 480), n_lights=4, protrusion_density_light=300.0, protrusion_density_dark=60.0,
+                width_um=(40.0, 600.0), seed=3)
+    default = make_capture(SyntheticSpec(**base))
+    same = make_capture(SyntheticSpec(**base, width_median_um=150.0))
+    np.testing.assert_array_equal(default.images, same.images)
+    small = make_capture(SyntheticSpec(**base, width_median_um=90.0))
+    w0, w1 = default.protrusions["width_um"], small.protrusions["width_um"]
+    assert len(w0) > 20 and len(w1) > 20
+    assert np.median(w1) < 0.8 * np.median(w0)
+    assert np.mean(w1 < 80) > 0.3 > np.mean(w0 < 80)

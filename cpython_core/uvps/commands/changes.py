@@ -26,8 +26,8 @@ from ..files.calibration import calibration_of_run
 from ..files.runfolder import FILES, RunLog, read_run
 from ..spec import CommandSpec, Param
 
-from ..core.changes import (COLUMNS, STATUSES, Registration, _overlap_mask, area_table, classify_changes,
-                            level_heights, register, warp_to_a)
+from ..core.changes import (COLUMNS, NOISE_MODEL, STATUSES, NoiseModel, Registration, _overlap_mask, area_table,
+                            classify_changes, level_heights, register, warp_to_a)
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,9 @@ def _report_page(res: dict) -> str:
     m = unc["model"]
     model_rows = [("outline on the pixel grid (width_px)", f"{m['width_px']:g} px"),
                   ("footprint threshold (width_rel)", f"{100 * m['width_rel']:.2g} % of the width"),
-                  ("peak sampling (peak)", f"{m['peak']:g} x height x (pixel / width)^2"),
+                  ("outline on few pixels (rim)", f"{m['rim']:.3g} px x (pixel / width)^{m['rim_exponent']:.3g}"),
+                  ("pixel phase of the relief (peak)",
+                   f"{m['peak']:.3g} x height x (pixel / width)^{m['peak_exponent']:.3g}"),
                   ("height scale (height_rel)", f"{100 * m['height_rel']:.2g} % of the height"),
                   ("surface noise (surface)", f"{m['surface']:g} x the height change's robust sd around it "
                                               f"(median {unc['surface_noise_um_median']} um)"),
@@ -381,11 +383,13 @@ def _off_protrusions(a, b, reg, shape_a) -> np.ndarray:
 
 def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min_matches=25,
                     level_mm=1.0, match_height_scale=True, bins_um=100.0, widths_only=False,
-                    registration: Optional[Registration] = None, progress: Progress = None):
+                    registration: Optional[Registration] = None, noise_model: Optional[NoiseModel] = None,
+                    progress: Progress = None):
     """Everything ``uvps changes`` computes, in memory (see the module docstring).
 
     ``registration``: B onto A as an earlier call found it (the same two runs), to decide again
-    with other options without registering again.
+    with other options without registering again. ``noise_model``: the repeatability model
+    (default :data:`uvps.core.changes.NOISE_MODEL`; another one to compare, as the benchmark does).
 
     Returns a dict: ``a``, ``b`` (the runs read), ``registration``, ``levelling``, ``rows``,
     ``positions_a``, ``common`` (A's pixels both dates see), ``areas``, ``diagnostics``,
@@ -426,7 +430,7 @@ def compute_changes(run_a, run_b, *, sigma_factor=4.5, match_radius_um=None, min
         a.table, b.table, reg.b_to_a, shape_a=shape_a, shape_b=shape_b, pixel_size_um=a.pixel_size_um,
         pixel_size_um_b=b.pixel_size_um, height_scale=lev.height_scale, sigma_factor=sigma_factor,
         match_radius_um=match_radius_um, regions_a=a.regions, change_um=lev.change_um,
-        off_protrusions=off, heights=heights)
+        off_protrusions=off, heights=heights, model=noise_model or NOISE_MODEL)
     for what, f in (("widths", unc["inflation_width"]), ("heights", unc["inflation_height"])):
         if f > 1.5:
             warnings.append(f"the {what} of this pair repeat {f:.1f} x worse than the repeatability model "

@@ -125,6 +125,8 @@ class SyntheticSpec:
     """What to synthesise. Every option has a physically sensible default (a 18 x 24 mm detail).
 
     Densities are per cm^2 of the field; widths and heights in um; distances in mm.
+    Protrusion widths are log-normal about ``width_median_um`` (150; sigma 0.45) within
+    ``width_um``: 100 puts a third of them below 80 um (a few pixels of 15 um).
     ``n_ridges`` / ``n_primer_spots`` = None means ``ridge_density`` (4) ridges and
     ``primer_density`` (3) primer spots per cm^2.
     Each image's irradiance at the centre is 1 +- ``intensity_jitter`` (as if the exposure were reset
@@ -225,6 +227,7 @@ class SyntheticSpec:
     protrusion_density_light: float = 45.0
     protrusion_density_dark: float = 5.0
     width_um: tuple = (30.0, 600.0)
+    width_median_um: float = 150.0
     weak_fraction: float = 0.2
     crater_fraction: float = 0.3
     n_ridges: Optional[int] = None
@@ -1211,10 +1214,11 @@ def _primer_spots(rng, shape, px, count, albedo, occupied):
     return layer
 
 
-def _protrusion_widths(rng, count, width_range):
-    """Widths (um) skewed to 100-200 um: log-normal (median 150 um, sigma 0.45) truncated."""
+def _protrusion_widths(rng, count, width_range, median_um=150.0):
+    """Widths (um) skewed to 100-200 um: log-normal (median ``median_um``, 150 um by default,
+    sigma 0.45) truncated to ``width_range``."""
     lo, hi = width_range
-    median = min(max(150.0, lo), hi)
+    median = min(max(median_um, lo), hi)
     out = np.empty(0)
     while out.size < count:
         w = rng.lognormal(math.log(median), 0.45, 2 * count + 10)
@@ -1345,7 +1349,7 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied, 
         if count == 0:
             continue
         idx_near = idx[near_stroke[idx]] if on_f > 0 else idx[:0]
-        for w_um in np.sort(_protrusion_widths(rng, count, spec.width_um))[::-1]:
+        for w_um in np.sort(_protrusion_widths(rng, count, spec.width_um, spec.width_median_um))[::-1]:
             kind, geometry, wobble, plateau = None, None, None, None
             if shapes is not None:
                 kind = shapes.kind()
