@@ -622,6 +622,39 @@ def test_lights_lines_say_where_the_lamps_came_from():
         "refinement stopped before converging; heights uncertain by +-25 %"]
 
 
+def test_lamps_of_a_calibration_folder_are_not_called_the_run_folders(tmp_path):
+    """The Calibration field's lamps: the Log names Calibrate Lamps' folder, not the run folder."""
+    cal = tmp_path / "calibration"
+    cal.mkdir()
+    (cal / "calibration.json").write_text("{}")
+    diag = {"lights": {"source": "positions", "n_lights": 8}, "lights_file": str(cal / "lights.json")}
+    assert bl.diagnostic_lines("run", diag) == [
+        "uvps Run Whole Pipeline lights: 8 lamps from the calibration folder's %s (Calibrate Lamps)"
+        % (cal / "lights.json")]
+
+
+@pytest.mark.parametrize("names,wanted,expected,n_notes", [
+    # the default: lead in red whatever the stack's order, then the next maps
+    (["Cd_L", "Cr_K", "Fe_K", "Pb_L"], bl.COMPOSITE_DEFAULT, ["Pb_L", "Cd_L", "Cr_K"], 0),
+    (["Cd_L", "Cr_K", "Fe_K", "Pb_L"], ("Fe", "Pb", "auto"), ["Fe_K", "Pb_L", "Cd_L"], 0),
+    (["Zn K", "Pb M", "Ca"], ("Pb", "zn", "Ca"), ["Pb M", "Zn K", "Ca"], 0),
+    # no lead map: said in the Log, the other maps shown
+    (["Cd_L", "Cr_K"], bl.COMPOSITE_DEFAULT, ["Cd_L", "Cr_K"], 1),
+    # an element absent, a map's whole name, and "C" not taking "Cd_L" or "Cr_K"
+    (["Cd_L", "Cr_K", "C"], ("Sn", "Cr_K", "C"), ["Cd_L", "Cr_K", "C"], 1),
+])
+def test_element_composite_channels(names, wanted, expected, n_notes):
+    channels, notes = bl.composite_channels(names, wanted)
+    assert channels == expected
+    assert len(notes) == n_notes
+
+
+def test_status_counts_follow_the_reports_order():
+    rows = [{"status": s} for s in ("unchanged", "grown", "new", "unchanged", "gone", "odd")]
+    assert bl.status_counts(rows) == [("new", 1), ("grown", 1), ("unchanged", 2), ("gone", 1),
+                                      ("odd", 1)]
+
+
 # --------------------------------------------------------------------------- macro keys, exit
 
 def test_unknown_macro_keys_are_named_with_the_valid_ones():
