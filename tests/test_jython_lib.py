@@ -806,3 +806,92 @@ def test_menu_titles_come_from_the_declarations(spec_table):
         assert titles[command.group(1)] == title, path.name
     assert scripts >= 14
     assert bl.menu_title("no-such-command", spec_table) == "no-such-command"
+
+
+class _Prefs(object):
+    """ij.Prefs as a dict."""
+
+    def __init__(self):
+        self.values = {}
+
+    def get(self, key, default):
+        return self.values.get(key, default)
+
+    def set(self, key, value):
+        self.values[key] = value
+
+
+class _AnsweringDialog(FakeGenericDialog):
+    """A dialog whose user changes some fields (``answers``: label -> value) and presses OK."""
+
+    answers = {}
+
+    def wasCanceled(self):
+        self._next = iter(self.fields)
+        return False
+
+    def _value(self):
+        kind, label, value, _ = next(self._next)
+        return _AnsweringDialog.answers.get(label, value)
+
+    getNextString = getNextChoice = getNextNumber = getNextBoolean = _value
+
+    def invalidNumber(self):
+        return False
+
+
+@pytest.fixture
+def dialog_module(monkeypatch):
+    """uvps_fiji.dialogs with fake ImageJ classes: a user at the dialog (no macro options)."""
+    from unittest import mock
+
+    prefs = _Prefs()
+    logged = []
+    ij = _fake_module("ij", IJ=mock.MagicMock(log=logged.append),
+                      Macro=mock.MagicMock(getOptions=lambda: None), Prefs=prefs)
+    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=_AnsweringDialog),
+             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
+    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
+                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
+        fakes[name] = _fake_module(name)
+    for name, module in fakes.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    for name in ("dialogs", "runner"):
+        monkeypatch.delitem(sys.modules, "uvps_fiji." + name, raising=False)
+    from uvps_fiji import dialogs
+    yield dialogs, prefs, logged
+    for name in ("dialogs", "runner"):
+        sys.modules.pop("uvps_fiji." + name, None)
+
+
+def _regions_dialog(dialogs, answers):
+    _AnsweringDialog.answers = answers
+    dlg = dialogs.UVPSDialog("Detect Protrusions")
+    dialogs.add_run_field(dlg)
+    dlg.string("Regions: colour areas", "")
+    values = dlg.show()
+    return values, dlg.gd.fields
+
+
+def test_a_runs_regions_file_is_not_carried_over_to_another_run(dialog_module):
+    """The Regions field names one run's own label image: it is offered again with that run only,
+    and not used when the user changes the run folder but leaves it (the Log says so)."""
+    dialogs, prefs, logged = dialog_module
+    mine = "/data/region1/regions_labels.tif"
+    values, _ = _regions_dialog(dialogs, {"Run folder (outputs)": "/data/region1",
+                                          "Regions: colour areas": mine})
+    assert values["regions"] == mine
+    # the same run again: offered
+    values, fields = _regions_dialog(dialogs, {})
+    assert [f[2] for f in fields] == ["/data/region1", mine] and values["regions"] == mine
+    # the user changes the run folder only: the other run's file is not used
+    values, _ = _regions_dialog(dialogs, {"Run folder (outputs)": "/data/region2"})
+    assert values == {"run": "/data/region2", "regions": ""}
+    assert len(logged) == 1 and mine in logged[0] and "not used" in logged[0]
+    # next time, with region2, nothing is pre-filled; choosing the file again uses it
+    values, fields = _regions_dialog(dialogs, {"Regions: colour areas": mine})
+    assert [f[2] for f in fields] == ["/data/region2", ""] and values["regions"] == mine
+    # a run folder chosen elsewhere (another menu item) : the field starts empty
+    prefs.set("uvps.run", "/data/region3")
+    _, fields = _regions_dialog(dialogs, {})
+    assert [f[2] for f in fields] == ["/data/region3", ""]

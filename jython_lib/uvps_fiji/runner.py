@@ -277,16 +277,20 @@ def report_cancel(title, how="cancelled"):
     IJ.log(line)
     IJ.showStatus("uvps: %s cancelled" % title)
     IJ.showProgress(1.0)
-    _stop_macro()
+    _stop_macro("uvps: %s cancelled" % title)
 
 
-def _stop_macro():
-    """Stop the macro that ran the menu item, if any (ImageJ would run its next line)."""
-    if Interpreter.getInstance() is not None:
-        try:
-            Interpreter.abort()
-        except (Exception, Throwable):  # ImageJ signals the abort with "Macro canceled"
-            pass
+def _stop_macro(status=None):
+    """Stop the macro that ran the menu item, if any (ImageJ would run its next line); the
+    status bar then says ``status`` again (ImageJ writes "Macro aborted" once the macro ends)."""
+    if Interpreter.getInstance() is None:
+        return
+    try:
+        Interpreter.abort()
+    except (Exception, Throwable):  # ImageJ signals the abort with "Macro canceled"
+        pass
+    if status:
+        IJ.showStatus(status)   # after the abort, which wrote "Macro aborted"
 
 
 def show_error_dialog(title, message):
@@ -294,6 +298,10 @@ def show_error_dialog(title, message):
     itself, which put "Macro canceled" and a stack trace in the Log after OK)."""
     from ij.gui import MessageDialog
     MessageDialog(IJ.getInstance(), "uvps: " + title, message)
+
+
+#: Error types that are a user's mistake: one Log line, the core's log left out.
+USER_ERRORS = ("UVPSInputError", "MacroOptions", "Configuration", "Timeout")
 
 
 def report_error(title, exc):
@@ -323,7 +331,8 @@ def report_error(title, exc):
         log = ""
     line = "uvps %s failed (%s): %s" % (title, kind, message)
     IJ.log(line)
-    if log and log.strip():
+    if log and log.strip() and kind not in USER_ERRORS:
+        # the core's log helps with an unexpected failure; a user's mistake is the line above
         IJ.log("uvps core log:\n" + log.strip())
     System.err.println(line)
     IJ.showStatus("uvps: " + title + " failed")
@@ -333,7 +342,7 @@ def report_error(title, exc):
         show_error_dialog(title, message)
     # Stop the calling macro: without this, ImageJ would run its next line after a Python
     # exception in a menu command (tried with ImageJ 1.53t -batch).
-    _stop_macro()
+    _stop_macro("uvps: " + title + " failed")
     if not interactive and System.getProperty("uvps.test") is None and IJ.getInstance() is None \
             and bridge_logic.exit_on_failure(System.getProperty("sun.java.command")):
         # Plain `ImageJ -batch` exits 0 after an aborted macro: end it with a failure status so a

@@ -106,9 +106,7 @@ class GuiSession:
         for pattern, key in answers:
             wid = self.wait_window(pattern, deadline)
             answered.append(self.window_name(wid))
-            time.sleep(0.3)
-            self._xdotool("windowactivate", "--sync", wid)
-            self._xdotool("key", "--window", wid, key)
+            self.press(wid, key)
         while not done.exists():
             if self.ij.poll() is not None:
                 raise AssertionError("ImageJ ended (status %s):\n%s" % (self.ij.returncode,
@@ -118,6 +116,20 @@ class GuiSession:
                                      % (name, timeout, self.visible_windows(), macro))
             time.sleep(0.1)
         return answered
+
+    def press(self, wid, key, tries=5):
+        """Activate window ``wid`` and press ``key`` (XTEST, as a keyboard does: Java ignores
+        synthetic events sent to a window) until the window is gone."""
+        for _ in range(tries):
+            time.sleep(0.5)
+            self._xdotool("windowactivate", "--sync", wid)
+            self._xdotool("key", "--clearmodifiers", key)
+            end = time.monotonic() + 3
+            while time.monotonic() < end:
+                if wid not in self._xdotool("search", "--onlyvisible", "--name", ".").stdout.split():
+                    return
+                time.sleep(0.2)
+        raise AssertionError("window %s did not close on %s" % (self.window_name(wid), key))
 
     def _xdotool(self, *args):
         return subprocess.run(["xdotool"] + [str(a) for a in args], env=self.env,
@@ -171,11 +183,8 @@ class GuiSession:
         return [line for line in path.read_text().splitlines() if line]
 
     def status(self):
-        """ImageJ's status bar text."""
-        path = self.work / ("status_%d.txt" % (self.counter + 1))
-        self.run('File.saveString(call("ij.IJ.getStatusBarText"), "%s");'
-                 % path, timeout=60)
-        return path.read_text()
+        """ImageJ's status bar text when the last step ended."""
+        return (self.queue / ("%04d.done" % self.counter)).read_text(errors="replace")
 
     def screenshot(self, path, crop=None, scale=None):
         """Save the screen as PNG (``crop``: ImageMagick geometry ``WxH+X+Y``; ``scale``: e.g.

@@ -1,8 +1,8 @@
 // A user's ImageJ session for tests and screenshots (tests/imagej/gui_session.py): starts ImageJ
 // normally (windows, Log window, dialogs; no -batch) and runs the macro files a test drops into the
 // folder given by -Duvps.queue.dir, one after the other, the way Plugins > Macros > Run does (from a
-// thread of its own, IJ.runMacroFile). After NAME.ijm it writes NAME.done (an empty file), so the
-// test knows the step is over; meanwhile the test answers dialogs with xdotool as a user would.
+// thread of its own, IJ.runMacroFile). After NAME.ijm it writes NAME.done (holding the status bar's text), so
+// the test knows the step is over and what the status bar said; meanwhile the test answers dialogs with xdotool as a user would.
 import ij.IJ;
 import ij.ImageJ;
 
@@ -40,7 +40,11 @@ public class UvpsMacroQueue {
                     }
                     runOne(f);
                     try {
-                        new FileOutputStream(done).close();
+                        // the status bar as the step left it ("uvps: ... cancelled")
+                        String status = ij.ImageJ.getStatusBarText();
+                        FileOutputStream out = new FileOutputStream(done);
+                        out.write((status == null ? "" : status).getBytes("UTF-8"));
+                        out.close();
                     } catch (Exception e) {
                         System.err.println("UVPS-QUEUE: cannot write " + done + ": " + e);
                     }
