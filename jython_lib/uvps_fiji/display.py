@@ -240,6 +240,25 @@ def outlines_on(title, run_dir):
             if bridge_logic.outline_kind(overlay.get(i).getName(), run_dir) is not None]
 
 
+def is_area_item(name, run_dir):
+    """Whether an overlay item's name is one of run ``run_dir``'s colour areas (outline or tag,
+    :func:`area_name`)."""
+    suffix = " - " + bridge_logic.run_label(run_dir)
+    name = name or ""
+    return name.startswith("area ") and (name.endswith(suffix) or name.endswith(suffix + " tag"))
+
+
+def areas_on(title, run_dir):
+    """Copies of run ``run_dir``'s colour-area outlines and tags on the overlay of the open image
+    ``title`` (none if it is not open): what a re-opened albedo should show again."""
+    imp = WindowManager.getImage(title)
+    overlay = imp.getOverlay() if imp is not None else None
+    if overlay is None:
+        return []
+    return [overlay.get(i).clone() for i in range(overlay.size())
+            if is_area_item(overlay.get(i).getName(), run_dir)]
+
+
 def add_to_overlay(imp, rois):
     """Add ``rois`` to the overlay of ``imp`` (kept items first)."""
     if imp is None or not rois:
@@ -679,14 +698,12 @@ def show_areas(labels_path, regions_csv, images, run_dir, table_title=None):
     albedo, the height map: an earlier drawing of the same run's areas is replaced) and open
     ``regions.csv`` as the table ``table_title``; return the number of areas."""
     rois = area_rois(labels_path, regions_csv, run_dir)
-    prefix, suffix = "area ", " - " + bridge_logic.run_label(run_dir)
     for imp in images:
         if imp is None:
             continue
         overlay = imp.getOverlay() or Overlay()
         for i in reversed(range(overlay.size())):
-            n = overlay.get(i).getName() or ""
-            if n.startswith(prefix) and (n.endswith(suffix) or n.endswith(suffix + " tag")):
+            if is_area_item(overlay.get(i).getName(), run_dir):
                 overlay.remove(i)
         for roi in rois:
             overlay.add(roi.clone())

@@ -120,9 +120,10 @@ def _show_protrusions(response, kind, run_dir):
 
     def reopened(window_title, opener):
         kept = display.outlines_on(window_title, run_dir) if other_kept else []
+        areas = display.areas_on(window_title, run_dir)   # the colour areas drawn on it stay
         imp = opener()
-        display.add_to_overlay(imp, [r for r in kept
-                                     if bridge_logic.outline_kind(r.getName(), run_dir) == other])
+        display.add_to_overlay(imp, areas + [r for r in kept if bridge_logic.outline_kind(
+            r.getName(), run_dir) == other])
         return imp
 
     albedo = height = None
