@@ -339,7 +339,8 @@ def compare_captures(values):
            if height.getOverlay().get(i).getName() == display.BAR_UNIT_NAME]
     if bar:
         b = bar[0].getBounds()
-        display.status_legend(height, b.x, b.y + b.height + 6, [s for s, _ in statuses])
+        display.status_legend(height, b.x, b.y + b.height + 6,
+                              [s for s, _ in statuses if s in display.STATUS_COLOURS])
     for key, run, rois in dates:
         path = os.path.join(run, "albedo.tif")
         if os.path.isfile(path):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import _unavailable
 from gui_session import GuiSession, missing_gui_tools, trace_lines
 
 pytestmark = pytest.mark.imagej
@@ -27,8 +28,8 @@ def session(imagej_env, tmp_path_factory):
     """One ImageJ session for the module (a fresh JVM costs seconds; each test clears the Log)."""
     missing = missing_gui_tools()
     if missing:
-        pytest.skip("the GUI session needs %s (apt-get install openbox xdotool x11-apps "
-                    "imagemagick)" % ", ".join(missing))
+        _unavailable("the GUI session needs %s (scripts/install_imagej_deps.sh installs them: "
+                     "openbox xdotool x11-apps imagemagick)" % ", ".join(missing))
     work = tmp_path_factory.mktemp("gui")
     home = work / "ImageJ"
     (home / "plugins").mkdir(parents=True)
@@ -157,3 +158,26 @@ def _core_of(session):
     out = subprocess.run(["ps", "-o", "args=", "--ppid", str(session.ij.pid)],
                          stdout=subprocess.PIPE, universal_newlines=True).stdout
     return [line for line in out.splitlines() if "uvps bridge" in line]
+
+
+def test_windows_of_a_run_are_on_screen_and_tile(session, capture, tmp_path):
+    """After Run Whole Pipeline (regions auto) every window lies on the screen, Window > Tile
+    arranges them (no "Unfrozen plot windows cannot be tiled"), and the colour areas and the
+    Regions table the report names are open."""
+    session.run('close("*");')
+    session.clear_log()
+    out = tmp_path / "tiled run"
+    session.run('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s regions=auto");\n'
+                'run("Tile");\nprint("tiled");\n' % (q(capture), q(out)), timeout=600)
+    log = session.log()
+    assert "tiled" in log.splitlines() and not trace_lines(log), log
+    visible = session.visible_windows()
+    assert "Macro Error" not in visible, visible
+    titles = ["normals - tiled run", "Lights (top view) - tiled run", "albedo - tiled run",
+              "Regions - tiled run", "Protrusions - tiled run"]
+    for title in titles + ["relative height - tiled run|height \\(um\\) - tiled run"]:
+        pattern = "^(%s)$" % (title if "|" in title else title.replace("(", "\\(").replace(")", "\\)"))
+        x, y, w, h = session.window_geometry(pattern)
+        assert x >= 0 and y >= 0 and x + w <= 1600 and y + h <= 1000, (title, x, y, w, h)
+    assert any(ln.startswith("uvps: ") and "colour areas drawn with their names" in ln
+               for ln in log.splitlines()), log
