@@ -176,7 +176,9 @@ def test_windows_of_a_run_are_on_screen_and_tile(session, capture, tmp_path):
     titles = ["normals - tiled run", "Lights (top view) - tiled run", "albedo - tiled run",
               "Regions - tiled run", "Protrusions - tiled run"]
     for title in titles + ["relative height - tiled run|height \\(um\\) - tiled run"]:
-        pattern = "^(%s)$" % (title if "|" in title else title.replace("(", "\\(").replace(")", "\\)"))
+        # ImageJ adds the zoom to a reduced image's title: "albedo - tiled run (75%)"
+        pattern = "^(%s)( \\([0-9.]+%%\\))?$" % (
+            title if "|" in title else title.replace("(", "\\(").replace(")", "\\)"))
         x, y, w, h = session.window_geometry(pattern)
         assert x >= 0 and y >= 0 and x + w <= 1600 and y + h <= 1000, (title, x, y, w, h)
     assert any(ln.startswith("uvps: ") and "colour areas drawn with their names" in ln
