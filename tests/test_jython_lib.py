@@ -856,9 +856,13 @@ def dialog_module(monkeypatch):
         fakes[name] = _fake_module(name)
     for name, module in fakes.items():
         monkeypatch.setitem(sys.modules, name, module)
+    import importlib
+
+    import uvps_fiji
     for name in ("dialogs", "runner"):
         monkeypatch.delitem(sys.modules, "uvps_fiji." + name, raising=False)
-    from uvps_fiji import dialogs
+        monkeypatch.delattr(uvps_fiji, name, raising=False)   # else `from` finds a stale one
+    dialogs = importlib.import_module("uvps_fiji.dialogs")
     yield dialogs, prefs, logged
     for name in ("dialogs", "runner"):
         sys.modules.pop("uvps_fiji." + name, None)
