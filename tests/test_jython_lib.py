@@ -622,6 +622,39 @@ def test_lights_lines_say_where_the_lamps_came_from():
         "refinement stopped before converging; heights uncertain by +-25 %"]
 
 
+def test_lamps_of_a_calibration_folder_are_not_called_the_run_folders(tmp_path):
+    """The Calibration field's lamps: the Log names Calibrate Lamps' folder, not the run folder."""
+    cal = tmp_path / "calibration"
+    cal.mkdir()
+    (cal / "calibration.json").write_text("{}")
+    diag = {"lights": {"source": "positions", "n_lights": 8}, "lights_file": str(cal / "lights.json")}
+    assert bl.diagnostic_lines("run", diag) == [
+        "uvps Run Whole Pipeline lights: 8 lamps from the calibration folder's %s (Calibrate Lamps)"
+        % (cal / "lights.json")]
+
+
+@pytest.mark.parametrize("names,wanted,expected,n_notes", [
+    # the default: lead in red whatever the stack's order, then the next maps
+    (["Cd_L", "Cr_K", "Fe_K", "Pb_L"], bl.COMPOSITE_DEFAULT, ["Pb_L", "Cd_L", "Cr_K"], 0),
+    (["Cd_L", "Cr_K", "Fe_K", "Pb_L"], ("Fe", "Pb", "auto"), ["Fe_K", "Pb_L", "Cd_L"], 0),
+    (["Zn K", "Pb M", "Ca"], ("Pb", "zn", "Ca"), ["Pb M", "Zn K", "Ca"], 0),
+    # no lead map: said in the Log, the other maps shown
+    (["Cd_L", "Cr_K"], bl.COMPOSITE_DEFAULT, ["Cd_L", "Cr_K"], 1),
+    # an element absent, a map's whole name, and "C" not taking "Cd_L" or "Cr_K"
+    (["Cd_L", "Cr_K", "C"], ("Sn", "Cr_K", "C"), ["Cd_L", "Cr_K", "C"], 1),
+])
+def test_element_composite_channels(names, wanted, expected, n_notes):
+    channels, notes = bl.composite_channels(names, wanted)
+    assert channels == expected
+    assert len(notes) == n_notes
+
+
+def test_status_counts_follow_the_reports_order():
+    rows = [{"status": s} for s in ("unchanged", "grown", "new", "unchanged", "gone", "odd")]
+    assert bl.status_counts(rows) == [("new", 1), ("grown", 1), ("unchanged", 2), ("gone", 1),
+                                      ("odd", 1)]
+
+
 # --------------------------------------------------------------------------- macro keys, exit
 
 def test_unknown_macro_keys_are_named_with_the_valid_ones():
@@ -793,3 +826,96 @@ def test_the_wand_summary_is_one_log_line():
     d = {"n_points": 7, "n_protrusions": 5, "summary": "7 clicks: 5 outlined, 2 not (bare paint at (4, 5) px; "
          "height only at (8, 9) px)"}
     assert bl.diagnostic_lines("wand", d) == ["uvps Wand Count: " + d["summary"]]
+
+
+class _Prefs(object):
+    """ij.Prefs as a dict."""
+
+    def __init__(self):
+        self.values = {}
+
+    def get(self, key, default):
+        return self.values.get(key, default)
+
+    def set(self, key, value):
+        self.values[key] = value
+
+
+class _AnsweringDialog(FakeGenericDialog):
+    """A dialog whose user changes some fields (``answers``: label -> value) and presses OK."""
+
+    answers = {}
+
+    def wasCanceled(self):
+        self._next = iter(self.fields)
+        return False
+
+    def _value(self):
+        kind, label, value, _ = next(self._next)
+        return _AnsweringDialog.answers.get(label, value)
+
+    getNextString = getNextChoice = getNextNumber = getNextBoolean = _value
+
+    def invalidNumber(self):
+        return False
+
+
+@pytest.fixture
+def dialog_module(monkeypatch):
+    """uvps_fiji.dialogs with fake ImageJ classes: a user at the dialog (no macro options)."""
+    from unittest import mock
+
+    prefs = _Prefs()
+    logged = []
+    ij = _fake_module("ij", IJ=mock.MagicMock(log=logged.append),
+                      Macro=mock.MagicMock(getOptions=lambda: None), Prefs=prefs)
+    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=_AnsweringDialog),
+             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
+    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
+                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
+        fakes[name] = _fake_module(name)
+    for name, module in fakes.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    import importlib
+
+    import uvps_fiji
+    for name in ("dialogs", "runner"):
+        monkeypatch.delitem(sys.modules, "uvps_fiji." + name, raising=False)
+        monkeypatch.delattr(uvps_fiji, name, raising=False)   # else `from` finds a stale one
+    dialogs = importlib.import_module("uvps_fiji.dialogs")
+    yield dialogs, prefs, logged
+    for name in ("dialogs", "runner"):
+        sys.modules.pop("uvps_fiji." + name, None)
+
+
+def _regions_dialog(dialogs, answers):
+    _AnsweringDialog.answers = answers
+    dlg = dialogs.UVPSDialog("Detect Protrusions")
+    dialogs.add_run_field(dlg)
+    dlg.string("Regions: colour areas", "")
+    values = dlg.show()
+    return values, dlg.gd.fields
+
+
+def test_a_runs_regions_file_is_not_carried_over_to_another_run(dialog_module):
+    """The Regions field names one run's own label image: it is offered again with that run only,
+    and not used when the user changes the run folder but leaves it (the Log says so)."""
+    dialogs, prefs, logged = dialog_module
+    mine = "/data/region1/regions_labels.tif"
+    values, _ = _regions_dialog(dialogs, {"Run folder (outputs)": "/data/region1",
+                                          "Regions: colour areas": mine})
+    assert values["regions"] == mine
+    # the same run again: offered
+    values, fields = _regions_dialog(dialogs, {})
+    assert [f[2] for f in fields] == ["/data/region1", mine] and values["regions"] == mine
+    # the user changes the run folder only: the other run's file is not used
+    values, _ = _regions_dialog(dialogs, {"Run folder (outputs)": "/data/region2"})
+    assert values == {"run": "/data/region2", "regions": ""}
+    assert len(logged) == 1 and mine in logged[0] and "not used" in logged[0]
+    # next time, with region2, nothing is pre-filled; choosing the file again uses it
+    values, fields = _regions_dialog(dialogs, {"Regions: colour areas": mine})
+    assert [f[2] for f in fields] == ["/data/region2", ""] and values["regions"] == mine
+    # a run folder chosen elsewhere (another menu item) : the field starts empty
+    prefs.set("uvps.run", "/data/region3")
+    _, fields = _regions_dialog(dialogs, {})
+    assert [f[2] for f in fields] == ["/data/region3", ""]

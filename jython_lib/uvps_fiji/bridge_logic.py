@@ -1195,6 +1195,10 @@ def lights_lines(diag, lights_file=None, user_gave_lights=False):
     n = diag.get("n_lights")
     lamps = "%s lamps" % n if n is not None else "the lamps"
     if lights_file and not user_gave_lights:
+        if os.path.isfile(os.path.join(os.path.dirname(lights_file), "calibration.json")):
+            # Calibrate Lamps' folder, given as the Calibration field: not the run folder
+            return ["lights: %s from the calibration folder's %s (Calibrate Lamps)"
+                    % (lamps, lights_file)]
         return ["lights: %s from the run folder's %s (not estimated again; give a Lights file "
                 "to use others)" % (lamps, lights_file)]
     if diag["source"] == "estimated":
@@ -1468,3 +1472,56 @@ def clicks_line(diag, where, automatic=True):
         else:
             line += " as the field \"Units of the points file\" says"
     return line
+
+
+#: Element Maps' composite by default: lead (the metal of the soaps) in red, the next two maps
+#: of the stack in green and blue.
+COMPOSITE_DEFAULT = ("Pb", "auto", "auto")
+
+
+def element_of(name):
+    """The element symbol of a map name: ``"Pb_L"`` -> ``"pb"``, ``"Cd L"`` -> ``"cd"``."""
+    import re
+    match = re.match(r"^([A-Za-z]{1,2})(?![a-z])", (name or "").strip())
+    return match.group(1).lower() if match else (name or "").strip().lower()
+
+
+def composite_channels(names, wanted=COMPOSITE_DEFAULT):
+    """The three maps of an element composite (red, green, blue) among the stack's ``names``.
+
+    Each of ``wanted`` is an element (``"Pb"`` takes the map ``"Pb_L"``), a map's whole name, or
+    ``"auto"``/empty: the first maps not otherwise chosen, in stack order. Returns ``(maps,
+    notes)``: up to three names, and a Log line for each wanted element that has no map."""
+    chosen, notes = [None] * 3, []
+    wanted = list(wanted or ()) + [""] * (3 - len(wanted or ()))
+    for i, want in enumerate(wanted[:3]):
+        want = (want or "").strip()
+        if not want or want.lower() == "auto":
+            continue
+        hits = [n for n in names if n == want] or \
+            [n for n in names if element_of(n) == element_of(want)]
+        if hits and hits[0] not in chosen:
+            chosen[i] = hits[0]
+        elif not hits:
+            notes.append("no %s map among %s; %s shows another element"
+                         % (want, ", ".join(names), ("red", "green", "blue")[i]))
+    rest = [n for n in names if n not in chosen]
+    for i in range(3):
+        if chosen[i] is None and rest:
+            chosen[i] = rest.pop(0)
+    return [c for c in chosen if c is not None], notes
+
+
+#: The statuses of ``changes.csv`` in the order the Log and the legend give them.
+CHANGE_STATUSES = ("new", "grown", "shrunk", "unchanged", "gone", "merged", "split")
+
+
+def status_counts(rows):
+    """``[(status, count), ...]`` of the change table's rows (dicts with a ``status``), in
+    :data:`CHANGE_STATUSES` order, statuses that occur only."""
+    counts = {}
+    for row in rows:
+        status = (row.get("status") or "").strip()
+        counts[status] = counts.get(status, 0) + 1
+    order = list(CHANGE_STATUSES) + sorted(s for s in counts if s not in CHANGE_STATUSES)
+    return [(s, counts[s]) for s in order if counts.get(s)]

@@ -7,6 +7,10 @@ the run folder chosen once is offered everywhere) and saved only when a user cli
 batch macro does not change the user's defaults; a key a macro leaves out takes the built-in
 default, not the remembered value, so a macro is reproducible.
 """
+import os
+
+from java.lang import Throwable
+
 from ij import Macro, Prefs
 from ij.gui import GenericDialog
 
@@ -44,6 +48,11 @@ CAPTURE_CHOICES = [CAPTURE_CURRENT, CAPTURE_FILES]
 
 macro_key = bridge_logic.macro_key
 
+#: Fields that name one run's own files (a colour-area label image): remembered together with
+#: the run folder they were chosen for and offered again only with that run folder, so that a
+#: new run never silently uses another run's regions_labels.tif.
+RUN_OWN_KEYS = ("regions", "label")
+
 
 class UVPSDialog(object):
     """A GenericDialog whose fields are read back into a dict keyed by macro key.
@@ -62,6 +71,7 @@ class UVPSDialog(object):
         self.fields = []
         self.help_text = doc_help(title, doc) if doc else ""
         self.field_help = []
+        self.defaults = {}
 
     def _remember(self, label, kind, default):
         key = macro_key(label)
@@ -75,6 +85,10 @@ class UVPSDialog(object):
             # values, so the same macro gives the same result on every machine.
             return default if default is not None else ""
         pref = PREFIX + key
+        if key in RUN_OWN_KEYS and Prefs.get(pref + ".run", "") != Prefs.get(PREFIX + "run", ""):
+            self.defaults[key] = default
+            return default if default is not None else ""
+        self.defaults[key] = default
         if kind == "number":
             return Prefs.get(pref, float(default))
         if kind == "checkbox":
@@ -148,8 +162,15 @@ class UVPSDialog(object):
         self.check_macro_keys()
         self._add_help()
         self.gd.showDialog()
-        if self.gd.wasCanceled():
-            return None
+        try:
+            cancelled = self.gd.wasCanceled()
+        except (Exception, Throwable) as exc:
+            # in a macro ImageJ aborts it on Cancel by throwing "Macro canceled"
+            if not runner.is_cancel(exc):
+                raise
+            cancelled = True
+        if cancelled:
+            raise runner.Cancelled(self.title)
         values = {}
         for key, kind in self.fields:
             if kind == "number":
@@ -163,12 +184,34 @@ class UVPSDialog(object):
         if self.gd.invalidNumber():
             raise ValueError("a number field of '%s' holds no number" % self.title)
         if Macro.getOptions() is None:
+            self._not_another_runs(values)
             for key, kind in self.fields:
                 value = values[key]
                 if kind == "checkbox":
                     value = "true" if value else "false"
                 Prefs.set(PREFIX + key, value)
+                if key in RUN_OWN_KEYS:
+                    Prefs.set(PREFIX + key + ".run", values.get("run") or "")
         return values
+
+    def _not_another_runs(self, values):
+        """A run's own file (``RUN_OWN_KEYS``) left as remembered while the run folder was
+        changed in the dialog is not carried over: the field's default is used and the Log says
+        so (choosing the file again in the dialog uses it)."""
+        from ij import IJ
+        run = (values.get("run") or "").strip()
+        for key in RUN_OWN_KEYS:
+            value = values.get(key)
+            if key not in values or not value or value == "auto" or not run:
+                continue
+            was_for = Prefs.get(PREFIX + key + ".run", "")
+            if value == Prefs.get(PREFIX + key, "") and was_for and \
+                    os.path.normpath(was_for) != os.path.normpath(run):
+                default = self.defaults.get(key)
+                values[key] = default if default is not None else ""
+                IJ.log("uvps %s: %s was chosen for the run folder %s, not %s: not used (%s "
+                       "instead; choose it again to use it)"
+                       % (self.title, value, was_for, run, values[key] or "none"))
 
 
 def _html(text):
@@ -248,3 +291,13 @@ def add_light_fields(dlg, command, lights=True):
     add_param(dlg, (command, "mask"), key="mask")
     add_param(dlg, (command, "dark"), key="dark")
     add_param(dlg, (command, "degree"), key="degree")
+
+
+def add_composite_fields(dlg, defaults):
+    """Element Maps' composite: the elements shown in red, green and blue (keys red, green, blue;
+    display only, the core is not asked)."""
+    for colour, default in zip(("Red", "Green", "Blue"), defaults):
+        label = "%s element (composite)" % colour
+        dlg.string(label, default, columns=8)
+        dlg.describe(label, "an element (Pb takes the map Pb_L) or a map's name; auto: the next "
+                     "map of the stack")

@@ -48,6 +48,21 @@ def _show_replacing(imp):
         old.changes = False
         old.close()
     imp.show()
+    keep_on_screen(imp.getWindow())
+
+
+def keep_on_screen(window):
+    """Move ``window`` (an AWT window; None is ignored) so that it lies on the screen as far as
+    its size allows: ImageJ cascades new windows and some opened partly off-screen."""
+    from java.awt import GraphicsEnvironment
+    if window is None or GraphicsEnvironment.isHeadless():
+        return
+    screen = GraphicsEnvironment.getLocalGraphicsEnvironment().getMaximumWindowBounds()
+    r = window.getBounds()
+    x = min(max(r.x, screen.x), max(screen.x, screen.x + screen.width - r.width))
+    y = min(max(r.y, screen.y), max(screen.y, screen.y + screen.height - r.height))
+    if (x, y) != (r.x, r.y):
+        window.setLocation(x, y)
 
 
 def open_folder_stack(path, title):
@@ -82,6 +97,7 @@ def open_table(path, title):
         raise BridgeError("ImageJ cannot read the table %s" % path)
     table.setPrecision(4)
     table.show(title)
+    keep_on_screen(WindowManager.getWindow(title))
     return table
 
 
@@ -117,23 +133,29 @@ def protrusion_rois(table, labels_imp=None, pixel_size_um=None, kind="auto", run
         if counted is not None and not counted[i] > 0:
             continue
         label = int(ids[i]) if ids is not None else i + 1
-        x, y = int(math.floor(xs[i])), int(math.floor(ys[i]))
-        roi = None
-        if ip is not None and 0 <= x < ip.getWidth() and 0 <= y < ip.getHeight() \
-                and int(round(ip.getPixelValue(x, y))) == label:
-            wand = Wand(ip)
-            wand.autoOutline(x, y, label - 0.5, label + 0.5, Wand.EIGHT_CONNECTED)
-            if wand.npoints > 0:
-                roi = PolygonRoi(wand.xpoints, wand.ypoints, wand.npoints, Roi.TRACED_ROI)
-        if roi is None:
-            d = 3.0
-            if widths is not None and pixel_size_um and widths[i] == widths[i]:
-                d = max(widths[i] / pixel_size_um, 1.0)
-            roi = OvalRoi(xs[i] + 0.5 - d / 2.0, ys[i] + 0.5 - d / 2.0, d, d)
+        roi = outline(ip, label, xs[i], ys[i], widths[i] if widths is not None else None,
+                      pixel_size_um)
         roi.setName(bridge_logic.outline_name(kind, label, run_dir))
         roi.setStrokeColor(OUTLINE_COLOURS[kind])
         rois.append(roi)
     return rois
+
+
+def outline(ip, label, x, y, width_um=None, pixel_size_um=None):
+    """The outline of protrusion ``label`` whose centroid is ``(x, y)`` px: traced in the label
+    image's processor ``ip`` with ImageJ's Wand when the centroid lies inside its own label,
+    else (ring-shaped label, no label image) a circle of ``width_um`` (3 px when unknown)."""
+    xi, yi = int(math.floor(x)), int(math.floor(y))
+    if ip is not None and 0 <= xi < ip.getWidth() and 0 <= yi < ip.getHeight() \
+            and int(round(ip.getPixelValue(xi, yi))) == label:
+        wand = Wand(ip)
+        wand.autoOutline(xi, yi, label - 0.5, label + 0.5, Wand.EIGHT_CONNECTED)
+        if wand.npoints > 0:
+            return PolygonRoi(wand.xpoints, wand.ypoints, wand.npoints, Roi.TRACED_ROI)
+    d = 3.0
+    if width_um is not None and pixel_size_um and width_um == width_um:
+        d = max(width_um / pixel_size_um, 1.0)
+    return OvalRoi(x + 0.5 - d / 2.0, y + 0.5 - d / 2.0, d, d)
 
 
 #: Colour of the sphere circles of Calibrate Lamps.
@@ -222,6 +244,25 @@ def outlines_on(title, run_dir):
             if bridge_logic.outline_kind(overlay.get(i).getName(), run_dir) is not None]
 
 
+def is_area_item(name, run_dir):
+    """Whether an overlay item's name is one of run ``run_dir``'s colour areas (outline or tag,
+    :func:`area_name`)."""
+    suffix = " - " + bridge_logic.run_label(run_dir)
+    name = name or ""
+    return name.startswith("area ") and (name.endswith(suffix) or name.endswith(suffix + " tag"))
+
+
+def areas_on(title, run_dir):
+    """Copies of run ``run_dir``'s colour-area outlines and tags on the overlay of the open image
+    ``title`` (none if it is not open): what a re-opened albedo should show again."""
+    imp = WindowManager.getImage(title)
+    overlay = imp.getOverlay() if imp is not None else None
+    if overlay is None:
+        return []
+    return [overlay.get(i).clone() for i in range(overlay.size())
+            if is_area_item(overlay.get(i).getName(), run_dir)]
+
+
 def add_to_overlay(imp, rois):
     """Add ``rois`` to the overlay of ``imp`` (kept items first)."""
     if imp is None or not rois:
@@ -295,6 +336,7 @@ def show_lights(path, title="Lights (top view)", table_title="Lights"):
         ys.append(r * math.sin(math.radians(az)))
     table.setPrecision(3)
     table.show(table_title)
+    keep_on_screen(WindowManager.getWindow(table_title))
     plot = Plot(title, "x (toward image right)", "y (toward image top)")
     plot.setLimits(-1.15, 1.15, -1.15, 1.15)
     circle_x = [math.cos(2 * math.pi * t / 90.0) for t in range(91)]
@@ -307,7 +349,10 @@ def show_lights(path, title="Lights (top view)", table_title="Lights"):
     for i in range(len(xs)):
         plot.addText(str(i + 1), xs[i] + 0.04, ys[i] + 0.04)
     plot.setColor(Color.black)
-    plot.show()
+    # shown as a plain image: Window > Tile refuses plot windows that are not frozen (the
+    # numbers are in the Lights table)
+    imp = ImagePlus(title, plot.getProcessor().duplicate())
+    _show_replacing(imp)
     return plot
 
 
@@ -355,8 +400,6 @@ MICRONS = u"\u00b5m"
 def viridis_lut():
     """ImageJ's ``mpl-viridis`` LUT (Fiji's luts/ folder) if present, else viridis interpolated
     from :data:`VIRIDIS`: perceptually uniform, readable in grey and by colour-blind people."""
-    from jarray import array
-    from ij.process import LUT
     luts = IJ.getDirectory("luts")
     path = os.path.join(luts, "mpl-viridis.lut") if luts else None
     if path and os.path.isfile(path):
@@ -364,12 +407,26 @@ def viridis_lut():
         lut = LutLoader.openLut(path)
         if lut is not None:
             return lut
+    return lut_from(VIRIDIS)
+
+
+#: ColorBrewer's RdBu (9 classes) from negative (blue) through zero (white) to positive (red):
+#: a height change's map, loss blue, gain red, no change white.
+BLUE_WHITE_RED = [(33, 102, 172), (67, 147, 195), (146, 197, 222), (209, 229, 240),
+                  (247, 247, 247), (253, 219, 199), (244, 165, 130), (214, 96, 77), (178, 24, 43)]
+
+
+def lut_from(anchors):
+    """A 256-entry ImageJ LUT interpolated linearly between the evenly spaced RGB ``anchors``
+    (ImageJ builds LUTs from byte arrays; no interpolating constructor exists in 1.x)."""
+    from jarray import array
+    from ij.process import LUT
     reds, greens, blues = [], [], []
     for i in range(256):
-        t = i / 255.0 * (len(VIRIDIS) - 1)
-        k = min(int(t), len(VIRIDIS) - 2)
+        t = i / 255.0 * (len(anchors) - 1)
+        k = min(int(t), len(anchors) - 2)
         f = t - k
-        a, b = VIRIDIS[k], VIRIDIS[k + 1]
+        a, b = anchors[k], anchors[k + 1]
         rgb = [int(round(a[c] + f * (b[c] - a[c]))) for c in range(3)]
         for out, v in zip((reds, greens, blues), rgb):
             out.append(v - 256 if v > 127 else v)
@@ -378,36 +435,91 @@ def viridis_lut():
 
 def show_height(path, title, scale="absolute"):
     """Open the height map with its value unit (um; "relative" when the run's height scale is
-    not pinned, see ``bridge_logic.relief_scale``), a viridis LUT and a calibration bar with the
-    unit written under it (overlays, so the pixel values stay the heights)."""
-    from ij.gui import TextRoi
-    from java.awt import Font
+    not pinned, see ``bridge_logic.relief_scale``), a viridis LUT and ImageJ's calibration bar
+    beside it, its unit under it (:func:`bar_beside`: the heights keep their pixels)."""
     _, unit, bar_label = bridge_logic.HEIGHT_WORDS[scale]
     imp = open_image(path, title, show=False)
     imp.getCalibration().setValueUnit(unit)
     imp.setLut(viridis_lut())
     imp.resetDisplayRange()
-    _show_replacing(imp)
-    IJ.run(imp, "Calibration Bar...", "location=[Upper Right] fill=White label=Black number=5 "
-           "decimal=1 font=12 zoom=1 overlay")
-    overlay = imp.getOverlay() or Overlay()
-    bar = None
-    for i in range(overlay.size()):
-        overlay.get(i).setName("calibration bar")
-        bar = overlay.get(i).getBounds() if bar is None else bar.union(overlay.get(i).getBounds())
-    # ImageJ's bar shows numbers only: its unit goes under it, on the same white ground
-    font = Font("SansSerif", Font.PLAIN, 12)
-    text = TextRoi(0, 0, bar_label, font)
-    width = text.getBounds().width
-    x = (bar.x + bar.width - width) if bar is not None else imp.getWidth() - width - 2
+    return bar_beside(imp, bar_label, "depth.tif")
+
+
+#: Names of the overlay items of :func:`bar_beside` (tests and probes look for them).
+BAR_NAME, BAR_UNIT_NAME, BAR_MARGIN_NAME = ("calibration bar", "calibration bar unit",
+                                            "calibration bar margin")
+
+
+def bar_zoom(height):
+    """The calibration bar's zoom for an image ``height`` px tall: ImageJ shows a large image
+    reduced to fit the screen, so the bar grows with it to stay readable."""
+    return max(1, int(math.ceil(height / 900.0)))
+
+
+def _widened(imp, margin):
+    """``imp`` (one float plane) with ``margin`` columns of NaN added on the right (ImageJ's
+    statistics and histograms skip NaN, so the margin never enters a measurement); the pixels
+    at (x, y) stay those of the file."""
+    from java.lang import Float
+    from java.util import Arrays
+    from ij.process import FloatProcessor
+    ip = imp.getProcessor().convertToFloat()
+    w, h = ip.getWidth(), ip.getHeight()
+    out = FloatProcessor(w + margin, h)
+    Arrays.fill(out.getPixels(), Float.NaN)
+    out.insert(ip, 0, 0)
+    out.setLut(imp.getProcessor().getLut())
+    out.setMinAndMax(ip.getMin(), ip.getMax())
+    wide = ImagePlus(imp.getTitle(), out)
+    wide.setCalibration(imp.getCalibration())
+    return wide
+
+
+def bar_beside(imp, label, what, decimals=1):
+    """Show the float image ``imp`` (LUT and display range set) with ImageJ's calibration bar
+    (*Analyze > Tools > Calibration Bar*) beside it, not over it: the canvas is widened on the
+    right by a blank margin (NaN pixels, white on screen) that holds the bar and ``label`` (the
+    unit) under it. Pixels at (x, y) are the file's; the image's Info says so. Returns the
+    shown ImagePlus."""
+    from ij.gui import TextRoi
+    from java.awt import Font
+    w, h = imp.getWidth(), imp.getHeight()
+    zoom = bar_zoom(h)
+    font = Font("SansSerif", Font.PLAIN, 12 * zoom)
+    label_width = TextRoi(0, 0, label, font).getBounds().width
+    margin = max(100 * zoom, label_width + 8 * zoom)
+    for _ in range(3):
+        shown = _widened(imp, margin)
+        _show_replacing(shown)
+        IJ.run(shown, "Calibration Bar...", "location=[Upper Right] fill=White label=Black "
+               "number=5 decimal=%d font=12 zoom=%d overlay" % (decimals, zoom))
+        overlay = shown.getOverlay() or Overlay()
+        bar = None
+        for i in range(overlay.size()):
+            overlay.get(i).setName(BAR_NAME)
+            b = overlay.get(i).getBounds()
+            bar = b if bar is None else bar.union(b)
+        if bar is None or bar.x >= w + 2:
+            break
+        margin += w + 2 * zoom + 2 - bar.x   # the bar did not fit: widen by what it lacked
+    blank = Roi(w, 0, shown.getWidth() - w, h)
+    blank.setFillColor(Color.white)
+    blank.setName(BAR_MARGIN_NAME)
+    items = [blank] + [overlay.get(i) for i in range(overlay.size())]
+    x = (bar.x + bar.width - label_width) if bar is not None else w + 2
     y = (bar.y + bar.height) if bar is not None else 2
-    text = TextRoi(max(0, x), y, bar_label, font)
+    text = TextRoi(max(w + 1, x), y, label, font)
     text.setStrokeColor(Color.black)
     text.setFillColor(Color.white)
-    text.setName("calibration bar unit")
-    overlay.add(text)
-    imp.setOverlay(overlay)
-    return imp
+    text.setName(BAR_UNIT_NAME)
+    items.append(text)
+    fresh = Overlay()
+    for item in items:
+        fresh.add(item)
+    shown.setOverlay(fresh)
+    shown.setProperty("Info", "uvps: %s; columns %d and right of it are a blank margin (NaN) "
+                      "that holds the calibration bar, not part of the file" % (what, w))
+    return shown
 
 
 def _sample_top(processors, fraction=0.995, n=200000):
@@ -499,3 +611,224 @@ def show_wand_image(albedo_path, title):
     IJ.log("uvps: '%s' is the grey image the wand works on: use ImageJ's wand tool on it with "
            "the same tolerance to check a selection by hand" % title)
     return imp
+
+
+# ---------------------------------------------------------------------------------------------
+# Colour areas, height change and element maps as the report names them
+# ---------------------------------------------------------------------------------------------
+
+#: Colours of the colour areas' outlines and names (Tableau 10, distinct on an albedo), by label.
+AREA_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+                (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+
+
+def area_name(label, name, run_dir):
+    """The overlay name of colour area ``label``: ``"area 5 (blue) - region1"``, the report's
+    "area 5" with the name regions.csv gives it."""
+    return bridge_logic.run_title("area %d (%s)" % (label, name), run_dir) if name \
+        else bridge_logic.run_title("area %d" % label, run_dir)
+
+
+def read_csv_rows(path):
+    """The rows of a CSV output as dicts (the csv module: quoted names with commas are kept)."""
+    import csv
+    fh = open(path, "rb")
+    try:
+        return list(csv.DictReader(fh))
+    finally:
+        fh.close()
+
+
+def area_rois(labels_path, regions_csv, run_dir):
+    """One outline (ImageJ's *Edit > Selection > Create Selection* of the label's pixels) and
+    one name tag per colour area of ``regions_labels.tif``, named by :func:`area_name`."""
+    from ij.gui import TextRoi
+    from ij.plugin.filter import ThresholdToSelection
+    from ij.process import ImageProcessor
+    from java.awt import Font
+    if not os.path.isfile(labels_path):
+        raise BridgeError("output label image %s is missing" % labels_path)
+    labels = IJ.openImage(labels_path)
+    if labels is None:
+        raise BridgeError("ImageJ cannot open the label image %s" % labels_path)
+    names = {}
+    if regions_csv and os.path.isfile(regions_csv):
+        for row in read_csv_rows(regions_csv):
+            try:
+                names[int(float(row.get("label", "")))] = (row.get("name") or "").strip()
+            except ValueError:
+                pass  # the "all" row
+    ip = labels.getProcessor()
+    top = int(ip.getStatistics().max)
+    zoom = bar_zoom(labels.getHeight())
+    font = Font("SansSerif", Font.BOLD, 14 * zoom)
+    rois = []
+    for label in range(1, top + 1):
+        ip.setThreshold(label - 0.5, label + 0.5, ImageProcessor.NO_LUT_UPDATE)
+        roi = ThresholdToSelection.run(labels)
+        ip.resetThreshold()
+        if roi is None:
+            continue
+        colour = Color(*AREA_COLOURS[(label - 1) % len(AREA_COLOURS)])
+        name = area_name(label, names.get(label), run_dir)
+        roi.setName(name)
+        roi.setStrokeColor(colour)
+        roi.setStrokeWidth(2 * zoom)
+        rois.append(roi)
+        # the tag inside the area, at its largest piece's centre when that lies inside it
+        pieces = roi.getRois() if hasattr(roi, "getRois") else [roi]
+        piece = max(pieces, key=lambda r: r.getStatistics().pixelCount) if pieces else roi
+        b = piece.getBounds()
+        x, y = b.x + b.width // 2, b.y + b.height // 2
+        if not roi.contains(x, y):
+            points = piece.getContainedPoints()
+            if points:
+                x, y = points[len(points) // 2].x, points[len(points) // 2].y
+        word = "area %d" % label
+        if names.get(label) and names[label] != word:
+            word += " (%s)" % names[label]
+        tag = TextRoi(x, y, word, font)
+        tb = tag.getBounds()
+        tag.setLocation(max(0, x - tb.width // 2), max(0, y - tb.height // 2))
+        tag.setStrokeColor(Color.white)
+        tag.setFillColor(Color(colour.getRed(), colour.getGreen(), colour.getBlue(), 170))
+        tag.setName(name + " tag")
+        rois.append(tag)
+    return rois
+
+
+def show_areas(labels_path, regions_csv, images, run_dir, table_title=None):
+    """Draw the colour areas (outlines and name tags, :func:`area_rois`) on ``images`` (the
+    albedo, the height map: an earlier drawing of the same run's areas is replaced) and open
+    ``regions.csv`` as the table ``table_title``; return the number of areas."""
+    rois = area_rois(labels_path, regions_csv, run_dir)
+    for imp in images:
+        if imp is None:
+            continue
+        overlay = imp.getOverlay() or Overlay()
+        for i in reversed(range(overlay.size())):
+            if is_area_item(overlay.get(i).getName(), run_dir):
+                overlay.remove(i)
+        for roi in rois:
+            overlay.add(roi.clone())
+        imp.setOverlay(overlay)
+    if table_title and regions_csv and os.path.isfile(regions_csv):
+        open_table(regions_csv, table_title)
+    n = len([r for r in rois if not (r.getName() or "").endswith(" tag")])
+    IJ.log("uvps: %d colour areas drawn with their names (%s)" % (n, labels_path))
+    return n
+
+
+#: Outline colours of Compare Captures by status (the report's, unchanged grey instead of
+#: near-white so that it shows on a light albedo).
+STATUS_COLOURS = {"new": Color(26, 150, 65), "grown": Color(215, 25, 28),
+                  "shrunk": Color(253, 174, 97), "unchanged": Color(150, 150, 150),
+                  "gone": Color(44, 123, 182), "merged": Color(123, 50, 148),
+                  "split": Color(197, 27, 125)}
+
+
+def change_rois(changes_csv, date, labels_path=None, pixel_size_um=None):
+    """The outlines of one date's protrusions listed in ``changes.csv``, coloured by status
+    (:data:`STATUS_COLOURS`) and named ``"grown 12 (later)"``. ``date``: ``"a"`` (the earlier
+    run, ids ``id_a``) or ``"b"``; outlines traced in that run's ``protrusions_labels.tif``."""
+    labels = IJ.openImage(labels_path) if labels_path and os.path.isfile(labels_path) else None
+    ip = labels.getProcessor() if labels is not None else None
+    if pixel_size_um is None and labels is not None and labels.getCalibration().scaled():
+        pixel_size_um = labels.getCalibration().pixelWidth
+    word = {"a": "earlier", "b": "later"}[date]
+    rois = []
+    for row in read_csv_rows(changes_csv):
+        ident = (row.get("id_" + date) or "").strip()
+        if not ident:
+            continue
+        try:
+            label = int(float(ident))
+            x, y = float(row["x_px_" + date]), float(row["y_px_" + date])
+        except (KeyError, ValueError):
+            continue
+        try:
+            width = float(row.get("width_um_" + date) or "nan")
+        except ValueError:
+            width = None
+        status = (row.get("status") or "").strip()
+        roi = outline(ip, label, x, y, width, pixel_size_um)
+        roi.setName("%s %d (%s)" % (status, label, word))
+        roi.setStrokeColor(STATUS_COLOURS.get(status, Color.white))
+        rois.append(roi)
+    return rois
+
+
+def status_legend(imp, x, y, statuses):
+    """The status colours as text lines at ``(x, y)`` on the overlay of ``imp`` (the margin
+    beside a calibration bar): what each outline colour means."""
+    from ij.gui import TextRoi
+    from java.awt import Font
+    zoom = bar_zoom(imp.getHeight())
+    font = Font("SansSerif", Font.BOLD, 12 * zoom)
+    overlay = imp.getOverlay() or Overlay()
+    for status in statuses:
+        text = TextRoi(x, y, status, font)
+        text.setStrokeColor(STATUS_COLOURS[status])
+        text.setName("legend " + status)
+        overlay.add(text)
+        y += text.getBounds().height
+    imp.setOverlay(overlay)
+
+
+def show_height_change(path, title):
+    """``height_change.tif`` (later minus earlier, um, the earlier run's frame) in blue-white-red
+    (:data:`BLUE_WHITE_RED`), symmetric about 0 (99.5 % of the values within the range), with
+    ImageJ's calibration bar beside it (:func:`bar_beside`)."""
+    imp = open_image(path, title, show=False)
+    imp.getCalibration().setValueUnit(u"\u00b5m")
+    imp.setLut(lut_from(BLUE_WHITE_RED))
+    ip = imp.getProcessor()
+    top = _sample_top([_absolute(ip)])
+    ip.setMinAndMax(-top, top)
+    return bar_beside(imp, u"height change (\u00b5m)", "height_change.tif", decimals=2)
+
+
+def _absolute(ip):
+    out = ip.duplicate().convertToFloat()
+    out.abs()
+    return out
+
+
+def element_composite(path, title, channels):
+    """``elements.tif`` as an ImageJ composite of the three elements ``channels`` (red, green,
+    blue; names as the stack's slice labels), each channel from 0 to its 99.5 % quantile; the
+    whole stack stays open beside it for the other elements. Returns the composite."""
+    from ij import CompositeImage, ImageStack
+    stack_imp = open_image(path, title)
+    stack = stack_imp.getStack()
+    labels = [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]
+    picked = ImageStack(stack_imp.getWidth(), stack_imp.getHeight())
+    for name in channels:
+        ip = stack.getProcessor(labels.index(name) + 1).duplicate()
+        picked.addSlice(name, ip)
+    comp_title = "%s (%s)" % (title, "/".join(channels))
+    imp = ImagePlus(comp_title, picked)
+    imp.setDimensions(len(channels), 1, 1)
+    imp.setCalibration(stack_imp.getCalibration())
+    comp = CompositeImage(imp, CompositeImage.COMPOSITE)
+    for c, colour in enumerate((Color.red, Color.green, Color.blue)[:len(channels)]):
+        from ij.process import LUT
+        comp.setC(c + 1)
+        comp.setChannelLut(LUT.createLutFromColor(colour))
+        top = _sample_top([picked.getProcessor(c + 1)])
+        comp.setDisplayRange(0.0, top)
+    comp.setC(1)
+    comp.setTitle(comp_title)
+    comp.setProperty("Info", "uvps: elements %s of %s as red, green, blue (display only)"
+                     % (", ".join(channels), path))
+    _show_replacing(comp)
+    return comp
+
+
+def slice_labels(path):
+    """The slice labels of a stack TIFF (e.g. ``elements.tif``'s element names)."""
+    imp = IJ.openImage(path)
+    if imp is None:
+        raise BridgeError("ImageJ cannot open the output image %s" % path)
+    stack = imp.getStack()
+    return [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]

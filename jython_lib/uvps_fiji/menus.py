@@ -126,9 +126,10 @@ def _show_protrusions(response, kind, run_dir):
 
     def reopened(window_title, opener):
         kept = display.outlines_on(window_title, run_dir) if other_kept else []
+        areas = display.areas_on(window_title, run_dir)   # the colour areas drawn on it stay
         imp = opener()
-        display.add_to_overlay(imp, [r for r in kept
-                                     if bridge_logic.outline_kind(r.getName(), run_dir) == other])
+        display.add_to_overlay(imp, areas + [r for r in kept if bridge_logic.outline_kind(
+            r.getName(), run_dir) == other])
         return imp
 
     albedo = height = None
@@ -257,8 +258,20 @@ def colour_areas(values):
     response = run_command("regions", values, inputs, params, request_dir, skip=skip)
     out = run_folder(values)
     display.open_image(response.file("regions_labels.tif"), titled("regions_labels", out))
-    display.open_table(response.file("regions.csv"), titled("Regions", out))
+    albedo = None
+    if os.path.isfile(os.path.join(out, "albedo.tif")):
+        albedo = display.show_albedo(os.path.join(out, "albedo.tif"), titled("albedo", out))
+    _show_areas(response, out, [albedo])
     return response
+
+
+def _show_areas(response, run_dir, images):
+    """The run's colour areas as outlines with their numbers and names (the report's "area 5")
+    on ``images``, and ``regions.csv`` as the table "Regions - <run>"."""
+    csv_path = response.file("regions.csv") if response.has_file("regions.csv") else \
+        os.path.join(run_dir, "regions.csv")
+    display.show_areas(response.file("regions_labels.tif"), csv_path, images, run_dir,
+                       titled("Regions", run_dir))
 
 
 def statistics_and_report(values):
@@ -329,9 +342,62 @@ def run_whole_pipeline(values):
         display.forget_outlines(out)
         show_height(response.file("depth.tif"), out)
         display.show_albedo(response.file("albedo.tif"), titled("albedo", out))
+    if response.has_file("regions_labels.tif"):
+        from ij import WindowManager
+        _show_areas(response, out, [WindowManager.getImage(titled("albedo", out))])
     if response.has_file("report.html"):
         display.show_report(response.file("report.html"), runner.is_interactive())
     IJ.log("uvps Run Whole Pipeline: outputs in " + out)
+    return response
+
+
+def compare_captures(values):
+    """``changes``: two dates of one region; the height change in blue-white-red with its
+    calibration bar beside it and the earlier date's outlines coloured by status, both dates'
+    albedos with their outlines by status, and the change table."""
+    response = run_command("changes", values)
+    out = run_folder(values)
+    changes = response.file("changes.csv")
+    dates = []
+    for key, date in (("earlier", "a"), ("later", "b")):
+        run = os.path.normpath(optional_path(values.get(key)) or "")
+        rois = display.change_rois(changes, date, os.path.join(run, "protrusions_labels.tif"))
+        dates.append((key, run, rois))
+    height = display.show_height_change(response.file("height_change.tif"),
+                                        titled("height change (um)", out))
+    statuses = bridge_logic.status_counts(display.read_csv_rows(changes))
+    display.add_to_overlay(height, [r.clone() for r in dates[0][2]])
+    bar = [height.getOverlay().get(i) for i in range(height.getOverlay().size())
+           if height.getOverlay().get(i).getName() == display.BAR_UNIT_NAME]
+    if bar:
+        b = bar[0].getBounds()
+        display.status_legend(height, b.x, b.y + b.height + 6,
+                              [s for s, _ in statuses if s in display.STATUS_COLOURS])
+    for key, run, rois in dates:
+        path = os.path.join(run, "albedo.tif")
+        if os.path.isfile(path):
+            albedo = display.show_albedo(path, titled("albedo (%s)" % key, run))
+            display.add_to_overlay(albedo, rois)
+    display.open_table(changes, titled("Changes", out))
+    IJ.log("uvps Compare Captures: %s; outlines coloured by status on the height change and on "
+           "both dates' albedos" % ", ".join("%d %s" % (n, s) for s, n in statuses))
+    IJ.selectWindow(height.getID())   # the height change in front, as before
+    return response
+
+
+def element_maps(values):
+    """``elements``: the registered element maps as a stack, and a composite of three of them
+    (red, green, blue: keys red, green, blue; lead first by default)."""
+    response = run_command("elements", values)
+    path = response.file("elements.tif")
+    names = display.slice_labels(path)
+    wanted = [values.get(k) for k in ("red", "green", "blue")]
+    channels, notes = bridge_logic.composite_channels(names, wanted)
+    for note in notes:
+        IJ.log("uvps Element Maps: " + note)
+    display.element_composite(path, "element maps (run frame)", channels)
+    IJ.log("uvps Element Maps: composite %s (choose with Red, Green, Blue element)" % ", ".join(
+        "%s %s" % (c, n) for c, n in zip(("red", "green", "blue"), channels)))
     return response
 
 

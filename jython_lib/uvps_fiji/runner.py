@@ -39,6 +39,10 @@ class PluginError(Exception):
     """Raised at the end of a failed menu command run from a macro, so the macro fails."""
 
 
+class Cancelled(Exception):
+    """A dialog was cancelled: the menu item ends with "cancelled" (:func:`report_cancel`)."""
+
+
 def python_command():
     """Return (python, source) following ``bridge_logic.find_python``'s order."""
     setting = Prefs.get(PYTHON_PREF, "")
@@ -84,12 +88,12 @@ def remove_pending_request_dirs():
 
 
 def is_interactive():
-    """True when a user clicked the menu item (no macro options, no batch mode, a display)."""
+    """True when a user clicked the menu item (no macro running, no batch mode, a display)."""
     if GraphicsEnvironment.isHeadless():
         return False
     if Macro.getOptions() is not None:
         return False
-    if Interpreter.isBatchMode():
+    if Interpreter.isBatchMode() or Interpreter.getInstance() is not None:
         return False
     if System.getProperty("uvps.test") is not None:
         return False
@@ -158,18 +162,24 @@ def run_process(args, timeout_s=DEFAULT_TIMEOUT_S, on_line=_show_progress, cwd=N
     IJ.resetEscape()
     start = time.time()
     stop = None
-    while not process.waitFor(200, TimeUnit.MILLISECONDS):
-        if IJ.escapePressed():
-            stop = BridgeError("cancelled with Esc; the core was stopped", error_type="Cancelled")
-        elif timeout_s and time.time() - start > timeout_s:
-            stop = BridgeError("the core did not finish within %d s and was stopped" % timeout_s,
-                               error_type="Timeout")
-        if stop is not None:
+    try:
+        while not process.waitFor(200, TimeUnit.MILLISECONDS):
+            if IJ.escapePressed():
+                stop = BridgeError("cancelled with Esc; the core was stopped",
+                                   error_type="Cancelled")
+            elif timeout_s and time.time() - start > timeout_s:
+                stop = BridgeError("the core did not finish within %d s and was stopped"
+                                   % timeout_s, error_type="Timeout")
+            if stop is not None:
+                break
+    finally:
+        # also when ImageJ stops this thread (Esc in a macro: ThreadDeath): the core never
+        # outlives the menu item
+        if process.isAlive():
             process.destroy()
             if not process.waitFor(5, TimeUnit.SECONDS):
                 process.destroyForcibly()
                 process.waitFor()
-            break
     out.join(10)
     err.join(10)
     IJ.showProgress(1.0)
@@ -240,6 +250,60 @@ def menu_words(title, message):
         return message
 
 
+def is_cancel(exc):
+    """Whether ``exc`` is a user's cancel, not a failure: Esc during a bridge call (BridgeError
+    ``Cancelled``), ImageJ stopping the macro thread (ThreadDeath, an interrupt) or a macro's
+    abort (ImageJ's RuntimeException "Macro canceled", thrown e.g. by a cancelled dialog)."""
+    from java.lang import InterruptedException, ThreadDeath
+    if isinstance(exc, BridgeError):
+        return exc.error_type == "Cancelled"
+    if isinstance(exc, (ThreadDeath, InterruptedException)):
+        return True
+    message = exc.getMessage() if isinstance(exc, Throwable) else str(exc)
+    return bool(message) and Macro.MACRO_CANCELED in message
+
+
+def shows_dialogs():
+    """Whether a person sees ImageJ's windows (a display, ImageJ's main window, no batch mode,
+    not the test harness): then an error is shown in a dialog, also when a macro ran the item."""
+    return not GraphicsEnvironment.isHeadless() and IJ.getInstance() is not None \
+        and not Interpreter.isBatchMode() and System.getProperty("uvps.test") is None
+
+
+def report_cancel(title, how="cancelled"):
+    """A cancel: one Log line and the status bar say "cancelled" (no dialog, no trace); the
+    calling macro stops, as ImageJ's own commands do on Cancel."""
+    line = "uvps %s: %s" % (title, how)
+    IJ.log(line)
+    IJ.showStatus("uvps: %s cancelled" % title)
+    IJ.showProgress(1.0)
+    _stop_macro("uvps: %s cancelled" % title)
+
+
+def _stop_macro(status=None):
+    """Stop the macro that ran the menu item, if any (ImageJ would run its next line); the
+    status bar then says ``status`` again (ImageJ writes "Macro aborted" once the macro ends)."""
+    if Interpreter.getInstance() is None:
+        return
+    try:
+        Interpreter.abort()
+    except (Exception, Throwable):  # ImageJ signals the abort with "Macro canceled"
+        pass
+    if status:
+        IJ.showStatus(status)   # after the abort, which wrote "Macro aborted"
+
+
+def show_error_dialog(title, message):
+    """One modal message (ImageJ's MessageDialog: unlike IJ.error it does not abort the macro
+    itself, which put "Macro canceled" and a stack trace in the Log after OK)."""
+    from ij.gui import MessageDialog
+    MessageDialog(IJ.getInstance(), "uvps: " + title, message)
+
+
+#: Error types that are a user's mistake: one Log line, the core's log left out.
+USER_ERRORS = ("UVPSInputError", "MacroOptions", "Configuration", "Timeout")
+
+
 def report_error(title, exc):
     """Show a failure: Log always; a dialog when interactive; abort + raise in a macro.
 
@@ -250,6 +314,12 @@ def report_error(title, exc):
     exc : Exception
         A BridgeError (its ``message`` and ``log`` are used) or any other exception.
     """
+    if is_cancel(exc):
+        how = "cancelled"
+        if isinstance(exc, BridgeError):
+            how = "cancelled (%s)" % exc.message.replace("cancelled with ", "")
+        report_cancel(title, how)
+        return
     if isinstance(exc, BridgeError):
         message = menu_words(title, exc.message)
         kind = exc.error_type
@@ -261,18 +331,18 @@ def report_error(title, exc):
         log = ""
     line = "uvps %s failed (%s): %s" % (title, kind, message)
     IJ.log(line)
-    if log and log.strip():
+    if log and log.strip() and kind not in USER_ERRORS:
+        # the core's log helps with an unexpected failure; a user's mistake is the line above
         IJ.log("uvps core log:\n" + log.strip())
     System.err.println(line)
     IJ.showStatus("uvps: " + title + " failed")
     IJ.showProgress(1.0)
     interactive = is_interactive()
-    if interactive:
-        IJ.error("uvps: " + title, message)
-    if Interpreter.getInstance() is not None:
-        # Stop the calling macro: without this, ImageJ would run its next line after a Python
-        # exception in a menu command (tried with ImageJ 1.53t -batch).
-        Interpreter.abort()
+    if shows_dialogs():
+        show_error_dialog(title, message)
+    # Stop the calling macro: without this, ImageJ would run its next line after a Python
+    # exception in a menu command (tried with ImageJ 1.53t -batch).
+    _stop_macro("uvps: " + title + " failed")
     if not interactive and System.getProperty("uvps.test") is None and IJ.getInstance() is None \
             and bridge_logic.exit_on_failure(System.getProperty("sun.java.command")):
         # Plain `ImageJ -batch` exits 0 after an aborted macro: end it with a failure status so a
@@ -297,6 +367,8 @@ def run_menu(title, func):
         return func()
     except PluginError:
         raise
+    except Cancelled:
+        report_cancel(title)
     except BridgeError as exc:
         report_error(title, exc)
     except (Exception, Throwable) as exc:  # Java exceptions are not Python Exceptions

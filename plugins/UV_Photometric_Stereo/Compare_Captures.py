@@ -3,7 +3,10 @@
 Registers the later run folder (B) onto the earlier one (A) from the albedo, levels the heights
 and gives every protrusion its status (new, grown, shrunk, unchanged, gone, merged, split). Writes
 registration.json, changes.csv, height_change.tif, report.html and run.json into the output
-folder; the summary goes to the Log and the height change (um, A's frame) opens.
+folder. Opens the height change (um, A's frame) in blue (lower) - white - red (higher) with
+its calibration bar beside it, both dates' albedos, every protrusion outlined in the colour of its
+status (new green, grown red, shrunk orange, unchanged grey, gone blue, merged purple, split
+magenta) on the height change and on both albedos, and the change table (changes.csv).
 
 Macro: run("Compare Captures", "earlier=[/data/2019/run] later=[/data/2024/run] run=[/data/changes]");
 """
@@ -18,7 +21,7 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
     if _root and os.path.isdir(_lib) and _lib not in sys.path:
         sys.path.insert(0, _lib)
 
-from uvps_fiji import dialogs, display, menus, runner
+from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Compare Captures"
 COMMAND = "changes"
@@ -31,9 +34,7 @@ def main():
     dialogs.add_run_field(dlg)
     values = dlg.show()
     if values is not None:
-        response = menus.run_command(COMMAND, values)
-        display.open_image(response.file("height_change.tif"),
-                           menus.titled("height change (um)", menus.run_folder(values)))
+        menus.compare_captures(values)
 
 
 runner.run_menu(TITLE, main)

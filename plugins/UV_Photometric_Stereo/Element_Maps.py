@@ -5,9 +5,11 @@ TIFF with element names as slice labels, or a row/column text table), registers 
 source run's colour areas (automatically, or from a control-points CSV), and writes
 registration.json, elements.tif (the maps in the run's frame), elements_by_area.csv,
 elements_by_protrusion.csv, element_correlation.csv, report.html and run.json into the output
-folder. The summary goes to the Log and the registered maps open as a stack.
+folder. The summary goes to the Log; the registered maps open as a stack, and three of them as a
+colour composite: lead (Pb, the metal of the soaps) in red by default, the next maps in green and
+blue; the Red, Green and Blue element fields choose others (an element such as Zn, or a map's name).
 
-Macro: run("Element Maps", "source=[/data/run] element=[/data/xrf] scan=250 run=[/data/elements]");
+Macro: run("Element Maps", "source=[/data/run] element=[/data/xrf] scan=250 run=[/data/elements] red=Pb green=Zn blue=auto");
 """
 import os
 import sys
@@ -20,7 +22,7 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
     if _root and os.path.isdir(_lib) and _lib not in sys.path:
         sys.path.insert(0, _lib)
 
-from uvps_fiji import dialogs, display, menus, runner
+from uvps_fiji import bridge_logic, dialogs, menus, runner
 
 TITLE = "Element Maps"
 COMMAND = "elements"
@@ -34,10 +36,10 @@ def main():
     dialogs.add_param(dlg, (COMMAND, "spot_um"), key="spot", decimals=0)
     dialogs.add_param(dlg, (COMMAND, "control_points"), key="control")
     dialogs.add_run_field(dlg)
+    dialogs.add_composite_fields(dlg, bridge_logic.COMPOSITE_DEFAULT)
     values = dlg.show()
     if values is not None:
-        response = menus.run_command(COMMAND, values)
-        display.open_image(response.file("elements.tif"), "element maps (run frame)")
+        menus.element_maps(values)
 
 
 runner.run_menu(TITLE, main)

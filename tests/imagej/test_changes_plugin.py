@@ -1,7 +1,9 @@
 """Compare Captures (uvps changes, issue 10) from a batch macro in a real ImageJ."""
+import csv
 import json
 
 import pytest
+import tifffile
 
 from conftest import PYTHON_EXCEPTION_STATUS
 from uvps.testing.synthetic import write_truth_run
@@ -34,11 +36,36 @@ def test_compare_captures_from_a_batch_macro(run_macro, two_dates, tmp_path):
     a, b = two_dates
     out = tmp_path / "changes out"
     result = run_macro('run("Compare Captures", "earlier=%s later=%s run=%s");\n'
-                       'print("title: " + getTitle());\nprint("went on");\n' % (q(a), q(b), q(out)),
+                       'print("title: " + getTitle());\n'
+                       'print("size " + getWidth() + " " + getHeight());\n'
+                       'print("pixel " + getPixel(100, 100));\n'
+                       'getLut(r, g, b); print("lut " + r[0] + "," + g[0] + "," + b[0] + " " + r[255] + "," + g[255] + "," + b[255]);\n'
+                       'getMinAndMax(lo, hi); print("symmetric " + (lo == -hi));\n'
+                       'n = 0; bar = 0; for (i = 0; i < Overlay.size; i++) {Overlay.activateSelection(i);\n'
+                       '  name = Roi.getName; if (startsWith(name, "calibration bar")) bar++; else if (endsWith(name, "(earlier)")) n++;}\n'
+                       'print("outlines " + n + " bar " + (bar > 0));\n'
+                       'print("rows " + Table.size("Changes - changes out"));\n'
+                       'print("dates " + isOpen("albedo (earlier) - run 2019") + " " + isOpen("albedo (later) - run 2024"));\n'
+                       'print("went on");\n' % (q(a), q(b), q(out)),
                        timeout=TIMEOUT).check()
     lines = result.stdout.splitlines()
     assert "went on" in lines
     assert "title: height change (um) - changes out" in lines
+    # colour-mapped (blue - white - red, symmetric about 0), the bar beside the image: the canvas
+    # is wider than the file by the bar's margin, and the pixels inside are the file's
+    change = tifffile.imread(str(out / "height_change.tif"))
+    size = [ln for ln in lines if ln.startswith("size ")][0].split()
+    assert int(size[2]) == change.shape[0] and int(size[1]) > change.shape[1]
+    assert float([ln for ln in lines if ln.startswith("pixel ")][0].split()[1]) == pytest.approx(
+        float(change[100, 100]), abs=1e-4)
+    assert "lut 33,102,172 178,24,43" in lines and "symmetric 1" in lines
+    # one outline per earlier protrusion of the change table, coloured by status; the table open
+    with open(out / "changes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert "outlines %d bar 1" % sum(1 for r in rows if r["id_a"]) in lines, lines
+    assert "rows %d" % len(rows) in lines and "dates 1 1" in lines
+    assert any(ln.startswith("uvps Compare Captures: ") and "outlines coloured by status" in ln
+               for ln in lines), lines
     assert any(line.startswith("registration: similarity") for line in lines), result.stdout
     for name in ("registration.json", "changes.csv", "height_change.tif", "report.html", "run.json"):
         assert (out / name).is_file(), name

@@ -39,6 +39,8 @@ def test_element_maps_from_a_batch_macro(run_macro, run_and_maps, tmp_path):
     cap, run, maps, truth = run_and_maps
     out = tmp_path / "elements out"
     result = run_macro('run("Element Maps", "source=%s element=%s scan=100 spot=400 run=%s");\n'
+                       'print("front: " + getTitle() + " " + nSlices + " " + is("composite"));\n'
+                       'selectImage("element maps (run frame)");\n'
                        'print("title: " + getTitle());\nprint("slices: " + nSlices);\n'
                        'for (i = 1; i <= nSlices; i++) {setSlice(i); print("label " + i + ": " + getInfo("slice.label"));}\n'
                        '\nprint("went on");\n'
@@ -46,6 +48,13 @@ def test_element_maps_from_a_batch_macro(run_macro, run_and_maps, tmp_path):
     lines = result.stdout.splitlines()
     assert "went on" in lines
     assert "title: element maps (run frame)" in lines
+    # the composite in front: lead (the soaps' metal) in red, then the next maps of the stack
+    names = sorted(truth.maps.names)
+    lead = [n for n in names if n.startswith("Pb")][0]
+    rest = [n for n in names if n != lead][:2]
+    assert "front: element maps (run frame) (%s) 3 1" % "/".join([lead] + rest) in lines, lines
+    assert "uvps Element Maps: composite red %s, green %s, blue %s (choose with Red, Green, Blue element)" \
+        % tuple([lead] + rest) in lines
     assert "slices: 4" in lines
     assert [ln for ln in lines if ln.startswith("label ")] == ["label %d: %s" % (i + 1, n) for i, n in
                                                               enumerate(sorted(truth.maps.names))]  # a folder: by name

@@ -57,6 +57,22 @@ def test_java_exception_from_jython_fails_too(run_macro, bare_imagej_home, write
     assert "NumberFormatException" in result.stderr and "twelve" in result.stderr
 
 
+def test_a_macro_abort_inside_jython_is_a_cancel_not_a_trace(run_macro, bare_imagej_home, write_plugin):
+    """ImageJ signals a macro's abort by throwing "Macro canceled" (a cancelled dialog, IJ.error in
+    a macro) and Esc by stopping the thread (ThreadDeath): the interpreter class reports neither
+    (no traceback, no status 4); a user did it on purpose."""
+    write_plugin(bare_imagej_home, "Test_Menu/Abort_Macro.py",
+                 'from java.lang import RuntimeException\nprint("before")\n'
+                 'raise RuntimeException("Macro canceled")\n')
+    write_plugin(bare_imagej_home, "Test_Menu/Stop_Thread.py",
+                 'from java.lang import ThreadDeath\nraise ThreadDeath()\n')
+    result = run_macro('run("Abort Macro");\nrun("Stop Thread");\nprint("macro done");\n',
+                       home=bare_imagej_home).check()
+    assert "before" in result.stdout and "macro done" in result.stdout
+    for text in (result.stdout, result.stderr):
+        assert "Traceback" not in text and "Exception" not in text and "ThreadDeath" not in text
+
+
 def test_stalled_macro_is_killed_at_the_timeout(run_macro, bare_imagej_home):
     started = time.monotonic()
     with pytest.raises(pytest.fail.Exception, match="did not finish within 3 s"):

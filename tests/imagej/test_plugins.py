@@ -138,7 +138,11 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
         'print("rows " + Table.size("Protrusions - run folder"));\n'
         'print("lights " + Table.size("Lights - run folder"));\n'
         'selectImage("albedo - run folder");\n'
-        'print("overlay " + Overlay.size);\n'
+        'n = 0; a = 0; t = 0; for (i = 0; i < Overlay.size; i++) {Overlay.activateSelection(i); name = Roi.getName;\n'
+        '  if (startsWith(name, "auto ")) n++; else if (endsWith(name, " tag")) t++; else if (startsWith(name, "area ")) a++;}\n'
+        'run("Select None");\n'
+        'print("overlay " + n);\nprint("areas " + a + " tags " + t);\n'
+        'print("regions table " + Table.size("Regions - run folder"));\n'
         'getPixelSize(unit, pw, ph);\n'
         'print("pixel " + unit + " " + pw);\n'
         'run("Probe Display");\n' % (q(capture_dir), q(out)),
@@ -184,6 +188,11 @@ def test_whole_pipeline_from_a_batch_macro(run_macro, capture_dir, reference_run
     assert n > 0
     assert "rois %d" % n in lines and "rows %d" % n in lines and "overlay %d" % n in lines
     assert "depth overlay %d protrusions, bar True" % n in lines
+    # the colour areas the report names ("area 5") outlined and tagged on the albedo, and the
+    # Regions table (one row per area and "all")
+    areas = [r for r in _read_csv(out / "regions.csv") if r["label"] != "all"]
+    assert areas and "areas %d tags %d" % (len(areas), len(areas)) in lines, lines
+    assert "regions table %d" % (len(areas) + 1) in lines
     assert "lights %d" % N_LIGHTS in lines
     assert any(line.split() in (["pixel", unit, "15"] for unit in ("micron", "microns", u"\u00b5m"))
                for line in lines), lines

@@ -63,13 +63,47 @@ public class Jython extends PlugInInterpreter {
             }
         } catch (RuntimeException e) {
             report(path, e);
+        } catch (ThreadDeath e) {
+            report(path, e);
         } finally {
             py.cleanup();
         }
         return null;
     }
 
+    /** A cancel, not a failure: ImageJ stopping the macro thread (Esc: ThreadDeath) or aborting
+     *  a macro ("Macro canceled", thrown by a cancelled dialog or IJ.error in a macro). */
+    static boolean isCancel(Throwable e) {
+        for (int depth = 0; e != null && depth < 10; depth++) {
+            if (e instanceof ThreadDeath || e instanceof InterruptedException) {
+                return true;
+            }
+            String message = e.getMessage();
+            if (message != null && message.contains(ij.Macro.MACRO_CANCELED)) {
+                return true;
+            }
+            if (e instanceof PyException) {
+                Object value = ((PyException) e).value.__tojava__(Throwable.class);
+                if (value instanceof Throwable && value != e) {
+                    e = (Throwable) value;
+                    continue;
+                }
+                String text = e.toString();
+                if (text.contains(ij.Macro.MACRO_CANCELED) || text.contains("ThreadDeath")) {
+                    return true;
+                }
+            }
+            e = e.getCause();
+        }
+        return false;
+    }
+
     private static void report(String path, Throwable e) {
+        if (isCancel(e)) {
+            // what a user did on purpose: no stack trace (the menu item logged "cancelled")
+            IJ.showStatus("cancelled");
+            return;
+        }
         if (System.getProperty("uvps.test") != null) {
             System.out.flush();
             System.err.println("UVPS-TEST: uncaught Python exception in " + path);
