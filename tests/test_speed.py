@@ -216,7 +216,7 @@ def test_a_folder_of_big_endian_tiffs_as_imagej_saves_them_is_mapped_and_runs(fo
 # The calibrated route (lamps and intensities given, a dark frame): one pass of drop-off fits, the
 # dark frame subtracted as the files are read, the outputs those of the route before either change
 # (tests/golden/calibrated_run.npz, written by this module's _calibrated_outputs with the code of
-# commit 86ae9cb: ``python tests/test_speed.py GOLDEN``).
+# commit 0a8dddd: ``python tests/test_speed.py GOLDEN``).
 # ------------------------------------------------------------------------------------------------
 
 GOLDEN_CALIBRATED = __import__("pathlib").Path(__file__).parent / "golden" / "calibrated_run.npz"
