@@ -389,7 +389,12 @@ def main(argv=None) -> int:
     M, N = a.shape
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
+    cached = len(list(folder.glob("uv_*.tif"))) == a.lights and (a.tile or (folder / "dark" / "dark.tif").is_file())
     raw = make(folder, (M, N), a.lights, a.seed, a.tile)
+    if not cached:
+        # this process now holds the generator's memory, and Linux counts a parent's resident set at fork
+        # in every child's maximum (ru_maxrss survives exec): start again, the capture cached
+        os.execv(sys.executable, [sys.executable, str(Path(__file__).resolve())] + list(argv or sys.argv[1:]))
     if a.stack:
         folder = stack_copy(folder, compress=a.compress)
     elif a.compress:
