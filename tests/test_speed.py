@@ -334,12 +334,25 @@ def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
     d[:10] = 9000                                       # a band above some of the signal: it clips
     dark = tmp_path / "dark.tif"
     tifffile.imwrite(dark, d, photometric="rgb")
-    got = read_capture(tmp_path / "cap", dark=dark)
+    got = read_capture(tmp_path / "cap", dark=dark, memory_map=False)
     assert isinstance(got.images, np.ndarray) and got.images.dtype == np.uint16 and got.bit_depth == "uint16"
     raw = np.stack([tifffile.imread(f) for f in sorted((tmp_path / "cap").glob("uv_*.tif"))]).astype(np.float32)
     want = np.maximum(raw - tifffile.imread(dark).astype(np.float32), 0)
     assert (raw < d).any() and (raw > d).any()
     np.testing.assert_array_equal(got.images.astype(np.float32), want)
+    # memory-mapped (the default): the files seen with the dark frame subtracted band by band, the same values
+    from uvps.files.io import DarkSubtracted
+    mapped = read_capture(tmp_path / "cap", dark=dark)
+    assert isinstance(mapped.images, DarkSubtracted) and mapped.bit_depth == "uint16"
+    r, c = np.array([0, 5, 59]), np.array([3, 79, 7])
+    for key in (2, (slice(None), slice(3, 20)), (1, slice(0, 60, 8), slice(1, 50)), (slice(None), r, c)):
+        np.testing.assert_array_equal(mapped.images[key], want[key])
+    lp = tmp_path / "cap" / "lights_positions_mm.csv"
+    a = run(read_capture(tmp_path / "cap", dark=dark, lights=lp), RunOptions(), stages=("normals",), dark_given=True)
+    b = run(read_capture(tmp_path / "cap", dark=dark, lights=lp, memory_map=False), RunOptions(),
+            stages=("normals",), dark_given=True)
+    np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
+    np.testing.assert_array_equal(a.stereo.albedo, b.stereo.albedo)
     # one multi-page TIFF likewise: copied in its dtype with the dark frame subtracted page by page
     stack = tmp_path / "stack.tif"
     tifffile.imwrite(stack, raw.astype(np.uint16), photometric="rgb", resolution=(1 / 30.0, 1 / 30.0),

@@ -36,7 +36,7 @@ import tifffile
 
 from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
-from ..core.stack import Capture, LazyStack, row_bands
+from ..core.stack import Capture, LazyStack, StackView, row_bands
 from .atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -1044,7 +1044,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         0..255 linear counts). Float images are never linearised.
     memory_map : bool
         Files that are uncompressed one-image TIFFs of an integer type, with nothing to convert (no
-        sRGB, no dark frame), are memory-mapped instead of read (:class:`MappedStack`): the stages
+        sRGB), are memory-mapped instead of read (:class:`MappedStack`; with a dark frame seen through
+        :class:`DarkSubtracted`, which subtracts it from the band asked for): the stages
         read them band by band and the capture may be larger than the memory. Compressed ones
         whose stack is larger than a quarter of the memory (:data:`SCRATCH_ABOVE_BYTES`) are
         decoded once into scratch files in the temporary folder (``TMPDIR``, which needs the
@@ -1096,7 +1097,7 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
     if stack_path is None:
         # a dark frame is subtracted file by file as the stack is filled (no second pass over it)
         arr, dtype, tag_px = _read_files(sources, linearize, progress, check_px=pixel_size_um is None,
-                                         keep_dtype=True, memory_map=memory_map and dark is None,
+                                         keep_dtype=True, memory_map=memory_map,
                                          dark=None if dark is None else Path(dark))
     elif _needs_linearize(first_kind, dtype, linearize):
         for k in range(arr.shape[0]):
@@ -1148,7 +1149,7 @@ def _read_dark(dark_path: Path, shape_img, dtype, linearize: str, *, as_float: b
     if not dark_path.is_file():
         raise UVPSInputError(f"dark frame {dark_path} does not exist")
     d = read_image(dark_path)
-    if d.shape != tuple(shape_img) or d.dtype != dtype:
+    if d.shape != tuple(shape_img) or d.dtype.newbyteorder("=") != np.dtype(dtype).newbyteorder("="):
         raise UVPSInputError(
             f"dark frame {dark_path} is {d.shape} {d.dtype};"
             f" expected {tuple(shape_img)} {dtype} like the images"
@@ -1170,6 +1171,24 @@ def _minus_dark(image: np.ndarray, d: np.ndarray) -> None:
     else:
         np.subtract(image, d, out=image)
         np.maximum(image, 0, out=image)
+
+
+class DarkSubtracted(StackView):
+    """Memory-mapped files seen with a dark frame subtracted, clipped at 0, computed on access (float32).
+
+    The values of the stack read whole with the dark frame subtracted (the counts, as float32), for
+    the band the stages ask for: the files stay mapped, never copied (the stack read whole, a 0.27 GiB
+    one, took 0.24 GiB more at the peak of a calibrated run). The access patterns of
+    :class:`uvps.core.stack.StackView`.
+    """
+
+    def __init__(self, images, dark):
+        super().__init__(images)
+        self.dark = np.asarray(dark, dtype=np.float32)
+
+    def correct(self, out, kk, rk, ck):
+        v = out - self.dark[rk, ck]
+        return np.maximum(v, 0, out=v)
 
 
 def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
@@ -1196,6 +1215,9 @@ def _read_files(sources: list, linearize: str, progress: Progress, *, check_px: 
         mapped = _map_files(sources, progress, check_px=check_px)
         if mapped is None and _scratch_wanted(sources):
             mapped = _map_files(sources, progress, check_px=check_px, mapper=_scratch_tiff)
+        if mapped is not None and dark is not None:
+            arr, dtype, tag_px = mapped
+            return DarkSubtracted(arr, _read_dark(dark, arr.shape[1:], dtype, linearize, as_float=True)), dtype, tag_px
         if mapped is not None:
             return mapped
     k = len(sources)
