@@ -12,10 +12,14 @@ rusage:
 - ``uvps run FOLDER -o OUT`` (lights estimated, flat-field, normals, albedo, height), its stages
   from ``run.json``'s ``timings_s``;
 - the same with ``--regions auto`` (colour areas, detection, statistics, report);
+- the calibrated route, ``uvps run FOLDER --calibration CAL --dark DARK`` (CAL made once by ``uvps
+  calibrate --lights`` from the capture's lamp file: positions, no intensities, as a sphere
+  calibration gives; DARK the capture's dark frame), alone and with ``--regions auto``;
 - ``uvps demo`` (its default 600 x 800 capture, 12 lights);
 
 and optionally (``--profile``) a cProfile of :func:`uvps.core.pipeline.run` in this process, whose top
-lines go with the table. The table is printed and, with ``--md PATH`` (default
+lines go with the table. Each process's CPU use is its user + system CPU time over its wall time (``os.wait4``'s rusage:
+2.0 = both cores busy throughout). The table is printed and, with ``--md PATH`` (default
 docs/benchmarks.md), inserted at the top of that file under its title, with the machine (cores,
 RAM, load) and the command line.
 
@@ -54,6 +58,7 @@ class Measure:
     maxrss_gib: float
     returncode: int
     inner_s: float = float("nan")     # time measured inside the child (reading only)
+    cpu_s: float = float("nan")       # user + system CPU time of the child
     stages: dict = None
     load_before: str = ""
     stderr_tail: str = ""
@@ -82,7 +87,7 @@ def make(folder: Path, shape, n_lights: int, seed: int, tile=None) -> float:
     import tifffile
 
     files = sorted(folder.glob("uv_*.tif"))
-    if len(files) != n_lights:
+    if len(files) != n_lights or not (tile or (folder / "dark" / "dark.tif").is_file()):
         from uvps.testing.synthetic import make_capture, write_capture
 
         t0 = time.perf_counter()
@@ -90,7 +95,7 @@ def make(folder: Path, shape, n_lights: int, seed: int, tile=None) -> float:
             make_tiled(folder, tuple(shape), n_lights, seed, tuple(tile))
         else:
             cap = make_capture(shape=tuple(shape), n_lights=n_lights, seed=seed)
-            write_capture(cap, folder, truth=False)
+            write_capture(cap, folder, truth=False, dark_frame=True)     # dark/dark.tif: the calibrated route's
             del cap
         print(f"made {shape} x {n_lights} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         files = sorted(folder.glob("uv_*.tif"))
@@ -288,7 +293,7 @@ def run_child(name: str, cmd: list, env=None) -> Measure:
     wall = time.perf_counter() - t0
     p.returncode = os.waitstatus_to_exitcode(status)
     m = Measure(name, wall, ru.ru_maxrss / 2 ** 20, p.returncode, load_before=load,
-                stderr_tail=err.decode(errors="replace")[-400:])
+                stderr_tail=err.decode(errors="replace")[-400:], cpu_s=ru.ru_utime + ru.ru_stime)
     for line in out.decode(errors="replace").splitlines():
         if line.startswith("READ_S "):
             m.inner_s = float(line.split()[1])
@@ -339,12 +344,14 @@ def profile_run(folder: Path, top: int) -> str:
 
 
 def table(ms: list, read_s: float, raw: float) -> str:
-    rows = ["| process | status | wall (s) | / read | peak RSS (GiB) | / raw stack | stages (s, run.json) | load before |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = ["| process | status | wall (s) | / read | CPU / wall | peak RSS (GiB) | / raw stack | stages (s, run.json) "
+            "| load before |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for m in ms:
         st = ", ".join(f"{k} {v:.1f}" for k, v in (m.stages or {}).items())
         status = "ok" if m.returncode == 0 else f"exit {m.returncode}"
-        rows.append(f"| {m.name} | {status} | {m.wall_s:.1f} | {m.wall_s / read_s:.1f} | {m.maxrss_gib:.2f} | "
+        rows.append(f"| {m.name} | {status} | {m.wall_s:.1f} | {m.wall_s / read_s:.1f} | {m.cpu_s / m.wall_s:.2f} | "
+                    f"{m.maxrss_gib:.2f} | "
                     f"{m.maxrss_gib * 2 ** 30 / raw:.2f} | {st} | {m.load_before} |")
     return "\n".join(rows)
 
@@ -366,7 +373,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-md", action="store_true", help="print only")
     ap.add_argument("--profile", action="store_true", help="also cProfile pipeline.run in this process")
     ap.add_argument("--top", type=int, default=25, help="profile lines kept")
-    ap.add_argument("--skip", nargs="*", default=(), choices=("run", "zarr", "regions", "demo"))
+    ap.add_argument("--skip", nargs="*", default=(), choices=("run", "zarr", "regions", "cal", "cal_regions", "demo"))
     ap.add_argument("--tile", type=int, nargs=2, metavar=("ROWS", "COLS"),
                     help="make the capture's painting in tiles of this size and render it in bands (make_tiled): "
                          "for captures make_capture cannot hold, e.g. --shape 8000 10000 --tile 2000 2500")
@@ -382,7 +389,12 @@ def main(argv=None) -> int:
     M, N = a.shape
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
+    cached = len(list(folder.glob("uv_*.tif"))) == a.lights and (a.tile or (folder / "dark" / "dark.tif").is_file())
     raw = make(folder, (M, N), a.lights, a.seed, a.tile)
+    if not cached:
+        # this process now holds the generator's memory, and Linux counts a parent's resident set at fork
+        # in every child's maximum (ru_maxrss survives exec): start again, the capture cached
+        os.execv(sys.executable, [sys.executable, str(Path(__file__).resolve())] + list(argv or sys.argv[1:]))
     if a.stack:
         folder = stack_copy(folder, compress=a.compress)
     elif a.compress:
@@ -405,6 +417,18 @@ def main(argv=None) -> int:
     read_s = rd.inner_s
     runs = {"run": ("uvps run", []), "zarr": ("uvps run --ome-zarr", ["--ome-zarr"]),
             "regions": ("uvps run --regions auto", ["--regions", "auto"])}
+    dark = folder / "dark" / "dark.tif" if folder.is_dir() else folder.parent / "dark" / "dark.tif"
+    if {"cal", "cal_regions"} - set(a.skip) and dark.is_file() and (folder / "lights_positions_mm.csv").is_file():
+        cal = a.work / f"cal_{M}x{N}x{a.lights}"
+        from uvps.testing.synthetic import SyntheticSpec
+        c = run_child("uvps calibrate --lights (once)", UVPS + [
+            "calibrate", "--lights", str(folder / "lights_positions_mm.csv"), "--dark", str(dark),
+            "--pixel-size-um", str(SyntheticSpec().pixel_size_um), "-o", str(cal)], env)
+        if c.returncode:
+            print(f"calibrate: exit {c.returncode}: {c.stderr_tail}", file=sys.stderr)
+        given = ["--calibration", str(cal), "--dark", str(dark)]
+        runs.update({"cal": ("uvps run --calibration --dark", given),
+                     "cal_regions": ("uvps run --calibration --dark --regions auto", given + ["--regions", "auto"])})
     for key, (name, extra) in runs.items():
         if key in a.skip:
             continue
@@ -430,7 +454,8 @@ def main(argv=None) -> int:
             f"Capture: {made}, {a.lights} {'Deflate-compressed' if a.compress else 'uncompressed'} "
             f"RGB uint16 {'pages of one multi-page TIFF' if a.stack else 'TIFFs'} (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
             f"took {read_s:.2f} s (the fastest of 3 warm reads, inside the process; '/ read' divides each wall time by it, the process's "
-            "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4).", "",
+            "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4); CPU / wall: "
+            "its user + system CPU time over its wall time (2 cores: at most 2).", "",
             tab, ""]
     if a.note:
         text += [a.note, ""]

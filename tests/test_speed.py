@@ -210,3 +210,165 @@ def test_a_folder_of_big_endian_tiffs_as_imagej_saves_them_is_mapped_and_runs(fo
     a = run(cap, RunOptions(), stages=("normals",))
     b = run(plain, RunOptions(), stages=("normals",))
     np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
+
+
+# ------------------------------------------------------------------------------------------------
+# The calibrated route (lamps and intensities given, a dark frame): one pass of drop-off fits, the
+# dark frame subtracted as the files are read, the outputs those of the route before either change
+# (tests/golden/calibrated_run.npz, written by this module's _calibrated_outputs with the code of
+# commit 0a8dddd: ``python tests/test_speed.py GOLDEN``).
+# ------------------------------------------------------------------------------------------------
+
+GOLDEN_CALIBRATED = __import__("pathlib").Path(__file__).parent / "golden" / "calibrated_run.npz"
+
+
+def _calibrated_scene(root):
+    from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
+
+    cap = make_capture(shape=(150, 200), n_lights=6, seed=4, pixel_size_um=120.0, rgb=True, black_level=200.0)
+    write_capture(cap, root / "cap", dark_frame=True)
+    sc = make_sphere_capture(cap, [SphereSpec("glossy", (0.15, 0.2), 3.0), SphereSpec("glossy", (0.85, 0.8), 3.0)])
+    write_sphere_capture(sc, root / "spheres")
+    return root
+
+
+def _calibrated_outputs(root) -> dict:
+    """``uvps calibrate`` (spheres, dark frame) and ``uvps run --calibration --detect`` in this process:
+    the run's normals, albedo, depth and protrusion labels."""
+    import tifffile
+
+    from uvps.cli import main
+
+    assert main(["calibrate", "--spheres", str(root / "spheres"), "--dark", str(root / "cap" / "dark" / "dark.tif"),
+                 "-o", str(root / "cal")]) == 0
+    assert main(["run", str(root / "cap"), "--calibration", str(root / "cal"), "--detect", "-o",
+                 str(root / "run")]) == 0
+    return {n: tifffile.imread(root / "run" / f"{n}.tif") for n in ("normals", "albedo", "depth", "protrusions_labels")}
+
+
+def _counting(monkeypatch, *names):
+    """Count the calls of ``uvps.core.pipeline``'s ``names`` (the real functions still run)."""
+    import uvps.core.pipeline as pipeline
+
+    calls = dict.fromkeys(names, 0)
+
+    def spy(name):
+        real = getattr(pipeline, name)
+
+        def counted(*args, **kw):
+            calls[name] += 1
+            return real(*args, **kw)
+        return counted
+
+    for name in names:
+        monkeypatch.setattr(pipeline, name, spy(name))
+    return calls
+
+
+def test_calibrated_route_keeps_its_outputs(tmp_path, monkeypatch):
+    """``uvps calibrate`` from spheres with a dark frame, then ``uvps run --calibration --detect``: the
+    normals, albedo, depth and protrusions of the code before the dark frame was subtracted as the
+    files are read and before the beams' gain maps were evaluated as matrix products (labels to the
+    bit, maps to 1e-6 of their range: the gain maps' float64 sums are taken in another order). The
+    sphere calibration gives no intensities: they are measured on the images with the beams divided
+    out, fitted again (two passes of drop-off fits)."""
+    root = _calibrated_scene(tmp_path)
+    calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+    out = _calibrated_outputs(root)
+    assert calls == {"block_grid": 2, "fit_dropoffs": 2}
+    ref = np.load(GOLDEN_CALIBRATED)
+    for name, value in out.items():
+        want = ref[name]
+        assert value.shape == want.shape and value.dtype == want.dtype, name
+        if name == "protrusions_labels":
+            np.testing.assert_array_equal(value, want)
+        else:
+            np.testing.assert_allclose(value, want, rtol=0, atol=1e-6 * float(np.nanmax(np.abs(want))), err_msg=name)
+
+
+def test_given_intensities_fit_the_dropoff_once(folder, tmp_path, monkeypatch):
+    """Known positions and intensities (a rig's light file): the drop-off is fitted once, for the lamps'
+    beams; the images with the beams divided out are not fitted again (nothing but dropoff.tif used
+    those fits: it now holds the drop-off as captured, beam included). The normals are those of the
+    images divided by those beams under the given lamps; measured intensities and the flat-fielded
+    images still take two passes."""
+    from uvps.core.flatfield import block_grid, fit_dropoffs
+    from uvps.core.pipeline import with_common
+    from uvps.core.lights import dropoff_common
+
+    E = np.linspace(0.8, 1.2, 8)
+    rows = (folder / "lights_positions_mm.csv").read_text().splitlines()
+    lp = tmp_path / "lamps.csv"
+    lp.write_text("\n".join([rows[0] + ",intensity"] + [f"{r},{float(e)!r}" for r, e in zip(rows[1:], E)]) + "\n")
+    cap = read_capture(folder, lights=lp)
+    calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+    res = run(cap, RunOptions(), stages=("normals",))
+    assert calls == {"block_grid": 1, "fit_dropoffs": 1}
+    np.testing.assert_allclose(res.lights.model.intensities, E / np.median(E))
+    again = solve_normals(res.lights.images, res.lights.model, pixel_size_um=cap.pixel_size_um)
+    np.testing.assert_array_equal(res.stereo.normals, again.normals)
+    grid = block_grid(cap.images, mask=cap.mask, saturation=cap.saturation)
+    captured = with_common(fit_dropoffs(grid, degree=4), grid,
+                           dropoff_common(cap.light_positions_mm, grid.shape, cap.pixel_size_um))
+    for f, g in zip(res.lights.fits, captured):
+        np.testing.assert_array_equal(f.coeffs, g.coeffs)
+        assert f.level == g.level
+    calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+    run(cap, RunOptions(estimate_intensities=True), stages=("normals",))
+    assert calls == {"block_grid": 2, "fit_dropoffs": 2}
+    # the flat-fielded images asked for: the images with the beams divided out, over their own drop-off
+    calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+    ff = run(cap, RunOptions(), stages=("flatfield", "normals"))
+    assert calls == {"block_grid": 2, "fit_dropoffs": 2}
+    np.testing.assert_array_equal(ff.stereo.normals, res.stereo.normals)
+
+
+def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
+    """A dark frame keeps an integer stack in its dtype (half the memory of float32), subtracted as each
+    file is read and clipped at 0: the counts float32 gave."""
+    import tifffile
+
+    cap = make_capture(shape=(60, 80), n_lights=4, seed=1, pixel_size_um=30.0, black_level=300.0)
+    write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
+    d = tifffile.imread(tmp_path / "cap" / "dark" / "dark.tif")
+    d[:10] = 9000                                       # a band above some of the signal: it clips
+    dark = tmp_path / "dark.tif"
+    tifffile.imwrite(dark, d, photometric="rgb")
+    got = read_capture(tmp_path / "cap", dark=dark, memory_map=False)
+    assert isinstance(got.images, np.ndarray) and got.images.dtype == np.uint16 and got.bit_depth == "uint16"
+    raw = np.stack([tifffile.imread(f) for f in sorted((tmp_path / "cap").glob("uv_*.tif"))]).astype(np.float32)
+    want = np.maximum(raw - tifffile.imread(dark).astype(np.float32), 0)
+    assert (raw < d).any() and (raw > d).any()
+    np.testing.assert_array_equal(got.images.astype(np.float32), want)
+    # memory-mapped (the default): the files seen with the dark frame subtracted band by band, the same values
+    from uvps.files.io import DarkSubtracted
+    mapped = read_capture(tmp_path / "cap", dark=dark)
+    assert isinstance(mapped.images, DarkSubtracted) and mapped.bit_depth == "uint16"
+    r, c = np.array([0, 5, 59]), np.array([3, 79, 7])
+    for key in (2, (slice(None), slice(3, 20)), (1, slice(0, 60, 8), slice(1, 50)), (slice(None), r, c)):
+        np.testing.assert_array_equal(mapped.images[key], want[key])
+    lp = tmp_path / "cap" / "lights_positions_mm.csv"
+    a = run(read_capture(tmp_path / "cap", dark=dark, lights=lp), RunOptions(), stages=("normals",), dark_given=True)
+    b = run(read_capture(tmp_path / "cap", dark=dark, lights=lp, memory_map=False), RunOptions(),
+            stages=("normals",), dark_given=True)
+    np.testing.assert_array_equal(a.stereo.normals, b.stereo.normals)
+    np.testing.assert_array_equal(a.stereo.albedo, b.stereo.albedo)
+    # one multi-page TIFF likewise: copied in its dtype with the dark frame subtracted page by page
+    stack = tmp_path / "stack.tif"
+    tifffile.imwrite(stack, raw.astype(np.uint16), photometric="rgb", resolution=(1 / 30.0, 1 / 30.0),
+                     resolutionunit="NONE", description="ImageJ=1.54f\nunit=micron\n", metadata=None)
+    from_stack = read_capture(stack, dark=dark)
+    assert from_stack.images.dtype == np.uint16
+    np.testing.assert_array_equal(from_stack.images.astype(np.float32), want)
+    for f in sorted((tmp_path / "cap").glob("uv_*.tif")):   # the inputs untouched
+        assert tifffile.imread(f).astype(np.float32).sum() == raw[sorted((tmp_path / "cap").glob("uv_*.tif")).index(f)].sum()
+
+
+if __name__ == "__main__":
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    if sys.argv[1:] == ["GOLDEN"]:
+        with tempfile.TemporaryDirectory() as tmp:
+            np.savez_compressed(GOLDEN_CALIBRATED, **_calibrated_outputs(_calibrated_scene(Path(tmp))))

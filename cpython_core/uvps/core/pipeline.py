@@ -25,7 +25,6 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from .card import CardCalibration, apply_card
-from .detect import DetectionParams, detect_protrusions
 from ..errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, with_common
 from .integrate import (IntegrationResult, frankot_chellappa, gradients_from_normals, integrate_normals,
@@ -45,6 +44,28 @@ log = logging.getLogger(__name__)
 __all__ = ["RunOptions", "SAMPLE_MODES", "SCREENED_RESIDUAL_MAX", "sample_mode", "LightsResult", "Protrusions", "RunResult", "run", "remove_additive",
            "relief_of_lights", "RELATIVE_RELIEF_ABOVE",
            "estimate_capture_lights", "find_protrusions", "given_lights", "detection_height", "DetectionHeight"]
+
+#: Names of the detector imported on first use (:func:`__getattr__`): :mod:`uvps.core.detect` (its numba
+#: kernels, scikit-image's morphology) was 1.2 of the 2.6 s ``uvps.core.pipeline`` took to import
+#: (``python -X importtime -m uvps run --help``), paid by every run, with or without detection.
+_LAZY_DETECT = ("DetectionParams", "detect_protrusions")
+
+
+def __getattr__(name):
+    """``DetectionParams`` and ``detect_protrusions``, imported from :mod:`uvps.core.detect` when first asked
+    for (then module attributes like any other: a test may replace them)."""
+    if name in _LAZY_DETECT:
+        from . import detect
+        for n in _LAZY_DETECT:
+            globals().setdefault(n, getattr(detect, n))
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _detector(name):
+    """The module's ``name`` of :data:`_LAZY_DETECT` (imported now if it was not)."""
+    return globals()[name] if name in globals() else __getattr__(name)
+
 
 #: ``lamp_beams``: auto, all, none (see :func:`uvps.core.lights.beyond_model`).
 LAMP_BEAMS = ("auto", "all", "none")
@@ -321,7 +342,7 @@ def _run_lights(res: RunResult, capture: Capture, progress: Progress, *, card=No
     se = res.additive.stderr
     offset_se = float(np.mean(se)) if se is not None and np.all(np.isfinite(se)) else None
     res.lights = estimate_capture_lights(capture, options=res.options, offset_stderr=offset_se, card=card,
-                                         progress=progress)
+                                         flatfield="flatfield" in res.stages, progress=progress)
     res.timings_s["lights"] = _since(t0)
     _check_lamp_residual(res.lights)
     res.diagnostics["lights"] = lights_diagnostics(res.lights)
@@ -674,9 +695,9 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
         raise UVPSInputError(f"regions must be None, 'auto' or a RegionMap (files: uvps.files.tables.load_regions); "
                              f"got {type(regions).__name__}")
     mask = regions.labels > 0 if regions is not None else None
-    params = params or DetectionParams()
+    params = params or _detector("DetectionParams")()
     dh = detection_height(height_um, normals, pixel_size_um=pixel_size_um, params=params)
-    det = detect_protrusions(albedo, dh.height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
+    det = _detector("detect_protrusions")(albedo, dh.height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
                              params=params, left_out=dh.left_out,
                              progress=sub_progress(progress, 0.0, 0.85))
     report(progress, 0.9, "measuring")
@@ -799,7 +820,8 @@ def _lamp_beams(options) -> str:
 
 
 def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_stderr=None,
-                            card: Optional[CardCalibration] = None, progress: Progress = None) -> LightsResult:
+                            card: Optional[CardCalibration] = None, flatfield: bool = True,
+                            progress: Progress = None) -> LightsResult:
     """Drop-off fits for every image, and the lights: given (positions or directions) or estimated.
 
     Known positions (a calibrated near-light file) are used as they are, with each lamp's relative
@@ -811,6 +833,11 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     from the images for either kind (far lights: from the levels), even over the file's. Otherwise
     the near-light positions are estimated from the images (:func:`uvps.core.lights.estimate_lights`);
     ``offset_stderr`` (grey counts, from :func:`remove_additive`) goes into their uncertainty.
+
+    ``flatfield``: the fits are those of the images as the stages see them (the flat-fielded images,
+    :func:`uvps.files.runfolder.write_flatfield`, divide those by them). False, with known positions and
+    intensities whose beams are divided out: the fits of the images as captured, made once for the
+    beams, are kept (one pass over the stack instead of two; the lights, normals and all else the same).
 
     With a ``card`` (:mod:`uvps.core.card`, known lamps only) every image is first divided by the card's
     gain for its lamp: the lamps are then equal (``E_k = 1``) and beamless, and ``lamp_beams`` has
@@ -842,14 +869,21 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
         beams = _lamp_beams(options)
         rows, cols, delta = beyond_model(fits, P, shape, px, keep_relief=beams != "all")
         beam_rms = float(np.sqrt(np.mean(delta ** 2)))
+        E = capture.light_intensities   # given (median 1 like an estimate), else from the images
+        measure_E = E is None or options.estimate_intensities
         if beams != "none":
             gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
             capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
-            grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
-            fits = fit_dropoffs(grid, degree=int(options.degree))
+            if measure_E or flatfield:
+                # the intensities are measured on the images with the beams divided out, and the flat-fielded
+                # images are those images over their drop-off: their own fits. With the intensities given
+                # (a rig, a calibration that holds them) and no flat-fielded images asked for, nothing else
+                # uses these fits: dropoff.tif and lights.json then hold the drop-off of the images as
+                # captured (the fits above, the beams included), and a pass over the whole stack is saved.
+                grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
+                fits = fit_dropoffs(grid, degree=int(options.degree))
         fits = with_common(fits, grid, dropoff_common(P, shape, px))
-        E = capture.light_intensities   # given (median 1 like an estimate), else from the images
-        if E is None or options.estimate_intensities:
+        if measure_E:
             # by the photometric residual with the positions held: the levels alone assume a flat
             # canvas facing the camera (1.2 deg normals on a cupped capture, 0.13 deg this way)
             E = intensities_from_levels([f.level for f in fits], P, shape, px)
