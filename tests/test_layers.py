@@ -133,3 +133,26 @@ def test_import_chain_from_cli_to_errors():
 def test_every_layer_is_a_package(package):
     """setuptools finds a sub-package only with its __init__.py (pyproject: packages.find)."""
     assert (ROOT / package / "__init__.py").is_file()
+
+
+
+MAX_FILE_LINES = 1500
+
+
+def long_files(root: Path, limit: int = MAX_FILE_LINES) -> dict:
+    """The ``.py`` files under ``root`` longer than ``limit`` lines, by path relative to ``root``."""
+    return {str(p.relative_to(root)): n for p in sorted(root.rglob("*.py"))
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > limit}
+
+
+def test_the_line_count_finds_a_long_file(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "long.py").write_text("x = 1\n" * (MAX_FILE_LINES + 1), encoding="utf-8")
+    (tmp_path / "short.py").write_text("x = 1\n" * MAX_FILE_LINES, encoding="utf-8")
+    assert long_files(tmp_path) == {str(Path("pkg") / "long.py"): MAX_FILE_LINES + 1}
+
+
+def test_no_file_over_max_lines():
+    """No source file of the package is over MAX_FILE_LINES lines: a longer one is split into modules
+    by part (as ``uvps.testing.synthetic`` and ``uvps.core.detect`` are)."""
+    assert long_files(ROOT) == {}, f"split these files (over {MAX_FILE_LINES} lines)"
