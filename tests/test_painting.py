@@ -292,6 +292,12 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
     for fig in ("painting_overview", "painting_density", "painting_tiles", "painting_widths"):
         assert (painting / "figures" / f"{fig}.png").stat().st_size > 5000 and f"figures/{fig}.png" in page
     assert "r1c1-r1c2" in page and names[0] in page
+    # its zoomable view: Deep Zoom tiles of the full-resolution maps, the viewer beside them
+    top = int(np.ceil(np.log2(max(h.shape))))
+    for layer, ext in (("albedo", "jpg"), ("height", "jpg"), ("outlines", "png")):
+        assert (painting / "view" / f"{layer}_files" / str(top) / f"0_0.{ext}").is_file()
+    assert "uvps-view" in page and '"Width": "%d"' % h.shape[1] in page
+    assert (painting / "view" / "openseadragon.min.js").is_file() and "view_s" in meta["timings"]
     # a re-run: the tiles skipped, the painting stitched again into a new folder, nothing left over
     before = (painting / "painting.json").stat().st_ino
     res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)

@@ -405,7 +405,6 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape, labels,
                                          step, pixel_size_um, chunk_px)
             timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
-        timings["total_s"] = round(time.perf_counter() - t0, 3)
         result.timings = timings
         if report_html:
             from .report.painting import write_painting_report
@@ -419,6 +418,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas,
                                   registration=reg, shapes=shapes, origin=origin, step=step,
                                   pixel_size_um=pixel_size_um, warnings=warnings, view=view)
+        timings["total_s"] = round(time.perf_counter() - t0, 3)
         write_json_atomic(tmp / "painting.json", result.as_dict())
         swap_into_place(tmp, target)
     finally:
