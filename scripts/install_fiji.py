@@ -57,7 +57,7 @@ MENU_ORDER = ["Calibrate_Lamps", "Run_Whole_Pipeline", "-",
               "Estimate_Lights", "Flat_Field", "Normals_and_Albedo", "Integrate_Height", "-",
               "Colour_Areas", "Detect_Protrusions", "Wand_Count", "Compare_Counts",
               "Statistics_and_Report", "-",
-              "Relight", "Compare_Captures", "Element_Maps", "Run_Info", "-",
+              "Relight", "Compare_Captures", "Element_Maps", "Stitch_Painting", "Run_Info", "-",
               "UVPS_Settings"]
 PACKAGE = "uvps_fiji"
 CONFIG_NAME = "uvps_fiji.cfg"

@@ -292,6 +292,12 @@ def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, wri
     for fig in ("painting_overview", "painting_density", "painting_tiles", "painting_widths"):
         assert (painting / "figures" / f"{fig}.png").stat().st_size > 5000 and f"figures/{fig}.png" in page
     assert "r1c1-r1c2" in page and names[0] in page
+    # its zoomable view: Deep Zoom tiles of the full-resolution maps, the viewer beside them
+    top = int(np.ceil(np.log2(max(h.shape))))
+    for layer, ext in (("albedo", "jpg"), ("height", "jpg"), ("outlines", "png")):
+        assert (painting / "view" / f"{layer}_files" / str(top) / f"0_0.{ext}").is_file()
+    assert "uvps-view" in page and '"Width": "%d"' % h.shape[1] in page
+    assert (painting / "view" / "openseadragon.min.js").is_file() and "view_s" in meta["timings"]
     # a re-run: the tiles skipped, the painting stitched again into a new folder, nothing left over
     before = (painting / "painting.json").stat().st_ino
     res = run_batch([written / "tiles"], out, PARAMS, mosaic=written / "layout.csv", client=client)
@@ -376,3 +382,111 @@ def test_a_painting_wide_label_image_gives_the_areas_in_the_layout_frame(paintin
     with pytest.raises(UVPSInputError, match=r"painting regions: areas.tif \(\d+ x \d+ px\) does not cover"):
         _region_labels(str(tmp_path / "areas.tif"), None, np.ones((400, 700), bool), 1, origin,
                        pixel_size_um=15.0, n_areas=None)
+
+
+def _synthetic_painting_maps(folder, *, chunk_px=256):
+    """albedo.ome.zarr (left half red, right half blue, with protrusion labels: discs) and
+    height.ome.zarr (a ramp) of a 700 x 900 px painting, written as the stitching writes them."""
+    import dask.array as da
+    from skimage.draw import disk
+    from uvps.files.omezarr import LABELS, ZarrImage, write_dask_ome_zarr
+
+    M, N = 700, 900
+    alb = np.zeros((3, M, N), np.float32)
+    alb[0, :, :N // 2] = 800.0
+    alb[2, :, N // 2:] = 800.0
+    alb[1] = 100.0
+    lab = np.zeros((M, N), np.uint32)
+    centres = [(100, 120), (255, 255), (512, 300), (600, 700), (130, 511), (400, 820)]   # some on chunk edges
+    for k, (r, c) in enumerate(centres, 1):
+        lab[disk((r, c), 20, shape=lab.shape)] = k
+    height = np.broadcast_to(np.linspace(0, 50, N, dtype=np.float32), (M, N)).copy()
+    ch = (chunk_px, chunk_px)
+    write_dask_ome_zarr(folder / "albedo.ome.zarr", ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"),
+                        da.from_array(alb, chunks=(1,) + ch), 15.0, chunk_px=chunk_px,
+                        labels=[(LABELS[0], da.from_array(lab, chunks=ch))])
+    write_dask_ome_zarr(folder / "height.ome.zarr", ZarrImage("height", "", (), unit="micrometer"),
+                        da.from_array(height, chunks=ch), 15.0, chunk_px=chunk_px)
+    return alb, lab, height
+
+
+def _chromium():
+    import os
+    import shutil as sh
+
+    exe = sh.which("chromium") or sh.which("chromium-browser")
+    if exe is None:
+        reason = "Debian's chromium is not installed (apt-get install chromium)"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(reason, pytrace=False)
+        pytest.skip(reason)
+    return exe
+
+
+def _browser(exe, url, *args, tmp):
+    import subprocess
+
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--user-data-dir={tmp}",
+           "--allow-file-access-from-files", "--virtual-time-budget=15000", *args, url]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+
+
+def test_the_zoomable_view_is_deep_zoom_tiles_of_the_maps_and_loads_in_a_real_browser(tmp_path):
+    """The DZI pyramids cut chunk by chunk from the OME-Zarr stores: the full-resolution tiles are
+    the maps (outlines drawn across chunk edges as on the whole image), each level halves the one
+    above down to one pixel; the report's OpenSeadragon, opened from disk (file://) in headless
+    chromium, loads the tiles and shows the painting (red left, blue right, cyan outlines)."""
+    from PIL import Image
+    from skimage.segmentation import find_boundaries
+    from uvps.report.deepzoom import TILE_PX, viewer_html, write_view
+
+    alb, lab, height = _synthetic_painting_maps(tmp_path)
+    view = write_view(tmp_path, albedo_scale=800.0)
+    top = int(np.ceil(np.log2(900)))
+    files = tmp_path / "view" / "albedo_files"
+    assert sorted(int(p.name) for p in files.iterdir()) == list(range(top + 1))
+    assert np.asarray(Image.open(files / "0" / "0_0.jpg")).shape[:2] == (1, 1)
+    assert np.asarray(Image.open(files / str(top - 1) / "1_1.jpg")).shape[:2] == (350 - 256, 450 - 256)
+    # the full-resolution level reassembled is the map
+    tiles_r, tiles_c = -(-700 // TILE_PX), -(-900 // TILE_PX)
+    full = np.concatenate([np.concatenate([np.asarray(Image.open(files / str(top) / f"{j}_{i}.jpg"))
+                                           for j in range(tiles_c)], axis=1) for i in range(tiles_r)], axis=0)
+    assert full.shape == (700, 900, 3)
+    expect = np.clip(np.moveaxis(alb, 0, -1) / 800.0, 0, 1) * 255
+    assert np.abs(full.astype(float) - expect).mean() < 2.0
+    ofiles = tmp_path / "view" / "outlines_files" / str(top)
+    outl = np.concatenate([np.concatenate([np.asarray(Image.open(ofiles / f"{j}_{i}.png"))
+                                           for j in range(tiles_c)], axis=1) for i in range(tiles_r)], axis=0)
+    np.testing.assert_array_equal(outl[..., 3] > 0, find_boundaries(lab, mode="inner"))
+    hfull = np.asarray(Image.open(tmp_path / "view" / "height_files" / str(top) / "0_0.jpg")).astype(float)
+    assert hfull[:, 0, 2].mean() > 60 and hfull[:, 0, 1].mean() < 40        # viridis: dark violet at the low end
+    assert view["height_range_um"][0] < 2 and view["height_range_um"][1] > 48
+    assert (tmp_path / "view" / "openseadragon.min.js").stat().st_size > 100_000
+    assert "Redistribution and use" in (tmp_path / "view" / "openseadragon-LICENSE.txt").read_text()
+    assert 'Width="900"' in (tmp_path / "view" / "albedo.dzi").read_text()
+    # a real browser, from disk as a museum opens the report
+    page = tmp_path / "report.html"
+    page.write_text("<!DOCTYPE html><html><head><meta charset='utf-8'></head><body style='margin:0'>"
+                    + viewer_html(view) + "</body></html>")
+    exe = _chromium()
+    url = page.resolve().as_uri()
+    dom = _browser(exe, url, "--dump-dom", tmp=tmp_path / "profile-dom")
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    import re
+    m = re.search(r'id="uvps-status" data-loaded="(\d+)" data-failed="(\d+)"', dom.stdout)
+    assert m, dom.stdout[-3000:]
+    print("browser tiles loaded/failed", m.groups())
+    assert int(m.group(1)) >= 3 and int(m.group(2)) == 0
+    assert "<canvas" in dom.stdout and "openseadragon-container" in dom.stdout
+    shot = tmp_path / "view.png"
+    run = _browser(exe, url, f"--screenshot={shot}", "--window-size=1000,800", tmp=tmp_path / "profile-shot")
+    assert run.returncode == 0 and shot.is_file(), run.stderr[-2000:]
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    red = (r > 180) & (g < 80) & (b < 80)
+    blue = (b > 180) & (r < 80) & (g < 80)
+    cyan = (g > 180) & (b > 180) & (r < 80)
+    print("screenshot pixels red/blue/cyan", red.sum(), blue.sum(), cyan.sum())
+    assert red.sum() > 20_000 and blue.sum() > 20_000 and cyan.sum() > 50
+    # the painting's left half is left of its right half on screen
+    assert np.nonzero(red)[1].mean() < np.nonzero(blue)[1].mean()

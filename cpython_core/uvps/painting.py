@@ -405,13 +405,20 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape, labels,
                                          step, pixel_size_um, chunk_px)
             timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
-        timings["total_s"] = round(time.perf_counter() - t0, 3)
         result.timings = timings
         if report_html:
             from .report.painting import write_painting_report
+            view = None
+            if maps:
+                from .report.deepzoom import write_view
+                t_view = time.perf_counter()
+                finite = overview[np.isfinite(overview) & (overview > 0)]
+                view = write_view(tmp, albedo_scale=float(np.percentile(finite, 99.5)) if finite.size else None)
+                timings["view_s"] = round(time.perf_counter() - t_view, 3)
             write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas,
                                   registration=reg, shapes=shapes, origin=origin, step=step,
-                                  pixel_size_um=pixel_size_um, warnings=warnings)
+                                  pixel_size_um=pixel_size_um, warnings=warnings, view=view)
+        timings["total_s"] = round(time.perf_counter() - t0, 3)
         write_json_atomic(tmp / "painting.json", result.as_dict())
         swap_into_place(tmp, target)
     finally:

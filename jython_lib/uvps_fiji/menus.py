@@ -385,6 +385,30 @@ def compare_captures(values):
     return response
 
 
+def stitch_painting(values):
+    """``batch`` with a mosaic layout or a grid: the tiles run, registered and merged into
+    RUN/painting/; opens the painting at overview (protrusions, colour areas), the painting's
+    colour-area table and its protrusion table, and names the report in the Log."""
+    if not (optional_path(values.get("mosaic")) or (values.get("grid") or "").strip()):
+        raise BridgeError("no layout: choose the tiles' layout CSV (key mosaic=) or give a grid "
+                          "COLUMNS,ROWS,OVERLAP (key grid=)")
+    response = run_command("batch", values)
+    out = run_folder(values)
+    painting = os.path.join(out, "painting")
+    overview = IJ.openImage(os.path.join(painting, "figures", "painting_overview.png"))
+    if overview is None:
+        raise BridgeError("the painting overview %s is missing" % os.path.join(painting, "figures"))
+    overview.setTitle(titled("painting overview", out))
+    overview.show()
+    display.open_table(os.path.join(painting, "painting_regions.csv"), titled("Painting areas", out))
+    display.open_table(os.path.join(painting, "painting_protrusions.csv"),
+                       titled("Painting protrusions", out))
+    IJ.log("uvps Stitch Painting: %s; the report with its zoomable view (open it in a web browser): %s"
+           % (os.path.join(painting, "painting_regions.csv"), os.path.join(painting, "report.html")))
+    IJ.selectWindow(overview.getID())
+    return response
+
+
 def element_maps(values):
     """``elements``: the registered element maps as a stack, and a composite of three of them
     (red, green, blue: keys red, green, blue; lead first by default)."""

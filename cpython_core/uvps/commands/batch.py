@@ -712,7 +712,7 @@ BATCH_PARAMS = (
           help="layout CSV (capture,x_px,y_px: each tile's nominal corner in the painting, in pixels): register "
                "the tiles and merge them into OUT/painting/ (refined layout.csv, painting_protrusions.csv, "
                "painting_regions.csv)"),
-    Param("grid", "str", label="Mosaic grid COLUMNS,ROWS,OVERLAP[,ORDER] (optional)",
+    Param("grid", "str", label="Grid of the tiles COLUMNS,ROWS,OVERLAP[,ORDER] (instead of a layout)",
           help="instead of a layout: the captures (in order) are a regular grid, e.g. 4,3,0.2 (overlap a "
                "fraction of the tile) or 4,3,0.2,snake (orders: rows, snake, columns)"),
     Param("painting_regions", "path", label="Painting-wide colour-area label TIFF (optional)",
@@ -726,7 +726,7 @@ def _batch_spec() -> CommandSpec:
         + PROTRUSION_PARAMS + OUTPUT_PARAMS + BATCH_PARAMS[1:]
     return CommandSpec(
         "batch", "many captures, each as uvps run, on a Dask cluster; summary and mosaics", _cmd_batch,
-        params=params, output="batch folder",
+        params=params, output="batch folder", menu="Stitch Painting",
         description="Each capture folder is run as `uvps run` (same parameters) into OUT/<capture name>/ on a "
                     "Dask cluster (a local one of one process per core, or --scheduler); run folders appear "
                     "whole or not at all, complete ones are skipped (unless --force), a failing capture is "

@@ -132,8 +132,9 @@ def _widths(kept, areas, path):
 
 
 def write_painting_report(folder, *, albedo, labels, covered, kept, areas, registration, shapes, origin, step,
-                          pixel_size_um, warnings=()) -> Path:
-    """Write ``folder/report.html`` and ``folder/figures/*.png`` for a stitched painting."""
+                          pixel_size_um, warnings=(), view=None) -> Path:
+    """Write ``folder/report.html`` and ``folder/figures/*.png`` for a stitched painting; ``view``
+    (:func:`uvps.report.deepzoom.write_view`'s result) adds the zoomable view of ``folder/view/``."""
     folder = Path(folder)
     figs = folder / "figures"
     figs.mkdir(exist_ok=True)
@@ -156,6 +157,10 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
                               else float("nan"), "yes" if p.used else "no", p.why] for p in registration.pairs])
     warn = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or "<li>none</li>"
     total = sum(a["count"] for a in areas.values())
+    viewer = ""
+    if view is not None:
+        from .deepzoom import viewer_html
+        viewer = viewer_html(view)
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>uvps painting report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}img{{max-width:100%}}
@@ -165,6 +170,7 @@ table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;te
 each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr.</p>
 <h2>Warnings</h2><ul>{warn}</ul>
 <h2>The painting and its protrusions</h2><img src="figures/painting_overview.png" alt="overview">
+{viewer}
 <h2>Density</h2><img src="figures/painting_density.png" alt="density">
 <h2>Per colour area</h2>{area_table}<img src="figures/painting_widths.png" alt="widths">
 <h2>Tiles and their registration</h2><img src="figures/painting_tiles.png" alt="tiles">{pair_table}
