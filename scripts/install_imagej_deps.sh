@@ -1,12 +1,13 @@
 #!/bin/sh
 # Install what the ImageJ test harness (tests/imagej/) needs on Debian/Ubuntu: ImageJ 1.x
 # (/usr/share/java/ij.jar), Jython 2.7 (/usr/share/java/jython.jar), Xvfb, a JDK (javac) and a font;
-# for the user's-session tests (test_gui_session.py) a window manager, xdotool, xwd and ImageMagick.
+# for the user's-session tests (test_gui_session.py) a window manager, xdotool, xwd and ImageMagick;
+# for the painting report's zoomable view (tests/test_painting.py) a headless browser, Debian's chromium.
 # No-op when everything is present; installs with apt-get when run as root or when sudo works
 # without a password; otherwise says what to run and exits 1. See docs in tests/imagej/README.md.
 set -eu
 
-PACKAGES="imagej jython xvfb default-jdk-headless fonts-dejavu-core openbox xdotool x11-apps imagemagick"
+PACKAGES="imagej jython xvfb default-jdk-headless fonts-dejavu-core openbox xdotool x11-apps imagemagick chromium"
 
 have_all() {
     [ -f /usr/share/java/ij.jar ] && [ -f /usr/share/java/jython.jar ] \
@@ -14,6 +15,7 @@ have_all() {
         && command -v Xvfb >/dev/null 2>&1 \
         && command -v openbox >/dev/null 2>&1 && command -v xdotool >/dev/null 2>&1 \
         && command -v xwd >/dev/null 2>&1 && command -v convert >/dev/null 2>&1 \
+        && command -v chromium >/dev/null 2>&1 \
         && { [ -d /usr/share/fonts/truetype/dejavu ] || [ -d /usr/share/fonts/dejavu ]; }
 }
 
