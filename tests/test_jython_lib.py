@@ -860,6 +860,19 @@ class _AnsweringDialog(FakeGenericDialog):
         return False
 
 
+class _Question(object):
+    """ij.gui.YesNoCancelDialog: records its text; the user presses the first button when ``yes``."""
+
+    yes = False
+    asked = []
+
+    def __init__(self, parent, title, text, yes_label, no_label):
+        _Question.asked.append((text, yes_label, no_label))
+
+    def yesPressed(self):
+        return _Question.yes
+
+
 @pytest.fixture
 def dialog_module(monkeypatch):
     """uvps_fiji.dialogs with fake ImageJ classes: a user at the dialog (no macro options)."""
@@ -869,7 +882,8 @@ def dialog_module(monkeypatch):
     logged = []
     ij = _fake_module("ij", IJ=mock.MagicMock(log=logged.append),
                       Macro=mock.MagicMock(getOptions=lambda: None), Prefs=prefs)
-    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=_AnsweringDialog),
+    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=_AnsweringDialog,
+                                               YesNoCancelDialog=_Question),
              "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
     for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
                  "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
@@ -919,3 +933,66 @@ def test_a_runs_regions_file_is_not_carried_over_to_another_run(dialog_module):
     prefs.set("uvps.run", "/data/region3")
     _, fields = _regions_dialog(dialogs, {})
     assert [f[2] for f in fields] == ["/data/region3", ""]
+
+
+def _capture_dialog(dialogs, answers):
+    _AnsweringDialog.answers = answers
+    dlg = dialogs.UVPSDialog("Run Whole Pipeline")
+    dlg.choice("Capture source", dialogs.CAPTURE_CHOICES, dialogs.CAPTURE_CURRENT)
+    dlg.string("Images: folder or files", "")
+    dialogs.add_run_field(dlg)
+    return dlg.show()
+
+
+def test_a_run_folder_is_not_silently_filled_with_another_captures_outputs(dialog_module, tmp_path):
+    """The run folder is remembered with the capture whose outputs went into it: a new capture with
+    the old run folder left in the field is asked about (one question naming the folder and both
+    captures); "Do not run" cancels, naming them; "Write into it" goes on; an empty folder, a folder
+    the user typed, or the same capture again are not asked about."""
+    dialogs, prefs, logged = dialog_module
+    _Question.asked[:] = []
+    files = dialogs.CAPTURE_FILES
+    run1 = tmp_path / "region1"
+    cap1, cap2 = str(tmp_path / "capture 2019"), str(tmp_path / "capture 2024")
+    first = {"Capture source": files, "Images: folder or files": cap1, "Run folder (outputs)": str(run1)}
+    assert _capture_dialog(dialogs, first)["run"] == str(run1)
+    # the run writes into the folder; the same capture again is not asked about
+    run1.mkdir()
+    (run1 / "run.json").write_text("{}")
+    assert _capture_dialog(dialogs, {"Capture source": files})["images"] == cap1 and _Question.asked == []
+    # another capture, the run folder left as it was: asked, naming both; "Do not run" writes nothing
+    other = {"Capture source": files, "Images: folder or files": cap2}
+    with pytest.raises(dialogs.BridgeError) as err:
+        _capture_dialog(dialogs, other)
+    assert err.value.error_type == "Cancelled"
+    assert str(run1) in err.value.message and cap1 in err.value.message and cap2 in err.value.message
+    ((text, yes, no),) = _Question.asked
+    assert str(run1) in text and cap1 in text and cap2 in text and (yes, no) == (dialogs.WRITE_INTO_IT,
+                                                                                 dialogs.DO_NOT_WRITE)
+    assert prefs.get("uvps.images", "") == cap1          # nothing remembered from a refused dialog
+    # "Write into it": the run goes on, and the folder is now remembered with the new capture
+    _Question.yes = True
+    try:
+        assert _capture_dialog(dialogs, other)["run"] == str(run1)
+        assert prefs.get("uvps.run.capture", "") == os.path.normpath(cap2)
+        assert len(_Question.asked) == 2
+        _Question.yes = False
+        # back to the first capture: asked again (the folder now holds the second's outputs)
+        with pytest.raises(dialogs.BridgeError):
+            _capture_dialog(dialogs, {"Capture source": files, "Images: folder or files": cap1})
+        assert len(_Question.asked) == 3
+        # a run folder the user chose (typed or browsed to another one) is not asked about
+        run2 = tmp_path / "region2"
+        run2.mkdir()
+        (run2 / "notes.txt").write_text("x")
+        values = _capture_dialog(dialogs, {"Capture source": files, "Images: folder or files": cap1,
+                                           "Run folder (outputs)": str(run2)})
+        assert values["run"] == str(run2) and len(_Question.asked) == 3
+        # an empty folder left in the field: no question, nothing in it to mix with
+        empty = tmp_path / "region3"
+        empty.mkdir()
+        _capture_dialog(dialogs, {"Capture source": files, "Images: folder or files": cap1,
+                                  "Run folder (outputs)": str(empty)})
+        assert _capture_dialog(dialogs, other)["run"] == str(empty) and len(_Question.asked) == 3
+    finally:
+        _Question.yes = False

@@ -111,3 +111,49 @@ def test_the_bridge_keeps_the_manual_work_the_same_way(capture, tmp_path):
     assert any(str(kept) in w for w in resp["warnings"])
     assert {n: _digest(kept / n) for n in before} == before
     assert (run / "notes.txt").is_file() and not (run / "protrusions_manual.csv").exists()
+
+
+def test_a_step_that_rewrites_the_height_or_albedo_sets_the_manual_work_aside(capture, tmp_path):
+    """`uvps integrate` writes a new depth.tif and `uvps normals` a new albedo.tif into the folder: the
+    manual count measured on the old ones moves to earlier/ with them, byte for byte, as a whole run's
+    does; it is not left beside images it was not measured on."""
+    capture_dir, cap = capture
+    run = tmp_path / "run"
+    _uvps(*_run_args(capture_dir, run))
+    before = _manual_work(run, cap)
+    r = _uvps("integrate", "-o", run, "--level", "form")
+    (kept,) = _earlier(run)
+    assert {n: _digest(kept / n) for n in before} == before
+    for name in ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comparison.csv",
+                 "figures/comparison_map.png"):
+        assert not (run / name).exists(), name
+    assert _digest(run / "depth.tif") != before["depth.tif"]               # the new height is there
+    assert _digest(run / "albedo.tif") == before["albedo.tif"]             # integrate leaves the albedo
+    assert json.loads((run / "run.json").read_text())["level"]["method"] == "form"
+    assert (run / "notes.txt").read_text() == "varnish lifting at lower left\n"
+    assert f"kept with the run it was measured on in {kept}" in r.stderr
+    record = json.loads((kept / "earlier.json").read_text())
+    assert record["measured_on"]["run_id"] == before["run.json"][:8] and "integrate" in record["reason"]
+    assert len([ln for ln in _uvps("info", run).stdout.splitlines() if ln.startswith("earlier:")]) == 1
+    # a count made on the new height, then `uvps normals` (a new albedo): kept too, beside the first
+    again = _manual_work(run, cap)
+    r = _uvps("normals", capture_dir, "-o", run, "--pixel-size-um", 30)
+    (second,) = [f for f in _earlier(run) if f != kept]     # (names sort by minute, then run id)
+    assert {n: _digest(kept / n) for n in before} == before
+    assert {n: _digest(second / n) for n in again} == again
+    assert not (run / "protrusions_manual.csv").exists() and f"in {second}" in r.stderr
+
+
+def test_lights_and_flatfield_leave_the_manual_work_where_it_was_measured(capture, tmp_path):
+    """`uvps lights` and `uvps flatfield` write lights.json and the flat-fielded images, not the albedo
+    or height a manual count was measured on: the count stays in place, untouched."""
+    capture_dir, cap = capture
+    run = tmp_path / "run"
+    _uvps(*_run_args(capture_dir, run))
+    before = _manual_work(run, cap)
+    _uvps("lights", capture_dir, "-o", run, "--pixel-size-um", 30)
+    _uvps("flatfield", capture_dir, "-o", run, "--pixel-size-um", 30)
+    assert not (run / "earlier").exists()
+    for name in ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comparison.csv", "albedo.tif",
+                 "depth.tif"):
+        assert _digest(run / name) == before[name], name

@@ -27,7 +27,8 @@ from .files.cards import load_card
 from .files.io import read_capture
 from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
                             report, sub_progress)
-from .files.runfolder import FILES, RunImages, manual_work, read_run, set_aside_manual_work, write_run
+from .files.runfolder import (FILES, RunImages, drop_manual_work, manual_work, read_run, set_aside_for_step,
+                              set_aside_manual_work, write_run)
 from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
 from .report.page import print_pdf, write_report
 from .spec import Param
@@ -260,10 +261,17 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
     included) built in a new folder that replaces the old one in one step, so that a run folder is
     never a mixture of two runs."""
     if not step.whole_run:
+        # a step that rewrites the albedo or the height in place sets the manual work measured on them
+        # aside as a whole run does; flatfield and lights alone leave albedo and height as they are
+        rewrites = result.stereo is not None or result.height is not None
         with atomic_output_dir(run_dir) as tmp:
+            kept = set_aside_for_step(run_dir, tmp, step=step.name) if rewrites else None
             outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
                                 progress=sub_progress(progress, 0.9, 0.95))
-        return CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        if kept is not None:
+            kept_aside(run_dir, run_dir / kept.relative_to(tmp), out, step=step.name)
+        return out
     # the manual work of the earlier run moves aside with the run it was measured on
     # (earlier/<date>_<run id>/): nothing a user made is lost by a re-run
     with new_output_dir(run_dir, carry_over=carried_over) as new:
@@ -282,6 +290,17 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
                             f"earlier run: kept with that run in {run_dir / kept.relative_to(new)}; this run "
                             "has no manual count of its own until one is made on it")
     return out
+
+
+def kept_aside(run_dir: Path, kept: Path, out: CommandResult, *, step: str) -> None:
+    """After a step's :func:`uvps.files.runfolder.set_aside_for_step`: the manual files leave ``run_dir``
+    (kept in ``kept``, under ``earlier/``), and the result says where, in one warning."""
+    drop_manual_work(run_dir)
+    what = "height" if step == "integrate" else "albedo"
+    out.diagnostics["earlier_manual_work"] = str(kept)
+    out.warnings.append(f"the manual work in {run_dir} ({', '.join(manual_work(kept))}) was measured on the "
+                        f"{what} that `{step}` replaced: kept with the run it was measured on in {kept}; the new "
+                        f"{what} has no manual count of its own until one is made on it")
 
 
 #: What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the report's

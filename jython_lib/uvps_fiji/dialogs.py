@@ -53,6 +53,14 @@ macro_key = bridge_logic.macro_key
 #: new run never silently uses another run's regions_labels.tif.
 RUN_OWN_KEYS = ("regions", "label")
 
+#: The run folder is remembered with the capture whose outputs went into it (``uvps.run.capture``,
+#: and ``uvps.run.capture.for``: that run folder): a dialog with capture fields whose run folder is
+#: left as remembered while the capture is another one asks before writing into it
+#: (:meth:`UVPSDialog._not_another_captures_run`).
+CAPTURE_PREF = PREFIX + "run.capture"
+#: The answers of that question.
+WRITE_INTO_IT, DO_NOT_WRITE = "Write into it", "Do not run"
+
 
 class UVPSDialog(object):
     """A GenericDialog whose fields are read back into a dict keyed by macro key.
@@ -185,6 +193,10 @@ class UVPSDialog(object):
             raise ValueError("a number field of '%s' holds no number" % self.title)
         if Macro.getOptions() is None:
             self._not_another_runs(values)
+            capture = self._not_another_captures_run(values)
+            if capture is not None:
+                Prefs.set(CAPTURE_PREF, capture)
+                Prefs.set(CAPTURE_PREF + ".for", values.get("run") or "")
             for key, kind in self.fields:
                 value = values[key]
                 if kind == "checkbox":
@@ -212,6 +224,61 @@ class UVPSDialog(object):
                 IJ.log("uvps %s: %s was chosen for the run folder %s, not %s: not used (%s "
                        "instead; choose it again to use it)"
                        % (self.title, value, was_for, run, values[key] or "none"))
+
+
+    def _not_another_captures_run(self, values):
+        """A run folder left as remembered while the capture is another one than the capture whose
+        outputs went into it: asked (one question naming the folder and both captures) before this
+        capture's outputs are written there, unless the folder is empty or absent. *Do not run* (or
+        closing the question) cancels: nothing is written. Returns the capture of a dialog with
+        capture fields (to be remembered with its run folder), else None."""
+        if "capture" not in values or "run" not in values:
+            return None
+        capture = capture_identity(values)
+        run = (values.get("run") or "").strip()
+        was = Prefs.get(CAPTURE_PREF, "")
+        was_for = Prefs.get(CAPTURE_PREF + ".for", "")
+        left_as_remembered = run and run == Prefs.get(PREFIX + "run", "")
+        if not (capture and was and left_as_remembered and was_for
+                and os.path.normpath(was_for) == os.path.normpath(run) and was != capture
+                and _holds_files(run)):
+            return capture
+        from java.awt import Frame
+        from ij import IJ
+        from ij.gui import YesNoCancelDialog
+        question = ("The run folder %s holds the outputs of %s, not of %s: write %s's outputs into it "
+                    "(%s), or choose another run folder (%s)?"
+                    % (run, was, capture, capture, WRITE_INTO_IT, DO_NOT_WRITE))
+        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), "uvps: %s: another capture's run folder" % self.title,
+                                   question, WRITE_INTO_IT, DO_NOT_WRITE)
+        if not dialog.yesPressed():
+            raise BridgeError("cancelled: the run folder %s holds the outputs of %s, not of %s; nothing was "
+                              "written: choose another run folder" % (run, was, capture),
+                              error_type="Cancelled")
+        return capture
+
+
+def capture_identity(values):
+    """What a capture dialog's capture is, in words: its folder or files (key ``images``), or the
+    open stack's title (``Current stack``); "" when unknown."""
+    if values.get("capture") == CAPTURE_FILES:
+        images = (values.get("images") or "").strip()
+        return os.path.normpath(images) if images else ""
+    try:
+        from ij import WindowManager
+        imp = WindowManager.getCurrentImage()
+        title = imp.getTitle() if imp is not None else None
+    except (Exception, Throwable):
+        return ""
+    return "the open stack '%s'" % title if isinstance(title, bridge_logic.STRING_TYPES) and title else ""
+
+
+def _holds_files(folder):
+    """Whether ``folder`` exists and holds anything besides hidden entries."""
+    try:
+        return any(not n.startswith(".") for n in os.listdir(folder))
+    except OSError:
+        return False
 
 
 def _html(text):

@@ -229,7 +229,11 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
         for roi in rois:
             overlay.add(roi.clone())
         imp.setOverlay(overlay)
-    IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
+    if table.columnExists("counted"):
+        # a wand table lists every click: the Log counts the outlined ones, as the core does
+        IJ.log("uvps: %d protrusions of %d clicks (%s)" % (len(rois), table.size(), csv_path))
+    else:
+        IJ.log("uvps: %d protrusions (%s)" % (table.size(), csv_path))
     return len(rois)   # the counted rows (a wand table also lists the clicks it did not count)
 
 

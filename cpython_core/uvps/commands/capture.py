@@ -20,7 +20,7 @@ from ..files.io import write_imagej_tiff
 from ..files.outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
 from ..spec import CommandSpec, Param
 from ..workflow import (CAPTURE_PARAMS, FLATFIELD, LIGHTS, NORMALS, OPTION_PARAMS, OUTPUT_PARAMS,
-                        PROTRUSION_PARAMS, RUN, CaptureStep, run_into_folder)
+                        PROTRUSION_PARAMS, RUN, CaptureStep, kept_aside, run_into_folder)
 
 log = logging.getLogger(__name__)
 
@@ -47,12 +47,17 @@ def _cmd_integrate(inputs, params, output_dir, *, progress=None):
     _, level = level_height(res.height_um, method=params["level"], pixel_size_um=images.pixel_size_um,
                             out=res.height_um)
     with atomic_output_dir(run_dir) as tmp:
+        # a manual count measured its heights on the depth.tif replaced here: it moves aside with it
+        kept = runfolder.set_aside_for_step(run_dir, tmp, step="integrate")
         runfolder.write_height(tmp, res.height_um, images.pixel_size_um, res.method,
                                relief=runfolder.relief_in(run_dir), level=level)
         runfolder.set_level(run_dir, level, into=tmp)
     report(progress, 1.0, "integrate: done")
     diagnostics = {**integration_diagnostics(res), "level": level.to_json()}
-    return CommandResult([runfolder.output_spec(run_dir, "depth")], diagnostics, [])
+    out = CommandResult([runfolder.output_spec(run_dir, "depth")], diagnostics, [])
+    if kept is not None:
+        kept_aside(run_dir, run_dir / kept.relative_to(tmp), out, step="integrate")
+    return out
 
 
 def _cmd_relight(inputs, params, output_dir, *, progress=None):

@@ -406,7 +406,7 @@ def _run_identity(run_dir: Path) -> tuple:
     return time.strftime("%Y-%m-%d_%H%M", time.gmtime(stamp)), digest
 
 
-def set_aside_manual_work(old, new) -> Optional[Path]:
+def set_aside_manual_work(old, new, *, beside: Optional[Path] = None, reason: Optional[str] = None) -> Optional[Path]:
     """Keep the manual work of run folder ``old`` in ``new/earlier/<date>_<run id>/`` with the run it
     was measured on, before ``new`` replaces ``old``.
 
@@ -417,7 +417,9 @@ def set_aside_manual_work(old, new) -> Optional[Path]:
     link is refused) into ``new/earlier/<date>_<run id>/`` (``<date>``: when the earlier run.json was
     written, UTC; ``<run id>``: its SHA-256's first 8 hex digits), byte for byte, with
     ``earlier.json`` recording what and why. The folders of ``old/earlier/`` are kept too. Nothing
-    is written when ``old`` holds no manual work.
+    is written when ``old`` holds no manual work. ``beside``: a folder whose ``earlier/`` the new
+    folder's is merged into (a step's temporary folder is moved into the run folder file by file), so
+    that no name already there is taken.
 
     Returns
     -------
@@ -433,7 +435,7 @@ def set_aside_manual_work(old, new) -> Optional[Path]:
     written, run_id = _run_identity(old)
     dest = new / EARLIER / f"{written}_{run_id}"
     k = 2
-    while dest.exists():
+    while dest.exists() or (beside is not None and (Path(beside) / EARLIER / dest.name).exists()):
         dest = new / EARLIER / f"{written}_{run_id}-{k}"
         k += 1
     dest.mkdir(parents=True)
@@ -450,12 +452,37 @@ def set_aside_manual_work(old, new) -> Optional[Path]:
         run = {}
     write_json_atomic(dest / EARLIER_RECORD, {
         "set_aside_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "reason": "a new run of the folder made a new albedo and height; this manual work was measured on "
-                  "the earlier run, kept here with it",
+        "reason": reason or "a new run of the folder made a new albedo and height; this manual work was "
+                            "measured on the earlier run, kept here with it",
         "measured_on": {"run_id": run_id, "written_utc": written.replace("_", " "), "command": run.get("command"),
                         "version": run.get("version")},
         "manual_files": present, "files": files})
     return dest
+
+
+def set_aside_for_step(run_dir, tmp, *, step: str) -> Optional[Path]:
+    """:func:`set_aside_manual_work` for a step that rewrites, in place, what manual work was measured on
+    (``normals``: the albedo outlined; ``integrate``: the height measured): the manual work of
+    ``run_dir`` and the files it was measured on are linked into ``tmp/earlier/<date>_<run id>/``
+    (``tmp``: the step's :func:`~uvps.files.outputs.atomic_output_dir`, moved into ``run_dir`` with
+    the step's files; ``reason`` goes into ``earlier.json``). Once that is in place, :func:`drop_manual_work` removes the manual files from
+    ``run_dir``: they are not left beside images they were not measured on. Returns the folder in
+    ``tmp`` or None (no manual work)."""
+    run_dir, tmp = Path(run_dir), Path(tmp)
+    if not manual_work(run_dir):
+        return None
+    (tmp / EARLIER).mkdir(exist_ok=True)   # run_dir/earlier/ stays where it is: not linked again
+    what = "height" if step == "integrate" else "albedo"
+    return set_aside_manual_work(run_dir, tmp, beside=run_dir,
+                                 reason=f"`uvps {step}` wrote a new {what} into the folder; this manual work was "
+                                        "measured on the earlier one, kept here with it")
+
+
+def drop_manual_work(run_dir) -> None:
+    """Remove :data:`MANUAL_FILES` from ``run_dir`` after :func:`set_aside_for_step` kept them in
+    ``earlier/`` (hard links or copies: the bytes stay there)."""
+    for name in MANUAL_FILES:
+        (Path(run_dir) / name).unlink(missing_ok=True)
 
 
 def _clicks_of(path: Path) -> dict:
