@@ -350,7 +350,7 @@ SPECS = (
         Param("regions", "path", choices=("auto",), label="Regions: colour areas (auto = from the colours, a label image, or empty = the run's own)", help="colour-area label TIFF, or 'auto' (proposed from the "
               "albedo); default: the run's regions_labels.tif, else the whole image"),
         _N_AREAS, _SEED, _PX) + _DETECTION),
-    CommandSpec("wand", "the manual method: outline each clicked protrusion", _cmd_wand, menu="Wand Count", params=(
+    CommandSpec("wand", "the manual method: outline each clicked protrusion; only the outlined are counted", _cmd_wand, menu="Wand Count", params=(
         Param("points", "path", where="inputs", positional=True, required=True,
               label="Points CSV (x_px,y_px; empty = current point selection)",
               help="CSV of the clicks: x_px,y_px (pixels), x_um,y_um or x_mm,y_mm, or X,Y as ImageJ's "
