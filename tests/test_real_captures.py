@@ -123,22 +123,25 @@ def test_run_json_and_report_say_which_samples_and_why(tmp_path):
 
 
 @needs_data
-def test_a_dome_without_its_light_file_is_refused_naming_the_lamps_that_leave_the_field_dark(tmp_path):
-    """The lion relief's dome (240 lamps, 48 below 15 deg of elevation) without dirs.lp: the lamps are not estimated
-    (no pixel is lit by every lamp); the one-line refusal names the lamps that leave the most pixels dark."""
+def test_a_dome_without_its_light_file_is_sampled_from_the_pixels_its_lamps_light(tmp_path):
+    """The lion relief's dome (240 lamps, 48 below 15 deg of elevation) without dirs.lp: no pixel is lit by every
+    lamp, yet the lamps are estimated from the pixels each lights (uvps.core.lights.PixelSample.W); their
+    azimuths follow dirs.lp (median 8.8 deg off, the lamps below 15 deg 9.1: docs/benchmarks.md). Their
+    elevations do not (median direction error 39 deg): the 64 x 43 px thumbnails, an sRGB tone curve and a
+    relief's shadows leave 24 % of the signal unexplained, and `uvps run` stops on that, in one line."""
     import subprocess
     import sys
 
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from benchmark_dome_lights import main
+
+    err, daz, el, rms = main([str(DATA / "lion_relief_rti"), "--pixel-size-um", "100"])
+    assert (el < 15).sum() == 48 and np.median(daz) < 15.0 and np.median(daz[el < 15]) < 15.0, (daz, el)
     out = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "uvps", "run", str(DATA / "lion_relief_rti" / "jpg"), "-o", str(out),
                         "--pixel-size-um", "100"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 1
     lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("INFO")]
-    assert len(lines) == 1 and "lamps leaving the most of them dark or saturated: image " in lines[0], r.stderr
-    low = [int(k) for k in __import__("re").findall(r"(\d+) \(\d+ %\)", lines[0])]
-    D = np.array([ln.split()[1:4] for ln in (DATA / "lion_relief_rti" / "dirs.lp").read_text().split("\n")[1:]
-                  if ln.strip()], float)
-    elevation = np.degrees(np.arcsin(np.clip(D[:, 2] / np.linalg.norm(D, axis=1), -1, 1)))
-    # the named lamps are the dome's lowest two rings (1-13 and 19-21 deg; its median lamp is far higher)
-    assert low and np.all(elevation[np.array(low) - 1] < 22.0) and np.median(elevation) > 35.0
+    assert len(lines) == 1 and "no lamp model fits these images" in lines[0], r.stderr
+    assert "lit by every light" not in r.stderr
     assert not out.exists()

@@ -226,6 +226,9 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
     """
     K = grid.values.shape[0]
     ok_all = grid.valid.all(axis=0)
+    support = grid.valid.sum(axis=0) >= min(K, PARTLY_LIT_LAMPS)
+    if ok_all.sum() < PARTLY_LIT_SHARE * support.sum() and support.sum() >= 3 * (degree + 1) ** 2:
+        return _fit_partly_lit(grid, support, degree, n_iter)
     if ok_all.sum() < 3 * (degree + 1) ** 2:
         raise UVPSInputError(
             f"only {int(ok_all.sum())} blocks are lit and unsaturated in every image; the drop-off fit "
@@ -238,6 +241,61 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
         ratio = _fit_values(logv[k] - logG, ok_all, grid, degree, n_iter)
         C, bounds = _normalise(ratio, grid, ok_all, degree)
         fit = DropoffFit(C, degree, grid.shape, 0.0, int(ok_all.sum()), 0.0, ratio, bounds)
+        gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
+        fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
+        fits.append(fit)
+    _set_levels(fits, grid)
+    return fits
+
+
+#: A block enters the drop-off fits of a partly-lit capture when at least this many lamps light it.
+PARTLY_LIT_LAMPS = 5
+
+#: The fits treat a capture as partly lit (:func:`_fit_partly_lit`) when fewer than this share of the
+#: blocks lit by :data:`PARTLY_LIT_LAMPS` lamps are lit by every lamp (a dome's low lamps leaving parts
+#: of the field dark); otherwise they use the blocks lit by every lamp, as always.
+PARTLY_LIT_SHARE = 0.9
+
+
+def _fit_partly_lit(grid, support, degree, n_iter, rounds=4):
+    """:func:`fit_dropoffs` when lamps leave parts of the field dark: each lamp's ratio fitted on the
+    blocks it lights.
+
+    ``log I_k(b) = a(b) + f_k(b)`` with ``a`` the albedo and common drop-off of block b (free) and
+    ``f_k`` lamp k's smooth ratio (Legendre, mean 0 over lamps): alternating least squares, ``a``
+    as the mean over the lamps lighting each block of ``log I_k - f_k``, then each ``f_k`` by the
+    robust fit on its own lit blocks. With every block lit by every lamp the first round is the
+    geometric-mean ratio of :func:`fit_dropoffs`. Hand-written: two-way (block x lamp) fixed effects
+    with a smooth lamp term on a missing-data pattern is not a library call.
+    """
+    K = grid.values.shape[0]
+    valid = grid.valid & support[None]
+    Vv, Vu = _design(grid.rows, grid.cols, grid.shape, degree)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logv = np.log(np.where(valid, grid.values, np.nan))
+    need = 3 * (degree + 1) ** 2
+    A = np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, (degree + 1) ** 2)
+    few = np.flatnonzero([valid[k].sum() < need or np.linalg.matrix_rank(A[valid[k].ravel()]) < A.shape[1]
+                          for k in range(K)])
+    if few.size:
+        shown = ", ".join(f"{k + 1} ({int(valid[k].sum())})" for k in few[:8])
+        more = f" and {few.size - 8} more" if few.size > 8 else ""
+        raise UVPSInputError(f"too few blocks lit by some images for their drop-off fits (image (lit blocks): "
+                             f"{shown}{more}; {need} needed, spread over the field): check those images' exposure, or "
+                             "lower --degree")
+    F = np.zeros_like(logv)
+    C = np.zeros((K, degree + 1, degree + 1))
+    for _ in range(rounds):
+        with np.errstate(invalid="ignore"):
+            a = np.nanmean(np.where(valid, logv - F, np.nan), axis=0)
+        for k in range(K):
+            C[k] = _fit_values(logv[k] - a, valid[k], grid, degree, n_iter)
+        C -= C.mean(axis=0)
+        F = np.einsum("ri,kij,cj->krc", Vv, C, Vu)
+    fits = []
+    for k in range(K):
+        Cn, bounds = _normalise(C[k], grid, support, degree)
+        fit = DropoffFit(Cn, degree, grid.shape, 0.0, int(valid[k].sum()), 0.0, C[k].copy(), bounds)
         gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
         fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
         fits.append(fit)

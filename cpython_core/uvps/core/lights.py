@@ -77,6 +77,24 @@ class PixelSample:
     X: np.ndarray        # (P, 3) mm
     rows: np.ndarray
     cols: np.ndarray
+    #: (K, P) 1.0 where lamp k lights pixel p, 0.0 where it leaves it dark or saturated (``I`` is 0
+    #: there); None when every lamp lights every sampled pixel. A zero row drops out of the pixel's
+    #: least-squares normal and of the residual: weighted variable projection with 0/1 weights is
+    #: plain variable projection on the lit rows (:func:`sample_pixels`).
+    W: Optional[np.ndarray] = None
+
+
+def _vectors(sample: "PixelSample", model) -> np.ndarray:
+    """The lights' vectors (K, P, 3) at the sample's pixels, zero where the lamp does not light the pixel."""
+    V = model.vectors(sample.X)
+    return V if sample.W is None else V * sample.W[..., None]
+
+
+def _mean_lit(sample: "PixelSample") -> np.ndarray:
+    """Each pixel's mean intensity over the lamps that light it (P,): the residual's normalisation."""
+    if sample.W is None:
+        return sample.I.mean(axis=0)
+    return sample.I.sum(axis=0) / sample.W.sum(axis=0)
 
 
 def azimuth_from_dropoff(fit: DropoffFit, *, n_angles=360, size=256) -> float:
@@ -245,10 +263,15 @@ def intensities_from_levels(levels, positions_mm, shape, pixel_size_um, *, direc
 
 
 def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=30000, seed=0) -> PixelSample:
-    """A random sample of pixels lit by every lamp, for the photometric residual.
+    """A random sample of pixels, for the photometric residual.
 
     Pixels where some image is saturated, or dim relative to what the flat-fielded stack predicts
-    (attached or cast shadow), are left out: they bias the residual.
+    (attached or cast shadow), are left out: they bias the residual. When at least 100 sampled pixels
+    are lit by every lamp, the sample holds only those (``W`` None). Otherwise (a dome's low lamps
+    leave parts of the field dark) it holds the pixels lit by at least :data:`MIN_LAMPS_PER_PIXEL`
+    lamps with a per-sample weight ``W`` (1 lit, 0 not) that drops the others from each pixel's
+    normal and residual; refused when too few pixels are lit by enough lamps, or some lamp lights too
+    few of them (:data:`MIN_PIXELS_PER_LAMP`), naming those lamps.
     """
     K, M, N = images.shape[:3]
     rng = np.random.default_rng(seed)
@@ -269,16 +292,63 @@ def sample_pixels(images, fits, *, mask=None, saturation=None, pixel_size_um, n=
     ok = lit.all(axis=0)
     if mask is not None:
         ok &= mask[r, c]
-        lit = lit[:, mask[r, c]]
     idx = np.flatnonzero(ok)[:n]
-    if idx.size < 100:
-        raise UVPSInputError(f"too few pixels lit by every light to refine the light positions ({idx.size} of "
-                             f"{cand.size} sampled are unsaturated and lit in every image, 100 needed"
-                             f"{_unlit_lamps(lit)}): check the images' exposure (dark or saturated images), the "
-                             "mask, and that every lamp lights the whole field; or give measured lamp positions "
-                             "(--lights)")
+    if idx.size >= 100:
+        X = pixel_coordinates_mm(r[idx], c[idx], (M, N), pixel_size_um)
+        return PixelSample(I[:, idx], X, r[idx], c[idx])
+    return _partly_lit_sample(I, sat, q, r, c, (M, N), mask=mask, pixel_size_um=pixel_size_um, n=n)
+
+
+#: Lamps a pixel must be lit by to enter a partly-lit sample (:func:`sample_pixels`): three fit its
+#: normal exactly, so the residual needs a fourth; one more keeps a single misjudged lamp from
+#: deciding a pixel's normal.
+MIN_LAMPS_PER_PIXEL = 5
+
+#: Sampled pixels each lamp must light in a partly-lit sample: fewer leave its position unconstrained.
+MIN_PIXELS_PER_LAMP = 50
+
+
+def _partly_lit_sample(I, sat, q, r, c, shape, *, mask, pixel_size_um, n) -> PixelSample:
+    """:func:`sample_pixels` when too few pixels are lit by every lamp: the pixels lit by enough lamps,
+    with each lamp's lit samples in ``W``.
+
+    The screen of :func:`sample_pixels` normalises each image by its median and each pixel by its
+    median over lamps, which a lamp lighting half the field or a pixel lit by half the lamps pulls
+    into the dark: here both medians are taken over the samples that pass the screen, starting from
+    the unsaturated non-zero ones, and the screen is repeated (twice).
+    """
+    M, N = shape
+    inside = np.ones(r.size, bool) if mask is None else mask[r, c]
+    base = (~sat) & (I > 0) & inside[None]
+    lit = base
+    for _ in range(2):
+        qn = q.copy()
+        for k in range(len(q)):
+            if lit[k].sum() >= 10:
+                qn[k] /= np.median(qn[k, lit[k]])
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(np.where(lit, qn, np.nan), axis=0)
+        lit = base & (qn > 0.55 * med) & (qn < 1.8 * med)
+    count = lit.sum(axis=0)
+    ok = (count >= MIN_LAMPS_PER_PIXEL) & inside
+    idx = np.flatnonzero(ok)[:n]
+    per_lamp = lit[:, idx].sum(axis=1)
+    weak = np.flatnonzero(per_lamp < MIN_PIXELS_PER_LAMP)
+    if idx.size < 100 or weak.size:
+        if idx.size < 100:
+            what = (f"too few pixels lit by enough lights to refine the light positions ({idx.size} of {r.size} "
+                    f"sampled are unsaturated and lit by at least {MIN_LAMPS_PER_PIXEL} images, 100 needed"
+                    f"{_unlit_lamps(lit[:, inside])})")
+        else:
+            shown = ", ".join(f"{k + 1} ({per_lamp[k]})" for k in weak[:8])
+            more = f" and {weak.size - 8} more" if weak.size > 8 else ""
+            what = (f"too few pixels lit by some lights to refine their positions (image (lit pixels of "
+                    f"{idx.size} sampled): {shown}{more}; {MIN_PIXELS_PER_LAMP} needed)")
+        raise UVPSInputError(f"{what}: check the images' exposure (dark or saturated images) and the mask, or "
+                             "give measured lamp positions (--lights)")
+    W = lit[:, idx].astype(float)
     X = pixel_coordinates_mm(r[idx], c[idx], (M, N), pixel_size_um)
-    return PixelSample(I[:, idx], X, r[idx], c[idx])
+    return PixelSample(I[:, idx] * W, X, r[idx], c[idx], W)
 
 
 def _unlit_lamps(lit: np.ndarray, most: int = 8) -> str:
@@ -308,7 +378,7 @@ def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
     This is paper Eq. 2's ``|L(m) . N - I|`` with the normals (times albedo) ``b`` solved in closed form
     for the given lights (variable projection). Returns the (K * P,) residual vector.
     """
-    V = model.vectors(sample.X)                # (K, P, 3)
+    V = _vectors(sample, model)                # (K, P, 3)
     A = np.einsum("kpi,kpj->pij", V, V)
     rhs = np.einsum("kpi,kp->pi", V, sample.I)
     try:
@@ -316,7 +386,9 @@ def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
     except np.linalg.LinAlgError:
         b = np.einsum("pij,pj->pi", np.linalg.pinv(A), rhs)
     pred = np.einsum("kpi,pi->kp", V, b)
-    return ((sample.I - pred) / sample.I.mean(axis=0)).ravel()
+    if sample.W is not None:
+        pred *= sample.W
+    return ((sample.I - pred) / _mean_lit(sample)).ravel()
 
 
 def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pixel_size_um,
@@ -593,11 +665,11 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
     """
     K = len(P)
     model = LightModel.from_positions(P, E)
-    V = model.vectors(sample.X)                          # (K, Pn, 3)
+    V = _vectors(sample, model)                          # (K, Pn, 3)
     A = np.einsum("kpi,kpj->pij", V, V)
     Ainv = np.linalg.inv(A)
     b = np.einsum("pij,kpj,kp->pi", Ainv, V, sample.I)
-    mu = sample.I.mean(axis=0)
+    mu = _mean_lit(sample)
     rk = (sample.I - np.einsum("kpi,pi->kp", V, b)) / mu   # (K, Pn)
     r = rk.ravel()
     per = 1 if intensities_only else 4
@@ -609,6 +681,8 @@ def _vp_residual_and_jacobian(sample: PixelSample, P, E, scale, *, out=None, fac
             Lp = P[k].copy()
             Lp[j] += h
             Vk = LightModel.from_positions(Lp[None], E[k:k + 1]).vectors(sample.X)[0]
+            if sample.W is not None:
+                Vk = Vk * sample.W[k][:, None]
             cols.append((Vk - V[k]) / h * scale)           # d V_k / d (L_kj / scale)
         cols.append(V[k])                                 # d V_k / d log E_k
         for j, dV in enumerate(cols):
@@ -630,7 +704,7 @@ def _level(sample: PixelSample, model: LightModel, history) -> LightModel:
     A common tilt of every lamp tilts every normal by the same rotation and leaves the residual
     unchanged; the drop-off pins it only weakly on a small field. This removes it.
     """
-    V = model.vectors(sample.X)
+    V = _vectors(sample, model)
     b = np.linalg.solve(np.einsum("kpi,kpj->pij", V, V), np.einsum("kpi,kp->pi", V, sample.I)[..., None])[..., 0]
     n = b / np.linalg.norm(b, axis=1, keepdims=True)
     nbar = n.mean(axis=0)
@@ -650,7 +724,8 @@ def _level(sample: PixelSample, model: LightModel, history) -> LightModel:
 
 def _subset(sample: PixelSample, n: int) -> PixelSample:
     """The first n pixels of a sample (the sample is in random order, so this is a random subset)."""
-    return PixelSample(sample.I[:, :n], sample.X[:n], sample.rows[:n], sample.cols[:n])
+    return PixelSample(sample.I[:, :n], sample.X[:n], sample.rows[:n], sample.cols[:n],
+                       None if sample.W is None else sample.W[:, :n])
 
 
 def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, stages=None,
@@ -780,13 +855,13 @@ def _inverse_cholesky3(A00, A01, A02, A11, A12, A22):
 
 
 @numba.njit(nogil=True, cache=True)
-def _vp_rows(L, along, scale, X, I, r, e, Zq, Zu, p0, p1):
+def _vp_rows(L, along, scale, X, I, wt, r, e, Zq, Zu, p0, p1):
     """Pixels ``p0:p1`` of :func:`_vp_normal_equations`: the residual ``r`` (K, P), ``e`` (K, 4, P) and
     the whitened rows ``Zq``, ``Zu`` (4K, 3P), column ``m * P + p`` (its numpy form is
     :func:`_vp_normal_equations_numpy`).
 
     Hand-written (numba): per pixel the K x 4 x 3 lamp derivatives, a 3 x 3 Cholesky factor and its
-    inverse, and four short sums over lamps; numpy made a dozen (K, 4, 3, P) float64 temporaries of
+    inverse, and four short sums over lamps (``wt`` (K, P): 1 where the lamp lights the pixel, else 0); numpy made a dozen (K, 4, 3, P) float64 temporaries of
     them, 5 of the 11 s of a 64-lamp estimate.
     """
     K = L.shape[0]
@@ -798,12 +873,13 @@ def _vp_rows(L, along, scale, X, I, r, e, Zq, Zu, p0, p1):
         A00 = A01 = A02 = A11 = A12 = A22 = 0.0
         h0 = h1 = h2 = 0.0
         mu = 0.0
+        lit = 0.0
         for k in range(K):
             d2 = 0.0
             for i in range(3):
                 u[i] = L[k, i] - X[p, i]
                 d2 += u[i] * u[i]
-            s = scale[k] / (d2 * np.sqrt(d2))
+            s = scale[k] / (d2 * np.sqrt(d2)) * wt[k, p]
             for i in range(3):
                 v[k, i] = u[i] * s
             for j in range(3):
@@ -823,7 +899,8 @@ def _vp_rows(L, along, scale, X, I, r, e, Zq, Zu, p0, p1):
             h1 += v[k, 1] * I[k, p]
             h2 += v[k, 2] * I[k, p]
             mu += I[k, p]
-        mu /= K
+            lit += wt[k, p]
+        mu /= lit
         c00, c10, c11, c20, c21, c22 = _inverse_cholesky3(A00, A01, A02, A11, A12, A22)
         # b = C^T C h
         t0 = c00 * h0
@@ -863,11 +940,12 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers: int = 2):
     scale = np.exp(th[:, 3] + 2 * th[:, 2])
     X = np.ascontiguousarray(sample.X, dtype=np.float64)
     I = np.ascontiguousarray(sample.I, dtype=np.float64)
+    wt = np.ones((K, n)) if sample.W is None else np.ascontiguousarray(sample.W, dtype=np.float64)
     r = np.empty((K, n))
     e = np.empty((K, 4, n))
     Zq = np.empty((4 * K, 3 * n))
     Zu = np.empty((4 * K, 3 * n))
-    args = (np.ascontiguousarray(L), np.ascontiguousarray(along), scale, X, I, r, e, Zq, Zu)
+    args = (np.ascontiguousarray(L), np.ascontiguousarray(along), scale, X, I, wt, r, e, Zq, Zu)
     edges = np.linspace(0, n, max(1, min(int(workers), n)) + 1).astype(int)
     # the first band in this thread: numba compiles (or loads from its cache) on a function's first
     # call, and two threads making that call at once can fail to type it ("Unknown attribute 'shape'")
@@ -896,6 +974,8 @@ def _vp_normal_equations_numpy(sample: PixelSample, th):
     """
     K, n = sample.I.shape
     V, W = _lamp_vectors(th, sample.X)
+    if sample.W is not None:
+        V, W = V * sample.W[:, None], W * sample.W[:, None, None]
     A = np.empty((n, 3, 3))
     for i in range(3):
         for j in range(i, 3):
@@ -904,7 +984,7 @@ def _vp_normal_equations_numpy(sample: PixelSample, th):
     Ainv = np.einsum("pki,pkj->pij", C, C)
     rhs = [np.einsum("kp,kp->p", V[:, i], sample.I) for i in range(3)]
     b = [sum(Ainv[:, i, j] * rhs[j] for j in range(3)) for i in range(3)]
-    mu = sample.I.mean(axis=0)
+    mu = _mean_lit(sample)
     r = (sample.I - sum(V[:, i] * b[i] for i in range(3))) / mu
     e = -sum(W[:, :, i] * b[i] for i in range(3)) / mu
 
@@ -1178,10 +1258,11 @@ def light_uncertainty(sample: PixelSample, model: LightModel, R, X, *, w_drop=1.
         # d r / d c: the residual of every pixel when its samples all drop by 1 count, after its
         # normal (times albedo) re-fits: the part of the ones vector its lights cannot explain. It is
         # orthogonal to each pixel's lights, so J^T dr is the e-terms' sum alone (as J^T r).
-        V = model.vectors(sample.X)
+        V = _vectors(sample, model)
         A = np.einsum("kpi,kpj->pij", V, V)
         b1 = np.linalg.solve(A, np.einsum("kpi->pi", V)[..., None])[..., 0]
-        dr = -(1.0 - np.einsum("kpi,pi->kp", V, b1)) / sample.I.mean(axis=0) / np.sqrt(prob.n_res)
+        ones = 1.0 if sample.W is None else sample.W
+        dr = -(ones - np.einsum("kpi,pi->kp", V, b1)) / _mean_lit(sample) / np.sqrt(prob.n_res)
         e, _, _ = prob.photometric_terms(t)
         shift = -np.linalg.pinv(JtJ) @ np.einsum("kjp,kp->kj", e, dr).ravel() * offset_stderr
     h_off = float(abs(w_h @ shift))
@@ -1220,7 +1301,8 @@ def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = 8) -> f
         sel = np.nonzero(tile == g)[0]
         if sel.size < 8:
             continue
-        sub = PixelSample(sample.I[:, sel], sample.X[sel], rows[sel], cols[sel])
+        sub = PixelSample(sample.I[:, sel], sample.X[sel], rows[sel], cols[sel],
+                          None if sample.W is None else sample.W[:, sel])
         scores.append(_vp_normal_equations(sub, th, workers=1)[3] / n_res)
     if len(scores) < 3:
         return float("nan")
