@@ -1005,18 +1005,23 @@ def added_by_uvps(name):
     return outline_kind(name) is not None or re.match(r"^sphere \d+ \(", name or "") is not None
 
 
+def _run_log(run_dir):
+    """The run folder's run.json as read by json, or None when it is missing or unreadable."""
+    try:
+        fh = open(os.path.join(run_dir, "run.json"), "r")
+        try:
+            return json.load(fh)
+        finally:
+            fh.close()
+    except (IOError, OSError, ValueError):
+        return None
+
+
 def relief_scale(run_dir):
     """``"absolute"`` or ``"relative"``: the ``relief.scale`` of the run folder's run.json
     (``"relative"`` when the lamps' elevation, hence the height scale, is not pinned by known
     geometry). A missing file, key or unreadable run.json is ``"absolute"`` (older folders)."""
-    try:
-        fh = open(os.path.join(run_dir, "run.json"), "r")
-        try:
-            log = json.load(fh)
-        finally:
-            fh.close()
-    except (IOError, OSError, ValueError):
-        return "absolute"
+    log = _run_log(run_dir)
     relief = log.get("relief") if isinstance(log, dict) else None
     scale = relief.get("scale") if isinstance(relief, dict) else None
     return "relative" if scale == "relative" else "absolute"
@@ -1025,14 +1030,7 @@ def relief_scale(run_dir):
 def level_line(run_dir):
     """One Log line on what was removed from the run's ``depth.tif`` (run.json ``level``, written by
     the core's ``uvps.core.level``), or "" when the run records none (a folder from before levelling)."""
-    try:
-        fh = open(os.path.join(run_dir, "run.json"), "r")
-        try:
-            log = json.load(fh)
-        finally:
-            fh.close()
-    except (IOError, OSError, ValueError):
-        return ""
+    log = _run_log(run_dir)
     level = log.get("level") if isinstance(log, dict) else None
     if not isinstance(level, dict) or level.get("slope_x_um_per_mm") is None:
         return ""
