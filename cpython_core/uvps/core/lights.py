@@ -32,6 +32,7 @@ of the bas-relief ambiguity), so the refinement needs a large sample and must no
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -326,18 +327,22 @@ def _partly_lit_sample(I, sat, q, r, c, shape, *, mask, pixel_size_um, n) -> Pix
         for k in range(len(q)):
             if lit[k].sum() >= 10:
                 qn[k] /= np.median(qn[k, lit[k]])
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            # a pixel lit by no lamp has no median (NaN, and numpy's "All-NaN slice" warning): it fails
+            # the screen below, as it should
+            warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(np.where(lit, qn, np.nan), axis=0)
         lit = base & (qn > 0.55 * med) & (qn < 1.8 * med)
     count = lit.sum(axis=0)
-    ok = (count >= MIN_LAMPS_PER_PIXEL) & inside
+    need = min(MIN_LAMPS_PER_PIXEL, len(I))      # fewer lamps than that: a pixel must be lit by them all
+    ok = (count >= need) & inside
     idx = np.flatnonzero(ok)[:n]
     per_lamp = lit[:, idx].sum(axis=1)
     weak = np.flatnonzero(per_lamp < MIN_PIXELS_PER_LAMP)
     if idx.size < 100 or weak.size:
         if idx.size < 100:
             what = (f"too few pixels lit by enough lights to refine the light positions ({idx.size} of {r.size} "
-                    f"sampled are unsaturated and lit by at least {MIN_LAMPS_PER_PIXEL} images, 100 needed"
+                    f"sampled are unsaturated and lit by at least {need} images, 100 needed"
                     f"{_unlit_lamps(lit[:, inside])})")
         else:
             shown = ", ".join(f"{k + 1} ({per_lamp[k]})" for k in weak[:8])
@@ -357,6 +362,8 @@ def _unlit_lamps(lit: np.ndarray, most: int = 8) -> str:
     if lit.size == 0:
         return ""
     unlit = 1.0 - lit.mean(axis=1)
+    if not unlit.any():
+        return ""                                 # every lamp lights every pixel: none to name
     order = np.argsort(-unlit, kind="stable")
     bad = [k for k in order if unlit[k] > 0.25] or [int(order[0])]
     shown = ", ".join(f"{k + 1} ({100 * unlit[k]:.0f} %)" for k in bad[:most])
