@@ -317,8 +317,8 @@ def _grow_by_contrast(grey, finite, y, x, frac, max_w):
 
 #: An outline is counted as a protrusion when it stands above the paint around it: the 90th percentile of its
 #: height above a plane through the ring around it is at least this many times the ring's own spread about
-#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/benchmarks.md,
-#: "The wand counts only what it outlines"): outlines of the paint's texture reach 5.7, outlines of
+#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/decisions/wand.md,
+#: "Clicks judged before they count"): outlines of the paint's texture reach 5.7, outlines of
 #: protrusions start at 9.7.
 RAISED_RATIO = 8.0
 
