@@ -285,9 +285,12 @@ def _fit_partly_lit(grid, support, degree, n_iter, rounds=4):
                              "lower --degree")
     F = np.zeros_like(logv)
     C = np.zeros((K, degree + 1, degree + 1))
+    n_lit = valid.sum(axis=0)
     for _ in range(rounds):
-        with np.errstate(invalid="ignore"):
-            a = np.nanmean(np.where(valid, logv - F, np.nan), axis=0)
+        # nanmean's arithmetic, without its "Mean of empty slice" warning for a block no lamp lights
+        # (a masked one): NaN there, and no lamp's fit uses it
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.where(valid, logv - F, 0.0).sum(axis=0) / n_lit
         for k in range(K):
             C[k] = _fit_values(logv[k] - a, valid[k], grid, degree, n_iter)
         C -= C.mean(axis=0)
