@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 
 log = logging.getLogger(__name__)
 
@@ -224,18 +225,12 @@ def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
 
 
 def _connected(names, links) -> bool:
+    """Whether the ``links`` (pairs of tile names) join every tile into one piece."""
     idx = {n: i for i, n in enumerate(names)}
-    parent = list(range(len(names)))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in links:
-        parent[find(idx[a])] = find(idx[b])
-    return len({find(i) for i in range(len(names))}) == 1
+    a = np.array([idx[p] for p, _ in links], int)
+    b = np.array([idx[q] for _, q in links], int)
+    graph = sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(len(names), len(names)))
+    return csgraph.connected_components(graph, directed=False)[0] == 1
 
 
 def _solve(names, nominal, pairs, min_confidence, max_residual_px):
