@@ -262,21 +262,25 @@ def level_height(height_um, *, method: str = "plane", pixel_size_um: float, mask
     if out is None:
         out = np.empty(h.shape, np.float32)
     m, n = h.shape
+    # one pass: each band's surface removed, and kept on the valid pixels for the RMS removed
+    removed = np.empty(int(np.count_nonzero(valid)) if degree else 0, np.float32)
+    at = 0
     for rows in row_bands(m, n, 1 << 20):
-        out[rows] = h[rows] - rec.surface(rows) if degree else h[rows]
+        if degree:
+            surf = rec.surface(rows)
+            out[rows] = h[rows] - surf
+            part = surf[valid[rows]]
+            removed[at:at + part.size] = part
+            at += part.size
+        else:
+            out[rows] = h[rows]
     if valid.any():
         med = float(np.median(out[valid]))
         out -= np.float32(med)
         rec.coeffs = rec.coeffs.copy()
         rec.coeffs[0, 0] += med        # the offset too: raw = levelled + surface, exactly
         if degree:
-            s = np.zeros(int(np.count_nonzero(valid)), np.float32)
-            at = 0
-            for rows in row_bands(m, n, 1 << 20):
-                part = rec.surface(rows)[valid[rows]]
-                s[at:at + part.size] = part
-                at += part.size
-            rec.removed_rms_um = float(np.sqrt(np.mean((s - np.median(s)) ** 2.0)))
+            rec.removed_rms_um = float(np.sqrt(np.mean((removed - np.median(removed)) ** 2.0)))
     log.info("levelling (%s): best plane %.3g, %.3g um/mm (x right, y up), %.3g um rms removed", method, sx, sy,
              rec.removed_rms_um)
     return out, rec
