@@ -45,7 +45,7 @@ from .stack import row_bands
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "raw_height",
+__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "legendre_surface", "raw_height",
            "tilt_slope_um_per_mm"]
 
 #: What :func:`level_height` removes: nothing, the best plane (default), or a low-order form.
@@ -105,14 +105,7 @@ class Levelling:
 
     def surface(self, rows: slice = slice(None)) -> np.ndarray:
         """The removed surface (um, float32) on the rows ``rows`` of the map (all by default)."""
-        m, n = self.shape
-        r = np.arange(m)[rows]
-        v = 1.0 - 2.0 * r / max(m - 1, 1)
-        u = 2.0 * np.arange(n) / max(n - 1, 1) - 1.0
-        # separable: S[r, c] = sum_ij c_ij L_i(u_c) L_j(v_r) = (Lv @ C^T @ Lu^T)[r, c]
-        lu = legendre.legvander(u, self.degree)           # (N, d + 1)
-        lv = legendre.legvander(v, self.degree)           # (rows, d + 1)
-        return (lv @ self.coeffs.T @ lu.T).astype(np.float32)
+        return legendre_surface(self.coeffs, self.shape, rows)
 
     def why(self) -> str:
         """What a tilt of the lamps does to the plane, with this map's figures (run.json ``level.why``)."""
@@ -148,6 +141,20 @@ class Levelling:
                        float(d.get("removed_rms_um", 0.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise UVPSInputError(f"run.json level: not a levelling record ({exc})") from None
+
+
+def legendre_surface(coeffs, shape, rows: slice = slice(None)) -> np.ndarray:
+    """The surface of the Legendre ``coeffs`` (module notes; :func:`fit_surface`) on the rows ``rows``
+    of an ``(M, N)`` map, float32."""
+    m, n = shape
+    degree = coeffs.shape[0] - 1
+    r = np.arange(m)[rows]
+    v = 1.0 - 2.0 * r / max(m - 1, 1)
+    u = 2.0 * np.arange(n) / max(n - 1, 1) - 1.0
+    # separable: S[r, c] = sum_ij c_ij L_i(u_c) L_j(v_r) = (Lv @ C^T @ Lu^T)[r, c]
+    lu = legendre.legvander(u, degree)           # (N, d + 1)
+    lv = legendre.legvander(v, degree)           # (rows, d + 1)
+    return (lv @ coeffs.T @ lu.T).astype(np.float32)
 
 
 def _sample(height_um, valid, n_max):
