@@ -22,9 +22,6 @@ from __future__ import annotations
 import csv
 import logging
 import math
-import os
-import shutil
-import uuid
 from dataclasses import dataclass
 from io import StringIO
 from pathlib import Path
@@ -37,7 +34,7 @@ from .core.mosaic import Registration, overlap_box, register_tiles
 from .core.regions import UM2_PER_CM2
 from .errors import UVPSInputError
 from .files.io import read_tiff
-from .files.outputs import report, write_json_atomic
+from .files.outputs import new_output_dir, report, write_json_atomic
 from .files.tables import atomic_write_text, read_protrusions_csv, write_label_tiff
 
 log = logging.getLogger(__name__)
@@ -390,10 +387,8 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     result = PaintingResult(reg, gains, origin, shape, len(kept), len(every), areas, pixel_size_um, step, warnings)
     timings["merge_s"] = round(time.perf_counter() - t0 - sum(timings.values()), 3)
     report(progress, 0.8, "painting: writing")
-    target = out_dir / PAINTING_DIR
-    tmp = out_dir / f".{PAINTING_DIR}.batch-tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    # built whole in a new folder that replaces the old one in one step (uvps.files.outputs.new_output_dir)
+    with new_output_dir(out_dir / PAINTING_DIR) as tmp:
         _write_layout(tmp / PAINTING_LAYOUT, corners)
         _write_protrusions(tmp / PAINTING_PROTRUSIONS, kept, origin)
         _write_regions(tmp / PAINTING_REGIONS, areas, len(kept), float(covered.sum()) * cm2, names)
@@ -420,9 +415,6 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
                                   pixel_size_um=pixel_size_um, warnings=warnings, view=view)
         timings["total_s"] = round(time.perf_counter() - t0, 3)
         write_json_atomic(tmp / "painting.json", result.as_dict())
-        swap_into_place(tmp, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     report(progress, 1.0, "painting: done")
     return result
 
@@ -477,17 +469,6 @@ def _memmap(path: Path):
         return tifffile.memmap(path, mode="r")
     except (ValueError, OSError):
         return read_tiff(path)[0]
-
-
-def swap_into_place(tmp: Path, target: Path) -> None:
-    """Rename the finished ``tmp`` to ``target`` (an old one moved aside first, then removed)."""
-    if target.exists():
-        old = target.parent / f".{target.name}.batch-old-{uuid.uuid4().hex[:8]}"
-        os.replace(target, old)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
 
 
 def _cell(v) -> str:
