@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import time
 from dataclasses import dataclass
 from io import StringIO
 from pathlib import Path
@@ -30,12 +31,13 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import COLUMNS
-from .core.mosaic import Registration, overlap_box, register_tiles
-from .core.regions import UM2_PER_CM2
+from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
+from .core.regions import UM2_PER_CM2, propose_regions
 from .errors import UVPSInputError
-from .files.io import read_tiff
+from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
 from .files.outputs import new_output_dir, report, write_json_atomic
-from .files.tables import atomic_write_text, read_protrusions_csv, write_label_tiff
+from .files.tables import atomic_write_text, load_regions, read_protrusions_csv, write_label_tiff
+from .painting_maps import MapContext, PlacedTile, open_tiff, painting_array
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +100,7 @@ class AlbedoTile:
         self.shape = tuple(data.shape[-2:])
 
     def _data(self):
-        return _memmap(self.path)
+        return open_tiff(self.path)
 
     def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Grey (mean of the channels) float64 of rows r0:r1, columns c0:c1."""
@@ -108,11 +110,6 @@ class AlbedoTile:
     def full(self) -> np.ndarray:
         """(M, N) or (M, N, C) float32."""
         return _channels_last(np.asarray(self._data())).astype(np.float32)
-
-
-def read_albedo(run_dir: Path) -> np.ndarray:
-    """A tile's ``albedo.tif``, (M, N) or (M, N, C) float32."""
-    return AlbedoTile(run_dir).full()
 
 
 def _win(img, r0, r1, c0, c1) -> np.ndarray:
@@ -264,9 +261,6 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
 
 def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n_areas):
     """Colour areas of the painting at overview scale: ``(labels (m, n) int, names)``."""
-    from .core.regions import propose_regions
-    from .files.tables import load_regions
-
     if regions in (None, "", "auto"):
         if regions in (None, ""):
             return covered.astype(np.int32), {1: "whole painting"}
@@ -324,8 +318,6 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     -------
     PaintingResult
     """
-    import time
-
     t0 = time.perf_counter()
     timings = {}
     out_dir = Path(out_dir)
@@ -423,13 +415,10 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                 pixel_size_um, chunk_px) -> dict:
     """albedo.ome.zarr (with the protrusion and colour-area labels), normals.ome.zarr and
     height.ome.zarr of the painting, chunk by chunk; returns each tile's height plane."""
-    from .core.mosaic import align_heights
-    from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
-    from .painting_maps import MapContext, PlacedTile, painting_array
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
-    heights = {k: _memmap(out_dir / k / "depth.tif") for k in names}
+    heights = {k: open_tiff(out_dir / k / "depth.tif") for k in names}
     planes = align_heights(heights, corners, reg.pairs)
     del heights
     luts = {}
@@ -460,15 +449,6 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                         painting_array("height", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
                         origin_um=origin_um)
     return {k: [round(v, 6) for v in planes[k]] for k in names}
-
-
-def _memmap(path: Path):
-    import tifffile
-
-    try:
-        return tifffile.memmap(path, mode="r")
-    except (ValueError, OSError):
-        return read_tiff(path)[0]
 
 
 def _cell(v) -> str:

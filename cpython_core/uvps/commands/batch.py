@@ -30,7 +30,6 @@ from io import StringIO
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 import tifffile
 
 from .. import __version__
@@ -39,6 +38,7 @@ from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, sha256_file
 from ..files.tables import atomic_write_text
 from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_dir, replace_dir, report,
                             write_json_atomic)
+from ..core.mosaic import overlap_box
 from ..painting import PAINTING_DIR, PAINTING_LAYOUT, PAINTING_PROTRUSIONS, PAINTING_REGIONS, stitch_painting
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..spec import CommandSpec, Param, coerce_value
@@ -526,15 +526,7 @@ class Tile:
 
     def overlap(self, other: "Tile") -> Optional[tuple]:
         """``(x_lo, y_lo, x_hi, y_hi)`` of the overlap in painting pixels, or None."""
-        x_lo, y_lo = max(self.x0, other.x0), max(self.y0, other.y0)
-        x_hi = min(self.x0 + self.shape[1], other.x0 + other.shape[1])
-        y_hi = min(self.y0 + self.shape[0], other.y0 + other.shape[0])
-        return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
-
-    def edge_distance(self, x_px, y_px):
-        """Distance in pixels from the tile's points ``(x_px, y_px)`` (its own frame) to its nearest edge."""
-        M, N = self.shape
-        return np.minimum(np.minimum(x_px, N - 1 - np.asarray(x_px)), np.minimum(y_px, M - 1 - np.asarray(y_px)))
+        return overlap_box((self.x0, self.y0), self.shape, (other.x0, other.y0), other.shape)
 
 
 def _first_image_shape(folder: Path) -> tuple:
