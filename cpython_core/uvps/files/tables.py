@@ -202,7 +202,9 @@ def _names_beside(path: Path) -> dict:
     for cand in (path.with_suffix(".json"), path.with_suffix(".csv"),
                  path.parent / (path.stem + "_names.csv"), path.parent / "regions.csv"):
         if cand.is_file():
-            log.info("area names from %s", cand)
+            # every candidate lies beside the label image: its name says which, and a run building its folder
+            # in a staging folder (files.outputs.new_output_dir) does not name that folder
+            log.info("area names from %s (beside %s)", cand.name, path.name)
             return read_region_names(cand)
     return {}
 
