@@ -142,13 +142,19 @@ def relief_of(run_json: Optional[dict]) -> dict:
     return {"scale": relief["scale"], "lamps": relief.get("lamps"), "reason": str(relief.get("reason", ""))}
 
 
+def run_record(run_dir) -> Optional[dict]:
+    """The run folder's ``run.json`` as a dict; None when it has none or it is unreadable (the one
+    tolerant reader of it: :func:`relief_in`, :func:`level_of`, :func:`set_level`, the set-aside)."""
+    try:
+        data = json.loads((Path(run_dir) / FILES["run"][0]).read_text(encoding="utf-8"))
+    except (OSError, ValueError):       # ValueError: UnicodeDecodeError and json.JSONDecodeError
+        return None
+    return data if isinstance(data, dict) else None
+
+
 def relief_in(run_dir) -> dict:
     """:func:`relief_of` the run folder's ``run.json`` (absolute when it has none or it is unreadable)."""
-    path = Path(run_dir) / "run.json"
-    try:
-        return relief_of(json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return dict(_RELIEF_DEFAULT)
+    return relief_of(run_record(run_dir))
 
 
 def is_relative(relief: Optional[dict]) -> bool:
@@ -339,23 +345,15 @@ def set_level(run_dir: Path, level, *, into: Optional[Path] = None) -> None:
     that rewrites ``depth.tif`` in a run folder: ``integrate``), written to ``into`` (the temporary
     folder ``depth.tif`` is moved in from, so the two arrive together; default ``run_dir``); nothing
     when the folder has none."""
-    path = Path(run_dir) / FILES["run"][0]
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return
-    if isinstance(data, dict):
+    data = run_record(run_dir)
+    if data is not None:
         data["level"] = level.to_json()
         write_json_atomic(Path(into or run_dir) / FILES["run"][0], data)
 
 
 def level_of(run_dir) -> Optional[dict]:
     """run.json's ``level`` of a run folder (None: not recorded, a folder written before levelling)."""
-    try:
-        data = json.loads((Path(run_dir) / FILES["run"][0]).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    level = data.get("level") if isinstance(data, dict) else None
+    level = (run_record(run_dir) or {}).get("level")
     return level if isinstance(level, dict) else None
 
 
@@ -446,10 +444,7 @@ def set_aside_manual_work(old, new, *, beside: Optional[Path] = None, reason: Op
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
             _link_or_copy(src, dest / name)
             files.append(name)
-    try:
-        run = json.loads((old / FILES["run"][0]).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        run = {}
+    run = run_record(old) or {}
     write_json_atomic(dest / EARLIER_RECORD, {
         "set_aside_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "reason": reason or "a new run of the folder made a new albedo and height; this manual work was "
