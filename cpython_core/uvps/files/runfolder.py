@@ -61,6 +61,9 @@ MANUAL_FILES = ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comp
 #: outlined, the height measured) and the automated count and areas a comparison used.
 MEASURED_ON = ("run.json", "lights.json", "albedo.tif", "depth.tif", "normals.tif", "protrusions.csv",
                "protrusions_labels.tif", "regions_labels.tif", "regions.csv", "report.html")
+#: What each step that rewrites it in place replaces of what manual work was measured on
+#: (:func:`set_aside_for_step`): ``normals`` the albedo outlined, ``integrate`` the height measured.
+STEP_REWRITES = {"normals": "albedo", "integrate": "height"}
 #: The subfolder of a run folder that holds earlier runs' manual work, one folder each.
 EARLIER = "earlier"
 #: The record of one set-aside folder.
@@ -467,7 +470,7 @@ def set_aside_for_step(run_dir, tmp, *, step: str) -> Optional[Path]:
     if not manual_work(run_dir):
         return None
     (tmp / EARLIER).mkdir(exist_ok=True)   # run_dir/earlier/ stays where it is: not linked again
-    what = "height" if step == "integrate" else "albedo"
+    what = STEP_REWRITES[step]
     return set_aside_manual_work(run_dir, tmp, beside=run_dir,
                                  reason=f"`uvps {step}` wrote a new {what} into the folder; this manual work was "
                                         "measured on the earlier one, kept here with it")
