@@ -23,7 +23,7 @@ from ..errors import UVPSInputError, check_pixel_size
 from ..core.flatfield import flatfield
 from ..core.integrate import gradients_from_normals
 from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
-from .tables import write_label_tiff, write_protrusions_csv
+from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import row_bands
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
@@ -492,7 +492,7 @@ def _clicks_of(path: Path) -> dict:
             rows = list(csv.DictReader(fh))
     except (OSError, UnicodeDecodeError, csv.Error):
         return {}
-    counted = sum(1 for r in rows if (r.get("counted") or "1").strip() not in ("0", "no", "false"))
+    counted = sum(1 for r in rows if not not_counted(r.get("counted") or "1"))
     return {"clicks": len(rows), "counted": counted}
 
 

@@ -80,7 +80,8 @@ def write_protrusions_csv(path, table: Mapping, *, relative: bool = False, extra
     atomic_write_text(path, table_to_csv_text(table, columns))
 
 
-def _not_counted(cell: str) -> bool:
+def not_counted(cell: str) -> bool:
+    """A ``counted`` cell of the wand's table (:data:`CLICK_COLUMNS`) that says the click is not counted."""
     return cell.strip().lower() in ("0", "no", "false")
 
 
@@ -112,7 +113,7 @@ def read_protrusions_csv(path, *, clicks: bool = False) -> dict:
     body = [r for r in rows[1:] if any(cell.strip() for cell in r)]
     if "counted" in header and not clicks:
         k = header.index("counted")
-        body = [r for r in body if not (k < len(r) and _not_counted(r[k]))]
+        body = [r for r in body if not (k < len(r) and not_counted(r[k]))]
     missing = [c for c in ("x_px", "y_px", "width_um") if c not in header]
     if missing:
         raise UVPSInputError(f"protrusion table {path} lacks columns {missing}; got {header}")
