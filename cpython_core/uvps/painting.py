@@ -32,11 +32,11 @@ import numpy as np
 
 from .core.measure import COLUMNS
 from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
-from .core.regions import UM2_PER_CM2, propose_regions
+from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
 from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
 from .files.outputs import new_output_dir, report, write_json_atomic
-from .files.tables import atomic_write_text, load_regions, read_protrusions_csv, write_label_tiff
+from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
 from .painting_maps import MapContext, PlacedTile, open_tiff, painting_array
 
 log = logging.getLogger(__name__)
@@ -266,23 +266,31 @@ def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n
             return covered.astype(np.int32), {1: "whole painting"}
         rm = propose_regions(overview, pixel_size_um=pixel_size_um * step, n_areas=n_areas, mask=covered)
         return rm.labels.astype(np.int32), dict(rm.names)
-    # a painting-wide label image in the layout's frame: sampled at the overview's pixels
-    import tifffile
-
-    with tifffile.TiffFile(regions) as tif:      # its own size: it is the painting's, not a tile's
-        own = (int(tif.pages[0].imagelength), int(tif.pages[0].imagewidth))
-    rm = load_regions(Path(regions), shape=own)
-    lab = rm.labels
+    # a painting-wide label image in the layout's frame, sampled at the overview's pixels: memory-mapped
+    # (uncompressed, as uvps and ImageJ write it), so only the sampled pixels are read, never the
+    # painting's full-resolution image whole
+    path = Path(regions)
+    what = f"region label image {path}"
+    if not path.is_file():
+        raise UVPSInputError(f"region file {path} does not exist")
+    lab = open_tiff(path)
+    if lab.ndim > 2 and sum(k != 1 for k in lab.shape) == 2:
+        lab = lab.reshape([k for k in lab.shape if k != 1])       # a single-plane stack
     m, n = covered.shape
     rr = (origin[1] + (np.arange(m) + 0.5) * step - 0.5).round().astype(int)
     cc = (origin[0] + (np.arange(n) + 0.5) * step - 0.5).round().astype(int)
-    if rr.min() < 0 or cc.min() < 0 or rr.max() >= lab.shape[0] or cc.max() >= lab.shape[1]:
-        raise UVPSInputError(f"painting regions: {Path(regions).name} ({lab.shape[1]} x {lab.shape[0]} px) does "
+    if lab.ndim == 2 and (rr.min() < 0 or cc.min() < 0 or rr.max() >= lab.shape[0] or cc.max() >= lab.shape[1]):
+        raise UVPSInputError(f"painting regions: {path.name} ({lab.shape[1]} x {lab.shape[0]} px) does "
                              f"not cover the painting (x {origin[0]:.0f}..{origin[0] + n * step:.0f}, "
                              f"y {origin[1]:.0f}..{origin[1] + m * step:.0f} in the layout's frame)")
-    out = lab[np.ix_(rr, cc)].astype(np.int32)
+    # checked as uvps.files.tables.load_regions checks a label image (whole numbers >= 0), on the samples
+    out = _as_label_image(lab[np.ix_(rr, cc)] if lab.ndim == 2 else lab, what)
     out[~covered] = 0
-    return out, {k: v for k, v in rm.names.items() if np.any(out == k)}
+    ids = [int(k) for k in np.unique(out) if k]
+    if not ids:
+        raise UVPSInputError(f"painting regions: {path.name} has no area over the painting (all its pixels there are 0)")
+    found = _names_beside(path)
+    return out, {k: found.get(k, f"area {k}") for k in ids}
 
 
 def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None, n_areas: Optional[int] = None,
