@@ -34,10 +34,10 @@ from .core.measure import COLUMNS
 from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
 from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
-from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
+from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, open_tiff, write_dask_ome_zarr
 from .files.outputs import new_output_dir, report, write_json_atomic
 from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
-from .painting_maps import MapContext, PlacedTile, open_tiff, painting_array
+from .painting_maps import MapContext, PlacedTile, painting_array
 
 log = logging.getLogger(__name__)
 

@@ -20,11 +20,10 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tifffile
 from scipy import ndimage
 
 from .core.mosaic import PLANE_SCALE_PX
-from .files.io import read_tiff
+from .files.omezarr import open_tiff
 
 
 @dataclass
@@ -57,14 +56,6 @@ class MapContext:
 #: Each map's TIFF in a tile's run folder and how it is placed.
 SOURCES = {"albedo": "albedo.tif", "normals": "normals.tif", "height": "depth.tif",
            "protrusions": "protrusions_labels.tif"}
-
-
-def open_tiff(path) -> np.ndarray:
-    """A tile's TIFF memory-mapped read-only (uncompressed, as uvps writes them), else read whole."""
-    try:
-        return tifffile.memmap(path, mode="r")
-    except (ValueError, OSError):
-        return read_tiff(path).data
 
 
 def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
