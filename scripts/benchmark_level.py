@@ -62,8 +62,8 @@ def synthetic(bows, seeds, bias_deg):
     from uvps.core.pipeline import RunOptions, run
     from uvps.testing.synthetic import make_capture
     px = 60.0
-    print(f"| bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
-          f"field-scale shape left (um rms) | corr with truth |")
+    print("| bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
+          "field-scale shape left (um rms) | corr with truth |")
     print("|---|---|---|---|---|---|---|---|")
     for bow in bows:
         for seed in seeds:
