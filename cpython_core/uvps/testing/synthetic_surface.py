@@ -399,26 +399,51 @@ class _Shapes:
                 "reach": float(w.max())}
 
 
+_TABLE_KEYS = ("y_px", "x_px", "width_um", "height_um", "crater", "weak", "region", "aspect",
+               "angle_deg", "shape", "cluster", "dark")
+
+
 def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied, ridge_mask=None):
     """Place non-overlapping protrusions per colour area and add them to height and albedo
     (``on_stroke_fraction`` of them on or against a stroke of ``ridge_mask``)."""
-    m, n = labels.shape
-    on_f = spec.on_stroke_fraction if ridge_mask is not None and ridge_mask.any() else 0.0
-    if on_f > 0:
-        srng = _substream(spec.seed, "on stroke")
-        near_stroke = ndimage.binary_dilation(ridge_mask, iterations=4).ravel()
-        prot_occ = np.zeros((m, n), bool)
-    keys = ("y_px", "x_px", "width_um", "height_um", "crater", "weak", "region", "aspect",
-            "angle_deg", "shape", "cluster", "dark")
-    table = {key: [] for key in keys + (("on_stroke",) if on_f > 0 else ())}
-    colour = np.array(PROTRUSION_COLOUR)[: albedo.shape[2]]
-    flat = labels.ravel()
-    shapes = None if spec.protrusion_shapes is None else _Shapes(spec)
-    h_range = spec.height_um
-    scratch = np.zeros((m, n)) if shapes is not None and "cluster" in shapes.kinds else None
-    n_clusters = 0
+    placer = _Placer(rng, spec, labels, px, height, albedo, occupied, ridge_mask)
+    for reg in range(1, labels.max() + 1):
+        placer.place_in_region(reg, region_light[reg - 1])
+    return placer.columns()
 
-    def stamp(cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble, col, layer):
+
+class _Placer:
+    """The state of placing protrusions area by area: the height and albedo they are stamped
+    into, the pixels they (and the strokes, spots) occupy, and the table of what was placed.
+
+    The main stream ``rng`` draws in one fixed order (count, widths, then per protrusion its
+    aspect, tries, look); the shapes and the on-stroke choice come from their own streams so
+    that switching them on leaves the main stream's draws as they were."""
+
+    def __init__(self, rng, spec, labels, px, height, albedo, occupied, ridge_mask):
+        self.rng, self.spec, self.labels, self.px = rng, spec, labels, px
+        self.height, self.albedo, self.occupied, self.ridge_mask = height, albedo, occupied, ridge_mask
+        m, n = self.shape = labels.shape
+        self.on_f = spec.on_stroke_fraction if ridge_mask is not None and ridge_mask.any() else 0.0
+        if self.on_f > 0:
+            self.srng = _substream(spec.seed, "on stroke")
+            self.near_stroke = ndimage.binary_dilation(ridge_mask, iterations=4).ravel()
+            self.prot_occ = np.zeros((m, n), bool)
+        self.table = {key: [] for key in _TABLE_KEYS + (("on_stroke",) if self.on_f > 0 else ())}
+        self.colour = np.array(PROTRUSION_COLOUR)[: albedo.shape[2]]
+        self.flat = labels.ravel()
+        self.shapes = None if spec.protrusion_shapes is None else _Shapes(spec)
+        self.scratch = (np.zeros((m, n)) if self.shapes is not None and "cluster" in self.shapes.kinds
+                        else None)
+        self.n_clusters = 0
+        self.on_now = False
+
+    def clip_height(self, h):
+        """A drawn height within ``spec.height_um`` (when set)."""
+        h_range = self.spec.height_um
+        return h if h_range is None else min(max(h, h_range[0]), h_range[1])
+
+    def stamp(self, cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble, col, layer):
         """Add one protrusion to ``layer`` (height, or the cluster's scratch by max) and blend
         its colour into the albedo; returns its peak height above the surface."""
         r0, r1 = int(cr) - margin, int(cr) + margin + 1
@@ -434,158 +459,199 @@ def _protrusions(rng, spec, labels, region_light, px, height, albedo, occupied, 
                                  in zip(wobble["amps"], (2, 3, 5), wobble["phases"])))
         fine = np.linspace(0, 1, 2001)
         peak = float(_profile(fine, gamma, crater, plateau).max())
-        if layer is height:
-            height[r0:r1, c0:c1] += h_dome * _profile(rho, gamma, crater, plateau)
+        if layer is self.height:
+            self.height[r0:r1, c0:c1] += h_dome * _profile(rho, gamma, crater, plateau)
         else:
             np.maximum(layer[r0:r1, c0:c1], h_dome * _profile(rho, gamma, crater, plateau),
                        out=layer[r0:r1, c0:c1])
-        sub = albedo[r0:r1, c0:c1]
+        sub = self.albedo[r0:r1, c0:c1]
         wgt = np.clip((1 - rho) * a, 0, 1)[..., None]
         sub[:] = sub * (1 - wgt) + col * wgt
         return h_dome * peak
 
-    def occupy(cr, cc, a_reach, margin):
+    def occupy(self, cr, cc, a_reach, margin):
+        """Mark a placed protrusion's disc (its reach + 1 px) as taken, so none overlaps it."""
         r0, r1 = int(cr) - margin, int(cr) + margin + 1
         c0, c1 = int(cc) - margin, int(cc) + margin + 1
         rr = np.arange(r0, r1)[:, None] - cr
         ccs = np.arange(c0, c1)[None, :] - cc
-        occupied[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
-        if on_f > 0:
-            prot_occ[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
+        self.occupied[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
+        if self.on_f > 0:
+            self.prot_occ[r0:r1, c0:c1] |= rr ** 2 + ccs ** 2 <= (a_reach + 1.0) ** 2
 
-    def record(cr, cc, w_um, peak, geometry, weak, dark, region, aspect, phi, cluster):
-        for key, val in zip(keys, (cr, cc, w_um, peak, geometry == "crater", weak, region,
-                                   aspect, math.degrees(phi), geometry, cluster, dark)):
-            table[key].append(val)
-        if on_f > 0:
-            table["on_stroke"].append(bool(on_now))
+    def record(self, cr, cc, w_um, peak, geometry, weak, dark, region, aspect, phi, cluster):
+        """Append one protrusion's row to the truth table."""
+        for key, val in zip(_TABLE_KEYS, (cr, cc, w_um, peak, geometry == "crater", weak, region,
+                                          aspect, math.degrees(phi), geometry, cluster, dark)):
+            self.table[key].append(val)
+        if self.on_f > 0:
+            self.table["on_stroke"].append(bool(self.on_now))
 
-    def clip_height(h):
-        return h if h_range is None else min(max(h, h_range[0]), h_range[1])
-
-    for reg in range(1, labels.max() + 1):
-        idx = np.flatnonzero(flat == reg)
+    def place_in_region(self, reg, light):
+        """Draw the number of protrusions of colour area ``reg`` from its density (light or dark
+        paint) and place them widest first, so the big ones still find room."""
+        spec, rng, px = self.spec, self.rng, self.px
+        idx = np.flatnonzero(self.flat == reg)
         area_cm2 = idx.size * px * px / _UM2_PER_CM2
-        density = (spec.protrusion_density_light if region_light[reg - 1]
-                   else spec.protrusion_density_dark)
+        density = spec.protrusion_density_light if light else spec.protrusion_density_dark
         count = int(rng.poisson(density * area_cm2))
         if count == 0:
-            continue
-        idx_near = idx[near_stroke[idx]] if on_f > 0 else idx[:0]
+            return
+        idx_near = idx[self.near_stroke[idx]] if self.on_f > 0 else idx[:0]
         for w_um in np.sort(_protrusion_widths(rng, count, spec.width_um, spec.width_median_um))[::-1]:
-            kind, geometry, wobble, plateau = None, None, None, None
-            if shapes is not None:
-                kind = shapes.kind()
-                geometry = kind if kind in PROTRUSION_GEOMETRIES else shapes.geometry()
-                wobble = shapes.wobble() if geometry == "irregular" else None
-                plateau = shapes.rng.uniform(0.4, 0.7) if geometry == "mesa" else None
-            aspect = rng.uniform(1.0, 1.35)
-            a = w_um / 2 * math.sqrt(aspect) / px                # semi-axes in pixels, area of
-            b = w_um / 2 / math.sqrt(aspect) / px                # a circle of diameter w
-            a_reach = a
-            if wobble is not None:
-                a, b = a * wobble["scale"], b * wobble["scale"]
-                a_reach = a * wobble["reach"]
-            margin = int(math.ceil(a_reach)) + 2
-            on_now = on_f > 0 and idx_near.size > 0 and srng.random() < on_f
-            for _ in range(40):
-                if on_now:      # on or against a stroke: only protrusions and the rest block it
-                    j = idx_near[srng.integers(idx_near.size)]
-                else:
-                    j = idx[rng.integers(idx.size)]
-                cr = j // n + rng.uniform(-0.5, 0.5)
-                cc = j % n + rng.uniform(-0.5, 0.5)
-                if not (margin <= cr < m - margin and margin <= cc < n - margin):
-                    continue
-                r0, r1 = int(cr) - margin, int(cr) + margin + 1
-                c0, c1 = int(cc) - margin, int(cc) + margin + 1
-                rr = np.arange(r0, r1)[:, None] - cr
-                ccs = np.arange(c0, c1)[None, :] - cc
-                busy = occupied[r0:r1, c0:c1]
-                if on_now:
-                    busy = (busy & ~ridge_mask[r0:r1, c0:c1]) | prot_occ[r0:r1, c0:c1]
-                if np.any(busy & (rr ** 2 + ccs ** 2 <= (a_reach + 1.5) ** 2)):
-                    continue
-                break
+            self.place_one(reg, w_um, idx, idx_near)
+
+    def footprint(self, w_um):
+        """Draw a protrusion's kind and geometry (from the shapes' stream) and its aspect; return
+        them with its semi-axes, reach and stamp margin in pixels (the area that of a circle of
+        diameter ``w_um``; a lumpy outline scaled to keep it)."""
+        kind, geometry, wobble, plateau = None, None, None, None
+        shapes = self.shapes
+        if shapes is not None:
+            kind = shapes.kind()
+            geometry = kind if kind in PROTRUSION_GEOMETRIES else shapes.geometry()
+            wobble = shapes.wobble() if geometry == "irregular" else None
+            plateau = shapes.rng.uniform(0.4, 0.7) if geometry == "mesa" else None
+        aspect = self.rng.uniform(1.0, 1.35)
+        a = w_um / 2 * math.sqrt(aspect) / self.px                # semi-axes in pixels, area of
+        b = w_um / 2 / math.sqrt(aspect) / self.px                # a circle of diameter w
+        a_reach = a
+        if wobble is not None:
+            a, b = a * wobble["scale"], b * wobble["scale"]
+            a_reach = a * wobble["reach"]
+        margin = int(math.ceil(a_reach)) + 2
+        return kind, geometry, wobble, plateau, aspect, a, b, a_reach, margin
+
+    def find_spot(self, idx, idx_near, a_reach, margin):
+        """Up to 40 tries at a centre in the area (near a stroke when ``on_now``) whose disc is
+        inside the frame and free; None when all 40 fail. On or against a stroke only
+        protrusions and the rest block it, not the stroke itself."""
+        rng, (m, n) = self.rng, self.shape
+        for _ in range(40):
+            if self.on_now:
+                j = idx_near[self.srng.integers(idx_near.size)]
             else:
+                j = idx[rng.integers(idx.size)]
+            cr = j // n + rng.uniform(-0.5, 0.5)
+            cc = j % n + rng.uniform(-0.5, 0.5)
+            if not (margin <= cr < m - margin and margin <= cc < n - margin):
                 continue
-            phi = rng.uniform(0, np.pi)
-            h_dome = clip_height(rng.uniform(0.15, 0.35) * w_um)
-            gamma = rng.uniform(1.0, 1.6)
-            has_crater = rng.random() < spec.crater_fraction
-            if shapes is not None:
-                has_crater = geometry == "crater"
-            else:
-                geometry = "crater" if has_crater else "dome"
-            crater = (rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.5)) if has_crater else None
-            weak = rng.random() < spec.weak_fraction
-            dark = kind == "dark"
-            paint = albedo[int(cr), int(cc)]
-            if dark:
-                weak = False
-                col = paint * shapes.rng.uniform(0.5, 1.0)
-            elif weak:
-                col = paint * rng.uniform(1.05, 1.2)
-            else:
-                col = colour * rng.uniform(0.92, 1.05)
-            if kind != "cluster":
-                peak = stamp(cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble,
-                             col, height)
-                occupy(cr, cc, a_reach, margin)
-                record(cr, cc, w_um, peak, geometry, weak, dark, reg, aspect, phi, 0)
+            r0, r1 = int(cr) - margin, int(cr) + margin + 1
+            c0, c1 = int(cc) - margin, int(cc) + margin + 1
+            rr = np.arange(r0, r1)[:, None] - cr
+            ccs = np.arange(c0, c1)[None, :] - cc
+            busy = self.occupied[r0:r1, c0:c1]
+            if self.on_now:
+                busy = (busy & ~self.ridge_mask[r0:r1, c0:c1]) | self.prot_occ[r0:r1, c0:c1]
+            if np.any(busy & (rr ** 2 + ccs ** 2 <= (a_reach + 1.5) ** 2)):
                 continue
-            # a cluster: this one and 1-3 more touching it, added to the height by their maximum
-            n_clusters += 1
-            peak = stamp(cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble, col,
-                         scratch)
-            members = [(cr, cc, w_um / 2 / px, a_reach, margin)]
-            record(cr, cc, w_um, peak, geometry, weak, False, reg, aspect, phi, n_clusters)
-            for _ in range(int(shapes.rng.integers(1, 4))):
-                placed = _cluster_member(shapes, spec, members, occupied, px, (m, n))
-                if placed is None:
-                    continue
-                (cr2, cc2, w2, aspect2, phi2, a2, b2, a_reach2, margin2, geometry2, wobble2,
-                 plateau2, crater2, gamma2) = placed
-                h2 = clip_height(shapes.rng.uniform(0.15, 0.35) * w2)
-                weak2 = shapes.rng.random() < spec.weak_fraction
-                paint2 = albedo[int(cr2), int(cc2)]
-                col2 = (paint2 * shapes.rng.uniform(1.05, 1.2) if weak2
-                        else colour * shapes.rng.uniform(0.92, 1.05))
-                peak2 = stamp(cr2, cc2, a2, b2, margin2, phi2, h2, gamma2, crater2, plateau2,
-                              wobble2, col2, scratch)
-                members.append((cr2, cc2, w2 / 2 / px, a_reach2, margin2))
-                record(cr2, cc2, w2, peak2, geometry2, weak2, False,
-                       labels[int(round(cr2)), int(round(cc2))], aspect2, phi2, n_clusters)
-            if len(members) == 1:                  # no room for another: a lone protrusion
-                table["cluster"][-1] = 0
-                n_clusters -= 1
-            r0 = min(int(c[0]) - c[4] for c in members)
-            r1 = max(int(c[0]) + c[4] + 1 for c in members)
-            c0 = min(int(c[1]) - c[4] for c in members)
-            c1 = max(int(c[1]) + c[4] + 1 for c in members)
-            height[r0:r1, c0:c1] += scratch[r0:r1, c0:c1]
-            scratch[r0:r1, c0:c1] = 0.0
-            for cr_, cc_, _, a_reach_, margin_ in members:
-                occupy(cr_, cc_, a_reach_, margin_)
-    rows, cols = table["y_px"], table["x_px"]
-    order = np.lexsort((np.asarray(cols), np.asarray(rows))) if rows else np.zeros(0, int)
-    cols_ = {
-        "x_px": np.asarray(cols, dtype=np.float64), "y_px": np.asarray(rows, dtype=np.float64),
-        "width_um": np.asarray(table["width_um"], dtype=np.float64),
-        "height_um": np.asarray(table["height_um"], dtype=np.float64),
-        "crater": np.asarray(table["crater"], dtype=bool),
-        "weak": np.asarray(table["weak"], dtype=bool),
-        "region": np.asarray(table["region"], dtype=np.int32),
-        "aspect": np.asarray(table["aspect"], dtype=np.float64),
-        "angle_deg": np.asarray(table["angle_deg"], dtype=np.float64),
-        "shape": np.asarray(table["shape"], dtype="<U9"),
-        "cluster": np.asarray(table["cluster"], dtype=np.int32),
-        "dark": np.asarray(table["dark"], dtype=bool),
-        **({"on_stroke": np.asarray(table["on_stroke"], dtype=bool)} if on_f > 0 else {}),
-    }
-    out = {"id": np.arange(1, len(rows) + 1, dtype=np.int32)}
-    out.update({k: v[order] for k, v in cols_.items()})
-    return out
+            return cr, cc
+        return None
+
+    def look(self, cr, cc, w_um, kind, geometry):
+        """Draw a placed protrusion's orientation, height, profile, crater, and colour (bright
+        soap, weakly fluorescing or dark: a tint of the paint under it)."""
+        rng, spec = self.rng, self.spec
+        phi = rng.uniform(0, np.pi)
+        h_dome = self.clip_height(rng.uniform(0.15, 0.35) * w_um)
+        gamma = rng.uniform(1.0, 1.6)
+        has_crater = rng.random() < spec.crater_fraction
+        if self.shapes is not None:
+            has_crater = geometry == "crater"
+        else:
+            geometry = "crater" if has_crater else "dome"
+        crater = (rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.5)) if has_crater else None
+        weak = rng.random() < spec.weak_fraction
+        dark = kind == "dark"
+        paint = self.albedo[int(cr), int(cc)]
+        if dark:
+            weak = False
+            col = paint * self.shapes.rng.uniform(0.5, 1.0)
+        elif weak:
+            col = paint * rng.uniform(1.05, 1.2)
+        else:
+            col = self.colour * rng.uniform(0.92, 1.05)
+        return phi, h_dome, gamma, geometry, crater, weak, dark, col
+
+    def place_one(self, reg, w_um, idx, idx_near):
+        """Place one protrusion of width ``w_um`` in area ``reg`` (dropped when no free spot is
+        found), or a cluster of touching ones when its kind is "cluster"."""
+        kind, geometry, wobble, plateau, aspect, a, b, a_reach, margin = self.footprint(w_um)
+        self.on_now = self.on_f > 0 and idx_near.size > 0 and self.srng.random() < self.on_f
+        spot = self.find_spot(idx, idx_near, a_reach, margin)
+        if spot is None:
+            return
+        cr, cc = spot
+        phi, h_dome, gamma, geometry, crater, weak, dark, col = self.look(cr, cc, w_um, kind, geometry)
+        if kind != "cluster":
+            peak = self.stamp(cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble,
+                              col, self.height)
+            self.occupy(cr, cc, a_reach, margin)
+            self.record(cr, cc, w_um, peak, geometry, weak, dark, reg, aspect, phi, 0)
+            return
+        # a cluster: this one and 1-3 more touching it, added to the height by their maximum
+        self.n_clusters += 1
+        peak = self.stamp(cr, cc, a, b, margin, phi, h_dome, gamma, crater, plateau, wobble, col,
+                          self.scratch)
+        members = [(cr, cc, w_um / 2 / self.px, a_reach, margin)]
+        self.record(cr, cc, w_um, peak, geometry, weak, False, reg, aspect, phi, self.n_clusters)
+        self.cluster_members(members)
+
+    def cluster_members(self, members):
+        """Add 1-3 members touching the cluster's first (all from the shapes' stream), then add
+        the cluster to the height by the members' maximum (so they merge, not stack) and mark
+        them occupied; a cluster left with one member is recorded as a lone protrusion."""
+        shapes, spec, px, scratch = self.shapes, self.spec, self.px, self.scratch
+        for _ in range(int(shapes.rng.integers(1, 4))):
+            placed = _cluster_member(shapes, spec, members, self.occupied, px, self.shape)
+            if placed is None:
+                continue
+            (cr2, cc2, w2, aspect2, phi2, a2, b2, a_reach2, margin2, geometry2, wobble2,
+             plateau2, crater2, gamma2) = placed
+            h2 = self.clip_height(shapes.rng.uniform(0.15, 0.35) * w2)
+            weak2 = shapes.rng.random() < spec.weak_fraction
+            paint2 = self.albedo[int(cr2), int(cc2)]
+            col2 = (paint2 * shapes.rng.uniform(1.05, 1.2) if weak2
+                    else self.colour * shapes.rng.uniform(0.92, 1.05))
+            peak2 = self.stamp(cr2, cc2, a2, b2, margin2, phi2, h2, gamma2, crater2, plateau2,
+                               wobble2, col2, scratch)
+            members.append((cr2, cc2, w2 / 2 / px, a_reach2, margin2))
+            self.record(cr2, cc2, w2, peak2, geometry2, weak2, False,
+                        self.labels[int(round(cr2)), int(round(cc2))], aspect2, phi2, self.n_clusters)
+        if len(members) == 1:                  # no room for another: a lone protrusion
+            self.table["cluster"][-1] = 0
+            self.n_clusters -= 1
+        r0 = min(int(c[0]) - c[4] for c in members)
+        r1 = max(int(c[0]) + c[4] + 1 for c in members)
+        c0 = min(int(c[1]) - c[4] for c in members)
+        c1 = max(int(c[1]) + c[4] + 1 for c in members)
+        self.height[r0:r1, c0:c1] += scratch[r0:r1, c0:c1]
+        scratch[r0:r1, c0:c1] = 0.0
+        for cr_, cc_, _, a_reach_, margin_ in members:
+            self.occupy(cr_, cc_, a_reach_, margin_)
+
+    def columns(self) -> dict:
+        """The truth table as numpy columns, rows sorted by (row, column), ids 1..n."""
+        table = self.table
+        rows, cols = table["y_px"], table["x_px"]
+        order = np.lexsort((np.asarray(cols), np.asarray(rows))) if rows else np.zeros(0, int)
+        cols_ = {
+            "x_px": np.asarray(cols, dtype=np.float64), "y_px": np.asarray(rows, dtype=np.float64),
+            "width_um": np.asarray(table["width_um"], dtype=np.float64),
+            "height_um": np.asarray(table["height_um"], dtype=np.float64),
+            "crater": np.asarray(table["crater"], dtype=bool),
+            "weak": np.asarray(table["weak"], dtype=bool),
+            "region": np.asarray(table["region"], dtype=np.int32),
+            "aspect": np.asarray(table["aspect"], dtype=np.float64),
+            "angle_deg": np.asarray(table["angle_deg"], dtype=np.float64),
+            "shape": np.asarray(table["shape"], dtype="<U9"),
+            "cluster": np.asarray(table["cluster"], dtype=np.int32),
+            "dark": np.asarray(table["dark"], dtype=bool),
+            **({"on_stroke": np.asarray(table["on_stroke"], dtype=bool)} if self.on_f > 0 else {}),
+        }
+        out = {"id": np.arange(1, len(rows) + 1, dtype=np.int32)}
+        out.update({k: v[order] for k, v in cols_.items()})
+        return out
 
 
 def _cluster_member(shapes, spec, members, occupied, px, shape):
