@@ -131,33 +131,67 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     ((4, 120, 160), dtype('uint16'), 33.3)
     """
     spec = capture.spec
-    m, n = capture.images.shape[1:3]
     px = float(spec.pixel_size_um)
-    px_mm = px / 1000.0
     for s in spheres:
         if s.kind not in ALBEDO or not s.radius_mm > 0:
             raise UVPSInputError(f"sphere {s}: kind must be 'matte', 'glossy' or 'mirror' and radius_mm > 0")
-    x, y = pixel_centres_mm((m, n), px)
-    X = np.broadcast_to(x, (m, n))
-    Y = np.broadcast_to(y, (m, n))
-    # the background: the painting seen flat (and the stands, in front of the spheres)
-    P = np.stack([X, Y, np.zeros((m, n))], axis=-1)            # surface points (mm)
-    N = np.zeros((m, n, 3))
-    N[..., 2] = 1.0
-    alb = capture.albedo if capture.albedo.ndim == 2 else capture.albedo @ LUMINANCE
-    albedo = np.asarray(alb, np.float64).copy()
-    # the spheres: the pixels they cover, with the fraction of each pixel's area they cover (a camera
-    # integrates over the pixel; sampling the rim at pixel centres alone makes it jagged, which moves
-    # a fitted circle by up to 0.02 px with the centre's sub-pixel phase)
-    cover = np.zeros((m, n))
-    sN = np.zeros((m, n, 3))
-    sP = np.zeros((m, n, 3))
-    s_alb = np.zeros((m, n))
-    spec_w = np.zeros((m, n))                                  # specular weight per sphere pixel
-    spread = np.full((m, n), math.radians(gloss_deg))           # the highlight's angular spread
-    flat = np.zeros((m, n))                                     # its flat top (a mirror's lamp image)
-    truth = []
-    for s in spheres:
+    scene = _SphereScene.of_capture(capture, gloss_deg)
+    truth = [scene.add_sphere(s, stand=stand, stand_top=stand_top, stand_half_width=stand_half_width)
+             for s in spheres]
+    rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
+    out, stray, black = _render_sphere_images(capture, scene, rng, flare=flare, specular=specular,
+                                              exposure=exposure)
+    lamps = capture.light_positions_mm
+    files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
+    dark = _sphere_dark_frame(capture, stray, black, rng)
+    return SphereCapture(out, np.asarray(lamps, float), truth, px, files, dark)
+
+
+@dataclass
+class _SphereScene:
+    """What each pixel of a sphere capture sees: the background (the painting seen flat, and the
+    stands) as points ``P``, normals ``N`` and grey ``albedo``; over it the spheres, with the
+    fraction of each pixel's area they ``cover`` (a camera integrates over the pixel; sampling the
+    rim at pixel centres alone makes it jagged, which moves a fitted circle by up to 0.02 px with
+    the centre's sub-pixel phase), their normals, points, albedo, specular weight, the highlight's
+    angular spread and its flat top (a mirror's lamp image)."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    px_mm: float
+    P: np.ndarray
+    N: np.ndarray
+    albedo: np.ndarray
+    cover: np.ndarray
+    sN: np.ndarray
+    sP: np.ndarray
+    s_alb: np.ndarray
+    spec_w: np.ndarray
+    spread: np.ndarray
+    flat: np.ndarray
+
+    @classmethod
+    def of_capture(cls, capture: SyntheticCapture, gloss_deg: float) -> "_SphereScene":
+        """The painting of ``capture`` seen flat (grey: its luminance), no sphere yet."""
+        m, n = capture.images.shape[1:3]
+        px = float(capture.spec.pixel_size_um)
+        x, y = pixel_centres_mm((m, n), px)
+        X = np.broadcast_to(x, (m, n))
+        Y = np.broadcast_to(y, (m, n))
+        P = np.stack([X, Y, np.zeros((m, n))], axis=-1)            # surface points (mm)
+        N = np.zeros((m, n, 3))
+        N[..., 2] = 1.0
+        alb = capture.albedo if capture.albedo.ndim == 2 else capture.albedo @ LUMINANCE
+        albedo = np.asarray(alb, np.float64).copy()
+        return cls(X, Y, px / 1000.0, P, N, albedo, np.zeros((m, n)), np.zeros((m, n, 3)),
+                   np.zeros((m, n, 3)), np.zeros((m, n)), np.zeros((m, n)),
+                   np.full((m, n), math.radians(gloss_deg)), np.zeros((m, n)))
+
+    def add_sphere(self, s: SphereSpec, *, stand, stand_top, stand_half_width) -> dict:
+        """Put sphere ``s`` (and its stand) into the scene; returns its truth (kind, centre and
+        radius in pixels, centre in mm)."""
+        X, Y, px_mm = self.X, self.Y, self.px_mm
+        m, n = X.shape
         c0 = s.centre[0] * (n - 1)
         r0 = s.centre[1] * (m - 1)
         R = s.radius_mm
@@ -171,27 +205,36 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
         scale = np.minimum(1.0, (1.0 - 0.5 / rpx) / np.maximum(rho, 1e-12))
         dx, dy = dx * scale, dy * scale
         nz = np.sqrt(np.clip(1.0 - dx * dx - dy * dy, 0.0, None))
-        cover[on] = frac[on]
-        sN[on] = np.stack([dx, dy, nz], axis=-1)[on]
-        sP[on] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[on]
-        s_alb[on] = ALBEDO[s.kind]
+        self.cover[on] = frac[on]
+        self.sN[on] = np.stack([dx, dy, nz], axis=-1)[on]
+        self.sP[on] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[on]
+        self.s_alb[on] = ALBEDO[s.kind]
         if s.kind != "matte":
-            spec_w[on] = 1.0
+            self.spec_w[on] = 1.0
         if s.kind == "mirror":
-            spread[on] = math.radians(MIRROR_EDGE_DEG)
-            flat[on] = math.radians(MIRROR_FLAT_DEG)
+            self.spread[on] = math.radians(MIRROR_EDGE_DEG)
+            self.flat[on] = math.radians(MIRROR_FLAT_DEG)
         if stand:
             post = (np.abs(X - cx) < stand_half_width * R) & (Y < cy - stand_top * R)
-            cover[post] = 0.0
-            P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
-            albedo[post] = 0.04
-        truth.append({"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
-                      "centre_mm": [float(cx), float(cy), float(R)]})
-    idx = np.flatnonzero(cover > 0)
-    cover_s, sN, sP = cover.ravel()[idx], sN.reshape(-1, 3)[idx], sP.reshape(-1, 3)[idx]
-    s_alb, spec_s = s_alb.ravel()[idx], spec_w.ravel()[idx]
-    s2 = 2.0 * spread.ravel()[idx] ** 2
-    a0 = flat.ravel()[idx]
+            self.cover[post] = 0.0
+            self.P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
+            self.albedo[post] = 0.04
+        return {"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
+                "centre_mm": [float(cx), float(cy), float(R)]}
+
+
+def _render_sphere_images(capture, scene: _SphereScene, rng, *, flare, specular, exposure):
+    """Render one uint16 picture per lamp of ``capture``: background and spheres blended by their
+    cover, the capture's vignetting, flare around the glossy highlights, the room's stray light,
+    noise and black level (the draws of ``rng`` lamp by lamp). Returns the stack, the stray light
+    (None when the capture has none) and the black level per channel."""
+    spec = capture.spec
+    m, n = scene.cover.shape
+    idx = np.flatnonzero(scene.cover > 0)
+    cover_s, sN, sP = scene.cover.ravel()[idx], scene.sN.reshape(-1, 3)[idx], scene.sP.reshape(-1, 3)[idx]
+    s_alb, spec_s = scene.s_alb.ravel()[idx], scene.spec_w.ravel()[idx]
+    s2 = 2.0 * scene.spread.ravel()[idx] ** 2
+    a0 = scene.flat.ravel()[idx]
     glossy = np.zeros(m * n)
     glossy[idx] = spec_s * (cover_s >= 0.5)
     glossy = glossy.reshape(m, n)
@@ -200,7 +243,6 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     E = capture.intensities
     vig = nzs.vignetting if nzs.vignetting is not None and nzs.vignetting.shape == (m, n) else None
     beam = nzs.beam_axes is not None and nzs.beam_exponent > 0
-    rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
     rgb = capture.images.ndim == 4
     black = (np.zeros(3 if rgb else 1, np.float32) if nzs.black_level is None
              else np.asarray(nzs.black_level, np.float32))
@@ -212,8 +254,8 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     out = np.empty((len(lamps), m, n) + ((3,) if rgb else ()), np.uint16)
     for k, (L, e) in enumerate(zip(lamps, E)):
         ax = nzs.beam_axes[k] if beam else None
-        sig = _radiance(L, e, P.reshape(-1, 3), N.reshape(-1, 3), albedo.ravel(), None, ax,
-                        nzs.beam_exponent, specular, s2)
+        sig = _radiance(L, e, scene.P.reshape(-1, 3), scene.N.reshape(-1, 3), scene.albedo.ravel(), None,
+                        ax, nzs.beam_exponent, specular, s2)
         on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2, a0)
         sig[idx] = cover_s * on_s + (1.0 - cover_s) * sig[idx]
         sig = sig.reshape(m, n)
@@ -230,16 +272,23 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
             counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
         counts += black if rgb else black[0]
         out[k] = np.clip(np.rint(counts), 0, 65535)
-    files = [f"sphere_{k:02d}.tif" for k in range(len(lamps))]
-    dark = None
-    if nzs.black_level is not None or stray is not None:
-        counts = np.zeros((m, n), np.float32) if stray is None else stray.copy()
-        if rgb:
-            counts = np.repeat(counts[..., None], 3, axis=2)
-        if spec.noise:
-            counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
-        dark = np.clip(np.rint(counts + (black if rgb else black[0])), 0, 65535).astype(np.uint16)
-    return SphereCapture(out, np.asarray(lamps, float), truth, px, files, dark)
+    return out, stray, black
+
+
+def _sphere_dark_frame(capture, stray, black, rng):
+    """The sphere capture's dark frame (lamps off: stray light, noise, black level), or None when
+    the capture has neither a black level nor stray light to remove."""
+    spec, nzs = capture.spec, capture.nuisances
+    if nzs.black_level is None and stray is None:
+        return None
+    m, n = capture.images.shape[1:3]
+    rgb = capture.images.ndim == 4
+    counts = np.zeros((m, n), np.float32) if stray is None else stray.copy()
+    if rgb:
+        counts = np.repeat(counts[..., None], 3, axis=2)
+    if spec.noise:
+        counts = _add_noise(counts, rng, gain=capture.gain, read_noise=spec.read_noise)
+    return np.clip(np.rint(counts + (black if rgb else black[0])), 0, 65535).astype(np.uint16)
 
 
 def _coverage(u, v, radius_px, *, sub=8):
