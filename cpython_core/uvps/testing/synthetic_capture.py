@@ -51,6 +51,16 @@ from .synthetic_surface import (
 
 
 def _validate(spec: SyntheticSpec) -> None:
+    """Refuse a spec the generator cannot make, with a one-line message naming the field: first
+    the scene and camera, then the nuisances and paint structure (in that order, so the first
+    bad field of a spec is the one named)."""
+    _validate_scene(spec)
+    _validate_nuisances(spec)
+
+
+def _validate_scene(spec: SyntheticSpec) -> None:
+    """The scene and camera fields: shape, lamps, pixel size, ranges of widths and lamps,
+    fractions, densities and noise."""
     shape = tuple(spec.shape)
     if len(shape) != 2 or any(int(s) != s or s < 16 for s in shape):
         raise UVPSInputError(f"shape must be two integers >= 16 (rows, cols); got {spec.shape}")
@@ -79,6 +89,11 @@ def _validate(spec: SyntheticSpec) -> None:
             raise UVPSInputError(f"{name} must be >= 0; got {getattr(spec, name)}")
     if not spec.full_well_e > 0:
         raise UVPSInputError(f"full_well_e must be > 0; got {spec.full_well_e}")
+
+
+def _validate_nuisances(spec: SyntheticSpec) -> None:
+    """The nuisance and paint-structure fields: weave, black level, stray light, vignetting,
+    beams, cupping, strokes, primer spots and protrusion shapes."""
     _weave_scales(spec)
     _black_levels(spec.black_level, 3 if spec.rgb else 1)
     for name, hi in (("stray_light", 1.0), ("vignetting", 0.95), ("azimuth_jitter", 1.0)):
@@ -172,9 +187,45 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     rng = np.random.default_rng(spec.seed)
     m, n = spec.shape
     px = float(spec.pixel_size_um)
-    area_cm2 = m * n * px * px / _UM2_PER_CM2
     report(progress, 0.0, "colour areas")
+    labels, names, is_light, albedo = _paint_areas(rng, spec)
 
+    report(progress, 0.1, "surface")
+    height, occupied, ridge_layer, nz, counts = _relief(rng, spec, albedo)
+
+    report(progress, 0.3, "protrusions")
+    prot = _protrusions(rng, spec, labels, is_light, px, height, albedo, occupied,
+                        ridge_mask=ridge_layer > 1.0)
+    height -= np.median(height)
+    if not spec.rgb:
+        albedo = albedo @ LUMINANCE
+    albedo = albedo.astype(np.float32)
+    height32 = height.astype(np.float32)
+    normals = normals_from_height(height32, pixel_size_um=px)
+
+    report(progress, 0.4, "lights")
+    positions, intensities = _lamps(rng, spec, nz, height32, progress)
+    exposure, gain = _exposure(spec, nz, normals, height32, albedo, positions, intensities)
+    report(progress, 0.5, "rendering")
+    images = render_images(height32, albedo, pixel_size_um=px, light_positions_mm=positions,
+                           intensities=intensities, rng=rng, noise=spec.noise, gain=gain,
+                           read_noise=spec.read_noise, exposure=exposure, dtype=np.uint16,
+                           nuisances=nz)
+    logger.info("synthetic capture %dx%d, %d lights, %d areas, %d protrusions, %d ridges, "
+                "%d primer spots", m, n, spec.n_lights, int(labels.max()), prot["id"].size,
+                counts[0], counts[1])
+    report(progress, 1.0, "done")
+    return SyntheticCapture(images=images, light_positions_mm=positions, intensities=intensities,
+                            height_um=height32, normals=normals, albedo=albedo, regions=labels,
+                            region_names=names, region_light=is_light, protrusions=prot,
+                            spec=spec, exposure=float(exposure), gain=float(gain), nuisances=nz)
+
+
+def _paint_areas(rng, spec):
+    """The colour areas (``spec.n_regions``, else 5-8 drawn) and their paints: labels, names,
+    which are light, and the RGB albedo with a coarse and a fine texture of a few per cent (so
+    an area is not one flat colour, as no paint is)."""
+    m, n = spec.shape
     n_regions = spec.n_regions or int(rng.integers(5, 9))
     labels = _colour_areas(rng, (m, n), n_regions)
     n_regions = int(labels.max())
@@ -184,8 +235,17 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     texture = (1 + 0.05 * _normalised(ndimage.gaussian_filter(rng.standard_normal((m, n)), 12))
                + 0.015 * _normalised(ndimage.gaussian_filter(rng.standard_normal((m, n)), 1.0)))
     albedo *= texture[..., None]
+    return labels, names, is_light, albedo
 
-    report(progress, 0.1, "surface")
+
+def _relief(rng, spec, albedo):
+    """The surface before the protrusions: weave, canvas bow, brush ridges (darkening the albedo
+    in their grooves), primer spots and, with ``cupping_um``, cracks and cupping. Returns the
+    height, the pixels protrusions must avoid (ridges, spots, cracks), the ridge layer, the
+    :class:`Nuisances` begun (strokes, cracks) and the numbers of ridges and spots."""
+    m, n = spec.shape
+    px = float(spec.pixel_size_um)
+    area_cm2 = m * n * px * px / _UM2_PER_CM2
     x, y = pixel_centres_mm((m, n), px)
     xu, yu = x * 1000.0, y * 1000.0
     height = _weave(spec, rng.uniform(-0.05, 0.05), xu, yu)
@@ -212,18 +272,14 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
                                                        px, spec.cupping_um, spec.crack_cell_mm)
         height += layer
         occupied |= ndimage.binary_dilation(nz.cracks, iterations=2)   # they erupt in between
+    return height, occupied, ridge_layer, nz, (n_ridges, n_spots)
 
-    report(progress, 0.3, "protrusions")
-    prot = _protrusions(rng, spec, labels, is_light, px, height, albedo, occupied,
-                        ridge_mask=ridge_layer > 1.0)
-    height -= np.median(height)
-    if not spec.rgb:
-        albedo = albedo @ LUMINANCE
-    albedo = albedo.astype(np.float32)
-    height32 = height.astype(np.float32)
-    normals = normals_from_height(height32, pixel_size_um=px)
 
-    report(progress, 0.4, "lights")
+def _lamps(rng, spec, nz, height32, progress):
+    """The lamps: positions, each image's irradiance at the centre (drift, and 1/d^2 with
+    ``fixed_exposure``), their beams and the lens's vignetting, and with ``cast_shadows`` the
+    shadow each lamp casts (into ``nz``)."""
+    m, n = spec.shape
     positions = light_positions(rng, n_lights=spec.n_lights, elevation_deg=spec.elevation_deg,
                                 distance_mm=spec.distance_mm, azimuth_jitter=spec.azimuth_jitter)
     drift = 1 + rng.uniform(-spec.intensity_jitter, spec.intensity_jitter, spec.n_lights)
@@ -237,8 +293,17 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
     if spec.cast_shadows:
         report(progress, 0.45, "cast shadows")
         nz.cast_shadows = True
-        nz.shadowed = shadow_masks(height32, pixel_size_um=px, light_positions_mm=positions)
+        nz.shadowed = shadow_masks(height32, pixel_size_um=float(spec.pixel_size_um),
+                                   light_positions_mm=positions)
         nz.info["cast_shadows"] = {"shadowed_fraction": nz.shadowed.mean(axis=(1, 2)).tolist()}
+    return positions, intensities
+
+
+def _exposure(spec, nz, normals, height32, albedo, positions, intensities):
+    """The exposure that puts the brightest noise-free sample (stray light counted in) at
+    ``exposure_fraction`` of 65535, and the gain (counts per electron); adds the stray light to
+    ``nz`` first, with its counts at that exposure."""
+    px = float(spec.pixel_size_um)
 
     def shading():
         return _shading(normals, height32, px, positions, None, intensities,
@@ -255,16 +320,4 @@ def make_capture(spec: Optional[SyntheticSpec] = None, *, progress: Progress = N
         axes = (0, 1)
         nz.info["stray_light"]["mean_counts"] = (exposure * nz.stray_light.mean(axis=axes)).tolist()
         nz.info["stray_light"]["max_counts"] = (exposure * nz.stray_light.max(axis=axes)).tolist()
-    report(progress, 0.5, "rendering")
-    images = render_images(height32, albedo, pixel_size_um=px, light_positions_mm=positions,
-                           intensities=intensities, rng=rng, noise=spec.noise, gain=gain,
-                           read_noise=spec.read_noise, exposure=exposure, dtype=np.uint16,
-                           nuisances=nz)
-    logger.info("synthetic capture %dx%d, %d lights, %d areas, %d protrusions, %d ridges, "
-                "%d primer spots", m, n, spec.n_lights, n_regions, prot["id"].size, n_ridges,
-                n_spots)
-    report(progress, 1.0, "done")
-    return SyntheticCapture(images=images, light_positions_mm=positions, intensities=intensities,
-                            height_um=height32, normals=normals, albedo=albedo, regions=labels,
-                            region_names=names, region_light=is_light, protrusions=prot,
-                            spec=spec, exposure=float(exposure), gain=float(gain), nuisances=nz)
+    return exposure, gain
