@@ -146,9 +146,11 @@ def _own_relief(height, win, rr, ccs, rho):
 
 def _change_surface(rng, later, prot, height, albedo, px):
     """Grow, remove and add protrusions on the world surface, in place. Returns the world table
-    after the change (ids of ``prot``, then the new ones) and each row's status."""
+    after the change (ids of ``prot``, then the new ones) and each row's status.
+
+    Only lone domes, craters and mesas grow or go (a cluster's members overlap, so one member's
+    own relief is not separable); one permutation of them from ``rng`` picks both, growth first."""
     n = prot["id"].size
-    shape = height.shape
     rad = prot["width_um"] * np.sqrt(prot["aspect"]) / 2 / px
     xy = np.column_stack([prot["x_px"], prot["y_px"]])
     tree = cKDTree(xy) if n else None
@@ -158,14 +160,27 @@ def _change_surface(rng, later, prot, height, albedo, px):
     order = rng.permutation(lone)
     n_grow = int(round(later.grown_fraction * lone.size))
     n_gone = int(round(later.gone_fraction * lone.size))
-    # growth needs room: the grown footprint must stay clear of every neighbour's
+    _grow_protrusions(rng, later, prot, height, albedo, px, order, n_grow, (tree, xy, rad),
+                      status, after)
+    for i in [j for j in order if status[j] == "unchanged"][:n_gone]:
+        _remove_protrusion(prot, i, height, albedo, px)
+        status[i] = "gone"
+    return _erupt_domes(rng, later, height, albedo, px, (tree, xy, rad), status, after)
+
+
+def _grow_protrusions(rng, later, prot, height, albedo, px, order, n_grow, near, status, after):
+    """Grow up to ``n_grow`` of the protrusions ``order`` (in that order), each where its grown
+    footprint stays clear of every neighbour's and of the field's edge: its own relief and colour
+    redrawn ``s_w`` x wider and ``s_h`` x higher. Marks them "grown" in ``status``/``after``."""
+    tree, xy, rad = near
+    shape = height.shape
     grown = []
     for i in order:
         if len(grown) >= n_grow:
             break
         sw = rng.uniform(*later.width_growth)
-        near = tree.query_ball_point(xy[i], sw * rad[i] + rad.max() + 4)
-        if any(j != i and np.hypot(*(xy[j] - xy[i])) < sw * rad[i] + rad[j] + 4 for j in near):
+        near_i = tree.query_ball_point(xy[i], sw * rad[i] + rad.max() + 4)
+        if any(j != i and np.hypot(*(xy[j] - xy[i])) < sw * rad[i] + rad[j] + 4 for j in near_i):
             continue
         win, rr, ccs, rho, a = _ellipse(prot, i, px, shape, grow=sw)
         if rho.shape != rr.shape[:1] + ccs.shape[1:] or win[0].start == 0 or win[1].start == 0 \
@@ -188,15 +203,25 @@ def _change_surface(rng, later, prot, height, albedo, px):
         after["width_um"][i] *= sw
         after["height_um"][i] *= sh
         grown.append(i)
-    for i in [j for j in order if status[j] == "unchanged"][:n_gone]:
-        win, rr, ccs, rho, a = _ellipse(prot, i, px, shape)
-        height[win] -= _own_relief(height, win, rr, ccs, rho)
-        sub = albedo[win]
-        ring = (rho > 1.2) & (rho < 1.6)
-        paint = np.median(sub[ring], axis=0)
-        sub[rho < 1.0 + 1.0 / a] = paint
-        status[i] = "gone"
-    # new domes where there is room (off every protrusion, inside the field)
+
+
+def _remove_protrusion(prot, i, height, albedo, px):
+    """Flatten protrusion ``i`` to the plane of the paint around it and paint its footprint the
+    median colour of the ring just outside it (as a fallen-off protrusion leaves paint behind)."""
+    win, rr, ccs, rho, a = _ellipse(prot, i, px, height.shape)
+    height[win] -= _own_relief(height, win, rr, ccs, rho)
+    sub = albedo[win]
+    ring = (rho > 1.2) & (rho < 1.6)
+    paint = np.median(sub[ring], axis=0)
+    sub[rho < 1.0 + 1.0 / a] = paint
+
+
+def _erupt_domes(rng, later, height, albedo, px, near, status, after):
+    """New domes (``new_per_cm2``, widths ``new_width_um``) where there is room: off every
+    protrusion and each other, inside the field (60 tries each, else dropped). Appends their
+    rows to ``after`` as "new"; returns ``after`` and ``status``."""
+    tree, xy, rad = near
+    shape = height.shape
     area_cm2 = shape[0] * shape[1] * px * px / _UM2_PER_CM2
     n_new = int(rng.poisson(later.new_per_cm2 * area_cm2)) if later.new_per_cm2 > 0 else 0
     colour = np.array(PROTRUSION_COLOUR)[: albedo.shape[2]]
