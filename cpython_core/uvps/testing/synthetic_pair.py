@@ -352,6 +352,39 @@ def make_capture_pair(spec: Optional[SyntheticSpec] = None, later: Optional[Late
     rng = np.random.default_rng((int(later.seed), zlib.crc32(b"later capture")))
     m, n = spec.shape
     px = float(spec.pixel_size_um)
+    shift, rot, scale = _later_pose(rng, later)
+    b_to_a = similarity_matrix((m, n), shift_px=shift, rotation_deg=rot, scale=scale)
+    margin = _world_margin(b_to_a, later, (m, n))
+    report(progress, 0.0, "the surface")
+    world = make_capture(spec, shape=(m + 2 * margin, n + 2 * margin), n_lights=3, noise=False)
+    height, albedo = world.height_um.astype(np.float64), world.albedo.astype(np.float64)
+    if albedo.ndim == 2:
+        albedo = albedo[..., None]
+    region_w = world.regions
+    crop = (slice(margin, margin + m), slice(margin, margin + n))
+    alb_a = albedo[crop] if world.albedo.ndim == 3 else albedo[crop][..., 0]
+    report(progress, 0.3, "capture A")
+    a = _render_view(height[crop], alb_a, region_w[crop], spec, px,
+                     np.random.default_rng((int(spec.seed), zlib.crc32(b"view a"))), world)
+    report(progress, 0.5, "the changes")
+    after, status = _change_surface(rng, later, world.protrusions, height, albedo, px)
+    h_b, alb_b, reg_b = _b_grid(height, albedo, region_w, b_to_a, margin, (m, n),
+                                grey=world.albedo.ndim == 2)
+    report(progress, 0.7, "capture B")
+    b = _render_view(h_b, alb_b, reg_b, spec, px * scale,
+                     np.random.default_rng((int(later.seed), zlib.crc32(b"view b"))), world)
+    changes = _pair_tables(a, b, world, after, status, b_to_a, margin)
+    counts = {s: int(np.sum(changes["status"] == s)) for s in ("unchanged", "grown", "new", "gone")}
+    info = {"shift_px": list(shift), "rotation_deg": rot, "scale": scale, "margin_px": margin,
+            "pixel_size_um_a": px, "pixel_size_um_b": px * scale, "counts": counts}
+    logger.info("capture pair: shift %s px, rotation %.2f deg, scale %.4f; %s", shift, rot, scale, counts)
+    report(progress, 1.0, "done")
+    return CapturePair(a, b, b_to_a, changes, later, info)
+
+
+def _later_pose(rng, later):
+    """B's pose against A: shift (px), rotation (deg) and scale, each the given value or drawn
+    within its bound (the shift at least half ``max_shift_px``, in a random direction)."""
     if later.shift_px is None:
         ang, mag = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 1.0) * later.max_shift_px
         shift = (mag * math.cos(ang), mag * math.sin(ang))
@@ -361,49 +394,51 @@ def make_capture_pair(spec: Optional[SyntheticSpec] = None, later: Optional[Late
            else float(later.rotation_deg))
     scale = (1 + rng.uniform(-1, 1) * later.max_scale_change if later.scale is None
              else float(later.scale))
-    b_to_a = similarity_matrix((m, n), shift_px=shift, rotation_deg=rot, scale=scale)
-    # the world: wide enough for both fields, and for any pose within the bounds (so that A is
-    # the same capture for every later capture of one spec: one A, several B)
+    return shift, rot, scale
+
+
+def _world_margin(b_to_a, later, shape):
+    """The margin (px) around A's field that the world surface needs: wide enough for both
+    fields, and for any pose within the bounds (so that A is the same capture for every later
+    capture of one spec: one A, several B)."""
+    m, n = shape
     corners = np.array([[0, 0, 1], [n - 1, 0, 1], [0, m - 1, 1], [n - 1, m - 1, 1]], float)
     reach = (b_to_a @ corners.T)[:2]
     bound = (later.max_shift_px + math.hypot(m, n) / 2
              * (math.radians(later.max_rotation_deg) + later.max_scale_change))
-    margin = int(math.ceil(max(bound, -reach.min(), reach[0].max() - (n - 1),
-                               reach[1].max() - (m - 1)))) + 8
-    report(progress, 0.0, "the surface")
-    world = make_capture(spec, shape=(m + 2 * margin, n + 2 * margin), n_lights=3, noise=False)
-    height, albedo = world.height_um.astype(np.float64), world.albedo.astype(np.float64)
-    if albedo.ndim == 2:
-        albedo = albedo[..., None]
-    region_w = world.regions
+    return int(math.ceil(max(bound, -reach.min(), reach[0].max() - (n - 1),
+                             reach[1].max() - (m - 1)))) + 8
 
-    def region_of(xy_world):
-        r = np.clip(np.rint(xy_world[:, 1]).astype(int), 0, region_w.shape[0] - 1)
-        c = np.clip(np.rint(xy_world[:, 0]).astype(int), 0, region_w.shape[1] - 1)
-        return region_w[r, c]
 
-    crop = (slice(margin, margin + m), slice(margin, margin + n))
-    alb_a = albedo[crop] if world.albedo.ndim == 3 else albedo[crop][..., 0]
-    report(progress, 0.3, "capture A")
-    a = _render_view(height[crop], alb_a, region_w[crop], spec, px,
-                     np.random.default_rng((int(spec.seed), zlib.crc32(b"view a"))), world)
-    report(progress, 0.5, "the changes")
-    after, status = _change_surface(rng, later, world.protrusions, height, albedo, px)
-    # B's grid in world pixels: world = A + margin = b_to_a (x_b) + margin
+def _b_grid(height, albedo, region_w, b_to_a, margin, shape, *, grey):
+    """The changed world seen in B's pixel grid (world = A + margin = b_to_a (x_b) + margin):
+    height by cubic interpolation, albedo by linear, colour areas by nearest."""
+    m, n = shape
     yy, xx = np.mgrid[0:m, 0:n].astype(np.float64)
     wx = b_to_a[0, 0] * xx + b_to_a[0, 1] * yy + b_to_a[0, 2] + margin
     wy = b_to_a[1, 0] * xx + b_to_a[1, 1] * yy + b_to_a[1, 2] + margin
     h_b = ndimage.map_coordinates(height, [wy, wx], order=3, mode="nearest")
     alb_b = np.stack([ndimage.map_coordinates(albedo[..., c], [wy, wx], order=1, mode="nearest")
                       for c in range(albedo.shape[2])], axis=-1)
-    if world.albedo.ndim == 2:
+    if grey:
         alb_b = alb_b[..., 0]
     reg_b = ndimage.map_coordinates(region_w, [wy, wx], order=0, mode="nearest").astype(region_w.dtype)
-    report(progress, 0.7, "capture B")
-    b = _render_view(h_b, alb_b, reg_b, spec, px * scale,
-                     np.random.default_rng((int(later.seed), zlib.crc32(b"view b"))), world)
+    return h_b, alb_b, reg_b
+
+
+def _pair_tables(a, b, world, after, status, b_to_a, margin):
+    """Fill ``a.protrusions`` and ``b.protrusions`` (each view's rows in its pixels) and return
+    the truth of the changes: one row per protrusion in either field, with its ids, positions,
+    status and widths and heights at both dates (NaN where absent)."""
+    m, n = a.images.shape[1:3]
+    region_w = world.regions
     a_to_b = np.linalg.inv(b_to_a)
     n_before = world.protrusions["id"].size
+
+    def region_of(xy_world):
+        r = np.clip(np.rint(xy_world[:, 1]).astype(int), 0, region_w.shape[0] - 1)
+        c = np.clip(np.rint(xy_world[:, 0]).astype(int), 0, region_w.shape[1] - 1)
+        return region_w[r, c]
 
     def to_a(xy):
         return xy - margin
@@ -419,16 +454,10 @@ def make_capture_pair(spec: Optional[SyntheticSpec] = None, later: Optional[Late
     b.protrusions, ids_b, xy_b = _view_table(after, status, present_b, to_b, (m, n), region_of)
     rows = np.flatnonzero((ids_a > 0) | (ids_b > 0))
     nan = np.full(len(status), np.nan)
-    changes = {"id_a": ids_a[rows], "id_b": ids_b[rows],
-               "x_px_a": xy_a[rows, 0], "y_px_a": xy_a[rows, 1],
-               "x_px_b": xy_b[rows, 0], "y_px_b": xy_b[rows, 1], "status": status[rows],
-               "width_um_a": np.where(present_a, world_a["width_um"], nan)[rows],
-               "width_um_b": np.where(present_b, after["width_um"], nan)[rows],
-               "height_um_a": np.where(present_a, world_a["height_um"], nan)[rows],
-               "height_um_b": np.where(present_b, after["height_um"], nan)[rows]}
-    counts = {s: int(np.sum(changes["status"] == s)) for s in ("unchanged", "grown", "new", "gone")}
-    info = {"shift_px": list(shift), "rotation_deg": rot, "scale": scale, "margin_px": margin,
-            "pixel_size_um_a": px, "pixel_size_um_b": px * scale, "counts": counts}
-    logger.info("capture pair: shift %s px, rotation %.2f deg, scale %.4f; %s", shift, rot, scale, counts)
-    report(progress, 1.0, "done")
-    return CapturePair(a, b, b_to_a, changes, later, info)
+    return {"id_a": ids_a[rows], "id_b": ids_b[rows],
+            "x_px_a": xy_a[rows, 0], "y_px_a": xy_a[rows, 1],
+            "x_px_b": xy_b[rows, 0], "y_px_b": xy_b[rows, 1], "status": status[rows],
+            "width_um_a": np.where(present_a, world_a["width_um"], nan)[rows],
+            "width_um_b": np.where(present_b, after["width_um"], nan)[rows],
+            "height_um_a": np.where(present_a, world_a["height_um"], nan)[rows],
+            "height_um_b": np.where(present_b, after["height_um"], nan)[rows]}
