@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -183,62 +184,98 @@ def _shadow_mask(h, px, lamp, far, tile):
     big = np.float32(-1e30)
     pad = np.full((m + 2 * reach, n + 2 * reach), big, dtype=np.float32)
     pad[reach:reach + m, reach:reach + n] = h
-    h32 = h.astype(np.float32)
-    tol = np.float32(1e-4 * max(abs(hmin), abs(hmax)) + 1e-3)
+    horizon = _Horizon(pad, h.astype(np.float32), tan, reach, big,
+                       np.float32(1e-4 * max(abs(hmin), abs(hmax)) + 1e-3), px, lamp, far)
     for r0 in range(0, m, tile):
         r1 = min(r0 + tile, m)
         for c0 in range(0, n, tile):
             c1 = min(c0 + tile, n)
-            hz = h32[r0:r1, c0:c1]
-            tz = tan[r0:r1, c0:c1]
-            lo, tmin = float(hz.min()), float(tz.min())
-            near = pad[r0:r1 + 2 * reach, c0:c1 + 2 * reach]
-            high = float(near.max())
-            if far:
-                ux, uy = lamp[0], lamp[1]
-            else:
-                row_c, col_c = (r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0     # tile centre
-                ux = lamp[0] - (col_c - (n - 1) / 2.0) * px / 1000.0
-                uy = lamp[1] - ((m - 1) / 2.0 - row_c) * px / 1000.0
-            norm = math.hypot(ux, uy)
-            if norm == 0 or high <= lo:
-                continue
-            d_col, d_row = ux / norm, -uy / norm        # y up: rows grow downward
-            major = max(abs(d_col), abs(d_row))
-            step_um = px / major
-            steps = min(int(math.ceil((high - lo) / (tmin * step_um))), reach - 1)
-            if steps < 1:
-                continue
-            rise = (tz * step_um).astype(np.float32)
-            ray = np.zeros_like(hz)
-            acc = np.full_like(hz, big)
-            buf = np.empty_like(hz)
-            buf2 = np.empty_like(hz)
-            for j in range(1, steps + 1):
-                fr, fc = j * d_row / major, j * d_col / major
-                if abs(d_col) >= abs(d_row):         # march along columns, rows in between
-                    k = math.floor(fr)
-                    w = fr - k
-                    dc = int(round(fc))
-                    a0 = (reach + r0 + k, reach + c0 + dc)
-                    a1 = (a0[0] + 1, a0[1])
-                else:                                # march along rows, columns in between
-                    k = math.floor(fc)
-                    w = fc - k
-                    dr = int(round(fr))
-                    a0 = (reach + r0 + dr, reach + c0 + k)
-                    a1 = (a0[0], a0[1] + 1)
-                s0 = pad[a0[0]:a0[0] + r1 - r0, a0[1]:a0[1] + c1 - c0]
-                np.multiply(s0, np.float32(1.0 - w), out=buf)
-                if w > 0:
-                    s1 = pad[a1[0]:a1[0] + r1 - r0, a1[1]:a1[1] + c1 - c0]
-                    np.multiply(s1, np.float32(w), out=buf2)
-                    buf += buf2
-                ray += rise
-                buf -= ray
-                np.maximum(acc, buf, out=acc)
-            out[r0:r1, c0:c1] = acc > hz + tol
+            shaded = horizon.tile(r0, r1, c0, c1)
+            if shaded is not None:
+                out[r0:r1, c0:c1] = shaded
     return out
+
+
+@dataclass
+class _Horizon:
+    """One lamp's horizon test over a height map: the heights padded by ``reach`` pixels of
+    ``big`` (outside the image nothing occludes), float32 heights, the tangent of the lamp's
+    elevation per pixel, the tolerance above the surface that counts as shaded, the pixel size
+    and the lamp (a position, or a direction when ``far``)."""
+
+    pad: np.ndarray
+    h32: np.ndarray
+    tan: np.ndarray
+    reach: int
+    big: np.float32
+    tol: np.float32
+    px: float
+    lamp: np.ndarray
+    far: bool
+
+    def tile(self, r0, r1, c0, c1):
+        """The shadow of the block ``[r0:r1, c0:c1]`` marching toward the lamp's foot from the
+        block's centre, or None when nothing within reach can rise above the block."""
+        m, n = self.h32.shape
+        hz = self.h32[r0:r1, c0:c1]
+        tz = self.tan[r0:r1, c0:c1]
+        lo, tmin = float(hz.min()), float(tz.min())
+        near = self.pad[r0:r1 + 2 * self.reach, c0:c1 + 2 * self.reach]
+        high = float(near.max())
+        lamp, px = self.lamp, self.px
+        if self.far:
+            ux, uy = lamp[0], lamp[1]
+        else:
+            row_c, col_c = (r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0     # tile centre
+            ux = lamp[0] - (col_c - (n - 1) / 2.0) * px / 1000.0
+            uy = lamp[1] - ((m - 1) / 2.0 - row_c) * px / 1000.0
+        norm = math.hypot(ux, uy)
+        if norm == 0 or high <= lo:
+            return None
+        d_col, d_row = ux / norm, -uy / norm        # y up: rows grow downward
+        major = max(abs(d_col), abs(d_row))
+        step_um = px / major
+        steps = min(int(math.ceil((high - lo) / (tmin * step_um))), self.reach - 1)
+        if steps < 1:
+            return None
+        acc = self.march(r0, r1, c0, c1, (tz * step_um).astype(np.float32), d_row, d_col, steps)
+        return acc > hz + self.tol
+
+    def march(self, r0, r1, c0, c1, rise, d_row, d_col, steps):
+        """The highest (surface - ray) over ``steps`` one-pixel steps along the major axis of
+        ``(d_row, d_col)``, the height interpolated linearly across the other axis (float32
+        buffers in place: this loop is the generator's cost with cast shadows)."""
+        pad, reach = self.pad, self.reach
+        major = max(abs(d_col), abs(d_row))
+        hz = self.h32[r0:r1, c0:c1]
+        ray = np.zeros_like(hz)
+        acc = np.full_like(hz, self.big)
+        buf = np.empty_like(hz)
+        buf2 = np.empty_like(hz)
+        for j in range(1, steps + 1):
+            fr, fc = j * d_row / major, j * d_col / major
+            if abs(d_col) >= abs(d_row):         # march along columns, rows in between
+                k = math.floor(fr)
+                w = fr - k
+                dc = int(round(fc))
+                a0 = (reach + r0 + k, reach + c0 + dc)
+                a1 = (a0[0] + 1, a0[1])
+            else:                                # march along rows, columns in between
+                k = math.floor(fc)
+                w = fc - k
+                dr = int(round(fr))
+                a0 = (reach + r0 + dr, reach + c0 + k)
+                a1 = (a0[0], a0[1] + 1)
+            s0 = pad[a0[0]:a0[0] + r1 - r0, a0[1]:a0[1] + c1 - c0]
+            np.multiply(s0, np.float32(1.0 - w), out=buf)
+            if w > 0:
+                s1 = pad[a1[0]:a1[0] + r1 - r0, a1[1]:a1[1] + c1 - c0]
+                np.multiply(s1, np.float32(w), out=buf2)
+                buf += buf2
+            ray += rise
+            buf -= ray
+            np.maximum(acc, buf, out=acc)
+        return acc
 
 
 def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
@@ -312,6 +349,37 @@ def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
     >>> bool(np.isclose(img[0, 2, 2], 0.5 * np.sin(el)))
     True
     """
+    h, alb, positions, directions, e = _checked_render_inputs(
+        height_um, albedo, light_positions_mm, light_directions, intensities, pixel_size_um)
+    k = e.shape[0]
+    integer = dtype is not None and np.issubdtype(np.dtype(dtype), np.integer)
+    nz = nuisances if nuisances is not None else Nuisances()
+    _check_nuisances(nz, k, alb.shape, far=directions is not None)
+    if nz.cast_shadows and nz.shadowed is None:
+        nz.shadowed = shadow_masks(h, pixel_size_um=pixel_size_um, light_positions_mm=positions,
+                                   light_directions=directions)
+    normals = _normals64(h, float(pixel_size_um))
+
+    def shading():
+        return _shading(normals, h, pixel_size_um, positions, directions, e,
+                        beam_axes=nz.beam_axes, beam_exponent=nz.beam_exponent,
+                        shadowed=nz.shadowed if nz.cast_shadows else None)
+
+    if exposure is None:
+        if integer:
+            peak = _peak(shading(), alb if alb.ndim == 2 else alb.max(axis=2), nz)
+            exposure = 0.75 * np.iinfo(dtype).max / peak if peak > 0 else 1.0
+        else:
+            exposure = 1.0
+    return _counts(shading(), alb, nz, k=k, exposure=exposure, rng=np.random.default_rng(rng),
+                   noise=noise, gain=gain, read_noise=read_noise, dtype=dtype)
+
+
+def _checked_render_inputs(height_um, albedo, light_positions_mm, light_directions, intensities,
+                           pixel_size_um):
+    """:func:`render_images`'s inputs as float64 arrays, each checked with a one-line message:
+    the height, the albedo, the lamps (positions, or directions normalised here) and their
+    ``E_k`` (default 1)."""
     h = np.asarray(height_um, dtype=np.float64)
     if h.ndim != 2:
         raise UVPSInputError(f"height_um must be (M, N); got shape {h.shape}")
@@ -339,31 +407,19 @@ def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
     e = np.ones(k) if intensities is None else np.asarray(intensities, dtype=np.float64)
     if e.shape != (k,):
         raise UVPSInputError(f"intensities must be ({k},); got shape {e.shape}")
-    integer = dtype is not None and np.issubdtype(np.dtype(dtype), np.integer)
     if h.ndim != 2 or min(h.shape) < 2 or not pixel_size_um > 0:
         raise UVPSInputError(f"height_um must be (M, N) with M, N >= 2 and pixel_size_um > 0; "
                              f"got shape {h.shape}, pixel_size_um={pixel_size_um}")
-    nz = nuisances if nuisances is not None else Nuisances()
-    _check_nuisances(nz, k, alb.shape, far=directions is not None)
-    if nz.cast_shadows and nz.shadowed is None:
-        nz.shadowed = shadow_masks(h, pixel_size_um=pixel_size_um, light_positions_mm=positions,
-                                   light_directions=directions)
-    normals = _normals64(h, float(pixel_size_um))
+    return h, alb, positions, directions, e
 
-    def shading():
-        return _shading(normals, h, pixel_size_um, positions, directions, e,
-                        beam_axes=nz.beam_axes, beam_exponent=nz.beam_exponent,
-                        shadowed=nz.shadowed if nz.cast_shadows else None)
 
-    if exposure is None:
-        if integer:
-            peak = _peak(shading(), alb if alb.ndim == 2 else alb.max(axis=2), nz)
-            exposure = 0.75 * np.iinfo(dtype).max / peak if peak > 0 else 1.0
-        else:
-            exposure = 1.0
-    rng = np.random.default_rng(rng)
+def _counts(shadings, alb, nz, *, k, exposure, rng, noise, gain, read_noise, dtype):
+    """The images from each lamp's shading: vignetting, exposure, albedo, stray light, noise
+    (``rng``'s draws image by image), black level, then rounding and clipping to an integer
+    ``dtype``. float64 for exact model values (dtype None), float32 is plenty below 16-bit
+    quantisation."""
+    integer = dtype is not None and np.issubdtype(np.dtype(dtype), np.integer)
     out = np.empty((k,) + alb.shape, dtype=np.float64 if dtype is None else dtype)
-    # float64 for exact model values (dtype None), float32 is plenty below 16-bit quantisation.
     work = np.float64 if dtype is None or np.dtype(dtype) == np.float64 else np.float32
     alb_w = alb.astype(work)
     stray = None
@@ -373,7 +429,7 @@ def render_images(height_um, albedo, *, pixel_size_um, light_positions_mm=None,
     black = None if nz.black_level is None else np.asarray(nz.black_level, dtype=work)
     if black is not None and alb.ndim == 2:
         black = black[0]
-    for i, s in enumerate(shading()):
+    for i, s in enumerate(shadings):
         if nz.vignetting is not None:
             s = s * nz.vignetting
         s = (exposure * s).astype(work)
