@@ -179,6 +179,10 @@ def _write_camera_tiff(path, img, px, **tiff_options):
 
 
 def _write_truth(capture, folder, image_names):
+    """Write the ground truth of ``capture`` into ``folder`` (new): height, normals, albedo and
+    colour areas as calibrated ImageJ TIFFs, the protrusion table, the nuisances' maps and
+    ``truth.json`` (lamps, exposure, spec, nuisances' draws, frames). Returns the files written,
+    relative to the capture folder."""
     folder.mkdir()
     px = float(capture.spec.pixel_size_um)
     # Truth TIFFs are ImageJ hyperstacks through the shared writer (atomic, calibrated in um).
@@ -195,13 +199,41 @@ def _write_truth(capture, folder, image_names):
     else:
         imagej("albedo.tif", alb, "YX")
     imagej("regions.tif", capture.regions.astype(np.int32), "YX")
-    # Same leading columns as uvps.core.measure's protrusions.csv, so `compare` takes it as is.
+    _write_truth_protrusions(capture, folder / "protrusions.csv")
+    nz = capture.nuisances
+    files = ["height_um.tif", "normals.tif", "albedo.tif", "regions.tif"]
+    files += _write_nuisance_maps(capture, imagej, image_names)
+    spec = dataclasses.asdict(capture.spec)
+    write_json_atomic(folder / "truth.json", {
+        "schema_version": 1,
+        "pixel_size_um": px,
+        "image_shape": list(capture.height_um.shape),
+        "files": image_names,
+        "light_positions_mm": capture.light_positions_mm,
+        "intensities": capture.intensities,
+        "exposure": capture.exposure,
+        "gain": capture.gain,
+        "region_names": capture.region_names,
+        "region_light": [bool(b) for b in capture.region_light],
+        "n_protrusions": int(capture.protrusions["id"].size),
+        "spec": {key: list(val) if isinstance(val, tuple) else val for key, val in spec.items()},
+        "nuisances": nz.info,
+        "frames": "x right, y up, z toward camera; positions in mm from the image centre; "
+                  "heights in um (median 0); normals.tif channels nx, ny, nz",
+    })
+    return [f"truth/{f}" for f in files + ["protrusions.csv", "truth.json"]]
+
+
+def _write_truth_protrusions(capture, path):
+    """The true protrusions as CSV, with the same leading columns as :mod:`uvps.core.measure`'s
+    ``protrusions.csv`` (so ``compare`` takes it as is), then the area's name and the
+    generator's own columns (shape, cluster, dark, on_stroke) where present."""
     prot = dict(capture.protrusions)
     prot["area_um2"] = np.pi * prot["width_um"] ** 2 / 4
     columns = ["id", "x_px", "y_px", "width_um", "area_um2", "height_um", "crater", "region",
                "weak", "aspect", "angle_deg"]
     extra = [c for c in ("shape", "cluster", "dark", "on_stroke") if c in prot]
-    with open(folder / "protrusions.csv", "w", newline="", encoding="utf-8") as fh:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
         wr = csv.writer(fh)
         wr.writerow(columns + ["region_name"] + extra)
         for i in range(prot["id"].size):
@@ -213,8 +245,14 @@ def _write_truth(capture, folder, image_names):
             row += [str(prot[c][i]) if prot[c].dtype.kind == "U" else int(prot[c][i])
                     for c in extra]
             wr.writerow(row)
+
+
+def _write_nuisance_maps(capture, imagej, image_names):
+    """The maps of the nuisances the capture holds (vignetting, stray light in counts, each
+    image's cast shadows, cracks) through ``imagej(name, data, axes, labels)``; returns their
+    names."""
     nz = capture.nuisances
-    files = ["height_um.tif", "normals.tif", "albedo.tif", "regions.tif"]
+    files = []
     if nz.vignetting is not None:
         imagej("vignetting.tif", nz.vignetting.astype(np.float32), "YX")
         files.append("vignetting.tif")
@@ -231,22 +269,4 @@ def _write_truth(capture, folder, image_names):
     if nz.cracks is not None:
         imagej("cracks.tif", nz.cracks.astype(np.uint8), "YX")
         files.append("cracks.tif")
-    spec = dataclasses.asdict(capture.spec)
-    write_json_atomic(folder / "truth.json", {
-        "schema_version": 1,
-        "pixel_size_um": px,
-        "image_shape": list(capture.height_um.shape),
-        "files": image_names,
-        "light_positions_mm": capture.light_positions_mm,
-        "intensities": capture.intensities,
-        "exposure": capture.exposure,
-        "gain": capture.gain,
-        "region_names": capture.region_names,
-        "region_light": [bool(b) for b in capture.region_light],
-        "n_protrusions": int(prot["id"].size),
-        "spec": {key: list(val) if isinstance(val, tuple) else val for key, val in spec.items()},
-        "nuisances": nz.info,
-        "frames": "x right, y up, z toward camera; positions in mm from the image centre; "
-                  "heights in um (median 0); normals.tif channels nx, ny, nz",
-    })
-    return [f"truth/{f}" for f in files + ["protrusions.csv", "truth.json"]]
+    return files
