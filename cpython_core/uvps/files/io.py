@@ -1181,6 +1181,36 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Opt
     the dark frame subtracted from each image as it is copied (:func:`_minus_dark`; ``dark_subtracted``),
     as :func:`_read_files` does.
     """
+    raw, order, colour, dtype, tag_px, lazy = _map_stack(path, lazy)
+    views = _image_views(raw, order, colour, path)
+    k = len(views)
+    native = np.dtype(dtype).newbyteorder("=")
+    d = None
+    if (dark is not None and not lazy and np.issubdtype(native, np.integer)
+            and not any(_needs_linearize(kind, native, linearize) for kind in ("tiff", _kind(dark)))):
+        d = _read_dark(dark, views[0].shape, native, linearize, as_float=False)
+    out = None if lazy else np.empty((k,) + views[0].shape, dtype=native if d is not None else np.float32)
+    labels = []
+    for i, view in enumerate(views):
+        label = f"{path}#{i + 1}"
+        _check_image(view, label)
+        if lazy:
+            release(view)
+        else:
+            out[i] = view
+            if d is not None:
+                _minus_dark(out[i], d)
+        labels.append(label)
+        report(progress, (i + 1) / (k + 1), f"read {label}")
+    return (_Stack(MappedStack(views) if lazy else out, native, d is not None), labels, "tiff", tag_px)
+
+
+def _map_stack(path: Path, lazy: bool):
+    """Open a multi-page TIFF without copying it to float: check its pixel type and that its
+    ImageJ header's image count matches the file (a truncated stack is refused), then map it
+    read-only (uncompressed), decode it into a scratch file (compressed, lazy and large), or read
+    it whole. Returns the raw array, the axis order and colour flag of :func:`_stack_layout`, the
+    file's dtype, its pixel size from the tags, and whether it is read lazily (integer only)."""
     try:
         with tifffile.TiffFile(path) as tif:
             series = tif.series[0]
@@ -1216,36 +1246,22 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Opt
         raise
     except Exception as exc:
         raise UVPSInputError(f"{path}: cannot read as TIFF ({str(exc).splitlines()[0]})") from exc
+    return raw, order, colour, dtype, tag_px, lazy
+
+
+def _image_views(raw, order, colour, path):
+    """One view per image of the raw stack, over its leading (frame) axes, RGB of an RGBA (a
+    reshape of the transposed map could copy it; views never do)."""
     raw = np.transpose(raw, order)
     nimg = 2 + colour
     if colour and raw.shape[-1] not in (3, 4):
         raise UVPSInputError(
             f"{path}: colour axis has {raw.shape[-1]} samples; expected 3 (RGB) or 4 (RGBA)"
         )
-    # one view per image over the leading (frame) axes: a reshape of the transposed map could copy it
     views = [raw[index] for index in np.ndindex(*raw.shape[:-nimg])]
     if colour:
         views = [v[..., :3] for v in views]
-    k = len(views)
-    native = np.dtype(dtype).newbyteorder("=")
-    d = None
-    if (dark is not None and not lazy and np.issubdtype(native, np.integer)
-            and not any(_needs_linearize(kind, native, linearize) for kind in ("tiff", _kind(dark)))):
-        d = _read_dark(dark, views[0].shape, native, linearize, as_float=False)
-    out = None if lazy else np.empty((k,) + views[0].shape, dtype=native if d is not None else np.float32)
-    labels = []
-    for i, view in enumerate(views):
-        label = f"{path}#{i + 1}"
-        _check_image(view, label)
-        if lazy:
-            release(view)
-        else:
-            out[i] = view
-            if d is not None:
-                _minus_dark(out[i], d)
-        labels.append(label)
-        report(progress, (i + 1) / (k + 1), f"read {label}")
-    return (_Stack(MappedStack(views) if lazy else out, native, d is not None), labels, "tiff", tag_px)
+    return views
 
 
 def _decode_to_scratch(path: Path, shape, dtype) -> np.memmap:
