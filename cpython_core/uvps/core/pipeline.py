@@ -745,10 +745,20 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
     (Capture, AdditiveTerm, list of str)
         The capture to use, the term, and warnings (only when the term is poorly pinned).
     """
+    term = _additive_term(capture, options, dark_given)
+    subtract, warnings = _judge_additive(capture, term)
+    if not subtract or term.is_zero:
+        return capture, term, warnings
+    return dataclasses.replace(capture, images=OffsetImages(capture.images, term)), term, warnings
+
+
+def _additive_term(capture: Capture, options: RunOptions, dark_given) -> AdditiveTerm:
+    """The additive term, given or measured (see :func:`remove_additive` for which wins), its
+    median signal filled in; refuses images that are mostly pedestal (more than
+    :data:`OFFSET_MAX` of the median signal), which no subtraction can rescue."""
     images = capture.images
     M, N = images.shape[1:3]
     C = images.shape[3] if images.ndim == 4 else 1
-    warnings = []
     if options.black_level is not None:
         term = known_additive(options.black_level, shape=(M, N), channels=C)
     elif dark_given or options.offset == "none":
@@ -775,29 +785,37 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
         raise UVPSInputError(
             f"the images are mostly pedestal: the additive term ({term.source}, {term.mean.mean():.1f} counts) is "
             f"{100 * frac:.0f} % of the median signal; check the exposure, the black level or the dark frame")
+    return term
+
+
+def _judge_additive(capture: Capture, term) -> tuple:
+    """Whether to subtract a measured term, and the warnings: not when it could not be measured
+    (non-finite error), is negative (a pedestal or stray light never is: the model's error, e.g.
+    a JPEG's tone curve) or is within :data:`SIGNIFICANT` standard errors of 0 (subtracting it
+    would only add its noise); a warning when it is pinned worse than :data:`OFFSET_TOLERANCE`
+    of the signal. Records the decision in ``term.diagnostics``. A given term is always used."""
+    warnings = []
     if term.stderr is not None and not np.isfinite(term.stderr).all():
         term.diagnostics["used"] = False
         if capture.light_positions_mm is None and capture.light_directions is None:   # lamps to estimate
             warnings.append(f"the black level could not be measured ({term.diagnostics.get('note', '')}); "
                             "estimated lamp elevations and heights may be off; give the camera's black level "
                             "or a dark frame")
-        return capture, term, warnings
+        return False, warnings
     if term.stderr is not None and float(term.mean.mean()) <= 0:
-        # a pedestal or stray light is never negative: a negative measure is the model's error
-        # (e.g. a JPEG's tone curve), not something to add back
         term.diagnostics["used"] = False
         term.diagnostics["note"] = "negative: not subtracted"
-        return capture, term, warnings
+        return False, warnings
     if term.stderr is not None:
         term.diagnostics["measured_counts"] = [round(float(v), 3) for v in term.mean]
         term.coeffs[:, 0, 0] = np.maximum(term.coeffs[:, 0, 0], 0.0)   # per channel, likewise
         se = float(np.sqrt(np.mean(term.stderr ** 2)))
         if abs(float(term.mean.mean())) < SIGNIFICANT * se:
-            # consistent with no offset: subtracting it would only add its noise (a clean capture is
-            # then processed exactly as if no additive term were modelled)
+            # consistent with no offset: a clean capture is then processed exactly as if no
+            # additive term were modelled
             term.diagnostics["used"] = False
             term.diagnostics["note"] = f"not significant (|c| < {SIGNIFICANT:g} standard errors): not subtracted"
-            return capture, term, warnings
+            return False, warnings
         if se > OFFSET_TOLERANCE * term.median_signal:
             lamps_given = capture.light_positions_mm is not None or capture.light_directions is not None
             effect = ("normals of dark paint may be tilted" if lamps_given else
@@ -806,9 +824,7 @@ def remove_additive(capture: Capture, *, options: RunOptions, dark_given=False) 
                 f"the black level could only be measured to +-{se:.2g} counts ({100 * se / term.median_signal:.2f} % "
                 f"of the signal; the field may hold too little dark and bright paint): {effect}; give the camera's "
                 "black level or a dark frame")
-    if term.is_zero:
-        return capture, term, warnings
-    return dataclasses.replace(capture, images=OffsetImages(images, term)), term, warnings
+    return True, warnings
 
 
 def _lamp_beams(options) -> str:
@@ -861,39 +877,8 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     n_known = min(n, max(2000, KNOWN_POSITIONS_RESIDUALS // len(fits)), 20000)
     n = min(n, max(2000, MAX_RESIDUALS // len(fits)))
     if capture.light_positions_mm is not None:
-        P = capture.light_positions_mm
-        # What each image's drop-off holds beyond the point-light model of the given positions (a
-        # lamp's beam, its aim): measured from the ratio maps, reported, and divided out (a narrow lamp
-        # aimed 5 deg off tilted every normal by 1-9 deg), leaving the lamps' relative irradiance at every
-        # pixel to the model. The shading of the canvas's own large-scale shape (bow) is in it too; by
-        # default the part a tilt of the canvas explains is left to the relief (lights.beyond_model).
-        beams = _lamp_beams(options)
-        rows, cols, delta = beyond_model(fits, P, shape, px, keep_relief=beams != "all")
-        beam_rms = float(np.sqrt(np.mean(delta ** 2)))
-        E = capture.light_intensities   # given (median 1 like an estimate), else from the images
-        measure_E = E is None or options.estimate_intensities
-        if beams != "none":
-            gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
-            capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
-            if measure_E or flatfield:
-                # the intensities are measured on the images with the beams divided out, and the flat-fielded
-                # images are those images over their drop-off: their own fits. With the intensities given
-                # (a rig, a calibration that holds them) and no flat-fielded images asked for, nothing else
-                # uses these fits: dropoff.tif and lights.json then hold the drop-off of the images as
-                # captured (the fits above, the beams included), and a pass over the whole stack is saved.
-                grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
-                fits = fit_dropoffs(grid, degree=int(options.degree))
-        fits = with_common(fits, grid, dropoff_common(P, shape, px))
-        if measure_E:
-            # by the photometric residual with the positions held: the levels alone assume a flat
-            # canvas facing the camera (1.2 deg normals on a cupped capture, 0.13 deg this way)
-            E = intensities_from_levels([f.level for f in fits], P, shape, px)
-            sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
-                                   pixel_size_um=px, n=n_known)
-            E = refine_intensities(sample, P, E)
-        return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
-                            images=capture.images if beams != "none" or card is not None else None,
-                            beam_rms=beam_rms, card=card)
+        return _lights_at_given_positions(capture, options, grid, fits, n_known=n_known,
+                                          flatfield=flatfield, card=card)
     if capture.light_directions is not None:
         # far lights: no drop-off model; the fits stay relative to the stack's geometric mean.
         # Intensities: given, else equal (None); from the levels only when asked.
@@ -909,6 +894,46 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     est = estimate_lights(grid, fits, sample, pixel_size_um=px, refine=options.refine_lights,
                           offset_stderr=offset_stderr, normals_of=_central_normals(capture), progress=sub)
     return LightsResult(est.model, est.fits, "estimated", est)
+
+
+def _lights_at_given_positions(capture: Capture, options: RunOptions, grid, fits, *, n_known,
+                               flatfield, card) -> LightsResult:
+    """The lights of a capture whose lamp positions are given: what each image's drop-off holds
+    beyond the point-light model (a lamp's beam, its aim) measured from the ratio maps, reported,
+    and divided out (a narrow lamp aimed 5 deg off tilted every normal by 1-9 deg), and the
+    intensities given or measured by the photometric residual with the positions held. The
+    shading of the canvas's own large-scale shape (bow) is in the drop-off too; by default the
+    part a tilt of the canvas explains is left to the relief (:func:`uvps.core.lights.beyond_model`)."""
+    px = capture.pixel_size_um
+    shape = grid.shape
+    P = capture.light_positions_mm
+    beams = _lamp_beams(options)
+    rows, cols, delta = beyond_model(fits, P, shape, px, keep_relief=beams != "all")
+    beam_rms = float(np.sqrt(np.mean(delta ** 2)))
+    E = capture.light_intensities   # given (median 1 like an estimate), else from the images
+    measure_E = E is None or options.estimate_intensities
+    if beams != "none":
+        gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
+        capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
+        if measure_E or flatfield:
+            # the intensities are measured on the images with the beams divided out, and the flat-fielded
+            # images are those images over their drop-off: their own fits. With the intensities given
+            # (a rig, a calibration that holds them) and no flat-fielded images asked for, nothing else
+            # uses these fits: dropoff.tif and lights.json then hold the drop-off of the images as
+            # captured (the fits above, the beams included), and a pass over the whole stack is saved.
+            grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
+            fits = fit_dropoffs(grid, degree=int(options.degree))
+    fits = with_common(fits, grid, dropoff_common(P, shape, px))
+    if measure_E:
+        # by the photometric residual with the positions held: the levels alone assume a flat
+        # canvas facing the camera (1.2 deg normals on a cupped capture, 0.13 deg this way)
+        E = intensities_from_levels([f.level for f in fits], P, shape, px)
+        sample = sample_pixels(capture.images, fits, mask=capture.mask, saturation=capture.saturation,
+                               pixel_size_um=px, n=n_known)
+        E = refine_intensities(sample, P, E)
+    return LightsResult(LightModel.from_positions(P, E / np.median(E)), fits, "positions",
+                        images=capture.images if beams != "none" or card is not None else None,
+                        beam_rms=beam_rms, card=card)
 
 
 #: The central patch whose normals the estimated lamps are made integrable on
