@@ -330,15 +330,8 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     timings = {}
     out_dir = Path(out_dir)
     names = list(tiles)
-    shapes = {k: tuple(tiles[k][2]) for k in names}
-    nominal = {k: (float(tiles[k][0]), float(tiles[k][1])) for k in names}
     report(progress, 0.0, "painting: registering the tiles")
-    albedo = {k: AlbedoTile(out_dir / k) for k in names}
-    for k in names:
-        shapes[k] = tuple(albedo[k].shape)
-    if max_shift_px is None:
-        max_shift_px = 0.25 * min(min(s) for s in shapes.values())
-    reg = register_tiles(albedo, nominal, max_shift_px=max_shift_px)
+    albedo, shapes, reg = _register(out_dir, tiles, max_shift_px)
     timings["register_s"] = round(time.perf_counter() - t0, 3)
     warnings = list(reg.warnings)
     for w in warnings:
@@ -356,37 +349,12 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     labels, area_names = _region_labels(regions, overview, covered, step, origin, pixel_size_um=pixel_size_um,
                                         n_areas=n_areas)
     report(progress, 0.6, "painting: merging the protrusions")
-    tables = {}
-    for k in names:
-        path = out_dir / k / "protrusions.csv"
-        if not path.is_file():
-            raise UVPSInputError(f"mosaic: tile {k} has no protrusions.csv; run with --regions or --detect")
-        tables[k] = read_protrusions_csv(path)
-    kept, every = merge_protrusions(tables, corners, shapes, pixel_size_um=pixel_size_um)
-    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
-        r["painting_id"] = k
-    m, n = labels.shape
-    for r in kept:
-        rr = min(m - 1, max(0, int((r["Y"] - origin[1]) // step)))
-        cc = min(n - 1, max(0, int((r["X"] - origin[0]) // step)))
-        r["area"] = area_names.get(int(labels[rr, cc]), "")
-    cm2 = (pixel_size_um * step) ** 2 / UM2_PER_CM2
-    counts = np.bincount(labels.ravel(), minlength=max(area_names, default=0) + 1)
-    areas = {}
-    for lab, nm in area_names.items():
-        seen = set()
-        for k in names:
-            r0 = int(round((corners[k][1] - origin[1]) / step))
-            c0 = int(round((corners[k][0] - origin[0]) / step))
-            if np.any(labels[r0:r0 + shapes[k][0] // step, c0:c0 + shapes[k][1] // step] == lab):
-                seen.add(k)
-        c = sum(1 for r in kept if r["area"] == nm)
-        a = float(counts[lab]) * cm2
-        areas[nm] = {"label": int(lab), "tiles": len(seen), "area_cm2": a, "count": c,
-                     "density_per_cm2": c / a if a else None}
+    kept, every = _merged_protrusions(out_dir, names, corners, shapes, pixel_size_um=pixel_size_um)
+    areas = _area_counts(kept, labels, area_names, corners, shapes, origin, step, pixel_size_um)
     result = PaintingResult(reg, gains, origin, shape, len(kept), len(every), areas, pixel_size_um, step, warnings)
     timings["merge_s"] = round(time.perf_counter() - t0 - sum(timings.values()), 3)
     report(progress, 0.8, "painting: writing")
+    cm2 = (pixel_size_um * step) ** 2 / UM2_PER_CM2
     # built whole in a new folder that replaces the old one in one step (uvps.files.outputs.new_output_dir)
     with new_output_dir(out_dir / PAINTING_DIR) as tmp:
         _write_layout(tmp / PAINTING_LAYOUT, corners)
@@ -402,21 +370,83 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
             timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
         result.timings = timings
         if report_html:
-            from .report.painting import write_painting_report
-            view = None
-            if maps:
-                from .report.deepzoom import write_view
-                t_view = time.perf_counter()
-                finite = overview[np.isfinite(overview) & (overview > 0)]
-                view = write_view(tmp, albedo_scale=float(np.percentile(finite, 99.5)) if finite.size else None)
-                timings["view_s"] = round(time.perf_counter() - t_view, 3)
-            write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas,
-                                  registration=reg, shapes=shapes, origin=origin, step=step,
-                                  pixel_size_um=pixel_size_um, warnings=warnings, view=view)
+            _write_view_and_report(tmp, result, overview=overview, labels=labels, covered=covered, kept=kept,
+                                   shapes=shapes, maps=maps)
         timings["total_s"] = round(time.perf_counter() - t0, 3)
         write_json_atomic(tmp / "painting.json", result.as_dict())
     report(progress, 1.0, "painting: done")
     return result
+
+
+def _register(out_dir: Path, tiles: dict, max_shift_px):
+    """Each tile's albedo (read from its run folder, which gives its true shape) and the tiles'
+    registration from their nominal corners, within ``max_shift_px`` (default: a quarter of the
+    smaller tile side)."""
+    names = list(tiles)
+    nominal = {k: (float(tiles[k][0]), float(tiles[k][1])) for k in names}
+    albedo = {k: AlbedoTile(out_dir / k) for k in names}
+    shapes = {k: tuple(albedo[k].shape) for k in names}
+    if max_shift_px is None:
+        max_shift_px = 0.25 * min(min(s) for s in shapes.values())
+    return albedo, shapes, register_tiles(albedo, nominal, max_shift_px=max_shift_px)
+
+
+def _merged_protrusions(out_dir: Path, names, corners, shapes, *, pixel_size_um):
+    """Every tile's protrusions merged into the painting's (those of the overlaps counted once,
+    :func:`merge_protrusions`), numbered by row, then column; refuses a tile without a table."""
+    tables = {}
+    for k in names:
+        path = out_dir / k / "protrusions.csv"
+        if not path.is_file():
+            raise UVPSInputError(f"mosaic: tile {k} has no protrusions.csv; run with --regions or --detect")
+        tables[k] = read_protrusions_csv(path)
+    kept, every = merge_protrusions(tables, corners, shapes, pixel_size_um=pixel_size_um)
+    for k, r in enumerate(sorted(kept, key=lambda r: (r["Y"], r["X"])), 1):
+        r["painting_id"] = k
+    return kept, every
+
+
+def _area_counts(kept, labels, area_names, corners, shapes, origin, step, pixel_size_um) -> dict:
+    """Name each kept protrusion's colour area (from the overview's labels, ``step`` px a pixel)
+    and count them per area: its label, the tiles it reaches, its area in cm^2, the count and
+    the density per cm^2."""
+    m, n = labels.shape
+    for r in kept:
+        rr = min(m - 1, max(0, int((r["Y"] - origin[1]) // step)))
+        cc = min(n - 1, max(0, int((r["X"] - origin[0]) // step)))
+        r["area"] = area_names.get(int(labels[rr, cc]), "")
+    cm2 = (pixel_size_um * step) ** 2 / UM2_PER_CM2
+    counts = np.bincount(labels.ravel(), minlength=max(area_names, default=0) + 1)
+    areas = {}
+    for lab, nm in area_names.items():
+        seen = set()
+        for k in corners:
+            r0 = int(round((corners[k][1] - origin[1]) / step))
+            c0 = int(round((corners[k][0] - origin[0]) / step))
+            if np.any(labels[r0:r0 + shapes[k][0] // step, c0:c0 + shapes[k][1] // step] == lab):
+                seen.add(k)
+        c = sum(1 for r in kept if r["area"] == nm)
+        a = float(counts[lab]) * cm2
+        areas[nm] = {"label": int(lab), "tiles": len(seen), "area_cm2": a, "count": c,
+                     "density_per_cm2": c / a if a else None}
+    return areas
+
+
+def _write_view_and_report(tmp: Path, result: PaintingResult, *, overview, labels, covered, kept, shapes, maps):
+    """The painting's zoomable view (Deep Zoom tiles of the maps, when they were written) and its
+    ``report.html`` with figures, into the new painting folder ``tmp``."""
+    from .report.painting import write_painting_report
+    view = None
+    if maps:
+        from .report.deepzoom import write_view
+        t_view = time.perf_counter()
+        finite = overview[np.isfinite(overview) & (overview > 0)]
+        view = write_view(tmp, albedo_scale=float(np.percentile(finite, 99.5)) if finite.size else None)
+        result.timings["view_s"] = round(time.perf_counter() - t_view, 3)
+    write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=result.areas,
+                          registration=result.registration, shapes=shapes, origin=result.origin,
+                          step=result.overview_step, pixel_size_um=result.pixel_size_um, warnings=result.warnings,
+                          view=view)
 
 
 def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, reg, origin, shape, labels, step,
