@@ -81,14 +81,7 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
         if kind == "regions":
             wsum += w
             continue
-        wr0, wc0 = max(0, int(np.floor(r0 - t.y)) - 1), max(0, int(np.floor(c0 - t.x)) - 1)
-        wr1, wc1 = min(M, int(np.ceil(r1 - t.y)) + 2), min(N, int(np.ceil(c1 - t.x)) + 2)
-        data = open_tiff(Path(t.run_dir) / SOURCES[kind])
-        win = np.asarray(data[..., wr0:wr1, wc0:wc1], np.float64)
-        if win.ndim == 2:
-            win = win[None]
-        rr = np.broadcast_to(ty - wr0, (R, C))
-        cc = np.broadcast_to(tx - wc0, (R, C))
+        win, rr, cc = _tile_window(kind, t, (r0, r1, c0, c1), ty, tx)
         if label:
             vals = ndimage.map_coordinates(win[0], [rr, cc], order=0, mode="nearest").astype(np.int64)
             vals = t.lut[np.clip(vals, 0, len(t.lut) - 1)] if t.lut is not None else vals
@@ -105,9 +98,34 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
                 v = v + a + b * (cols + ctx.origin[0]) / PLANE_SCALE_PX + c * (rows + ctx.origin[1]) / PLANE_SCALE_PX
             acc[ch] += np.nan_to_num(v) * w
         wsum += w
-    covered = wsum > 0
     if kind == "protrusions":
         return out_label
+    return _finish_chunk(kind, ctx, acc, wsum, (r0, r1, c0, c1))
+
+
+def _tile_window(kind: str, t: PlacedTile, chunk, ty, tx):
+    """The window of tile ``t``'s map ``kind`` under the chunk ``(r0, r1, c0, c1)`` (one pixel
+    more each side for the interpolation), read from its run folder, as (channels, rows, cols)
+    float64, and the chunk's pixels in the window's coordinates (``ty``, ``tx``: in the tile's)."""
+    r0, r1, c0, c1 = chunk
+    M, N = t.shape
+    wr0, wc0 = max(0, int(np.floor(r0 - t.y)) - 1), max(0, int(np.floor(c0 - t.x)) - 1)
+    wr1, wc1 = min(M, int(np.ceil(r1 - t.y)) + 2), min(N, int(np.ceil(c1 - t.x)) + 2)
+    data = open_tiff(Path(t.run_dir) / SOURCES[kind])
+    win = np.asarray(data[..., wr0:wr1, wc0:wc1], np.float64)
+    if win.ndim == 2:
+        win = win[None]
+    rr = np.broadcast_to(ty - wr0, (r1 - r0, c1 - c0))
+    cc = np.broadcast_to(tx - wc0, (r1 - r0, c1 - c0))
+    return win, rr, cc
+
+
+def _finish_chunk(kind: str, ctx: MapContext, acc, wsum, chunk) -> np.ndarray:
+    """A blended chunk from the tiles' weighted sums: the colour areas (the overview's labels,
+    ``ctx.step`` px a pixel) where a tile covers it, or the weighted mean (normals renormalised),
+    0 (albedo) or NaN where no tile does."""
+    r0, r1, c0, c1 = chunk
+    covered = wsum > 0
     if kind == "regions":
         lab = ctx.regions
         ri = np.clip((np.arange(r0, r1) // ctx.step), 0, lab.shape[0] - 1)
