@@ -474,50 +474,9 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
                      key=lambda c: -c[2])
     found = []
     clipped = []
-
-    def consider(x, y, r, need=min_rim_fraction):
-        """Refine one proposed circle (reduced pixels) and keep it if ``need`` of its rays meet its rim."""
-        centre, radius = (x * step, y * step), r * step
-        if found and radius < MIN_RADIUS_RATIO * max(o.radius_px for o in found):
-            return                    # left out below anyway: not worth its crops
-        if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
-               for o in found + clipped):
-            return
-        box = _crop_box(centre, radius, (M, N))
-        crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
-        # the rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
-        # median a glossy sphere's dark disc; the fit with more rim points on its circle wins
-        at = (centre[0] - box[2], centre[1] - box[0])
-        refs = [r_ for r_ in (_refine_circle(crop, at, radius) for crop in (_median_over_images(crops),
-                                                                            crops.max(axis=0))) if r_ is not None]
-        if not refs or max(r_[2] for r_ in refs) < min_rim_fraction:
-            # a dark sphere on a dark ground: its rim in the mean and the mean's logarithm, where the
-            # median and the maximum find too little of it (the PSBox mirror spheres)
-            mean = crops.mean(axis=0)
-            refs += [r_ for r_ in (_refine_circle(crop, at, radius)
-                                   for crop in (mean, _log_view(mean), _log_view(_median_over_images(crops))))
-                     if r_ is not None]
-        if not refs:
-            return
-        ref = max(refs, key=lambda r_: r_[2])
-        # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
-        # where the two find the same circle, a ray on the rim in either counts
-        rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
-                                    < 1.0 and abs(r_[1] - ref[1]) < 1.0])
-        (xc, yc), rr = ref[:2]
-        s = Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected")
-        # a sphere cut by the frame: its rim is sought on the rays whose rim lies in the frame
-        theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
-        in_frame = _rim_in_frame(s, theta, (M, N))
-        if rim[in_frame].sum() < need * max(in_frame.sum(), 0.5 * len(theta)):
-            return
-        if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
-                                     < 0.8 * (rr + o.radius_px) for o in found + clipped):
-            return
-        (found if in_frame.all() else clipped).append(s)
-
     for (x, y, r) in circles:
-        consider(x, y, r)
+        _consider(images, x, y, r, step=step, found=found, clipped=clipped, need=min_rim_fraction,
+                  min_rim_fraction=min_rim_fraction)
     if not found and not clipped:
         # nothing the Hough transform proposed is a rim: a dark sphere on a dark ground crossed by a
         # flare's spikes, whose rim is a broken arc among straight edges; a RANSAC circle on the edge
@@ -526,17 +485,9 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
         for proj in logs[::-1]:
             c = _ransac_circle(proj, min_r, max_r)
             if c is not None:
-                consider(*c, need=min(min_rim_fraction, RANSAC_RIM_FRACTION))
-    if found:
-        # calibration spheres are of one size or close; a circle far smaller is the painting's own (a
-        # protrusion, a blob of paint) and would pull every lamp's position with a wrong ray
-        largest = max(s.radius_px for s in found)
-        small = [s for s in found if s.radius_px < MIN_RADIUS_RATIO * largest]
-        for s in small:
-            log.info("sphere detection: the circle at (%.0f, %.0f) px of radius %.1f px is under %.0f %% of the "
-                     "largest (%.1f px): left out", s.centre_px[0], s.centre_px[1], s.radius_px,
-                     100 * MIN_RADIUS_RATIO, largest)
-        found = [s for s in found if s not in small]
+                _consider(images, *c, step=step, found=found, clipped=clipped,
+                          need=min(min_rim_fraction, RANSAC_RIM_FRACTION), min_rim_fraction=min_rim_fraction)
+    found = _without_small(found)
     if clipped:
         log.info("sphere detection: %d circle(s) cut by the frame left out: %s", len(clipped),
                  ", ".join(f"({s.centre_px[0]:.0f}, {s.centre_px[1]:.0f}) r {s.radius_px:.0f} px" for s in clipped))
@@ -544,6 +495,79 @@ def detect_spheres(images, *, min_rim_fraction: float = MIN_RIM_FRACTION, progre
         clipped_out.extend(sorted(clipped, key=lambda s: (s.centre_px[1], s.centre_px[0])))
     report(progress, 0.5, f"sphere detection: {len(found)} circle(s)")
     return sorted(found, key=lambda s: (s.centre_px[1], s.centre_px[0]))
+
+
+def _consider(images, x, y, r, *, step, found, clipped, need, min_rim_fraction):
+    """Refine one proposed circle (reduced pixels) and keep it, into ``found`` (whole in the frame)
+    or ``clipped`` (cut by it), if ``need`` of its rays meet its rim; skipped when far smaller than
+    a sphere found or on one already found."""
+    K, M, N = images.shape[:3]
+    centre, radius = (x * step, y * step), r * step
+    if found and radius < MIN_RADIUS_RATIO * max(o.radius_px for o in found):
+        return                    # left out below anyway: not worth its crops
+    if any(math.hypot(centre[0] - o.centre_px[0], centre[1] - o.centre_px[1]) < 0.8 * (radius + o.radius_px)
+           for o in found + clipped):
+        return
+    fitted = _fit_rim(images, centre, radius, min_rim_fraction)
+    if fitted is None:
+        return
+    s, rim = fitted
+    rr = s.radius_px
+    # a sphere cut by the frame: its rim is sought on the rays whose rim lies in the frame
+    theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    in_frame = _rim_in_frame(s, theta, (M, N))
+    if rim[in_frame].sum() < need * max(in_frame.sum(), 0.5 * len(theta)):
+        return
+    if rr < MIN_RADIUS_PX or any(math.hypot(s.centre_px[0] - o.centre_px[0], s.centre_px[1] - o.centre_px[1])
+                                 < 0.8 * (rr + o.radius_px) for o in found + clipped):
+        return
+    (found if in_frame.all() else clipped).append(s)
+
+
+def _fit_rim(images, centre, radius, min_rim_fraction):
+    """The circle refined at full resolution near ``centre``, ``radius`` (px) and which of 720
+    rays from its centre meet its rim; None when no view shows a rim there.
+
+    The rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
+    median a glossy sphere's dark disc; the fit with more rim points on its circle wins. A dark
+    sphere on a dark ground adds the mean and the logarithms (the PSBox mirror spheres)."""
+    K, M, N = images.shape[:3]
+    box = _crop_box(centre, radius, (M, N))
+    crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
+    at = (centre[0] - box[2], centre[1] - box[0])
+    refs = [r_ for r_ in (_refine_circle(crop, at, radius) for crop in (_median_over_images(crops),
+                                                                        crops.max(axis=0))) if r_ is not None]
+    if not refs or max(r_[2] for r_ in refs) < min_rim_fraction:
+        # a dark sphere on a dark ground: its rim in the mean and the mean's logarithm, where the
+        # median and the maximum find too little of it
+        mean = crops.mean(axis=0)
+        refs += [r_ for r_ in (_refine_circle(crop, at, radius)
+                               for crop in (mean, _log_view(mean), _log_view(_median_over_images(crops))))
+                 if r_ is not None]
+    if not refs:
+        return None
+    ref = max(refs, key=lambda r_: r_[2])
+    # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
+    # where the two find the same circle, a ray on the rim in either counts
+    rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
+                                < 1.0 and abs(r_[1] - ref[1]) < 1.0])
+    (xc, yc), rr = ref[:2]
+    return Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected"), rim
+
+
+def _without_small(found: list) -> list:
+    """The circles of ``found`` not under :data:`MIN_RADIUS_RATIO` of the largest: calibration
+    spheres are of one size or close; a circle far smaller is the painting's own (a protrusion,
+    a blob of paint) and would pull every lamp's position with a wrong ray."""
+    if not found:
+        return found
+    largest = max(s.radius_px for s in found)
+    small = [s for s in found if s.radius_px < MIN_RADIUS_RATIO * largest]
+    for s in small:
+        log.info("sphere detection: the circle at (%.0f, %.0f) px of radius %.1f px is under %.0f %% of the "
+                 "largest (%.1f px): left out", s.centre_px[0], s.centre_px[1], s.radius_px,
+                 100 * MIN_RADIUS_RATIO, largest)
+    return [s for s in found if s not in small]
 
 
 def _ransac_circle(img, min_r, max_r):
@@ -1008,11 +1032,27 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
     """
     from scipy.optimize import least_squares
 
-    rows = disc.rows + disc.box[0]
-    cols = disc.cols + disc.box[2]
-    # each disc sample carries a fixed uniform number, and an image's picks are its kept samples whose
-    # number is under the fraction needed: one sample more or less kept changes the picks by itself
-    # alone (drawn anew from the kept ones, a change in the last digit of one fit reshuffled them all)
+    picks, used, scale = _matte_picks(disc, vals, sat, samples)
+    if len(picks) < 3:
+        return sphere, np.zeros(GAIN_TERMS)
+    c0, r0 = sphere.centre_px
+    R0 = sphere.radius_px
+    residuals = _matte_circle_residuals(disc, vals, picks, used, scale, (c0, r0, R0))
+    lim = 0.03 * R0
+    res = least_squares(residuals, np.zeros(3 + GAIN_TERMS),
+                        bounds=([-lim, -lim, -0.03] + [-0.5] * GAIN_TERMS, [lim, lim, 0.03] + [0.5] * GAIN_TERMS),
+                        x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * GAIN_TERMS, diff_step=1e-3)
+    x = res.x
+    return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
+
+
+def _matte_picks(disc: "_Disc", vals, sat, samples):
+    """The disc samples the circle's fit reads, image by image: those each image's first Lambert
+    fit kept, at most ``samples`` in all (at least 500 per image), with the images used and each
+    one's first ``|b|`` (its residual's unit). Each disc sample carries a fixed uniform number,
+    and an image's picks are its kept samples whose number is under the fraction needed: one
+    sample more or less kept changes the picks by itself alone (drawn anew from the kept ones, a
+    change in the last digit of one fit reshuffled them all)."""
     u = np.random.default_rng(0).random(disc.normals.shape[0])
     picks, used, scale = [], [], []
     per_image = max(500, int(samples) // max(1, len(vals)))
@@ -1026,13 +1066,18 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
         picks.append(idx if idx.size <= per_image else idx[u[idx] < per_image / idx.size])
         used.append(k)
         scale.append(np.linalg.norm(fit[0]))      # each image's residual in units of its first |b|, held
-    if len(picks) < 3:
-        return sphere, np.zeros(GAIN_TERMS)
-    c0, r0 = sphere.centre_px
-    R0 = sphere.radius_px
+    return picks, used, scale
 
-    # every image's picks in one array, and laid out image by image (padded with zero rows) for the
-    # per-image fits below, solved together by batched normal equations
+
+def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle):
+    """``residuals(x)`` for the circle's fit: every picked sample's residual after each image's
+    linear fit (``b``, ``c``, then the near-lamp term, solved inside: variable projection) under
+    the circle ``circle`` = (column, row, radius) moved by ``x[:3]`` and the gain ``x[3:]``.
+    Every image's picks are in one array, and laid out image by image (padded with zero rows) so
+    the per-image fits are solved together by batched normal equations."""
+    c0, r0, R0 = circle
+    rows = disc.rows + disc.box[0]
+    cols = disc.cols + disc.box[2]
     pix = np.concatenate(picks)
     pr, pc = rows[pix].astype(float), cols[pix].astype(float)
     pv = np.concatenate([vals[k][idx] for k, idx in zip(used, picks)])
@@ -1062,12 +1107,7 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
         coef = per_image_fit(A, pv)
         return (pv - np.einsum("ij,ij->i", A, coef[kid])) / psc
 
-    lim = 0.03 * R0
-    res = least_squares(residuals, np.zeros(3 + GAIN_TERMS),
-                        bounds=([-lim, -lim, -0.03] + [-0.5] * GAIN_TERMS, [lim, lim, 0.03] + [0.5] * GAIN_TERMS),
-                        x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * GAIN_TERMS, diff_step=1e-3)
-    x = res.x
-    return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
+    return residuals
 
 
 def _gain(g, nx, ny):
