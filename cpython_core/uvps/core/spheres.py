@@ -525,12 +525,9 @@ def _consider(images, x, y, r, *, step, found, clipped, need, min_rim_fraction):
 
 
 def _fit_rim(images, centre, radius, min_rim_fraction):
-    """The circle refined at full resolution near ``centre``, ``radius`` (px) and which of 720
-    rays from its centre meet its rim; None when no view shows a rim there.
-
-    The rim where it is sharpest: the maximum shows a matte sphere's limb lit all round, the
-    median a glossy sphere's dark disc; the fit with more rim points on its circle wins. A dark
-    sphere on a dark ground adds the mean and the logarithms (the PSBox mirror spheres)."""
+    """The circle refined at full resolution near ``centre``, ``radius`` (px) and which of 720 rays
+    meet its rim (None: no rim there), where the rim is sharpest: the maximum shows a matte sphere's
+    limb lit all round, the median a glossy sphere's dark disc; the fit with more rim points wins."""
     K, M, N = images.shape[:3]
     box = _crop_box(centre, radius, (M, N))
     crops = np.stack([_grey(images[k, box[0]:box[1], box[2]:box[3]]) for k in range(K)])
@@ -1047,12 +1044,10 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
 
 
 def _matte_picks(disc: "_Disc", vals, sat, samples):
-    """The disc samples the circle's fit reads, image by image: those each image's first Lambert
-    fit kept, at most ``samples`` in all (at least 500 per image), with the images used and each
-    one's first ``|b|`` (its residual's unit). Each disc sample carries a fixed uniform number,
-    and an image's picks are its kept samples whose number is under the fraction needed: one
-    sample more or less kept changes the picks by itself alone (drawn anew from the kept ones, a
-    change in the last digit of one fit reshuffled them all)."""
+    """The disc samples the circle's fit reads per image (those its first Lambert fit kept, ``samples``
+    in all, >= 500 each), the images used and each one's first ``|b|``. A sample's fixed uniform number
+    picks it: one sample more or less kept changes the picks by itself alone (drawn anew, a change in
+    the last digit of one fit reshuffled them all)."""
     u = np.random.default_rng(0).random(disc.normals.shape[0])
     picks, used, scale = [], [], []
     per_image = max(500, int(samples) // max(1, len(vals)))
@@ -1070,11 +1065,9 @@ def _matte_picks(disc: "_Disc", vals, sat, samples):
 
 
 def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle):
-    """``residuals(x)`` for the circle's fit: every picked sample's residual after each image's
-    linear fit (``b``, ``c``, then the near-lamp term, solved inside: variable projection) under
-    the circle ``circle`` = (column, row, radius) moved by ``x[:3]`` and the gain ``x[3:]``.
-    Every image's picks are in one array, and laid out image by image (padded with zero rows) so
-    the per-image fits are solved together by batched normal equations."""
+    """``residuals(x)``: each pick's residual after its image's linear fit (variable projection) under
+    ``circle`` (column, row, radius) moved by ``x[:3]``, gain ``x[3:]``; the picks laid out image by
+    image (zero rows padding) so the per-image fits are solved together by batched normal equations."""
     c0, r0, R0 = circle
     rows = disc.rows + disc.box[0]
     cols = disc.cols + disc.box[2]
