@@ -156,3 +156,48 @@ def test_no_file_over_max_lines():
     """No source file of the package is over MAX_FILE_LINES lines: a longer one is split into modules
     by part (as ``uvps.testing.synthetic`` and ``uvps.core.detect`` are)."""
     assert long_files(ROOT) == {}, f"split these files (over {MAX_FILE_LINES} lines)"
+
+
+MAX_FUNCTION_LINES = 60
+
+
+def function_lengths(source: str) -> dict:
+    """Every function (and method) of ``source`` by ``name:line`` -> its length in lines, counted from
+    the line after its docstring (after its ``def`` when it has none) to its last line."""
+    out = {}
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        start = node.lineno
+        first = node.body[0]
+        if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) \
+                and isinstance(first.value.value, str):
+            start = first.end_lineno
+        out[f"{node.name}:{node.lineno}"] = node.end_lineno - start
+    return out
+
+
+def long_functions(root: Path, limit: int = MAX_FUNCTION_LINES) -> dict:
+    """The functions under ``root`` longer than ``limit`` lines (docstring excluded), by
+    ``path:name:line`` relative to ``root``."""
+    return {f"{p.relative_to(root)}:{name}": n for p in sorted(root.rglob("*.py"))
+            for name, n in function_lengths(p.read_text(encoding="utf-8")).items() if n > limit}
+
+
+def test_the_line_count_finds_a_long_function(tmp_path):
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES + 1))
+    doc = '    """A docstring\n' + "    of many lines\n" * 20 + '    """\n'
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "long.py").write_text(
+        "def long():\n" + body + "\n\nclass A:\n    def method(self):\n" + "    " + body.replace("\n    ", "\n        "),
+        encoding="utf-8")
+    # the docstring is not counted: 20 lines of it and MAX_FUNCTION_LINES of code is not too long
+    (tmp_path / "short.py").write_text("def short():\n" + doc + body.split("\n", 1)[1], encoding="utf-8")
+    assert long_functions(tmp_path) == {str(Path("pkg") / "long.py") + ":long:1": MAX_FUNCTION_LINES + 1,
+                                        str(Path("pkg") / "long.py") + ":method:66": MAX_FUNCTION_LINES + 1}
+
+
+def test_no_function_over_max_lines():
+    """No function of the package is over MAX_FUNCTION_LINES lines, its docstring excluded: a longer
+    one is split into named stages, each a helper whose docstring says what it does and why."""
+    assert long_functions(ROOT) == {}, f"split these functions (over {MAX_FUNCTION_LINES} lines)"
