@@ -182,3 +182,27 @@ def test_a_signal_during_the_swap_waits_for_its_end(tmp_path):
             time.sleep(0.05)
             done.append(1)
     assert done == [1]
+
+
+@pytest.mark.parametrize("exchange", [True, False], ids=["renameat2-exchange", "two-renames"])
+def test_replace_dir_swaps_a_folder_whole_and_leaves_nothing_beside_it(tmp_path, monkeypatch, exchange):
+    """The one folder swap (run folders, the painting, calibrations, zarr stores): the new folder in
+    place whole, the old one gone, nothing left beside it, a plain mkdir's mode; the same without the
+    exchange call (two renames with signals held)."""
+    if not exchange:
+        monkeypatch.setattr(outputs, "_exchange", lambda a, b: False)
+    dst = tmp_path / "run"
+    dst.mkdir()
+    (dst / "depth.tif").write_text("old")
+    (dst / "old_only.txt").write_text("old")
+    src = tmp_path / ".run.new"
+    src.mkdir(mode=0o700)
+    (src / "depth.tif").write_text("new")
+    outputs.replace_dir(src, dst)
+    assert _snapshot(dst) == {"depth.tif": hashlib.sha256(b"new").hexdigest()}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert dst.stat().st_mode & 0o777 == 0o777 & ~outputs._umask()
+    fresh = tmp_path / ".fresh"
+    fresh.mkdir()
+    outputs.replace_dir(fresh, tmp_path / "new_run")                   # nothing there yet: one rename
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new_run", "run"]

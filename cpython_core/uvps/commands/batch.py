@@ -276,7 +276,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
             result = run_into_folder(RUN, {"images": [str(folder)]}, params, tmp)
             write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
                                                      "params": _jsonable(params), "files": _side_files(params)})
-            # at every moment the run folder is absent, the old run or the new one, never a mix
+            # the old run or the new one, never a mix, whenever the process is killed (replace_dir)
             replace_dir(tmp, target, aside=_OLD)
             record["warnings"] = list(result.warnings)
         record.update(read_counts(target))

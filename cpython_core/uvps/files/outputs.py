@@ -141,9 +141,9 @@ def new_output_dir(path, *, carry_over: Callable[[str], bool] = lambda name: Fal
     The folder is ``<parent>/.<name>.uvps-new-XXXX/<name>`` (its own name is ``path``'s, so a report
     written into it names the folder as it will be). At the end, entries of the old ``path`` for
     which ``carry_over(name)`` is true (files the command does not own: the user's notes, clicks,
-    the demo's capture) are hard-linked (or copied) into it, and the two folders are swapped in one
-    step (``renameat2(RENAME_EXCHANGE)``; elsewhere two renames with Ctrl-C held). A reader sees
-    the old folder or the new one, never a mixture. On an exception or Ctrl-C before the swap the
+    the demo's capture) are hard-linked (or copied) into it, and it is swapped in by
+    :func:`replace_dir` (what a reader sees if the process is killed at any point is said there:
+    the old folder or the new one, never a mixture). On an exception or Ctrl-C before the swap the
     new folder is removed, ``path`` is exactly as it was (or still absent, with no parent folder
     left behind) and the exception propagates. Missing parent folders are made.
     """
@@ -163,12 +163,7 @@ def new_output_dir(path, *, carry_over: Callable[[str], bool] = lambda name: Fal
                 if carry_over(entry.name) and not (new / entry.name).exists():
                     _link_tree(entry, new / entry.name)
         with deferred_signals():
-            if path.is_dir():
-                if not _exchange(new, path):
-                    os.replace(path, stage / (path.name + ".old"))
-                    os.replace(new, path)
-            else:
-                os.replace(new, path)
+            replace_dir(new, path)
             COMMITTED.add(str(path))
             shutil.rmtree(stage, ignore_errors=True)
     except BaseException:
@@ -199,9 +194,10 @@ def atomic_output_dir(path) -> Iterator[Path]:
 
     For commands that add to a run folder (detect, wand, regions, stats, compare): files already in
     ``path`` that the command did not write are kept; files it wrote replace old ones one by one
-    with ``os.replace``, with Ctrl-C held until the last is in place. On an exception the
-    temporary folder is removed and ``path`` is untouched. Missing parent folders are made.
-    (``run`` replaces its folder whole: :func:`new_output_dir`.)
+    with ``os.replace``, with Ctrl-C held until the last is in place; a folder that is one output
+    (a zarr store, :data:`STORE_SUFFIXES`) and a ``path`` not there yet are swapped in whole by
+    :func:`replace_dir`. On an exception the temporary folder is removed and ``path`` is untouched.
+    Missing parent folders are made. (``run`` replaces its folder whole: :func:`new_output_dir`.)
     """
     path = check_output_dir(path)
     made = make_parents(path)
@@ -216,7 +212,7 @@ def atomic_output_dir(path) -> Iterator[Path]:
         raise
     with deferred_signals():
         if not path.exists():
-            os.replace(tmp, path)
+            replace_dir(tmp, path)
             COMMITTED.add(str(path))
             return
         try:
@@ -242,19 +238,37 @@ STORE_SUFFIXES = (".zarr",)
 
 
 def replace_dir(src: Path, dst: Path, *, aside: str = ".old-") -> None:
-    """Move the folder ``src`` to ``dst`` (same file system), replacing an existing ``dst`` whole.
+    """Put the folder ``src`` at ``dst`` (same file system), replacing an existing ``dst`` whole: the one
+    folder swap of uvps (a run folder, a step's zarr store, the painting folder, a calibration folder,
+    a batch's run folders, an OME-Zarr store). ``src`` gets a plain mkdir's mode.
 
-    The old ``dst`` is renamed aside first (to ``.<name><aside>XXXX`` beside it) and removed after
-    the new one is in place: a reader sees the old folder or the new one, or (for the instant
-    between the two renames) none, never a mixture of the two.
+    What a reader of ``dst`` sees if the process is killed at any point: all of the old folder or all
+    of the new one, never a mixture of the two.
+
+    - No ``dst`` yet: one rename. Before it there is nothing at ``dst``; after it, the new folder.
+    - An existing ``dst`` (Linux): the two folders are exchanged in one step
+      (``renameat2(RENAME_EXCHANGE)``): ``dst`` is the old folder up to that instant and the new one
+      after it; the old, now at ``src``, is then removed.
+    - An existing ``dst`` elsewhere (no exchange call): the old folder is renamed aside (to
+      ``.<name><aside>XXXX`` beside it), the new one into place, with Ctrl-C and SIGTERM held until
+      both renames are done (:func:`deferred_signals`), then the old one is removed. Only a kill that
+      cannot be held (SIGKILL, a power cut) between the two renames leaves ``dst`` absent for that
+      instant, the old folder whole under its aside name.
+
+    A kill after the swap and before the old folder is removed leaves ``dst`` all new and the old
+    folder beside it under its hidden name (``src``'s, or the aside name).
     """
     src, dst = Path(src), Path(dst)
     os.chmod(src, 0o777 & ~_umask())
-    if not dst.exists():
+    with deferred_signals():
+        if not dst.exists():
+            os.replace(src, dst)
+            return
+        if dst.is_dir() and _exchange(src, dst):
+            shutil.rmtree(src, ignore_errors=True)
+            return
+        old = Path(tempfile.mkdtemp(prefix="." + dst.name + aside, dir=dst.parent))
+        os.rmdir(old)
+        os.replace(dst, old)
         os.replace(src, dst)
-        return
-    old = Path(tempfile.mkdtemp(prefix="." + dst.name + aside, dir=dst.parent))
-    os.rmdir(old)
-    os.replace(dst, old)
-    os.replace(src, dst)
     shutil.rmtree(old, ignore_errors=True)
