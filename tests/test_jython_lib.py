@@ -593,7 +593,7 @@ def test_detection_counts_in_the_log():
     lines = bl.diagnostic_lines("detect", diag)
     assert lines[0] == ("uvps Detect Protrusions detection: 26 candidates, 6 protrusions kept, "
                         "20 rejected: 9 bright but flat (bare primer) (flat_bright), 7 narrower "
-                        "than the smallest width (too_small), 4 canvas weave (weave)")
+                        "than the smallest width counted (too_small), 4 canvas weave texture (weave)")
     assert "height noise 0.05 um" in lines[1]
     # run nests them under "detect"; none kept says how to find more
     lines = bl.diagnostic_lines("run", {"detect": {"n_protrusions": 0, "rejected": {}}})
