@@ -44,6 +44,10 @@ def example_log() -> str:
     formatter with the core's command table (``uvps spec``, as the installer writes it)."""
     sys.path.insert(0, str(ROOT / "jython_lib"))
     from uvps_fiji import bridge_logic
+    from uvps.core.detect.rules import REJECTION_WORDS
+    # the words as declared now: rejection_words.py, which bridge_logic imported, may be the
+    # stale file this run is rewriting
+    bridge_logic.REJECTION_WORDS = REJECTION_WORDS
     spec = subprocess.run([sys.executable, "-m", "uvps", "spec"], check=True, timeout=120,
                           stdout=subprocess.PIPE, universal_newlines=True).stdout
     lines = bridge_logic.diagnostic_lines("detect", EXAMPLE, table=bridge_logic.parse_spec(spec, "uvps spec"))
