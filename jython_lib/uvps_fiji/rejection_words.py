@@ -11,5 +11,5 @@ REJECTION_WORDS = {
     'too_large': 'wider than the largest width counted',
     'flat_bright': 'bright but flat (bare primer)',
     'artefact': 'relief the normals do not hold (integration artefacts)',
-    'weave': 'canvas weave texture',
+    'weave': 'canvas weave or paint texture, too flat for a protrusion',
 }

@@ -188,7 +188,7 @@ RULES = (
          "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole",
          {"max_mismatch": Range(0.0, INF, note="inf disables"), "max_unmeasured_fraction": Range(0.0, 1.0)},
          ("mismatch", "unmeasured"), _artefact, rescue=True),
-    Rule("weave", "canvas weave texture",
+    Rule("weave", "canvas weave or paint texture, too flat for a protrusion",
          "relief (um); flank slope relief / (width / 2); mean tilt; own glow: "
          "of the albedo components it overlaps, the part inside it",
          "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "
