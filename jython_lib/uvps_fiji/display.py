@@ -237,15 +237,20 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     return len(rois)   # the counted rows (a wand table also lists the clicks it did not count)
 
 
-def outlines_on(title, run_dir):
-    """Copies of the protrusion outlines of run ``run_dir`` on the overlay of the open image
-    ``title`` (none if it is not open): what a re-opened image should show again."""
+def _overlay_copies(title, keep):
+    """Copies of the items of the open image ``title``'s overlay whose name ``keep`` accepts
+    (none if it is not open or has no overlay)."""
     imp = WindowManager.getImage(title)
     overlay = imp.getOverlay() if imp is not None else None
     if overlay is None:
         return []
-    return [overlay.get(i).clone() for i in range(overlay.size())
-            if bridge_logic.outline_kind(overlay.get(i).getName(), run_dir) is not None]
+    return [overlay.get(i).clone() for i in range(overlay.size()) if keep(overlay.get(i).getName())]
+
+
+def outlines_on(title, run_dir):
+    """Copies of the protrusion outlines of run ``run_dir`` on the overlay of the open image
+    ``title`` (none if it is not open): what a re-opened image should show again."""
+    return _overlay_copies(title, lambda name: bridge_logic.outline_kind(name, run_dir) is not None)
 
 
 def is_area_item(name, run_dir):
@@ -259,12 +264,7 @@ def is_area_item(name, run_dir):
 def areas_on(title, run_dir):
     """Copies of run ``run_dir``'s colour-area outlines and tags on the overlay of the open image
     ``title`` (none if it is not open): what a re-opened albedo should show again."""
-    imp = WindowManager.getImage(title)
-    overlay = imp.getOverlay() if imp is not None else None
-    if overlay is None:
-        return []
-    return [overlay.get(i).clone() for i in range(overlay.size())
-            if is_area_item(overlay.get(i).getName(), run_dir)]
+    return _overlay_copies(title, lambda name: is_area_item(name, run_dir))
 
 
 def add_to_overlay(imp, rois):
