@@ -798,41 +798,41 @@ def _absolute(ip):
     return out
 
 
-def element_composite(path, title, channels):
-    """``elements.tif`` as an ImageJ composite of the three elements ``channels`` (red, green,
-    blue; names as the stack's slice labels), each channel from 0 to its 99.5 % quantile; the
-    whole stack stays open beside it for the other elements. Returns the composite."""
+def element_composite(stack_imp, channels):
+    """The open ``elements.tif`` stack ``stack_imp`` as an ImageJ composite of the three elements
+    ``channels`` (red, green, blue; names as the stack's slice labels, :func:`slice_labels`), each
+    channel from 0 to its 99.5 % quantile; the whole stack stays open beside it for the other
+    elements. Returns the composite."""
     from ij import CompositeImage, ImageStack
-    stack_imp = open_image(path, title)
+    from ij.process import LUT
     stack = stack_imp.getStack()
-    labels = [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]
+    labels = slice_labels(stack_imp)
     picked = ImageStack(stack_imp.getWidth(), stack_imp.getHeight())
     for name in channels:
         ip = stack.getProcessor(labels.index(name) + 1).duplicate()
         picked.addSlice(name, ip)
-    comp_title = "%s (%s)" % (title, "/".join(channels))
+    comp_title = "%s (%s)" % (stack_imp.getTitle(), "/".join(channels))
     imp = ImagePlus(comp_title, picked)
     imp.setDimensions(len(channels), 1, 1)
     imp.setCalibration(stack_imp.getCalibration())
     comp = CompositeImage(imp, CompositeImage.COMPOSITE)
     for c, colour in enumerate((Color.red, Color.green, Color.blue)[:len(channels)]):
-        from ij.process import LUT
         comp.setC(c + 1)
         comp.setChannelLut(LUT.createLutFromColor(colour))
         top = _sample_top([picked.getProcessor(c + 1)])
         comp.setDisplayRange(0.0, top)
     comp.setC(1)
     comp.setTitle(comp_title)
+    info = stack_imp.getOriginalFileInfo()
+    source = os.path.join(info.directory, info.fileName) \
+        if info is not None and info.directory and info.fileName else stack_imp.getTitle()
     comp.setProperty("Info", "uvps: elements %s of %s as red, green, blue (display only)"
-                     % (", ".join(channels), path))
+                     % (", ".join(channels), source))
     _show_replacing(comp)
     return comp
 
 
-def slice_labels(path):
-    """The slice labels of a stack TIFF (e.g. ``elements.tif``'s element names)."""
-    imp = IJ.openImage(path)
-    if imp is None:
-        raise BridgeError("ImageJ cannot open the output image %s" % path)
+def slice_labels(imp):
+    """The slice labels of a stack (e.g. ``elements.tif``'s element names), stripped."""
     stack = imp.getStack()
     return [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]

@@ -413,13 +413,12 @@ def element_maps(values):
     """``elements``: the registered element maps as a stack, and a composite of three of them
     (red, green, blue: keys red, green, blue; lead first by default)."""
     response = run_command("elements", values)
-    path = response.file("elements.tif")
-    names = display.slice_labels(path)
+    stack = display.open_image(response.file("elements.tif"), "element maps (run frame)")
     wanted = [values.get(k) for k in ("red", "green", "blue")]
-    channels, notes = bridge_logic.composite_channels(names, wanted)
+    channels, notes = bridge_logic.composite_channels(display.slice_labels(stack), wanted)
     for note in notes:
         IJ.log("uvps Element Maps: " + note)
-    display.element_composite(path, "element maps (run frame)", channels)
+    display.element_composite(stack, channels)
     IJ.log("uvps Element Maps: composite %s (choose with Red, Green, Blue element)" % ", ".join(
         "%s %s" % (c, n) for c, n in zip(("red", "green", "blue"), channels)))
     return response
