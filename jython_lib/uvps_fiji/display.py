@@ -731,17 +731,18 @@ STATUS_COLOURS = {"new": Color(26, 150, 65), "grown": Color(215, 25, 28),
                   "split": Color(197, 27, 125)}
 
 
-def change_rois(changes_csv, date, labels_path=None, pixel_size_um=None):
-    """The outlines of one date's protrusions listed in ``changes.csv``, coloured by status
-    (:data:`STATUS_COLOURS`) and named ``"grown 12 (later)"``. ``date``: ``"a"`` (the earlier
-    run, ids ``id_a``) or ``"b"``; outlines traced in that run's ``protrusions_labels.tif``."""
+def change_rois(rows, date, labels_path=None, pixel_size_um=None):
+    """The outlines of one date's protrusions among ``changes.csv``'s ``rows`` (dicts,
+    :func:`read_csv_rows`), coloured by status (:data:`STATUS_COLOURS`) and named
+    ``"grown 12 (later)"``. ``date``: ``"a"`` (the earlier run, ids ``id_a``) or ``"b"``; outlines
+    traced in that run's ``protrusions_labels.tif``."""
     labels = IJ.openImage(labels_path) if labels_path and os.path.isfile(labels_path) else None
     ip = labels.getProcessor() if labels is not None else None
     if pixel_size_um is None and labels is not None and labels.getCalibration().scaled():
         pixel_size_um = labels.getCalibration().pixelWidth
     word = {"a": "earlier", "b": "later"}[date]
     rois = []
-    for row in read_csv_rows(changes_csv):
+    for row in rows:
         ident = (row.get("id_" + date) or "").strip()
         if not ident:
             continue
@@ -762,14 +763,20 @@ def change_rois(changes_csv, date, labels_path=None, pixel_size_um=None):
     return rois
 
 
-def status_legend(imp, x, y, statuses):
-    """The status colours as text lines at ``(x, y)`` on the overlay of ``imp`` (the margin
-    beside a calibration bar): what each outline colour means."""
+def status_legend(imp, statuses):
+    """The status colours as text lines on the overlay of ``imp`` under its calibration bar's unit
+    (:func:`bar_beside`'s margin): what each outline colour means. Nothing without a bar."""
     from ij.gui import TextRoi
     from java.awt import Font
+    overlay = imp.getOverlay() or Overlay()
+    units = [overlay.get(i) for i in range(overlay.size())
+             if overlay.get(i).getName() == BAR_UNIT_NAME]
+    if not units:
+        return
+    b = units[0].getBounds()
+    x, y = b.x, b.y + b.height + 6
     zoom = bar_zoom(imp.getHeight())
     font = Font("SansSerif", Font.BOLD, 12 * zoom)
-    overlay = imp.getOverlay() or Overlay()
     for status in statuses:
         text = TextRoi(x, y, status, font)
         text.setStrokeColor(STATUS_COLOURS[status])

@@ -358,21 +358,17 @@ def compare_captures(values):
     response = run_command("changes", values)
     out = run_folder(values)
     changes = response.file("changes.csv")
+    rows = display.read_csv_rows(changes)
     dates = []
     for key, date in (("earlier", "a"), ("later", "b")):
         run = os.path.normpath(optional_path(values.get(key)) or "")
-        rois = display.change_rois(changes, date, os.path.join(run, "protrusions_labels.tif"))
+        rois = display.change_rois(rows, date, os.path.join(run, "protrusions_labels.tif"))
         dates.append((key, run, rois))
     height = display.show_height_change(response.file("height_change.tif"),
                                         titled("height change (um)", out))
-    statuses = bridge_logic.status_counts(display.read_csv_rows(changes))
+    statuses = bridge_logic.status_counts(rows)
     display.add_to_overlay(height, [r.clone() for r in dates[0][2]])
-    bar = [height.getOverlay().get(i) for i in range(height.getOverlay().size())
-           if height.getOverlay().get(i).getName() == display.BAR_UNIT_NAME]
-    if bar:
-        b = bar[0].getBounds()
-        display.status_legend(height, b.x, b.y + b.height + 6,
-                              [s for s, _ in statuses if s in display.STATUS_COLOURS])
+    display.status_legend(height, [s for s, _ in statuses if s in display.STATUS_COLOURS])
     for key, run, rois in dates:
         path = os.path.join(run, "albedo.tif")
         if os.path.isfile(path):
