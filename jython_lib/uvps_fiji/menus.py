@@ -391,11 +391,8 @@ def stitch_painting(values):
     response = run_command("batch", values)
     out = run_folder(values)
     painting = os.path.join(out, "painting")
-    overview = IJ.openImage(os.path.join(painting, "figures", "painting_overview.png"))
-    if overview is None:
-        raise BridgeError("the painting overview %s is missing" % os.path.join(painting, "figures"))
-    overview.setTitle(titled("painting overview", out))
-    overview.show()
+    overview = display.open_image(os.path.join(painting, "figures", "painting_overview.png"),
+                                  titled("painting overview", out))
     display.open_table(os.path.join(painting, "painting_regions.csv"), titled("Painting areas", out))
     display.open_table(os.path.join(painting, "painting_protrusions.csv"),
                        titled("Painting protrusions", out))
