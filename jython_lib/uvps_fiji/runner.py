@@ -317,7 +317,8 @@ def report_error(title, exc):
     if is_cancel(exc):
         how = "cancelled"
         if isinstance(exc, BridgeError):
-            how = "cancelled (%s)" % exc.message.replace("cancelled with ", "")
+            # its message says why: "cancelled with Esc; the core was stopped"
+            how = exc.message if exc.message.startswith("cancelled") else "cancelled (%s)" % exc.message
         report_cancel(title, how)
         return
     if isinstance(exc, BridgeError):
