@@ -93,10 +93,9 @@ class UVPSDialog(object):
             # values, so the same macro gives the same result on every machine.
             return default if default is not None else ""
         pref = PREFIX + key
-        if key in RUN_OWN_KEYS and Prefs.get(pref + ".run", "") != Prefs.get(PREFIX + "run", ""):
-            self.defaults[key] = default
-            return default if default is not None else ""
         self.defaults[key] = default
+        if key in RUN_OWN_KEYS and Prefs.get(pref + ".run", "") != Prefs.get(PREFIX + "run", ""):
+            return default if default is not None else ""
         if kind == "number":
             return Prefs.get(pref, float(default))
         if kind == "checkbox":
@@ -224,7 +223,6 @@ class UVPSDialog(object):
                 IJ.log("uvps %s: %s was chosen for the run folder %s, not %s: not used (%s "
                        "instead; choose it again to use it)"
                        % (self.title, value, was_for, run, values[key] or "none"))
-
 
     def _not_another_captures_run(self, values):
         """A run folder left as remembered while the capture is another one than the capture whose
