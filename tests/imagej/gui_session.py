@@ -9,7 +9,6 @@ user does. :meth:`GuiSession.log` reads the Log window, :meth:`GuiSession.window
 windows, :meth:`GuiSession.screenshot` saves the screen (xwd + ImageMagick).
 """
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -94,13 +93,7 @@ class GuiSession:
         ``"Escape"``: Cancel). Returns the list of the answered windows' titles. Fails (an
         AssertionError) when a dialog does not come or the step does not end in ``timeout`` s.
         """
-        self.counter += 1
-        name = "%04d" % self.counter
-        path = self.queue / (name + ".ijm")
-        tmp = self.queue / (name + ".tmp")
-        tmp.write_text(macro, encoding="utf-8")
-        tmp.rename(path)
-        done = self.queue / (name + ".done")
+        done = self.queue_step(macro)
         deadline = time.monotonic() + timeout
         answered = []
         for pattern, key in answers:
@@ -116,6 +109,16 @@ class GuiSession:
                                      % (name, timeout, self.visible_windows(), macro))
             time.sleep(0.1)
         return answered
+
+    def queue_step(self, macro):
+        """Drop ``macro`` into the queue (written whole, then renamed: the queue never reads half a
+        file) and return the path of the ``.done`` file that appears when the step is over."""
+        self.counter += 1
+        name = "%04d" % self.counter
+        tmp = self.queue / (name + ".tmp")
+        tmp.write_text(macro, encoding="utf-8")
+        tmp.rename(self.queue / (name + ".ijm"))
+        return self.queue / (name + ".done")
 
     def press(self, wid, key, tries=5):
         """Activate window ``wid`` and press ``key`` (XTEST, as a keyboard does: Java ignores
@@ -211,18 +214,9 @@ def trace_lines(text):
     return [line for line in text.splitlines() if any(m in line for m in TRACE_MARKERS)]
 
 
-def macro_string(path):
-    """A path as a macro string literal."""
-    return '"%s"' % str(path).replace("\\", "\\\\").replace('"', '\\"')
-
-
-def shell_quote_title(title):
-    return "^" + re.escape(title) + "$"
-
-
 def move_window(session, pattern, x, y, width=None, height=None):
     """Move (and size) the visible window whose title matches ``pattern``, as a user drags it."""
-    wid = session.wait_window(pattern, __import__("time").monotonic() + 10)
+    wid = session.wait_window(pattern, time.monotonic() + 10)
     session._xdotool("windowmove", wid, x, y)
     if width and height:
         session._xdotool("windowsize", wid, width, height)
