@@ -358,9 +358,9 @@ def add_light_fields(dlg, command, lights=True):
     add_param(dlg, (command, "degree"), key="degree")
 
 
-def add_composite_fields(dlg, defaults):
+def add_composite_fields(dlg, defaults=bridge_logic.COMPOSITE_DEFAULT):
     """Element Maps' composite: the elements shown in red, green and blue (keys red, green, blue;
-    display only, the core is not asked)."""
+    display only, the core is not asked); lead in red by default."""
     for colour, default in zip(("Red", "Green", "Blue"), defaults):
         label = "%s element (composite)" % colour
         dlg.string(label, default, columns=8)
