@@ -241,18 +241,13 @@ class UVPSDialog(object):
                 and os.path.normpath(was_for) == os.path.normpath(run) and was != capture
                 and _holds_files(run)):
             return capture
-        from java.awt import Frame
-        from ij import IJ
-        from ij.gui import YesNoCancelDialog
         question = ("The run folder %s holds the outputs of %s, not of %s: write %s's outputs into it "
                     "(%s), or choose another run folder (%s)?"
                     % (run, was, capture, capture, WRITE_INTO_IT, DO_NOT_WRITE))
-        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), "uvps: %s: another capture's run folder" % self.title,
-                                   question, WRITE_INTO_IT, DO_NOT_WRITE)
-        if not dialog.yesPressed():
-            raise BridgeError("cancelled: the run folder %s holds the outputs of %s, not of %s; nothing was "
-                              "written: choose another run folder" % (run, was, capture),
-                              error_type="Cancelled")
+        runner.ask_or_cancel("uvps: %s: another capture's run folder" % self.title, question,
+                             WRITE_INTO_IT, DO_NOT_WRITE,
+                             "cancelled: the run folder %s holds the outputs of %s, not of %s; nothing "
+                             "was written: choose another run folder" % (run, was, capture))
         return capture
 
 

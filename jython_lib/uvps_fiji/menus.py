@@ -308,20 +308,17 @@ def confirm_replacing(out, title):
     comparison), ask whether to run, keeping it aside with the run it was measured on (the core moves
     it to ``earlier/<date>_<run id>/``), or to change nothing (a cancel). Asked whenever ImageJ has a
     display, from a macro too: a re-run is the moment the clicks of an afternoon could be lost."""
-    from java.awt import Frame, GraphicsEnvironment
-    from ij.gui import YesNoCancelDialog
+    from java.awt import GraphicsEnvironment
 
     found = bridge_logic.manual_work_in(out)
     if not found:
         return
     if not GraphicsEnvironment.isHeadless():
-        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), title + ": manual work in the run folder",
-                                   bridge_logic.manual_work_question(out, found),
-                                   bridge_logic.KEEP_AND_RUN, bridge_logic.DO_NOT_RUN)
-        if not dialog.yesPressed():
-            raise BridgeError("cancelled: %s is unchanged, its manual work (%s) in place; to keep both runs side "
-                              "by side, choose another run folder" % (out, ", ".join(found)),
-                              error_type="Cancelled")
+        runner.ask_or_cancel(title + ": manual work in the run folder",
+                             bridge_logic.manual_work_question(out, found),
+                             bridge_logic.KEEP_AND_RUN, bridge_logic.DO_NOT_RUN,
+                             "cancelled: %s is unchanged, its manual work (%s) in place; to keep both "
+                             "runs side by side, choose another run folder" % (out, ", ".join(found)))
     IJ.log("uvps %s: the manual work in %s (%s) is kept with the run it was measured on, in its "
            "earlier/ folder" % (title, out, ", ".join(found)))
 

@@ -120,19 +120,26 @@ class GuiSession:
         tmp.rename(self.queue / (name + ".ijm"))
         return self.queue / (name + ".done")
 
-    def press(self, wid, key, tries=5):
+    def press(self, wid, key, tries=3):
         """Activate window ``wid`` and press ``key`` (XTEST, as a keyboard does: Java ignores
-        synthetic events sent to a window) until the window is gone."""
+        synthetic events sent to a window) until the window is gone. A key goes to whatever window
+        has the focus: it is pressed again only while ``wid`` is still there, after waiting long
+        enough for a loaded machine, else a slow close would answer the next dialog too."""
         for _ in range(tries):
             time.sleep(0.5)
+            if not self._visible(wid):
+                return
             self._xdotool("windowactivate", "--sync", wid)
             self._xdotool("key", "--clearmodifiers", key)
-            end = time.monotonic() + 3
+            end = time.monotonic() + 15
             while time.monotonic() < end:
-                if wid not in self._xdotool("search", "--onlyvisible", "--name", ".").stdout.split():
+                if not self._visible(wid):
                     return
                 time.sleep(0.2)
         raise AssertionError("window %s did not close on %s" % (self.window_name(wid), key))
+
+    def _visible(self, wid):
+        return wid in self._xdotool("search", "--onlyvisible", "--name", ".").stdout.split()
 
     def _xdotool(self, *args):
         return subprocess.run(["xdotool"] + [str(a) for a in args], env=self.env,
