@@ -1,10 +1,15 @@
 """Every Markdown link in README.md and docs/ leads somewhere: the file it names exists and, where it
 names a section (``file.md#anchor`` or ``#anchor``), a heading of that file has that anchor by
 GitHub's rules (lower case; punctuation other than '-' and '_' dropped; each space a '-'; a repeated
-heading gets '-1', '-2', ...). Links to the web, and links inside code, are not followed."""
+heading gets '-1', '-2', ...). Links to the web, and links inside code, are not followed.
+
+Comments, docstrings and docs also cite a section in words, ``docs/benchmarks.md, "Speed and memory"``:
+the file exists under docs/ and has a heading (or a bold paragraph lead, ``**Known positions with a
+card**``) of that name, whole or up to its bracket or colon ("Levelling" for "Levelling (`--level`)")."""
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 from urllib.parse import unquote
 
@@ -83,6 +88,47 @@ def broken_links(md: Path) -> list[str]:
     return bad
 
 
+#: a path ending in .md, then (after an optional closing backquote, bracket and comma) a quoted name
+_CITE = re.compile(r"((?:docs/)?(?:decisions/)?[A-Za-z_]+\.md)`{0,2}\)?,?\s+\(?\"([^\"]{3,120})\"")
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"\s+", " ", name.replace("`", "")).strip().rstrip(".:").lower()
+
+
+def section_names(path: Path) -> set[str]:
+    """The names a file's sections are cited by: its headings' and its bold paragraph leads' text."""
+    text = path.read_text(encoding="utf-8")
+    names = [m.group(2) for _, line in _prose_lines(text) if (m := _HEADING.match(line))]
+    names += re.findall(r"\*\*([^*]+)\*\*", text)
+    return {_norm(n) for n in names}
+
+
+def citations(path: Path):
+    """(cited file under docs/, cited section) of each ``docs/X.md, "Section"`` in ``path``; in Python,
+    comment markers at the start of a line are dropped first, so a citation may run over lines."""
+    text = path.read_text(encoding="utf-8")
+    if path.suffix == ".py":
+        text = re.sub(r"\n[ \t]*#+:?[ \t]*", "\n", text)
+    text = re.sub(r"[ \t]*\n[ \t]*", " ", text)
+    for m in _CITE.finditer(text):
+        yield REPO / "docs" / m.group(1).removeprefix("docs/"), m.group(2)
+
+
+def broken_citations(path: Path) -> list[str]:
+    """Each cited section of ``path`` that its file does not have, as 'file: cited: why'."""
+    bad = []
+    for dest, name in citations(path):
+        cited = f"{path.name}: {dest.name}, \"{name}\""
+        if not dest.exists():
+            bad.append(f"{cited}: no such file under docs/")
+            continue
+        n = _norm(name)
+        if not any(s == n or s.startswith((n + " (", n + ":")) for s in section_names(dest)):
+            bad.append(f"{cited}: no such section")
+    return bad
+
+
 def _project_markdown() -> list[Path]:
     return [REPO / "README.md"] + sorted((REPO / "docs").rglob("*.md"))
 
@@ -132,3 +178,34 @@ def test_every_link_in_the_docs_and_readme_resolves():
     assert len(into_sections) >= 20, into_sections                 # anchors are checked, not only files
     bad = [b for md in files for b in broken_links(md)]
     assert bad == [], "links that lead nowhere:\n" + "\n".join(bad)
+
+
+def test_the_citation_checker_finds_a_missing_section(tmp_path, monkeypatch):
+    docs = tmp_path / "docs"
+    (docs / "decisions").mkdir(parents=True)
+    (docs / "benchmarks.md").write_text("# B\n\n## Levelling (`--level`)\n\n**Known positions with a card** (x)\n",
+                                        encoding="utf-8")
+    (docs / "decisions" / "wand.md").write_text("# W\n\n### Clicks judged before they count (`judge`)\n",
+                                                encoding="utf-8")
+    src = tmp_path / "mod.py"
+    src.write_text('X = 1  # docs/benchmarks.md, "Levelling"; docs/benchmarks.md "Known positions with a card"\n'
+                   '#: measured (``docs/decisions/wand.md``, "Clicks judged\n'
+                   '#: before they count"); docs/benchmarks.md, "The wand\'s default"; docs/nowhere.md, "Any"\n',
+                   encoding="utf-8")
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    assert [name for _, name in citations(src)] == ["Levelling", "Known positions with a card",
+                                                    "Clicks judged before they count", "The wand's default", "Any"]
+    assert broken_citations(src) == ["mod.py: benchmarks.md, \"The wand's default\": no such section",
+                                     "mod.py: nowhere.md, \"Any\": no such file under docs/"]
+
+
+def test_every_cited_section_exists():
+    """Code, scripts, tests, README.md and docs cite sections that their files have."""
+    files = [p for d in ("cpython_core", "jython_lib", "plugins", "scripts", "tests") for p in (REPO / d).rglob("*.py")
+             if p.resolve() != Path(__file__).resolve()]            # not this file's examples
+    files += _project_markdown()
+    cited = [c for f in files for c in citations(f)]
+    assert len(cited) >= 80                                        # the scan finds them
+    assert sum(dest.name == "benchmarks.md" for dest, _ in cited) >= 25
+    bad = [b for f in files for b in broken_citations(f)]
+    assert bad == [], "sections cited that do not exist:\n" + "\n".join(bad)
