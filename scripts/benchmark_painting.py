@@ -8,7 +8,7 @@ layout.csv --regions auto`` runs it as a user would (a real subprocess, a local 
 corners' error, detection F1 for protrusions >= 60 um, protrusions counted twice, the count's ratio
 to the truth, the painting-wide height's rms error after one plane (all of it and the overlap
 bands), and the times (the batch, the sum of the tiles' run times, the stitching's parts). The
-worst seed is the figure quoted in docs/benchmarks.md.
+worst seed is the figure quoted in docs/benchmarks.md, "Painting in tiles".
 
     OMP_NUM_THREADS=1 python scripts/benchmark_painting.py --seeds 1 2 3
     OMP_NUM_THREADS=1 python scripts/benchmark_painting.py --grid 4 3 --tile 300 400 --seeds 1
