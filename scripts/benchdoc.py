@@ -172,13 +172,16 @@ def json_path(name: str, *, json_dir: Path | str = JSON_DIR) -> Path:
     return Path(json_dir) / f"{name}.json"
 
 
-def write_doc(name: str, results: dict, text: str, *, source: str, md_path: Path | str = DOC,
-              json_dir: Path | str = JSON_DIR) -> Path:
+def write_doc(name: str, results: dict, text: str, *, source: str, md_path: Path | str | None = None,
+              json_dir: Path | str | None = None) -> Path:
     """A script's ``--doc``: its raw results as JSON beside the document, then its section.
 
-    The markers are checked before anything is written, so a refused section leaves both files as
-    they were. Returns the JSON's path.
+    ``md_path`` and ``json_dir`` default to this module's ``DOC`` and ``JSON_DIR``. The markers are
+    checked before anything is written, so a refused section leaves both files as they were. Returns
+    the JSON's path.
     """
+    md_path = DOC if md_path is None else md_path
+    json_dir = JSON_DIR if json_dir is None else json_dir
     read_section(md_path, name)
     out = json_path(name, json_dir=json_dir)
     out.parent.mkdir(parents=True, exist_ok=True)

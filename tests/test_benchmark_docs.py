@@ -128,3 +128,24 @@ def test_the_check_refuses_broken_markers_in_one_line(small, tmp_path):
     small.write_text(SMALL.replace("<!-- end painting -->\n", ""), encoding="utf-8")
     r = _check(small, tmp_path)
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and str(small) in r.stderr and "end markers" in r.stderr
+
+
+@pytest.mark.slow
+def test_benchmark_lights_doc_writes_its_section_and_json(tmp_path, monkeypatch):
+    """``--doc`` end to end on a small capture (the light estimate runs: 5-25 s): the paragraph holds what was just measured, the JSON its rows,
+    and the check passes on the result (nothing else in the document moved)."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_lights
+    before = read_section(md, "lights")
+    benchmark_lights.main(["--lamps", "6", "--shape", "150", "200", "--seeds", "3", "--doc"])
+    data = json.loads((jd / "lights.json").read_text())
+    assert [r[:2] for r in data["rows"]] == [[6, 3]] and data["argv"][-1] == "--doc"
+    text = read_section(md, "lights")
+    assert text != before and text.startswith("**Light estimate with 6 lamps** (`.venv/bin/python "
+                                              "scripts/benchmark_lights.py --lamps 6 --shape 150 200 --seeds 3`")
+    assert f"directions max {data['rows'][0][5]:.2f} deg" in text
+    assert (ROOT / "docs" / "benchmarks.md").read_text().replace(before, text) == md.read_text()
+    assert _check(md, jd).returncode == 0
