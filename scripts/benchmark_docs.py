@@ -52,7 +52,8 @@ def rendered(md_path: Path, json_dir: Path, root: Path = ROOT) -> tuple[dict, li
     expected : dict of str to str
         Section name -> the text its script renders from its JSON (only sections with a JSON).
     problems : list of str
-        One line each: a missing script, a script without ``--doc`` or ``render_doc``, a bad JSON.
+        One line each: a missing script, a script without ``--doc`` or ``render_doc``, a JSON it cannot
+        render, a JSON without a section.
     """
     text = read_text(md_path)
     found = sections(text, path=_rel(md_path))
@@ -77,6 +78,9 @@ def rendered(md_path: Path, json_dir: Path, root: Path = ROOT) -> tuple[dict, li
             expected[name] = t if t.endswith("\n") else t + "\n"     # as write_section writes it
         except (ValueError, KeyError, TypeError, IndexError) as e:
             problems.append(f"{_rel(jp)}: {s.source} cannot render it ({type(e).__name__}: {e})")
+    for jp in sorted(Path(json_dir).glob("*.json")):
+        if jp.stem not in found:
+            problems.append(f"{_rel(jp)}: no section {jp.stem!r} in {_rel(md_path)} (a renamed or removed section?)")
     return expected, problems
 
 

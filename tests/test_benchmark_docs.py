@@ -92,10 +92,11 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert "painting" in found
+    assert {"painting", "lights", "real", "elements"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
+        assert benchdoc.json_path(name).is_file(), name          # so the check above re-rendered every section
 
 
 def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path):
@@ -148,4 +149,36 @@ def test_benchmark_lights_doc_writes_its_section_and_json(tmp_path, monkeypatch)
                                               "scripts/benchmark_lights.py --lamps 6 --shape 150 200 --seeds 3`")
     assert f"directions max {data['rows'][0][5]:.2f} deg" in text
     assert (ROOT / "docs" / "benchmarks.md").read_text().replace(before, text) == md.read_text()
+    assert _check(md, jd).returncode == 0
+
+
+def test_a_json_without_its_section_fails_the_check(small, tmp_path):
+    jd = tmp_path / "json"
+    jd.mkdir()
+    (jd / "painting.json").write_text(json.dumps({"rows": [{"seed": 1, "corner_err_px": 0.1, "max_residual_px": 0.1,
+        "f1": 1.0, "twice": 0, "count_ratio": 1.0, "height_rms_um": 0.1, "height_overlap_rms_um": 0.1, "batch_s": 1,
+        "tiles_sum_s": 2, "workers": 2, "stitch_total_s": 1, "stitch_maps_s": 1}]}))
+    (jd / "gone.json").write_text("{}")
+    r = _check(small, jd)
+    assert r.returncode == 1 and "gone.json: no section 'gone'" in r.stderr
+    assert "section 'painting' is stale" in r.stderr      # '| old table |' is not what the JSON renders
+
+
+def test_benchmark_real_doc_keeps_the_rows_it_did_not_measure(tmp_path, monkeypatch):
+    """Without --diligent a run measures the split halves only: the DiLiGenT rows stay as the last run left them."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_real
+    before = json.loads((jd / "real.json").read_text())["rows"]
+    icon = {"capture": "painted_icon_rti", "kind": "halves", "size": [402, 395], "lamps": 36,
+            "methods": {"defaults": [2.5, 2.25, 1000], "plain LS": [2.6, 2.3, 1000]}}
+    benchmark_real.write_doc_section([icon], ["--doc"])
+    rows = json.loads((jd / "real.json").read_text())["rows"]
+    assert rows[0] == icon and rows[1:] == before[1:]
+    text = read_section(md, "real")
+    assert "| painted_icon_rti (402 x 395), halves | 36 | **2.50** / 2.25 | 2.60 / 2.30 | - | - |\n" in text
+    assert text.count("DiLiGenT ball") == 2 and "| **3.27** / 2.52 | 4.11 / 2.44 |" in text
     assert _check(md, jd).returncode == 0
