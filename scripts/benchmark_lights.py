@@ -85,7 +85,8 @@ def render_doc(results: dict) -> str:
         return " / ".join(fmt.format(r[i]) for r in w)
     cmd = " ".join([".venv/bin/python", "scripts/benchmark_lights.py"] + [a for a in results["argv"] if a != "--doc"])
     text = (f"**Light estimate with {col(0, '{}')} lamps** (`{cmd}`, "
-            f"grey clean, load ~{results['load']:.0f}): **{col(3, '{:.1f}')} s**; directions max {col(5, '{:.2f}')} deg "
+            f"grey clean, load ~{results['load']:.0f}): **{col(3, '{:.1f}')} s**; "
+            f"directions max {col(5, '{:.2f}')} deg "
             f"(mean {col(4, '{:.2f}')}); height scale {col(6, '{:.1f}')} % off, reported {col(7, '{:.1f}')} %.")
     return text + "\n"
 
@@ -96,7 +97,8 @@ def main(argv=None):
     ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600])
     ap.add_argument("--seeds", type=int, nargs="+", default=[3])
     ap.add_argument("--doc", action="store_true",
-                    help="write the worst figures into docs/benchmarks.md (section lights) and docs/benchmarks/lights.json")
+                    help="write the worst figures into docs/benchmarks.md (section lights) and "
+                         "docs/benchmarks/lights.json")
     a = ap.parse_args(argv)
     head = ["lamps", "seed", "additive (s)", "lights (s)", "dir. err mean (deg)", "max (deg)", "height scale err (%)",
             "reported height unc. (%)"]

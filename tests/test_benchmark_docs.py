@@ -112,7 +112,8 @@ def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path
     assert md.read_bytes() == benchdoc.DOC.read_bytes()          # --check writes nothing
     r = subprocess.run(CHECK[:-1] + ["--md", str(md), "--json-dir", str(jd)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert "| 1 | 0.16 | 0.07 | 0.500 |" in md.read_text() and "| **worst** | **0.21** | 0.07 | **0.500** |" in md.read_text()
+    text = md.read_text()
+    assert "| 1 | 0.16 | 0.07 | 0.500 |" in text and "| **worst** | **0.21** | 0.07 | **0.500** |" in text
     assert _check(md, jd).returncode == 0
 
 
@@ -133,8 +134,8 @@ def test_the_check_refuses_broken_markers_in_one_line(small, tmp_path):
 
 @pytest.mark.slow
 def test_benchmark_lights_doc_writes_its_section_and_json(tmp_path, monkeypatch):
-    """``--doc`` end to end on a small capture (the light estimate runs: 5-25 s): the paragraph holds what was just measured, the JSON its rows,
-    and the check passes on the result (nothing else in the document moved)."""
+    """``--doc`` end to end on a small capture (the light estimate runs: 5-25 s): the paragraph holds what was
+    just measured, the JSON its rows, and the check passes on the result (nothing else in the document moved)."""
     md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
     shutil.copy(benchdoc.DOC, md)
     monkeypatch.setattr(benchdoc, "DOC", md)
