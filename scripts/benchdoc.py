@@ -118,12 +118,17 @@ def read_section(md_path: Path | str, name: str) -> str:
 
 
 def atomic_write_text(path: Path | str, text: str) -> None:
-    """Write a text file through a temporary file in its folder and ``os.replace``: never half-written."""
+    """Write a text file through a temporary file in its folder and ``os.replace``: never half-written.
+
+    The file keeps its permissions (a new one gets 0644: ``mkstemp``'s own 0600 would hide it from others).
+    """
     path = Path(path)
+    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -77,9 +77,11 @@ def test_a_section_is_written_only_by_the_script_its_marker_names(small):
 
 
 def test_write_doc_keeps_the_raw_results_and_refuses_before_writing(small, tmp_path):
+    small.chmod(0o664)
     out = write_doc("painting", {"rows": [1, 2]}, "| t |\n", source="scripts/benchmark_painting.py",
                     md_path=small, json_dir=tmp_path / "json")
     assert json.loads(out.read_text()) == {"rows": [1, 2]} and out == tmp_path / "json" / "painting.json"
+    assert small.stat().st_mode & 0o777 == 0o664 and out.stat().st_mode & 0o777 == 0o644
     assert read_section(small, "painting") == "| t |\n"
     with pytest.raises(SectionError):
         write_doc("lights", {"rows": []}, "x\n", source="scripts/benchmark_lights.py", md_path=small,
@@ -183,3 +185,24 @@ def test_benchmark_real_doc_keeps_the_rows_it_did_not_measure(tmp_path, monkeypa
     assert "| painted_icon_rti (402 x 395), halves | 36 | **2.50** / 2.25 | 2.60 / 2.30 | - | - |\n" in text
     assert text.count("DiLiGenT ball") == 2 and "| **3.27** / 2.52 | 4.11 / 2.44 |" in text
     assert _check(md, jd).returncode == 0
+
+
+def test_benchmark_protrusions_wand_doc_changes_only_its_rows(tmp_path, monkeypatch):
+    """``--wand --doc`` on one small capture (a few seconds): the wand table's rows are this run's, every
+    other byte of the document is as it was, and the JSON keeps each click's area ratio."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_protrusions
+    before = read_section(md, "wand")
+    benchmark_protrusions.main(["--wand", "--seeds", "0", "--shape", "240", "320", "--doc"])
+    data = json.loads((jd / "wand.json").read_text())
+    n = len(data["ratios"]["relative 0.5 (default)"][0])
+    assert n > 0 and [r["clicks"] for r in data["rows"]] == [n] * 4
+    text = read_section(md, "wand")
+    assert text.splitlines()[:2] == before.splitlines()[:2] and f"| relative 0.5 (default) | {n} | " in text
+    assert (ROOT / "docs" / "benchmarks.md").read_text().replace(before, text) == md.read_text()
+    assert _check(md, jd).returncode == 0
+    with pytest.raises(SystemExit):
+        benchmark_protrusions.main(["--doc"])          # detection's tables are not written: refused
