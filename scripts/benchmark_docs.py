@@ -84,6 +84,16 @@ def rendered(md_path: Path, json_dir: Path, root: Path = ROOT) -> tuple[dict, li
     return expected, problems
 
 
+def _command(name: str, source: str, args) -> str:
+    """The command that last wrote a section (its JSON's ``argv``), else the script with ``--doc``."""
+    try:
+        argv = json.loads(json_path(name, json_dir=args.json_dir).read_text(encoding="utf-8"))["argv"]
+    except (OSError, ValueError, KeyError, TypeError):
+        argv = []
+    argv = [a for a in argv if a != "--doc"]
+    return " ".join([source] + argv + ["--doc"])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 when a section is stale or its markers are broken")
@@ -102,7 +112,8 @@ def main(argv=None) -> int:
         print(f"error: {line}", file=sys.stderr)
     if args.check:
         for n in stale:
-            print(f"error: {_rel(args.md)}: section {n!r} is stale: run python {found[n].source} --doc (or "
+            print(f"error: {_rel(args.md)}: section {n!r} is stale: run "
+                  f"python {_command(n, found[n].source, args)} (or "
                   f"python scripts/benchmark_docs.py to render it from {_rel(json_path(n, json_dir=args.json_dir))})",
                   file=sys.stderr)
         return 1 if stale or problems else 0

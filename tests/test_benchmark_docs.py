@@ -111,6 +111,7 @@ def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path
     (jd / "painting.json").write_text(json.dumps(data))
     r = _check(md, jd)
     assert r.returncode == 1 and "section 'painting' is stale" in r.stderr
+    assert "run python scripts/benchmark_painting.py --seeds 1 2 3 --doc" in r.stderr and r.stderr.count("\n") == 1
     assert md.read_bytes() == benchdoc.DOC.read_bytes()          # --check writes nothing
     r = subprocess.run(CHECK[:-1] + ["--md", str(md), "--json-dir", str(jd)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
