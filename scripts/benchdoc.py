@@ -157,12 +157,14 @@ def write_section(md_path: Path | str, name: str, text: str, *, source: str) -> 
     Raises
     ------
     SectionError
-        Markers missing, doubled or ill-formed, or naming another script.
+        Markers missing, doubled or ill-formed, naming another script, or a marker line in ``text``.
     """
     md_path = Path(md_path)
     whole, s = _section(md_path, name)
     if s.source != source:
         raise SectionError(f"{md_path}: section {name!r} is written by {s.source}, not {source}")
+    if _ANY.search(text):
+        raise SectionError(f"{md_path}: the text for section {name!r} holds a marker line ({_ANY.search(text)[0]!r})")
     if not text.endswith("\n"):
         text += "\n"
     new = whole[:s.start] + text + whole[s.end:]

@@ -74,6 +74,9 @@ def test_a_section_is_written_only_by_the_script_its_marker_names(small):
         write_section(small, "painting", "x\n", source="scripts/benchmark_level.py")
     with pytest.raises(SectionError, match="no section 'level'"):
         read_section(small, "level")
+    with pytest.raises(SectionError, match="holds a marker line"):
+        write_section(small, "painting", "| t |\n<!-- end painting -->\n", source="scripts/benchmark_painting.py")
+    assert small.read_bytes() == SMALL.encode()
 
 
 def test_write_doc_keeps_the_raw_results_and_refuses_before_writing(small, tmp_path):
