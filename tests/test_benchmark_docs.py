@@ -104,6 +104,15 @@ def test_the_projects_document_is_current():
         assert benchdoc.json_path(name).is_file(), name          # so the check above re-rendered every section
 
 
+def test_the_reference_stays_a_reference():
+    """docs/benchmarks.md holds each figure once, the current one, in at most 400 lines; the history
+    of what was tried lives in docs/decisions/ (each of which it links)."""
+    text = benchdoc.DOC.read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 400
+    for log in (ROOT / "docs" / "decisions").glob("*.md"):
+        assert f"decisions/{log.name}" in text, log.name
+
+
 def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path):
     md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
     shutil.copy(benchdoc.DOC, md)
