@@ -190,8 +190,8 @@ MAX_RESIDUALS = 600000
 #: Relative RMS photometric residual (of the sample's mean intensity) beyond which lamps estimated from
 #: the images explain nothing and the run stops: a Lambertian capture under point lamps leaves ~0.5 %
 #: (benchmark captures: 0.57 % clean, 1.6 % with every nuisance at the top of its range); a real
-#: gilded icon under visible-light RTI (JPEG) left 28 % with lamps 52 deg off and a reported height
-#: uncertainty of 0.8 %: the Jacobian's confidence means nothing when the model does not fit.
+#: gilded icon under visible-light RTI (JPEG) leaves 33 % with lamps 52 deg off (docs/decisions/normals.md,
+#: "Rules that stop or warn"): the Jacobian's confidence means nothing when the model does not fit.
 MAX_LAMP_RESIDUAL = 0.05
 #: Largest disagreement (deg) between an estimated lamp's azimuth and the one read from its drop-off
 #: beyond which a run warns (:func:`_azimuth_warnings`). 12 lamps, seeds 0-2, with the azimuths from
