@@ -10,7 +10,10 @@ abundance for areas of more than 10 map pixels (the truth is the nominal abundan
 vary it inside the areas measure that variation too). The command's time is measured end to end
 (``python -m uvps elements``, 4 map TIFFs), on the clean row.
 
-    .venv/bin/python scripts/benchmark_elements.py --seeds 0 1 2 [--md]
+    .venv/bin/python scripts/benchmark_elements.py --seeds 0 1 2 [--md] [--doc]
+
+``--doc`` writes docs/benchmarks.md's table (section ``elements``: the worst seed per row) and every result
+into docs/benchmarks/elements.json (scripts/benchdoc.py).
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ PX = 15.0
 ROWS = {"clean": {}, "composition +-30 % in areas": {"within_area": 0.3},
         "flat-topped spot": {"spot_shape": "disc"}, "line jitter 0.2 map px": {"line_jitter_px": 0.2},
         "all three": {"within_area": 0.3, "spot_shape": "disc", "line_jitter_px": 0.2}}
+DOC_SECTION = "elements"
 
 
 def control_points(truth, shape, rng):
@@ -91,11 +95,38 @@ def one(seed: int, workdir: Path, time_command: bool) -> list:
     return out
 
 
+def worst_row(results: list, row: str) -> tuple:
+    """The worst seed of a row: automatic error, residual, control points' error (map px), area means' error
+    (fraction), the fewest areas."""
+    rs = [r for r in results if r["row"] == row]
+    return (max(r["automatic error_map_px"] for r in rs), max(r["automatic residual_map_px"] for r in rs),
+            max(r["4 control points error_map_px"] for r in rs), max(r["area_mean_error_max"] for r in rs),
+            min(r["areas"] for r in rs))
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's table: per row, the worst seed's registration errors and area means' error.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"results": [one(...) per seed, flattened], ...}`` as docs/benchmarks/elements.json keeps it.
+    """
+    lines = ["| row | automatic: error (map px) | residual reported | 4 control points: error | "
+             "area means: worst error |", "|---|---|---|---|---|"]
+    for row in dict.fromkeys(r["row"] for r in results["results"]):
+        a, res, c, m, _ = worst_row(results["results"], row)
+        lines.append(f"| {row} | {a:.3f} | {res:.3f} | {c:.3f} | {100 * m:.1f} % |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--md", action="store_true", help="print a Markdown table")
     ap.add_argument("--json", type=Path, help="write every result here")
+    ap.add_argument("--doc", action="store_true",
+                    help="write the table into docs/benchmarks.md (section elements) and docs/benchmarks/elements.json")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         results = [r for s in args.seeds for r in one(s, Path(tmp), time_command=True)]
@@ -107,12 +138,7 @@ def main(argv=None):
               "area means: worst error | areas > 10 map px |")
         print("|---|---|---|---|---|---|")
     for row in ROWS:
-        rs = [r for r in results if r["row"] == row]
-        a = max(r["automatic error_map_px"] for r in rs)
-        res = max(r["automatic residual_map_px"] for r in rs)
-        c = max(r["4 control points error_map_px"] for r in rs)
-        m = max(r["area_mean_error_max"] for r in rs)
-        n = min(r["areas"] for r in rs)
+        a, res, c, m, n = worst_row(results, row)
         if args.md:
             print(f"| {row} | {a:.3f} | {res:.3f} | {c:.3f} | {100 * m:.1f} % | {n} |")
         else:
@@ -121,6 +147,10 @@ def main(argv=None):
     reg_t = [r["automatic time_s"] for r in results]
     print(f"uvps elements (1600 x 1200, 4 maps), end to end: {min(times):.2f}-{max(times):.2f} s; "
           f"registration alone {min(reg_t):.2f}-{max(reg_t):.2f} s")
+    if args.doc:
+        from benchdoc import write_doc
+        doc = {"argv": list(sys.argv[1:] if argv is None else argv), "load": os.getloadavg()[0], "results": results}
+        print("wrote", write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_elements.py"))
 
 
 if __name__ == "__main__":

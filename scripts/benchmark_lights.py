@@ -3,15 +3,15 @@
 
 Usage::
 
-    .venv/bin/python scripts/benchmark_lights.py [--lamps 8 16 32 64] [--shape 1200 1600] [--seeds 3 4 5]
-                                                 [--out-md docs/benchmarks.md]
+    .venv/bin/python scripts/benchmark_lights.py [--lamps 8 16 32 64] [--shape 1200 1600] [--seeds 3 4 5] [--doc]
 
 Renders a grey synthetic capture per lamp count (``uvps.testing.synthetic.make_capture``), runs the additive
 term and the light estimate of ``uvps run`` (:func:`uvps.core.pipeline.run` with ``RunOptions()`` and no
 stage beyond the lights, on ``as_capture()``) and prints, per lamp count and seed: the time of each
 (the run's ``timings_s``), the mean and max direction error against the truth, the heights' relative
 scale error (mean log tan-elevation ratio) and the reported height uncertainty; then, per lamp count,
-the worst over the seeds.
+the worst over the seeds. ``--doc`` writes the worst figures into docs/benchmarks.md's section ``lights`` (its
+paragraph) and the rows into docs/benchmarks/lights.json (scripts/benchdoc.py).
 """
 from __future__ import annotations
 
@@ -27,9 +27,12 @@ from uvps.core import pipeline
 from uvps.core.pipeline import RunOptions
 from uvps.testing.synthetic import make_capture
 
+DOC_SECTION = "lights"
+
 
 def _machine():
-    cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
+    with open("/proc/cpuinfo", encoding="utf-8") as fh:
+        cpu = next((l.split(":", 1)[1].strip() for l in fh if l.startswith("model name")), "?")
     return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, load {os.getloadavg()[0]:.1f}"
 
 
@@ -57,12 +60,45 @@ def _fmt(row):
     return [f.format(v) for f, v in zip(_FMT, row)]
 
 
+def worst_rows(rows: list) -> list:
+    """Per lamp count, the worst over the seeds: the largest time and error, the smallest reported uncertainty."""
+    out = []
+    for K in dict.fromkeys(r[0] for r in rows):
+        per = [r for r in rows if r[0] == K]
+        out.append([K, "worst"] + [max(r[i] for r in per) for i in range(2, 7)] + [min(r[7] for r in per)])
+    return out
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's paragraph: per lamp count, the worst seed's light-estimate time (s), directions' max
+    and mean error (deg), height scale off and reported (%); one line, like a table's row.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"argv": [...], "load": float, "rows": [[K, seed, additive_s, lights_s, mean, max, scale %, reported %],
+        ...]}``, as ``--doc`` keeps it in docs/benchmarks/lights.json.
+    """
+    w = worst_rows(results["rows"])
+
+    def col(i, fmt):
+        return " / ".join(fmt.format(r[i]) for r in w)
+    cmd = " ".join([".venv/bin/python", "scripts/benchmark_lights.py"] + [a for a in results["argv"] if a != "--doc"])
+    text = (f"**Light estimate with {col(0, '{}')} lamps** (`{cmd}`, "
+            f"grey clean, load ~{results['load']:.0f}): **{col(3, '{:.1f}')} s**; "
+            f"directions max {col(5, '{:.2f}')} deg "
+            f"(mean {col(4, '{:.2f}')}); height scale {col(6, '{:.1f}')} % off, reported {col(7, '{:.1f}')} %.")
+    return text + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lamps", type=int, nargs="+", default=[8, 16, 32, 64])
     ap.add_argument("--shape", type=int, nargs=2, default=[1200, 1600])
     ap.add_argument("--seeds", type=int, nargs="+", default=[3])
-    ap.add_argument("--out-md")
+    ap.add_argument("--doc", action="store_true",
+                    help="write the worst figures into docs/benchmarks.md (section lights) and "
+                         "docs/benchmarks/lights.json")
     a = ap.parse_args(argv)
     head = ["lamps", "seed", "additive (s)", "lights (s)", "dir. err mean (deg)", "max (deg)", "height scale err (%)",
             "reported height unc. (%)"]
@@ -83,9 +119,11 @@ def main(argv=None):
             f"({datetime.date.today()}, {_machine()}); grey {a.shape[1]} x {a.shape[0]} capture of 15 um, "
             f"seeds {' '.join(map(str, a.seeds))}:\n\n{table}\n")
     print(text)
-    if a.out_md:
-        with open(a.out_md, "a", encoding="utf-8") as fh:
-            fh.write(text)
+    if a.doc:
+        from benchdoc import write_doc
+        results = {"argv": list(sys.argv[1:] if argv is None else argv), "load": os.getloadavg()[0],
+                   "machine": _machine(), "rows": [r for r in rows if r[1] != "worst"]}
+        print("wrote", write_doc(DOC_SECTION, results, render_doc(results), source="scripts/benchmark_lights.py"))
 
 
 if __name__ == "__main__":

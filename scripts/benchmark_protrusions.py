@@ -29,7 +29,11 @@ the capture rendered again).
 Example::
 
     .venv/bin/python scripts/benchmark_protrusions.py --seeds 0 1 2 --levels 0.3,0.01 1.0,0.03
-    .venv/bin/python scripts/benchmark_protrusions.py --wand --seeds 0 1 2
+    .venv/bin/python scripts/benchmark_protrusions.py --wand --seeds 0 1 2 [--doc]
+
+With ``--wand``, ``--doc`` writes docs/benchmarks.md's wand table (section ``wand``) and the table's
+figures at full precision, with every click's area ratio, into docs/benchmarks/wand.json
+(scripts/benchdoc.py); detection and ``--wand-off`` are not written.
 """
 from __future__ import annotations
 
@@ -47,6 +51,7 @@ from uvps.core.measure import measure_protrusions
 from uvps.testing.synthetic import make_capture
 
 CLASSES = [(0, 60), (60, 100), (100, 200), (200, 400), (400, 10000)]
+DOC_SECTION = "wand"
 
 
 def _class_name(lo, hi):
@@ -222,21 +227,43 @@ def wand_off_report(args) -> None:
               f"{fin.size} ({fin.max() if fin.size else float('nan'):.1f}) |")
 
 
+def wand_rows(runs: list) -> list:
+    """Per wand, over the seeds' clicks: the count, the shares within 0.5-2x the true area (all, worst seed),
+    below 0.5x and above 2x, and the median area ratio."""
+    rows = []
+    for name in runs[0]:
+        per = [np.asarray(r[name]) for r in runs]
+        allr = np.concatenate(per)
+        rows.append({"wand": name, "clicks": int(allr.size), "within": float(np.mean((allr >= 0.5) & (allr <= 2))),
+                     "worst_seed": float(min(np.mean((r >= 0.5) & (r <= 2)) for r in per)),
+                     "median_ratio": float(np.median(allr)), "below_half": float(np.mean(allr < 0.5)),
+                     "above_twice": float(np.mean(allr > 2))})
+    return rows
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's wand table from ``{"rows": wand_rows(...), ...}`` (docs/benchmarks/wand.json)."""
+    lines = ["| wand | clicks | within 0.5-2x the true area | worst seed | median area ratio | < 0.5x | > 2x |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results["rows"]:
+        lines.append(f"| {r['wand']} | {r['clicks']} | {100 * r['within']:.1f} % | {100 * r['worst_seed']:.1f} % | "
+                     f"{r['median_ratio']:.2f} | {100 * r['below_half']:.1f} % | {100 * r['above_twice']:.1f} % |")
+    return "\n".join(lines) + "\n"
+
+
 def wand_report(args) -> None:
     tolerances = [float(t) for t in args.wand_tolerances]
     runs = [wand_one(s, tuple(args.shape), args.pipeline, tolerances) for s in args.seeds]
     print(f"Synthetic captures {args.shape[0]}x{args.shape[1]} px at 15 um/px, 12 lamps, seeds {args.seeds}; "
           f"albedo from uvps run with {args.pipeline or 'true'} lights; a click at the centre of every true "
           "protrusion >= 100 um.\n")
-    print("| wand | clicks | outlined within 0.5-2x the true area | worst seed | median area ratio | < 0.5x | > 2x |")
-    print("|---|---|---|---|---|---|---|")
-    for name in runs[0]:
-        per = [r[name] for r in runs]
-        allr = np.concatenate(per)
-        ok = (allr >= 0.5) & (allr <= 2)
-        worst = min(np.mean((r >= 0.5) & (r <= 2)) for r in per)
-        print(f"| {name} | {allr.size} | {100 * ok.mean():.1f} % | {100 * worst:.1f} % | {np.median(allr):.2f} | "
-              f"{100 * np.mean(allr < 0.5):.1f} % | {100 * np.mean(allr > 2):.1f} % |")
+    results = {"argv": args.argv, "rows": wand_rows(runs),
+               "ratios": {name: [np.round(r[name], 4).tolist() for r in runs] for name in runs[0]}}
+    text = render_doc(results)
+    print(text)
+    if args.doc:
+        from benchdoc import write_doc
+        print("wrote", write_doc(DOC_SECTION, results, text, source="scripts/benchmark_protrusions.py"))
 
 
 def summarise(runs):
@@ -293,7 +320,13 @@ def main(argv=None) -> int:
                     help="clicks off every protrusion (bare paint, height-only bumps): how many the wand counts")
     ap.add_argument("--wand-tolerances", nargs="+", default=["0.05", "1000", "3000"],
                     help="ImageJ wand tolerances (albedo counts) compared with the relative wand")
+    ap.add_argument("--doc", action="store_true",
+                    help="with --wand: write its table into docs/benchmarks.md (section wand) and "
+                         "docs/benchmarks/wand.json")
     args = ap.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    if args.doc and not args.wand:
+        ap.error("--doc writes the wand table only: give --wand too")
     if args.wand:
         wand_report(args)
         return 0

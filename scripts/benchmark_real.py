@@ -21,8 +21,13 @@ the capture as :func:`uvps.files.io.read_capture` reads it. "plain LS" is least 
 R, G and B with every sample (``numpy.linalg.lstsq``, written here independently of the core).
 ``--variants`` adds the core's solver with each of its sample rules alone (saturation, the dark fraction,
 the attached-shadow test) and ``robust=True``, to show which rule costs what.
+
+``--doc`` writes docs/benchmarks.md's table (section ``real``: defaults, plain LS, screened, ``--robust``)
+and the rows into docs/benchmarks/real.json; rows this run did not measure (DiLiGenT without ``--diligent``)
+are kept from that file's previous run (scripts/benchdoc.py).
 """
 import argparse
+import json
 import sys
 import tempfile
 from dataclasses import replace
@@ -38,6 +43,11 @@ from uvps.files.io import read_capture
 DEFAULT_DATA = next((p for p in (Path(__file__).resolve().parents[k] / "shared" / "data" for k in (2, 3)) if p.is_dir()),
                     Path(__file__).resolve().parents[2] / "shared" / "data")
 RTI = {"painted_icon_rti": ("", "dirs.lp"), "lion_relief_rti": ("jpg", "dirs.lp")}
+DOC_SECTION = "real"
+#: the document's columns: (heading, method name); the defaults' mean is bold everywhere (the split-half and
+#: DiLiGenT targets are about it), ``--robust``'s on ground truth (its target)
+DOC_COLUMNS = (("defaults", "defaults"), ("plain LS", "plain LS"), ("screened", "core, all rules (screened)"),
+               ("`--robust`", "--robust"))
 
 
 def angle_deg(a, b):
@@ -153,13 +163,60 @@ def ground_truth(cap, gt, fns):
     return row
 
 
+def _label(r: dict) -> str:
+    if r["kind"] == "halves":
+        return f"{r['capture']} ({r['size'][0]} x {r['size'][1]}), halves"
+    jpeg = " as JPEG (`--jpeg`, quality 90)" if r.get("jpeg") else ""
+    return f"DiLiGenT {r['capture']}{jpeg}, ground truth"
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's table: mean / median angle (deg) per capture and method, '-' where not measured.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [{"capture", "kind" ("halves" or "ground truth"), "size" (W, H), "jpeg", "lamps",
+        "methods": {name: [mean, median, pixels, ...]}}, ...]}`` as docs/benchmarks/real.json keeps them.
+    """
+    lines = ["| capture | lamps | " + " | ".join(h for h, _ in DOC_COLUMNS) + " |",
+             "|---|---|" + "---|" * len(DOC_COLUMNS)]
+    for r in results["rows"]:
+        cells = []
+        for _, name in DOC_COLUMNS:
+            v = r["methods"].get(name)
+            bold = name == "defaults" or (name == "--robust" and r["kind"] == "ground truth")
+            cells.append("-" if v is None else (f"**{v[0]:.2f}**" if bold else f"{v[0]:.2f}") + f" / {v[1]:.2f}")
+        lines.append(f"| {_label(r)} | {r['lamps']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _row_key(r: dict):
+    return (r["kind"] != "halves", list(RTI).index(r["capture"]) if r["capture"] in RTI else 0, r["capture"],
+            bool(r.get("jpeg")))
+
+
+def write_doc_section(rows: list, argv: list) -> None:
+    """``--doc``: this run's rows over the previous run's (same capture and kind), into the JSON and the table."""
+    import benchdoc
+    old = benchdoc.json_path(DOC_SECTION, json_dir=benchdoc.JSON_DIR)
+    kept = json.loads(old.read_text(encoding="utf-8"))["rows"] if old.is_file() else []
+    new = {_row_key(r): r for r in kept}
+    new.update({_row_key(r): r for r in rows})
+    results = {"argv": argv, "rows": [new[k] for k in sorted(new)]}
+    print("wrote", benchdoc.write_doc(DOC_SECTION, results, render_doc(results), source="scripts/benchmark_real.py"))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--diligent", help="a DiLiGenT pmsData folder (objects <name>PNG/ with Normal_gt.mat)")
     ap.add_argument("--variants", action="store_true", help="also the core's sample rules one by one")
     ap.add_argument("--jpeg", action="store_true", help="DiLiGenT's objects also encoded as 8-bit sRGB JPEGs")
+    ap.add_argument("--doc", action="store_true",
+                    help="write the table into docs/benchmarks.md (section real) and docs/benchmarks/real.json")
     args = ap.parse_args(argv)
+    rows = []
     fns = methods(args.variants)
     data = Path(args.data)
     names = list(fns)
@@ -172,6 +229,8 @@ def main(argv=None):
             continue
         cap = read_capture(str(folder / sub) if sub else str(folder), lights=str(folder / lp), pixel_size_um=100.0)
         row = split_half(cap, fns)
+        rows.append({"capture": cap_name, "kind": "halves", "size": [cap.images.shape[2], cap.images.shape[1]],
+                     "lamps": cap.images.shape[0] // 2, "methods": row})
         print(f"| {cap_name} | {cap.images.shape[0] // 2} | "
               + " | ".join(f"{m:.2f} / {md:.2f}" for m, md, _ in row.values()) + " |", flush=True)
     if args.diligent:
@@ -186,8 +245,13 @@ def main(argv=None):
                     src = src or as_jpeg(obj, Path(tmp))
                     cap, gt = diligent_capture(src, Path(tmp))
                     row = ground_truth(cap, gt, fns)
+                    rows.append({"capture": obj.name[:-3], "kind": "ground truth", "jpeg": bool(label),
+                                 "size": [cap.images.shape[2], cap.images.shape[1]], "lamps": cap.images.shape[0],
+                                 "methods": row})
                     print(f"| {obj.name[:-3]}{label} | {cap.images.shape[0]} | "
                           + " | ".join(f"{m:.2f} / {md:.2f}" for m, md, _, _ in row.values()) + " |", flush=True)
+    if args.doc:
+        write_doc_section(rows, list(sys.argv[1:] if argv is None else argv))
     return 0
 
 

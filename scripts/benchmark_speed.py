@@ -19,16 +19,17 @@ rusage:
 
 and optionally (``--profile``) a cProfile of :func:`uvps.core.pipeline.run` in this process, whose top
 lines go with the table. Each process's CPU use is its user + system CPU time over its wall time (``os.wait4``'s rusage:
-2.0 = both cores busy throughout). The table is printed and, with ``--md PATH`` (default
-docs/benchmarks.md), inserted at the top of that file under its title, with the machine (cores,
-RAM, load) and the command line.
+2.0 = both cores busy throughout). The table is printed with the machine (cores, RAM, load) and the
+command line; it is not written into docs/benchmarks.md, whose two speed tables have other columns
+(no ``--doc`` section yet: scripts/benchdoc.py). ``--no-md`` is accepted and does nothing (the
+commands recorded in docs/benchmarks.md carry it).
 
 Example::
 
     .venv/bin/python scripts/benchmark_speed.py                      # 4000 x 3000 x 16, ~5 min
-    .venv/bin/python scripts/benchmark_speed.py --shape 750 1000 --no-md --profile
+    .venv/bin/python scripts/benchmark_speed.py --shape 750 1000 --profile
     # 10000 x 8000 x 16 RGB (7.2 GiB raw, made in tiles), the run alone:
-    .venv/bin/python scripts/benchmark_speed.py --shape 8000 10000 --tile 2000 2500 --skip regions demo --no-md
+    .venv/bin/python scripts/benchmark_speed.py --shape 8000 10000 --tile 2000 2500 --skip regions demo
 """
 from __future__ import annotations
 
@@ -356,21 +357,13 @@ def table(ms: list, read_s: float, raw: float) -> str:
     return "\n".join(rows)
 
 
-def insert_section(md: Path, text: str) -> None:
-    """``text`` right under the file's title (newest section first), the rest kept."""
-    old = md.read_text(encoding="utf-8") if md.exists() else "# Benchmarks\n"
-    head, sep, rest = old.partition("\n")
-    md.write_text(head + "\n\n" + text.rstrip() + "\n" + sep + rest, encoding="utf-8")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shape", type=int, nargs=2, default=(3000, 4000), metavar=("ROWS", "COLS"))
     ap.add_argument("--lights", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", type=Path, default=Path("/tmp/uvps_speed"))
-    ap.add_argument("--md", type=Path, default=REPO / "docs" / "benchmarks.md")
-    ap.add_argument("--no-md", action="store_true", help="print only")
+    ap.add_argument("--no-md", action="store_true", help="accepted, does nothing: the table is printed only")
     ap.add_argument("--profile", action="store_true", help="also cProfile pipeline.run in this process")
     ap.add_argument("--top", type=int, default=25, help="profile lines kept")
     ap.add_argument("--skip", nargs="*", default=(), choices=("run", "zarr", "regions", "cal", "cal_regions", "demo"))
@@ -464,8 +457,6 @@ def main(argv=None) -> int:
                  "```", prof, "```", ""]
     text = "\n".join(text)
     print(text)
-    if not a.no_md:
-        insert_section(a.md, text)
     return 0 if all(m.returncode == 0 for m in ms) else 1
 
 

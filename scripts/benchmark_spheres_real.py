@@ -10,7 +10,8 @@ Default: ``../shared/data/sphere_mirror_psbox`` (PSBox's LightProbe-2, MIT) with
 ``light_directions.txt``. ``LIGHTS`` is a published directions file: 3 x K or K x 3 numbers, an optional
 first line holding K alone (x right, y up, z toward the camera). ``--same-lamps A,B``: two spheres of one
 capture (cropped from the same frames, e.g. PSBox's LightProbe-1 and -2), whose directions must agree.
-Other public captures are not shipped with the project: fetch them yourself (docs/benchmarks.md names them).
+Other public captures are not shipped with the project: fetch them yourself (docs/benchmarks.md,
+"Calibration and spheres", names them and their sources).
 """
 import argparse
 import json

@@ -13,6 +13,7 @@ Usage::
 """
 import argparse
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -21,7 +22,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests" / "imagej"))
-from gui_session import GuiSession, missing_gui_tools, trace_lines  # noqa: E402
+from gui_session import GuiSession, missing_gui_tools, move_window, trace_lines  # noqa: E402
 
 IJ_JAR = os.environ.get("UVPS_IJ_JAR", "/usr/share/java/ij.jar")
 JYTHON_JAR = os.environ.get("UVPS_JYTHON_JAR", "/usr/share/java/jython.jar")
@@ -99,11 +100,9 @@ BOTTOM_ROW = [(r"^(Protrusions|Manual protrusions|Changes) - ", 0, 560, 780, 300
 
 def arrange(session):
     """Move the tables and the Log into the screen's free lower part, as a user would."""
-    from gui_session import move_window
     visible = session.visible_windows()
     used = set()
     for pattern, x, y, w, h in BOTTOM_ROW:
-        import re
         if any(re.search(pattern, t) for t in visible) and (x, y) not in used:
             move_window(session, pattern, x, y, w, h)
             used.add((x, y))

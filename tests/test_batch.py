@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -32,7 +33,7 @@ def client():
     (processes, not threads: each worker imports uvps and unpickles the task as on a real cluster;
     about 5 s to start, once for the module)."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as c:
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as c:
         yield c
 
 
@@ -259,12 +260,23 @@ def test_inputs_folders_lists_and_names(captures, tmp_path):
 
 @pytest.mark.slow
 def test_the_command_line_on_the_default_local_cluster(captures, tmp_path):
+    """Its own LocalCluster, with the dashboard's usual port 8787 taken (as by a second batch on the
+    machine): the batch runs, and its log (``-v``, which shows the warnings) has no warning about
+    the port: the dashboard takes a free one."""
     out = tmp_path / "out"
     shutil.copytree(captures / "cap1", tmp_path / "caps" / "cap1")
     cmd = [sys.executable, "-m", "uvps", "batch", str(tmp_path / "caps"), "-o", str(out), "--lights", LAMPS,
            "--regions", "auto", "--workers", "1"]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    with socket.socket() as held:
+        try:
+            held.bind(("", 8787))
+            held.listen()
+        except OSError:
+            pass            # taken already: the same situation
+        r = subprocess.run(cmd[:3] + ["-v"] + cmd[3:], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+    assert "Dask dashboard: http" in r.stderr, r.stderr
+    assert "8787" not in r.stderr and "already in use" not in r.stderr, r.stderr
     assert "cap1: done" in r.stdout and "1 done, 0 skipped, 0 failed" in r.stdout and "on 1 workers" in r.stdout
     r = subprocess.run(cmd + ["--force"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "cap1: done" in r.stdout, r.stderr

@@ -591,9 +591,10 @@ def test_detection_counts_in_the_log():
     diag = {"n_protrusions": 6, "noise_um": 0.05,
             "rejected": {"weave": 4, "flat_bright": 9, "too_small": 7, "crack": 0}}
     lines = bl.diagnostic_lines("detect", diag)
+    words = bl.REJECTION_WORDS   # the rules' declarations (uvps.core.detect.rules.RULES)
     assert lines[0] == ("uvps Detect Protrusions detection: 26 candidates, 6 protrusions kept, "
-                        "20 rejected: 9 bright but flat (bare primer) (flat_bright), 7 narrower "
-                        "than the smallest width (too_small), 4 canvas weave (weave)")
+                        "20 rejected: 9 %s (flat_bright), 7 %s (too_small), 4 %s (weave)"
+                        % (words["flat_bright"], words["too_small"], words["weave"]))
     assert "height noise 0.05 um" in lines[1]
     # run nests them under "detect"; none kept says how to find more
     lines = bl.diagnostic_lines("run", {"detect": {"n_protrusions": 0, "rejected": {}}})

@@ -384,6 +384,76 @@ def test_a_painting_wide_label_image_gives_the_areas_in_the_layout_frame(paintin
                        pixel_size_um=15.0, n_areas=None)
 
 
+def test_the_painting_labels_are_an_ome_zarr_of_their_own_and_attached_to_the_albedo(paintings, tmp_path):
+    """stitch_painting on run folders of the truth (each tile's protrusions drawn as discs of its
+    own ids): painting/labels.ome.zarr is an NGFF labels group that an independent validator
+    opens, its protrusion labels are the painting's ids (each kept protrusion's centre holds its
+    painting_id, the duplicates of the overlaps renumbered to the copy kept), its colour areas are
+    the regions_overview.tif's; albedo.ome.zarr/labels holds the same label images."""
+    import dask
+    import zarr
+    from ome_zarr_models import open_ome_zarr
+    from ome_zarr_models.v04.image_label import ImageLabel
+    from ome_zarr_models.v04.labels import Labels
+    from skimage.draw import disk
+    from uvps.files.io import write_imagej_tiff
+    from uvps.files.tables import write_label_tiff
+    from uvps.painting import stitch_painting
+
+    p = paintings[1]
+    M, N = p.tile_shape
+    for t in p.tiles:
+        d = tmp_path / t.name
+        d.mkdir()
+        write_imagej_tiff(d / "depth.tif", t.capture.height_um.astype(np.float32), axes="YX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "albedo.tif", np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32),
+                          axes="CYX", pixel_size_um=15.0)
+        write_imagej_tiff(d / "normals.tif", np.moveaxis(t.capture.normals, -1, 0).astype(np.float32), axes="CYX",
+                          pixel_size_um=15.0)
+        pr = t.capture.protrusions
+        lab = np.zeros((M, N), np.int32)
+        for i, x, y in zip(pr["id"], pr["x_px"], pr["y_px"]):
+            lab[disk((y, x), 2.5, shape=lab.shape)] = int(i)
+        write_label_tiff(d / "protrusions_labels.tif", lab, pixel_size_um=15.0)
+        with open(d / "protrusions.csv", "w", newline="") as fh:
+            wr = csv.writer(fh)
+            wr.writerow(["id", "x_px", "y_px", "width_um", "height_um"])
+            for i in range(len(pr["id"])):
+                wr.writerow([int(pr["id"][i]), pr["x_px"][i], pr["y_px"][i], pr["width_um"][i], pr["height_um"][i]])
+    tiles = {t.name: (t.nominal[0], t.nominal[1], (M, N)) for t in p.tiles}
+    with dask.config.set(scheduler="synchronous"):
+        res = stitch_painting(tmp_path, tiles, pixel_size_um=15.0, regions="auto", chunk_px=128, report_html=False)
+    painting = tmp_path / "painting"
+    store = painting / "labels.ome.zarr"
+    assert isinstance(open_ome_zarr(zarr.open_group(str(store), mode="r")), Labels)
+    root = zarr.open_group(str(store), mode="r")
+    assert root.attrs["labels"] == ["protrusions", "regions"]
+    for name in ("protrusions", "regions"):
+        assert isinstance(open_ome_zarr(zarr.open_group(str(store / name), mode="r")), ImageLabel)
+        src = root[name].attrs["image-label"]["source"]["image"]
+        assert (store / name / src).resolve() == (painting / "albedo.ome.zarr").resolve()
+        for k in (0, 1):
+            np.testing.assert_array_equal(np.asarray(root[f"{name}/{k}"]),
+                                          np.asarray(zarr.open_group(str(painting / "albedo.ome.zarr"),
+                                                                     mode="r")[f"labels/{name}/{k}"]))
+    prot = np.asarray(root["protrusions/0"])
+    assert prot.shape == res.shape and prot.dtype == np.uint32
+    ox, oy = res.origin
+    kept = _rows(painting / "painting_protrusions.csv")
+    assert len(kept) == res.n_protrusions < res.tile_protrusions        # duplicates of the overlaps were merged
+    at_centre = [prot[int(round(float(r["y_px"]) - oy)), int(round(float(r["x_px"]) - ox))] for r in kept]
+    ids = [int(r["painting_id"]) for r in kept]
+    agree = np.mean(np.equal(at_centre, ids))
+    print("labels at the kept centres equal to their painting_id:", agree)
+    assert agree >= 0.98 and set(np.unique(prot)) - {0} <= set(ids)
+    regions = np.asarray(root["regions/0"])
+    overview = tifffile.imread(painting / "regions_overview.tif")
+    assert res.overview_step == 1 and regions.shape == overview.shape == res.shape
+    inside = regions > 0
+    np.testing.assert_array_equal(regions[inside], overview[inside])
+    assert inside.mean() > 0.9 and len(np.unique(regions[inside])) >= 3
+
+
 def _synthetic_painting_maps(folder, *, chunk_px=256):
     """albedo.ome.zarr (left half red, right half blue, with protrusion labels: discs) and
     height.ome.zarr (a ramp) of a 700 x 900 px painting, written as the stitching writes them."""

@@ -126,9 +126,10 @@ def test_run_json_and_report_say_which_samples_and_why(tmp_path):
 def test_a_dome_without_its_light_file_is_sampled_from_the_pixels_its_lamps_light(tmp_path):
     """The lion relief's dome (240 lamps, 48 below 15 deg of elevation) without dirs.lp: no pixel is lit by every
     lamp, yet the lamps are estimated from the pixels each lights (uvps.core.lights.PixelSample.W); their
-    azimuths follow dirs.lp (median 8.8 deg off, the lamps below 15 deg 9.1: docs/benchmarks.md). Their
-    elevations do not (median direction error 39 deg): the 64 x 43 px thumbnails, an sRGB tone curve and a
-    relief's shadows leave 24 % of the signal unexplained, and `uvps run` stops on that, in one line."""
+    azimuths follow dirs.lp (median 8.8 deg off, the lamps below 15 deg 9.1: docs/benchmarks.md, "A dome's
+    partly-lit lamps, without a light file"). Their elevations do not (median direction error 39 deg): the
+    64 x 43 px thumbnails, an sRGB tone curve and a relief's shadows leave 24 % of the signal unexplained, and
+    `uvps run` stops on that, in one line."""
     import subprocess
     import sys
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
+from uvps.core.detect import REJECTION_WORDS
 from uvps.errors import UVPSInputError
 from uvps.files.io import write_imagej_tiff
 from uvps.core.measure import measure_protrusions
@@ -244,8 +245,8 @@ def test_first_section_says_how_many_where_how_sure(tmp_path):
     # how sure: the lamps' route, the heights' uncertainty, what was excluded, the warnings
     assert "estimated from the images alone" in summary
     assert "\u00b17 %" in summary
-    assert "7 of 10 candidate features rejected (5 elongated: brush strokes or crack lips, " \
-           "2 canvas weave texture)" in summary
+    assert (f"7 of 10 candidate features rejected (5 {REJECTION_WORDS['ridge']}, "
+            f"2 {REJECTION_WORDS['weave']})") in summary
     assert "light 3 is partly saturated" in summary
     assert "What counts as a protrusion" in summary
     # methods in words, not a dump of parameters; provenance last

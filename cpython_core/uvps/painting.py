@@ -34,7 +34,7 @@ from .core.measure import COLUMNS
 from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
 from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
-from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, open_tiff, write_dask_ome_zarr
+from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, open_tiff, write_dask_ome_labels, write_dask_ome_zarr
 from .files.outputs import new_output_dir, report, write_json_atomic
 from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
 from .painting_maps import MapContext, PlacedTile, painting_array
@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 PAINTING_DIR = "painting"
 PAINTING_PROTRUSIONS, PAINTING_REGIONS, PAINTING_LAYOUT = "painting_protrusions.csv", "painting_regions.csv", \
     "layout.csv"
+#: The painting's label images (protrusions: the painting's ids; regions: the colour areas), an OME-Zarr of their own.
+PAINTING_LABELS = "labels.ome.zarr"
 #: Largest overview the colour areas are proposed on (pixels); a larger painting is block-averaged.
 OVERVIEW_MAX_PX = 4_000_000
 
@@ -451,8 +453,9 @@ def _write_view_and_report(tmp: Path, result: PaintingResult, *, overview, label
 
 def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, reg, origin, shape, labels, step,
                 pixel_size_um, chunk_px) -> dict:
-    """albedo.ome.zarr (with the protrusion and colour-area labels), normals.ome.zarr and
-    height.ome.zarr of the painting, chunk by chunk; returns each tile's height plane."""
+    """labels.ome.zarr (the protrusion and colour-area labels), albedo.ome.zarr (with the same labels
+    attached), normals.ome.zarr and height.ome.zarr of the painting, chunk by chunk; returns each
+    tile's height plane."""
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
@@ -476,10 +479,15 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
     alb = painting_array("albedo", ctx, chunk_px=chunk_px)
     if ctx.channels == 1:
         alb = alb[0]
-    label_images = [(LABELS[0], painting_array("protrusions", ctx, chunk_px=chunk_px)),
-                    (LABELS[1], painting_array("regions", rctx, chunk_px=chunk_px))]
+    # the labels once, as a store of their own (labels.ome.zarr), then attached to the albedo by copying
+    # their files (napari and Fiji's readers overlay an image's labels/ on it)
+    labels_zarr = write_dask_ome_labels(
+        tmp / PAINTING_LABELS, [(LABELS[0], painting_array("protrusions", ctx, chunk_px=chunk_px)),
+                                (LABELS[1], painting_array("regions", rctx, chunk_px=chunk_px))],
+        pixel_size_um, image="../../albedo.ome.zarr", chunk_px=chunk_px, origin_um=origin_um)
     write_dask_ome_zarr(tmp / "albedo.ome.zarr", ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"), alb,
-                        pixel_size_um, chunk_px=chunk_px, labels=label_images, origin_um=origin_um)
+                        pixel_size_um, chunk_px=chunk_px, labels=[(lb, labels_zarr / lb.name) for lb in LABELS],
+                        origin_um=origin_um)
     write_dask_ome_zarr(tmp / "normals.ome.zarr", ZarrImage("normals", "", ("nx", "ny", "nz"), kind="normals"),
                         painting_array("normals", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
                         origin_um=origin_um)

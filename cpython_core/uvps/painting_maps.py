@@ -71,23 +71,29 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
     out_label = np.zeros((R, C), np.uint32)
     for t in ctx.tiles:
         M, N = t.shape
-        if t.y > r1 or t.y + M - 1 < r0 or t.x > c1 or t.x + N - 1 < c0:
+        # the chunk's box this tile can cover (a pixel wider than where its weight is >= 1): the
+        # work of a tile is its part of the chunk, not the whole chunk for every tile that touches it
+        i0, i1 = max(r0, int(np.floor(t.y))), min(r1, int(np.ceil(t.y + M - 1)) + 1)
+        j0, j1 = max(c0, int(np.floor(t.x))), min(c1, int(np.ceil(t.x + N - 1)) + 1)
+        if i0 >= i1 or j0 >= j1:
             continue
-        ty, tx = rows - t.y, cols - t.x
+        box = (slice(i0 - r0, i1 - r0), slice(j0 - c0, j1 - c0))
+        brows, bcols = rows[box[0]], cols[:, box[1]]
+        ty, tx = brows - t.y, bcols - t.x
         w = 1.0 + np.minimum(np.minimum(ty, M - 1 - ty), np.minimum(tx, N - 1 - tx))
-        w = np.where(w >= 1.0, w, 0.0) * np.ones((R, C))
+        w = np.where(w >= 1.0, w, 0.0) * np.ones((i1 - i0, j1 - j0))
         if not w.any():
             continue
         if kind == "regions":
-            wsum += w
+            wsum[box] += w
             continue
-        win, rr, cc = _tile_window(kind, t, (r0, r1, c0, c1), ty, tx)
+        win, rr, cc = _tile_window(kind, t, (i0, i1, j0, j1), ty, tx)
         if label:
             vals = ndimage.map_coordinates(win[0], [rr, cc], order=0, mode="nearest").astype(np.int64)
             vals = t.lut[np.clip(vals, 0, len(t.lut) - 1)] if t.lut is not None else vals
-            take = w > best
-            out_label[take] = vals[take]
-            best = np.maximum(best, w)
+            take = w > best[box]
+            out_label[box][take] = vals[take]
+            best[box] = np.maximum(best[box], w)
             continue
         for ch in range(min(nch, win.shape[0])):
             v = ndimage.map_coordinates(win[ch], [rr, cc], order=1, mode="nearest")
@@ -95,28 +101,29 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
                 v = v / t.gain
             elif kind == "height":
                 a, b, c = t.plane
-                v = v + a + b * (cols + ctx.origin[0]) / PLANE_SCALE_PX + c * (rows + ctx.origin[1]) / PLANE_SCALE_PX
-            acc[ch] += np.nan_to_num(v) * w
-        wsum += w
+                v = v + a + b * (bcols + ctx.origin[0]) / PLANE_SCALE_PX + c * (brows + ctx.origin[1]) / PLANE_SCALE_PX
+            acc[ch][box] += np.nan_to_num(v) * w
+        wsum[box] += w
     if kind == "protrusions":
         return out_label
     return _finish_chunk(kind, ctx, acc, wsum, (r0, r1, c0, c1))
 
 
-def _tile_window(kind: str, t: PlacedTile, chunk, ty, tx):
-    """The window of tile ``t``'s map ``kind`` under the chunk ``(r0, r1, c0, c1)`` (one pixel
-    more each side for the interpolation), read from its run folder, as (channels, rows, cols)
-    float64, and the chunk's pixels in the window's coordinates (``ty``, ``tx``: in the tile's)."""
-    r0, r1, c0, c1 = chunk
+def _tile_window(kind: str, t: PlacedTile, box, ty, tx):
+    """The window of tile ``t``'s map ``kind`` under the chunk's box ``(i0, i1, j0, j1)`` it covers
+    (one pixel more each side for the interpolation), read from its run folder, as (channels, rows,
+    cols) float64, and the box's pixels in the window's coordinates (``ty``, ``tx``: in the tile's)."""
+    i0, i1, j0, j1 = box
     M, N = t.shape
-    wr0, wc0 = max(0, int(np.floor(r0 - t.y)) - 1), max(0, int(np.floor(c0 - t.x)) - 1)
-    wr1, wc1 = min(M, int(np.ceil(r1 - t.y)) + 2), min(N, int(np.ceil(c1 - t.x)) + 2)
+    wr0, wc0 = max(0, int(np.floor(i0 - t.y)) - 1), max(0, int(np.floor(j0 - t.x)) - 1)
+    wr1, wc1 = min(M, int(np.ceil(i1 - t.y)) + 2), min(N, int(np.ceil(j1 - t.x)) + 2)
     data = open_tiff(Path(t.run_dir) / SOURCES[kind])
     win = np.asarray(data[..., wr0:wr1, wc0:wc1], np.float64)
     if win.ndim == 2:
         win = win[None]
-    rr = np.broadcast_to(ty - wr0, (r1 - r0, c1 - c0))
-    cc = np.broadcast_to(tx - wc0, (r1 - r0, c1 - c0))
+    shape = (i1 - i0, j1 - j0)
+    rr = np.broadcast_to(ty - wr0, shape)
+    cc = np.broadcast_to(tx - wc0, shape)
     return win, rr, cc
 
 

@@ -1094,8 +1094,6 @@ def first_image(paths):
     return items[0] if os.path.isfile(items[0]) else None
 
 
-
-
 def cli_flag(name):
     """The command line's flag of a parameter: ``pixel_size_um`` -> ``--pixel-size-um``."""
     return "--" + name.replace("_", "-")

@@ -93,10 +93,9 @@ class UVPSDialog(object):
             # values, so the same macro gives the same result on every machine.
             return default if default is not None else ""
         pref = PREFIX + key
-        if key in RUN_OWN_KEYS and Prefs.get(pref + ".run", "") != Prefs.get(PREFIX + "run", ""):
-            self.defaults[key] = default
-            return default if default is not None else ""
         self.defaults[key] = default
+        if key in RUN_OWN_KEYS and Prefs.get(pref + ".run", "") != Prefs.get(PREFIX + "run", ""):
+            return default if default is not None else ""
         if kind == "number":
             return Prefs.get(pref, float(default))
         if kind == "checkbox":
@@ -225,7 +224,6 @@ class UVPSDialog(object):
                        "instead; choose it again to use it)"
                        % (self.title, value, was_for, run, values[key] or "none"))
 
-
     def _not_another_captures_run(self, values):
         """A run folder left as remembered while the capture is another one than the capture whose
         outputs went into it: asked (one question naming the folder and both captures) before this
@@ -243,18 +241,13 @@ class UVPSDialog(object):
                 and os.path.normpath(was_for) == os.path.normpath(run) and was != capture
                 and _holds_files(run)):
             return capture
-        from java.awt import Frame
-        from ij import IJ
-        from ij.gui import YesNoCancelDialog
         question = ("The run folder %s holds the outputs of %s, not of %s: write %s's outputs into it "
                     "(%s), or choose another run folder (%s)?"
                     % (run, was, capture, capture, WRITE_INTO_IT, DO_NOT_WRITE))
-        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), "uvps: %s: another capture's run folder" % self.title,
-                                   question, WRITE_INTO_IT, DO_NOT_WRITE)
-        if not dialog.yesPressed():
-            raise BridgeError("cancelled: the run folder %s holds the outputs of %s, not of %s; nothing was "
-                              "written: choose another run folder" % (run, was, capture),
-                              error_type="Cancelled")
+        runner.ask_or_cancel("uvps: %s: another capture's run folder" % self.title, question,
+                             WRITE_INTO_IT, DO_NOT_WRITE,
+                             "cancelled: the run folder %s holds the outputs of %s, not of %s; nothing "
+                             "was written: choose another run folder" % (run, was, capture))
         return capture
 
 
@@ -360,9 +353,9 @@ def add_light_fields(dlg, command, lights=True):
     add_param(dlg, (command, "degree"), key="degree")
 
 
-def add_composite_fields(dlg, defaults):
+def add_composite_fields(dlg, defaults=bridge_logic.COMPOSITE_DEFAULT):
     """Element Maps' composite: the elements shown in red, green and blue (keys red, green, blue;
-    display only, the core is not asked)."""
+    display only, the core is not asked); lead in red by default."""
     for colour, default in zip(("Red", "Green", "Blue"), defaults):
         label = "%s element (composite)" % colour
         dlg.string(label, default, columns=8)

@@ -237,15 +237,20 @@ def show_protrusions(csv_path, labels_path=None, albedo_imp=None, title="Protrus
     return len(rois)   # the counted rows (a wand table also lists the clicks it did not count)
 
 
-def outlines_on(title, run_dir):
-    """Copies of the protrusion outlines of run ``run_dir`` on the overlay of the open image
-    ``title`` (none if it is not open): what a re-opened image should show again."""
+def _overlay_copies(title, keep):
+    """Copies of the items of the open image ``title``'s overlay whose name ``keep`` accepts
+    (none if it is not open or has no overlay)."""
     imp = WindowManager.getImage(title)
     overlay = imp.getOverlay() if imp is not None else None
     if overlay is None:
         return []
-    return [overlay.get(i).clone() for i in range(overlay.size())
-            if bridge_logic.outline_kind(overlay.get(i).getName(), run_dir) is not None]
+    return [overlay.get(i).clone() for i in range(overlay.size()) if keep(overlay.get(i).getName())]
+
+
+def outlines_on(title, run_dir):
+    """Copies of the protrusion outlines of run ``run_dir`` on the overlay of the open image
+    ``title`` (none if it is not open): what a re-opened image should show again."""
+    return _overlay_copies(title, lambda name: bridge_logic.outline_kind(name, run_dir) is not None)
 
 
 def is_area_item(name, run_dir):
@@ -259,12 +264,7 @@ def is_area_item(name, run_dir):
 def areas_on(title, run_dir):
     """Copies of run ``run_dir``'s colour-area outlines and tags on the overlay of the open image
     ``title`` (none if it is not open): what a re-opened albedo should show again."""
-    imp = WindowManager.getImage(title)
-    overlay = imp.getOverlay() if imp is not None else None
-    if overlay is None:
-        return []
-    return [overlay.get(i).clone() for i in range(overlay.size())
-            if is_area_item(overlay.get(i).getName(), run_dir)]
+    return _overlay_copies(title, lambda name: is_area_item(name, run_dir))
 
 
 def add_to_overlay(imp, rois):
@@ -731,17 +731,18 @@ STATUS_COLOURS = {"new": Color(26, 150, 65), "grown": Color(215, 25, 28),
                   "split": Color(197, 27, 125)}
 
 
-def change_rois(changes_csv, date, labels_path=None, pixel_size_um=None):
-    """The outlines of one date's protrusions listed in ``changes.csv``, coloured by status
-    (:data:`STATUS_COLOURS`) and named ``"grown 12 (later)"``. ``date``: ``"a"`` (the earlier
-    run, ids ``id_a``) or ``"b"``; outlines traced in that run's ``protrusions_labels.tif``."""
+def change_rois(rows, date, labels_path=None, pixel_size_um=None):
+    """The outlines of one date's protrusions among ``changes.csv``'s ``rows`` (dicts,
+    :func:`read_csv_rows`), coloured by status (:data:`STATUS_COLOURS`) and named
+    ``"grown 12 (later)"``. ``date``: ``"a"`` (the earlier run, ids ``id_a``) or ``"b"``; outlines
+    traced in that run's ``protrusions_labels.tif``."""
     labels = IJ.openImage(labels_path) if labels_path and os.path.isfile(labels_path) else None
     ip = labels.getProcessor() if labels is not None else None
     if pixel_size_um is None and labels is not None and labels.getCalibration().scaled():
         pixel_size_um = labels.getCalibration().pixelWidth
     word = {"a": "earlier", "b": "later"}[date]
     rois = []
-    for row in read_csv_rows(changes_csv):
+    for row in rows:
         ident = (row.get("id_" + date) or "").strip()
         if not ident:
             continue
@@ -762,14 +763,20 @@ def change_rois(changes_csv, date, labels_path=None, pixel_size_um=None):
     return rois
 
 
-def status_legend(imp, x, y, statuses):
-    """The status colours as text lines at ``(x, y)`` on the overlay of ``imp`` (the margin
-    beside a calibration bar): what each outline colour means."""
+def status_legend(imp, statuses):
+    """The status colours as text lines on the overlay of ``imp`` under its calibration bar's unit
+    (:func:`bar_beside`'s margin): what each outline colour means. Nothing without a bar."""
     from ij.gui import TextRoi
     from java.awt import Font
+    overlay = imp.getOverlay() or Overlay()
+    units = [overlay.get(i) for i in range(overlay.size())
+             if overlay.get(i).getName() == BAR_UNIT_NAME]
+    if not units:
+        return
+    b = units[0].getBounds()
+    x, y = b.x, b.y + b.height + 6
     zoom = bar_zoom(imp.getHeight())
     font = Font("SansSerif", Font.BOLD, 12 * zoom)
-    overlay = imp.getOverlay() or Overlay()
     for status in statuses:
         text = TextRoi(x, y, status, font)
         text.setStrokeColor(STATUS_COLOURS[status])
@@ -798,41 +805,41 @@ def _absolute(ip):
     return out
 
 
-def element_composite(path, title, channels):
-    """``elements.tif`` as an ImageJ composite of the three elements ``channels`` (red, green,
-    blue; names as the stack's slice labels), each channel from 0 to its 99.5 % quantile; the
-    whole stack stays open beside it for the other elements. Returns the composite."""
+def element_composite(stack_imp, channels):
+    """The open ``elements.tif`` stack ``stack_imp`` as an ImageJ composite of the three elements
+    ``channels`` (red, green, blue; names as the stack's slice labels, :func:`slice_labels`), each
+    channel from 0 to its 99.5 % quantile; the whole stack stays open beside it for the other
+    elements. Returns the composite."""
     from ij import CompositeImage, ImageStack
-    stack_imp = open_image(path, title)
+    from ij.process import LUT
     stack = stack_imp.getStack()
-    labels = [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]
+    labels = slice_labels(stack_imp)
     picked = ImageStack(stack_imp.getWidth(), stack_imp.getHeight())
     for name in channels:
         ip = stack.getProcessor(labels.index(name) + 1).duplicate()
         picked.addSlice(name, ip)
-    comp_title = "%s (%s)" % (title, "/".join(channels))
+    comp_title = "%s (%s)" % (stack_imp.getTitle(), "/".join(channels))
     imp = ImagePlus(comp_title, picked)
     imp.setDimensions(len(channels), 1, 1)
     imp.setCalibration(stack_imp.getCalibration())
     comp = CompositeImage(imp, CompositeImage.COMPOSITE)
     for c, colour in enumerate((Color.red, Color.green, Color.blue)[:len(channels)]):
-        from ij.process import LUT
         comp.setC(c + 1)
         comp.setChannelLut(LUT.createLutFromColor(colour))
         top = _sample_top([picked.getProcessor(c + 1)])
         comp.setDisplayRange(0.0, top)
     comp.setC(1)
     comp.setTitle(comp_title)
+    info = stack_imp.getOriginalFileInfo()
+    source = os.path.join(info.directory, info.fileName) \
+        if info is not None and info.directory and info.fileName else stack_imp.getTitle()
     comp.setProperty("Info", "uvps: elements %s of %s as red, green, blue (display only)"
-                     % (", ".join(channels), path))
+                     % (", ".join(channels), source))
     _show_replacing(comp)
     return comp
 
 
-def slice_labels(path):
-    """The slice labels of a stack TIFF (e.g. ``elements.tif``'s element names)."""
-    imp = IJ.openImage(path)
-    if imp is None:
-        raise BridgeError("ImageJ cannot open the output image %s" % path)
+def slice_labels(imp):
+    """The slice labels of a stack (e.g. ``elements.tif``'s element names), stripped."""
     stack = imp.getStack()
     return [(stack.getSliceLabel(i + 1) or "").strip() for i in range(stack.getSize())]

@@ -308,20 +308,17 @@ def confirm_replacing(out, title):
     comparison), ask whether to run, keeping it aside with the run it was measured on (the core moves
     it to ``earlier/<date>_<run id>/``), or to change nothing (a cancel). Asked whenever ImageJ has a
     display, from a macro too: a re-run is the moment the clicks of an afternoon could be lost."""
-    from java.awt import Frame, GraphicsEnvironment
-    from ij.gui import YesNoCancelDialog
+    from java.awt import GraphicsEnvironment
 
     found = bridge_logic.manual_work_in(out)
     if not found:
         return
     if not GraphicsEnvironment.isHeadless():
-        dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), title + ": manual work in the run folder",
-                                   bridge_logic.manual_work_question(out, found),
-                                   bridge_logic.KEEP_AND_RUN, bridge_logic.DO_NOT_RUN)
-        if not dialog.yesPressed():
-            raise BridgeError("cancelled: %s is unchanged, its manual work (%s) in place; to keep both runs side "
-                              "by side, choose another run folder" % (out, ", ".join(found)),
-                              error_type="Cancelled")
+        runner.ask_or_cancel(title + ": manual work in the run folder",
+                             bridge_logic.manual_work_question(out, found),
+                             bridge_logic.KEEP_AND_RUN, bridge_logic.DO_NOT_RUN,
+                             "cancelled: %s is unchanged, its manual work (%s) in place; to keep both "
+                             "runs side by side, choose another run folder" % (out, ", ".join(found)))
     IJ.log("uvps %s: the manual work in %s (%s) is kept with the run it was measured on, in its "
            "earlier/ folder" % (title, out, ", ".join(found)))
 
@@ -358,21 +355,17 @@ def compare_captures(values):
     response = run_command("changes", values)
     out = run_folder(values)
     changes = response.file("changes.csv")
+    rows = display.read_csv_rows(changes)
     dates = []
     for key, date in (("earlier", "a"), ("later", "b")):
         run = os.path.normpath(optional_path(values.get(key)) or "")
-        rois = display.change_rois(changes, date, os.path.join(run, "protrusions_labels.tif"))
+        rois = display.change_rois(rows, date, os.path.join(run, "protrusions_labels.tif"))
         dates.append((key, run, rois))
     height = display.show_height_change(response.file("height_change.tif"),
                                         titled("height change (um)", out))
-    statuses = bridge_logic.status_counts(display.read_csv_rows(changes))
+    statuses = bridge_logic.status_counts(rows)
     display.add_to_overlay(height, [r.clone() for r in dates[0][2]])
-    bar = [height.getOverlay().get(i) for i in range(height.getOverlay().size())
-           if height.getOverlay().get(i).getName() == display.BAR_UNIT_NAME]
-    if bar:
-        b = bar[0].getBounds()
-        display.status_legend(height, b.x, b.y + b.height + 6,
-                              [s for s, _ in statuses if s in display.STATUS_COLOURS])
+    display.status_legend(height, [s for s, _ in statuses if s in display.STATUS_COLOURS])
     for key, run, rois in dates:
         path = os.path.join(run, "albedo.tif")
         if os.path.isfile(path):
@@ -395,11 +388,8 @@ def stitch_painting(values):
     response = run_command("batch", values)
     out = run_folder(values)
     painting = os.path.join(out, "painting")
-    overview = IJ.openImage(os.path.join(painting, "figures", "painting_overview.png"))
-    if overview is None:
-        raise BridgeError("the painting overview %s is missing" % os.path.join(painting, "figures"))
-    overview.setTitle(titled("painting overview", out))
-    overview.show()
+    overview = display.open_image(os.path.join(painting, "figures", "painting_overview.png"),
+                                  titled("painting overview", out))
     display.open_table(os.path.join(painting, "painting_regions.csv"), titled("Painting areas", out))
     display.open_table(os.path.join(painting, "painting_protrusions.csv"),
                        titled("Painting protrusions", out))
@@ -413,13 +403,12 @@ def element_maps(values):
     """``elements``: the registered element maps as a stack, and a composite of three of them
     (red, green, blue: keys red, green, blue; lead first by default)."""
     response = run_command("elements", values)
-    path = response.file("elements.tif")
-    names = display.slice_labels(path)
+    stack = display.open_image(response.file("elements.tif"), "element maps (run frame)")
     wanted = [values.get(k) for k in ("red", "green", "blue")]
-    channels, notes = bridge_logic.composite_channels(names, wanted)
+    channels, notes = bridge_logic.composite_channels(display.slice_labels(stack), wanted)
     for note in notes:
         IJ.log("uvps Element Maps: " + note)
-    display.element_composite(path, "element maps (run frame)", channels)
+    display.element_composite(stack, channels)
     IJ.log("uvps Element Maps: composite %s (choose with Red, Green, Blue element)" % ", ".join(
         "%s %s" % (c, n) for c, n in zip(("red", "green", "blue"), channels)))
     return response

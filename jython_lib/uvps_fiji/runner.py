@@ -293,6 +293,17 @@ def _stop_macro(status=None):
         IJ.showStatus(status)   # after the abort, which wrote "Macro aborted"
 
 
+def ask_or_cancel(window_title, question, yes, no, cancelled):
+    """Ask ``question`` in a modal window with the buttons ``yes`` and ``no`` (and Cancel): any
+    answer but ``yes`` raises the Cancelled BridgeError ``cancelled`` (the Log's line, which starts
+    with "cancelled" and says what stays unchanged): nothing is written."""
+    from java.awt import Frame
+    from ij.gui import YesNoCancelDialog
+    dialog = YesNoCancelDialog(IJ.getInstance() or Frame(), window_title, question, yes, no)
+    if not dialog.yesPressed():
+        raise BridgeError(cancelled, error_type="Cancelled")
+
+
 def show_error_dialog(title, message):
     """One modal message (ImageJ's MessageDialog: unlike IJ.error it does not abort the macro
     itself, which put "Macro canceled" and a stack trace in the Log after OK)."""
@@ -317,7 +328,8 @@ def report_error(title, exc):
     if is_cancel(exc):
         how = "cancelled"
         if isinstance(exc, BridgeError):
-            how = "cancelled (%s)" % exc.message.replace("cancelled with ", "")
+            # its message says why: "cancelled with Esc; the core was stopped"
+            how = exc.message if exc.message.startswith("cancelled") else "cancelled (%s)" % exc.message
         report_cancel(title, how)
         return
     if isinstance(exc, BridgeError):

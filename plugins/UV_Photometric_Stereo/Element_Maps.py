@@ -22,7 +22,7 @@ for _root in (IJ.getDirectory("imagej"), IJ.getDirectory("plugins")):
     if _root and os.path.isdir(_lib) and _lib not in sys.path:
         sys.path.insert(0, _lib)
 
-from uvps_fiji import bridge_logic, dialogs, menus, runner
+from uvps_fiji import dialogs, menus, runner
 
 TITLE = "Element Maps"
 COMMAND = "elements"
@@ -36,7 +36,7 @@ def main():
     dialogs.add_param(dlg, (COMMAND, "spot_um"), key="spot", decimals=0)
     dialogs.add_param(dlg, (COMMAND, "control_points"), key="control")
     dialogs.add_run_field(dlg)
-    dialogs.add_composite_fields(dlg, bridge_logic.COMPOSITE_DEFAULT)
+    dialogs.add_composite_fields(dlg)
     values = dlg.show()
     if values is not None:
         menus.element_maps(values)

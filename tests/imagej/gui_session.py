@@ -9,7 +9,6 @@ user does. :meth:`GuiSession.log` reads the Log window, :meth:`GuiSession.window
 windows, :meth:`GuiSession.screenshot` saves the screen (xwd + ImageMagick).
 """
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -94,13 +93,7 @@ class GuiSession:
         ``"Escape"``: Cancel). Returns the list of the answered windows' titles. Fails (an
         AssertionError) when a dialog does not come or the step does not end in ``timeout`` s.
         """
-        self.counter += 1
-        name = "%04d" % self.counter
-        path = self.queue / (name + ".ijm")
-        tmp = self.queue / (name + ".tmp")
-        tmp.write_text(macro, encoding="utf-8")
-        tmp.rename(path)
-        done = self.queue / (name + ".done")
+        done = self.queue_step(macro)
         deadline = time.monotonic() + timeout
         answered = []
         for pattern, key in answers:
@@ -117,19 +110,36 @@ class GuiSession:
             time.sleep(0.1)
         return answered
 
-    def press(self, wid, key, tries=5):
+    def queue_step(self, macro):
+        """Drop ``macro`` into the queue (written whole, then renamed: the queue never reads half a
+        file) and return the path of the ``.done`` file that appears when the step is over."""
+        self.counter += 1
+        name = "%04d" % self.counter
+        tmp = self.queue / (name + ".tmp")
+        tmp.write_text(macro, encoding="utf-8")
+        tmp.rename(self.queue / (name + ".ijm"))
+        return self.queue / (name + ".done")
+
+    def press(self, wid, key, tries=3):
         """Activate window ``wid`` and press ``key`` (XTEST, as a keyboard does: Java ignores
-        synthetic events sent to a window) until the window is gone."""
+        synthetic events sent to a window) until the window is gone. A key goes to whatever window
+        has the focus: it is pressed again only while ``wid`` is still there, after waiting long
+        enough for a loaded machine, else a slow close would answer the next dialog too."""
         for _ in range(tries):
             time.sleep(0.5)
+            if not self._visible(wid):
+                return
             self._xdotool("windowactivate", "--sync", wid)
             self._xdotool("key", "--clearmodifiers", key)
-            end = time.monotonic() + 3
+            end = time.monotonic() + 15
             while time.monotonic() < end:
-                if wid not in self._xdotool("search", "--onlyvisible", "--name", ".").stdout.split():
+                if not self._visible(wid):
                     return
                 time.sleep(0.2)
         raise AssertionError("window %s did not close on %s" % (self.window_name(wid), key))
+
+    def _visible(self, wid):
+        return wid in self._xdotool("search", "--onlyvisible", "--name", ".").stdout.split()
 
     def _xdotool(self, *args):
         return subprocess.run(["xdotool"] + [str(a) for a in args], env=self.env,
@@ -211,18 +221,9 @@ def trace_lines(text):
     return [line for line in text.splitlines() if any(m in line for m in TRACE_MARKERS)]
 
 
-def macro_string(path):
-    """A path as a macro string literal."""
-    return '"%s"' % str(path).replace("\\", "\\\\").replace('"', '\\"')
-
-
-def shell_quote_title(title):
-    return "^" + re.escape(title) + "$"
-
-
 def move_window(session, pattern, x, y, width=None, height=None):
     """Move (and size) the visible window whose title matches ``pattern``, as a user drags it."""
-    wid = session.wait_window(pattern, __import__("time").monotonic() + 10)
+    wid = session.wait_window(pattern, time.monotonic() + 10)
     session._xdotool("windowmove", wid, x, y)
     if width and height:
         session._xdotool("windowsize", wid, width, height)

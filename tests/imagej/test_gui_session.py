@@ -129,10 +129,7 @@ def test_esc_while_the_core_runs_cancels_without_a_trace(session, capture, tmp_p
     macro = ('run("Run Whole Pipeline", "capture=[Folder or files] images=%s run=%s regions=auto");\n'
              'print("went on");\n' % (q(capture), q(out)))
     # queue the step, press Esc in the ImageJ window once the core has started
-    session.counter += 1
-    name = "%04d" % session.counter
-    (session.queue / (name + ".tmp")).write_text(macro)
-    (session.queue / (name + ".tmp")).rename(session.queue / (name + ".ijm"))
+    done = session.queue_step(macro)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not _core_of(session):
         time.sleep(0.5)
@@ -141,7 +138,6 @@ def test_esc_while_the_core_runs_cancels_without_a_trace(session, capture, tmp_p
     wid = session.wait_window("^ImageJ$", time.monotonic() + 10)
     session._xdotool("windowactivate", "--sync", wid)
     session._xdotool("key", "Escape")
-    done = session.queue / (name + ".done")
     while not done.exists() and time.monotonic() < deadline + 120:
         time.sleep(0.5)
     assert done.exists(), session.visible_windows()

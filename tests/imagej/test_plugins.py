@@ -570,7 +570,7 @@ def test_run_whole_pipeline_asks_before_replacing_a_folder_with_manual_work(run_
     if answer == "Do not run":
         # a cancel is no failure: one "cancelled" Log line, the macro stops there, ImageJ exits 0
         assert result.returncode == 0 and "went on" not in lines, result.stdout + result.stderr
-        assert any(ln.startswith("uvps Run Whole Pipeline: cancelled (cancelled: %s is unchanged" % run)
+        assert any(ln.startswith("uvps Run Whole Pipeline: cancelled: %s is unchanged" % run)
                    for ln in lines), lines
         assert _snapshot(run) == before
         return

@@ -317,10 +317,13 @@ class _Cluster:
             # one thread per worker: the pipeline's Python parts hold the GIL, and one capture per
             # process bounds the memory to one capture per worker (the nanny also sets
             # OMP/MKL/OPENBLAS_NUM_THREADS=1 in each worker, so numpy does not oversubscribe)
+            # its dashboard on a free port (":0"): None still takes 8787, so a second batch on the
+            # machine warned "Port 8787 is already in use"; the link is in the log (uvps -v)
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
-                                   dashboard_address=None)
+                                   dashboard_address=":0")
             client = Client(cluster)
             self.own = [client, cluster]
+            log.debug("Dask dashboard: %s", client.dashboard_link)
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})

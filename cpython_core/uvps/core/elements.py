@@ -372,8 +372,8 @@ def register_maps(albedo: Optional[np.ndarray], maps: ElementMaps, *, labels: np
     refine : bool
         With control points: refine their similarity by the mixing residual (kept when it moves the
         points by less than 2 map pixels rms). Off by default: where composition varies inside the
-        areas the mixture's optimum lies 0.3 map px off (docs/benchmarks.md), farther than 4 careful
-        clicks.
+        areas the mixture's optimum lies 0.3 map px off (docs/benchmarks.md, "Element maps"),
+        farther than 4 careful clicks.
 
     Returns
     -------

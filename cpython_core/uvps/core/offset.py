@@ -1,6 +1,6 @@
 """The additive term of a real capture: camera black level and stray light, measured from the images.
 
-Image model (docs/architecture.md, "Image model")::
+Image model (docs/architecture.md, "Image model of a real capture")::
 
     I_k(x) = a(x) * S_k(x) + c(x)
 

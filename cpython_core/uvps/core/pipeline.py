@@ -190,8 +190,8 @@ MAX_RESIDUALS = 600000
 #: Relative RMS photometric residual (of the sample's mean intensity) beyond which lamps estimated from
 #: the images explain nothing and the run stops: a Lambertian capture under point lamps leaves ~0.5 %
 #: (benchmark captures: 0.57 % clean, 1.6 % with every nuisance at the top of its range); a real
-#: gilded icon under visible-light RTI (JPEG) left 28 % with lamps 52 deg off and a reported height
-#: uncertainty of 0.8 %: the Jacobian's confidence means nothing when the model does not fit.
+#: gilded icon under visible-light RTI (JPEG) leaves 33 % with lamps 52 deg off (docs/decisions/normals.md,
+#: "Rules that stop or warn"): the Jacobian's confidence means nothing when the model does not fit.
 MAX_LAMP_RESIDUAL = 0.05
 #: Largest disagreement (deg) between an estimated lamp's azimuth and the one read from its drop-off
 #: beyond which a run warns (:func:`_azimuth_warnings`). 12 lamps, seeds 0-2, with the azimuths from
@@ -199,11 +199,11 @@ MAX_LAMP_RESIDUAL = 0.05
 #: a clean capture 1.4 (docs/decisions/normals.md, "Rules that stop or warn").
 AZIMUTH_DISAGREEMENT_WARN_DEG = 5.0
 #: When the fit does not hold (:func:`fit_warnings`): the normals' rms relative residual (the demo
-#: 0.005; the benchmark's rows with given lamps up to 0.01; lamps estimated above 0.05 stop the run,
-#: :data:`MAX_LAMP_RESIDUAL`), the share of pixels left without normals, and the tilt of the mean
-#: normal (a ramp of the heights across the field: a canvas's bow of 250 um over 24 mm tilts no
-#: more than 1 deg). Measured: docs/benchmarks.md, "When a fit does not hold" (real runs) and
-#: docs/decisions/normals.md, "Fit-check thresholds" (the synthetic rows).
+#: 0.0055; the benchmark's rows with given lamps 0.006, beams 0.030, all nuisances 0.034; lamps
+#: estimated above 0.05 stop the run, :data:`MAX_LAMP_RESIDUAL`), the share of pixels left without
+#: normals, and the tilt of the mean normal (a ramp of the heights across the field: a canvas's bow
+#: of 250 um over 24 mm tilts no more than 1 deg). Measured: docs/benchmarks.md, "When a fit does not
+#: hold" (real runs) and docs/decisions/normals.md, "Fit-check thresholds" (the synthetic rows).
 FIT_RESIDUAL_WARN = 0.05
 INVALID_FRACTION_WARN = 0.03
 MEAN_TILT_WARN_DEG = 5.0
@@ -508,7 +508,8 @@ def sample_mode(samples: str, screened_residual: Optional[float] = None) -> tupl
     unless the screened solve leaves more than :data:`SCREENED_RESIDUAL_MAX` of the signal unexplained
     (``screened_residual``): the rules leave samples out as outliers of the lamp-and-matte model, and where
     the model explains little, that choice follows its misfit and only adds noise (docs/benchmarks.md,
-    "Normals on real photographs").
+    "Normals on real photographs"; each rule alone: docs/decisions/normals.md, "``--samples auto``:
+    every sample where the model explains little").
     """
     if samples in ("screened", "all"):
         return samples, f"samples={samples} was given"

@@ -311,8 +311,9 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
     closed-form 3x3 solves per pixel and one pass over the samples, in a compiled kernel
     (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.6 s for 4000 x 3000 x
-    16 RGB on 2 cores (docs/benchmarks.md), against 46 s for a numpy version with (K, P, 3) float64
-    temporaries and 10-19 s for a float32 numpy version (each timed by ``scripts/benchmark_speed.py``).
+    16 RGB on 2 cores (docs/benchmarks.md, "Speed and memory"), against 46-49 s for a numpy version
+    with (K, P, 3) float64 temporaries and 10-19 s for a float32 numpy version (each timed by
+    ``scripts/benchmark_speed.py``; docs/decisions/speed.md, "The normals in a compiled kernel (numba)").
     ``robust`` sorts the K samples.
 
     References

@@ -209,7 +209,7 @@ def contrast_select(image, seeds, *, fraction=CONTRAST_FRACTION, max_width_px=No
     at its rim; for a dome in height alone it is the width at half height. About 25
     :func:`skimage.segmentation.flood` calls per click on a window of ``2 max_width_px`` pixels.
     Measured on the generator's captures: ``scripts/benchmark_protrusions.py --wand``
-    (docs/benchmarks.md, "The wand's default").
+    (docs/benchmarks.md, "Wand (manual method)").
 
     Examples
     --------
@@ -317,9 +317,10 @@ def _grow_by_contrast(grey, finite, y, x, frac, max_w):
 
 #: An outline is counted as a protrusion when it stands above the paint around it: the 90th percentile of its
 #: height above a plane through the ring around it is at least this many times the ring's own spread about
-#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/decisions/wand.md,
-#: "Clicks judged before they count"): outlines of the paint's texture reach 5.7, outlines of
-#: protrusions start at 9.7.
+#: that plane (1.4826 MAD). Chosen with ``scripts/benchmark_protrusions.py --wand-off`` on the captures of
+#: docs/decisions/wand.md, "Clicks judged before they count": outlines of the paint's texture reached 7.1,
+#: outlines of protrusions >= 100 um started at 9.7. Today's ``--wand-off --seeds 0 1 2``: bare paint's
+#: outlines reach 3.4 (docs/benchmarks.md, "Wand (manual method)").
 RAISED_RATIO = 8.0
 
 #: A raised outline counts when it is a clear step in the albedo (its median differs from the ring's around it by
@@ -328,7 +329,8 @@ CLEAR_CONTRAST = 3.0
 #: ... or else agrees with the bump in the height at the click (intersection over union of the albedo outline and
 #: the half-height outline of the height at least this): the paint's texture outlined over a bump in the height
 #: alone is raised by the bump, not by itself. Measured by ``scripts/benchmark_protrusions.py --wand-off``: such
-#: outlines 1.9-2.4 and 0.07-0.22; outlines of protrusions >= 100 um 2 % below 2.65 and 2 % below 0.41.
+#: outlines 1.9-2.4 and 0.07-0.22; outlines of protrusions >= 100 um 2 % below 2.65 and 2 % below 0.41
+#: (docs/decisions/wand.md, "Clicks judged before they count").
 MATCH_IOU = 0.3
 
 #: Why a click is not counted (the ``status`` of :class:`WandClicks`), in words.

@@ -44,7 +44,8 @@ from .outputs import Progress, replace_dir, report
 
 log = logging.getLogger(__name__)
 
-__all__ = ["NGFF_VERSION", "MIN_LEVEL_PX", "CHUNK_PX", "ZarrImage", "IMAGES", "LABELS", "write_ome_zarr"]
+__all__ = ["NGFF_VERSION", "MIN_LEVEL_PX", "CHUNK_PX", "ZarrImage", "IMAGES", "LABELS", "write_ome_zarr",
+           "write_dask_ome_zarr", "write_dask_ome_labels"]
 
 #: The OME-NGFF version written (Zarr format 2).
 NGFF_VERSION = "0.4"
@@ -276,9 +277,10 @@ def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, 
     chunks are computed and written by its workers (they must see ``final``'s folder).
 
     Level 0 is ``data``; level k halves level k-1 as :func:`write_ome_zarr` does (read back from
-    the store, 2 x 2 chunks of level k-1 per chunk of level k). ``labels``: ``(ZarrImage,
-    dask array)`` pairs attached as OME-Zarr labels of this image. ``origin_um``: the (y, x)
-    translation of pixel (0, 0). Written to a temporary folder and renamed into place.
+    the store, 2 x 2 chunks of level k-1 per chunk of level k). ``labels``: ``(ZarrImage, dask
+    array)`` pairs attached as OME-Zarr labels of this image, or ``(ZarrImage, path)`` of a label
+    image already stored (:func:`write_dask_ome_labels`), whose files are copied. ``origin_um``:
+    the (y, x) translation of pixel (0, 0). Written to a temporary folder and renamed into place.
     """
     zarr = _zarr()
     final = Path(final)
@@ -293,21 +295,53 @@ def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, 
         root.attrs.update({"multiscales": ms, "omero": _omero(image, channels, low),
                            "uvps": {"unit": image.unit, "version": __version__}})
         if labels:
-            group = root.create_group("labels")
-            for lb, arr in labels:
-                sub = group.create_group(lb.name)
-                lv = _store_pyramid(sub, lb, arr, chunk_px)
-                ms = _multiscales(lb.name, lv, False, pixel_size_um)
-                _translate(ms, origin_um, False)
-                sub.attrs.update({"multiscales": ms,
-                                  "image-label": {"version": NGFF_VERSION, "source": {"image": "../../"}}})
-            group.attrs["labels"] = [lb.name for lb, _ in labels]
+            _store_labels(zarr, tmp / "labels", labels, pixel_size_um, chunk_px, origin_um, source="../../")
         del root
         replace_dir(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return final
+
+
+def write_dask_ome_labels(final, labels, pixel_size_um: float, *, image: str, chunk_px: int = CHUNK_PX,
+                          origin_um=(0.0, 0.0)) -> Path:
+    """Write label images (``(ZarrImage, dask array)`` pairs, (Y, X) integers) as an OME-Zarr store
+    of their own: an NGFF labels group (``{"labels": [...]}``) at its root, each label image a
+    multiscale image-label under it (``final/<name>/0, 1, ...``, pyramids as
+    :func:`write_dask_ome_zarr` builds them) whose ``source`` is ``image`` (the path, from the
+    label image, of the image it labels, e.g. ``"../../albedo.ome.zarr"``). Chunk by chunk; written
+    to a temporary folder and renamed into place.
+    """
+    zarr = _zarr()
+    final = Path(final)
+    tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
+    try:
+        _store_labels(zarr, tmp, labels, pixel_size_um, chunk_px, origin_um, source=image)
+        replace_dir(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def _store_labels(zarr, folder: Path, labels, pixel_size_um, chunk_px, origin_um, *, source: str) -> None:
+    """An NGFF labels group at ``folder``: each label image stored from its Dask array, or copied
+    file by file from a label image already stored (a path), then pointed at ``source``."""
+    group = zarr.open_group(str(folder), mode="w", zarr_format=2)
+    for lb, arr in labels:
+        if isinstance(arr, (str, Path)):
+            # the same chunks, compressor and metadata: a copy of the files is the same label image
+            shutil.copytree(arr, folder / lb.name)
+            sub = zarr.open_group(str(folder / lb.name), mode="r+", zarr_format=2)
+        else:
+            sub = group.create_group(lb.name)
+            lv = _store_pyramid(sub, lb, arr, chunk_px)
+            ms = _multiscales(lb.name, lv, False, pixel_size_um)
+            _translate(ms, origin_um, False)
+            sub.attrs["multiscales"] = ms
+        sub.attrs["image-label"] = {"version": NGFF_VERSION, "source": {"image": source}}
+    group.attrs["labels"] = [lb.name for lb, _ in labels]
 
 
 def _translate(ms: list, origin_um, channel: bool) -> None:

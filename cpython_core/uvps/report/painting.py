@@ -167,7 +167,7 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}</style></head>
 <body><h1>The painting: {len(registration.corners)} tiles, {total} protrusions</h1>
 <p>Pixel size {pixel_size_um:g} um; registered tiles (largest pair residual {registration.max_residual_px:.2f} px);
-each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr.</p>
+each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr, labels.ome.zarr.</p>
 <h2>Warnings</h2><ul>{warn}</ul>
 <h2>The painting and its protrusions</h2><img src="figures/painting_overview.png" alt="overview">
 {viewer}

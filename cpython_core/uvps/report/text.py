@@ -17,18 +17,9 @@ from typing import Optional
 
 import numpy as np
 
-e = html.escape
+from ..core.detect import REJECTION_WORDS
 
-#: Rejection rules of :mod:`uvps.core.detect`, in a conservator's words (what the rejected thing was).
-REJECTION_WORDS = {
-    "too_small": "narrower than the smallest width counted",
-    "ridge": "elongated: brush strokes or crack lips",
-    "crack": "pieces cut off by cracks, or rims of cupped paint",
-    "too_large": "wider than the largest width counted",
-    "flat_bright": "bright but flat (bare primer)",
-    "artefact": "relief the normals do not hold (integration artefacts)",
-    "weave": "canvas weave texture",
-}
+e = html.escape
 
 #: How the lamps were known (run.json ``relief.lamps``, else ``diagnostics.lights.source``).
 LAMP_ROUTES = {

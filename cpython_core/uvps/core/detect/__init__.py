@@ -63,7 +63,7 @@ from __future__ import annotations
 
 from .detector import detect_protrusions
 from .params import Detection, DetectionParams
-from .rules import REJECTION_REASONS, REJECTION_RULES, RejectionRule
+from .rules import REJECTION_REASONS, REJECTION_RULES, REJECTION_WORDS, RejectionRule
 
 # the stages' own names that the tests and benchmarks read as ``uvps.core.detect.<name>``
 from ._common import Thresholds, _edt, _expand_labels, _holes, _median  # noqa: F401,E402
@@ -80,4 +80,4 @@ from .surface import _beside_long, _diameter_opening, _surface, _thresholds  # n
 from .weave import _fit_sinusoids, _sinusoids  # noqa: F401,E402
 
 __all__ = ["DetectionParams", "Detection", "detect_protrusions", "REJECTION_REASONS",
-           "REJECTION_RULES", "RejectionRule"]
+           "REJECTION_RULES", "REJECTION_WORDS", "RejectionRule"]

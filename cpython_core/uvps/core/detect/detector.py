@@ -74,8 +74,9 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     Cues: the module docstring; rejections: :data:`REJECTION_RULES`. Cost: a few full-image
     filters and FFTs, one diameter opening on block maxima, ``h_maxima`` on the raised areas, one
     watershed, a robust plane and a watershed per group of footprints in its crop, the
-    measurements on the candidates' crops: ~11 s of CPU at 4000 x 3000 on one core
-    (``scripts/benchmark_detection_speed.py``, ``docs/benchmarks.md``).
+    measurements on the candidates' crops: 9.9-11.2 s at 4000 x 3000 on one core
+    (``scripts/benchmark_detection_speed.py``; ``docs/benchmarks.md``, "Detection on other shapes
+    and surfaces").
 
     References
     ----------

@@ -146,12 +146,12 @@ def _grooves_run_on(lab: np.ndarray, ring: np.ndarray, hn: np.ndarray, depth: np
     the image's border, or within 2 px of a pixel of ``known`` (a crack's,
     :func:`_crack_fraction`). A crack is a line through the paint; the pocket between touching
     protrusions, which the black top-hat reads as deep too, ends where they do. On the true
-    maps of docs/benchmarks.md the ring pixels that rejected three 88-95 um protrusions lay in
-    such pockets, none on a crack, while the pieces of paint the rule rejects lay on cracks all
-    round. The groove is followed only below the ring's mean height (``level``): on steeply
-    tilted paint a crack climbing away from the label can be cut short of ``reach_px`` and read
-    as a pocket; and where the height was not measured it holds the median fill, which ends a
-    groove too. Hand-written: a component's reach from an object is no library's measurement."""
+    maps the ring pixels that rejected three 88-95 um protrusions lay in such pockets, none on a
+    crack, while the pieces of paint the rule rejects lay on cracks all round (docs/protrusions.md,
+    "A crack runs on, a pocket between protrusions does not"). The groove is followed only below
+    the ring's mean height (``level``): on steeply tilted paint a crack climbing away from the
+    label can be cut short of ``reach_px`` and read as a pocket; and where the height was not
+    measured it holds the median fill, which ends a groove too. Hand-written: a component's reach from an object is no library's measurement."""
     m, nc = lab.shape
     pad = int(math.ceil(reach_px)) + 1
     crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),

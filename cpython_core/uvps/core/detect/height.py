@@ -186,11 +186,12 @@ def _curvature_maxima(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, curv: 
     A shoulder stands at least relief_um high and at most WEAK_HOST_RATIO of its basin's
     peak, so only raised areas holding a basin that tall can have one: the curvature's maxima
     are sought on their crops alone and its Hessian is measured at those maxima alone (over
-    the whole image the cue cost 17-21 s at 4000 x 3000, mostly h_maxima; so, about 1 s:
-    docs/benchmarks.md). Each crop's margin holds every marker within w / 2 + 1 px, and the
-    pixels outside the raised area take the value they have on the whole image (the lowest
-    curvature inside any basin), so the maxima and their dynamics are the whole image's
-    (test_shoulder_markers_on_crops_are_the_whole_images)."""
+    the whole image the cue cost 17-21 s at 4000 x 3000, mostly h_maxima,
+    docs/decisions/detection.md, "The shoulder cue, on by default"; so, 0.0-1.7 s,
+    docs/benchmarks.md, "Detection on other shapes and surfaces"). Each crop's margin holds
+    every marker within w / 2 + 1 px, and the pixels outside the raised area take the value they
+    have on the whole image (the lowest curvature inside any basin), so the maxima and their
+    dynamics are the whole image's (test_shoulder_markers_on_crops_are_the_whole_images)."""
     inside = ws > 0
     area, n_area = ndi.label(inside, structure=np.ones((3, 3)))
     able = np.zeros(n_area + 1, bool)

@@ -27,7 +27,8 @@ class DetectionParams:
         detection, in um; below 0.3 px (at more than 25 um per pixel at 7.5) nothing is
         smoothed. 7.5 (half a pixel at 15 um per pixel) keeps more of the saddles, a micrometre
         or two deep, between touching protrusions 60-100 um wide than 10 did
-        (``docs/benchmarks.md``); the height's noise sets the relief threshold through it.
+        (``docs/decisions/detection.md``, "The height smoothed by 7.5 um"); the height's noise
+        sets the relief threshold through it.
     min_dynamic_um : float
         Floor of the relief threshold (um): a protrusion rises at least this much.
     dynamic_k : float
@@ -70,7 +71,8 @@ class DetectionParams:
         stroke end's foot rises 4-5 um over the local plane through its ring, a third of its
         height, and one on a stroke's curved flank keeps only its top as its relief. A piece
         of a glowing stroke holds 3-18 % of the glowing paint it is cut from, a protrusion
-        38-100 % of its glow (``docs/benchmarks.md``, "Detection on other shapes and surfaces").
+        38-100 % of its glow (``docs/decisions/detection.md``, "A glowing candidate holding its
+        own glow meets the paint's floor").
         Above 1 disables.
     albedo_contrast : float
         Relative brightness above the local background for the albedo mask (0.15 = 15 %).
@@ -105,8 +107,8 @@ class DetectionParams:
         maxima of the compact relief's curvature (minus its Laplacian of Gaussian, sigma =
         this width / (2 sqrt 2)) that stand ``shoulder_k`` x the curvature's noise above the
         saddle to a higher curvature peak (:func:`_shoulder_markers`). The default, 60,
-        finds 60-100 um shoulders (``docs/benchmarks.md``, "Detection on other shapes and
-        surfaces"); 0 disables. A shoulder is at most :data:`WEAK_HOST_RATIO` of its basin's
+        finds 60-100 um shoulders (``docs/decisions/detection.md``, "The shoulder cue, on by
+        default"); 0 disables. A shoulder is at most :data:`WEAK_HOST_RATIO` of its basin's
         peak high and on no long structure (:func:`_shoulder_markers`).
     shoulder_k : float
         Least dynamic of such a curvature peak in multiples of the measured curvature noise
@@ -135,9 +137,9 @@ class DetectionParams:
         Largest fraction of a candidate's footprint that may lie within 2 px of a pixel without
         a measurement (non-finite albedo, normals or height; not ``mask``): where the lamps gave
         no normal (the floor of a crack, a shadow), the integration fills the hole, and the fill
-        rises and falls at its edge. On the end-to-end captures of docs/benchmarks.md the 16
-        false positives made so lay 91-100 % within 2 px of such pixels, and no protrusion
-        found has more than a fifth of its footprint there.
+        rises and falls at its edge. On the end-to-end captures (docs/decisions/detection.md, "End
+        to end, change by change") the 16 false positives made so lay 91-100 % within 2 px of
+        such pixels, and no protrusion found has more than a fifth of its footprint there.
     albedo_grow_um : float
         How far (um) the albedo outline may extend a height footprint: by the pixels of its
         own glow (an albedo component that overlaps the footprint), not of bright paint beside it.
@@ -151,7 +153,9 @@ class DetectionParams:
         whose curl exceeds it (:func:`uvps.core.integrate.nonintegrable_patches`: crack walls, whose
         relief would otherwise spread along the strokes and raise the ``stroke`` rule's bar).
         15 sits above the 99th percentile of the curl outside the cracks of the benchmark's captures
-        (12) and far below its median inside them (84); end-to-end figures in docs/benchmarks.md.
+        (12) and far below its median inside them (84; docs/protrusions.md, "Cracks' gradients left
+        out of the detection's height"); end to end with and without it: docs/decisions/detection.md,
+        "End to end, change by change".
     beside_long_fraction : float
         A small object that the compact relief's block maxima join to a stroke, a crack lip or a
         taller neighbour beside it (in the next block: 5 px at 15 um per pixel) gets its exact

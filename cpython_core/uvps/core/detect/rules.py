@@ -55,7 +55,7 @@ class Rule:
     """One rejection rule, declared once."""
 
     name: str
-    words: str                  # a rejection in a conservator's words (Fiji's Log)
+    words: str                  # what the rejected thing was, in a conservator's words (Fiji's Log, the report)
     quantity: str               # what it measures (docs, REJECTION_RULES)
     test: str                   # its test (docs, REJECTION_RULES)
     params: dict                # the DetectionParams fields it owns -> Range
@@ -133,10 +133,10 @@ def _weave(f, c: RuleContext):
 
 #: The rejection table, applied in this order (a candidate keeps the first rule it fails).
 RULES = (
-    Rule("too_small", "narrower than the smallest width",
+    Rule("too_small", "narrower than the smallest width counted",
          "equivalent diameter 2 sqrt(area / pi)", "< min_width_um",
          {"min_width_um": Range(0.0, "max_width_um", True, True)}, ("eqd",), _too_small, rescue=True),
-    Rule("ridge", "ridges and brush strokes",
+    Rule("ridge", "elongated: brush strokes or crack lips",
          "elongation area / (pi r_in^2) (r_in: largest inscribed radius); "
          "minor / major axis; compact fraction (relief within L / relief over the "
          "surround, for raised areas without a compact peak)",
@@ -158,7 +158,7 @@ RULES = (
          {"stroke_slope_k": Range(0.0, INF, hi_open=True, note="0 disables"),
           "ripple_reach": Range(0.0, INF, hi_open=True, note="0 disables")},
          ("relief", "eqd", "has_h", "has_a", "under", "centroid"), _stroke, rescue=True),
-    Rule("crack", "crack edges and cupped rims",
+    Rule("crack", "pieces cut off by cracks, or rims of cupped paint",
          "crack fraction: of the 2-px ring around it, the part in a crack (black "
          "top-hat over crack_width_um) at least half as deep as it is high, counted where "
          "the groove runs on 2 crack widths beyond it (a pocket between touching "
@@ -170,13 +170,13 @@ RULES = (
          {"max_crack_fraction": Range(0.0, 1.0), "max_hole_fraction": Range(0.0, 1.0),
           "crack_width_um": Range(0.0, INF, True, True)},
          ("crack_fraction", "hole_fraction"), _crack, rescue=True),
-    Rule("too_large", "wider than the largest width", "equivalent diameter", "> max_width_um",
+    Rule("too_large", "wider than the largest width counted", "equivalent diameter", "> max_width_um",
          {"max_width_um": Range("min_width_um", INF, True, True)}, ("eqd",), _too_large, rescue=True),
     Rule("flat_bright", "bright but flat (bare primer)",
          "relief (um) of a candidate found by the albedo only; mean tilt",
          "relief < relief threshold or tilt < 1 deg: bare primer",
          {}, ("relief", "tilt_deg", "has_a", "has_h"), _flat_bright),
-    Rule("artefact", "height artefacts the normals do not show",
+    Rule("artefact", "relief the normals do not hold (integration artefacts)",
          "mismatch: over the footprint, mean |e - mean e| / mean |g - mean g|, "
          "g the normals' slope, e the height's slope minus g (with normals only); "
          "unmeasured fraction: the part of the footprint within 2 px of a pixel with no "
@@ -188,7 +188,7 @@ RULES = (
          "fraction > max_unmeasured_fraction: relief made by the integration's fill of a hole",
          {"max_mismatch": Range(0.0, INF, note="inf disables"), "max_unmeasured_fraction": Range(0.0, 1.0)},
          ("mismatch", "unmeasured"), _artefact, rescue=True),
-    Rule("weave", "canvas weave",
+    Rule("weave", "canvas weave or paint texture, too flat for a protrusion",
          "relief (um); flank slope relief / (width / 2); mean tilt; own glow: "
          "of the albedo components it overlaps, the part inside it",
          "relief < relief threshold, or slope < max(2 min_relief_ratio, weave_slope_k x "

@@ -56,10 +56,10 @@ def _ripples(f: CandidateFeatures, on_long: np.ndarray, p: DetectionParams) -> n
     some of its crests fail another test. A protrusion is an event: a row of similar,
     non-glowing ones at even spacing is the case this test gets wrong (the glowing ones are
     never tested). The relief keeps a protrusion that erupts through a rippled stroke out of its
-    row: on the end-to-end captures of docs/benchmarks.md two weakly glowing ones 200-230 um
-    wide stood 55-70 um over their surround, between crests a fifth as high. Hand-written: no
-    library tests collinear, evenly spaced neighbours; the neighbours come from
-    :class:`scipy.spatial.cKDTree`. Returns a mask."""
+    row: on the end-to-end captures (docs/decisions/detection.md, "End to end, change by
+    change") two weakly glowing ones 200-230 um wide stood 55-70 um over their surround, between
+    crests a fifth as high. Hand-written: no library tests collinear, evenly spaced neighbours;
+    the neighbours come from :class:`scipy.spatial.cKDTree`. Returns a mask."""
     out = np.zeros(f.lbl.size, bool)
     pop = np.flatnonzero(on_long)
     if p.ripple_reach <= 0 or pop.size < 3:

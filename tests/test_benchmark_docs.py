@@ -1,0 +1,221 @@
+"""docs/benchmarks.md's sections written by the benchmark scripts (scripts/benchdoc.py) and the check that
+regenerating them at HEAD changes nothing (scripts/benchmark_docs.py --check), on real files: the project's
+own document and temporary copies of a small one."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import benchdoc  # noqa: E402
+from benchdoc import SectionError, read_section, write_doc, write_section  # noqa: E402
+
+CHECK = [sys.executable, str(ROOT / "scripts" / "benchmark_docs.py"), "--check"]
+SMALL = """# Benchmarks
+
+Prose before.
+<!-- begin painting: written by scripts/benchmark_painting.py -->
+| old table |
+<!-- end painting -->
+Prose after, kept byte for byte.\r
+"""
+
+
+@pytest.fixture
+def small(tmp_path):
+    md = tmp_path / "benchmarks.md"
+    md.write_bytes(SMALL.encode())
+    return md
+
+
+def _check(md: Path, json_dir: Path):
+    return subprocess.run(CHECK + ["--md", str(md), "--json-dir", str(json_dir)], capture_output=True, text=True,
+                          cwd=ROOT)
+
+
+def test_write_section_replaces_only_the_section(small):
+    assert read_section(small, "painting") == "| old table |\n"
+    assert write_section(small, "painting", "| a |\n|---|\n| 1 |", source="scripts/benchmark_painting.py")
+    after = small.read_bytes().decode()
+    assert after == SMALL.replace("| old table |\n", "| a |\n|---|\n| 1 |\n")
+    assert read_section(small, "painting") == "| a |\n|---|\n| 1 |\n"
+    # the same text again: nothing written
+    assert not write_section(small, "painting", "| a |\n|---|\n| 1 |\n", source="scripts/benchmark_painting.py")
+    assert not list(small.parent.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("text, words", [
+    (SMALL.replace("<!-- end painting -->\n", ""), "has 0 end markers"),
+    (SMALL.replace("<!-- begin painting: written by scripts/benchmark_painting.py -->\n", ""), "has no begin marker"),
+    (SMALL + "<!-- begin painting: written by scripts/benchmark_painting.py -->\nx\n<!-- end painting -->\n",
+     "marked twice"),
+    (SMALL.replace("<!-- end painting -->", "<!-- end painting"), "has 0 end markers"),
+    (SMALL.replace("begin painting: written by", "begin painting written by"), "ill-formed marker"),
+])
+def test_bad_markers_are_refused_in_one_line_naming_the_file(small, text, words):
+    small.write_text(text, encoding="utf-8")
+    before = small.read_bytes()
+    with pytest.raises(SectionError) as e:
+        write_section(small, "painting", "| new |\n", source="scripts/benchmark_painting.py")
+    msg = str(e.value)
+    assert words in msg and str(small) in msg and "\n" not in msg
+    assert small.read_bytes() == before
+
+
+def test_a_section_is_written_only_by_the_script_its_marker_names(small):
+    with pytest.raises(SectionError, match="written by scripts/benchmark_painting.py, not scripts/benchmark_level.py"):
+        write_section(small, "painting", "x\n", source="scripts/benchmark_level.py")
+    with pytest.raises(SectionError, match="no section 'level'"):
+        read_section(small, "level")
+    with pytest.raises(SectionError, match="holds a marker line"):
+        write_section(small, "painting", "| t |\n<!-- end painting -->\n", source="scripts/benchmark_painting.py")
+    assert small.read_bytes() == SMALL.encode()
+
+
+def test_write_doc_keeps_the_raw_results_and_refuses_before_writing(small, tmp_path):
+    small.chmod(0o664)
+    out = write_doc("painting", {"rows": [1, 2]}, "| t |\n", source="scripts/benchmark_painting.py",
+                    md_path=small, json_dir=tmp_path / "json")
+    assert json.loads(out.read_text()) == {"rows": [1, 2]} and out == tmp_path / "json" / "painting.json"
+    assert small.stat().st_mode & 0o777 == 0o664 and out.stat().st_mode & 0o777 == 0o644
+    assert read_section(small, "painting") == "| t |\n"
+    with pytest.raises(SectionError):
+        write_doc("lights", {"rows": []}, "x\n", source="scripts/benchmark_lights.py", md_path=small,
+                  json_dir=tmp_path / "json")
+    assert not (tmp_path / "json" / "lights.json").exists()
+
+
+def test_the_projects_document_is_current():
+    """Regenerating at HEAD changes nothing: every marked section re-renders from its JSON exactly."""
+    r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
+    assert {"painting", "lights", "real", "elements"} <= set(found)
+    for name, s in found.items():
+        assert (ROOT / s.source).is_file()
+        assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
+        assert benchdoc.json_path(name).is_file(), name          # so the check above re-rendered every section
+
+
+def test_the_reference_stays_a_reference():
+    """docs/benchmarks.md holds each figure once, the current one, in at most 400 lines; the history
+    of what was tried lives in docs/decisions/ (each of which it links)."""
+    text = benchdoc.DOC.read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 400
+    for log in (ROOT / "docs" / "decisions").glob("*.md"):
+        assert f"decisions/{log.name}" in text, log.name
+
+
+def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path):
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    assert _check(md, jd).returncode == 0
+    data = json.loads((jd / "painting.json").read_text())
+    data["rows"][0]["f1"] = 0.5
+    (jd / "painting.json").write_text(json.dumps(data))
+    r = _check(md, jd)
+    assert r.returncode == 1 and "section 'painting' is stale" in r.stderr
+    assert "run python scripts/benchmark_painting.py --seeds 1 2 3 --doc" in r.stderr and r.stderr.count("\n") == 1
+    assert md.read_bytes() == benchdoc.DOC.read_bytes()          # --check writes nothing
+    r = subprocess.run(CHECK[:-1] + ["--md", str(md), "--json-dir", str(jd)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = md.read_text()
+    assert "| 1 | 0.16 | 0.07 | 0.500 |" in text and "| **worst** | **0.21** | 0.07 | **0.500** |" in text
+    assert _check(md, jd).returncode == 0
+
+
+def test_sections_must_name_an_existing_script_with_a_doc_flag(small, tmp_path):
+    small.write_text(SMALL.replace("benchmark_painting.py", "benchmark_nothing.py"), encoding="utf-8")
+    r = _check(small, tmp_path)
+    assert r.returncode == 1 and "names scripts/benchmark_nothing.py, which does not exist" in r.stderr
+    small.write_text(SMALL.replace("benchmark_painting.py", "detection_docs.py"), encoding="utf-8")
+    r = _check(small, tmp_path)
+    assert r.returncode == 1 and "names scripts/detection_docs.py, which has no --doc flag" in r.stderr
+
+
+def test_the_check_refuses_broken_markers_in_one_line(small, tmp_path):
+    small.write_text(SMALL.replace("<!-- end painting -->\n", ""), encoding="utf-8")
+    r = _check(small, tmp_path)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and str(small) in r.stderr and "end markers" in r.stderr
+
+
+@pytest.mark.slow
+def test_benchmark_lights_doc_writes_its_section_and_json(tmp_path, monkeypatch):
+    """``--doc`` end to end on a small capture (the light estimate runs: 5-25 s): the paragraph holds what was
+    just measured, the JSON its rows, and the check passes on the result (nothing else in the document moved)."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_lights
+    before = read_section(md, "lights")
+    benchmark_lights.main(["--lamps", "6", "--shape", "150", "200", "--seeds", "3", "--doc"])
+    data = json.loads((jd / "lights.json").read_text())
+    assert [r[:2] for r in data["rows"]] == [[6, 3]] and data["argv"][-1] == "--doc"
+    text = read_section(md, "lights")
+    assert text != before and text.startswith("**Light estimate with 6 lamps** (`.venv/bin/python "
+                                              "scripts/benchmark_lights.py --lamps 6 --shape 150 200 --seeds 3`")
+    assert f"directions max {data['rows'][0][5]:.2f} deg" in text
+    assert (ROOT / "docs" / "benchmarks.md").read_text().replace(before, text) == md.read_text()
+    assert _check(md, jd).returncode == 0
+
+
+def test_a_json_without_its_section_fails_the_check(small, tmp_path):
+    jd = tmp_path / "json"
+    jd.mkdir()
+    (jd / "painting.json").write_text(json.dumps({"rows": [{"seed": 1, "corner_err_px": 0.1, "max_residual_px": 0.1,
+        "f1": 1.0, "twice": 0, "count_ratio": 1.0, "height_rms_um": 0.1, "height_overlap_rms_um": 0.1, "batch_s": 1,
+        "tiles_sum_s": 2, "workers": 2, "stitch_total_s": 1, "stitch_maps_s": 1}]}))
+    (jd / "gone.json").write_text("{}")
+    r = _check(small, jd)
+    assert r.returncode == 1 and "gone.json: no section 'gone'" in r.stderr
+    assert "section 'painting' is stale" in r.stderr      # '| old table |' is not what the JSON renders
+
+
+def test_benchmark_real_doc_keeps_the_rows_it_did_not_measure(tmp_path, monkeypatch):
+    """Without --diligent a run measures the split halves only: the DiLiGenT rows stay as the last run left them."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_real
+    before = json.loads((jd / "real.json").read_text())["rows"]
+    icon = {"capture": "painted_icon_rti", "kind": "halves", "size": [402, 395], "lamps": 36,
+            "methods": {"defaults": [2.5, 2.25, 1000], "plain LS": [2.6, 2.3, 1000]}}
+    benchmark_real.write_doc_section([icon], ["--doc"])
+    rows = json.loads((jd / "real.json").read_text())["rows"]
+    assert rows[0] == icon and rows[1:] == before[1:]
+    text = read_section(md, "real")
+    assert "| painted_icon_rti (402 x 395), halves | 36 | **2.50** / 2.25 | 2.60 / 2.30 | - | - |\n" in text
+    assert text.count("DiLiGenT ball") == 2 and "| **3.27** / 2.52 | 4.11 / 2.44 |" in text
+    assert _check(md, jd).returncode == 0
+
+
+def test_benchmark_protrusions_wand_doc_changes_only_its_rows(tmp_path, monkeypatch):
+    """``--wand --doc`` on one small capture (a few seconds): the wand table's rows are this run's, every
+    other byte of the document is as it was, and the JSON keeps each click's area ratio."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_protrusions
+    before = read_section(md, "wand")
+    benchmark_protrusions.main(["--wand", "--seeds", "0", "--shape", "240", "320", "--doc"])
+    data = json.loads((jd / "wand.json").read_text())
+    n = len(data["ratios"]["relative 0.5 (default)"][0])
+    assert n > 0 and [r["clicks"] for r in data["rows"]] == [n] * 4
+    text = read_section(md, "wand")
+    assert text.splitlines()[:2] == before.splitlines()[:2] and f"| relative 0.5 (default) | {n} | " in text
+    assert (ROOT / "docs" / "benchmarks.md").read_text().replace(before, text) == md.read_text()
+    assert _check(md, jd).returncode == 0
+    with pytest.raises(SystemExit):
+        benchmark_protrusions.main(["--doc"])          # detection's tables are not written: refused
