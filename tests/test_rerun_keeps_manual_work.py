@@ -157,3 +157,34 @@ def test_lights_and_flatfield_leave_the_manual_work_where_it_was_measured(captur
     for name in ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comparison.csv", "albedo.tif",
                  "depth.tif"):
         assert _digest(run / name) == before[name], name
+
+
+@pytest.mark.parametrize("step", ["detect", "wand"])
+def test_a_new_count_sets_the_comparison_made_with_the_earlier_one_aside(capture, tmp_path, step):
+    """`detect` (a new automated count) and `wand` (a new manual count) make a comparison stale: it moves,
+    byte for byte, with the counts it was made with, into earlier/; the albedo and height are unchanged,
+    so `detect` leaves the manual count where it was; the warning names where the comparison went."""
+    capture_dir, cap = capture
+    run = tmp_path / "run"
+    _uvps(*_run_args(capture_dir, run))
+    before = _manual_work(run, cap)
+    if step == "detect":
+        r = _uvps("detect", "-o", run, "--regions", "auto", "--min-width-um", 90)
+    else:
+        points = tmp_path / "new clicks.csv"
+        p = cap.protrusions
+        points.write_text(f"x_px,y_px\n{int(p['x_px'][0])},{int(p['y_px'][0])}\n")
+        r = _uvps("wand", points, "-o", run)
+    assert not (run / "comparison.csv").exists() and not (run / "figures" / "comparison_map.png").exists()
+    (kept,) = _earlier(run)
+    assert {n: _digest(kept / n) for n in before} == before
+    record = json.loads((kept / "earlier.json").read_text())
+    assert record["reason"].startswith(f"`uvps {step}` wrote a new ") and "comparison" in record["reason"]
+    assert f"kept with it in {kept}" in r.stderr, r.stderr
+    changed = "protrusions.csv" if step == "detect" else "protrusions_manual.csv"
+    assert _digest(run / changed) != before[changed]
+    if step == "detect":       # the manual count was measured on the albedo and height, which stay
+        assert _digest(run / "protrusions_manual.csv") == before["protrusions_manual.csv"]
+    # a second new count with no comparison in the folder sets nothing more aside
+    r = _uvps("detect", "-o", run, "--regions", "auto")
+    assert len(_earlier(run)) == 1 and "comparison" not in r.stderr

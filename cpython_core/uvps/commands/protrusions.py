@@ -29,7 +29,8 @@ from ..core.regions import propose_regions, whole_image
 from ..files.tables import load_regions
 from ..report.page import plot_comparison_map
 from ..core.level import raw_height
-from ..files.runfolder import is_relative, level_of, output_spec, read_run, relief_in, write_protrusions
+from ..files.runfolder import (drop_comparison, is_relative, level_of, output_spec, read_run, relief_in,
+                               set_aside_comparison, write_protrusions)
 from ..spec import CommandSpec, Param
 from ..workflow import _stats_and_csv, regions_for, statistics
 from ..core.wand import (CONTRAST_FRACTION, MAX_WIDTH_UM, SeedFile, contrast_select, judge_clicks, read_seed_file,
@@ -73,10 +74,25 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
                             regions=regions, params=det_params, progress=sub_progress(progress, 0.1, 0.9))
     prot.proposed = proposed
     with atomic_output_dir(run_dir) as tmp:
+        kept = set_aside_comparison(run_dir, tmp, step="detect")
         names = write_protrusions(tmp, prot, images.pixel_size_um, relief=relief_in(run_dir))
     outputs = [output_spec(run_dir, n) for n in names]
     report(progress, 1.0, f"{len(prot.table['id'])} protrusions")
-    return CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
+    out = CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
+    _comparison_kept(run_dir, kept, tmp, out, "automated count")
+    return out
+
+
+def _comparison_kept(run_dir: Path, kept, tmp: Path, out: CommandResult, count: str) -> None:
+    """After :func:`~uvps.files.runfolder.set_aside_comparison`: the comparison leaves ``run_dir`` (kept
+    under ``earlier/``), and the result says where, in one warning."""
+    if kept is None:
+        return
+    drop_comparison(run_dir)
+    where = run_dir / kept.relative_to(tmp)
+    out.diagnostics["earlier_comparison"] = str(where)
+    out.warnings.append(f"the comparison in {run_dir} was made with the earlier {count}: kept with it in "
+                        f"{where}; run compare again for one with the new count")
 
 
 def _cmd_wand(inputs: dict, params: dict, output_dir, *,
@@ -118,6 +134,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
     report(progress, 0.7, "measuring")
     table = _click_table(judged, seeds, images, regions)
     with atomic_output_dir(run_dir) as tmp:
+        kept = set_aside_comparison(run_dir, tmp, step="wand")
         write_protrusions_csv(tmp / "protrusions_manual.csv", table, relative=is_relative(relief_in(run_dir)),
                               extra=CLICK_COLUMNS)
         _write_labels(tmp / "protrusions_manual_labels.tif", judged.labels, images.pixel_size_um,
@@ -133,7 +150,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                         f"tolerance of {tolerance:g} albedo units is below the albedo's pixel-to-pixel variation; "
                         "raise it, or use the default method 'relative'")
     n_counted = int(np.count_nonzero(judged.counted))
-    return CommandResult([output_spec(run_dir, "protrusions_manual"), output_spec(run_dir, "protrusions_manual_labels")],
+    out = CommandResult([output_spec(run_dir, "protrusions_manual"), output_spec(run_dir, "protrusions_manual_labels")],
                          {"n_points": int(len(seeds)), "n_protrusions": n_counted, "summary": summary,
                           "not_counted": [{"click": i + 1, "x_px": int(seeds[i][0]), "y_px": int(seeds[i][1]),
                                            "status": judged.status[i], "why": judged.note[i]}
@@ -144,6 +161,8 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                           "method": params["method"], "pixel_size_um": images.pixel_size_um,
                           "points_unit": clicks.unit, "points_unit_said": clicks.said,
                           "points_px": seeds.tolist()}, warnings, text=summary)
+    _comparison_kept(run_dir, kept, tmp, out, "manual count")
+    return out
 
 
 def _click_table(judged, seeds, images, regions) -> dict:

@@ -476,6 +476,35 @@ def set_aside_for_step(run_dir, tmp, *, step: str) -> Optional[Path]:
                                         "measured on the earlier one, kept here with it")
 
 
+#: A comparison of two counts (``uvps compare``): what a new count makes stale.
+COMPARISON_FILES = ("comparison.csv", "figures/comparison_map.png")
+#: What each step that rewrites a count a comparison reads replaces (:func:`set_aside_comparison`).
+RECOUNTS = {"detect": "automated count (protrusions.csv)", "wand": "manual count (protrusions_manual.csv)"}
+
+
+def set_aside_comparison(run_dir, tmp, *, step: str) -> Optional[Path]:
+    """Before ``step`` (``detect`` or ``wand``) writes a new count into ``run_dir``: a comparison made with
+    the earlier count (``comparison.csv`` and its map) would otherwise stay beside a count it was not
+    made with. Like :func:`set_aside_for_step`, the folder's manual work and what it was measured on,
+    the earlier counts included, are linked into ``tmp/earlier/<date>_<run id>/`` with ``earlier.json``
+    saying why; then :func:`drop_comparison` removes the comparison from ``run_dir`` (the manual count
+    stays: the albedo and the height it was measured on are unchanged). Returns the folder in ``tmp``,
+    or None when ``run_dir`` holds no comparison."""
+    run_dir, tmp = Path(run_dir), Path(tmp)
+    if not (run_dir / COMPARISON_FILES[0]).is_file():
+        return None
+    (tmp / EARLIER).mkdir(exist_ok=True)
+    return set_aside_manual_work(run_dir, tmp, beside=run_dir,
+                                 reason=f"`uvps {step}` wrote a new {RECOUNTS[step]} into the folder; this "
+                                        "comparison was made with the earlier one, kept here with it")
+
+
+def drop_comparison(run_dir) -> None:
+    """Remove :data:`COMPARISON_FILES` from ``run_dir`` after :func:`set_aside_comparison` kept them."""
+    for name in COMPARISON_FILES:
+        (Path(run_dir) / name).unlink(missing_ok=True)
+
+
 def drop_manual_work(run_dir) -> None:
     """Remove :data:`MANUAL_FILES` from ``run_dir`` after :func:`set_aside_for_step` kept them in
     ``earlier/`` (hard links or copies: the bytes stay there)."""
