@@ -373,3 +373,52 @@ def test_spheres_cut_by_the_frame_are_refused(painting):
     sc = make_sphere_capture(painting, [SphereSpec("glossy", (0.97, 0.5), 4.0), SphereSpec("glossy", (0.3, 0.5), 4.0)])
     cal = _calibrated(sc)
     assert len(cal.spheres) == 1 and abs(cal.spheres[0].centre_px[0] - sc.spheres[1]["centre_px"][0]) < 0.5
+
+
+def _veined_disc_under_front_lamps(seed, radius_px=60):
+    """A matte disc with veins (a smooth albedo 10 % rms, the same under every lamp) under twelve lamps
+    10-40 deg from the view, all from above (as the UW/Seitz grey ball's): (values (12, P) float32,
+    normals, lamp directions (12, 3)). Every lamp lights the whole disc, so the offset, ``b_z`` and
+    the near lamp's term are all nearly functions of ``n_z``."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[-radius_px:radius_px + 1, -radius_px:radius_px + 1]
+    nx, ny = cc / radius_px, -rr / radius_px
+    inside = nx * nx + ny * ny < 0.96 ** 2
+    n = np.stack([nx, ny, np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))], -1)[inside]
+    veins = ndimage.gaussian_filter(rng.normal(size=rr.shape), 5)
+    albedo = (1 + 0.1 * veins / veins.std())[inside]
+    tilt = np.radians(np.linspace(10, 40, 12))
+    az = np.radians(rng.uniform(20, 160, 12))
+    lamps = np.stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)], -1)
+    v = 20 + 200 * albedo * np.clip(n @ lamps.T, 0, None).T
+    v = np.round(v + rng.normal(size=v.shape)).astype(np.float32)
+    return v, n, lamps
+
+
+def test_a_matte_fit_whose_near_and_beam_terms_run_away_falls_back_to_lambert(monkeypatch):
+    """On a veined ball under lamps near the view the full model's near-lamp and beam terms took up the
+    veins (up to |b|) and turned the lamps by 14 deg median on the UW/Seitz grey ball; a fit whose terms
+    pass MATTE_TERM_MAX of |b| is done again with ``n . b + c`` alone."""
+    import uvps.core.spheres as sp
+
+    def errors():
+        out = []
+        for k in range(len(lamps)):
+            fit = sp._fit_matte(v[k], n, None)
+            assert fit is not None
+            out.append(np.degrees(np.arccos(np.clip(fit[0] @ lamps[k] / np.linalg.norm(fit[0]), -1, 1))))
+        return np.array(out)
+
+    v, n, lamps = _veined_disc_under_front_lamps(2)
+    kept = errors()
+    monkeypatch.setattr(sp, "MATTE_TERM_MAX", np.inf)          # the full model whatever its terms
+    unguarded = errors()
+    monkeypatch.undo()
+    assert unguarded.max() > 8.0                                 # the failure is there without the guard
+    assert kept.max() < 3.0 and np.median(kept) < 1.5
+    for k in range(len(lamps)):                                  # the compiled fit still equals its statement
+        got, want = sp._fit_matte(v[k], n, None), sp._fit_matte_numpy(v[k], n, None)
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-9)
+        assert got[3] == want[3]

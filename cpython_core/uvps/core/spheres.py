@@ -105,6 +105,15 @@ MIN_RADIUS_RATIO = 0.4
 #: Matte fit: samples with a predicted ``n . l`` below this are left out (the terminator, where the
 #: attached shadow's clip and a lamp's finite size bend the law).
 MATTE_MIN_COS = 0.2
+#: Matte fit: the near lamp's and the beam's terms (:func:`_near_column`, :func:`_beam_columns`) are
+#: first-order corrections, each at most this fraction of ``|b|`` (a lamp ~7 radii away; a beam whose
+#: gain changes by 15 % per radius across the sphere). A fit that needs more has taken something else
+#: for them (a ball's veins or sheen under a lamp near the view, which lights the whole disc: the
+#: offset, ``b_z`` and the near term are then all nearly functions of ``n_z``), and :func:`_fit_matte`
+#: fits ``n . b + c`` alone. Without this bound the UW/Seitz grey ball's per-lamp fits did not settle
+#: (beam terms up to 1.2 ``|b|``) and ``uvps calibrate`` came 14.3 deg median, 22.2 max off the published
+#: directions; with it 10.9 / 18.5 (decisions/spheres.md).
+MATTE_TERM_MAX = 0.15
 #: A matte sphere's circle and gain (:func:`_refine_matte_circle`) are fitted on this many of its
 #: samples in all, shared among the lamps.
 MATTE_CIRCLE_SAMPLES = 60000
@@ -817,7 +826,9 @@ def _fit_matte(v, normals, sat):
     A first fit of ``n . b + c`` over the samples above 30 % of the range, then up to five rounds of
     the full model over the samples it predicts lit (``n . l`` above :data:`MATTE_MIN_COS`) within
     four robust standard deviations (a MAD over every fourth sample in use), until the samples in
-    use stop changing. Each round is three passes over the samples (:func:`_matte_gram`,
+    use stop changing. When the full model's near-lamp or beam term comes out above
+    :data:`MATTE_TERM_MAX` of ``|b|`` (:func:`_matte_terms_plausible`), the same rounds are run with
+    ``n . b + c`` alone. Each round is three passes over the samples (:func:`_matte_gram`,
     :func:`_matte_update`, :func:`_matte_select`), compiled: a disc holds 10^4-10^5 samples and a sphere capture 64 lamps,
     and numpy's temporaries made the fits 6.5 of the 14.8 s ``uvps calibrate`` took on 64 lamps
     (``scripts/benchmark_calibrate_speed.py --kind matte``). Its statement in numpy:
@@ -825,6 +836,24 @@ def _fit_matte(v, normals, sat):
     """
     v = np.ascontiguousarray(v)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
+    fit = _fit_matte_terms(v, normals, sat, 7)
+    if fit is not None and not _matte_terms_plausible(fit[6]):
+        fit = _fit_matte_terms(v, normals, sat, 4)
+    return None if fit is None else fit[:6]
+
+
+def _matte_terms_plausible(coef) -> bool:
+    """Whether a matte fit's near-lamp term and beam terms (``coef[4]``, ``coef[5:7]``) are each within
+    :data:`MATTE_TERM_MAX` of ``|b|`` (``coef[:3]``); a fit of four terms has none."""
+    if len(coef) <= 4:
+        return True
+    nb = np.linalg.norm(coef[:3])
+    return bool(abs(coef[4]) <= MATTE_TERM_MAX * nb and math.hypot(coef[5], coef[6]) <= MATTE_TERM_MAX * nb)
+
+
+def _fit_matte_terms(v, normals, sat, terms):
+    """:func:`_fit_matte` with ``terms`` 7 (the full model) or 4 (``n . b + c``): its result and the
+    coefficients, or None."""
     ok = np.isfinite(v) if sat is None else v < sat
     lo, hi = np.percentile(v, (2, 99.5))
     sel = ok & (v > lo + 0.3 * (hi - lo))
@@ -851,15 +880,15 @@ def _fit_matte(v, normals, sat):
         res, m = _matte_update(A, normals, v, coef, l, e1, e2, sel, buf)
         s = 1.4826 * np.median(buf[:m]) + 1e-9
         n_new, same = _matte_select(normals, l, res, ok, MATTE_MIN_COS, 4 * s, sel, new)
-        if cols == 7 and same:
+        if it > 0 and same:
             break
         sel, new = new, sel
-        n_sel, cols = n_new, 7
+        n_sel, cols = n_new, terms
     res, _ = _matte_update(A, normals, v, coef, l, e1, e2, sel, buf)
     dof = max(1, n_sel - cols)
     s2 = float(np.sum(res[sel] ** 2)) / dof
     cov = s2 * np.linalg.pinv(_matte_gram(A, v, sel, cols)[0])[:3, :3]
-    return coef[:3], float(coef[3]), cov, n_sel, math.sqrt(s2) / np.linalg.norm(coef[:3]), sel
+    return coef[:3], float(coef[3]), cov, n_sel, math.sqrt(s2) / np.linalg.norm(coef[:3]), sel, coef
 
 
 def _matte_gram(A, v, sel, cols):
@@ -975,6 +1004,13 @@ def _matte_select(normals, l, res, ok, min_cos, limit, sel, new):
 def _fit_matte_numpy(v, normals, sat):
     """:func:`_fit_matte` in numpy, its statement (the tests hold the compiled form to it): the design
     held column by column (``AT``, terms x samples), the samples in use as 0/1 weights."""
+    fit = _fit_matte_numpy_terms(v, normals, sat, 7)
+    if fit is not None and not _matte_terms_plausible(fit[6]):
+        fit = _fit_matte_numpy_terms(v, normals, sat, 4)
+    return None if fit is None else fit[:6]
+
+
+def _fit_matte_numpy_terms(v, normals, sat, terms):
     ok = np.isfinite(v) if sat is None else v < sat
     lo, hi = np.percentile(v, (2, 99.5))
     sel = ok & (v > lo + 0.3 * (hi - lo))
@@ -997,15 +1033,16 @@ def _fit_matte_numpy(v, normals, sat):
         res = v - coef @ AT[:cols]
         s = 1.4826 * np.median(np.abs(res[sel][::4])) + 1e-9      # a trim's scale: a quarter is plenty
         new = ok & (normals @ (b / nb) > MATTE_MIN_COS) & (np.abs(res) < 4 * s)
-        if cols == 7 and np.array_equal(new, sel):
+        if it > 0 and np.array_equal(new, sel):
             break
-        sel, cols = new, 7
+        sel, cols = new, terms
     res = (v - coef @ AT[:cols])[sel]
     dof = max(1, sel.sum() - cols)
     s2 = float(res @ res) / dof
     Aw = AT[:cols] * sel
     cov = s2 * np.linalg.pinv(Aw @ AT[:cols].T)[:3, :3]
-    return coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel
+    return (coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel,
+            coef)
 
 
 def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MATTE_CIRCLE_SAMPLES):
