@@ -2,7 +2,7 @@
 """The fit checks' quantities (``pipeline.fit_checks``) on the robustness benchmark's rows with the true
 lamp positions: the normals' rms relative residual, the share of pixels without normals, the mean
 normal's tilt, and the run's warnings. 300 x 400 px of 60 um (the benchmark's 18 x 24 mm field),
-12 lamps, seed 0; docs/benchmarks.md, "When a fit does not hold".
+12 lamps, seed 0; docs/decisions/normals.md, "Fit-check thresholds".
 
 Example::
 

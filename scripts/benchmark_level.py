@@ -66,8 +66,8 @@ def synthetic(bows, seeds, bias_deg, nuisances=("none",)):
     from uvps.core.pipeline import RunOptions, run
     from uvps.testing.synthetic import SyntheticSpec, make_capture
     px = 60.0
-    print(f"| nuisance | bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
-          f"field-scale shape left (um rms) | corr with truth |")
+    print("| nuisance | bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
+          "field-scale shape left (um rms) | corr with truth |")
     print("|---|---|---|---|---|---|---|---|---|")
     for nuisance, bow, seed in ((n, b, s) for n in nuisances for b in bows for s in seeds):
         common = dict(shape=(300, 400), n_lights=12, seed=seed, pixel_size_um=px, bow_um=float(bow))

@@ -39,13 +39,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="exit 1 when a generated text is stale")
     args = ap.parse_args(argv)
-    stale = [p for p, t in expected().items() if not p.exists() or p.read_text(encoding="utf-8") != t]
+    texts = expected()
+    stale = [p for p, t in texts.items() if not p.exists() or p.read_text(encoding="utf-8") != t]
     if args.check:
         for p in stale:
             print(f"{p.relative_to(ROOT)} is stale: run python scripts/detection_docs.py", file=sys.stderr)
         return 1 if stale else 0
-    for p, t in expected().items():
-        p.write_text(t, encoding="utf-8")
+    for p in stale:
+        p.write_text(texts[p], encoding="utf-8")
     return 0
 
 

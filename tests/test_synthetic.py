@@ -1022,6 +1022,8 @@ def test_protrusions_on_strokes():
     (dict(ridge_groove_um=(3.0, 1.0)), "ridge_groove_um"),
     (dict(on_stroke_fraction=1.5), "on_stroke_fraction"),
     (dict(ridge_density=-1.0), "ridge_density"),
+    (dict(width_median_um=float("nan")), "width_median_um"),      # would draw widths forever
+    (dict(width_median_um=0.0), "width_median_um"),
 ])
 def test_impasto_options_checked(overrides, match):
     with pytest.raises(UVPSInputError, match=match):

@@ -2,7 +2,7 @@
 
 uvps runs its own threads (the normals kernel's bands, the run folder's writers, Dask workers), and
 OpenBLAS's threads on top of them made the additive term of a 10000 x 8000 capture take 72 s where
-one thread takes 9.4 s on 2 cores (docs/benchmarks.md, ``scripts/benchmark_speed.py --shape 8000 10000``).
+one thread takes 9.4 s on 2 cores (docs/decisions/speed.md, ``scripts/benchmark_speed.py --shape 8000 10000``).
 BLAS reads its thread count when numpy is first imported, so it is set here, before anything
 imports numpy; a value already in the environment is kept. Library users (``import uvps``) are not affected.
 """

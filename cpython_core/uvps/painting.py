@@ -22,9 +22,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
-import os
-import shutil
-import uuid
+import time
 from dataclasses import dataclass
 from io import StringIO
 from pathlib import Path
@@ -33,12 +31,13 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import COLUMNS
-from .core.mosaic import Registration, overlap_box, register_tiles
-from .core.regions import UM2_PER_CM2
+from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
+from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
-from .files.io import read_tiff
-from .files.outputs import report, write_json_atomic
-from .files.tables import atomic_write_text, read_protrusions_csv, write_label_tiff
+from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, open_tiff, write_dask_ome_zarr
+from .files.outputs import new_output_dir, report, write_json_atomic
+from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
+from .painting_maps import MapContext, PlacedTile, painting_array
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +100,7 @@ class AlbedoTile:
         self.shape = tuple(data.shape[-2:])
 
     def _data(self):
-        return _memmap(self.path)
+        return open_tiff(self.path)
 
     def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Grey (mean of the channels) float64 of rows r0:r1, columns c0:c1."""
@@ -111,11 +110,6 @@ class AlbedoTile:
     def full(self) -> np.ndarray:
         """(M, N) or (M, N, C) float32."""
         return _channels_last(np.asarray(self._data())).astype(np.float32)
-
-
-def read_albedo(run_dir: Path) -> np.ndarray:
-    """A tile's ``albedo.tif``, (M, N) or (M, N, C) float32."""
-    return AlbedoTile(run_dir).full()
 
 
 def _win(img, r0, r1, c0, c1) -> np.ndarray:
@@ -267,31 +261,36 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
 
 def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n_areas):
     """Colour areas of the painting at overview scale: ``(labels (m, n) int, names)``."""
-    from .core.regions import propose_regions
-    from .files.tables import load_regions
-
     if regions in (None, "", "auto"):
         if regions in (None, ""):
             return covered.astype(np.int32), {1: "whole painting"}
         rm = propose_regions(overview, pixel_size_um=pixel_size_um * step, n_areas=n_areas, mask=covered)
         return rm.labels.astype(np.int32), dict(rm.names)
-    # a painting-wide label image in the layout's frame: sampled at the overview's pixels
-    import tifffile
-
-    with tifffile.TiffFile(regions) as tif:      # its own size: it is the painting's, not a tile's
-        own = (int(tif.pages[0].imagelength), int(tif.pages[0].imagewidth))
-    rm = load_regions(Path(regions), shape=own)
-    lab = rm.labels
+    # a painting-wide label image in the layout's frame, sampled at the overview's pixels: memory-mapped
+    # (uncompressed, as uvps and ImageJ write it), so only the sampled pixels are read, never the
+    # painting's full-resolution image whole
+    path = Path(regions)
+    what = f"region label image {path}"
+    if not path.is_file():
+        raise UVPSInputError(f"region file {path} does not exist")
+    lab = open_tiff(path)
+    if lab.ndim > 2 and sum(k != 1 for k in lab.shape) == 2:
+        lab = lab.reshape([k for k in lab.shape if k != 1])       # a single-plane stack
     m, n = covered.shape
     rr = (origin[1] + (np.arange(m) + 0.5) * step - 0.5).round().astype(int)
     cc = (origin[0] + (np.arange(n) + 0.5) * step - 0.5).round().astype(int)
-    if rr.min() < 0 or cc.min() < 0 or rr.max() >= lab.shape[0] or cc.max() >= lab.shape[1]:
-        raise UVPSInputError(f"painting regions: {Path(regions).name} ({lab.shape[1]} x {lab.shape[0]} px) does "
+    if lab.ndim == 2 and (rr.min() < 0 or cc.min() < 0 or rr.max() >= lab.shape[0] or cc.max() >= lab.shape[1]):
+        raise UVPSInputError(f"painting regions: {path.name} ({lab.shape[1]} x {lab.shape[0]} px) does "
                              f"not cover the painting (x {origin[0]:.0f}..{origin[0] + n * step:.0f}, "
                              f"y {origin[1]:.0f}..{origin[1] + m * step:.0f} in the layout's frame)")
-    out = lab[np.ix_(rr, cc)].astype(np.int32)
+    # checked as uvps.files.tables.load_regions checks a label image (whole numbers >= 0), on the samples
+    out = _as_label_image(lab[np.ix_(rr, cc)] if lab.ndim == 2 else lab, what)
     out[~covered] = 0
-    return out, {k: v for k, v in rm.names.items() if np.any(out == k)}
+    ids = [int(k) for k in np.unique(out) if k]
+    if not ids:
+        raise UVPSInputError(f"painting regions: {path.name} has no area over the painting (all its pixels there are 0)")
+    found = _names_beside(path)
+    return out, {k: found.get(k, f"area {k}") for k in ids}
 
 
 def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None, n_areas: Optional[int] = None,
@@ -327,8 +326,6 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     -------
     PaintingResult
     """
-    import time
-
     t0 = time.perf_counter()
     timings = {}
     out_dir = Path(out_dir)
@@ -390,10 +387,8 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     result = PaintingResult(reg, gains, origin, shape, len(kept), len(every), areas, pixel_size_um, step, warnings)
     timings["merge_s"] = round(time.perf_counter() - t0 - sum(timings.values()), 3)
     report(progress, 0.8, "painting: writing")
-    target = out_dir / PAINTING_DIR
-    tmp = out_dir / f".{PAINTING_DIR}.batch-tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    # built whole in a new folder that replaces the old one in one step (uvps.files.outputs.new_output_dir)
+    with new_output_dir(out_dir / PAINTING_DIR) as tmp:
         _write_layout(tmp / PAINTING_LAYOUT, corners)
         _write_protrusions(tmp / PAINTING_PROTRUSIONS, kept, origin)
         _write_regions(tmp / PAINTING_REGIONS, areas, len(kept), float(covered.sum()) * cm2, names)
@@ -420,9 +415,6 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
                                   pixel_size_um=pixel_size_um, warnings=warnings, view=view)
         timings["total_s"] = round(time.perf_counter() - t0, 3)
         write_json_atomic(tmp / "painting.json", result.as_dict())
-        swap_into_place(tmp, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     report(progress, 1.0, "painting: done")
     return result
 
@@ -431,13 +423,10 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                 pixel_size_um, chunk_px) -> dict:
     """albedo.ome.zarr (with the protrusion and colour-area labels), normals.ome.zarr and
     height.ome.zarr of the painting, chunk by chunk; returns each tile's height plane."""
-    from .core.mosaic import align_heights
-    from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, write_dask_ome_zarr
-    from .painting_maps import MapContext, PlacedTile, painting_array
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
-    heights = {k: _memmap(out_dir / k / "depth.tif") for k in names}
+    heights = {k: open_tiff(out_dir / k / "depth.tif") for k in names}
     planes = align_heights(heights, corners, reg.pairs)
     del heights
     luts = {}
@@ -468,26 +457,6 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                         painting_array("height", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
                         origin_um=origin_um)
     return {k: [round(v, 6) for v in planes[k]] for k in names}
-
-
-def _memmap(path: Path):
-    import tifffile
-
-    try:
-        return tifffile.memmap(path, mode="r")
-    except (ValueError, OSError):
-        return read_tiff(path)[0]
-
-
-def swap_into_place(tmp: Path, target: Path) -> None:
-    """Rename the finished ``tmp`` to ``target`` (an old one moved aside first, then removed)."""
-    if target.exists():
-        old = target.parent / f".{target.name}.batch-old-{uuid.uuid4().hex[:8]}"
-        os.replace(target, old)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
 
 
 def _cell(v) -> str:

@@ -15,15 +15,15 @@ colour areas from the painting's overview.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tifffile
 from scipy import ndimage
 
 from .core.mosaic import PLANE_SCALE_PX
+from .files.omezarr import open_tiff
 
 
 @dataclass
@@ -51,19 +51,11 @@ class MapContext:
     regions: Optional[np.ndarray] = None   # the overview's colour-area labels
     step: int = 1
     channels: int = 3
-    _cache: dict = field(default_factory=dict, repr=False)
 
 
 #: Each map's TIFF in a tile's run folder and how it is placed.
 SOURCES = {"albedo": "albedo.tif", "normals": "normals.tif", "height": "depth.tif",
            "protrusions": "protrusions_labels.tif"}
-
-
-def _open(path: str) -> np.ndarray:
-    try:
-        return tifffile.memmap(path, mode="r")
-    except (ValueError, OSError):
-        return tifffile.imread(path)
 
 
 def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
@@ -91,7 +83,7 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
             continue
         wr0, wc0 = max(0, int(np.floor(r0 - t.y)) - 1), max(0, int(np.floor(c0 - t.x)) - 1)
         wr1, wc1 = min(M, int(np.ceil(r1 - t.y)) + 2), min(N, int(np.ceil(c1 - t.x)) + 2)
-        data = _open(str(Path(t.run_dir) / SOURCES[kind]))
+        data = open_tiff(Path(t.run_dir) / SOURCES[kind])
         win = np.asarray(data[..., wr0:wr1, wc0:wc1], np.float64)
         if win.ndim == 2:
             win = win[None]

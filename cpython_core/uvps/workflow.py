@@ -27,7 +27,7 @@ from .files.cards import load_card
 from .files.io import read_capture
 from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
                             report, sub_progress)
-from .files.runfolder import (FILES, RunImages, drop_manual_work, manual_work, read_run, set_aside_for_step,
+from .files.runfolder import (FILES, STEP_REWRITES, RunImages, drop_manual_work, manual_work, read_run, set_aside_for_step,
                               set_aside_manual_work, write_run)
 from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
 from .report.page import print_pdf, write_report
@@ -296,7 +296,7 @@ def kept_aside(run_dir: Path, kept: Path, out: CommandResult, *, step: str) -> N
     """After a step's :func:`uvps.files.runfolder.set_aside_for_step`: the manual files leave ``run_dir``
     (kept in ``kept``, under ``earlier/``), and the result says where, in one warning."""
     drop_manual_work(run_dir)
-    what = "height" if step == "integrate" else "albedo"
+    what = STEP_REWRITES[step]
     out.diagnostics["earlier_manual_work"] = str(kept)
     out.warnings.append(f"the manual work in {run_dir} ({', '.join(manual_work(kept))}) was measured on the "
                         f"{what} that `{step}` replaced: kept with the run it was measured on in {kept}; the new "

@@ -30,14 +30,16 @@ from io import StringIO
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 import tifffile
 
 from .. import __version__
 from ..errors import UVPSComputeError, UVPSError, UVPSInputError
 from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, sha256_file
 from ..files.tables import atomic_write_text
-from ..files.outputs import CommandResult, OutputSpec, Progress, check_output_dir, report, write_json_atomic
+from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_dir, replace_dir, report,
+                            write_json_atomic)
+from ..core.mosaic import overlap_box
+from ..painting import PAINTING_DIR, PAINTING_LAYOUT, PAINTING_PROTRUSIONS, PAINTING_REGIONS, stitch_painting
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..spec import CommandSpec, Param, coerce_value
 
@@ -50,9 +52,6 @@ PER_CAPTURE_FILES = ("lights", "mask", "dark", "regions")
 _KEYWORDS = {p.name: p.choices for p in CAPTURE_PARAMS + PROTRUSION_PARAMS if p.name in PER_CAPTURE_FILES}
 #: What a batch writes beside the run folders.
 SUMMARY, BATCH_JSON = "batch_summary.csv", "batch.json"
-#: The painting of a mosaic batch: ``OUT/painting/`` (see :mod:`uvps.painting`).
-PAINTING_DIR = "painting"
-PAINTING_PROTRUSIONS, PAINTING_REGIONS = "painting_protrusions.csv", "painting_regions.csv"
 #: Written last into each run folder: the request it was run with (for the skip rule).
 REQUEST_RECORD = "batch_request.json"
 _TMP, _OLD = ".batch-tmp-", ".batch-old-"
@@ -239,18 +238,6 @@ def failure_kind(exc: BaseException) -> str:
     return "compute" if isinstance(exc, UVPSComputeError) else "internal"
 
 
-def _swap_into_place(tmp: Path, target: Path) -> None:
-    """Rename the finished ``tmp`` to ``target``; an old ``target`` is moved aside first and then
-    removed. At every moment ``target`` is absent, the old run or the new one, never a mix."""
-    if target.exists():
-        old = target.parent / f".{target.name}{_OLD}{uuid.uuid4().hex[:8]}"
-        os.replace(target, old)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
-
-
 def read_counts(run_dir: Path) -> dict:
     """``n_protrusions`` (rows of ``protrusions.csv``) and the rows of ``regions.csv`` of a run
     folder (``areas``: name, area_cm2, count, density_per_cm2; the "all" row left out)."""
@@ -289,7 +276,8 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
             result = run_into_folder(RUN, {"images": [str(folder)]}, params, tmp)
             write_json_atomic(tmp / REQUEST_RECORD, {"version": __version__, "capture": str(folder),
                                                      "params": _jsonable(params), "files": _side_files(params)})
-            _swap_into_place(tmp, target)
+            # at every moment the run folder is absent, the old run or the new one, never a mix
+            replace_dir(tmp, target, aside=_OLD)
             record["warnings"] = list(result.warnings)
         record.update(read_counts(target))
     except Exception as exc:  # noqa: BLE001 - one capture's failure is its record, not the batch's
@@ -345,10 +333,13 @@ class _Cluster:
 
 
 def _clean_temporaries(out_dir: Path) -> None:
-    """Remove what killed tasks left (``OUT/.<name>.batch-tmp-*``, ``.batch-old-*``)."""
+    """Remove what killed tasks left (``OUT/.<name>.batch-tmp-*``, ``.batch-old-*``, and the painting's
+    staging folder ``OUT/.painting.uvps-new-*``, :func:`uvps.files.outputs.new_output_dir`)."""
     for p in out_dir.glob(".*.batch-*-*"):
         if _TMP in p.name or _OLD in p.name:
             shutil.rmtree(p, ignore_errors=True)
+    for p in out_dir.glob(f".{PAINTING_DIR}.uvps-new-*"):
+        shutil.rmtree(p, ignore_errors=True)
 
 
 def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=None, grid=None,
@@ -535,15 +526,7 @@ class Tile:
 
     def overlap(self, other: "Tile") -> Optional[tuple]:
         """``(x_lo, y_lo, x_hi, y_hi)`` of the overlap in painting pixels, or None."""
-        x_lo, y_lo = max(self.x0, other.x0), max(self.y0, other.y0)
-        x_hi = min(self.x0 + self.shape[1], other.x0 + other.shape[1])
-        y_hi = min(self.y0 + self.shape[0], other.y0 + other.shape[0])
-        return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
-
-    def edge_distance(self, x_px, y_px):
-        """Distance in pixels from the tile's points ``(x_px, y_px)`` (its own frame) to its nearest edge."""
-        M, N = self.shape
-        return np.minimum(np.minimum(x_px, N - 1 - np.asarray(x_px)), np.minimum(y_px, M - 1 - np.asarray(y_px)))
+        return overlap_box((self.x0, self.y0), self.shape, (other.x0, other.y0), other.shape)
 
 
 def _first_image_shape(folder: Path) -> tuple:
@@ -639,8 +622,6 @@ def grid_layout(grid: str, jobs) -> dict:
 def _stitch(out_dir: Path, layout: dict, params: dict, painting_regions, progress, warnings,
             chunk_px=None) -> dict:
     """Register and merge the tiles into ``OUT/painting/`` (:func:`uvps.painting.stitch_painting`)."""
-    from ..painting import stitch_painting
-
     pxs = {}
     for t in layout.values():
         px, shape = _run_meta(out_dir / t.name)
@@ -681,7 +662,7 @@ def _cmd_batch(inputs: dict, params: dict, output_dir, *, progress: Progress = N
         painting = out / PAINTING_DIR
         outputs += [OutputSpec("painting_protrusions", str(painting / PAINTING_PROTRUSIONS), kind="table", units="um"),
                     OutputSpec("painting_regions", str(painting / PAINTING_REGIONS), kind="table", units="cm^-2"),
-                    OutputSpec("painting_layout", str(painting / "layout.csv"), kind="table", units="px")]
+                    OutputSpec("painting_layout", str(painting / PAINTING_LAYOUT), kind="table", units="px")]
     outputs += [OutputSpec(r["capture"], str(out / r["capture"]), kind="folder") for r in res.records
                 if r["status"] != "failed"]
     lines = [f"{r['capture']}: {r['status']}" + (f", {r['n_protrusions']} protrusions" if r.get("n_protrusions")

@@ -152,29 +152,20 @@ def _click_table(judged, seeds, images, regions) -> dict:
     not counted keeps its position, ``counted`` 0 and why (``note``), and no measurement."""
     measured = measure_protrusions(judged.labels, albedo=images.albedo, height_um=images.height_um,
                                    pixel_size_um=images.pixel_size_um, regions=regions, source="wand")
-    row_of = {int(k): j for j, k in enumerate(measured["id"])}
     n = len(seeds)
-    table = {c: np.empty(n, dtype=measured[c].dtype) for c in measured}
-    reg = regions.labels if regions is not None else None
-    for i, (x, y) in enumerate(seeds):
-        j = row_of.get(i + 1)
-        for c in measured:
-            if j is not None:
-                table[c][i] = measured[c][j]
-            elif c in ("id",):
-                table[c][i] = i + 1
-            elif c == "x_px":
-                table[c][i] = float(x)
-            elif c == "y_px":
-                table[c][i] = float(y)
-            elif c == "region":
-                table[c][i] = int(reg[y, x]) if reg is not None else 0
-            elif c == "source":
-                table[c][i] = "wand"
-            elif c == "crater":
-                table[c][i] = 0
-            else:
-                table[c][i] = np.nan
+    x, y = seeds[:, 0], seeds[:, 1]
+    # a click not counted: its number, position and area, no measurement (NaN, crater 0)
+    table = {c: np.full(n, np.nan) if measured[c].dtype.kind == "f" else np.zeros(n, measured[c].dtype)
+             for c in measured}
+    table["id"][:] = np.arange(1, n + 1)
+    table["x_px"][:], table["y_px"][:] = x, y
+    if regions is not None:
+        table["region"][:] = regions.labels[y, x]
+    table["source"][:] = "wand"
+    # a counted click: its outline measured (the outline's label, its id, is the click's number)
+    rows = np.asarray(measured["id"], np.int64) - 1
+    for c in measured:
+        table[c][rows] = measured[c]
     table["counted"] = np.array([1 if c else 0 for c in judged.counted], dtype=np.int64)
     table["note"] = np.array(judged.note, dtype=object)
     return table

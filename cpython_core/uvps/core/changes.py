@@ -41,7 +41,7 @@ from skimage.registration import phase_cross_correlation
 from scipy import ndimage
 
 from .compare import match_protrusions
-from .level import FORM_DEGREE, Levelling as FormLevelling, fit_surface
+from .level import FORM_DEGREE, fit_surface, legendre_surface
 from ..errors import UVPSInputError
 from .progress import Progress, report
 from .regions import UM2_PER_CM2, bin_edges, bin_names
@@ -507,8 +507,7 @@ def _smooth_field(values, valid, block):
 def _without_form(height, where):
     """``height`` minus its field-scale form fitted over ``where`` (:func:`uvps.core.level.fit_surface`)."""
     h = np.asarray(height, np.float32)
-    coeffs = fit_surface(np.where(where, h, np.nan), degree=FORM_DEGREE)
-    return h - FormLevelling("form", FORM_DEGREE, coeffs, h.shape, 1.0, 0.0, 0.0).surface()
+    return h - legendre_surface(fit_surface(np.where(where, h, np.nan), degree=FORM_DEGREE), h.shape)
 
 
 def level_heights(height_a, height_b_in_a, valid, off_protrusions, *, block_px: int,

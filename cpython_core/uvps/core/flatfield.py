@@ -239,13 +239,19 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
     fits = []
     for k in range(K):
         ratio = _fit_values(logv[k] - logG, ok_all, grid, degree, n_iter)
-        C, bounds = _normalise(ratio, grid, ok_all, degree)
-        fit = DropoffFit(C, degree, grid.shape, 0.0, int(ok_all.sum()), 0.0, ratio, bounds)
-        gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
-        fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
-        fits.append(fit)
+        fits.append(_ratio_fit(ratio, grid, ok_all, degree, int(ok_all.sum())))
     _set_levels(fits, grid)
     return fits
+
+
+def _ratio_fit(ratio, grid, ok, degree, n_blocks) -> DropoffFit:
+    """A :class:`DropoffFit` of a lamp's ratio coefficients: normalised over the blocks ``ok``, with its
+    gradient's RMS over the grid."""
+    C, bounds = _normalise(ratio, grid, ok, degree)
+    fit = DropoffFit(C, degree, grid.shape, 0.0, n_blocks, 0.0, ratio, bounds)
+    gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
+    fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
+    return fit
 
 
 #: A block enters the drop-off fits of a partly-lit capture when at least this many lamps light it.
@@ -285,20 +291,17 @@ def _fit_partly_lit(grid, support, degree, n_iter, rounds=4):
                              "lower --degree")
     F = np.zeros_like(logv)
     C = np.zeros((K, degree + 1, degree + 1))
+    n_lit = valid.sum(axis=0)
     for _ in range(rounds):
-        with np.errstate(invalid="ignore"):
-            a = np.nanmean(np.where(valid, logv - F, np.nan), axis=0)
+        # nanmean's arithmetic, without its "Mean of empty slice" warning for a block no lamp lights
+        # (a masked one): NaN there, and no lamp's fit uses it
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.where(valid, logv - F, 0.0).sum(axis=0) / n_lit
         for k in range(K):
             C[k] = _fit_values(logv[k] - a, valid[k], grid, degree, n_iter)
         C -= C.mean(axis=0)
         F = np.einsum("ri,kij,cj->krc", Vv, C, Vu)
-    fits = []
-    for k in range(K):
-        Cn, bounds = _normalise(C[k], grid, support, degree)
-        fit = DropoffFit(Cn, degree, grid.shape, 0.0, int(valid[k].sum()), 0.0, C[k].copy(), bounds)
-        gr = np.gradient(fit.log_evaluate(grid.rows, grid.cols), grid.rows, grid.cols)
-        fit.gradient_rms = float(np.sqrt(np.mean(gr[0] ** 2 + gr[1] ** 2)))
-        fits.append(fit)
+    fits = [_ratio_fit(C[k].copy(), grid, support, degree, int(valid[k].sum())) for k in range(K)]
     _set_levels(fits, grid)
     return fits
 

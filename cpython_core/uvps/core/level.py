@@ -45,7 +45,7 @@ from .stack import row_bands
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "raw_height",
+__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "legendre_surface", "raw_height",
            "tilt_slope_um_per_mm"]
 
 #: What :func:`level_height` removes: nothing, the best plane (default), or a low-order form.
@@ -105,14 +105,7 @@ class Levelling:
 
     def surface(self, rows: slice = slice(None)) -> np.ndarray:
         """The removed surface (um, float32) on the rows ``rows`` of the map (all by default)."""
-        m, n = self.shape
-        r = np.arange(m)[rows]
-        v = 1.0 - 2.0 * r / max(m - 1, 1)
-        u = 2.0 * np.arange(n) / max(n - 1, 1) - 1.0
-        # separable: S[r, c] = sum_ij c_ij L_i(u_c) L_j(v_r) = (Lv @ C^T @ Lu^T)[r, c]
-        lu = legendre.legvander(u, self.degree)           # (N, d + 1)
-        lv = legendre.legvander(v, self.degree)           # (rows, d + 1)
-        return (lv @ self.coeffs.T @ lu.T).astype(np.float32)
+        return legendre_surface(self.coeffs, self.shape, rows)
 
     def why(self) -> str:
         """What a tilt of the lamps does to the plane, with this map's figures (run.json ``level.why``)."""
@@ -148,6 +141,20 @@ class Levelling:
                        float(d.get("removed_rms_um", 0.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise UVPSInputError(f"run.json level: not a levelling record ({exc})") from None
+
+
+def legendre_surface(coeffs, shape, rows: slice = slice(None)) -> np.ndarray:
+    """The surface of the Legendre ``coeffs`` (module notes; :func:`fit_surface`) on the rows ``rows``
+    of an ``(M, N)`` map, float32."""
+    m, n = shape
+    degree = coeffs.shape[0] - 1
+    r = np.arange(m)[rows]
+    v = 1.0 - 2.0 * r / max(m - 1, 1)
+    u = 2.0 * np.arange(n) / max(n - 1, 1) - 1.0
+    # separable: S[r, c] = sum_ij c_ij L_i(u_c) L_j(v_r) = (Lv @ C^T @ Lu^T)[r, c]
+    lu = legendre.legvander(u, degree)           # (N, d + 1)
+    lv = legendre.legvander(v, degree)           # (rows, d + 1)
+    return (lv @ coeffs.T @ lu.T).astype(np.float32)
 
 
 def _sample(height_um, valid, n_max):
@@ -262,21 +269,25 @@ def level_height(height_um, *, method: str = "plane", pixel_size_um: float, mask
     if out is None:
         out = np.empty(h.shape, np.float32)
     m, n = h.shape
+    # one pass: each band's surface removed, and kept on the valid pixels for the RMS removed
+    removed = np.empty(int(np.count_nonzero(valid)) if degree else 0, np.float32)
+    at = 0
     for rows in row_bands(m, n, 1 << 20):
-        out[rows] = h[rows] - rec.surface(rows) if degree else h[rows]
+        if degree:
+            surf = rec.surface(rows)
+            out[rows] = h[rows] - surf
+            part = surf[valid[rows]]
+            removed[at:at + part.size] = part
+            at += part.size
+        else:
+            out[rows] = h[rows]
     if valid.any():
         med = float(np.median(out[valid]))
         out -= np.float32(med)
         rec.coeffs = rec.coeffs.copy()
         rec.coeffs[0, 0] += med        # the offset too: raw = levelled + surface, exactly
         if degree:
-            s = np.zeros(int(np.count_nonzero(valid)), np.float32)
-            at = 0
-            for rows in row_bands(m, n, 1 << 20):
-                part = rec.surface(rows)[valid[rows]]
-                s[at:at + part.size] = part
-                at += part.size
-            rec.removed_rms_um = float(np.sqrt(np.mean((s - np.median(s)) ** 2.0)))
+            rec.removed_rms_um = float(np.sqrt(np.mean((removed - np.median(removed)) ** 2.0)))
     log.info("levelling (%s): best plane %.3g, %.3g um/mm (x right, y up), %.3g um rms removed", method, sx, sy,
              rec.removed_rms_um)
     return out, rec

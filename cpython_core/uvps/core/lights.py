@@ -84,6 +84,11 @@ class PixelSample:
     #: plain variable projection on the lit rows (:func:`sample_pixels`).
     W: Optional[np.ndarray] = None
 
+    def take(self, sel) -> "PixelSample":
+        """The pixels ``sel`` (indices or a slice) of the sample, with their weights."""
+        return PixelSample(self.I[:, sel], self.X[sel], np.asarray(self.rows)[sel], np.asarray(self.cols)[sel],
+                           None if self.W is None else self.W[:, sel])
+
 
 def _vectors(sample: "PixelSample", model) -> np.ndarray:
     """The lights' vectors (K, P, 3) at the sample's pixels, zero where the lamp does not light the pixel."""
@@ -731,8 +736,7 @@ def _level(sample: PixelSample, model: LightModel, history) -> LightModel:
 
 def _subset(sample: PixelSample, n: int) -> PixelSample:
     """The first n pixels of a sample (the sample is in random order, so this is a random subset)."""
-    return PixelSample(sample.I[:, :n], sample.X[:n], sample.rows[:n], sample.cols[:n],
-                       None if sample.W is None else sample.W[:, :n])
+    return sample.take(slice(n))
 
 
 def _refine_each(sample: PixelSample, start: LightModel, R, X, history, *, stages=None,
@@ -1308,9 +1312,7 @@ def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = 8) -> f
         sel = np.nonzero(tile == g)[0]
         if sel.size < 8:
             continue
-        sub = PixelSample(sample.I[:, sel], sample.X[sel], rows[sel], cols[sel],
-                          None if sample.W is None else sample.W[:, sel])
-        scores.append(_vp_normal_equations(sub, th, workers=1)[3] / n_res)
+        scores.append(_vp_normal_equations(sample.take(sel), th, workers=1)[3] / n_res)
     if len(scores) < 3:
         return float("nan")
     S = np.asarray(scores)

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 
 log = logging.getLogger(__name__)
 
@@ -224,18 +225,12 @@ def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
 
 
 def _connected(names, links) -> bool:
+    """Whether the ``links`` (pairs of tile names) join every tile into one piece."""
     idx = {n: i for i, n in enumerate(names)}
-    parent = list(range(len(names)))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in links:
-        parent[find(idx[a])] = find(idx[b])
-    return len({find(i) for i in range(len(names))}) == 1
+    a = np.array([idx[p] for p, _ in links], int)
+    b = np.array([idx[q] for _, q in links], int)
+    graph = sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(len(names), len(names)))
+    return csgraph.connected_components(graph, directed=False)[0] == 1
 
 
 def _solve(names, nominal, pairs, min_confidence, max_residual_px):
@@ -310,7 +305,10 @@ def align_heights(heights: dict, corners: dict, pairs, *, step: int = 4, margin:
     names = list(heights)
     idx = {n: i for i, n in enumerate(names)}
     n = len(names)
-    blocks, rhs = [], []
+    # the normal equations, pair by pair: a pair's rows touch its two tiles' 3 columns alone, so each adds
+    # four 3 x 3 blocks (the dense rows, samples x 3n, were 170 MB a pair for 100 tiles of 4000 x 3000)
+    AtA = np.zeros((3 * n, 3 * n))
+    Atb = np.zeros(3 * n)
     for p in pairs:
         if not p.used:
             continue
@@ -328,18 +326,20 @@ def align_heights(heights: dict, corners: dict, pairs, *, step: int = 4, margin:
         va, vb = _bilinear(ha, Y - ya, X - xa), _bilinear(hb, Y - yb, X - xb)
         ok = np.isfinite(va) & np.isfinite(vb)
         X, Y, va, vb = X[ok], Y[ok], va[ok], vb[ok]
-        A = np.zeros((X.size, 3 * n))
         basis = np.column_stack([np.ones(X.size), X / PLANE_SCALE_PX, Y / PLANE_SCALE_PX])
-        A[:, 3 * idx[p.a]:3 * idx[p.a] + 3] = basis
-        A[:, 3 * idx[p.b]:3 * idx[p.b] + 3] = -basis
-        blocks.append(A)
-        rhs.append(vb - va)
+        BtB, Btr = basis.T @ basis, basis.T @ (vb - va)
+        a, b = slice(3 * idx[p.a], 3 * idx[p.a] + 3), slice(3 * idx[p.b], 3 * idx[p.b] + 3)
+        AtA[a, a] += BtB
+        AtA[b, b] += BtB
+        AtA[a, b] -= BtB
+        AtA[b, a] -= BtB
+        Atb[a] += Btr
+        Atb[b] -= Btr
     gauge = np.zeros((3, 3 * n))
     for k in range(3):
         gauge[k, k::3] = 1.0
-    A = np.vstack(blocks + [gauge * 1e3]) if blocks else gauge
-    b = np.concatenate(rhs + [np.zeros(3)]) if rhs else np.zeros(3)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    AtA += 1e6 * gauge.T @ gauge          # the gauge's rows (weight 1e3, right-hand side 0)
+    sol, *_ = np.linalg.lstsq(AtA, Atb, rcond=None)
     coef = {k: sol[3 * idx[k]:3 * idx[k] + 3].copy() for k in names}
     # level the aligned surface as one: the plane of every tile's samples (inner grid), removed
     pts, vals = [], []

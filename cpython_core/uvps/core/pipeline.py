@@ -196,13 +196,14 @@ MAX_LAMP_RESIDUAL = 0.05
 #: Largest disagreement (deg) between an estimated lamp's azimuth and the one read from its drop-off
 #: beyond which a run warns (:func:`_azimuth_warnings`). 12 lamps, seeds 0-2, with the azimuths from
 #: integrability: beams 29.5-142, all nuisances 129 (seed 1), cupped paint 2.7-4.0, strokes 0.7-2.5,
-#: a clean capture 1.4 (docs/benchmarks.md, "Rules that stop or warn").
+#: a clean capture 1.4 (docs/decisions/normals.md, "Rules that stop or warn").
 AZIMUTH_DISAGREEMENT_WARN_DEG = 5.0
 #: When the fit does not hold (:func:`fit_warnings`): the normals' rms relative residual (the demo
 #: 0.005; the benchmark's rows with given lamps up to 0.01; lamps estimated above 0.05 stop the run,
 #: :data:`MAX_LAMP_RESIDUAL`), the share of pixels left without normals, and the tilt of the mean
 #: normal (a ramp of the heights across the field: a canvas's bow of 250 um over 24 mm tilts no
-#: more than 1 deg). Measured: docs/benchmarks.md, "When a fit does not hold".
+#: more than 1 deg). Measured: docs/benchmarks.md, "When a fit does not hold" (real runs) and
+#: docs/decisions/normals.md, "Fit-check thresholds" (the synthetic rows).
 FIT_RESIDUAL_WARN = 0.05
 INVALID_FRACTION_WARN = 0.03
 MEAN_TILT_WARN_DEG = 5.0

@@ -685,6 +685,16 @@ def _kind_of(stack_vals, disc: "_Disc" = None, sat=None) -> str:
     return "mirror" if np.median(radii) < MIRROR_CORE_DEG else "glossy"
 
 
+def _open_core(core):
+    """A highlight's core with a flare's thin spikes opened off (3 x 3; a core of over 12 pixels, when
+    the opening leaves something), and its components: ``(core, labels, count)``."""
+    if core.sum() > 12:
+        opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
+        core = opened if opened.any() else core
+    lab, n = ndimage.label(core)
+    return core, lab, n
+
+
 def _highlight_core(v, w, disc: "_Disc", sat):
     """A highlight's core on the disc's box: (mask, angular radius in degrees, peak) or None.
 
@@ -707,10 +717,7 @@ def _highlight_core(v, w, disc: "_Disc", sat):
         core[disc.rows, disc.cols] = (v >= SATURATED_CORE * sat) & (w > 0.5 * peak)
     if core.sum() < 3:
         core = img >= 0.5 * peak
-    if core.sum() > 12:
-        opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
-        core = opened if opened.any() else core
-    lab, n = ndimage.label(core)
+    core, lab, n = _open_core(core)
     if n == 0:
         return None
     sizes = ndimage.sum(core, lab, index=np.arange(1, n + 1))
@@ -1145,14 +1152,6 @@ def _fit_glossy(v, disc: _Disc, sat, static=None):
     noise = 1.4826 * np.median(np.abs(sub - base)) + 1.0
     w = v - base
     peak = float(w.max())
-    # with ``static`` (:func:`_static_part`), a saturated spot every image shows (a reflection of the
-    # room) is not the lamp's; only the core's choice uses it: as the lobe's weights, the median of a
-    # few lamps' images, which holds parts of their lobes and of the diffuse shading, moved the lamps
-    # placed by two glossy spheres under 6 lamps from 9 % to 18 % of their distance
-    moving = np.ones(v.shape, bool)
-    if static is not None:
-        ws = v - static
-        moving = ws > 0.5 * float(ws.max())
     if peak < 10 * noise:
         return None
     shape = disc.shape
@@ -1161,11 +1160,15 @@ def _fit_glossy(v, disc: _Disc, sat, static=None):
     core = img >= 0.5 * peak
     if sat is not None and (v >= sat).any():
         core = np.zeros(shape, bool)
-        core[disc.rows, disc.cols] = (v >= sat) & moving
-    if core.sum() > 12:
-        opened = ndimage.binary_opening(core, structure=np.ones((3, 3), bool))
-        core = opened if opened.any() else core
-    lab, n = ndimage.label(core)
+        core[disc.rows, disc.cols] = v >= sat
+        if static is not None:
+            # with ``static`` (:func:`_static_part`), a saturated spot every image shows (a reflection of
+            # the room) is not the lamp's; only the core's choice uses it: as the lobe's weights, the median
+            # of a few lamps' images, which holds parts of their lobes and of the diffuse shading, moved the
+            # lamps placed by two glossy spheres under 6 lamps from 9 % to 18 % of their distance
+            ws = v - static
+            core[disc.rows, disc.cols] &= ws > 0.5 * float(ws.max())
+    _, lab, n = _open_core(core)
     if n == 0:
         return None
     sums = ndimage.sum(img, lab, index=np.arange(1, n + 1))

@@ -317,8 +317,8 @@ def _grow_by_contrast(grey, finite, y, x, frac, max_w):
 
 #: An outline is counted as a protrusion when it stands above the paint around it: the 90th percentile of its
 #: height above a plane through the ring around it is at least this many times the ring's own spread about
-#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/benchmarks.md,
-#: "The wand counts only what it outlines"): outlines of the paint's texture reach 5.7, outlines of
+#: that plane (1.4826 MAD). Measured by ``scripts/benchmark_protrusions.py --wand-off`` (docs/decisions/wand.md,
+#: "Clicks judged before they count"): outlines of the paint's texture reach 5.7, outlines of
 #: protrusions start at 9.7.
 RAISED_RATIO = 8.0
 
@@ -382,24 +382,33 @@ class WandClicks:
         return text
 
 
+def _ring(labels, lab, sl, *, gap=0.0):
+    """The outline ``labels == lab`` (bounding box ``sl``) and the ring around it, clear of other labels, on a
+    crop of the map: ``(box, inside, ring)``, ``box`` the crop's slices. The ring is the outline's radius wide
+    (at least 3 px), ``gap`` ring widths out from the outline."""
+    m, n = labels.shape
+    area = int(np.count_nonzero(labels[sl] == lab))
+    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
+    pad = int(np.ceil((1 + gap) * radius)) + 1
+    box = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
+           slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
+    crop = labels[box]
+    inside = crop == lab
+    dist = ndi.distance_transform_edt(~inside)
+    ring = (dist > gap * radius) & (dist <= (1 + gap) * radius) & (crop == 0)
+    return box, inside, ring
+
+
 def _relief_ratio(height, labels, lab, sl, *, gap=0.0):
     """The relief of ``labels == lab`` (bounding box ``sl``) over the spread of the ring around it,
     clear of other labels (see :data:`RAISED_RATIO`); 0 when the ring is too small to tell. ``gap``
     (in units of the ring's width) leaves the flanks of an outline drawn at half height out of the ring."""
     from .measure import _surround_plane
 
-    m, n = height.shape
-    area = int(np.count_nonzero(labels[sl] == lab))
-    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
-    pad = int(np.ceil((1 + gap) * radius)) + 1
-    r0, r1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)
-    c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)
-    crop = labels[r0:r1, c0:c1]
-    h = height[r0:r1, c0:c1]
+    box, inside, ring = _ring(labels, lab, sl, gap=gap)
+    h = height[box]
     finite = np.isfinite(h)
-    inside = crop == lab
-    dist = ndi.distance_transform_edt(~inside)
-    ring = (dist > gap * radius) & (dist <= (1 + gap) * radius) & (crop == 0) & finite
+    ring &= finite
     inside &= finite
     if ring.sum() < 8 or not inside.any():
         return 0.0
@@ -416,17 +425,9 @@ def _relief_ratio(height, labels, lab, sl, *, gap=0.0):
 
 def _contrast_and_match(grey, height, labels, lab, sl, x, y, max_width_px):
     """The outline's albedo contrast over its ring's spread, and its IoU with the height's outline at the click."""
-    m, n = labels.shape
-    area = int(np.count_nonzero(labels[sl] == lab))
-    radius = max(3.0, 0.5 * np.sqrt(area / np.pi))
-    pad = int(np.ceil(radius)) + 1
-    r0, r1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)
-    c0, c1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)
-    crop = labels[r0:r1, c0:c1]
-    g = grey[r0:r1, c0:c1]
-    inside = crop == lab
-    dist = ndi.distance_transform_edt(~inside)
-    ring = (dist > 0) & (dist <= radius) & (crop == 0) & np.isfinite(g)
+    box, inside, ring = _ring(labels, lab, sl)
+    g = grey[box]
+    ring &= np.isfinite(g)
     contrast = 0.0
     if ring.sum() >= 8:
         vals = g[ring]
@@ -436,8 +437,10 @@ def _contrast_and_match(grey, height, labels, lab, sl, x, y, max_width_px):
     iou = 0.0
     if height is not None and np.isfinite(height[y, x]):
         bump = contrast_select(height, [(x, y)], max_width_px=max_width_px) == 1
-        region = labels == lab
-        iou = float(np.count_nonzero(bump & region)) / max(1, int(np.count_nonzero(bump | region)))
+        # the outline lies in its box ``sl``: the intersection is counted there, not over the whole map
+        both = int(np.count_nonzero(bump[sl] & (labels[sl] == lab)))
+        either = int(np.count_nonzero(bump)) + int(np.count_nonzero(inside)) - both
+        iou = float(both) / max(1, either)
     return contrast, iou
 
 

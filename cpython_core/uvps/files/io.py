@@ -38,7 +38,7 @@ from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
 from ..core.stack import Capture, LazyStack, StackView, row_bands
 from .atomic import atomic_path
-from .raw import RAW_DEVELOP, _raw_levels, _rawpy, raw_reading, read_raw  # noqa: F401  (camera raw files)
+from .raw import RAW_DEVELOP, _rawpy, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -997,9 +997,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
 
     if stack_path is not None:
         lazy = memory_map and dark is None and linearize != "srgb"
-        stack, labels, first_kind, tag_px = _read_stack(
-            stack_path, progress, lazy=lazy, dark=None if dark is None or _needs_linearize(
-                "tiff", np.uint16, linearize) else Path(dark))
+        stack, labels, first_kind, tag_px = _read_stack(stack_path, progress, lazy=lazy, linearize=linearize,
+                                                        dark=None if dark is None else Path(dark))
         sources = [_Source(lb, stack_path) for lb in labels]
         dtype = stack.dtype_in
         arr = stack.images
@@ -1168,7 +1167,8 @@ class _Stack(NamedTuple):
     dark_subtracted: bool = False
 
 
-def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Optional[Path] = None):
+def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Optional[Path] = None,
+                linearize: str = "auto"):
     """A multi-page TIFF as (K, M, N[, 3]) images -> (_Stack, labels, kind, pixel size).
 
     ``lazy`` (an integer stack with nothing to convert): the images are views, as a
@@ -1177,8 +1177,9 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Opt
     :data:`SCRATCH_ABOVE_BYTES`), or into the stack read whole: no float32 copy, and a stack larger
     than the memory is processed band by band as a folder of files is. Otherwise a float32 copy
     (sRGB to linearise, a dark frame to subtract, float data, ``memory_map=False``), except that an
-    integer stack with a ``dark`` frame (no linearisation) is copied in its own dtype, the dark frame
-    subtracted from each image as it is copied (:func:`_minus_dark`; ``dark_subtracted``).
+    integer stack with a ``dark`` frame, neither to linearise (``linearize``), is copied in its own dtype,
+    the dark frame subtracted from each image as it is copied (:func:`_minus_dark`; ``dark_subtracted``),
+    as :func:`_read_files` does.
     """
     try:
         with tifffile.TiffFile(path) as tif:
@@ -1228,9 +1229,9 @@ def _read_stack(path: Path, progress: Progress, *, lazy: bool = False, dark: Opt
     k = len(views)
     native = np.dtype(dtype).newbyteorder("=")
     d = None
-    if dark is not None and not lazy and np.issubdtype(native, np.integer) and not _needs_linearize(
-            _kind(dark), native, "auto"):
-        d = _read_dark(dark, views[0].shape, native, "auto", as_float=False)
+    if (dark is not None and not lazy and np.issubdtype(native, np.integer)
+            and not any(_needs_linearize(kind, native, linearize) for kind in ("tiff", _kind(dark)))):
+        d = _read_dark(dark, views[0].shape, native, linearize, as_float=False)
     out = None if lazy else np.empty((k,) + views[0].shape, dtype=native if d is not None else np.float32)
     labels = []
     for i, view in enumerate(views):

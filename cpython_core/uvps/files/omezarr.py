@@ -87,8 +87,8 @@ def _zarr():
     return zarr
 
 
-def _open_tiff(path: Path) -> np.ndarray:
-    """The TIFF's data memory-mapped (uvps writes them uncompressed), else read whole."""
+def open_tiff(path: Path) -> np.ndarray:
+    """The TIFF's data memory-mapped read-only (uvps writes them uncompressed), else read whole."""
     try:
         return tifffile.memmap(path, mode="r")
     except (ValueError, OSError):
@@ -223,7 +223,7 @@ def write_ome_zarr(run_dir, *, out_dir=None, pixel_size_um: Optional[float] = No
     written = []
     for i, image in enumerate(todo):
         path = run_dir / image.tiff
-        data = _open_tiff(path)
+        data = open_tiff(path)
         px = pixel_size_um or read_tiff_pixel_size(path)
         if px is None:
             raise UVPSInputError(f"{path}: no pixel size in the TIFF; give pixel_size_um")
@@ -243,7 +243,7 @@ def write_ome_zarr(run_dir, *, out_dir=None, pixel_size_um: Optional[float] = No
                 group = root.create_group("labels")
                 names = []
                 for lb in labels:
-                    lab = _open_tiff(run_dir / lb.tiff)
+                    lab = open_tiff(run_dir / lb.tiff)
                     if lab.shape != data.shape[-2:]:
                         log.warning("%s: %s is not the albedo's size; not attached", final, lb.tiff)
                         continue

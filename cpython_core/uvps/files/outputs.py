@@ -241,19 +241,19 @@ def atomic_output_dir(path) -> Iterator[Path]:
 STORE_SUFFIXES = (".zarr",)
 
 
-def replace_dir(src: Path, dst: Path) -> None:
+def replace_dir(src: Path, dst: Path, *, aside: str = ".old-") -> None:
     """Move the folder ``src`` to ``dst`` (same file system), replacing an existing ``dst`` whole.
 
-    The old ``dst`` is renamed aside first and removed after the new one is in place: a reader
-    sees the old store or the new one, or (for the instant between the two renames) none, never a
-    mixture of the two.
+    The old ``dst`` is renamed aside first (to ``.<name><aside>XXXX`` beside it) and removed after
+    the new one is in place: a reader sees the old folder or the new one, or (for the instant
+    between the two renames) none, never a mixture of the two.
     """
     src, dst = Path(src), Path(dst)
     os.chmod(src, 0o777 & ~_umask())
     if not dst.exists():
         os.replace(src, dst)
         return
-    old = Path(tempfile.mkdtemp(prefix="." + dst.name + ".old-", dir=dst.parent))
+    old = Path(tempfile.mkdtemp(prefix="." + dst.name + aside, dir=dst.parent))
     os.rmdir(old)
     os.replace(dst, old)
     os.replace(src, dst)

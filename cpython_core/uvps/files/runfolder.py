@@ -23,7 +23,7 @@ from ..errors import UVPSInputError, check_pixel_size
 from ..core.flatfield import flatfield
 from ..core.integrate import gradients_from_normals
 from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
-from .tables import write_label_tiff, write_protrusions_csv
+from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import row_bands
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
@@ -61,6 +61,9 @@ MANUAL_FILES = ("protrusions_manual.csv", "protrusions_manual_labels.tif", "comp
 #: outlined, the height measured) and the automated count and areas a comparison used.
 MEASURED_ON = ("run.json", "lights.json", "albedo.tif", "depth.tif", "normals.tif", "protrusions.csv",
                "protrusions_labels.tif", "regions_labels.tif", "regions.csv", "report.html")
+#: What each step that rewrites it in place replaces of what manual work was measured on
+#: (:func:`set_aside_for_step`): ``normals`` the albedo outlined, ``integrate`` the height measured.
+STEP_REWRITES = {"normals": "albedo", "integrate": "height"}
 #: The subfolder of a run folder that holds earlier runs' manual work, one folder each.
 EARLIER = "earlier"
 #: The record of one set-aside folder.
@@ -142,13 +145,19 @@ def relief_of(run_json: Optional[dict]) -> dict:
     return {"scale": relief["scale"], "lamps": relief.get("lamps"), "reason": str(relief.get("reason", ""))}
 
 
+def run_record(run_dir) -> Optional[dict]:
+    """The run folder's ``run.json`` as a dict; None when it has none or it is unreadable (the one
+    tolerant reader of it: :func:`relief_in`, :func:`level_of`, :func:`set_level`, the set-aside)."""
+    try:
+        data = json.loads((Path(run_dir) / FILES["run"][0]).read_text(encoding="utf-8"))
+    except (OSError, ValueError):       # ValueError: UnicodeDecodeError and json.JSONDecodeError
+        return None
+    return data if isinstance(data, dict) else None
+
+
 def relief_in(run_dir) -> dict:
     """:func:`relief_of` the run folder's ``run.json`` (absolute when it has none or it is unreadable)."""
-    path = Path(run_dir) / "run.json"
-    try:
-        return relief_of(json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return dict(_RELIEF_DEFAULT)
+    return relief_of(run_record(run_dir))
 
 
 def is_relative(relief: Optional[dict]) -> bool:
@@ -339,23 +348,15 @@ def set_level(run_dir: Path, level, *, into: Optional[Path] = None) -> None:
     that rewrites ``depth.tif`` in a run folder: ``integrate``), written to ``into`` (the temporary
     folder ``depth.tif`` is moved in from, so the two arrive together; default ``run_dir``); nothing
     when the folder has none."""
-    path = Path(run_dir) / FILES["run"][0]
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return
-    if isinstance(data, dict):
+    data = run_record(run_dir)
+    if data is not None:
         data["level"] = level.to_json()
         write_json_atomic(Path(into or run_dir) / FILES["run"][0], data)
 
 
 def level_of(run_dir) -> Optional[dict]:
     """run.json's ``level`` of a run folder (None: not recorded, a folder written before levelling)."""
-    try:
-        data = json.loads((Path(run_dir) / FILES["run"][0]).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    level = data.get("level") if isinstance(data, dict) else None
+    level = (run_record(run_dir) or {}).get("level")
     return level if isinstance(level, dict) else None
 
 
@@ -446,10 +447,7 @@ def set_aside_manual_work(old, new, *, beside: Optional[Path] = None, reason: Op
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
             _link_or_copy(src, dest / name)
             files.append(name)
-    try:
-        run = json.loads((old / FILES["run"][0]).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        run = {}
+    run = run_record(old) or {}
     write_json_atomic(dest / EARLIER_RECORD, {
         "set_aside_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "reason": reason or "a new run of the folder made a new albedo and height; this manual work was "
@@ -472,7 +470,7 @@ def set_aside_for_step(run_dir, tmp, *, step: str) -> Optional[Path]:
     if not manual_work(run_dir):
         return None
     (tmp / EARLIER).mkdir(exist_ok=True)   # run_dir/earlier/ stays where it is: not linked again
-    what = "height" if step == "integrate" else "albedo"
+    what = STEP_REWRITES[step]
     return set_aside_manual_work(run_dir, tmp, beside=run_dir,
                                  reason=f"`uvps {step}` wrote a new {what} into the folder; this manual work was "
                                         "measured on the earlier one, kept here with it")
@@ -494,7 +492,7 @@ def _clicks_of(path: Path) -> dict:
             rows = list(csv.DictReader(fh))
     except (OSError, UnicodeDecodeError, csv.Error):
         return {}
-    counted = sum(1 for r in rows if (r.get("counted") or "1").strip() not in ("0", "no", "false"))
+    counted = sum(1 for r in rows if not not_counted(r.get("counted") or "1"))
     return {"clicks": len(rows), "counted": counted}
 
 

@@ -80,7 +80,8 @@ def write_protrusions_csv(path, table: Mapping, *, relative: bool = False, extra
     atomic_write_text(path, table_to_csv_text(table, columns))
 
 
-def _not_counted(cell: str) -> bool:
+def not_counted(cell: str) -> bool:
+    """A ``counted`` cell of the wand's table (:data:`CLICK_COLUMNS`) that says the click is not counted."""
     return cell.strip().lower() in ("0", "no", "false")
 
 
@@ -112,7 +113,7 @@ def read_protrusions_csv(path, *, clicks: bool = False) -> dict:
     body = [r for r in rows[1:] if any(cell.strip() for cell in r)]
     if "counted" in header and not clicks:
         k = header.index("counted")
-        body = [r for r in body if not (k < len(r) and _not_counted(r[k]))]
+        body = [r for r in body if not (k < len(r) and not_counted(r[k]))]
     missing = [c for c in ("x_px", "y_px", "width_um") if c not in header]
     if missing:
         raise UVPSInputError(f"protrusion table {path} lacks columns {missing}; got {header}")
@@ -202,7 +203,9 @@ def _names_beside(path: Path) -> dict:
     for cand in (path.with_suffix(".json"), path.with_suffix(".csv"),
                  path.parent / (path.stem + "_names.csv"), path.parent / "regions.csv"):
         if cand.is_file():
-            log.info("area names from %s", cand)
+            # every candidate lies beside the label image: its name says which, and a run building its folder
+            # in a staging folder (files.outputs.new_output_dir) does not name that folder
+            log.info("area names from %s (beside %s)", cand.name, path.name)
             return read_region_names(cand)
     return {}
 

@@ -23,7 +23,7 @@ cupped paint islands, cast shadows, protrusions of several shapes (mesas, lumpy 
 touching clusters, non-fluorescing ones) and weaves and strokes of several scales. Left at their
 defaults, a capture is the same, bit for bit, as before they existed.
 
-The code is split by part, each re-exported here (import from here): the description
+The code is split by part, its public names re-exported here (import from here): the description
 (:mod:`.synthetic_spec`), the surface (:mod:`.synthetic_surface`), its rendering under the lamps with
 their nuisances (:mod:`.synthetic_render`), :func:`make_capture` (:mod:`.synthetic_capture`), writing
 to files (:mod:`.synthetic_files`) and pairs of captures over time (:mod:`.synthetic_pair`).
@@ -32,13 +32,11 @@ from __future__ import annotations
 
 from .synthetic_elements import ElementTruth, render_element_maps  # noqa: F401  (element maps: uvps elements)
 from .synthetic_spec import (  # noqa: F401
-    logger,
     LIGHT_AREA_COLOURS,
     DARK_AREA_COLOURS,
     PROTRUSION_COLOUR,
     PRIMER_COLOUR,
     LUMINANCE,
-    _UM2_PER_CM2,
     Nuisances,
     SyntheticSpec,
     PROTRUSION_GEOMETRIES,
@@ -48,54 +46,18 @@ from .synthetic_spec import (  # noqa: F401
     NUISANCE_TYPICAL,
     IMPASTO,
     SyntheticCapture,
-    _checked_overrides,
 )
 from .synthetic_render import (  # noqa: F401
     normals_from_height,
-    _derivative4,
-    _normals64,
     pixel_centres_mm,
-    _shading,
     shadow_masks,
-    _shadow_mask,
     render_images,
-    _peak,
-    _check_nuisances,
-    _add_noise,
     light_positions,
-    _substream,
-    _black_levels,
-    _vignetting_map,
-    _stray_shape,
-    _beam_axes,
     render_dark_frame,
     CARD_TYPICAL,
     render_card,
-    _lamp_and_lens_nuisances,
-    _add_stray_light,
-    _normalised,
-)
-from .synthetic_surface import (  # noqa: F401
-    _weave,
-    _weave_scales,
-    _crack_seeds,
-    _cracks,
-    _smooth_warp,
-    _colour_areas,
-    _region_palette,
-    _Impasto,
-    _stroke_relief,
-    _ridges,
-    _primer_spots,
-    _protrusion_widths,
-    _dome_profile,
-    _profile,
-    _Shapes,
-    _protrusions,
-    _cluster_member,
 )
 from .synthetic_capture import (  # noqa: F401
-    _validate,
     make_capture,
 )
 from .synthetic_files import (  # noqa: F401
@@ -105,17 +67,11 @@ from .synthetic_files import (  # noqa: F401
     write_dng,
     write_raw_capture,
     write_capture,
-    _write_camera_tiff,
-    _write_truth,
+    _write_camera_tiff,  # tests/test_speed.py writes a camera TIFF with it
 )
 from .synthetic_pair import (  # noqa: F401
     LaterSpec,
     CapturePair,
     similarity_matrix,
-    _ellipse,
-    _own_relief,
-    _change_surface,
-    _view_table,
-    _render_view,
     make_capture_pair,
 )

@@ -64,6 +64,9 @@ def _validate(spec: SyntheticSpec) -> None:
         if len(rng_) != 2 or not (lo_min < rng_[0] <= rng_[1] <= hi_max):
             raise UVPSInputError(f"{name} must be (low, high) with {lo_min} < low <= high <= "
                                  f"{hi_max}; got {getattr(spec, name)}")
+    if not (np.isfinite(spec.width_median_um) and spec.width_median_um > 0):
+        raise UVPSInputError(f"width_median_um must be a finite width > 0 um (moved into width_um when "
+                             f"outside it); got {spec.width_median_um}")
     for name in ("intensity_jitter", "weak_fraction", "crater_fraction"):
         if not 0 <= getattr(spec, name) < 1:
             raise UVPSInputError(f"{name} must be in [0, 1); got {getattr(spec, name)}")

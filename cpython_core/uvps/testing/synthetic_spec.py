@@ -95,7 +95,8 @@ class SyntheticSpec:
 
     Densities are per cm^2 of the field; widths and heights in um; distances in mm.
     Protrusion widths are log-normal about ``width_median_um`` (150; sigma 0.45) within
-    ``width_um``: 100 puts a third of them below 80 um (a few pixels of 15 um).
+    ``width_um`` (a median outside it is moved to its nearer end): 100 puts a third of them
+    below 80 um (a few pixels of 15 um).
     ``n_ridges`` / ``n_primer_spots`` = None means ``ridge_density`` (4) ridges and
     ``primer_density`` (3) primer spots per cm^2.
     Each image's irradiance at the centre is 1 +- ``intensity_jitter`` (as if the exposure were reset

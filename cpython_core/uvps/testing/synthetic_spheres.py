@@ -37,7 +37,9 @@ import numpy as np
 
 from ..errors import UVPSInputError
 from ..files.outputs import atomic_output_dir
-from .synthetic import LUMINANCE, SyntheticCapture, _add_noise, _substream, _write_camera_tiff, pixel_centres_mm
+from .synthetic_files import _write_camera_tiff
+from .synthetic_render import _add_noise, _substream, pixel_centres_mm
+from .synthetic_spec import LUMINANCE, SyntheticCapture
 
 __all__ = ["SphereSpec", "SphereCapture", "make_sphere_capture", "write_sphere_capture", "DEFAULT_SPHERES"]
 

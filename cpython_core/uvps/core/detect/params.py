@@ -282,9 +282,8 @@ class Range(NamedTuple):
 
 
 def _num(v) -> str:
-    if isinstance(v, str):
-        return v
-    return "inf" if v == math.inf else ("-inf" if v == -math.inf else f"{v:g}")
+    """A bound as the docs write it: a field's name, or the number (``inf`` for infinity)."""
+    return v if isinstance(v, str) else f"{v:g}"
 
 
 INF = math.inf

@@ -200,7 +200,6 @@ RULES = (
           "own_glow_fraction": Range(0.0, INF, lo_open=True, note="above 1 disables")},
          ("relief", "relief_disc", "eqd", "tilt_deg", "has_a", "own_glow"), _weave, rescue=True),
 )
-RULES_BY_NAME = {r.name: r for r in RULES}
 REJECTION_RULES = tuple(RejectionRule(r.name, r.quantity, r.test) for r in RULES)
 REJECTION_REASONS = tuple(r.name for r in RULES)
 #: Every option's range: the rules' own and the cues' (:data:`.params.CUE_RANGES`).
@@ -228,15 +227,11 @@ def _rescue_fails(bump, ctx: RuleContext) -> bool:
     return any(bool(r.fails(bump, ctx)) for r in RULES if r.rescue)
 
 
-def _defaults() -> DetectionParams:
-    return DetectionParams()
-
-
 def rules_markdown() -> str:
     """The rejection table as Markdown, from :data:`RULES` (``docs/architecture.md`` and
     ``docs/protrusions.md`` hold it between ``<!-- rules:begin -->`` and ``<!-- rules:end -->``;
     ``scripts/detection_docs.py`` writes it, ``tests/test_detect_package.py`` checks it)."""
-    d = _defaults()
+    d = DetectionParams()
     rows = ["| rule | in a conservator's words | quantity | rejected when | options (default, range) |",
             "|---|---|---|---|---|"]
     for r in RULES:
