@@ -309,3 +309,20 @@ def test_rank_trimming_keeps_at_least_three_samples():
     res = solve_normals(images, far, pixel_size_um=PX, robust=True)
     assert res.n_used[~inside].min() == 3
     assert np.nanmax(_err(res.normals, n)[~inside]) < 0.05
+
+
+def test_the_share_of_the_signal_unexplained_is_not_ruled_by_near_black_pixels():
+    """The residual reported (and read by `--samples auto` and the fit checks) is the share of the signal
+    the fit leaves unexplained: 1 % noise on a lit sphere is about 0.01, with or without a corner of
+    pixels near zero (as a dark frame or stray light subtracted leaves them), whose own relative misfit
+    is enormous; the old per-pixel ratio reported those pixels' 1e5-fold and more."""
+    n, X, inside = _sphere()
+    rng = np.random.default_rng(3)
+    clean = _render(n, X, NEAR, np.full((M, N), 1000.0))
+    noisy = (clean * (1 + 0.01 * rng.standard_normal(clean.shape))).astype(np.float32)
+    base = solve_normals(noisy, NEAR, pixel_size_um=PX).residual_rms
+    assert 0.005 < base < 0.02
+    dark = noisy.copy()
+    dark[:, :8, :8] = 1e-3 * rng.standard_normal((len(dark), 8, 8))   # 64 pixels of zero-mean noise
+    res = solve_normals(dark, NEAR, pixel_size_um=PX)
+    assert abs(res.residual_rms - base) < 0.2 * base, (res.residual_rms, base)

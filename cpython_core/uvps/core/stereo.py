@@ -45,7 +45,7 @@ class StereoResult:
     albedo: np.ndarray         # (M, N) or (M, N, C) float32, in image counts per unit irradiance
     n_used: np.ndarray         # (M, N) uint8: lights used per pixel
     n_invalid: int             # pixels with fewer than 3 usable lights (inside the mask)
-    residual_rms: float        # rms relative residual over solved pixels
+    residual_rms: float        # rms residual over the used samples / rms of their pixels' mean brightness
 
 
 #: :func:`solve_normals`'s sample rules off: plain least squares over every sample (no saturation, dark or
@@ -204,7 +204,10 @@ def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fractio
     per channel with the normal fixed (else ``|b|``); ``xs``, ``ys``: each pixel's position in mm
     (float32); ``L`` (K, 3) and ``E`` (K,) near lamps, or ``dirs`` (K, 3) far ones (times E) when
     not ``near``; ``sat`` <= 0: no saturation test; ``hi`` > 0: keep brightness ranks lo .. hi - 1.
-    Returns (sum of squared relative residuals, their count, invalid pixels inside ``use``).
+    Returns (sum of squared residuals over the used samples, the same samples' sum of their pixel's squared
+    mean brightness, invalid pixels inside ``use``): their ratio, pooled over the image, is the share of the
+    signal left unexplained (a pixel's misfit relative to its own brightness would let a few near-black
+    pixels, e.g. where a dark frame or stray light was subtracted, dominate it: 1e13 % was reported).
     Hand-written (numba): no library solves millions of tiny weighted least-squares problems, each
     with its own sample selection, without K x P temporaries (numpy's passes took 10-19 s where this
     takes 2.6 s at 4000 x 3000 x 16: ``scripts/benchmark_speed.py``).
@@ -218,7 +221,7 @@ def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fractio
     ratio = np.empty(K, np.float32)
     V = np.empty((K, 3), np.float32)
     num = np.empty(max(C, 1))
-    sq_sum, sq_n, n_bad = 0.0, 0, 0
+    sq_sum, sq_n, n_bad = 0.0, 0.0, 0
     for p in range(P):
         gmax = _grey_and_bright(band, p, grey, bright)
         _light_vectors(near, L, E, dirs, xs[p], ys[p], V, vn)
@@ -238,15 +241,16 @@ def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fractio
         normals[p, 0] = n0
         normals[p, 1] = n1
         normals[p, 2] = n2
-        gsum, e2 = 0.0, 0.0
+        gsum, e2, nk = 0.0, 0.0, 0
         for k in range(K):
             gsum += grey[k]
             if w[k] != 0.0:
                 r = np.float64(grey[k] - pred[k])
                 e2 += r * r
-                sq_n += 1
-        scale = max(gsum / K, 1e-12)
-        sq_sum += e2 / (scale * scale)
+                nk += 1
+        mean = gsum / K
+        sq_sum += e2
+        sq_n += nk * mean * mean
         if colour:
             _colour_albedo(band, p, V, w, n0, n1, n2, num, albedo)
         else:
@@ -343,7 +347,8 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
             report(progress, r1 / M, f"normals: rows {r1}/{M}")
     if n_invalid:
         log.info("%d pixels had fewer than 3 usable lights and are NaN", n_invalid)
-    return StereoResult(out.normals, out.albedo, out.n_used, n_invalid, float(np.sqrt(sq_sum / max(sq_n, 1))))
+    return StereoResult(out.normals, out.albedo, out.n_used, n_invalid,
+                        float(np.sqrt(sq_sum / sq_n)) if sq_n > 0 else 0.0)
 
 
 class _Outputs(NamedTuple):
@@ -376,7 +381,8 @@ def _pool(workers, n_tasks):
 
 def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, saturation, ranks, shadow_cos,
                 dark_fraction) -> tuple:
-    """Solve rows ``r0:r1`` into ``out``; -> (sum of squared relative residuals, their count, invalid pixels).
+    """Solve rows ``r0:r1`` into ``out``; -> (sum of squared residuals, the signal's sum of squares over the
+    same samples, invalid pixels): :func:`_solve_pixels`.
 
     The band is read and converted to float32 here; :func:`_solve_pixels` (compiled, GIL released)
     does the rest, so bands run in parallel threads.
@@ -403,4 +409,4 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     out.normals[r0:r1] = normals.reshape(r1 - r0, N, 3)
     out.albedo[r0:r1] = albedo.reshape((r1 - r0, N, C) if C else (r1 - r0, N))
     out.n_used[r0:r1] = n_used.reshape(r1 - r0, N)
-    return float(res[0]), int(res[1]), int(res[2])
+    return float(res[0]), float(res[1]), int(res[2])
