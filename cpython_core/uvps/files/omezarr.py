@@ -45,7 +45,7 @@ from .outputs import Progress, replace_dir, report
 log = logging.getLogger(__name__)
 
 __all__ = ["NGFF_VERSION", "MIN_LEVEL_PX", "CHUNK_PX", "ZarrImage", "IMAGES", "LABELS", "write_ome_zarr",
-           "write_dask_ome_zarr", "write_dask_ome_labels"]
+           "write_dask_ome_zarr", "write_dask_ome_labels", "DaskStore", "write_dask_ome_stores"]
 
 #: The OME-NGFF version written (Zarr format 2).
 NGFF_VERSION = "0.4"
