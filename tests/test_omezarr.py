@@ -143,3 +143,77 @@ def test_through_the_bridge(run_dir, tmp_path):
     assert resp["status"] == "ok" and resp["diagnostics"]["ngff_version"] == "0.4"
     assert [o["name"] for o in resp["outputs"]] == ["depth_zarr"]
     np.testing.assert_array_equal(_level(tmp_path / "run" / "depth.ome.zarr", 0), tifffile.imread(run_dir / "depth.tif"))
+
+
+def _tree_bytes(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_stores_written_together_are_the_stores_written_one_at_a_time(tmp_path):
+    """write_dask_ome_stores (one Dask graph per level for all the stores) writes the same files as
+    the stores written one by one: a labels store, an image with those labels copied from it in
+    the same call, normals and a height, at three levels and chunks that do not divide the image."""
+    import dask.array as da
+
+    rng = np.random.default_rng(3)
+    M, N, ch = 700, 1100, 256
+    alb = rng.uniform(0, 900, (3, M, N)).astype(np.float32)
+    nrm = rng.normal(0, 1, (3, M, N)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=0)
+    height = rng.normal(0, 20, (M, N)).astype(np.float32)
+    lab = rng.integers(0, 40, (M, N)).astype(np.uint32)
+    reg = (np.arange(N)[None, :] // 300 + np.arange(M)[:, None] // 200).astype(np.uint32) % 5
+    arrays = lambda: dict(alb=da.from_array(alb, chunks=(1, ch, ch)), nrm=da.from_array(nrm, chunks=(3, ch, ch)),
+                          h=da.from_array(height, chunks=(ch, ch)), lab=da.from_array(lab, chunks=(ch, ch)),
+                          reg=da.from_array(reg, chunks=(ch, ch)))
+    images = dict(alb=omezarr.ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"),
+                  nrm=omezarr.ZarrImage("normals", "", ("nx", "ny", "nz"), kind="normals"),
+                  h=omezarr.ZarrImage("height", "", (), unit="micrometer"))
+    kw = dict(chunk_px=ch, origin_um=(30.0, -45.0))
+    one, joint = tmp_path / "one", tmp_path / "joint"
+    one.mkdir(), joint.mkdir()
+    a = arrays()
+    lz = omezarr.write_dask_ome_labels(one / "labels.ome.zarr", [(omezarr.LABELS[0], a["lab"]), (omezarr.LABELS[1], a["reg"])],
+                                       15.0, image="../../albedo.ome.zarr", **kw)
+    omezarr.write_dask_ome_zarr(one / "albedo.ome.zarr", images["alb"], a["alb"], 15.0,
+                                labels=[(lb, lz / lb.name) for lb in omezarr.LABELS], **kw)
+    omezarr.write_dask_ome_zarr(one / "normals.ome.zarr", images["nrm"], a["nrm"], 15.0, **kw)
+    omezarr.write_dask_ome_zarr(one / "height.ome.zarr", images["h"], a["h"], 15.0, **kw)
+    a = arrays()
+    lz = joint / "labels.ome.zarr"
+    out = omezarr.write_dask_ome_stores([
+        omezarr.DaskStore(lz, labels=((omezarr.LABELS[0], a["lab"]), (omezarr.LABELS[1], a["reg"])),
+                          label_source="../../albedo.ome.zarr"),
+        omezarr.DaskStore(joint / "albedo.ome.zarr", images["alb"], a["alb"],
+                          labels=tuple((lb, lz / lb.name) for lb in omezarr.LABELS)),
+        omezarr.DaskStore(joint / "normals.ome.zarr", images["nrm"], a["nrm"]),
+        omezarr.DaskStore(joint / "height.ome.zarr", images["h"], a["h"])], 15.0, **kw)
+    assert [p.name for p in out] == ["labels.ome.zarr", "albedo.ome.zarr", "normals.ome.zarr", "height.ome.zarr"]
+    assert sorted(p.name for p in joint.iterdir()) == sorted(p.name for p in one.iterdir())   # no temporaries left
+    first, second = _tree_bytes(one), _tree_bytes(joint)
+    assert "albedo.ome.zarr/2/0/0/0" in first and "albedo.ome.zarr/labels/regions/2/0/0" in first
+    assert first.keys() == second.keys()
+    assert [k for k in first if first[k] != second[k]] == []
+    assert np.array_equal(zarr.open_array(str(joint / "albedo.ome.zarr" / "labels" / "protrusions" / "0"))[:], lab)
+
+
+def test_a_failing_store_leaves_no_store_and_no_temporary(tmp_path):
+    """One chunk failing fails the call: no store of the call is in place, none of their temporary
+    folders is left, and a store already there is kept as it was."""
+    import dask.array as da
+
+    old = tmp_path / "height.ome.zarr"
+    old.mkdir()
+    (old / "marker").write_text("old")
+
+    def boom(b):
+        raise RuntimeError("chunk failed")
+
+    good = da.zeros((300, 400), chunks=(128, 128), dtype=np.float32)
+    bad = good.map_blocks(boom, dtype=np.float32)
+    with pytest.raises(RuntimeError, match="chunk failed"):
+        omezarr.write_dask_ome_stores([
+            omezarr.DaskStore(tmp_path / "albedo.ome.zarr", omezarr.ZarrImage("albedo", "", ()), good),
+            omezarr.DaskStore(old, omezarr.ZarrImage("height", "", ()), bad)], 15.0, chunk_px=128)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["height.ome.zarr"]
+    assert (old / "marker").read_text() == "old"
