@@ -1,5 +1,5 @@
 """Why estimated lamps miss 1 deg on some captures: the analyses behind docs/decisions/normals.md, "Why the
-lamps' elevation misses 1 deg" (issue 8).
+lamps' elevation misses 1 deg".
 
 Usage::
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Speed of ``uvps calibrate`` on a large sphere capture (issue 19: under 10 s for 64 lamps at 4000 x 3000).
+"""Speed of ``uvps calibrate`` on a large sphere capture (target: under 10 s for 64 lamps at 4000 x 3000).
 
 The capture: K grey 16-bit TIFFs (uncompressed, as a camera converter writes them) of a flat painting
 (albedo 0.3) lit by K near lamps at 250-500 mm, with two glossy (``--kind matte``: matte white) spheres

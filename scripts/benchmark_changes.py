@@ -1,4 +1,4 @@
-"""Benchmark of ``uvps changes`` (issue 20, "Monitoring") on synthetic pairs with the true lamps.
+"""Benchmark of ``uvps changes`` (docs/benchmarks.md, "Monitoring over time") on synthetic pairs with the true lamps.
 
 Per seed (0, 1, 2) one earlier capture A of 1200 x 900 px of 15 um
 (``uvps.testing.synthetic.make_capture_pair``) and three later captures B, each under lamps placed

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Time and accuracy of the light estimate against the number of lamps (issue 8: <= 10 s up to 64).
+"""Time and accuracy of the light estimate against the number of lamps (target: <= 10 s up to 64).
 
 Usage::
 

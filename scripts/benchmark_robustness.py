@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Robustness benchmark (issue 8): ``uvps run`` on synthetic captures that hold a real capture's nuisances.
+"""Robustness benchmark: ``uvps run`` on synthetic captures that hold a real capture's nuisances.
 
 What is measured is what users run: each capture is written to disk with
 :func:`uvps.testing.synthetic.write_capture` and the ``run`` command (``uvps.commands.COMMANDS["run"]``, the
@@ -671,7 +671,7 @@ def main(argv=None) -> int:
     worst.append(coverage_line(collected))
     codes = sorted({str(r.get("code")) for r in collected})
     text = "\n".join([
-        "## Robustness (issue 8)", "",
+        "## Robustness", "",
         f"Command: `{command_line(argv)}`", "",
         f"Date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; machine: {machine_line()}; "
         f"code: {', '.join(codes)}; {time.perf_counter() - t_start:.0f} s this invocation (cached runs skipped).", "",

@@ -1,4 +1,4 @@
-"""Speed and memory of a whole run against the time to merely read the stack (issue 9).
+"""Speed and memory of a whole run against the time to merely read the stack.
 
 Makes (once, cached in ``--work``) a synthetic capture with :func:`uvps.testing.synthetic.make_capture`
 (default 4000 x 3000, 16 lights, RGB uint16 TIFFs, one file per light) or, with ``--tile``, with
@@ -376,7 +376,7 @@ def main(argv=None) -> int:
                     help="the capture as ONE multi-page RGB TIFF (with --compress: Deflate) instead of a folder")
     ap.add_argument("--scratch-above", type=int, default=None, metavar="BYTES",
                     help="UVPS_SCRATCH_ABOVE_BYTES for the runs (compressed stacks above it go to scratch files)")
-    ap.add_argument("--title", default="Speed and memory of a whole run (issue 9)")
+    ap.add_argument("--title", default="Speed and memory of a whole run")
     ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
     a = ap.parse_args(argv)
     M, N = a.shape

@@ -32,7 +32,7 @@ def test_benchmark_robustness_tiny(tmp_path, capsys):
             "--modes", "estimated", "--workdir", str(work)]
     assert bench.main(argv) == 0
     out = capsys.readouterr().out
-    assert "## Robustness (issue 8)" in out and "| none | 8 | estimated |" in out
+    assert "## Robustness\n" in out and "| none | 8 | estimated |" in out
     data = json.loads((work / "robustness_results.json").read_text())
     results = {r["row"]: r for r in data["results"]}
     assert set(results) == {"none", "black_level"}

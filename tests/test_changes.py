@@ -1,4 +1,4 @@
-"""uvps changes (issue 10): registration on a known transform, matching with known changes, the
+"""uvps changes: registration on a known transform, matching with known changes, the
 unchanged pair, bad inputs, the output contract; and the generator's later capture."""
 import csv
 import json
@@ -341,7 +341,7 @@ def test_relative_relief_refuses_height_growth(truth_runs, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------------
-# protrusions a few pixels wide: their repeatability (issue 40, "alarms that hold")
+# protrusions a few pixels wide: their repeatability ("alarms that hold")
 
 #: Protrusions 40-90 um wide (3-6 px of 15 um), the camera moved: a pose and seed the model was not fitted on.
 SMALL = SyntheticSpec(shape=(450, 600), n_lights=12, width_um=(40.0, 90.0), protrusion_density_light=150.0,

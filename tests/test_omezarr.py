@@ -1,4 +1,4 @@
-"""OME-Zarr output (issue 9): `uvps run --ome-zarr` and `uvps ome-zarr RUN` write OME-NGFF 0.4
+"""OME-Zarr output: `uvps run --ome-zarr` and `uvps ome-zarr RUN` write OME-NGFF 0.4
 pyramids that an independent validator accepts, whose level 0 equals the TIFFs and whose levels
 overlay it in micrometres; a store is replaced whole, never merged, and a failed write leaves the old
 one."""

@@ -1,4 +1,4 @@
-"""Calibrate Lamps (uvps calibrate, issue 19) and Run Whole Pipeline with its calibration, from batch
+"""Calibrate Lamps (uvps calibrate) and Run Whole Pipeline with its calibration, from batch
 macros in a real ImageJ: the spheres found shown as circle overlays, the calibration reused."""
 import json
 

@@ -1,4 +1,4 @@
-"""Compare Captures (uvps changes, issue 10) from a batch macro in a real ImageJ."""
+"""Compare Captures (uvps changes) from a batch macro in a real ImageJ."""
 import csv
 import json
 

@@ -1,4 +1,4 @@
-"""Stitch Painting (uvps batch with a mosaic, issue 42) from a batch macro in a real ImageJ."""
+"""Stitch Painting (uvps batch with a mosaic) from a batch macro in a real ImageJ."""
 import csv
 
 import pytest

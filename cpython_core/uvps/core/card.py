@@ -1,4 +1,4 @@
-"""Per-lamp flat-field from a flat fluorescent card (issue 19, item 3).
+"""Per-lamp flat-field from a flat fluorescent card.
 
 A flat fluorescent card laid on the painting and photographed under every lamp position holds,
 per lamp and pixel, everything the lamp model does not: the lamp's beam and aim, its power, the
@@ -13,7 +13,7 @@ the model of a flat card facing the camera (``n_c = +z``, ``E_k = 1``)::
 
 and dividing each image of the painting by it leaves ``I_k / G_k = (albedo / a_c) n . v_k(X)``:
 the model's irradiance with equal lamps, so the stereo solves the normals as if the lamps had no
-beams, equal power and no vignetting (``I_k / C_k = (albedo / a_c) n . l_k / l_z,k``, issue 19).
+beams, equal power and no vignetting (``I_k / C_k = (albedo / a_c) n . l_k / l_z,k``).
 Stray light is additive, not a gain: it is removed by the dark frame, from the card's images as
 from the painting's.
 

@@ -24,7 +24,7 @@ A is the earlier run folder, B the later one; each made by ``uvps run`` with det
    pair repeats worse), else ``unchanged``. Protrusions that either date does not see whole are
    left out (counted in ``run.json``).
 
-Outputs (the contract of issue 10; ``docs/monitoring.md``): ``registration.json``,
+Outputs (``docs/monitoring.md``): ``registration.json``,
 ``changes.csv`` (:data:`COLUMNS`), ``height_change.tif`` (A's frame, um), ``report.html`` with
 ``figures/``, ``run.json``.
 """
