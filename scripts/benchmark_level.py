@@ -12,12 +12,16 @@ lamps) on canvases bowed by ``--bows`` um, run in memory with the true lamp posi
 ``--bias-deg`` (rotated about the y axis: every lamp direction off by that much toward +x, the mean
 normal bias a calibration can leave), once per level: the plane slopes as above, and the
 field-scale shape left (rms of the degree-3 Legendre part of the heights minus the truth's).
+``--nuisances`` adds what the image model leaves out, each alone at the top of its range
+(``uvps.testing.synthetic.NUISANCE_TOP``: black level, vignetting, beams, stray light, ...; ``none``:
+the clean capture), on every bow.
 
 Usage::
 
     .venv/bin/uvps demo -o /tmp/demo
     .venv/bin/python scripts/benchmark_level.py /tmp/demo [--truth /tmp/demo/capture/truth/height_um.tif]
     .venv/bin/python scripts/benchmark_level.py --synthetic [--bows 0 100 250] [--seeds 0 1 2] [--bias-deg 0.2]
+        [--nuisances none black_level vignetting beams stray_light]
 """
 import argparse
 import json
@@ -57,35 +61,37 @@ def field_shape(h, px):
     return Levelling("form", 3, c, h.shape, px, 0.0, 0.0).surface()
 
 
-def synthetic(bows, seeds, bias_deg):
+def synthetic(bows, seeds, bias_deg, nuisances=("none",)):
     import dataclasses
     from uvps.core.pipeline import RunOptions, run
-    from uvps.testing.synthetic import make_capture
+    from uvps.testing.synthetic import SyntheticSpec, make_capture
     px = 60.0
-    print("| bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
+    print("| nuisance | bow (um) | seed | level | truth plane (um/mm) | depth.tif plane | depth.tif - truth plane | "
           "field-scale shape left (um rms) | corr with truth |")
-    print("|---|---|---|---|---|---|---|---|")
-    for bow in bows:
-        for seed in seeds:
-            cap = make_capture(shape=(300, 400), n_lights=12, seed=seed, pixel_size_um=px, bow_um=float(bow))
-            capture = cap.as_capture(lights="positions")
-            capture = dataclasses.replace(capture, light_positions_mm=tilted(capture.light_positions_mm, bias_deg))
-            truth = cap.height_um.astype(np.float32)
-            tx, ty = plane_slopes(truth, px)
-            for level in ("none", "plane", "form"):
-                h = run(capture, RunOptions(level=level), stages=("height",)).height.height_um
-                sx, sy = plane_slopes(h, px)
-                left = field_shape(h, px) - field_shape(truth, px)
+    print("|---|---|---|---|---|---|---|---|---|")
+    for nuisance, bow, seed in ((n, b, s) for n in nuisances for b in bows for s in seeds):
+        common = dict(shape=(300, 400), n_lights=12, seed=seed, pixel_size_um=px, bow_um=float(bow))
+        spec = (SyntheticSpec(**common) if nuisance == "none"
+                else SyntheticSpec.realistic(level="top", only=[nuisance], **common))
+        cap = make_capture(spec)
+        capture = cap.as_capture(lights="positions")
+        capture = dataclasses.replace(capture, light_positions_mm=tilted(capture.light_positions_mm, bias_deg))
+        truth = cap.height_um.astype(np.float32)
+        tx, ty = plane_slopes(truth, px)
+        for level in ("none", "plane", "form"):
+            h = run(capture, RunOptions(level=level), stages=("height",)).height.height_um
+            sx, sy = plane_slopes(h, px)
+            left = field_shape(h, px) - field_shape(truth, px)
+            left -= left.mean()
+            if level != "none":
+                # what a levelled view is measured against: the truth levelled the same way
+                from uvps.core.level import level_height
+                t_lev, _ = level_height(truth, method=level, pixel_size_um=px)
+                left = field_shape(h, px) - field_shape(t_lev, px)
                 left -= left.mean()
-                if level != "none":
-                    # what a levelled view is measured against: the truth levelled the same way
-                    from uvps.core.level import level_height
-                    t_lev, _ = level_height(truth, method=level, pixel_size_um=px)
-                    left = field_shape(h, px) - field_shape(t_lev, px)
-                    left -= left.mean()
-                print(f"| {bow} | {seed} | {level} | {tx:+.2f}, {ty:+.2f} | {sx:+.2f}, {sy:+.2f} | "
-                      f"{np.hypot(sx - tx, sy - ty):.2f} | {np.sqrt(np.mean(left ** 2)):.2f} | {corr(h, truth):.3f} |",
-                      flush=True)
+            print(f"| {nuisance} | {bow:g} | {seed} | {level} | {tx:+.2f}, {ty:+.2f} | {sx:+.2f}, {sy:+.2f} | "
+                  f"{np.hypot(sx - tx, sy - ty):.2f} | {np.sqrt(np.mean(left ** 2)):.2f} | {corr(h, truth):.3f} |",
+                  flush=True)
 
 
 def main(argv=None):
@@ -96,9 +102,12 @@ def main(argv=None):
     ap.add_argument("--bows", type=float, nargs="+", default=[0.0, 100.0, 250.0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--bias-deg", type=float, default=0.2)
+    ap.add_argument("--nuisances", nargs="+", default=["none"], metavar="NAME",
+                    help="with --synthetic: none and/or keys of uvps.testing.synthetic.NUISANCE_TOP, each alone at "
+                         "the top of its range (default: none)")
     a = ap.parse_args(argv)
     if a.synthetic:
-        synthetic(a.bows, a.seeds, a.bias_deg)
+        synthetic(a.bows, a.seeds, a.bias_deg, a.nuisances)
         return 0
     print("| run | level | truth plane (um/mm) | raw plane | depth.tif plane | corr raw | corr depth.tif |")
     print("|---|---|---|---|---|---|---|")

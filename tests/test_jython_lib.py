@@ -476,6 +476,18 @@ def _fake_module(name, **attrs):
     return module
 
 
+def _install_fake_imagej(monkeypatch, ij, gui):
+    """Put fake ImageJ and Java modules in ``sys.modules`` for this test: ``ij`` and ``ij.gui`` as
+    given, a ``java.lang.Throwable``, and the other packages the Jython side imports as mocks."""
+    fakes = {"ij": ij, "ij.gui": gui,
+             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
+    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
+                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
+        fakes[name] = _fake_module(name)
+    for name, module in fakes.items():
+        monkeypatch.setitem(sys.modules, name, module)
+
+
 @pytest.fixture
 def menu_scripts(monkeypatch):
     """Run every menu script in CPython with fake ImageJ/Java modules (a macro is running, so
@@ -485,13 +497,7 @@ def menu_scripts(monkeypatch):
     ij = _fake_module("ij", IJ=mock.MagicMock(getDirectory=lambda key: None),
                       Macro=mock.MagicMock(getOptions=lambda: " "),
                       Prefs=mock.MagicMock())
-    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=FakeGenericDialog),
-             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
-    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
-                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
-        fakes[name] = _fake_module(name)
-    for name, module in fakes.items():
-        monkeypatch.setitem(sys.modules, name, module)
+    _install_fake_imagej(monkeypatch, ij, _fake_module("ij.gui", GenericDialog=FakeGenericDialog))
     for name in ("dialogs", "runner", "menus", "capture", "display"):
         monkeypatch.delitem(sys.modules, "uvps_fiji." + name, raising=False)
     from uvps_fiji import runner
@@ -883,14 +889,8 @@ def dialog_module(monkeypatch):
     logged = []
     ij = _fake_module("ij", IJ=mock.MagicMock(log=logged.append),
                       Macro=mock.MagicMock(getOptions=lambda: None), Prefs=prefs)
-    fakes = {"ij": ij, "ij.gui": _fake_module("ij.gui", GenericDialog=_AnsweringDialog,
-                                               YesNoCancelDialog=_Question),
-             "java.lang": _fake_module("java.lang", Throwable=type("Throwable", (Exception,), {}))}
-    for name in ("ij.io", "ij.plugin", "ij.plugin.frame", "ij.measure", "ij.process", "ij.macro",
-                 "java", "java.awt", "java.io", "java.util", "java.util.concurrent"):
-        fakes[name] = _fake_module(name)
-    for name, module in fakes.items():
-        monkeypatch.setitem(sys.modules, name, module)
+    _install_fake_imagej(monkeypatch, ij, _fake_module("ij.gui", GenericDialog=_AnsweringDialog,
+                                                        YesNoCancelDialog=_Question))
     import importlib
 
     import uvps_fiji
