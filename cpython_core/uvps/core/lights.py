@@ -386,9 +386,9 @@ def _eval_points(fit: DropoffFit, r, c):
     return fit.clamp(np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu))
 
 
-#: Threads the lamp refinement's per-pixel work runs in (:func:`photometric_residual`,
-#: :func:`_vp_normal_equations`, :func:`_assemble`) when none is given: set by :func:`lamp_threads`.
-#: Each part's pixels are computed as in one thread, so the result is the same to the bit.
+#: At most this many threads for the lamp refinement's per-pixel work (:func:`photometric_residual`,
+#: :func:`_vp_normal_equations`, :func:`_assemble`) when none is given (:func:`lamp_threads`). Each
+#: part's pixels are computed as in one thread, so the result is the same to the bit.
 MAX_LAMP_THREADS = 2
 
 #: Sampled pixels below which :func:`photometric_residual` stays in one thread (a thread's start costs
@@ -411,7 +411,7 @@ def photometric_residual(sample: PixelSample, model: LightModel, *, workers=None
 
     ``workers`` (default :func:`lamp_threads`): threads over bands of pixels (numpy releases the GIL);
     every pixel's arithmetic is the one-thread arithmetic, so the residual is the same to the bit
-    (``tests/test_lights.py::test_photometric_residual_same_in_threads``).
+    (``tests/test_lights.py::test_lamp_refinement_same_in_one_and_two_threads``).
     """
     K, n = sample.I.shape
     parts = max(1, min(lamp_threads(workers), n // MIN_PIXELS_PER_THREAD))
