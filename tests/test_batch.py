@@ -323,3 +323,17 @@ def test_the_command_line_exit_status_when_captures_fail_on_bad_input(captures, 
     assert r.returncode == 0, r.stderr
     assert "warning: two failed: images: photometric stereo needs at least 3 images" in r.stderr
     assert "1 done, 0 skipped, 1 failed" in r.stdout and "two: failed (images:" in r.stdout
+
+
+def test_the_batch_workers_keep_each_capture_to_one_thread():
+    """uvps batch's own local worker processes (one thread each) set UVPS_THREADS=1, so a capture's
+    stages (the normals' bands, the lamp refinement) take one thread there too, not one per CPU."""
+    from uvps.commands.batch import _Cluster
+    from uvps.core.threads import default_threads
+
+    cluster = _Cluster(n_workers=1, processes=True)
+    try:
+        got = cluster.client.run(lambda: (os.environ.get("UVPS_THREADS"), default_threads(4)))
+    finally:
+        cluster.close()
+    assert list(got.values()) == [("1", 1)]

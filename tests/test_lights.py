@@ -231,3 +231,53 @@ def test_integrability_correction_undoes_a_non_gbr_distortion_of_the_lamps():
     # integrable normals are left as they are (up to the finite differences)
     same = integrability_correction(LightModel.from_positions(P), n)
     assert np.abs(same.positions_mm - P).max() < 1e-3 * 350
+
+
+def test_lamp_refinement_same_in_one_and_two_threads(monkeypatch):
+    """The lamp refinement's per-pixel work in two threads (photometric_residual's pixel bands,
+    _vp_normal_equations' bands and products, _assemble) gives the one-thread result to the bit, on a
+    rendered capture's own sample, and so the same estimated lamps through the whole estimate."""
+    from uvps.core import lights
+
+    cap = make_capture(shape=(300, 400), n_lights=12, seed=5)
+    images = cap.images.astype(np.float32)
+    grid = block_grid(images, saturation=65535)
+    fits = fit_dropoffs(grid, degree=4)
+    sample = sample_pixels(images, fits, saturation=65535, pixel_size_um=PX, n=7000)
+    n = sample.I.shape[1]
+    assert n >= 2 * lights.MIN_PIXELS_PER_THREAD           # two bands, not the one-thread shortcut
+    model = LightModel.from_positions(cap.light_positions_mm, cap.intensities)
+    one = lights.photometric_residual(sample, model, workers=1)
+    assert np.array_equal(lights.photometric_residual(sample, model, workers=2), one)
+    th = lights._params(model)
+    for a, b in zip(lights._vp_normal_equations(sample, th, workers=1),
+                    lights._vp_normal_equations(sample, th, workers=2)):
+        assert np.array_equal(a, b)
+    got = {}
+    for w in (1, 2):
+        monkeypatch.setattr(lights, "lamp_threads", lambda workers=None, w=w: w if workers is None else workers)
+        got[w] = estimate_lights(grid, fits, sample, pixel_size_um=PX)
+    assert np.array_equal(got[1].model.positions_mm, got[2].model.positions_mm)
+    assert np.array_equal(got[1].model.intensities, got[2].model.intensities)
+    # and the estimate is a real one: the azimuths within ~10 degrees on average, as on the 10-lamp
+    # field of test_estimated_lights_from_the_images_alone (a sign or frame error gives tens)
+    P, Q = cap.light_positions_mm, got[2].model.positions_mm
+    d_az = np.degrees(np.arctan2(Q[:, 1], Q[:, 0]) - np.arctan2(P[:, 1], P[:, 0]))
+    assert np.abs((d_az + 180) % 360 - 180).mean() < 10.0
+
+
+def test_stage_threads_follow_the_cpus_and_uvps_threads(monkeypatch):
+    """default_threads: the usable CPUs at most the cap, and UVPS_THREADS (uvps batch's workers: 1)
+    caps it; a value that is no positive integer is ignored."""
+    import os
+    from uvps.core import threads
+    from uvps.core.lights import lamp_threads
+
+    cpus = len(os.sched_getaffinity(0))
+    monkeypatch.delenv("UVPS_THREADS", raising=False)
+    assert threads.default_threads(4) == min(4, cpus)
+    assert lamp_threads() == min(2, cpus) and lamp_threads(3) == 3
+    monkeypatch.setenv("UVPS_THREADS", "1")
+    assert threads.default_threads(4) == 1 and lamp_threads() == 1
+    monkeypatch.setenv("UVPS_THREADS", "zero")
+    assert threads.default_threads(4) == min(4, cpus)

@@ -39,6 +39,7 @@ from ..files.tables import atomic_write_text
 from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_dir, replace_dir, report,
                             write_json_atomic)
 from ..core.mosaic import overlap_box
+from ..core.threads import THREADS_VARIABLE
 from ..painting import PAINTING_DIR, PAINTING_LAYOUT, PAINTING_PROTRUSIONS, PAINTING_REGIONS, stitch_painting
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..spec import CommandSpec, Param, coerce_value
@@ -319,8 +320,11 @@ class _Cluster:
             # OMP/MKL/OPENBLAS_NUM_THREADS=1 in each worker, so numpy does not oversubscribe)
             # its dashboard on a free port (":0"): None still takes 8787, so a second batch on the
             # machine warned "Port 8787 is already in use"; the link is in the log (uvps -v)
+            # UVPS_THREADS=1 keeps each capture's own stages (the normals' bands, the lamp refinement) to
+            # that one thread too (uvps.core.threads)
+            extra = {"env": {THREADS_VARIABLE: "1"}} if processes else {}
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
-                                   dashboard_address=":0")
+                                   dashboard_address=":0", **extra)
             client = Client(cluster)
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)

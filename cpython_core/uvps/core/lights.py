@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -46,6 +47,7 @@ from ..errors import UVPSInputError
 from .flatfield import BlockGrid, DropoffFit, to_unit, with_common
 from .irradiance import LightModel, lamp_vectors, near_scale, pixel_coordinates_mm
 from .progress import Progress, report, sub_progress
+from .threads import default_threads
 
 log = logging.getLogger(__name__)
 
@@ -384,23 +386,72 @@ def _eval_points(fit: DropoffFit, r, c):
     return fit.clamp(np.einsum("pi,ij,pj->p", Vv, fit.coeffs, Vu))
 
 
-def photometric_residual(sample: PixelSample, model: LightModel) -> np.ndarray:
+#: At most this many threads for the lamp refinement's per-pixel work (:func:`photometric_residual`,
+#: :func:`_vp_normal_equations`, :func:`_assemble`) when none is given (:func:`lamp_threads`). Each
+#: part's pixels are computed as in one thread, so the result is the same to the bit.
+MAX_LAMP_THREADS = 2
+
+#: Sampled pixels below which :func:`photometric_residual` stays in one thread (a thread's start costs
+#: more than the work; the refinement's first stage has ~4000).
+MIN_PIXELS_PER_THREAD = 2000
+
+
+def lamp_threads(workers=None) -> int:
+    """Threads for the lamp estimate's per-pixel work: ``workers`` when given, else
+    :func:`uvps.core.threads.default_threads` (the usable CPUs, ``UVPS_THREADS``) at most
+    :data:`MAX_LAMP_THREADS`."""
+    return max(1, int(workers)) if workers is not None else default_threads(MAX_LAMP_THREADS)
+
+
+def photometric_residual(sample: PixelSample, model: LightModel, *, workers=None) -> np.ndarray:
     """Relative photometric-stereo residual ``(I - L . b) / mean(I)`` with per-pixel least-squares b.
 
     This is paper Eq. 2's ``|L(m) . N - I|`` with the normals (times albedo) ``b`` solved in closed form
     for the given lights (variable projection). Returns the (K * P,) residual vector.
+
+    ``workers`` (default :func:`lamp_threads`): threads over bands of pixels (numpy releases the GIL);
+    every pixel's arithmetic is the one-thread arithmetic, so the residual is the same to the bit
+    (``tests/test_lights.py::test_lamp_refinement_same_in_one_and_two_threads``).
     """
+    K, n = sample.I.shape
+    parts = max(1, min(lamp_threads(workers), n // MIN_PIXELS_PER_THREAD))
+    if parts == 1:
+        return _residual_rows(sample, model, fallback=True).ravel()
+    edges = np.linspace(0, n, parts + 1).astype(int)
+    out = np.empty((K, n))
+
+    def part(i):
+        out[:, edges[i]:edges[i + 1]] = _residual_rows(sample.take(slice(edges[i], edges[i + 1])), model,
+                                                       fallback=False)
+
+    try:
+        with ThreadPoolExecutor(parts - 1) as pool:
+            rest = [pool.submit(part, i) for i in range(1, parts)]
+            part(0)
+            for f in rest:
+                f.result()
+    except np.linalg.LinAlgError:
+        # a singular pixel: the whole sample by the pseudo-inverse, as in one thread
+        return _residual_rows(sample, model, fallback=True).ravel()
+    return out.ravel()
+
+
+def _residual_rows(sample: PixelSample, model: LightModel, *, fallback: bool) -> np.ndarray:
+    """:func:`photometric_residual` of a sample (its pixels), (K, P); ``fallback``: a singular pixel
+    turns the whole sample to the pseudo-inverse (else the error is raised)."""
     V = _vectors(sample, model)                # (K, P, 3)
     A = np.einsum("kpi,kpj->pij", V, V)
     rhs = np.einsum("kpi,kp->pi", V, sample.I)
     try:
         b = np.linalg.solve(A, rhs[..., None])[..., 0]
     except np.linalg.LinAlgError:
+        if not fallback:
+            raise
         b = np.einsum("pij,pj->pi", np.linalg.pinv(A), rhs)
     pred = np.einsum("kpi,pi->kp", V, b)
     if sample.W is not None:
         pred *= sample.W
-    return ((sample.I - pred) / _mean_lit(sample)).ravel()
+    return (sample.I - pred) / _mean_lit(sample)
 
 
 def estimate_lights(grid: BlockGrid, fits, sample: Optional[PixelSample], *, pixel_size_um,
@@ -937,15 +988,15 @@ def _vp_rows(L, along, scale, X, I, wt, r, e, Zq, Zu, p0, p1):
                 Zu[row, 2 * P + p] = c20 * y0 + c21 * y1 + c22 * y2
 
 
-def _vp_normal_equations(sample: PixelSample, th, *, workers: int = 2):
+def _vp_normal_equations(sample: PixelSample, th, *, workers=None):
     """The photometric residual's Gauss-Newton normal equations, as :func:`_vp_normal_equations_numpy`
     states them, with the per-pixel work compiled (:func:`_vp_rows`, in ``workers`` threads over
-    pixel bands) and the two (4K x 3P) symmetric products by BLAS.
+    pixel bands, default :func:`lamp_threads`) and the two (4K x 3P) symmetric products by BLAS (one
+    per thread, :func:`_assemble`).
 
     Returns ``(r (K, P), e (K, 4, P), JtJ (4K, 4K), Jtr (4K,))``, unscaled.
     """
-    from concurrent.futures import ThreadPoolExecutor
-
+    workers = lamp_threads(workers)
     K, n = sample.I.shape
     L, along = _lamp_axes(th)
     scale = np.exp(th[:, 3] + 2 * th[:, 2])
@@ -964,7 +1015,7 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers: int = 2):
     if len(edges) > 2:
         with ThreadPoolExecutor(len(edges) - 2) as pool:
             list(pool.map(lambda i: _vp_rows(*args, edges[i], edges[i + 1]), range(1, len(edges) - 1)))
-    return _assemble(r, e, Zq, Zu)
+    return _assemble(r, e, Zq, Zu, workers=workers)
 
 
 def _vp_normal_equations_numpy(sample: PixelSample, th):
@@ -1010,9 +1061,21 @@ def _vp_normal_equations_numpy(sample: PixelSample, th):
     return _assemble(r, e, Zq, Zu)
 
 
-def _assemble(r, e, Zq, Zu):
+def _assemble(r, e, Zq, Zu, *, workers=1):
     """``(r, e, J^T J, J^T r)`` from the residual, ``e`` and the whitened rows of
-    :func:`_vp_normal_equations_numpy`'s statement: ``J^T J = Zq Zq^T - Zu Zu^T + diag_k(e e^T)``."""
+    :func:`_vp_normal_equations_numpy`'s statement: ``J^T J = Zq Zq^T - Zu Zu^T + diag_k(e e^T)``.
+
+    ``workers`` > 1: ``Zu Zu^T`` and the blocks in a second thread while this one forms ``Zq Zq^T``
+    (BLAS and einsum release the GIL; with one BLAS thread, ``uvps._entry``, the refinement's
+    products otherwise keep one core busy); each product is the one-thread product, to the bit."""
+    if workers > 1:
+        with ThreadPoolExecutor(1) as pool:
+            other = pool.submit(lambda: (Zu @ Zu.T, np.einsum("kjp,klp->kjl", e, e)))
+            JtJ = Zq @ Zq.T
+            ZuZu, blocks = other.result()
+        JtJ -= ZuZu
+        _add_blocks(JtJ, blocks)
+        return r, e, 0.5 * (JtJ + JtJ.T), np.einsum("kjp,kp->kj", e, r).ravel()
     JtJ = Zq @ Zq.T
     JtJ -= Zu @ Zu.T
     _add_blocks(JtJ, np.einsum("kjp,klp->kjl", e, e))

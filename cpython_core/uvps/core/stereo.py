@@ -20,7 +20,6 @@ each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels
 from __future__ import annotations
 
 import logging
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -31,6 +30,7 @@ import numpy as np
 from ..errors import UVPSInputError
 from .irradiance import LightModel, near_scale_compiled, pixel_coordinates_mm
 from .progress import Progress, report
+from .threads import default_threads
 
 log = logging.getLogger(__name__)
 
@@ -301,7 +301,8 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     chunk_pixels : int, optional
         Pixels per band (default :data:`CHUNK_PIXELS`): each band in flight holds about ``K * chunk_pixels * (4 C + 40)`` bytes.
     workers : int, optional
-        Bands solved at once, in threads (default: the CPUs available, at most 4; 1: in this thread).
+        Bands solved at once, in threads (default: the CPUs available, at most 4 and ``UVPS_THREADS``;
+        1: in this thread).
         The result does not depend on it.
 
     Returns
@@ -372,9 +373,10 @@ class _Serial:
 
 
 def _pool(workers, n_tasks):
-    """A thread pool of ``workers`` (default: the CPUs this process may use, at most 4), or none."""
+    """A thread pool of ``workers`` (default: the CPUs this process may use, at most 4 and ``UVPS_THREADS``,
+    :func:`uvps.core.threads.default_threads`), or none."""
     if workers is None:
-        workers = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+        workers = default_threads(4)
     workers = max(1, min(int(workers), n_tasks))
     return _Serial() if workers == 1 else ThreadPoolExecutor(workers, thread_name_prefix="uvps-normals")
 
