@@ -41,6 +41,11 @@ also gathered in ``<workdir>/robustness_results.json``.
     .venv/bin/python scripts/benchmark_robustness.py                                  # the whole benchmark (long)
     .venv/bin/python scripts/benchmark_robustness.py --shape 300 400 --seeds 0 --lights-counts 8 \\
         --rows none black_level --modes estimated                                     # a small trial
+
+``--doc`` (12 lamps, modes estimated, calibrated or dark) merges this invocation's runs into
+``docs/benchmarks/robustness.json`` (a run replaces the kept one of its row, mode and seed) and rewrites
+docs/benchmarks.md's "Robustness table, 12 lamps" (section ``robustness``: :func:`render_doc`) from it
+(scripts/benchdoc.py).
 """
 from __future__ import annotations
 
@@ -79,6 +84,7 @@ MODES = ("estimated", "calibrated", "dark", "card", "spheres", "matte_spheres", 
 #: The ``bow`` row: a canvas bowed by this much across the field (real canvases: 100-250 um).
 BOW_UM = 250.0
 SCHEMA = 2
+DOC_SECTION = "robustness"
 
 #: Metric key -> (column header, target, "max" if lower is better / "min" if higher, format).
 METRICS = {
@@ -566,6 +572,117 @@ def _worse(a, b, sense):
 
 
 # --------------------------------------------------------------------------------------------
+# docs/benchmarks.md's table (section "robustness")
+# --------------------------------------------------------------------------------------------
+
+#: The metrics a run keeps in docs/benchmarks/robustness.json (estimated lamps; calibrated runs keep the first three).
+DOC_KEYS = ("normals_mean_deg", "height_median_pct", "light_mean_deg", "height_unc95_pct", "unc_covers", "relative")
+#: Modes the doc's table shows: its per-seed columns (estimated), its last column (calibrated), a summary row (dark).
+DOC_MODES = ("estimated", "calibrated", "dark")
+
+
+def _x(missed: bool) -> str:
+    return " **x**" if missed else ""
+
+
+def _normals(v) -> str:
+    """Normals' error with 3 significant digits (0.231, 1.92, 8.86)."""
+    return f"{v:#.3g}"
+
+
+def _doc_seeds(runs, key, fmt, *, stop=False):
+    """A per-seed cell, ``a / b / c``; a stopped run reads ``stop`` (with its reason on the first one if asked)."""
+    cells, said = [], False
+    for r in runs:
+        if r.get("error"):
+            reason = r.get("stop") or _first_words(r["error"].split(":", 1)[-1])
+            cells.append(f'stop ({reason})' if stop and not said else "stop")
+            said = True
+        else:
+            cells.append(fmt.format(r[key]))
+    return " / ".join(cells)
+
+
+def _doc_worst(runs, key):
+    vals = [r[key] for r in runs if not r.get("error")]
+    return max(vals) if vals else None
+
+
+def _doc_row(entry, runs) -> str:
+    row, mode = entry["row"], entry.get("mode", "estimated")
+    label = entry.get("label", row)
+    mine = sorted((r for r in runs if r["row"] == row and r["mode"] == mode), key=lambda r: r["seed"])
+    if mode != "estimated":            # a summary row: the worst seed (the mean in brackets), three columns
+        if mine:
+            ok = [r for r in mine if not r.get("error")]
+            light = (max(r["light_mean_deg"] for r in ok), float(np.mean([r["light_mean_deg"] for r in ok])))
+            normals, heights = _doc_worst(mine, "normals_mean_deg"), _doc_worst(mine, "height_median_pct")
+        else:                          # kept as the table quoted it (its runs are not in the JSON)
+            light = tuple(entry["summary"]["light_mean_deg"])
+            normals, heights = entry["summary"]["normals_mean_deg"], entry["summary"]["height_median_pct"]
+        return (f"| {label} | {light[0]:.2f} (mean {light[1]:.2f}){_x(_misses('light_mean_deg', light[0]))} | "
+                f"{_normals(normals)}{_x(_misses('normals_mean_deg', normals))} | "
+                f"{heights:.1f}{_x(_misses('height_median_pct', heights))} | | | | |")
+    ok = [r for r in mine if not r.get("error")]
+    stopped = len(ok) < len(mine)
+    light_x = stopped or any(_misses("light_mean_deg", r["light_mean_deg"]) for r in ok)
+    heights_x = stopped or any(_misses("height_median_pct", r["height_median_pct"]) for r in ok)
+    normals = _doc_worst(mine, "normals_mean_deg")
+    cal = [r for r in runs if r["row"] == row and r["mode"] == "calibrated"]
+    cal_n, cal_h = _doc_worst(cal, "normals_mean_deg"), _doc_worst(cal, "height_median_pct")
+    cal_cell = (f"{_normals(cal_n)}{_x(_misses('normals_mean_deg', cal_n))} / {cal_h:.1f}" if cal else "-")
+    return (f"| {label} | {_doc_seeds(mine, 'light_mean_deg', '{:.2f}', stop=True)}{_x(light_x)} | "
+            f"{_normals(normals)}{_x(_misses('normals_mean_deg', normals))} | "
+            f"{_doc_seeds(mine, 'height_median_pct', '{:.1f}')}{_x(heights_x)} | "
+            f"{_doc_seeds(mine, 'height_unc95_pct', '{:.0f}')} | "
+            f"{sum(int(r['unc_covers']) for r in ok)} of {len(ok)} | "
+            f"{sum(int(r['relative']) for r in ok)} of {len(ok)} | {cal_cell} |")
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's "Robustness table, 12 lamps": one line per entry of ``results["rows"]``.
+
+    Estimated lamps per seed (lights' mean error, heights' error, the reported uncertainty), the worst
+    seed's normals, how many runs' reported uncertainty covers their error and how many are relative;
+    the calibrated runs' worst normals / heights; a row of another mode (``dark``) gives the worst seed
+    (the mean in brackets). **x**: a cell misses its target of :data:`METRICS` (a stopped run misses).
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [{"row", "label", "mode"?, "summary"?}], "runs": [{"row", "mode", "seed", metrics...
+        or "error" (+ "stop": its reason as the table words it)}]}`` as docs/benchmarks/robustness.json keeps it.
+    """
+    lines = ["| row | lights (deg, <= 1), seeds 0 / 1 / 2 | normals (deg, <= 0.5) | heights off (%, <= 5) | "
+             "reported (%, 95 %) | covered | relative | calibrated: normals (deg) / heights (%) |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [_doc_row(e, results["runs"]) for e in results["rows"]]
+    return "\n".join(lines) + "\n"
+
+
+def write_doc_section(collected: list, argv: list) -> Path:
+    """``--doc``: merge the runs (12 lamps) into docs/benchmarks/robustness.json; rewrite the section from it."""
+    import benchdoc
+    old = json.loads(benchdoc.json_path(DOC_SECTION).read_text(encoding="utf-8"))
+    new = {}
+    for r in collected:
+        if r["lamps"] != 12 or r["mode"] not in DOC_MODES:
+            continue
+        keep = {"row": r["row"], "mode": r["mode"], "seed": r["seed"]}
+        if r.get("error"):
+            keep["error"] = r["error"]
+        else:
+            keep.update({k: r[k] for k in (DOC_KEYS if r["mode"] != "calibrated" else DOC_KEYS[:2])})
+        new[(r["row"], r["mode"], r["seed"])] = keep
+    if not new:
+        raise SystemExit("benchmark_robustness.py: --doc needs runs with 12 lamps in mode estimated, calibrated or dark")
+    runs = [r for r in old["runs"] if (r["row"], r["mode"], r["seed"]) not in new] + list(new.values())
+    runs.sort(key=lambda r: (r["row"], r["mode"], r["seed"]))
+    doc = dict(old, runs=runs, commands=sorted(set(old.get("commands", [])) | {command_line(argv)}))
+    return benchdoc.write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_robustness.py")
+
+
+# --------------------------------------------------------------------------------------------
 # machine and command line
 # --------------------------------------------------------------------------------------------
 
@@ -632,6 +749,9 @@ def parse_args(argv):
                     help="runs with known lamps (calibrated, spheres, matte_spheres): uvps run --lamp-beams (default: "
                          "the run's own default)")
     ap.add_argument("--retry-failed", action="store_true", help="re-run cached runs that failed")
+    ap.add_argument("--doc", action="store_true",
+                    help="merge the runs with 12 lamps (estimated, calibrated, dark) into docs/benchmarks/robustness.json "
+                         "and rewrite docs/benchmarks.md's robustness table (section robustness) from it")
     return ap.parse_args(argv)
 
 
@@ -690,7 +810,9 @@ def main(argv=None) -> int:
         "mean stray light)| in counts.", "",
         table, "",
     ] + worst + [""])
-    print(text, flush=True)      # not written into docs/benchmarks.md: its tables have other columns (no --doc yet)
+    print(text, flush=True)      # the full table; docs/benchmarks.md's (--doc) has the doc's columns
+    if args.doc:
+        print("wrote", write_doc_section(collected, argv), flush=True)
     return 0
 
 

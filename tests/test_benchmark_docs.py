@@ -97,7 +97,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
@@ -219,3 +219,31 @@ def test_benchmark_protrusions_wand_doc_changes_only_its_rows(tmp_path, monkeypa
     assert _check(md, jd).returncode == 0
     with pytest.raises(SystemExit):
         benchmark_protrusions.main(["--doc"])          # detection's tables are not written: refused
+
+
+def test_benchmark_robustness_doc_replaces_the_runs_it_measured(tmp_path, monkeypatch):
+    """``--doc`` merges a run into the kept ones: a new estimated run of ``cupping`` seed 0 changes that row's
+    cells only (its **x** marks from the targets), a stopped run reads ``stop``, and the check still passes."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_robustness
+    before = read_section(md, "robustness")
+    run = {"row": "cupping", "mode": "estimated", "seed": 0, "lamps": 12, "normals_mean_deg": 0.61,
+           "height_median_pct": 0.3, "light_mean_deg": 0.4, "height_unc95_pct": 12.4, "unc_covers": 1.0,
+           "relative": 0.0, "error": None}
+    stopped = {"row": "weave", "mode": "estimated", "seed": 2, "lamps": 12, "error": "UVPSInputError: lamps off"}
+    benchmark_robustness.write_doc_section([run, stopped, dict(run, lamps=8, seed=1)], ["--doc"])
+    text = read_section(md, "robustness")
+    changed = [(a, b) for a, b in zip(before.splitlines(), text.splitlines()) if a != b]
+    assert changed == [
+        ("| cupping | 1.28 / 0.22 / 0.46 **x** | 0.294 | 5.1 / 0.4 / 0.6 **x** | 14 / 14 / 19 | 3 of 3 | 0 of 3 | "
+         "0.155 / 0.2 |",
+         "| cupping | 0.40 / 0.22 / 0.46 | 0.610 **x** | 0.3 / 0.4 / 0.6 | 12 / 14 / 19 | 3 of 3 | 0 of 3 | "
+         "0.155 / 0.2 |"),
+        ("| weave | 0.83 / 0.14 / 0.31 | 0.214 | 2.8 / 0.3 / 1.2 | 27 / 13 / 11 | 3 of 3 | 1 of 3 | 0.168 / 0.1 |",
+         "| weave | 0.83 / 0.14 / stop (lamps off) **x** | 0.214 | 2.8 / 0.3 / stop **x** | 27 / 13 / stop | "
+         "2 of 2 | 1 of 2 | 0.168 / 0.1 |")]
+    assert _check(md, jd).returncode == 0
