@@ -3,7 +3,8 @@
 
 Each section between ``<!-- begin NAME: written by scripts/X.py -->`` and ``<!-- end NAME -->`` must
 name a script that exists and has a ``--doc`` flag; where ``docs/benchmarks/NAME.json`` (the raw
-results its last ``--doc`` kept) exists, the script's ``render_doc`` of it must give the section's
+results its last ``--doc`` kept) exists, the script's ``render_doc`` of it (or ``DOC_SECTIONS[NAME]``'s, for
+a script writing several sections) must give the section's
 text exactly: regenerating at HEAD changes nothing. ``--check`` exits 1 and names each stale or broken
 section (``tests/test_benchmark_docs.py``); without it, the sections with a JSON are rewritten from it
 (no benchmark is run).
@@ -44,6 +45,15 @@ def load_script(path: Path):
     return mod
 
 
+def renderer(mod, name: str):
+    """A script's renderer of section ``name``: ``render_doc`` where ``DOC_SECTION == name``, else the entry of
+    ``DOC_SECTIONS`` (a dict of section name to renderer, for a script writing several tables); None if neither."""
+    if getattr(mod, "DOC_SECTION", None) == name and callable(getattr(mod, "render_doc", None)):
+        return mod.render_doc
+    render = (getattr(mod, "DOC_SECTIONS", None) or {}).get(name)
+    return render if callable(render) else None
+
+
 def rendered(md_path: Path, json_dir: Path, root: Path = ROOT) -> tuple[dict, list[str]]:
     """Each section's expected text and the problems found.
 
@@ -70,11 +80,13 @@ def rendered(md_path: Path, json_dir: Path, root: Path = ROOT) -> tuple[dict, li
         if not jp.is_file():
             continue
         mod = load_script(script)
-        if getattr(mod, "DOC_SECTION", None) != name or not callable(getattr(mod, "render_doc", None)):
-            problems.append(f"{s.source}: expected DOC_SECTION = {name!r} and a render_doc(results) function")
+        render = renderer(mod, name)
+        if render is None:
+            problems.append(f"{s.source}: expected DOC_SECTION = {name!r} and a render_doc(results) function "
+                            f"(or DOC_SECTIONS mapping {name!r} to its renderer)")
             continue
         try:
-            t = mod.render_doc(json.loads(jp.read_text(encoding="utf-8")))
+            t = render(json.loads(jp.read_text(encoding="utf-8")))
             expected[name] = t if t.endswith("\n") else t + "\n"     # as write_section writes it
         except (ValueError, KeyError, TypeError, IndexError) as e:
             problems.append(f"{_rel(jp)}: {s.source} cannot render it ({type(e).__name__}: {e})")

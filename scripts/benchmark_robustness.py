@@ -42,10 +42,11 @@ also gathered in ``<workdir>/robustness_results.json``.
     .venv/bin/python scripts/benchmark_robustness.py --shape 300 400 --seeds 0 --lights-counts 8 \\
         --rows none black_level --modes estimated                                     # a small trial
 
-``--doc`` (12 lamps, modes estimated, calibrated or dark) merges this invocation's runs into
-``docs/benchmarks/robustness.json`` (a run replaces the kept one of its row, mode and seed) and rewrites
-docs/benchmarks.md's "Robustness table, 12 lamps" (section ``robustness``: :func:`render_doc`) from it
-(scripts/benchdoc.py).
+``--doc`` (12 lamps) merges this invocation's runs into ``docs/benchmarks/robustness.json`` (modes
+estimated, calibrated, dark) or ``spheres.json`` (spheres, spheres_card, matte_spheres), a run replacing the
+kept one of its row, mode and seed, and rewrites docs/benchmarks.md's "Robustness table, 12 lamps" (section
+``robustness``: :func:`render_doc`) or "Calibration and spheres" table (section ``spheres``:
+:func:`render_spheres_doc`) from it (scripts/benchdoc.py).
 """
 from __future__ import annotations
 
@@ -660,26 +661,76 @@ def render_doc(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_doc_section(collected: list, argv: list) -> Path:
-    """``--doc``: merge the runs (12 lamps) into docs/benchmarks/robustness.json; rewrite the section from it."""
+SPHERE_MODES = ("spheres", "spheres_card", "matte_spheres")
+#: Per sphere run: lamps max (deg), positions max (%), normals (deg), heights (%); the cell's formats.
+SPHERE_KEYS = {"cal_light_max_deg": "{:.2f}", "cal_position_max_pct": "{:.1f}", "normals_mean_deg": "{:.3f}",
+               "height_median_pct": "{:.2f}"}
+
+
+def render_spheres_doc(results: dict) -> str:
+    """docs/benchmarks.md's "Calibration and spheres" table: per row and sphere mode, the worst of the seeds'
+    lamps max (deg) / positions max (%) / normals (deg) / heights (%); ``-`` where the mode was not run,
+    **x** after a cell one of whose values misses its target of :data:`METRICS` (a failed run misses).
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [{"row", "label"}], "runs": [{"row", "mode", "seed", metrics... or "error"}]}`` as
+        docs/benchmarks/spheres.json keeps it.
+    """
+    lines = ["| row | glossy spheres | glossy spheres + card | matte spheres |", "|---|---|---|---|"]
+    for e in results["rows"]:
+        cells = []
+        for mode in SPHERE_MODES:
+            rs = [r for r in results["runs"] if r["row"] == e["row"] and r["mode"] == mode]
+            if not rs:
+                cells.append("-")
+                continue
+            if any(r.get("error") for r in rs):
+                cells.append("failed **x**")
+                continue
+            worst = {k: max(r[k] for r in rs) for k in SPHERE_KEYS}
+            cells.append(" / ".join(f.format(worst[k]) for k, f in SPHERE_KEYS.items())
+                         + _x(any(_misses(k, v) for k, v in worst.items())))
+        lines.append(f"| {e.get('label', e['row'])} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+#: Section name -> renderer (scripts/benchmark_docs.py).
+DOC_SECTIONS = {DOC_SECTION: render_doc, "spheres": render_spheres_doc}
+
+
+def write_doc_section(collected: list, argv: list) -> list:
+    """``--doc``: merge the runs with 12 lamps into the kept JSON of their section (docs/benchmarks/robustness.json:
+    estimated, calibrated, dark; spheres.json: spheres, spheres_card, matte_spheres), a run replacing the kept one
+    of its row, mode and seed; rewrite each section concerned from its JSON. Returns the JSONs written."""
     import benchdoc
-    old = json.loads(benchdoc.json_path(DOC_SECTION).read_text(encoding="utf-8"))
-    new = {}
-    for r in collected:
-        if r["lamps"] != 12 or r["mode"] not in DOC_MODES:
+    written = []
+    for section, modes in ((DOC_SECTION, DOC_MODES), ("spheres", SPHERE_MODES)):
+        new = {}
+        for r in collected:
+            if r["lamps"] != 12 or r["mode"] not in modes:
+                continue
+            keep = {"row": r["row"], "mode": r["mode"], "seed": r["seed"]}
+            if r.get("error"):
+                keep["error"] = r["error"]
+            elif section == "spheres":
+                keep.update({k: r[k] for k in SPHERE_KEYS})
+            else:
+                keep.update({k: r[k] for k in (DOC_KEYS if r["mode"] != "calibrated" else DOC_KEYS[:2])})
+            new[(r["row"], r["mode"], r["seed"])] = keep
+        if not new:
             continue
-        keep = {"row": r["row"], "mode": r["mode"], "seed": r["seed"]}
-        if r.get("error"):
-            keep["error"] = r["error"]
-        else:
-            keep.update({k: r[k] for k in (DOC_KEYS if r["mode"] != "calibrated" else DOC_KEYS[:2])})
-        new[(r["row"], r["mode"], r["seed"])] = keep
-    if not new:
-        raise SystemExit("benchmark_robustness.py: --doc needs runs with 12 lamps in mode estimated, calibrated or dark")
-    runs = [r for r in old["runs"] if (r["row"], r["mode"], r["seed"]) not in new] + list(new.values())
-    runs.sort(key=lambda r: (r["row"], r["mode"], r["seed"]))
-    doc = dict(old, runs=runs, commands=sorted(set(old.get("commands", [])) | {command_line(argv)}))
-    return benchdoc.write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_robustness.py")
+        old = json.loads(benchdoc.json_path(section).read_text(encoding="utf-8"))
+        runs = [r for r in old["runs"] if (r["row"], r["mode"], r["seed"]) not in new] + list(new.values())
+        runs.sort(key=lambda r: (r["row"], r["mode"], r["seed"]))
+        doc = dict(old, runs=runs, commands=sorted(set(old.get("commands", [])) | {command_line(argv)}))
+        written.append(benchdoc.write_doc(section, doc, DOC_SECTIONS[section](doc),
+                                          source="scripts/benchmark_robustness.py"))
+    if not written:
+        raise SystemExit("benchmark_robustness.py: --doc needs runs with 12 lamps in mode "
+                         + ", ".join(DOC_MODES + SPHERE_MODES))
+    return written
 
 
 # --------------------------------------------------------------------------------------------
@@ -750,8 +801,8 @@ def parse_args(argv):
                          "the run's own default)")
     ap.add_argument("--retry-failed", action="store_true", help="re-run cached runs that failed")
     ap.add_argument("--doc", action="store_true",
-                    help="merge the runs with 12 lamps (estimated, calibrated, dark) into docs/benchmarks/robustness.json "
-                         "and rewrite docs/benchmarks.md's robustness table (section robustness) from it")
+                    help="merge the runs with 12 lamps into docs/benchmarks/robustness.json (estimated, calibrated, dark) "
+                         "or spheres.json (the sphere modes) and rewrite docs/benchmarks.md's section from it")
     return ap.parse_args(argv)
 
 
@@ -812,7 +863,8 @@ def main(argv=None) -> int:
     ] + worst + [""])
     print(text, flush=True)      # the full table; docs/benchmarks.md's (--doc) has the doc's columns
     if args.doc:
-        print("wrote", write_doc_section(collected, argv), flush=True)
+        for path in write_doc_section(collected, argv):
+            print("wrote", path, flush=True)
     return 0
 
 

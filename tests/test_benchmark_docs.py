@@ -97,7 +97,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements", "robustness"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness", "spheres"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
@@ -246,4 +246,24 @@ def test_benchmark_robustness_doc_replaces_the_runs_it_measured(tmp_path, monkey
         ("| weave | 0.83 / 0.14 / 0.31 | 0.214 | 2.8 / 0.3 / 1.2 | 27 / 13 / 11 | 3 of 3 | 1 of 3 | 0.168 / 0.1 |",
          "| weave | 0.83 / 0.14 / stop (lamps off) **x** | 0.214 | 2.8 / 0.3 / stop **x** | 27 / 13 / stop | "
          "2 of 2 | 1 of 2 | 0.168 / 0.1 |")]
+    assert _check(md, jd).returncode == 0
+
+
+def test_benchmark_robustness_doc_writes_the_spheres_table_from_sphere_runs(tmp_path, monkeypatch):
+    """Sphere runs go to the spheres section only (robustness.json untouched); a mode not run yet on a row
+    fills its ``-`` cell, worst of the seeds, **x** where normals miss 0.5 deg."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_robustness
+    rob = (jd / "robustness.json").read_text()
+    run = {"row": "weave", "mode": "spheres_card", "lamps": 12, "cal_light_max_deg": 0.031, "cal_position_max_pct": 1.24,
+           "normals_mean_deg": 0.2, "height_median_pct": 0.3, "error": None}
+    written = benchmark_robustness.write_doc_section([dict(run, seed=0), dict(run, seed=1, normals_mean_deg=0.55)],
+                                                     ["--doc"])
+    assert written == [jd / "spheres.json"] and (jd / "robustness.json").read_text() == rob
+    line = [x for x in read_section(md, "spheres").splitlines() if x.startswith("| weave |")]
+    assert line == ["| weave | 0.04 / 1.0 / 0.173 / 0.20 | 0.03 / 1.2 / 0.550 / 0.30 **x** | 0.03 / 2.6 / 0.162 / 0.19 |"]
     assert _check(md, jd).returncode == 0
