@@ -20,6 +20,10 @@ non-fluorescing). Matching to the truth is ``benchmark_protrusions.match`` (cent
 max(2 px, half the true width), one to one); a detection is counted in the width class of its
 matched truth, an unmatched one in that of its own width.
 
+``--doc`` (true maps, no detector option changed) writes this scene's row of docs/benchmarks.md's table
+"Detection on other shapes and surfaces" (section ``detection``: :func:`render_doc`) and keeps it in
+docs/benchmarks/detection.json with the other scenes' rows (scripts/benchdoc.py).
+
 Example::
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/benchmark_detection.py --seeds 0 1 2
@@ -45,6 +49,10 @@ from uvps.core.detect import DetectionParams, detect_protrusions
 from uvps.files.tables import read_protrusions_csv
 from uvps.testing.synthetic import IMPASTO, SyntheticSpec, make_capture, write_capture
 
+DOC_SECTION = "detection"
+#: The targets (worst seed) docs/benchmarks.md's table marks **x** when missed: key -> (bound, "min"/"max").
+DOC_TARGETS = {"f1": (0.95, "min"), "recall_200": (0.97, "min"), "recall_60_100": (0.9, "min"),
+               "width_err": (0.10, "max")}
 KINDS = ("dome", "crater", "mesa", "irregular", "cluster", "dark", "weak", "on_stroke")
 #: Width classes (um) of the per-bin precision and recall.
 BINS = ((60.0, 100.0), (100.0, 200.0), (200.0, 500.0))
@@ -273,6 +281,71 @@ def print_tables(results, args):
         print(f"| {name} | {value} | {'yes' if met else 'no'} |")
 
 
+def doc_row(results, scene: str) -> dict:
+    """One scene's row of the doc's table from its seeds' scores: the worst seed per column, the 60-100 um
+    recall pooled over the seeds with its 95 % Wilson interval, the false positives' range per capture."""
+    cells = [r["bin_60"] for r in results]
+    found, n = sum(c[0] for c in cells), sum(c[1] for c in cells)
+    ci = binomtest(found, n).proportion_ci(confidence_level=0.95, method="wilson")
+    fps = [r["fp_stroke"] + r["fp_other"] for r in results]
+    on = sum(r["fp_stroke"] for r in results)
+    return {"scene": scene, "seeds": [r["seed"] for r in results],
+            "precision": min(r["precision"] for r in results), "recall": min(r["recall"] for r in results),
+            "f1": min(r["f1"] for r in results), "recall_200": min(r["recall_200"] for r in results),
+            "recall_60_100": min(c[0] / c[1] for c in cells if c[1]),
+            "pooled_60_100": [found / n, ci.low, ci.high], "width_err": max(r["width_err"] for r in results),
+            "false_positives": [min(fps), max(fps)],
+            "fp_note": f"{on} of {sum(fps)} on strokes" if sum(fps) else ""}
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's "Detection on other shapes and surfaces" table: one row per scene.
+
+    Worst seed per column; bold: the columns of the detection targets (F1, recall above 200 um and
+    60-100 um), **x** after a value missing its target (:data:`DOC_TARGETS`); the false positives' range over
+    the captures with its note in brackets.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [doc_row(...) per scene]}`` as docs/benchmarks/detection.json keeps it.
+    """
+    def cell(row, key, text, bold=False):
+        bound, sense = DOC_TARGETS[key]
+        v = row[key]
+        miss = v < bound if sense == "min" else v > bound
+        return (f"**{text}**" if bold else text) + (" **x**" if miss else "")
+
+    lines = ["| scene | precision | recall >= 60 um | F1 | recall > 200 um | recall 60-100 um | 60-100 um pooled "
+             "over the seeds (95 %) | median abs width err | false positives per capture |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in results["rows"]:
+        lo, hi = r["false_positives"]
+        fp = (f"{lo}" if lo == hi else f"{lo}-{hi}") + (f" ({r['fp_note']})" if r.get("fp_note") else "")
+        p, plo, phi = r["pooled_60_100"]
+        lines.append(f"| {r['scene']} | {r['precision']:.3f} | {r['recall']:.3f} | "
+                     f"{cell(r, 'f1', format(r['f1'], '.3f'), True)} | "
+                     f"{cell(r, 'recall_200', format(r['recall_200'], '.3f'), True)} | "
+                     f"{cell(r, 'recall_60_100', format(r['recall_60_100'], '.3f'), True)} | "
+                     f"{p:.3f} ({plo:.2f}-{phi:.2f}) | {cell(r, 'width_err', _pct(r['width_err']))} | {fp} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_doc_section(results, scene: str, argv) -> Path:
+    """``--doc``: this scene's row replaces the kept one (the other scenes' rows stay); the section is rewritten."""
+    import json
+
+    import benchdoc
+    old = json.loads(benchdoc.json_path(DOC_SECTION).read_text(encoding="utf-8"))
+    row = doc_row(results, scene)
+    rows = [row if r["scene"] == scene else r for r in old["rows"]]
+    if row not in rows:
+        rows.append(row)
+    argvs = dict(old.get("argv_by_scene", {}), **{scene: list(argv)})
+    doc = dict(old, rows=rows, argv_by_scene=argvs)
+    return benchdoc.write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_detection.py")
+
+
 def _params(ap, items) -> dict:
     """``--param NAME=VALUE`` items as DetectionParams overrides (VALUE as the field's type)."""
     fields = DetectionParams.__dataclass_fields__
@@ -318,11 +391,17 @@ def main(argv=None) -> int:
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --pipeline: leave out --lights and --black-level (both estimated "
                          "from the images)")
+    ap.add_argument("--doc", action="store_true",
+                    help="write this scene's row of docs/benchmarks.md's detection table (section detection) and "
+                         "docs/benchmarks/detection.json (true maps, detector defaults only)")
     args = ap.parse_args(argv)
     # the named options are DetectionParams fields too: one dict of overrides for both modes
     named = {"shoulder_width_um": args.shoulder_width_um, "curl_k": args.curl_k,
              "beside_long_fraction": args.beside_long_fraction}
     args.params = {**{k: v for k, v in named.items() if v is not None}, **_params(ap, args.param)}
+    if args.doc and (args.pipeline or args.params or args.height_noise):
+        ap.error("--doc: the table is of the true maps with the detector's defaults (no --pipeline, "
+                 "--height-noise or detector option)")
     if args.pipeline:
         mode = ("end to end (`uvps run CAPTURE -o RUN --detect`: lamps and black level estimated "
                 "from the images)" if args.uncalibrated else "end to end (`uvps run CAPTURE -o RUN "
@@ -335,6 +414,8 @@ def main(argv=None) -> int:
           + (f" but {args.params}" if args.params else "") + ".\n")
     results = [run_seed(s, args.shape, args) for s in args.seeds]
     print_tables(results, args)
+    if args.doc:
+        print("wrote", write_doc_section(results, args.scene, sys.argv[1:] if argv is None else argv))
     return 0
 
 

@@ -97,7 +97,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements", "robustness", "spheres"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
@@ -267,3 +267,27 @@ def test_benchmark_robustness_doc_writes_the_spheres_table_from_sphere_runs(tmp_
     line = [x for x in read_section(md, "spheres").splitlines() if x.startswith("| weave |")]
     assert line == ["| weave | 0.04 / 1.0 / 0.173 / 0.20 | 0.03 / 1.2 / 0.550 / 0.30 **x** | 0.03 / 2.6 / 0.162 / 0.19 |"]
     assert _check(md, jd).returncode == 0
+
+
+def test_benchmark_detection_doc_replaces_its_scenes_row(tmp_path, monkeypatch):
+    """A scene's seeds' scores become its row (worst seed per column, the 60-100 um recall pooled with its
+    Wilson interval, **x** on a missed target); the other scenes' rows stay; the check passes."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_detection
+    before = read_section(md, "detection").splitlines()
+    seed = {"precision": 0.99, "recall": 0.97, "f1": 0.98, "recall_200": 1.0, "width_err": 0.061, "fp_stroke": 1,
+            "fp_other": 0, "bin_60": (28, 30, 28, 28)}
+    scores = [dict(seed, seed=0), dict(seed, seed=1, f1=0.94, width_err=0.072, fp_stroke=0, bin_60=(30, 30, 30, 30))]
+    benchmark_detection.write_doc_section(scores, "impasto", ["--scene", "impasto", "--doc"])
+    after = read_section(md, "detection").splitlines()
+    assert after[:3] == before[:3] and after[4:] == before[4:]
+    # 58 of 60 pooled: 0.967, Wilson 95 % 0.886-0.991 (scipy.stats.binomtest)
+    assert after[3] == ("| impasto | 0.990 | 0.970 | **0.940** **x** | **1.000** | **0.933** | 0.967 (0.89-0.99) | "
+                        "7.2 % | 0-1 (1 of 1 on strokes) |")
+    assert _check(md, jd).returncode == 0
+    with pytest.raises(SystemExit):
+        benchmark_detection.main(["--pipeline", "--doc"])      # the table is of the true maps: refused before running
