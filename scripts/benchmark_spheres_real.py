@@ -12,6 +12,11 @@ first line holding K alone (x right, y up, z toward the camera). ``--same-lamps 
 capture (cropped from the same frames, e.g. PSBox's LightProbe-1 and -2), whose directions must agree.
 Other public captures are not shipped with the project: fetch them yourself (docs/benchmarks.md,
 "Calibration and spheres", names them and their sources).
+
+``--doc`` writes docs/benchmarks.md's "Real sphere captures" table (section ``spheres_real``:
+:func:`render_doc`) and docs/benchmarks/spheres_real.json: a capture measured replaces the kept row of its
+NAME, keeping that row's description of its source (``label``) and ``note``; the other rows stay
+(scripts/benchdoc.py).
 """
 import argparse
 import json
@@ -23,6 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from uvps.commands import COMMANDS
+
+DOC_SECTION = "spheres_real"
+#: Bold in the doc's table: a direction within this of the published one (deg).
+DOC_BOLD_DEG = 1.0
 
 DATA = next((p / "shared" / "data" for p in Path(__file__).resolve().parents if (p / "shared" / "data").is_dir()),
             Path("/work/shared/data"))
@@ -41,12 +50,57 @@ def _angles(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1)))
 
 
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's real spheres table: one row per capture, its directions against the published ones
+    (median / max, deg; bold: within :data:`DOC_BOLD_DEG`), ``note`` in brackets after them.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [{"name", "label"?, "centre_px", "radius_px", "kind", "median_deg"?, "max_deg"?, "note"?,
+        "time_s"}]}`` as docs/benchmarks/spheres_real.json keeps them.
+    """
+    def deg(v):
+        return f"**{v:.2f}**" if v <= DOC_BOLD_DEG else f"{v:.2f}"
+
+    lines = ["| capture | found (centre, radius px) | kind | vs published: median / max | time (s) |",
+             "|---|---|---|---|---|"]
+    for r in results["rows"]:
+        vs = f"{deg(r['median_deg'])} / {deg(r['max_deg'])}" if r.get("median_deg") is not None else ""
+        if r.get("note"):
+            vs += f" ({r['note']})"
+        c = r["centre_px"]
+        lines.append(f"| {r.get('label') or r['name']} | ({c[0]:.1f}, {c[1]:.1f}), {r['radius_px']:.1f} | {r['kind']} | "
+                     f"{vs} | {r['time_s']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_doc_section(rows: list, argv) -> Path:
+    """``--doc``: the captures measured replace the kept rows of their names (label and note kept)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import benchdoc
+    path = benchdoc.json_path(DOC_SECTION)
+    old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {"rows": []}
+    kept = {r["name"]: r for r in old["rows"]}
+    for r in rows:
+        before = kept.get(r["name"], {})
+        r.update({k: before[k] for k in ("label", "note") if k in before})
+    new = {r["name"]: r for r in rows}
+    out = [new.pop(r["name"], r) for r in old["rows"]] + list(new.values())
+    doc = dict(old, rows=out, argv=list(argv))
+    return benchdoc.write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_spheres_real.py")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--capture", action="append", default=[], help="NAME=FOLDER[:LIGHTS]")
     ap.add_argument("--same-lamps", action="append", default=[], help="NAME,NAME")
     ap.add_argument("--pixel-size-um", type=float, default=100.0)
+    ap.add_argument("--doc", action="store_true",
+                    help="write the captures' rows into docs/benchmarks.md (section spheres_real) and "
+                         "docs/benchmarks/spheres_real.json")
     args = ap.parse_args(argv)
+    measured = []
     caps = args.capture or [f"psbox_lightprobe2={DATA / 'sphere_mirror_psbox'}:"
                             f"{DATA / 'sphere_mirror_psbox' / 'light_directions.txt'}"]
     dirs = {}
@@ -71,9 +125,13 @@ def main(argv=None):
         dirs[name] = d
         s = doc["spheres"][0]
         vs = ""
+        row = {"name": name, "centre_px": [float(v) for v in s["centre_px"][:2]], "radius_px": float(s["radius_px"]),
+               "kind": s["kind"], "time_s": dt}
         if lights:
             ang = _angles(d, _published(lights))
             vs = f"{np.median(ang):.2f} / {ang.max():.2f}"
+            row.update(median_deg=float(np.median(ang)), max_deg=float(ang.max()))
+        measured.append(row)
         print(f"| {name} | ({s['centre_px'][0]:.1f}, {s['centre_px'][1]:.1f}), {s['radius_px']:.1f} | {s['kind']} | "
               f"{vs} | {dt:.1f} |")
     for pair in args.same_lamps:
@@ -81,6 +139,8 @@ def main(argv=None):
         if a in dirs and b in dirs:
             ang = _angles(dirs[a], dirs[b])
             print(f"\n{a} against {b} (one capture's two spheres): median {np.median(ang):.2f}, max {ang.max():.2f} deg")
+    if args.doc and measured:
+        print("wrote", write_doc_section(measured, sys.argv[1:] if argv is None else argv))
     return 0
 
 

@@ -97,7 +97,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection", "spheres_real"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
@@ -291,3 +291,25 @@ def test_benchmark_detection_doc_replaces_its_scenes_row(tmp_path, monkeypatch):
     assert _check(md, jd).returncode == 0
     with pytest.raises(SystemExit):
         benchmark_detection.main(["--pipeline", "--doc"])      # the table is of the true maps: refused before running
+
+
+def test_benchmark_spheres_real_doc_replaces_a_captures_row_keeping_its_label(tmp_path, monkeypatch):
+    """A capture measured again replaces its row (its source's description kept, bold within 1 deg); a new
+    capture is appended under its name; the check passes."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    import benchmark_spheres_real
+    before = read_section(md, "spheres_real").splitlines()
+    rows = [{"name": "psbox_lightprobe1", "centre_px": [536.84, 480.46], "radius_px": 423.61, "kind": "mirror",
+             "median_deg": 0.874, "max_deg": 1.204, "time_s": 9.96},
+            {"name": "mine", "centre_px": [10.0, 20.0], "radius_px": 5.0, "kind": "glossy", "time_s": 1.0}]
+    benchmark_spheres_real.write_doc_section(rows, ["--doc"])
+    after = read_section(md, "spheres_real").splitlines()
+    assert after[:3] == before[:3] and after[4:6] == before[4:6]
+    assert after[3] == ("| PSBox LightProbe-1 (github.com/yxiong/PSBox `data/LightProbe-1`, MIT; circle 535.9, 478.0, "
+                        "421.1) | (536.8, 480.5), 423.6 | mirror | **0.87** / 1.20 | 10.0 |")
+    assert after[6:] == ["| mine | (10.0, 20.0), 5.0 | glossy |  | 1.0 |"]
+    assert _check(md, jd).returncode == 0
