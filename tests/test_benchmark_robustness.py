@@ -57,3 +57,30 @@ def test_benchmark_robustness_tiny(tmp_path, capsys):
     assert bench.main(argv) == 0
     again = json.loads((work / "robustness_results.json").read_text())
     assert [r["light_mean_deg"] for r in again["results"]] == [r["light_mean_deg"] for r in data["results"]]
+
+
+@pytest.mark.slow
+def test_benchmark_robustness_doc_rewrites_its_row_from_a_real_run(tmp_path, monkeypatch):
+    """``--doc`` after a real (tiny) run with 12 lamps: the run's seed replaces the kept one in a copy of
+    docs/benchmarks/robustness.json, the row's seed-0 cells are this run's, and the check passes."""
+    import shutil
+    import subprocess
+
+    bench = _load()
+    import benchdoc
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    argv = ["--rows", "vignetting", "--seeds", "0", "--lights-counts", "12", "--shape", "160", "200",
+            "--modes", "estimated", "--no-detect", "--workdir", str(tmp_path / "work"), "--doc"]
+    assert bench.main(argv) == 0
+    run = json.loads((tmp_path / "work" / "robustness_results.json").read_text())["results"][0]
+    kept = [r for r in json.loads((jd / "robustness.json").read_text())["runs"]
+            if (r["row"], r["mode"]) == ("vignetting", "estimated")]
+    assert [r["seed"] for r in kept] == [0, 1, 2] and kept[0]["light_mean_deg"] == run["light_mean_deg"]
+    line = next(x for x in benchdoc.read_section(md, "robustness").splitlines() if x.startswith("| vignetting |"))
+    assert line.startswith(f"| vignetting | {run['light_mean_deg']:.2f} / 0.73 / 0.54")
+    check = [sys.executable, str(SCRIPT.parent / "benchmark_docs.py"), "--check", "--md", str(md), "--json-dir", str(jd)]
+    assert subprocess.run(check, capture_output=True, text=True).returncode == 0
