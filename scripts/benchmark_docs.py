@@ -39,8 +39,9 @@ def _rel(path: Path) -> str:
 
 def load_script(path: Path):
     """Import a benchmark script as a module (its imports run; nothing is measured)."""
-    spec = importlib.util.spec_from_file_location(path.stem, path)
+    spec = importlib.util.spec_from_file_location(f"_benchdoc_{path.stem}", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod        # registered under its own name: a dataclass looks its module up there
     spec.loader.exec_module(mod)
     return mod
 

@@ -20,8 +20,10 @@ rusage:
 and optionally (``--profile``) a cProfile of :func:`uvps.core.pipeline.run` in this process, whose top
 lines go with the table. Each process's CPU use is its user + system CPU time over its wall time (``os.wait4``'s rusage:
 2.0 = both cores busy throughout). The table is printed with the machine (cores, RAM, load) and the
-command line; it is not written into docs/benchmarks.md, whose two speed tables have other columns
-(no ``--doc`` section yet: scripts/benchdoc.py). ``--no-md`` is accepted and does nothing (the
+command line. ``--doc`` (the default 4000 x 3000 x 16 capture) also writes docs/benchmarks.md's first
+speed table (section ``speed``: :func:`render_doc`: the read, ``uvps run`` and ``uvps demo``) and
+docs/benchmarks/speed.json (scripts/benchdoc.py); the 1500 x 2000 table, whose rows merge several
+invocations (best and worst of 3), is not written by it. ``--no-md`` is accepted and does nothing (the
 commands recorded in docs/benchmarks.md carry it).
 
 Example::
@@ -50,6 +52,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "cpython_core"))   # the code of this tree (also for --profile)
 UVPS = [sys.executable, "-m", "uvps"]   # the command as installed (uvps._entry: its BLAS threads)
+
+
+DOC_SECTION = "speed"
+#: The doc's rows (run_child names) and their labels in docs/benchmarks.md's table.
+DOC_ROWS = {"read the stack with tifffile": "read the stack with tifffile", "uvps run": "`uvps run`",
+            "uvps demo (600 x 800, 12 lights)": "`uvps demo` (600 x 800, 12 lamps)"}
 
 
 @dataclass
@@ -357,6 +365,47 @@ def table(ms: list, read_s: float, raw: float) -> str:
     return "\n".join(rows)
 
 
+def doc_rows(ms: list, read_s: float, raw: float) -> list:
+    """The doc's rows of this invocation: wall (the read's own time inside its process), / read, peak RSS
+    over the raw stack (the demo, another capture: its peak RSS in GiB), run.json's stages."""
+    out = []
+    for m in ms:
+        if m.name not in DOC_ROWS or m.returncode:
+            continue
+        read = m.name == "read the stack with tifffile"
+        row = {"name": m.name, "wall_s": read_s if read else m.wall_s,     # stages in run order: a list of pairs
+               "stages": [[k, v] for k, v in (m.stages or {}).items()]}
+        if m.name.startswith("uvps demo"):
+            row["rss_gib"] = m.maxrss_gib
+        else:
+            row.update(read_ratio=1.0 if read else m.wall_s / read_s, rss_ratio=m.maxrss_gib * 2 ** 30 / raw)
+        out.append(row)
+    return out
+
+
+def render_doc(results: dict) -> str:
+    """docs/benchmarks.md's first speed table (4000 x 3000 x 16): wall (s; bold: ``uvps run``'s, the figure
+    of the target "within 10x the read"), / read, peak RSS / raw stack (a process on another capture, the
+    demo: its peak RSS in GiB, in brackets), run.json's stages (s).
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": doc_rows(...)}`` as docs/benchmarks/speed.json keeps them.
+    """
+    lines = ["| process | wall (s) | / read | peak RSS / raw stack | stages (s) |", "|---|---|---|---|---|"]
+    for r in results["rows"]:
+        wall = f"{r['wall_s']:.2f}" if r["name"].startswith("read ") else f"{r['wall_s']:.1f}"
+        if r["name"] == "uvps run":
+            wall = f"**{wall}**"
+        ratio = f"{r['read_ratio']:.0f}" if "read_ratio" in r else ""
+        rss = f"{r['rss_ratio']:.2f}" if "rss_ratio" in r else f"({r['rss_gib']:.2f} GiB)"
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in r.get("stages", []))
+        cells = [DOC_ROWS[r["name"]], wall, ratio, rss, stages]
+        lines.append("|" + "|".join(f" {c} " if c else " " for c in cells) + "|")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shape", type=int, nargs=2, default=(3000, 4000), metavar=("ROWS", "COLS"))
@@ -378,7 +427,14 @@ def main(argv=None) -> int:
                     help="UVPS_SCRATCH_ABOVE_BYTES for the runs (compressed stacks above it go to scratch files)")
     ap.add_argument("--title", default="Speed and memory of a whole run")
     ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
+    ap.add_argument("--doc", action="store_true",
+                    help="write docs/benchmarks.md's first speed table (section speed) and docs/benchmarks/speed.json "
+                         "(the default 4000 x 3000 x 16 capture, uncompressed files)")
     a = ap.parse_args(argv)
+    if a.doc and (tuple(a.shape) != (3000, 4000) or a.lights != 16 or a.tile or a.compress or a.stack
+                  or {"run", "demo"} & set(a.skip)):
+        ap.error("--doc: the table is of the default 4000 x 3000 x 16 capture in files, with `uvps run` and "
+                 "`uvps demo` (no --shape, --lights, --tile, --compress, --stack, --skip run/demo)")
     M, N = a.shape
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
@@ -457,6 +513,11 @@ def main(argv=None) -> int:
                  "```", prof, "```", ""]
     text = "\n".join(text)
     print(text)
+    if a.doc and all(m.returncode == 0 for m in ms):
+        from benchdoc import write_doc
+        doc = {"argv": list(argv or sys.argv[1:]), "load": load_line(), "read_s": read_s, "raw_gib": raw / 2 ** 30,
+               "rows": doc_rows(ms, read_s, raw)}
+        print("wrote", write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_speed.py"))
     return 0 if all(m.returncode == 0 for m in ms) else 1
 
 
