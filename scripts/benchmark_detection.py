@@ -336,7 +336,7 @@ def write_doc_section(results, scene: str, argv) -> Path:
     import json
 
     import benchdoc
-    old = json.loads(benchdoc.json_path(DOC_SECTION).read_text(encoding="utf-8"))
+    old = json.loads(benchdoc.json_path(DOC_SECTION, json_dir=benchdoc.JSON_DIR).read_text(encoding="utf-8"))
     row = doc_row(results, scene)
     rows = [row if r["scene"] == scene else r for r in old["rows"]]
     if row not in rows:

@@ -721,7 +721,7 @@ def write_doc_section(collected: list, argv: list) -> list:
             new[(r["row"], r["mode"], r["seed"])] = keep
         if not new:
             continue
-        old = json.loads(benchdoc.json_path(section).read_text(encoding="utf-8"))
+        old = json.loads(benchdoc.json_path(section, json_dir=benchdoc.JSON_DIR).read_text(encoding="utf-8"))
         runs = [r for r in old["runs"] if (r["row"], r["mode"], r["seed"]) not in new] + list(new.values())
         runs.sort(key=lambda r: (r["row"], r["mode"], r["seed"]))
         doc = dict(old, runs=runs, commands=sorted(set(old.get("commands", [])) | {command_line(argv)}))

@@ -22,8 +22,9 @@ lines go with the table. Each process's CPU use is its user + system CPU time ov
 2.0 = both cores busy throughout). The table is printed with the machine (cores, RAM, load) and the
 command line. ``--doc`` (the default 4000 x 3000 x 16 capture) also writes docs/benchmarks.md's first
 speed table (section ``speed``: :func:`render_doc`: the read, ``uvps run`` and ``uvps demo``) and
-docs/benchmarks/speed.json (scripts/benchdoc.py); the 1500 x 2000 table, whose rows merge several
-invocations (best and worst of 3), is not written by it. ``--no-md`` is accepted and does nothing (the
+docs/benchmarks/speed.json (scripts/benchdoc.py); with ``--shape 1500 2000`` it writes the second
+(section ``speed_load``: :func:`render_load_doc`), each row the best (-worst) of the last 3 invocations that
+measured it, all kept in docs/benchmarks/speed_load.json. ``--no-md`` is accepted and does nothing (the
 commands recorded in docs/benchmarks.md carry it).
 
 Example::
@@ -383,6 +384,80 @@ def doc_rows(ms: list, read_s: float, raw: float) -> list:
     return out
 
 
+#: The second table's rows (1500 x 2000, under load) and their labels.
+LOAD_ROWS = {"read the stack with tifffile": "read the stack with tifffile",
+             "uvps run": "`uvps run` (lamps estimated)", "uvps run --regions auto": "`uvps run --regions auto`",
+             "uvps run --calibration --dark": "`uvps run --calibration CAL --dark DARK`",
+             "uvps run --calibration --dark --regions auto": "the same `--regions auto`"}
+#: Invocations a row of the second table keeps (best and worst of them).
+LOAD_KEEP = 3
+
+
+def load_summary(runs: list) -> dict:
+    """A row of the second table from its invocations' measures: the fastest's wall, / read, CPU / wall and
+    stages, the slowest's wall and CPU / wall, the range of peak RSS (GiB and over the raw stack)."""
+    best = min(runs, key=lambda r: r["wall_s"])
+    worst = max(runs, key=lambda r: r["wall_s"])
+    return {"wall_s": [best["wall_s"], worst["wall_s"]], "read_ratio": best["read_ratio"],
+            "cpu_ratio": [best["cpu_ratio"], worst["cpu_ratio"]],
+            "rss_gib": [min(r["rss_gib"] for r in runs), max(r["rss_gib"] for r in runs)],
+            "rss_ratio": [min(r["rss_ratio"] for r in runs), max(r["rss_ratio"] for r in runs)],
+            "stages": best.get("stages", [])}
+
+
+def render_load_doc(results: dict) -> str:
+    """docs/benchmarks.md's second speed table (1500 x 2000, under load): per row the fastest invocation's
+    wall (s; the slowest's after a dash in brackets, where it differs), / read, CPU / wall (the slowest's
+    likewise), peak RSS and its ratio to the raw stack (their range over the invocations), stages.
+
+    Parameters
+    ----------
+    results : dict
+        ``{"rows": [{"name", "summary": load_summary(...), "runs"?: [...]}]}`` as docs/benchmarks/speed_load.json
+        keeps them.
+    """
+    def pair(v, fmt, sep):
+        a, b = fmt.format(v[0]), fmt.format(v[1])
+        return a if a == b else (f"{a} (-{b})" if sep == "dash" else f"{a}-{b}")
+
+    lines = ["| process | wall (s) | / read | CPU / wall | peak RSS (GiB) | / raw stack | stages (s, run.json) |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results["rows"]:
+        s = r["summary"]
+        read = r["name"].startswith("read ")
+        wall = f"{s['wall_s'][0]:.2f} (in process)" if read else pair(s["wall_s"], "{:.1f}", "dash")
+        cells = [LOAD_ROWS[r["name"]], wall, f"{s['read_ratio']:.0f}", pair(s["cpu_ratio"], "{:.2f}", "dash"),
+                 pair(s["rss_gib"], "{:.2f}", "range"), pair(s["rss_ratio"], "{:.2f}", "range"),
+                 ", ".join(f"{k} {v:.1f}" for k, v in s["stages"])]
+        lines.append("|" + "|".join(f" {c} " if c else " " for c in cells) + "|")
+    return "\n".join(lines) + "\n"
+
+
+def write_load_doc(ms: list, read_s: float, raw: float, argv) -> Path:
+    """``--doc`` at 1500 x 2000: this invocation's measures join each row's last invocations (at most
+    :data:`LOAD_KEEP`); the rows are summarised again and the section rewritten."""
+    import benchdoc
+    path = benchdoc.json_path("speed_load", json_dir=benchdoc.JSON_DIR)
+    old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {"rows": []}
+    kept = {r["name"]: r for r in old["rows"]}
+    rows = []
+    for name in LOAD_ROWS:
+        m = next((m for m in ms if m.name == name and m.returncode == 0), None)
+        runs = list(kept.get(name, {}).get("runs", []))
+        if m is not None:
+            read = name.startswith("read ")
+            runs = (runs + [{"wall_s": read_s if read else m.wall_s, "read_ratio": 1.0 if read else m.wall_s / read_s,
+                             "cpu_ratio": m.cpu_s / m.wall_s, "rss_gib": m.maxrss_gib,
+                             "rss_ratio": m.maxrss_gib * 2 ** 30 / raw, "load_before": m.load_before,
+                             "stages": [[k, v] for k, v in (m.stages or {}).items()]}])[-LOAD_KEEP:]
+        if runs:
+            rows.append({"name": name, "runs": runs, "summary": load_summary(runs)})
+        elif name in kept:
+            rows.append(kept[name])            # a row only transcribed so far: as it was
+    doc = dict(old, rows=rows, argv=list(argv))
+    return benchdoc.write_doc("speed_load", doc, render_load_doc(doc), source="scripts/benchmark_speed.py")
+
+
 def render_doc(results: dict) -> str:
     """docs/benchmarks.md's first speed table (4000 x 3000 x 16): wall (s; bold: ``uvps run``'s, the figure
     of the target "within 10x the read"), / read, peak RSS / raw stack (a process on another capture, the
@@ -404,6 +479,10 @@ def render_doc(results: dict) -> str:
         cells = [DOC_ROWS[r["name"]], wall, ratio, rss, stages]
         lines.append("|" + "|".join(f" {c} " if c else " " for c in cells) + "|")
     return "\n".join(lines) + "\n"
+
+
+#: Section name -> renderer (scripts/benchmark_docs.py).
+DOC_SECTIONS = {"speed": render_doc, "speed_load": render_load_doc}
 
 
 def main(argv=None) -> int:
@@ -428,13 +507,14 @@ def main(argv=None) -> int:
     ap.add_argument("--title", default="Speed and memory of a whole run")
     ap.add_argument("--note", default="", help="a sentence put under the table (what code was measured)")
     ap.add_argument("--doc", action="store_true",
-                    help="write docs/benchmarks.md's first speed table (section speed) and docs/benchmarks/speed.json "
-                         "(the default 4000 x 3000 x 16 capture, uncompressed files)")
+                    help="write docs/benchmarks.md's first speed table (section speed, docs/benchmarks/speed.json; "
+                         "the default 4000 x 3000 x 16 capture) or with --shape 1500 2000 its second (speed_load)")
     a = ap.parse_args(argv)
-    if a.doc and (tuple(a.shape) != (3000, 4000) or a.lights != 16 or a.tile or a.compress or a.stack
-                  or {"run", "demo"} & set(a.skip)):
-        ap.error("--doc: the table is of the default 4000 x 3000 x 16 capture in files, with `uvps run` and "
-                 "`uvps demo` (no --shape, --lights, --tile, --compress, --stack, --skip run/demo)")
+    load_doc = tuple(a.shape) == (1500, 2000)
+    if a.doc and (tuple(a.shape) not in ((3000, 4000), (1500, 2000)) or a.lights != 16 or a.tile or a.compress
+                  or a.stack or (not load_doc and {"run", "demo"} & set(a.skip))):
+        ap.error("--doc: the tables are of a 4000 x 3000 x 16 capture in files, with `uvps run` and `uvps demo`, or of "
+                 "--shape 1500 2000 (no other --shape, --lights, --tile, --compress or --stack)")
     M, N = a.shape
     folder = a.work / (f"capture_{M}x{N}x{a.lights}_s{a.seed}" + (f"_tiles{a.tile[0]}x{a.tile[1]}" if a.tile else ""))
     a.work.mkdir(parents=True, exist_ok=True)
@@ -513,7 +593,9 @@ def main(argv=None) -> int:
                  "```", prof, "```", ""]
     text = "\n".join(text)
     print(text)
-    if a.doc and all(m.returncode == 0 for m in ms):
+    if a.doc and load_doc:
+        print("wrote", write_load_doc(ms, read_s, raw, argv or sys.argv[1:]))
+    elif a.doc and all(m.returncode == 0 for m in ms):
         from benchdoc import write_doc
         doc = {"argv": list(argv or sys.argv[1:]), "load": load_line(), "read_s": read_s, "raw_gib": raw / 2 ** 30,
                "rows": doc_rows(ms, read_s, raw)}

@@ -79,7 +79,7 @@ def write_doc_section(rows: list, argv) -> Path:
     """``--doc``: the captures measured replace the kept rows of their names (label and note kept)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import benchdoc
-    path = benchdoc.json_path(DOC_SECTION)
+    path = benchdoc.json_path(DOC_SECTION, json_dir=benchdoc.JSON_DIR)
     old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {"rows": []}
     kept = {r["name"]: r for r in old["rows"]}
     for r in rows:

@@ -97,7 +97,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection", "spheres_real", "speed"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection", "spheres_real", "speed", "speed_load"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")
@@ -333,3 +333,24 @@ def test_benchmark_speed_doc_rows_render_as_the_table(tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         bs.main(["--shape", "300", "400", "--work", str(tmp_path), "--doc"])
     assert not any(tmp_path.iterdir())
+
+
+def test_benchmark_speed_load_doc_keeps_the_last_three_invocations(tmp_path, monkeypatch):
+    """At 1500 x 2000 each --doc adds its measures to the rows it measured: best (-worst) of the last 3, peak RSS
+    as a range; a row not measured again stays as the table had it; the check passes."""
+    import benchmark_speed as bs
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    before = read_section(md, "speed_load").splitlines()
+    gib = 2 ** 30
+    for wall, rss in ((12.0, 0.61), (20.0, 0.64), (11.0, 0.62), (30.0, 0.60)):
+        ms = [bs.Measure("uvps run", wall, rss, 0, cpu_s=wall / 2, stages={"additive": 1.0, "lights": wall / 4})]
+        bs.write_load_doc(ms, 0.1, 0.25 * gib, ["--shape", "1500", "2000", "--doc"])
+    after = read_section(md, "speed_load").splitlines()
+    assert after[:3] == before[:3] and after[4:] == before[4:]
+    # the last three: 20.0 / 0.64, 11.0 / 0.62, 30.0 / 0.60
+    assert after[3] == "| `uvps run` (lamps estimated) | 11.0 (-30.0) | 110 | 0.50 | 0.60-0.64 | 2.40-2.56 | additive 1.0, lights 2.8 |"
+    assert _check(md, jd).returncode == 0
