@@ -34,7 +34,7 @@ from .core.measure import COLUMNS
 from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
 from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
-from .files.omezarr import CHUNK_PX, LABELS, DaskStore, ZarrImage, open_tiff, write_dask_ome_stores
+from .files.omezarr import CHUNK_PX, LABELS, ZarrImage, open_tiff, write_dask_ome_labels, write_dask_ome_zarr
 from .files.outputs import new_output_dir, report, write_json_atomic
 from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
 from .painting_maps import MapContext, PlacedTile, painting_array
@@ -480,20 +480,20 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
     if ctx.channels == 1:
         alb = alb[0]
     # the labels once, as a store of their own (labels.ome.zarr), then attached to the albedo by copying
-    # their files (napari and Fiji's readers overlay an image's labels/ on it). All five pyramids in one
-    # Dask graph per level: on a small painting the graphs' round trips, not the pixels, were the cost
-    labels_zarr = tmp / PAINTING_LABELS
-    write_dask_ome_stores([
-        DaskStore(labels_zarr, labels=((LABELS[0], painting_array("protrusions", ctx, chunk_px=chunk_px)),
-                                       (LABELS[1], painting_array("regions", rctx, chunk_px=chunk_px))),
-                  label_source="../../albedo.ome.zarr"),
-        DaskStore(tmp / "albedo.ome.zarr", ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"), alb,
-                  labels=tuple((lb, labels_zarr / lb.name) for lb in LABELS)),
-        DaskStore(tmp / "normals.ome.zarr", ZarrImage("normals", "", ("nx", "ny", "nz"), kind="normals"),
-                  painting_array("normals", ctx, chunk_px=chunk_px)),
-        DaskStore(tmp / "height.ome.zarr", ZarrImage("height", "", (), unit="micrometer"),
-                  painting_array("height", ctx, chunk_px=chunk_px))],
-        pixel_size_um, chunk_px=chunk_px, origin_um=origin_um)
+    # their files (napari and Fiji's readers overlay an image's labels/ on it)
+    labels_zarr = write_dask_ome_labels(
+        tmp / PAINTING_LABELS, [(LABELS[0], painting_array("protrusions", ctx, chunk_px=chunk_px)),
+                                (LABELS[1], painting_array("regions", rctx, chunk_px=chunk_px))],
+        pixel_size_um, image="../../albedo.ome.zarr", chunk_px=chunk_px, origin_um=origin_um)
+    write_dask_ome_zarr(tmp / "albedo.ome.zarr", ZarrImage("albedo", "", ("R", "G", "B"), unit="counts"), alb,
+                        pixel_size_um, chunk_px=chunk_px, labels=[(lb, labels_zarr / lb.name) for lb in LABELS],
+                        origin_um=origin_um)
+    write_dask_ome_zarr(tmp / "normals.ome.zarr", ZarrImage("normals", "", ("nx", "ny", "nz"), kind="normals"),
+                        painting_array("normals", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
+                        origin_um=origin_um)
+    write_dask_ome_zarr(tmp / "height.ome.zarr", ZarrImage("height", "", (), unit="micrometer"),
+                        painting_array("height", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
+                        origin_um=origin_um)
     return {k: [round(v, 6) for v in planes[k]] for k in names}
 
 

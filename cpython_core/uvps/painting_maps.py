@@ -3,9 +3,9 @@
 Each map is a Dask array over the painting (pixel (0, 0) at the refined layout's smallest corner)
 whose every chunk is computed from the tiles that cover it only, reading just their windows
 (memory-mapped TIFFs of the tiles' run folders), so neither the painting nor a whole level is ever
-in memory; the chunks are written into OME-Zarr stores by the cluster's workers, one Dask graph per
-pyramid level for all the maps (:func:`uvps.files.omezarr.write_dask_ome_stores`). A tile is placed
-at its registered corner, sub-pixel (bilinear interpolation; labels: nearest pixel), and the overlaps are feathered: each tile weighted by
+in memory; the chunks are written into OME-Zarr stores (:func:`uvps.files.omezarr.write_dask_ome_zarr`)
+by the cluster's workers. A tile is placed at its registered corner, sub-pixel (bilinear
+interpolation; labels: nearest pixel), and the overlaps are feathered: each tile weighted by
 1 + its pixel's distance to the tile's nearest edge. The albedo is divided by the tile's gain
 (its exposure relative to the others), the height takes the tile's offset and plane
 (:func:`uvps.core.mosaic.align_heights`), the normals are renormalised after blending. Labels are

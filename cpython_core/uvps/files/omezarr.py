@@ -45,7 +45,7 @@ from .outputs import Progress, replace_dir, report
 log = logging.getLogger(__name__)
 
 __all__ = ["NGFF_VERSION", "MIN_LEVEL_PX", "CHUNK_PX", "ZarrImage", "IMAGES", "LABELS", "write_ome_zarr",
-           "write_dask_ome_zarr", "write_dask_ome_labels", "DaskStore", "write_dask_ome_stores"]
+           "write_dask_ome_zarr", "write_dask_ome_labels"]
 
 #: The OME-NGFF version written (Zarr format 2).
 NGFF_VERSION = "0.4"
@@ -281,10 +281,27 @@ def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, 
     array)`` pairs attached as OME-Zarr labels of this image, or ``(ZarrImage, path)`` of a label
     image already stored (:func:`write_dask_ome_labels`), whose files are copied. ``origin_um``:
     the (y, x) translation of pixel (0, 0). Written to a temporary folder and renamed into place.
-    Several stores at once: :func:`write_dask_ome_stores`.
     """
-    return write_dask_ome_stores([DaskStore(final, image, data, labels=tuple(labels))], pixel_size_um,
-                                 chunk_px=chunk_px, origin_um=origin_um)[0]
+    zarr = _zarr()
+    final = Path(final)
+    tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
+    try:
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
+        levels = _store_pyramid(root, image, data, chunk_px)
+        low = np.asarray(root[str(len(levels) - 1)])
+        ms = _multiscales(image.name, levels, data.ndim == 3, pixel_size_um)
+        _translate(ms, origin_um, data.ndim == 3)
+        channels = list(image.channels[:data.shape[0]]) if data.ndim == 3 else []
+        root.attrs.update({"multiscales": ms, "omero": _omero(image, channels, low),
+                           "uvps": {"unit": image.unit, "version": __version__}})
+        if labels:
+            _store_labels(zarr, tmp / "labels", labels, pixel_size_um, chunk_px, origin_um, source="../../")
+        del root
+        replace_dir(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
 
 
 def write_dask_ome_labels(final, labels, pixel_size_um: float, *, image: str, chunk_px: int = CHUNK_PX,
@@ -296,98 +313,35 @@ def write_dask_ome_labels(final, labels, pixel_size_um: float, *, image: str, ch
     label image, of the image it labels, e.g. ``"../../albedo.ome.zarr"``). Chunk by chunk; written
     to a temporary folder and renamed into place.
     """
-    return write_dask_ome_stores([DaskStore(final, labels=tuple(labels), label_source=image)], pixel_size_um,
-                                 chunk_px=chunk_px, origin_um=origin_um)[0]
-
-
-@dataclass(frozen=True)
-class DaskStore:
-    """One OME-Zarr store for :func:`write_dask_ome_stores`: an image pyramid (``image`` and its
-    Dask array ``data``) with its ``labels`` attached under ``labels/``, or, without ``image``, a
-    store of label images only (its root the NGFF labels group), their ``source`` ``label_source``.
-    ``labels``: ``(ZarrImage, dask array)`` pairs, or ``(ZarrImage, path)`` of a label image stored
-    already, whose files are copied; the path may name a label image of an earlier store of the
-    same call (``<final>/<name>``)."""
-    final: Path
-    image: Optional[ZarrImage] = None
-    data: object = None
-    labels: tuple = ()
-    label_source: str = "../../"
-
-
-def write_dask_ome_stores(stores, pixel_size_um: float, *, chunk_px: int = CHUNK_PX,
-                          origin_um=(0.0, 0.0)) -> list:
-    """Write several OME-Zarr stores (:class:`DaskStore`, pyramids as :func:`write_dask_ome_zarr`
-    builds them) with one Dask graph per pyramid level for all of them: level 0 of every image and
-    label image in one ``dask.array.store`` call, then level 1 of all from their stored level 0, and
-    so on. A graph costs a round trip to the scheduler (on a small painting the maps' time was the
-    count of graphs, not their pixels: docs/decisions/painting.md), so the count of graphs is the
-    count of levels, not levels times images. Each store goes to a temporary folder beside its
-    ``final`` and all are renamed into place once every level is written; the same bytes as one
-    store at a time. Returns the stores' paths."""
     zarr = _zarr()
-    stores = [DaskStore(Path(s.final), s.image, s.data, tuple(s.labels), s.label_source) for s in stores]
-    tmps = []
+    final = Path(final)
+    tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
     try:
-        for s in stores:
-            tmps.append(Path(tempfile.mkdtemp(prefix="." + s.final.name + ".tmp-", dir=s.final.parent)))
-        pending, roots, groups = [], [], []
-        for s, tmp in zip(stores, tmps):
-            root = None
-            if s.image is not None:
-                root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-                pending.append(_plan_pyramid(root, s.image, s.data, chunk_px))
-            roots.append(root)
-            group, subs = None, {}
-            if s.labels:
-                group = zarr.open_group(str(tmp / "labels" if root is not None else tmp), mode="w", zarr_format=2)
-                for lb, arr in s.labels:
-                    if not isinstance(arr, (str, Path)):
-                        subs[lb.name] = group.create_group(lb.name)
-                        pending.append(_plan_pyramid(subs[lb.name], lb, arr, chunk_px))
-            groups.append((group, subs))
-        _store_plans(pending, chunk_px)
-        plans = iter(pending)
-        for s, tmp, root, (group, subs) in zip(stores, tmps, roots, groups):
-            if root is not None:
-                levels = next(plans).levels
-                low = np.asarray(root[str(len(levels) - 1)])
-                ms = _multiscales(s.image.name, levels, s.data.ndim == 3, pixel_size_um)
-                _translate(ms, origin_um, s.data.ndim == 3)
-                channels = list(s.image.channels[:s.data.shape[0]]) if s.data.ndim == 3 else []
-                root.attrs.update({"multiscales": ms, "omero": _omero(s.image, channels, low),
-                                   "uvps": {"unit": s.image.unit, "version": __version__}})
-            if group is None:
-                continue
-            folder = tmp / "labels" if root is not None else tmp
-            for lb, arr in s.labels:
-                if isinstance(arr, (str, Path)):
-                    # the same chunks, compressor and metadata: a copy of the files is the same label image
-                    shutil.copytree(_staged(Path(arr), stores, tmps), folder / lb.name)
-                    sub = zarr.open_group(str(folder / lb.name), mode="r+", zarr_format=2)
-                else:
-                    sub = subs[lb.name]
-                    ms = _multiscales(lb.name, next(plans).levels, False, pixel_size_um)
-                    _translate(ms, origin_um, False)
-                    sub.attrs["multiscales"] = ms
-                sub.attrs["image-label"] = {"version": NGFF_VERSION, "source": {"image": s.label_source}}
-            group.attrs["labels"] = [lb.name for lb, _ in s.labels]
-        del roots, groups
-        for s, tmp in zip(stores, tmps):
-            replace_dir(tmp, s.final)
+        _store_labels(zarr, tmp, labels, pixel_size_um, chunk_px, origin_um, source=image)
+        replace_dir(tmp, final)
     except BaseException:
-        for tmp in tmps:
-            shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return [s.final for s in stores]
+    return final
 
 
-def _staged(path: Path, stores, tmps) -> Path:
-    """``path`` (a label image of a store), or where it is staged if it belongs to a store of this call."""
-    for s, tmp in zip(stores, tmps):
-        if path.parent == s.final:
-            return tmp / path.name
-    return path
+def _store_labels(zarr, folder: Path, labels, pixel_size_um, chunk_px, origin_um, *, source: str) -> None:
+    """An NGFF labels group at ``folder``: each label image stored from its Dask array, or copied
+    file by file from a label image already stored (a path), then pointed at ``source``."""
+    group = zarr.open_group(str(folder), mode="w", zarr_format=2)
+    for lb, arr in labels:
+        if isinstance(arr, (str, Path)):
+            # the same chunks, compressor and metadata: a copy of the files is the same label image
+            shutil.copytree(arr, folder / lb.name)
+            sub = zarr.open_group(str(folder / lb.name), mode="r+", zarr_format=2)
+        else:
+            sub = group.create_group(lb.name)
+            lv = _store_pyramid(sub, lb, arr, chunk_px)
+            ms = _multiscales(lb.name, lv, False, pixel_size_um)
+            _translate(ms, origin_um, False)
+            sub.attrs["multiscales"] = ms
+        sub.attrs["image-label"] = {"version": NGFF_VERSION, "source": {"image": source}}
+    group.attrs["labels"] = [lb.name for lb, _ in labels]
 
 
 def _translate(ms: list, origin_um, channel: bool) -> None:
@@ -397,18 +351,9 @@ def _translate(ms: list, origin_um, channel: bool) -> None:
         t[-1] += float(origin_um[1])
 
 
-@dataclass
-class _Plan:
-    """A pyramid to store: its zarr arrays (one per level), their shapes, its level-0 Dask array."""
-    arrays: list
-    levels: list
-    data: object
-    kind: str
-    dtype: np.dtype
-
-
-def _plan_pyramid(group, image: ZarrImage, data, chunk_px: int) -> _Plan:
-    """The (empty) zarr arrays of every level of ``data`` (a Dask array) in ``group``."""
+def _store_pyramid(group, image: ZarrImage, data, chunk_px: int) -> list:
+    """Every level of ``data`` (a Dask array) stored into ``group`` chunk by chunk."""
+    import dask.array as da
     from numcodecs import Blosc
 
     lead = data.shape[:-2]
@@ -420,30 +365,15 @@ def _plan_pyramid(group, image: ZarrImage, data, chunk_px: int) -> _Plan:
         dtype=dtype, compressors=compressor, fill_value=0, chunk_key_encoding={"name": "v2", "separator": "/"},
         config={"write_empty_chunks": True}) for k, (rows, cols) in enumerate(levels)]
     level = data.astype(dtype).rechunk((1,) * len(lead) + (chunk_px, chunk_px))
-    return _Plan(arrays, levels, level, image.kind, dtype)
-
-
-def _half_level(plan: _Plan, k: int, chunk_px: int):
-    """Level ``k`` of ``plan`` as a Dask array: 2 x 2 chunks of its stored level k-1 per chunk."""
-    import dask.array as da
-
-    lead = plan.data.shape[:-2]
-    # normals are renormalised over their channels: a block holds all of them
-    lead_chunks = tuple(lead) if plan.kind == "normals" else (1,) * len(lead)
-    prev = da.from_array(plan.arrays[k - 1], chunks=lead_chunks + (2 * chunk_px, 2 * chunk_px))
-    rows, cols = plan.levels[k]
-    kind, dtype = plan.kind, plan.dtype
-    half = prev.map_blocks(lambda b: _halve(b, kind).astype(dtype, copy=False), dtype=dtype,
-                           chunks=prev.chunks[:-2] + (tuple(c // 2 for c in prev.chunks[-2]),
-                                                      tuple(c // 2 for c in prev.chunks[-1])))
-    return half[..., :rows, :cols].rechunk((1,) * len(lead) + (chunk_px, chunk_px))
-
-
-def _store_plans(plans: list, chunk_px: int) -> None:
-    """Every level of every pyramid of ``plans``, one ``da.store`` (one graph) per level."""
-    import dask.array as da
-
-    for k in range(max((len(p.levels) for p in plans), default=0)):
-        todo = [p for p in plans if k < len(p.levels)]
-        sources = [p.data if k == 0 else _half_level(p, k, chunk_px) for p in todo]
-        da.store(sources, [p.arrays[k] for p in todo], lock=False)
+    da.store(level, arrays[0], lock=False)
+    for k in range(1, len(levels)):
+        # normals are renormalised over their channels: a block holds all of them
+        lead_chunks = tuple(lead) if image.kind == "normals" else (1,) * len(lead)
+        prev = da.from_array(arrays[k - 1], chunks=lead_chunks + (2 * chunk_px, 2 * chunk_px))
+        rows, cols = levels[k]
+        half = prev.map_blocks(lambda b: _halve(b, image.kind).astype(dtype, copy=False), dtype=dtype,
+                               chunks=prev.chunks[:-2] + (tuple(c // 2 for c in prev.chunks[-2]),
+                                                          tuple(c // 2 for c in prev.chunks[-1])))
+        half = half[..., :rows, :cols].rechunk((1,) * len(lead) + (chunk_px, chunk_px))
+        da.store(half, arrays[k], lock=False)
+    return levels
