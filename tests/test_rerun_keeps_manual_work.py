@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from uvps.files.runfolder import earlier_work
 from uvps.testing.synthetic import make_capture, write_capture
 
 
@@ -53,8 +54,9 @@ def _manual_work(run, cap):
 
 
 def _earlier(run):
-    folders = sorted((run / "earlier").iterdir())
-    return folders
+    """The set-aside folders, oldest first, as `uvps info` lists them (two runs in one minute share the
+    names' date, so the names alone do not give the order)."""
+    return [run / item["folder"] for item in earlier_work(run)]
 
 
 def test_a_rerun_keeps_the_manual_count_and_its_comparison_with_the_run_they_were_measured_on(capture, tmp_path):

@@ -525,19 +525,25 @@ def _clicks_of(path: Path) -> dict:
     return {"clicks": len(rows), "counted": counted}
 
 
+def _earlier_record(folder: Path) -> dict:
+    """A set-aside folder's ``earlier.json``, or {} when it is missing or unreadable."""
+    try:
+        return json.loads((folder / EARLIER_RECORD).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+
+
 def earlier_work(run_dir) -> list:
     """The manual work of earlier runs kept in ``run_dir/earlier/`` (:func:`set_aside_manual_work`),
-    oldest first: ``{"folder": "earlier/<name>", "measured_on": date, "run_id", "manual_files",
+    oldest first (by when it was set aside: two runs of one minute share the name's date):
+    ``{"folder": "earlier/<name>", "measured_on": date, "run_id", "manual_files",
     "clicks", "counted"}`` each."""
     base = Path(run_dir) / EARLIER
     out = []
     if not base.is_dir():
         return out
-    for folder in sorted(p for p in base.iterdir() if p.is_dir()):
-        try:
-            rec = json.loads((folder / EARLIER_RECORD).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            rec = {}
+    for folder, rec in sorted(((p, _earlier_record(p)) for p in base.iterdir() if p.is_dir()),
+                              key=lambda fr: (str(fr[1].get("set_aside_utc", "")), fr[0].name)):
         on = rec.get("measured_on") or {}
         item = {"folder": f"{EARLIER}/{folder.name}", "measured_on": on.get("written_utc"),
                 "run_id": on.get("run_id"), "manual_files": rec.get("manual_files") or manual_work(folder)}
