@@ -29,6 +29,17 @@ Prose after, kept byte for byte.\r
 
 
 @pytest.fixture
+def doc_copy(tmp_path, monkeypatch):
+    """A copy of docs/benchmarks.md and its JSONs in ``tmp_path``, which benchdoc writes to: (md, json dir)."""
+    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
+    shutil.copy(benchdoc.DOC, md)
+    shutil.copytree(benchdoc.JSON_DIR, jd)
+    monkeypatch.setattr(benchdoc, "DOC", md)
+    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    return md, jd
+
+
+@pytest.fixture
 def small(tmp_path):
     md = tmp_path / "benchmarks.md"
     md.write_bytes(SMALL.encode())
@@ -180,13 +191,9 @@ def test_a_json_without_its_section_fails_the_check(small, tmp_path):
     assert "section 'painting' is stale" in r.stderr      # '| old table |' is not what the JSON renders
 
 
-def test_benchmark_real_doc_keeps_the_rows_it_did_not_measure(tmp_path, monkeypatch):
+def test_benchmark_real_doc_keeps_the_rows_it_did_not_measure(tmp_path, doc_copy):
     """Without --diligent a run measures the split halves only: the DiLiGenT rows stay as the last run left them."""
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     import benchmark_real
     before = json.loads((jd / "real.json").read_text())["rows"]
     icon = {"capture": "painted_icon_rti", "kind": "halves", "size": [402, 395], "lamps": 36,
@@ -221,14 +228,10 @@ def test_benchmark_protrusions_wand_doc_changes_only_its_rows(tmp_path, monkeypa
         benchmark_protrusions.main(["--doc"])          # detection's tables are not written: refused
 
 
-def test_benchmark_robustness_doc_replaces_the_runs_it_measured(tmp_path, monkeypatch):
+def test_benchmark_robustness_doc_replaces_the_runs_it_measured(tmp_path, doc_copy):
     """``--doc`` merges a run into the kept ones: a new estimated run of ``cupping`` seed 0 changes that row's
     cells only (its **x** marks from the targets), a stopped run reads ``stop``, and the check still passes."""
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     import benchmark_robustness
     before = read_section(md, "robustness")
     run = {"row": "cupping", "mode": "estimated", "seed": 0, "lamps": 12, "normals_mean_deg": 0.61,
@@ -249,14 +252,10 @@ def test_benchmark_robustness_doc_replaces_the_runs_it_measured(tmp_path, monkey
     assert _check(md, jd).returncode == 0
 
 
-def test_benchmark_robustness_doc_writes_the_spheres_table_from_sphere_runs(tmp_path, monkeypatch):
+def test_benchmark_robustness_doc_writes_the_spheres_table_from_sphere_runs(tmp_path, doc_copy):
     """Sphere runs go to the spheres section only (robustness.json untouched); a mode not run yet on a row
     fills its ``-`` cell, worst of the seeds, **x** where normals miss 0.5 deg."""
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     import benchmark_robustness
     rob = (jd / "robustness.json").read_text()
     run = {"row": "weave", "mode": "spheres_card", "lamps": 12, "cal_light_max_deg": 0.031, "cal_position_max_pct": 1.24,
@@ -269,14 +268,10 @@ def test_benchmark_robustness_doc_writes_the_spheres_table_from_sphere_runs(tmp_
     assert _check(md, jd).returncode == 0
 
 
-def test_benchmark_detection_doc_replaces_its_scenes_row(tmp_path, monkeypatch):
+def test_benchmark_detection_doc_replaces_its_scenes_row(tmp_path, doc_copy):
     """A scene's seeds' scores become its row (worst seed per column, the 60-100 um recall pooled with its
     Wilson interval, **x** on a missed target); the other scenes' rows stay; the check passes."""
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     import benchmark_detection
     before = read_section(md, "detection").splitlines()
     seed = {"precision": 0.99, "recall": 0.97, "f1": 0.98, "recall_200": 1.0, "width_err": 0.061, "fp_stroke": 1,
@@ -293,14 +288,10 @@ def test_benchmark_detection_doc_replaces_its_scenes_row(tmp_path, monkeypatch):
         benchmark_detection.main(["--pipeline", "--doc"])      # the table is of the true maps: refused before running
 
 
-def test_benchmark_spheres_real_doc_replaces_a_captures_row_keeping_its_label(tmp_path, monkeypatch):
+def test_benchmark_spheres_real_doc_replaces_a_captures_row_keeping_its_label(tmp_path, doc_copy):
     """A capture measured again replaces its row (its source's description kept, bold within 1 deg); a new
     capture is appended under its name; the check passes."""
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     import benchmark_spheres_real
     before = read_section(md, "spheres_real").splitlines()
     rows = [{"name": "psbox_lightprobe1", "centre_px": [536.84, 480.46], "radius_px": 423.61, "kind": "mirror",
@@ -335,15 +326,11 @@ def test_benchmark_speed_doc_rows_render_as_the_table(tmp_path, monkeypatch):
     assert not any(tmp_path.iterdir())
 
 
-def test_benchmark_speed_load_doc_keeps_the_last_three_invocations(tmp_path, monkeypatch):
+def test_benchmark_speed_load_doc_keeps_the_last_three_invocations(tmp_path, doc_copy):
     """At 1500 x 2000 each --doc adds its measures to the rows it measured: best (-worst) of the last 3, peak RSS
     as a range; a row not measured again stays as the table had it; the check passes."""
     import benchmark_speed as bs
-    md, jd = tmp_path / "benchmarks.md", tmp_path / "json"
-    shutil.copy(benchdoc.DOC, md)
-    shutil.copytree(benchdoc.JSON_DIR, jd)
-    monkeypatch.setattr(benchdoc, "DOC", md)
-    monkeypatch.setattr(benchdoc, "JSON_DIR", jd)
+    md, jd = doc_copy
     before = read_section(md, "speed_load").splitlines()
     gib = 2 ** 30
     for wall, rss in ((12.0, 0.61), (20.0, 0.64), (11.0, 0.62), (30.0, 0.60)):
