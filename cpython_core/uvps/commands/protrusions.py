@@ -29,7 +29,7 @@ from ..core.regions import propose_regions, whole_image
 from ..files.tables import load_regions
 from ..report.page import plot_comparison_map
 from ..core.level import raw_height
-from ..files.runfolder import (drop_comparison, is_relative, level_of, output_spec, read_run, relief_in,
+from ..files.runfolder import (RECOUNTS, drop_comparison, is_relative, level_of, output_spec, read_run, relief_in,
                                set_aside_comparison, write_protrusions)
 from ..spec import CommandSpec, Param
 from ..workflow import _stats_and_csv, regions_for, statistics
@@ -79,11 +79,11 @@ def _cmd_detect(inputs: dict, params: dict, output_dir, *, progress: Progress = 
     outputs = [output_spec(run_dir, n) for n in names]
     report(progress, 1.0, f"{len(prot.table['id'])} protrusions")
     out = CommandResult(outputs, protrusion_diagnostics(prot, images.pixel_size_um), [])
-    _comparison_kept(run_dir, kept, tmp, out, "automated count")
+    _comparison_kept(run_dir, kept, tmp, out, step="detect")
     return out
 
 
-def _comparison_kept(run_dir: Path, kept, tmp: Path, out: CommandResult, count: str) -> None:
+def _comparison_kept(run_dir: Path, kept, tmp: Path, out: CommandResult, *, step: str) -> None:
     """After :func:`~uvps.files.runfolder.set_aside_comparison`: the comparison leaves ``run_dir`` (kept
     under ``earlier/``), and the result says where, in one warning."""
     if kept is None:
@@ -91,7 +91,7 @@ def _comparison_kept(run_dir: Path, kept, tmp: Path, out: CommandResult, count: 
     drop_comparison(run_dir)
     where = run_dir / kept.relative_to(tmp)
     out.diagnostics["earlier_comparison"] = str(where)
-    out.warnings.append(f"the comparison in {run_dir} was made with the earlier {count}: kept with it in "
+    out.warnings.append(f"the comparison in {run_dir} was made with the earlier {RECOUNTS[step]}: kept with it in "
                         f"{where}; run compare again for one with the new count")
 
 
@@ -161,7 +161,7 @@ def _cmd_wand(inputs: dict, params: dict, output_dir, *,
                           "method": params["method"], "pixel_size_um": images.pixel_size_um,
                           "points_unit": clicks.unit, "points_unit_said": clicks.said,
                           "points_px": seeds.tolist()}, warnings, text=summary)
-    _comparison_kept(run_dir, kept, tmp, out, "manual count")
+    _comparison_kept(run_dir, kept, tmp, out, step="wand")
     return out
 
 
