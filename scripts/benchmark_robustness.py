@@ -661,7 +661,7 @@ def render_doc(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-SPHERE_MODES = ("spheres", "spheres_card", "matte_spheres")
+SPHERE_DOC_MODES = ("spheres", "spheres_card", "matte_spheres")
 #: Per sphere run: lamps max (deg), positions max (%), normals (deg), heights (%); the cell's formats.
 SPHERE_KEYS = {"cal_light_max_deg": "{:.2f}", "cal_position_max_pct": "{:.1f}", "normals_mean_deg": "{:.3f}",
                "height_median_pct": "{:.2f}"}
@@ -681,7 +681,7 @@ def render_spheres_doc(results: dict) -> str:
     lines = ["| row | glossy spheres | glossy spheres + card | matte spheres |", "|---|---|---|---|"]
     for e in results["rows"]:
         cells = []
-        for mode in SPHERE_MODES:
+        for mode in SPHERE_DOC_MODES:
             rs = [r for r in results["runs"] if r["row"] == e["row"] and r["mode"] == mode]
             if not rs:
                 cells.append("-")
@@ -706,7 +706,7 @@ def write_doc_section(collected: list, argv: list) -> list:
     of its row, mode and seed; rewrite each section concerned from its JSON. Returns the JSONs written."""
     import benchdoc
     written = []
-    for section, modes in ((DOC_SECTION, DOC_MODES), ("spheres", SPHERE_MODES)):
+    for section, modes in ((DOC_SECTION, DOC_MODES), ("spheres", SPHERE_DOC_MODES)):
         new = {}
         for r in collected:
             if r["lamps"] != 12 or r["mode"] not in modes:
@@ -729,7 +729,7 @@ def write_doc_section(collected: list, argv: list) -> list:
                                           source="scripts/benchmark_robustness.py"))
     if not written:
         raise SystemExit("benchmark_robustness.py: --doc needs runs with 12 lamps in mode "
-                         + ", ".join(DOC_MODES + SPHERE_MODES))
+                         + ", ".join(DOC_MODES + SPHERE_DOC_MODES))
     return written
 
 
