@@ -84,3 +84,14 @@ def test_benchmark_robustness_doc_rewrites_its_row_from_a_real_run(tmp_path, mon
     assert line.startswith(f"| vignetting | {run['light_mean_deg']:.2f} / 0.73 / 0.54")
     check = [sys.executable, str(SCRIPT.parent / "benchmark_docs.py"), "--check", "--md", str(md), "--json-dir", str(jd)]
     assert subprocess.run(check, capture_output=True, text=True).returncode == 0
+
+
+def test_every_sphere_mode_names_the_spheres_it_renders():
+    """Each sphere mode of the benchmark describes its spheres as the generator takes them (a mode's name
+    hidden by another table made every sphere run fail before it started)."""
+    from uvps.testing.synthetic_spheres import SphereSpec
+    bench = _load()
+    assert set(bench.SPHERE_MODES) == set(bench.SPHERE_DOC_MODES)
+    for mode, spheres in bench.SPHERE_MODES.items():
+        specs = [SphereSpec(*s) for s in spheres]
+        assert len(specs) == 2 and {s.kind for s in specs} == {"matte" if mode.startswith("matte") else "glossy"}
