@@ -123,3 +123,81 @@ def test_the_raw_metadata_is_recorded_colour_matrix_and_sizes_too(tmp_path):
     assert np.asarray(lv["colour_matrix"]).shape == (3, 4) and np.asarray(lv["rgb_xyz_matrix"]).shape == (4, 3)
     assert len(lv["camera_white_balance"]) == 4
     assert c.raw["develop"]["colour"] == "camera raw (no colour matrix)"
+
+
+def test_saturation_is_where_the_linearization_table_ends_not_at_a_white_level_no_count_reaches(tmp_path):
+    """A DNG storing 12-bit codes through a LinearizationTable that ends below its WhiteLevel (as a Blackmagic Pocket
+    Cinema Camera 4K's does: 65472 under 65535): its clipped pixels sit at the table's top, and that is where
+    saturation is looked for, in counts above black."""
+    table = np.arange(4096) * 16                                  # codes -> counts, top 65520
+    scene = _ramps()
+    scene[:8, :8] = 70000.0                                       # clipped by the sensor: the table's top
+    path = write_dng(tmp_path / "a.dng", scene, white=65535, linearization=table)
+    from uvps.files.io import raw_reading
+    r = raw_reading([path])
+    lv = r["levels"][0]
+    assert lv["white_level"] == 65535 and lv["saturation_level"] == 65520
+    assert r["saturation_counts"] == 65520 - BLACK
+    got = read_raw(path)
+    assert got[2:6, 2:6].min() == pytest.approx(65520 - BLACK, abs=1.0)      # clipped = the saturation counts
+    inner = (slice(10, -2), slice(10, -2))
+    # the codes' step (16) halved, the scene's rounding to whole counts (0.5), LibRaw's truncation to its 16 bits (1)
+    assert np.abs(got[inner] - scene[inner]).max() <= 10.0
+
+
+def test_a_dng_default_crop_is_applied_and_recorded(tmp_path):
+    """A DNG's DefaultCrop is the image the camera means (outside it a camera leaves what is not image: a Blackmagic
+    Pocket Cinema Camera 4K's last 4 columns are at 0, below its black level): read_raw keeps that window, the
+    folder's header sizes agree, and run.json records it and the camera's name."""
+    scene = _ramps(M=52, N=68)
+    scene[:, -4:] = -BLACK                                          # dead columns: stored 0, below the black level
+    _, folder = _raw_capture(tmp_path, n=3)
+    crop = (2, 2, 60, 48)
+    path = write_dng(tmp_path / "c.dng", scene, default_crop=crop)
+    got = read_raw(path)
+    assert got.shape == (48, 60, 3)
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(got[inner] - scene[2:50, 2:62][inner]).max() < 0.5
+    c = read_capture(folder, pixel_size_um=15.0)
+    lv = c.raw["levels"][0]
+    assert lv["default_crop_px"] is None and lv["camera"] == "uvps test camera"
+    from uvps.files.io import raw_reading
+    lv = raw_reading([path])["levels"][0]
+    assert lv["default_crop_px"] == list(crop) and lv["image_px"] == [60, 48] and lv["sensor_px"] == [68, 52]
+    from uvps.files.io import _image_size
+    assert _image_size(path) == (48, 60)
+
+
+def test_a_linear_dng_is_refused_naming_it_and_nothing_written(tmp_path):
+    """A linear DNG (three values per pixel, demosaiced: Adobe's converter, a phone's) is refused by name with what to
+    do, one line, exit 1, nothing written: as a real Canon EOS 6D file saved so by Camera Raw is."""
+    _, folder = _raw_capture(tmp_path, n=3)
+    (folder / "uv_01.dng").unlink()
+    rgb = (_ramps(M=96, N=128) + BLACK).astype(np.uint16)
+    tifffile.imwrite(folder / "uv_01.dng", rgb, photometric=34892, subfiletype=0, metadata=None,
+                     extratags=[(50706, "B", 4, (1, 4, 0, 0), True), (50708, "s", 0, "uvps test camera", True),
+                                (50714, "H", 1, (BLACK,), True), (50717, "H", 1, (WHITE,), True),
+                                (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True)])
+    with rawpy.imread(str(folder / "uv_01.dng")) as raw:
+        assert raw.raw_type == rawpy.RawType.Stack               # LibRaw reads it: uvps refuses it
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(folder), "-o", str(out), "--pixel-size-um", "15",
+                        "--lights", str(tmp_path / "lights.csv")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "uv_01.dng" in lines[0] and "Stack raw file" in lines[0] and "linear DNG" in lines[0]
+    assert "TIFF" in lines[0], r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
+
+
+def test_a_truncated_raw_file_is_refused_naming_it(tmp_path):
+    """A raw file cut short (a copy interrupted, a sample stripped of its image data, as the public file-type and
+    metadata-extractor samples are): one line naming the file and LibRaw's reason, in words."""
+    path = write_dng(tmp_path / "a.dng", _ramps(M=96, N=128))
+    cut = tmp_path / "cut.dng"
+    cut.write_bytes(path.read_bytes()[:4000])
+    from uvps.errors import UVPSInputError
+    with pytest.raises(UVPSInputError) as e:
+        read_raw(cut)
+    msg = str(e.value)
+    assert "cut.dng" in msg and "LibRaw cannot read it" in msg and "b'" not in msg and "\n" not in msg

@@ -38,7 +38,7 @@ from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
 from ..core.stack import Capture, LazyStack, StackView, row_bands
 from .atomic import atomic_path
-from .raw import RAW_DEVELOP, _rawpy, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
+from .raw import RAW_DEVELOP, _rawpy, raw_image_size, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -774,7 +774,7 @@ def _image_size(path: Path):
         if path.suffix.lower() in RAW_EXTS:
             # LibRaw's own header read (imageio would hand a DNG to OpenCV, which prints warnings)
             with _rawpy().imread(str(path)) as raw:
-                return (int(raw.sizes.height), int(raw.sizes.width))
+                return raw_image_size(raw)
         return tuple(iio.improps(path).shape[:2])
     except Exception:   # an unreadable file is reported by the reader itself, with its own message
         return None

@@ -46,16 +46,30 @@ def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) ->
 DNG_BLACK, DNG_WHITE = 512, 16383
 
 
-def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE):
+def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None, default_crop=None):
     """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
     plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
-    and white levels, an identity colour matrix, a neutral white balance)."""
+    and white levels, an identity colour matrix, a neutral white balance).
+
+    ``linearization``: a LinearizationTable (increasing counts, one per stored code); the mosaic is then
+    stored as the codes whose table values are nearest (a camera storing 12-bit codes of 16-bit counts), clipped
+    at the table's top. ``default_crop``: ``(left, top, width, height)`` written as DefaultCropOrigin and
+    DefaultCropSize."""
     rgb = np.asarray(rgb, dtype=np.float64)
     M, N = rgb.shape[:2]
     pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
     ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
     mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
-    mosaic = np.clip(np.rint(mosaic), 0, white).astype(np.uint16)
+    mosaic = np.clip(np.rint(mosaic), 0, white)
+    extra = []
+    if linearization is not None:
+        table = np.asarray(linearization, dtype=np.float64)
+        mosaic = np.argmin(np.abs(mosaic[..., None] - table), axis=-1)
+        extra.append((50712, "H", table.size, tuple(int(v) for v in table), True))    # LinearizationTable
+    if default_crop is not None:
+        left, top, width, height = (int(v) for v in default_crop)
+        extra += [(50719, "H", 2, (left, top), True), (50720, "H", 2, (width, height), True)]
+    mosaic = mosaic.astype(np.uint16)
 
     def rational(values, den=10000):
         return tuple(x for v in values for x in (int(round(v * den)), den))
@@ -71,7 +85,7 @@ def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE):
         (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
         (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
         (50778, "H", 1, (21,), True),                          # CalibrationIlluminant1: D65
-    ]
+    ] + extra
     tifffile.imwrite(path, mosaic, photometric=32803, extratags=extratags, metadata=None, subfiletype=0)
     return path
 
