@@ -201,3 +201,23 @@ def test_a_truncated_raw_file_is_refused_naming_it(tmp_path):
         read_raw(cut)
     msg = str(e.value)
     assert "cut.dng" in msg and "LibRaw cannot read it" in msg and "b'" not in msg and "\n" not in msg
+
+
+def test_uvps_info_says_how_the_raw_files_were_read(tmp_path):
+    """``uvps info RUN`` on a run of raw files: the camera, its mosaic, black per channel, white and saturation levels
+    and counts, the colour matrix recorded and not applied, the reader; a run of TIFFs has no such line."""
+    from uvps.commands import COMMANDS
+    from uvps.commands.info import info_text
+    from uvps.files.runfolder import describe
+
+    _, folder = _raw_capture(tmp_path, n=4)
+    out = tmp_path / "run"
+    COMMANDS["run"]({"images": [str(folder)]}, {"pixel_size_um": 15.0, "lights": str(tmp_path / "lights.csv")}, out)
+    raw_lines = [ln for ln in info_text(describe(out)).splitlines() if ln.startswith("raw files:")]
+    assert raw_lines[0] == (f"raw files:  uvps test camera, RGBG mosaic, black {BLACK}, white {WHITE}, saturation "
+                            f"{WHITE} ({WHITE - BLACK} counts above black); colour matrix recorded, not applied")
+    assert raw_lines[1].startswith("raw files:  read by LibRaw ")
+    r = subprocess.run([sys.executable, "-m", "uvps", "info", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and raw_lines[0] in r.stdout
+    (out / "run.json").write_text(json.dumps(dict(json.loads((out / "run.json").read_text()), diagnostics={})))
+    assert "raw files:" not in info_text(describe(out))
