@@ -221,3 +221,19 @@ def test_uvps_info_says_how_the_raw_files_were_read(tmp_path):
     assert r.returncode == 0 and raw_lines[0] in r.stdout
     (out / "run.json").write_text(json.dumps(dict(json.loads((out / "run.json").read_text()), diagnostics={})))
     assert "raw files:" not in info_text(describe(out))
+
+
+def test_a_raw_file_of_another_size_in_a_capture_folder_is_refused_not_left_out(tmp_path):
+    """In a folder, an image of another size is left out (a thumbnail, a preview); a raw file is no thumbnail: another
+    size is another camera or mode (a real Canon EOS 6D linear DNG of 1224 x 816 among 600 x 800 frames was left
+    out in silence). One line naming it, exit 1, nothing written."""
+    _, folder = _raw_capture(tmp_path, n=4)
+    write_dng(folder / "uv_04.dng", _ramps(M=64, N=80))
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uvps", "run", str(folder), "-o", str(out), "--pixel-size-um", "15"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "uv_04.dng" in lines[0] and "camera raw file of another size (64 x 80 px" in lines[0]
+    assert "96 x 128" in lines[0], r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
