@@ -22,8 +22,9 @@ what is real and saying what is rendered:
   counts of a ``--crop``-sized window of its frame (its scene as the albedo, its noise, its mosaic, its clipping);
 - rendered: each lamp image is those counts (above the black level) times the shading of a known relief
   (``uvps.testing.synthetic.make_capture``'s surface and near lamps) under lamp k, scaled so that the brightest is
-  the file's brightest, then put back through the file's own linearization table; one noise realisation is shared
-  by all lamps (the frame's own). The sphere capture (two glossy spheres, :func:`make_sphere_capture`) is rendered
+  the file's brightest, then put back through the file's own linearization table; the frame's own noise, scaled
+  by the shading, is topped up with each lamp's own shot noise at the level the frame shows
+  (:func:`shot_noise_factor`). The sphere capture (two glossy spheres, :func:`make_sphere_capture`) is rendered
   whole, then mosaicked in the file's CFA pattern, put at its black level and saturation and written with its tags.
 
 Written uncompressed (16-bit codes of the table; the original is lossless-JPEG tiles). The capture then goes through
@@ -164,6 +165,24 @@ def _dng_tags(path) -> list:
     return out
 
 
+def shot_noise_factor(mos, green, black) -> float:
+    """The frame's own shot noise, ``variance = a * counts``, from differences of neighbouring sites of one green
+    plane (2 px apart), binned by level: the 25th percentile of ``variance / level`` over the bins above 2000 counts
+    (the smoothest parts of the scene; texture only adds to a bin's spread)."""
+    i, j = next((i, j) for i in range(2) for j in range(2) if green[i, j])      # a green site of the 2 x 2 tile
+    plane = mos[i::2, j::2].astype(np.float64)
+    d = plane[:, 1:] - plane[:, :-1]
+    m = (plane[:, 1:] + plane[:, :-1]) / 2 - float(np.max(black))
+    edges = np.quantile(m, np.linspace(0.02, 0.98, 25))
+    ratios = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (m >= lo) & (m < hi)
+        if sel.sum() > 100 and m[sel].mean() > 2000:
+            mad = np.median(np.abs(d[sel] - np.median(d[sel])))
+            ratios.append((1.4826 * mad) ** 2 / 2 / m[sel].mean())
+    return float(np.percentile(ratios, 25)) if ratios else 0.0
+
+
 def render_capture(path, folder, *, crop=(600, 800), origin=None, n_lights=N_LIGHTS, seed=SEED) -> dict:
     """A multi-light capture and a sphere capture built on a real DNG (module docstring: what is real and what is
     rendered): ``folder/capture/uv_NN.dng``, ``folder/spheres/sph_NN.dng``, ``folder/lights.csv`` (the true lamps,
@@ -219,8 +238,14 @@ def render_capture(path, folder, *, crop=(600, 800), origin=None, n_lights=N_LIG
             "{what}; every other tag is the original's")
     (folder / "capture").mkdir(parents=True)
     (folder / "spheres").mkdir()
+    # each lamp image its own shot noise: what the frame's noise (a * counts, scaled by the shading) lacks
+    x0, y0, w0, h0 = dcrop or [0, 0, W, H]
+    green = np.array([c == "G" for c in desc])[cols[y0:y0 + 2, x0:x0 + 2]]
+    a = shot_noise_factor(mos[y0:y0 + h0, x0:x0 + w0], green, black)
+    rng = np.random.default_rng(seed)
     for k in range(n_lights):
         lin = black[wcols] + real * shading[k]
+        lin += rng.standard_normal(lin.shape) * np.sqrt(a * real * shading[k] * (1.0 - shading[k]))
         desc_k = note.format(what=f"the sensor's counts above black times the shading of a known relief, lamp {k}")
         tifffile.imwrite(folder / "capture" / f"uv_{k:02d}.dng", encode(lin), photometric=32803, subfiletype=0,
                          metadata=None, software="uvps scripts/benchmark_raw.py",
@@ -242,7 +267,7 @@ def render_capture(path, folder, *, crop=(600, 800), origin=None, n_lights=N_LIG
                                        for k, p in enumerate(cap.light_positions_mm)]
     (folder / "lights.csv").write_text("\n".join(lines) + "\n")
     np.savez(folder / "truth.npz", normals=cap.normals, real=real, sites=rgb_of_site, lamps_mm=cap.light_positions_mm)
-    return {"window": [r0, c0, M, N], "lamps": n_lights,
+    return {"window": [r0, c0, M, N], "lamps": n_lights, "shot_noise_variance_per_count": a,
             "clipped_real_px": int((win >= sat).sum()), "saturation": sat}
 
 
