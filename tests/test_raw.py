@@ -237,3 +237,55 @@ def test_a_raw_file_of_another_size_in_a_capture_folder_is_refused_not_left_out(
     assert len(lines) == 1 and "uv_04.dng" in lines[0] and "camera raw file of another size (64 x 80 px" in lines[0]
     assert "96 x 128" in lines[0], r.stderr
     assert not out.exists() and not list(tmp_path.glob(".run.tmp-*"))
+
+
+def test_the_raw_benchmark_reads_refuses_and_rebuilds_a_dng_keeping_its_tags(tmp_path):
+    """scripts/benchmark_raw.py on files the test writes: a DNG with a LinearizationTable and a DefaultCrop is read
+    (levels, crop, counts against LibRaw's mosaic within a count); a truncated DNG and a ``.kdc`` are refused by name;
+    a capture built on the DNG keeps its tags (camera, black, white, the table) and holds its counts times each lamp's
+    shading, as LibRaw reads them back."""
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "scripts"))
+    import benchmark_raw
+
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    table = np.arange(4096) * 16
+    r, c = np.mgrid[:220, :300].astype(np.float64)
+    scene = np.stack([20000 + 30 * c, 30000 + 40 * r, 15000 + 20 * (r + c)], axis=-1)
+    dng = write_dng(folder / "cam.dng", scene, white=65535, linearization=table, default_crop=(4, 2, 292, 216))
+    (folder / "cut.dng").write_bytes(dng.read_bytes()[:3000])
+    (folder / "old.kdc").write_bytes(b"\0" * 100)
+    rows = {row["name"]: row for row in (benchmark_raw.describe(p) for p in sorted(folder.iterdir()))}
+    cam = rows["cam.dng"]
+    assert cam["read"] and cam["camera"] == "uvps test camera" and cam["size_px"] == [292, 216]
+    assert cam["black"] == [BLACK] * 4 and cam["white"] == 65535 and cam["saturation"] == 65520
+    assert cam["default_crop_px"] == [4, 2, 292, 216] and cam["vs_mosaic_max_counts"] <= 1.0
+    assert not rows["cut.dng"]["read"] and "LibRaw cannot read it" in rows["cut.dng"]["refused"]
+    assert not rows["old.kdc"]["read"] and "not a supported image file" in rows["old.kdc"]["refused"]
+    text = benchmark_raw.render_doc({"rows": list(rows.values())})
+    assert "| cam.dng |" in text and "65535 / 65520" in text and "refused: LibRaw cannot read it" in text
+
+    made = benchmark_raw.render_capture(dng, tmp_path / "made", crop=(96, 128), n_lights=4)
+    r0, c0 = made["window"][:2]
+    assert r0 % 2 == 0 and c0 % 2 == 0 and 2 <= r0 <= 216 + 2 - 96 and 4 <= c0 <= 292 + 4 - 128
+    truth = np.load(tmp_path / "made" / "truth.npz")
+    with rawpy.imread(str(dng)) as raw:
+        real = raw.raw_image_visible[r0:r0 + 96, c0:c0 + 128].astype(np.float64) - BLACK
+    assert np.array_equal(truth["real"], real)
+    lv = benchmark_raw.describe(tmp_path / "made" / "capture" / "uv_00.dng")
+    assert lv["camera"] == "uvps test camera" and lv["black"] == [BLACK] * 4 and lv["saturation"] == 65520
+    from uvps.testing.synthetic import render_images
+    from uvps.testing.synthetic_capture import make_capture
+    cap = make_capture(shape=(96, 128), n_lights=4, seed=benchmark_raw.SEED, rgb=False,
+                       pixel_size_um=benchmark_raw.PIXEL_UM)
+    shading = render_images(cap.height_um, np.ones((96, 128)), pixel_size_um=benchmark_raw.PIXEL_UM,
+                            light_positions_mm=cap.light_positions_mm, intensities=cap.intensities, noise=False,
+                            dtype=None, exposure=1.0)
+    shading /= shading.max()
+    for k in range(4):
+        with rawpy.imread(str(tmp_path / "made" / "capture" / f"uv_{k:02d}.dng")) as raw:
+            got = raw.raw_image_visible.astype(np.float64) - BLACK
+        want = real * shading[k]
+        # the table's step (16) halved, and the lamp's own shot noise (variance a * counts) within 5 sigma
+        noise = np.sqrt(made["shot_noise_variance_per_count"] * want)
+        assert (np.abs(got - want) <= 8.0 + 5 * noise + 1e-9).all()

@@ -64,7 +64,8 @@ def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None
     extra = []
     if linearization is not None:
         table = np.asarray(linearization, dtype=np.float64)
-        mosaic = np.argmin(np.abs(mosaic[..., None] - table), axis=-1)
+        hi = np.clip(np.searchsorted(table, mosaic), 1, table.size - 1)          # the nearest code (table increasing)
+        mosaic = np.where(mosaic - table[hi - 1] <= table[hi] - mosaic, hi - 1, hi)
         extra.append((50712, "H", table.size, tuple(int(v) for v in table), True))    # LinearizationTable
     if default_crop is not None:
         left, top, width, height = (int(v) for v in default_crop)
