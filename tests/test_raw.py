@@ -289,3 +289,19 @@ def test_the_raw_benchmark_reads_refuses_and_rebuilds_a_dng_keeping_its_tags(tmp
         # the table's step (16) halved, and the lamp's own shot noise (variance a * counts) within 5 sigma
         noise = np.sqrt(made["shot_noise_variance_per_count"] * want)
         assert (np.abs(got - want) <= 8.0 + 5 * noise + 1e-9).all()
+
+
+def test_a_black_level_per_channel_is_subtracted_per_channel_and_nothing_rescaled(tmp_path):
+    """A DNG whose black level differs per CFA site (500 / 510 / 520 / 530, as cameras with per-channel masked-area
+    blacks write them): each channel comes back as the scene's counts above its own black within 0.5 count (LibRaw
+    scales by white less the smallest black: dividing by the largest read 4.5 counts low per 2000), recorded per
+    channel; saturation is looked for at the white level less the largest black (the channel that saturates first)."""
+    scene = _ramps()
+    path = write_dng(tmp_path / "a.dng", scene, black=(500, 510, 520, 530))
+    from uvps.files.io import raw_reading
+    r = raw_reading([path])
+    assert sorted(r["levels"][0]["black_level"]) == [500, 510, 520, 530]
+    assert r["saturation_counts"] == WHITE - 530
+    got = read_raw(path)
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(got[inner] - scene[inner]).max() < 0.5

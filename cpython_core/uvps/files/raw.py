@@ -131,8 +131,8 @@ def read_raw(path: PathLike) -> np.ndarray:
 
     LibRaw (through rawpy) develops it as :data:`RAW_DEVELOP` says: no gamma, no automatic
     brightness, white balance fixed (1 for every channel), the camera's colour channels, bilinear
-    demosaic. It subtracts the black level of the file's metadata and scales to 16 bits by
-    ``65535 / (white - black)``; that scale is divided back out here, so a count is the sensor's count
+    demosaic. It subtracts the black level of the file's metadata (per CFA channel) and scales to 16 bits by
+    ``65535 / (white - the smallest black level)``; that scale is divided back out here, so a count is the sensor's count
     above its black level (saturated at ``white - black``, or below where the file's linearization table ends):
     nothing is rescaled. A DNG's DefaultCrop is applied (:func:`default_crop`).
 
@@ -156,8 +156,10 @@ def read_raw(path: PathLike) -> np.ndarray:
         raise
     except Exception as exc:  # LibRawError and kin: bad input, name the file
         raise UVPSInputError(f"{path}: LibRaw cannot read it as a camera raw file ({_libraw_message(exc)})") from None
-    # LibRaw's scale to 16 bits uses the largest black level
-    scale = 65535.0 / (levels["white_level"] - max(levels["black_level"]))
+    # LibRaw subtracts each channel's black level, then scales to 16 bits by 65535 / (white - the smallest black
+    # level): the part common to all channels (its adjust_bl). A DNG with blacks of 500-530 per site read 4.5
+    # counts low per 2000 when the largest was divided out.
+    scale = 65535.0 / (levels["white_level"] - min(levels["black_level"]))
     crop = levels["default_crop_px"]
     if crop:
         out = out[crop[1]:crop[1] + crop[3], crop[0]:crop[0] + crop[2]]

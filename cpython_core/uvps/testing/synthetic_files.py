@@ -49,7 +49,8 @@ DNG_BLACK, DNG_WHITE = 512, 16383
 def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None, default_crop=None):
     """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
     plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
-    and white levels, an identity colour matrix, a neutral white balance).
+    and white levels, an identity colour matrix, a neutral white balance). ``black``: one level, or four, one per
+    site of the 2 x 2 tile in row order (R, G, G, B).
 
     ``linearization``: a LinearizationTable (increasing counts, one per stored code); the mosaic is then
     stored as the codes whose table values are nearest (a camera storing 12-bit codes of 16-bit counts), clipped
@@ -59,7 +60,9 @@ def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None
     M, N = rgb.shape[:2]
     pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
     ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
-    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
+    blacks = np.broadcast_to(np.asarray(black, dtype=np.float64).ravel(), (4,)).reshape(2, 2)   # per 2 x 2 site
+    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + blacks[np.arange(M)[:, None] % 2,
+                                                                               np.arange(N)[None, :] % 2]
     mosaic = np.clip(np.rint(mosaic), 0, white)
     extra = []
     if linearization is not None:
@@ -81,7 +84,8 @@ def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None
         (50706, "B", 4, (1, 4, 0, 0), True),                   # DNGVersion
         (50707, "B", 4, (1, 1, 0, 0), True),                   # DNGBackwardVersion
         (50708, "s", 0, "uvps test camera", True),             # UniqueCameraModel
-        (50714, "H", 1, (int(black),), True),                  # BlackLevel
+        (50713, "H", 2, (2, 2), True),                         # BlackLevelRepeatDim
+        (50714, "H", 4, tuple(int(v) for v in blacks.ravel()), True),   # BlackLevel, per site of the 2 x 2 tile
         (50717, "H", 1, (int(white),), True),                  # WhiteLevel
         (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
         (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
