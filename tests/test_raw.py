@@ -305,3 +305,32 @@ def test_a_black_level_per_channel_is_subtracted_per_channel_and_nothing_rescale
     got = read_raw(path)
     inner = (slice(2, -2), slice(2, -2))
     assert np.abs(got[inner] - scene[inner]).max() < 0.5
+
+
+def test_masked_areas_give_the_black_level_per_channel_and_are_cut_off(tmp_path):
+    """A DNG with 8 masked (optically black) columns at the left, its ActiveArea beside them, MaskedAreas naming them,
+    and a BlackLevel tag of 512 that the masked pixels (600 +- 2) contradict: LibRaw measures each channel's black
+    from the masked pixels (its integer mean, 599-600), uvps records those, reads only the active area, and the counts
+    come back above them within a count (LibRaw's black is a whole count)."""
+    M, N, L = 48, 64, 8
+    scene = _ramps(M=M, N=N)
+    pattern = np.array([[0, 1], [1, 2]])
+    ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
+    full = np.full((M, N + L), 600.0)
+    full[:, L:] += np.take_along_axis(scene, ch[..., None], axis=2)[..., 0]
+    full[:, :L] += np.random.default_rng(0).normal(0, 2, (M, L))
+    eye = (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)
+    tifffile.imwrite(tmp_path / "m.dng", np.rint(full).astype(np.uint16), photometric=32803, subfiletype=0,
+                     metadata=None,
+                     extratags=[(33421, "H", 2, (2, 2), True), (33422, "B", 4, (0, 1, 1, 2), True),
+                                (50706, "B", 4, (1, 4, 0, 0), True), (50708, "s", 0, "uvps test camera", True),
+                                (50714, "H", 1, (512,), True), (50717, "H", 1, (WHITE,), True),
+                                (50721, "2i", 9, eye, True), (50829, "I", 4, (0, L, M, N + L), True),   # ActiveArea
+                                (50830, "I", 4, (0, 0, M, L), True)])                                  # MaskedAreas
+    from uvps.files.io import raw_reading
+    lv = raw_reading([tmp_path / "m.dng"])["levels"][0]
+    assert all(599 <= b <= 600 for b in lv["black_level"]) and lv["margins_px"] == [L, 0]
+    assert lv["image_px"] == [N, M] and lv["sensor_px"] == [N + L, M]
+    got = read_raw(tmp_path / "m.dng")
+    inner = (slice(2, -2), slice(2, -2))
+    assert got.shape == (M, N, 3) and np.abs(got[inner] - scene[inner]).max() <= 1.0
