@@ -48,7 +48,9 @@ def default_crop(raw) -> Optional[list]:
     :func:`read_raw` keeps only this window: outside it a camera leaves what is not image (a Blackmagic Pocket
     Cinema Camera 4K DNG's last 4 columns are at 0, below its black level, and gave non-finite normals)."""
     sz = raw.sizes
-    left, top, w, h = (int(v) for v in (sz.crop_left_margin, sz.crop_top_margin, sz.crop_width, sz.crop_height))
+    # (rawpy builds older than LibRaw 0.21's inset crops have no such fields: no crop)
+    left, top, w, h = (int(getattr(sz, f, 0)) for f in ("crop_left_margin", "crop_top_margin", "crop_width",
+                                                         "crop_height"))
     if w <= 0 or h <= 0:
         return None
     # LibRaw may count the origin from the sensor's corner (margins included) or from the image's: take the
