@@ -108,7 +108,7 @@ def test_the_projects_document_is_current():
     r = subprocess.run(CHECK, capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     found = benchdoc.sections(benchdoc.DOC.read_text(encoding="utf-8"))
-    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection", "spheres_real", "speed", "speed_load"} <= set(found)
+    assert {"painting", "lights", "real", "elements", "robustness", "spheres", "detection", "spheres_real", "speed", "speed_load", "raw"} <= set(found)
     for name, s in found.items():
         assert (ROOT / s.source).is_file()
         assert '"--doc"' in (ROOT / s.source).read_text(encoding="utf-8")

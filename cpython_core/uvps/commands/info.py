@@ -13,6 +13,25 @@ from ..files.runfolder import describe, earlier_line, relief_of
 from ..spec import CommandSpec, Param
 
 
+def raw_lines(raw) -> list:
+    """run.json's ``diagnostics.raw`` (camera raw files, :func:`uvps.files.io.raw_reading`) in words: one line per
+    distinct camera and levels."""
+    if not raw:
+        return []
+    out = []
+    for lv in raw.get("levels", []):
+        black = lv["black_level"]
+        black = f"{black[0]:g}" if len(set(black)) == 1 else "/".join(f"{b:g}" for b in black) + " (per channel)"
+        sat = lv.get("saturation_level", lv["white_level"])
+        crop = lv.get("default_crop_px")
+        matrix = any(any(v != 0 for v in row[:3]) for row in lv.get("colour_matrix") or [])
+        out.append(f"{lv.get('camera') or 'camera not named'}, {lv.get('cfa', '')} mosaic, black {black}, white "
+                   f"{lv['white_level']:g}, saturation {sat:g} ({sat - max(lv['black_level']):g} counts above black)"
+                   + (f", DefaultCrop {crop[0]}, {crop[1]}, {crop[2]} x {crop[3]} applied" if crop else "")
+                   + ("; colour matrix recorded, not applied" if matrix else "; no colour matrix"))
+    return out + ([f"read by {raw['reader']}"] if raw.get("reader") else [])
+
+
 def info_text(info: dict) -> str:
     """:func:`describe`'s answer as lines for a terminal or ImageJ's Log."""
     opts = {k: v for k, v in info["params"].items() if v is not None and v is not False
@@ -25,6 +44,7 @@ def info_text(info: dict) -> str:
         lines.append(f"capture:    {shape[0]} x {shape[1]} px{f' x {shape[2]} channels' if len(shape) > 2 else ''} of "
                      f"{info['params'].get('pixel_size_um')} um, {info['lights'].get('n_lights', '?')} lights "
                      f"({info['lights'].get('source', '?')})")
+    lines += [f"raw files:  {line}" for line in raw_lines(info.get("raw"))]
     if opts:
         lines.append("parameters: " + ", ".join(f"{k}={v}" for k, v in sorted(opts.items())))
     relief = info.get("relief") or relief_of({})

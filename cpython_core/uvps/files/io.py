@@ -38,7 +38,7 @@ from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
 from ..core.stack import Capture, LazyStack, StackView, row_bands
 from .atomic import atomic_path
-from .raw import RAW_DEVELOP, _rawpy, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
+from .raw import RAW_DEVELOP, _rawpy, raw_image_size, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -774,7 +774,7 @@ def _image_size(path: Path):
         if path.suffix.lower() in RAW_EXTS:
             # LibRaw's own header read (imageio would hand a DNG to OpenCV, which prints warnings)
             with _rawpy().imread(str(path)) as raw:
-                return (int(raw.sizes.height), int(raw.sizes.width))
+                return raw_image_size(raw)
         return tuple(iio.improps(path).shape[:2])
     except Exception:   # an unreadable file is reported by the reader itself, with its own message
         return None
@@ -785,7 +785,8 @@ def lamp_images(files: list) -> tuple:
 
     A file is left out when a word of its name says it is a mask, a dark frame, a thumbnail, a
     reference or a flat-field frame (:data:`NOT_LAMP_WORDS`), or when its size differs from the
-    size most of the folder's images share (at least 3 of them). Returns ``(lamps, [(path, why)])``.
+    size most of the folder's images share (at least 3 of them); a camera raw file of another size is
+    refused (:class:`UVPSInputError`). Returns ``(lamps, [(path, why)])``.
     """
     kept, left = [], []
     for f in files:
@@ -801,6 +802,11 @@ def lamp_images(files: list) -> tuple:
         common, n = max(counts.items(), key=lambda kv: kv[1])
         if n >= 3 and n > len(kept) / 2:
             odd = [f for f in kept if sizes[f] is not None and sizes[f] != common]
+            for f in odd:   # a raw file is no thumbnail: another size is another camera or mode, refused
+                if f.suffix.lower() in RAW_EXTS:
+                    raise UVPSInputError(f"{f}: a camera raw file of another size ({sizes[f][0]} x {sizes[f][1]} px; "
+                                         f"the lamp images are {common[0]} x {common[1]}): another camera or mode? "
+                                         "Remove it, or choose the images with --pattern")
             left += [(f, f"another size ({sizes[f][0]} x {sizes[f][1]} px; the lamp images are {common[0]} x "
                          f"{common[1]})") for f in odd]
             kept = [f for f in kept if f not in odd]

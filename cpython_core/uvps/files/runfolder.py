@@ -668,6 +668,8 @@ def describe(run_dir) -> dict:
             "params": log.get("params", {}), "warnings": list(log.get("warnings", [])), "files": files,
             "lights": log.get("diagnostics", {}).get("lights", {}), "timings_s": log.get("timings_s", {}),
             "relief": relief_of(log), "level": level_words(log.get("level"))}
+    if log.get("diagnostics", {}).get("raw"):
+        info["raw"] = log["diagnostics"]["raw"]       # camera raw files: how LibRaw read them
     table = run_dir / FILES["protrusions"][0]
     if table.is_file():
         with open(table, encoding="utf-8") as fh:

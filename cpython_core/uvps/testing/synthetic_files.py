@@ -46,16 +46,34 @@ def write_truth_run(capture: SyntheticCapture, folder, *, pixel_size_um=None) ->
 DNG_BLACK, DNG_WHITE = 512, 16383
 
 
-def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE):
+def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE, linearization=None, default_crop=None):
     """A minimal CFA DNG of the linear scene ``rgb`` (M, N, 3) counts above ``black``: the RGGB mosaic
     plus ``black``, 16-bit, with the tags LibRaw needs (CFA layout, DNG version, camera model, black
-    and white levels, an identity colour matrix, a neutral white balance)."""
+    and white levels, an identity colour matrix, a neutral white balance). ``black``: one level, or four, one per
+    site of the 2 x 2 tile in row order (R, G, G, B).
+
+    ``linearization``: a LinearizationTable (increasing counts, one per stored code); the mosaic is then
+    stored as the codes whose table values are nearest (a camera storing 12-bit codes of 16-bit counts), clipped
+    at the table's top. ``default_crop``: ``(left, top, width, height)`` written as DefaultCropOrigin and
+    DefaultCropSize."""
     rgb = np.asarray(rgb, dtype=np.float64)
     M, N = rgb.shape[:2]
     pattern = np.array([[0, 1], [1, 2]])                      # R G / G B
     ch = pattern[np.arange(M)[:, None] % 2, np.arange(N)[None, :] % 2]
-    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + black
-    mosaic = np.clip(np.rint(mosaic), 0, white).astype(np.uint16)
+    blacks = np.broadcast_to(np.asarray(black, dtype=np.float64).ravel(), (4,)).reshape(2, 2)   # per 2 x 2 site
+    mosaic = np.take_along_axis(rgb, ch[..., None], axis=2)[..., 0] + blacks[np.arange(M)[:, None] % 2,
+                                                                               np.arange(N)[None, :] % 2]
+    mosaic = np.clip(np.rint(mosaic), 0, white)
+    extra = []
+    if linearization is not None:
+        table = np.asarray(linearization, dtype=np.float64)
+        hi = np.clip(np.searchsorted(table, mosaic), 1, table.size - 1)          # the nearest code (table increasing)
+        mosaic = np.where(mosaic - table[hi - 1] <= table[hi] - mosaic, hi - 1, hi)
+        extra.append((50712, "H", table.size, tuple(int(v) for v in table), True))    # LinearizationTable
+    if default_crop is not None:
+        left, top, width, height = (int(v) for v in default_crop)
+        extra += [(50719, "H", 2, (left, top), True), (50720, "H", 2, (width, height), True)]
+    mosaic = mosaic.astype(np.uint16)
 
     def rational(values, den=10000):
         return tuple(x for v in values for x in (int(round(v * den)), den))
@@ -66,12 +84,13 @@ def write_dng(path, rgb, *, black=DNG_BLACK, white=DNG_WHITE):
         (50706, "B", 4, (1, 4, 0, 0), True),                   # DNGVersion
         (50707, "B", 4, (1, 1, 0, 0), True),                   # DNGBackwardVersion
         (50708, "s", 0, "uvps test camera", True),             # UniqueCameraModel
-        (50714, "H", 1, (int(black),), True),                  # BlackLevel
+        (50713, "H", 2, (2, 2), True),                         # BlackLevelRepeatDim
+        (50714, "H", 4, tuple(int(v) for v in blacks.ravel()), True),   # BlackLevel, per site of the 2 x 2 tile
         (50717, "H", 1, (int(white),), True),                  # WhiteLevel
         (50721, "2i", 9, rational([1, 0, 0, 0, 1, 0, 0, 0, 1]), True),   # ColorMatrix1
         (50728, "2I", 3, rational([1, 1, 1]), True),           # AsShotNeutral
         (50778, "H", 1, (21,), True),                          # CalibrationIlluminant1: D65
-    ]
+    ] + extra
     tifffile.imwrite(path, mosaic, photometric=32803, extratags=extratags, metadata=None, subfiletype=0)
     return path
 
