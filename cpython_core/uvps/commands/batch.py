@@ -78,6 +78,7 @@ class BatchResult:
     mosaic: Optional[dict] = None
     warnings: list = field(default_factory=list)
     elapsed_s: float = 0.0
+    timings: dict = field(default_factory=dict)   # the batch's parts (s): cluster_start, tiles, stitch, close
 
     def count(self, status: str) -> int:
         return sum(r["status"] == status for r in self.records)
@@ -299,6 +300,10 @@ def default_workers(n_captures: int) -> int:
     return max(1, min(os.cpu_count() or 1, n_captures))
 
 
+#: The nanny's setting that :class:`_Cluster` leaves unset in its local workers (distributed's default 65536).
+MALLOC_TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+
+
 class _Cluster:
     """A ``distributed.Client``: the one given, one on ``scheduler``, or on a new ``LocalCluster``."""
 
@@ -323,8 +328,14 @@ class _Cluster:
             # UVPS_THREADS=1 keeps each capture's own stages (the normals' bands, the lamp refinement) to
             # that one thread too (uvps.core.threads)
             extra = {"env": {THREADS_VARIABLE: "1"}} if processes else {}
-            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
-                                   dashboard_address=":0", **extra)
+            # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
+            # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
+            # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
+            # maps of a 4 x 3 painting of 1200 x 900 px tiles took 7.9 s of system CPU in a worker
+            # with it, 1.9 s without (docs/decisions/painting.md, "The batch's fixed costs")
+            with dask.config.set({MALLOC_TRIM_KEY: None}):
+                cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                                       dashboard_address=":0", **extra)
             client = Client(cluster)
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)
@@ -416,8 +427,12 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                         "failure": "input", "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}
     todo = [j for j in jobs if not j.error]
     report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
+    timings = {}
+    t_part = time.perf_counter()
     cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
+    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
+        t_part = time.perf_counter()
         futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
                                          key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
                    for j in todo}
@@ -435,6 +450,8 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
                            if r["status"] == "failed"]
+        timings["tiles_s"] = round(time.perf_counter() - t_part, 3)
+        t_part = time.perf_counter()
         if layout is not None:
             failed = [r["capture"] for r in result.records if r["status"] == "failed"]
             if failed:
@@ -446,11 +463,15 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                 with cluster.client.as_current():
                     result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings,
                                             painting_chunk_px)
+        timings["stitch_s"] = round(time.perf_counter() - t_part, 3)
     finally:
+        t_part = time.perf_counter()
         if cluster is not None:
             cluster.close()
         _clean_temporaries(out_dir)
+        timings["close_s"] = round(time.perf_counter() - t_part, 3)
     result.elapsed_s = round(time.perf_counter() - t0, 3)
+    result.timings = timings
     write_summary(result, params)
     if result.count("failed") == len(jobs):
         raise all_failed(result.records, out_dir / SUMMARY)
@@ -507,7 +528,7 @@ def write_summary(result: BatchResult, params: dict) -> None:
         wr.writerow(row)
     atomic_write_text(result.out_dir / SUMMARY, buf.getvalue())
     write_json_atomic(result.out_dir / BATCH_JSON, _jsonable({
-        "version": __version__, "cluster": result.cluster, "elapsed_s": result.elapsed_s,
+        "version": __version__, "cluster": result.cluster, "elapsed_s": result.elapsed_s, "timings": result.timings,
         "counts": {s: result.count(s) for s in ("done", "skipped", "failed")},
         "params": params, "captures": result.records, "mosaic": result.mosaic, "warnings": result.warnings}))
 
