@@ -344,19 +344,25 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
     assert list(got.values()) == [("1", 1)]
 
 
-def test_the_batch_workers_keep_glibcs_own_allocator_settings():
+def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
     """uvps batch's own local workers run with glibc's allocator as a `uvps run` process does: no
     MALLOC_TRIM_THRESHOLD_ (distributed's nanny sets 65536 by default, which fixes the mmap threshold
     and makes every large numpy temporary a fresh mmap: twice the maps' CPU in a worker); the
     process's own Dask configuration is left as it was."""
     import dask
-    from uvps.commands.batch import MALLOC_TRIM_KEY, _Cluster
+    from uvps.commands.batch import MALLOC_TRIM_KEY, _Cluster, _malloc_trim
 
     assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # distributed's default, which the batch overrides
+    # a nanny started earlier in this process leaves its value in os.environ (the module's client did)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     cluster = _Cluster(n_workers=1, processes=True)
     try:
         got = cluster.client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+        cluster.trim()                                      # what the batch calls between tiles and stitching
+        trimmed = cluster.client.run(_malloc_trim)
     finally:
         cluster.close()
     assert list(got.values()) == [None]
+    assert list(trimmed.values()) in ([0], [1])             # glibc's malloc_trim ran in the worker
+    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's environment is left as it was
     assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # only for the batch's own cluster

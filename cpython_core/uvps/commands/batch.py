@@ -18,6 +18,7 @@ second.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -332,8 +333,9 @@ class _Cluster:
             # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
             # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
             # maps of a 4 x 3 painting of 1200 x 900 px tiles took 7.9 s of system CPU in a worker
-            # with it, 1.9 s without (docs/decisions/painting.md, "The batch's fixed costs")
-            with dask.config.set({MALLOC_TRIM_KEY: None}):
+            # with it, 1.9 s without (docs/decisions/painting.md, "The batch's fixed costs at 1200 x 900 px tiles")
+            # (an earlier nanny in this process left its value in os.environ, which new workers would inherit)
+            with dask.config.set({MALLOC_TRIM_KEY: None}), _without_nanny_trim():
                 cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
                                        dashboard_address=":0", **extra)
             client = Client(cluster)
@@ -345,9 +347,43 @@ class _Cluster:
         self.info = {"scheduler": info.get("address"), "local": bool(self.own) and not scheduler,
                      "workers": len(workers), "threads": sum(w.get("nthreads", 0) for w in workers.values())}
 
+    def trim(self) -> None:
+        """Hand the memory the tiles' runs freed back to the system in this batch's own local workers
+        (glibc's ``malloc_trim``, as distributed's documentation advises for unmanaged memory): they
+        keep glibc's allocator settings (above), which hold freed heap for reuse, and would otherwise
+        hold it through the stitching."""
+        if self.info["local"]:
+            self.client.run(_malloc_trim)
+
     def close(self):
         for obj in self.own:
             obj.close()
+
+
+@contextlib.contextmanager
+def _without_nanny_trim():
+    """``MALLOC_TRIM_THRESHOLD_`` out of this process's environment while the batch's workers start, when it
+    holds distributed's default (a nanny started earlier in this process sets it there, "poisoning" the
+    process, as distributed's documentation says); a value of the user's own is kept."""
+    name = "MALLOC_TRIM_THRESHOLD_"
+    old = os.environ.get(name)
+    if old != "65536":
+        yield
+        return
+    del os.environ[name]
+    try:
+        yield
+    finally:
+        os.environ[name] = old
+
+
+def _malloc_trim() -> int:
+    """glibc's ``malloc_trim(0)`` in this process (1 if memory was released); 0 where there is no glibc."""
+    import ctypes
+    try:
+        return int(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return 0
 
 
 def _clean_temporaries(out_dir: Path) -> None:
@@ -406,8 +442,6 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     UVPSComputeError
         Every capture failed (the summary is written first).
     """
-    from distributed import as_completed   # lazily, as above
-
     t0 = time.perf_counter()
     out_dir = check_output_dir(out_dir)
     folders = list_captures(captures)
@@ -433,36 +467,17 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
         t_part = time.perf_counter()
-        futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
-                                         key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
-                   for j in todo}
-        _report_counts(progress, records, len(jobs))
-        for fut in as_completed(futures):
-            j = futures[fut]
-            try:
-                rec = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
-                rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
-                       "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
-            records[j.name] = rec
-            _report_counts(progress, records, len(jobs))
+        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress)
         result = BatchResult([records[j.name] for j in jobs], out_dir,
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
                            if r["status"] == "failed"]
         timings["tiles_s"] = round(time.perf_counter() - t_part, 3)
+        if cluster is not None:
+            cluster.trim()
         t_part = time.perf_counter()
         if layout is not None:
-            failed = [r["capture"] for r in result.records if r["status"] == "failed"]
-            if failed:
-                # the painting of an earlier batch would not be this batch's: removed whole
-                shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
-                result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
-            else:
-                # on the same cluster: the painting's map chunks are its tasks
-                with cluster.client.as_current():
-                    result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings,
-                                            painting_chunk_px)
+            _painting(result, cluster, layout, params, painting_regions, progress, painting_chunk_px)
         timings["stitch_s"] = round(time.perf_counter() - t_part, 3)
     finally:
         t_part = time.perf_counter()
@@ -476,6 +491,39 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     if result.count("failed") == len(jobs):
         raise all_failed(result.records, out_dir / SUMMARY)
     return result
+
+
+def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: bool, progress) -> None:
+    """Every capture of ``todo`` as a task of the cluster; each one's record into ``records`` as it finishes."""
+    from distributed import as_completed   # lazily, as above
+
+    futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
+                                     key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
+               for j in todo}
+    _report_counts(progress, records, n_jobs)
+    for fut in as_completed(futures):
+        j = futures[fut]
+        try:
+            rec = fut.result()
+        except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
+            rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
+                   "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
+        records[j.name] = rec
+        _report_counts(progress, records, n_jobs)
+
+
+def _painting(result: BatchResult, cluster, layout: dict, params: dict, painting_regions, progress, chunk_px) -> None:
+    """The batch's painting into ``result.mosaic`` (on the batch's cluster), or, when a tile failed, none:
+    an earlier batch's painting is removed (it would not be this batch's) and a warning says why."""
+    out_dir = result.out_dir
+    failed = [r["capture"] for r in result.records if r["status"] == "failed"]
+    if failed:
+        shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
+        result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
+        return
+    # on the same cluster: the painting's map chunks are its tasks
+    with cluster.client.as_current():
+        result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings, chunk_px)
 
 
 def all_failed(records, summary: Path) -> UVPSError:
