@@ -470,12 +470,13 @@ def run(src: Path, out: Path, workers: int) -> dict:
             "batch_s": elapsed, "tiles_sum_s": tiles_s, "workers": workers,
             "ratio_to_ideal": elapsed / (tiles_s / workers), "peak_rss_mb": sampler.peak_mb,
             "load": [round(load0, 1), round(load1, 1)], "warnings": warnings,
+            **{f"batch_{k}": v for k, v in log.get("timings", {}).items()},
             **{f"stitch_{k}": v for k, v in meta["timings"].items()}}
 
 
 _HEAD = ("| painting | corner error (px) | F1 >= 60 um | counted twice | count / truth | height rms (um) | "
-         "on overlaps (um) | colour areas / paints | batch (s) | tiles' sum / {w} workers (s) | ratio | peak RSS (MB) |\n"
-         "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+         "on overlaps (um) | colour areas / paints | batch (s) | tiles' sum / {w} workers (s) | ratio | peak RSS (MB) | load |\n"
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
 
 def render_doc(results: dict) -> str:
@@ -485,7 +486,7 @@ def render_doc(results: dict) -> str:
         lines.append(f"| {r['label']} | {r['corner_err_px']:.2f} | {r['f1']:.3f} | {r['twice']} | "
                      f"{r['count_ratio']:.3f} | {r['height_rms_um']:.2f} | {r['height_overlap_rms_um']:.2f} | "
                      f"{r['areas']} / {r['paints']} | {r['batch_s']:.0f} | {r['tiles_sum_s'] / r['workers']:.0f} | "
-                     f"{r['ratio_to_ideal']:.2f} | {r['peak_rss_mb']:.0f} |\n")
+                     f"{r['ratio_to_ideal']:.2f} | {r['peak_rss_mb']:.0f} | {r['load'][0]:.1f}-{r['load'][1]:.1f} |\n")
     return "".join(lines)
 
 
