@@ -80,6 +80,11 @@ def test_three_captures_run_as_uvps_run_then_a_rerun_skips_them(captures, client
     assert (out / "cap2" / "protrusions.csv").read_text() == (single / "protrusions.csv").read_text()
     log = json.loads((out / "batch.json").read_text())
     assert log["counts"] == {"done": 3, "skipped": 0, "failed": 0}
+    # the batch's parts add up to (at most) its whole: where a batch's time beyond its tiles goes
+    parts = log["timings"]
+    assert set(parts) == {"cluster_start_s", "tiles_s", "stitch_s", "close_s"}
+    assert all(v >= 0 for v in parts.values()) and sum(parts.values()) <= log["elapsed_s"]
+    assert parts["tiles_s"] >= max(c["elapsed_s"] for c in log["captures"])
     # a re-run skips all three and leaves their files alone
     mtime = (out / "cap1" / "run.json").stat().st_mtime_ns
     seen = []
@@ -337,3 +342,27 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
     finally:
         cluster.close()
     assert list(got.values()) == [("1", 1)]
+
+
+def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
+    """uvps batch's own local workers run with glibc's allocator as a `uvps run` process does: no
+    MALLOC_TRIM_THRESHOLD_ (distributed's nanny sets 65536 by default, which fixes the mmap threshold
+    and makes every large numpy temporary a fresh mmap: twice the maps' CPU in a worker); the
+    process's own Dask configuration is left as it was."""
+    import dask
+    from uvps.commands.batch import MALLOC_TRIM_KEY, _Cluster, _malloc_trim
+
+    assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # distributed's default, which the batch overrides
+    # a nanny started earlier in this process leaves its value in os.environ (the module's client did)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    cluster = _Cluster(n_workers=1, processes=True)
+    try:
+        got = cluster.client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+        cluster.trim()                                      # what the batch calls between tiles and stitching
+        trimmed = cluster.client.run(_malloc_trim)
+    finally:
+        cluster.close()
+    assert list(got.values()) == [None]
+    assert list(trimmed.values()) in ([0], [1])             # glibc's malloc_trim ran in the worker
+    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's environment is left as it was
+    assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # only for the batch's own cluster

@@ -18,6 +18,7 @@ second.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -78,6 +79,7 @@ class BatchResult:
     mosaic: Optional[dict] = None
     warnings: list = field(default_factory=list)
     elapsed_s: float = 0.0
+    timings: dict = field(default_factory=dict)   # the batch's parts (s): cluster_start, tiles, stitch, close
 
     def count(self, status: str) -> int:
         return sum(r["status"] == status for r in self.records)
@@ -299,6 +301,10 @@ def default_workers(n_captures: int) -> int:
     return max(1, min(os.cpu_count() or 1, n_captures))
 
 
+#: The nanny's setting that :class:`_Cluster` leaves unset in its local workers (distributed's default 65536).
+MALLOC_TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+
+
 class _Cluster:
     """A ``distributed.Client``: the one given, one on ``scheduler``, or on a new ``LocalCluster``."""
 
@@ -323,8 +329,15 @@ class _Cluster:
             # UVPS_THREADS=1 keeps each capture's own stages (the normals' bands, the lamp refinement) to
             # that one thread too (uvps.core.threads)
             extra = {"env": {THREADS_VARIABLE: "1"}} if processes else {}
-            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
-                                   dashboard_address=":0", **extra)
+            # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
+            # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
+            # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
+            # maps of a 4 x 3 painting of 1200 x 900 px tiles took 7.9 s of system CPU in a worker
+            # with it, 1.9 s without (docs/decisions/painting.md, "The batch's fixed costs at 1200 x 900 px tiles")
+            # (an earlier nanny in this process left its value in os.environ, which new workers would inherit)
+            with dask.config.set({MALLOC_TRIM_KEY: None}), _without_nanny_trim():
+                cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                                       dashboard_address=":0", **extra)
             client = Client(cluster)
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)
@@ -334,9 +347,43 @@ class _Cluster:
         self.info = {"scheduler": info.get("address"), "local": bool(self.own) and not scheduler,
                      "workers": len(workers), "threads": sum(w.get("nthreads", 0) for w in workers.values())}
 
+    def trim(self) -> None:
+        """Hand the memory the tiles' runs freed back to the system in this batch's own local workers
+        (glibc's ``malloc_trim``, as distributed's documentation advises for unmanaged memory): they
+        keep glibc's allocator settings (above), which hold freed heap for reuse, and would otherwise
+        hold it through the stitching."""
+        if self.info["local"]:
+            self.client.run(_malloc_trim)
+
     def close(self):
         for obj in self.own:
             obj.close()
+
+
+@contextlib.contextmanager
+def _without_nanny_trim():
+    """``MALLOC_TRIM_THRESHOLD_`` out of this process's environment while the batch's workers start, when it
+    holds distributed's default (a nanny started earlier in this process sets it there, "poisoning" the
+    process, as distributed's documentation says); a value of the user's own is kept."""
+    name = "MALLOC_TRIM_THRESHOLD_"
+    old = os.environ.get(name)
+    if old != "65536":
+        yield
+        return
+    del os.environ[name]
+    try:
+        yield
+    finally:
+        os.environ[name] = old
+
+
+def _malloc_trim() -> int:
+    """glibc's ``malloc_trim(0)`` in this process (1 if memory was released); 0 where there is no glibc."""
+    import ctypes
+    try:
+        return int(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return 0
 
 
 def _clean_temporaries(out_dir: Path) -> None:
@@ -395,8 +442,6 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     UVPSComputeError
         Every capture failed (the summary is written first).
     """
-    from distributed import as_completed   # lazily, as above
-
     t0 = time.perf_counter()
     out_dir = check_output_dir(out_dir)
     folders = list_captures(captures)
@@ -416,45 +461,69 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
                         "failure": "input", "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}
     todo = [j for j in jobs if not j.error]
     report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
+    timings = {}
+    t_part = time.perf_counter()
     cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
+    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
-        futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
-                                         key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
-                   for j in todo}
-        _report_counts(progress, records, len(jobs))
-        for fut in as_completed(futures):
-            j = futures[fut]
-            try:
-                rec = fut.result()
-            except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
-                rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
-                       "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
-            records[j.name] = rec
-            _report_counts(progress, records, len(jobs))
+        t_part = time.perf_counter()
+        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress)
         result = BatchResult([records[j.name] for j in jobs], out_dir,
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
                            if r["status"] == "failed"]
+        timings["tiles_s"] = round(time.perf_counter() - t_part, 3)
+        if cluster is not None:
+            cluster.trim()
+        t_part = time.perf_counter()
         if layout is not None:
-            failed = [r["capture"] for r in result.records if r["status"] == "failed"]
-            if failed:
-                # the painting of an earlier batch would not be this batch's: removed whole
-                shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
-                result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
-            else:
-                # on the same cluster: the painting's map chunks are its tasks
-                with cluster.client.as_current():
-                    result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings,
-                                            painting_chunk_px)
+            _painting(result, cluster, layout, params, painting_regions, progress, painting_chunk_px)
+        timings["stitch_s"] = round(time.perf_counter() - t_part, 3)
     finally:
+        t_part = time.perf_counter()
         if cluster is not None:
             cluster.close()
         _clean_temporaries(out_dir)
+        timings["close_s"] = round(time.perf_counter() - t_part, 3)
     result.elapsed_s = round(time.perf_counter() - t0, 3)
+    result.timings = timings
     write_summary(result, params)
     if result.count("failed") == len(jobs):
         raise all_failed(result.records, out_dir / SUMMARY)
     return result
+
+
+def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: bool, progress) -> None:
+    """Every capture of ``todo`` as a task of the cluster; each one's record into ``records`` as it finishes."""
+    from distributed import as_completed   # lazily, as above
+
+    futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
+                                     key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
+               for j in todo}
+    _report_counts(progress, records, n_jobs)
+    for fut in as_completed(futures):
+        j = futures[fut]
+        try:
+            rec = fut.result()
+        except Exception as exc:  # noqa: BLE001 - a worker died (KilledWorker) or the scheduler left
+            rec = {"capture": j.name, "folder": str(j.folder), "status": "failed",
+                   "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
+        records[j.name] = rec
+        _report_counts(progress, records, n_jobs)
+
+
+def _painting(result: BatchResult, cluster, layout: dict, params: dict, painting_regions, progress, chunk_px) -> None:
+    """The batch's painting into ``result.mosaic`` (on the batch's cluster), or, when a tile failed, none:
+    an earlier batch's painting is removed (it would not be this batch's) and a warning says why."""
+    out_dir = result.out_dir
+    failed = [r["capture"] for r in result.records if r["status"] == "failed"]
+    if failed:
+        shutil.rmtree(out_dir / PAINTING_DIR, ignore_errors=True)
+        result.warnings.append(f"mosaic not merged: tile {failed[0]} failed")
+        return
+    # on the same cluster: the painting's map chunks are its tasks
+    with cluster.client.as_current():
+        result.mosaic = _stitch(out_dir, layout, params, painting_regions, progress, result.warnings, chunk_px)
 
 
 def all_failed(records, summary: Path) -> UVPSError:
@@ -507,7 +576,7 @@ def write_summary(result: BatchResult, params: dict) -> None:
         wr.writerow(row)
     atomic_write_text(result.out_dir / SUMMARY, buf.getvalue())
     write_json_atomic(result.out_dir / BATCH_JSON, _jsonable({
-        "version": __version__, "cluster": result.cluster, "elapsed_s": result.elapsed_s,
+        "version": __version__, "cluster": result.cluster, "elapsed_s": result.elapsed_s, "timings": result.timings,
         "counts": {s: result.count(s) for s in ("done", "skipped", "failed")},
         "params": params, "captures": result.records, "mosaic": result.mosaic, "warnings": result.warnings}))
 
