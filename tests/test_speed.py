@@ -367,6 +367,42 @@ def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
         assert tifffile.imread(f).astype(np.float32).sum() == raw[sorted((tmp_path / "cap").glob("uv_*.tif")).index(f)].sum()
 
 
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, grey):
+    """The drop-off's block grid of memory-mapped files seen through a dark frame, and through a dark frame
+    and the lamps' beams (:class:`uvps.core.flatfield.GainCorrected`), reads each file once as stored and
+    corrects every sample as it is read (one pass, no float32 copy of the image): the same block means,
+    minima and validity as the views' own float32 values give, to the bit; the files' pages are released."""
+    import tifffile
+    import uvps.files.io as fio
+    from uvps.core.flatfield import GainCorrected, block_grid
+
+    cap = make_capture(shape=(90, 120), n_lights=4, seed=5, pixel_size_um=30.0, black_level=300.0)
+    write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
+    if grey:
+        for f in list((tmp_path / "cap").glob("uv_*.tif")) + [tmp_path / "cap" / "dark" / "dark.tif"]:
+            tifffile.imwrite(f, tifffile.imread(f)[..., 1])
+    d = tifffile.imread(tmp_path / "cap" / "dark" / "dark.tif")
+    d[:12] = 20000                                          # clips part of the signal at 0
+    dark = tmp_path / "dark.tif"
+    tifffile.imwrite(dark, d)
+    view = read_capture(tmp_path / "cap", dark=dark, pixel_size_um=30.0).images
+    assert isinstance(view, fio.DarkSubtracted) and view.ndim == (3 if grey else 4)
+    coeffs = np.random.default_rng(1).normal(0, 0.1, (4, 5, 5))
+    released = []
+    real_release = fio.release
+    monkeypatch.setattr(fio, "release", lambda arr: (released.append(arr), real_release(arr)))
+    for stack in (view, GainCorrected(view, coeffs)):
+        released.clear()
+        got = block_grid(stack, saturation=65535.0)
+        assert len(released) == 4                           # each file read once, its pages released
+        want = block_grid(np.asarray(stack), saturation=65535.0)   # the view's float32 values in memory
+        np.testing.assert_array_equal(got.values, want.values)
+        np.testing.assert_array_equal(got.valid, want.valid)
+        assert not got.valid.all() and got.valid.any()      # the clipped band: blocks with a dark pixel
+
+
 if __name__ == "__main__":
     import sys
     import tempfile

@@ -23,8 +23,8 @@ import numpy as np
 from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
-from .stack import StackView
-from .offset import block_stats
+from .stack import StackView, raw_parts
+from .offset import block_stats, block_stats_parts
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,12 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
         valid &= mblk[None]
 
     def one(k):
-        st = block_stats(images[k, r0:r0 + R * b, c0:c0 + C * b], b, saturation)
+        rows, cols = slice(r0, r0 + R * b), slice(c0, c0 + C * b)
+        # a view (dark frame, beams) of files or an array: read as stored, each sample corrected as read,
+        # to the float32 values the view yields (a stack of its own dtype is read as it is)
+        parts = raw_parts(images, k, rows, cols) if isinstance(images, StackView) else None
+        st = (block_stats(images[k, rows, cols], b, saturation) if parts is None else
+              block_stats_parts(parts, b, saturation))
         values[k] = st.means.mean(axis=-1) if st.means.ndim == 3 else st.means
         # a block is unusable when any of its pixels is dark (shadow) or saturated
         valid[k] &= (st.grey_min > 0) & ~st.saturated
@@ -398,6 +403,19 @@ class GainCorrected(StackView):
         self.coeffs = np.asarray(coeffs, dtype=float)
 
     def correct(self, out, kk, rk, ck):
+        f = self.factor(kk, rk, ck)
+        return out * (f[..., None] if self.ndim == 4 else f)     # out may be the stack itself: not in place
+
+    def raw_parts(self, k: int, rows: slice, cols: slice):
+        """The band as stored (and a dark frame) with this view's factor (1 / the gain map) to multiply
+        (:class:`uvps.core.stack.RawParts`)."""
+        p = raw_parts(self.base, k, rows, cols)
+        if p is None or p.factor is not None:
+            return None
+        return dataclasses.replace(p, factor=self.factor(k, rows, cols))
+
+    def factor(self, kk, rk, ck) -> np.ndarray:
+        """The float32 factor ``1 / gain`` the values indexed by ``(kk, rk, ck)`` are multiplied by."""
         K, M, N = self.shape[:3]
         ks, rows, cols = np.arange(K)[kk], np.arange(M)[rk], np.arange(N)[ck]
         deg = self.coeffs.shape[1] - 1
@@ -417,8 +435,7 @@ class GainCorrected(StackView):
         if np.ndim(ks) == 0:
             g = g[0]
         np.negative(g, out=g)
-        f = np.exp(g, out=g).astype(np.float32)
-        return out * (f[..., None] if self.ndim == 4 else f)     # out may be the stack itself: not in place
+        return np.exp(g, out=g).astype(np.float32)
 
 
 def fit_log_grid(values, rows, cols, shape, degree) -> np.ndarray:

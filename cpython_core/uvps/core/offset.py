@@ -36,6 +36,7 @@ lamps by any image cue: take a frame with the UV lamp off and pass it as the dar
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
@@ -233,6 +234,82 @@ def _block_stats_kernel(a, block, sat):  # pragma: no cover - compiled
             for c in range(C):
                 means[r, j // block, c] += rows[r, j, c]
     return means / (block * block), gmin, smin, satd
+
+
+def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
+    """:func:`block_stats` of the band a view yields, read from its :class:`uvps.core.stack.RawParts`:
+    each sample converted, dark-subtracted and multiplied as it is read (one pass over the band as
+    stored, no temporary), to the same float32 values the view yields, so the same statistics to the
+    bit. ``parts.done()`` is called once the band is read."""
+    a = parts.raw
+    grey = a.ndim == 2
+    a3 = a[..., None] if grey else a
+    none = np.zeros((1, 1, 1), np.float32)
+    d = none if parts.dark is None else (parts.dark[..., None] if grey else parts.dark)
+    f = none[..., 0] if parts.factor is None else parts.factor
+    sat = np.inf if saturation is None else float(saturation)
+    try:
+        means, gmin, smin, satd = _first_call(_block_stats_parts_kernel, a3, d, f, parts.dark is not None,
+                                              parts.factor is not None, int(block), sat)
+    finally:
+        parts.done()
+    return BlockStats(means[..., 0] if grey else means, gmin, smin, satd)
+
+
+@numba.njit(nogil=True, cache=True)
+def _block_stats_parts_kernel(a, d, f, has_dark, has_factor, block, sat):  # pragma: no cover - compiled
+    # _block_stats_kernel's loop on the samples a view computes, in its float32 arithmetic: the value
+    # float32(raw), minus the dark frame and clipped at 0, times the factor (separate from it: that
+    # kernel sums an array's own values, float64 ones too, which a float32 conversion would round)
+    R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
+    rows = np.zeros((R, Cb * block, C))
+    gmin = np.full((R, Cb), np.inf)
+    smin = np.full((R, Cb), np.inf)
+    satd = np.zeros((R, Cb), np.bool_)
+    zero = np.float32(0.0)
+    for i in range(R * block):
+        r = i // block
+        for cb in range(Cb):
+            lo_g, lo_s, hit = gmin[r, cb], smin[r, cb], satd[r, cb]
+            for j in range(cb * block, (cb + 1) * block):
+                g = 0.0
+                for c in range(C):
+                    x = np.float32(a[i, j, c])
+                    if has_dark:
+                        x = x - d[i, j, c]
+                        if x < zero:
+                            x = zero
+                    if has_factor:
+                        x = x * f[i, j]
+                    v = float(x)
+                    rows[r, j, c] += v
+                    g += v
+                    lo_s = min(lo_s, v)
+                    hit |= v >= sat
+                lo_g = min(lo_g, g)
+            gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
+    means = np.zeros((R, Cb, C))
+    for r in range(R):
+        for j in range(Cb * block):
+            for c in range(C):
+                means[r, j // block, c] += rows[r, j, c]
+    return means / (block * block), gmin, smin, satd
+
+
+_COMPILING = threading.Lock()
+_TYPED = set()
+
+
+def _first_call(kernel, *args):
+    """``kernel(*args)``; its first call with a signature under a lock: numba types a kernel on its first
+    call with new argument types, and the stages call these from their threads."""
+    sig = (kernel, tuple(numba.typeof(a) for a in args))
+    if sig in _TYPED:
+        return kernel(*args)
+    with _COMPILING:
+        r = kernel(*args)
+        _TYPED.add(sig)
+    return r
 
 
 def _channel_blocks(images, *, block, mask, saturation):
