@@ -377,6 +377,7 @@ def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, gre
     import tifffile
     import uvps.files.io as fio
     from uvps.core.flatfield import GainCorrected, block_grid
+    from uvps.core.stack import StackView
 
     cap = make_capture(shape=(90, 120), n_lights=4, seed=5, pixel_size_um=30.0, black_level=300.0)
     write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
@@ -401,6 +402,10 @@ def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, gre
         np.testing.assert_array_equal(got.values, want.values)
         np.testing.assert_array_equal(got.valid, want.valid)
         assert not got.valid.all() and got.valid.any()      # the clipped band: blocks with a dark pixel
+    # the beams' view read in bands (the normals') likewise: each file's band corrected as it is read
+    beams = GainCorrected(view, coeffs)
+    for key in (2, (slice(None), slice(3, 20)), (1, slice(0, 90, 8), slice(1, 50)), (slice(1, 4, 2), slice(5, 6))):
+        np.testing.assert_array_equal(beams[key], StackView.__getitem__(beams, key))
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
 from .stack import StackView, raw_parts
-from .offset import block_stats, block_stats_parts
+from .offset import block_stats, block_stats_parts, corrected_band
 
 log = logging.getLogger(__name__)
 
@@ -401,6 +401,24 @@ class GainCorrected(StackView):
     def __init__(self, images, coeffs):
         super().__init__(images)
         self.coeffs = np.asarray(coeffs, dtype=float)
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        kk, rk, ck = (key + (slice(None),) * 3)[:3]
+        if (len(key) <= 3 and isinstance(rk, slice) and isinstance(ck, slice)
+                and isinstance(kk, (int, np.integer, slice))):
+            # a band of one or more images (the normals' bands): the factors of all at once, as
+            # correct() makes them, and each image's band read as stored and corrected in one pass
+            ks = np.arange(self.shape[0])[kk]
+            parts = [raw_parts(self.base, int(k), rk, ck) for k in np.atleast_1d(ks)]
+            if parts and all(p is not None and p.factor is None for p in parts):
+                f = self.factor(kk, rk, ck)
+                f = f[None] if np.ndim(ks) == 0 else f
+                out = np.empty((len(parts),) + parts[0].raw.shape, np.float32)
+                for i, p in enumerate(parts):
+                    corrected_band(dataclasses.replace(p, factor=f[i]), out=out[i])
+                return out[0] if np.ndim(ks) == 0 else out
+        return super().__getitem__(key)
 
     def correct(self, out, kk, rk, ck):
         f = self.factor(kk, rk, ck)

@@ -296,6 +296,39 @@ def _block_stats_parts_kernel(a, d, f, has_dark, has_factor, block, sat):  # pra
     return means / (block * block), gmin, smin, satd
 
 
+def corrected_band(parts, *, out: np.ndarray) -> np.ndarray:
+    """The band a view yields, from its :class:`uvps.core.stack.RawParts`, written into ``out`` (float32,
+    the band's shape): each sample converted, dark-subtracted and multiplied in one pass, in the view's
+    own float32 arithmetic (the same values to the bit). ``parts.done()`` is called once it is read."""
+    a = parts.raw
+    grey = a.ndim == 2
+    none = np.zeros((1, 1, 1), np.float32)
+    d = none if parts.dark is None else (parts.dark[..., None] if grey else parts.dark)
+    f = none[..., 0] if parts.factor is None else parts.factor
+    try:
+        _first_call(_corrected_band_kernel, a[..., None] if grey else a, d, f, parts.dark is not None,
+                    parts.factor is not None, out[..., None] if grey else out)
+    finally:
+        parts.done()
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _corrected_band_kernel(a, d, f, has_dark, has_factor, out):  # pragma: no cover - compiled
+    zero = np.float32(0.0)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            for c in range(a.shape[2]):
+                x = np.float32(a[i, j, c])
+                if has_dark:
+                    x = x - d[i, j, c]
+                    if x < zero:
+                        x = zero
+                if has_factor:
+                    x = x * f[i, j]
+                out[i, j, c] = x
+
+
 _COMPILING = threading.Lock()
 _TYPED = set()
 
