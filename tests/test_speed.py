@@ -1,5 +1,8 @@
 """The fast paths give the straightforward results: the normals kernel against a per-pixel
 ``np.linalg.lstsq``, memory-mapped captures processed in tiny bands against the in-memory path."""
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -406,6 +409,26 @@ def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, gre
     beams = GainCorrected(view, coeffs)
     for key in (2, (slice(None), slice(3, 20)), (1, slice(0, 90, 8), slice(1, 50)), (slice(1, 4, 2), slice(5, 6))):
         np.testing.assert_array_equal(beams[key], StackView.__getitem__(beams, key))
+
+
+
+def test_block_grid_keeps_to_uvps_threads(folder, monkeypatch):
+    """UVPS_THREADS=1 (uvps batch's worker processes) keeps the block grid in the calling thread; the same grid
+    as in two threads."""
+    import uvps.core.flatfield as ff
+
+    images = read_capture(folder).images
+    two = ff.block_grid(images, saturation=65535.0)
+    pools = []
+    monkeypatch.setattr(ff, "ThreadPoolExecutor", lambda n: pools.append(n) or ThreadPoolExecutor(n))
+    monkeypatch.setenv("UVPS_THREADS", "1")
+    one = ff.block_grid(images, saturation=65535.0)
+    assert pools == []
+    np.testing.assert_array_equal(one.values, two.values)
+    np.testing.assert_array_equal(one.valid, two.valid)
+    monkeypatch.delenv("UVPS_THREADS")
+    ff.block_grid(images, saturation=65535.0)
+    assert pools == ([2] if len(os.sched_getaffinity(0)) >= 2 else [])
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
 from .stack import StackView, raw_parts
+from .threads import default_threads
 from .offset import block_stats, block_stats_parts, corrected_band
 
 log = logging.getLogger(__name__)
@@ -107,8 +108,9 @@ def to_unit(coord, size):
     return (2.0 * np.asarray(coord, dtype=float) - (size - 1)) / max(size - 1, 1)
 
 
-#: Threads :func:`block_grid` reads and reduces the images with (the machine's 2 cores; memory: one image
-#: as float32 per thread, when the stack is a view that corrects on access).
+#: Threads :func:`block_grid` reads and reduces the images with (the machine's 2 cores, at most
+#: :func:`uvps.core.threads.default_threads`; memory: one image as float32 per thread when a view other than
+#: a dark frame's or the beams' corrects on access).
 BLOCK_GRID_WORKERS = 2
 
 
@@ -152,9 +154,13 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
     # once), the others two at a time: the kernel, the file reads and a view's correction (numpy) release
     # the GIL, so both cores are busy; each image's values are its own, whatever the order
     one(0)
-    if K > 1:
-        with ThreadPoolExecutor(BLOCK_GRID_WORKERS) as pool:
+    workers = default_threads(BLOCK_GRID_WORKERS)      # UVPS_THREADS=1 (uvps batch's workers): one thread
+    if K > 1 and workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
             list(pool.map(one, range(1, K)))
+    else:
+        for k in range(1, K):
+            one(k)
     rows = r0 + b * np.arange(R) + (b - 1) / 2.0
     cols = c0 + b * np.arange(C) + (b - 1) / 2.0
     return BlockGrid(values, valid, rows, cols, (M, N), b)
