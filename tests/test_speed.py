@@ -412,23 +412,27 @@ def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, gre
 
 
 
-def test_block_grid_keeps_to_uvps_threads(folder, monkeypatch):
-    """UVPS_THREADS=1 (uvps batch's worker processes) keeps the block grid in the calling thread; the same grid
-    as in two threads."""
+def test_block_passes_keep_to_uvps_threads(folder, monkeypatch):
+    """The block grid and the additive term's blocks read a mapped stack in place, in two threads, and in the
+    calling thread alone with UVPS_THREADS=1 (uvps batch's worker processes): the same blocks as the images
+    read whole into memory."""
     import uvps.core.flatfield as ff
+    import uvps.core.offset as off
 
     images = read_capture(folder).images
-    two = ff.block_grid(images, saturation=65535.0)
+    whole = np.asarray(images)
     pools = []
-    monkeypatch.setattr(ff, "ThreadPoolExecutor", lambda n: pools.append(n) or ThreadPoolExecutor(n))
-    monkeypatch.setenv("UVPS_THREADS", "1")
-    one = ff.block_grid(images, saturation=65535.0)
-    assert pools == []
-    np.testing.assert_array_equal(one.values, two.values)
-    np.testing.assert_array_equal(one.valid, two.valid)
-    monkeypatch.delenv("UVPS_THREADS")
-    ff.block_grid(images, saturation=65535.0)
-    assert pools == ([2] if len(os.sched_getaffinity(0)) >= 2 else [])
+    monkeypatch.setattr(off, "ThreadPoolExecutor", lambda n: pools.append(n) or ThreadPoolExecutor(n))
+    for threads, want in (("1", []), ("2", [2] if len(os.sched_getaffinity(0)) >= 2 else [])):
+        monkeypatch.setenv("UVPS_THREADS", threads)
+        pools.clear()
+        got, ref = ff.block_grid(images, saturation=65535.0), ff.block_grid(whole, saturation=65535.0)
+        np.testing.assert_array_equal(got.values, ref.values)
+        np.testing.assert_array_equal(got.valid, ref.valid)
+        got, ref = (off._channel_blocks(x, block=16, mask=None, saturation=65535.0) for x in (images, whole))
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+        assert pools == want * 4
 
 
 if __name__ == "__main__":

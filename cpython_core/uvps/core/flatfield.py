@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional
 
@@ -24,8 +23,7 @@ from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
 from .stack import StackView, raw_parts
-from .threads import default_threads
-from .offset import block_stats, block_stats_parts, corrected_band
+from .offset import corrected_band, each_image, image_block_stats
 
 log = logging.getLogger(__name__)
 
@@ -108,12 +106,6 @@ def to_unit(coord, size):
     return (2.0 * np.asarray(coord, dtype=float) - (size - 1)) / max(size - 1, 1)
 
 
-#: Threads :func:`block_grid` reads and reduces the images with (the machine's 2 cores, at most
-#: :func:`uvps.core.threads.default_threads`; memory: one image as float32 per thread when a view other than
-#: a dark frame's or the beams' corrects on access).
-BLOCK_GRID_WORKERS = 2
-
-
 def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
     """Block means of each image on a grid of about ``target`` blocks along the longer side.
 
@@ -140,27 +132,15 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
         valid &= mblk[None]
 
     def one(k):
-        rows, cols = slice(r0, r0 + R * b), slice(c0, c0 + C * b)
-        # a view (dark frame, beams) of files or an array: read as stored, each sample corrected as read,
-        # to the float32 values the view yields (a stack of its own dtype is read as it is)
-        parts = raw_parts(images, k, rows, cols) if isinstance(images, StackView) else None
-        st = (block_stats(images[k, rows, cols], b, saturation) if parts is None else
-              block_stats_parts(parts, b, saturation))
+        # a view (dark frame, beams) read as stored, each sample corrected as read; mapped files in place
+        st = image_block_stats(images, k, slice(r0, r0 + R * b), slice(c0, c0 + C * b), b, saturation)
         values[k] = st.means.mean(axis=-1) if st.means.ndim == 3 else st.means
         # a block is unusable when any of its pixels is dark (shadow) or saturated
         valid[k] &= (st.grey_min > 0) & ~st.saturated
 
-    # the first image in this thread (numba types the kernel on its first call, never in two threads at
-    # once), the others two at a time: the kernel, the file reads and a view's correction (numpy) release
-    # the GIL, so both cores are busy; each image's values are its own, whatever the order
-    one(0)
-    workers = default_threads(BLOCK_GRID_WORKERS)      # UVPS_THREADS=1 (uvps batch's workers): one thread
-    if K > 1 and workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(one, range(1, K)))
-    else:
-        for k in range(1, K):
-            one(k)
+    # the kernel, the file reads and a view's correction (numpy) release the GIL, so both cores are busy;
+    # each image's values are its own, whatever the order
+    each_image(one, K)
     rows = r0 + b * np.arange(R) + (b - 1) / 2.0
     cols = c0 + b * np.arange(C) + (b - 1) / 2.0
     return BlockGrid(values, valid, rows, cols, (M, N), b)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
@@ -45,7 +46,8 @@ import numpy as np
 from numpy.polynomial import legendre as Lg
 
 from ..errors import UVPSInputError
-from .stack import StackView
+from .stack import StackView, raw_parts
+from .threads import default_threads
 
 log = logging.getLogger(__name__)
 
@@ -329,6 +331,42 @@ def _corrected_band_kernel(a, d, f, has_dark, has_factor, out):  # pragma: no co
                 out[i, j, c] = x
 
 
+def image_block_stats(images, k: int, rows: slice, cols: slice, block: int, saturation=None) -> BlockStats:
+    """:func:`block_stats` of ``images[k, rows, cols]``: a view of files or an array whose corrections are
+    :class:`uvps.core.stack.RawParts` (a dark frame, the beams) read as stored and corrected as each sample is
+    read (:func:`block_stats_parts`); memory-mapped files summed where they lie (no copy: their own values);
+    anything else indexed."""
+    parts = None if isinstance(images, np.ndarray) else raw_parts(images, k, rows, cols)
+    if parts is None:
+        return block_stats(images[k, rows, cols], block, saturation)
+    if isinstance(images, StackView):
+        return block_stats_parts(parts, block, saturation)
+    try:
+        return block_stats(parts.raw, block, saturation)
+    finally:
+        parts.done()
+
+
+#: Threads :func:`each_image` runs a pass over the images in (the machine's 2 cores, at most
+#: :func:`uvps.core.threads.default_threads`).
+IMAGE_WORKERS = 2
+
+
+def each_image(one, K: int) -> None:
+    """``one(k)`` for every image: the first in this thread (numba types a kernel on its first call, never in
+    two threads at once), the others in :data:`IMAGE_WORKERS` threads (one with ``UVPS_THREADS=1``)."""
+    if K < 1:
+        return
+    one(0)
+    workers = default_threads(IMAGE_WORKERS)
+    if K > 1 and workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(one, range(1, K)))
+    else:
+        for k in range(1, K):
+            one(k)
+
+
 _COMPILING = threading.Lock()
 _TYPED = set()
 
@@ -352,11 +390,17 @@ def _channel_blocks(images, *, block, mask, saturation):
     R, Cb = M // block, N // block
     r0, c0 = (M - R * block) // 2, (N - Cb * block) // 2
     out = np.empty((K, C, R, Cb))
-    ok = np.ones((R, Cb), bool)
-    for k in range(K):
-        st = block_stats(images[k, r0:r0 + R * block, c0:c0 + Cb * block], block, saturation)
+    usable = np.empty((K, R, Cb), bool)
+
+    def one(k):
+        st = image_block_stats(images, k, slice(r0, r0 + R * block), slice(c0, c0 + Cb * block), block, saturation)
         out[k] = np.moveaxis(st.means, -1, 0) if st.means.ndim == 3 else st.means[None]
-        ok &= ~st.saturated & (st.sample_min > 0)
+        usable[k] = ~st.saturated & (st.sample_min > 0)
+
+    # the first image in this thread (numba types the kernel on its first call), the others in
+    # default_threads(2) threads: the kernel and the file reads release the GIL; each image's own
+    each_image(one, K)
+    ok = usable.all(axis=0)
     if mask is not None:
         ok &= mask[r0:r0 + R * block, c0:c0 + Cb * block].reshape(R, block, Cb, block).all(axis=(1, 3))
     rows = r0 + block * np.arange(R) + (block - 1) / 2.0
