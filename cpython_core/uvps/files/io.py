@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import fnmatch
 import hashlib
 import json
@@ -25,7 +26,6 @@ import mmap
 import os
 import re
 import warnings
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
