@@ -1,5 +1,8 @@
 """The fast paths give the straightforward results: the normals kernel against a per-pixel
 ``np.linalg.lstsq``, memory-mapped captures processed in tiny bands against the in-memory path."""
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -365,6 +368,71 @@ def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
     np.testing.assert_array_equal(from_stack.images.astype(np.float32), want)
     for f in sorted((tmp_path / "cap").glob("uv_*.tif")):   # the inputs untouched
         assert tifffile.imread(f).astype(np.float32).sum() == raw[sorted((tmp_path / "cap").glob("uv_*.tif")).index(f)].sum()
+
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, grey):
+    """The drop-off's block grid of memory-mapped files seen through a dark frame, and through a dark frame
+    and the lamps' beams (:class:`uvps.core.flatfield.GainCorrected`), reads each file once as stored and
+    corrects every sample as it is read (one pass, no float32 copy of the image): the same block means,
+    minima and validity as the views' own float32 values give, to the bit; the files' pages are released."""
+    import tifffile
+    import uvps.files.io as fio
+    from uvps.core.flatfield import GainCorrected, block_grid
+    from uvps.core.stack import StackView
+
+    cap = make_capture(shape=(90, 120), n_lights=4, seed=5, pixel_size_um=30.0, black_level=300.0)
+    write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
+    if grey:
+        for f in list((tmp_path / "cap").glob("uv_*.tif")) + [tmp_path / "cap" / "dark" / "dark.tif"]:
+            tifffile.imwrite(f, tifffile.imread(f)[..., 1])
+    d = tifffile.imread(tmp_path / "cap" / "dark" / "dark.tif")
+    d[:12] = 20000                                          # clips part of the signal at 0
+    dark = tmp_path / "dark.tif"
+    tifffile.imwrite(dark, d)
+    view = read_capture(tmp_path / "cap", dark=dark, pixel_size_um=30.0).images
+    assert isinstance(view, fio.DarkSubtracted) and view.ndim == (3 if grey else 4)
+    coeffs = np.random.default_rng(1).normal(0, 0.1, (4, 5, 5))
+    released = []
+    real_release = fio.release
+    monkeypatch.setattr(fio, "release", lambda arr: (released.append(arr), real_release(arr)))
+    for stack in (view, GainCorrected(view, coeffs)):
+        released.clear()
+        got = block_grid(stack, saturation=65535.0)
+        assert len(released) == 4                           # each file read once, its pages released
+        want = block_grid(np.asarray(stack), saturation=65535.0)   # the view's float32 values in memory
+        np.testing.assert_array_equal(got.values, want.values)
+        np.testing.assert_array_equal(got.valid, want.valid)
+        assert not got.valid.all() and got.valid.any()      # the clipped band: blocks with a dark pixel
+    # the beams' view read in bands (the normals') likewise: each file's band corrected as it is read
+    beams = GainCorrected(view, coeffs)
+    for key in (2, (slice(None), slice(3, 20)), (1, slice(0, 90, 8), slice(1, 50)), (slice(1, 4, 2), slice(5, 6))):
+        np.testing.assert_array_equal(beams[key], StackView.__getitem__(beams, key))
+
+
+
+def test_block_passes_keep_to_uvps_threads(folder, monkeypatch):
+    """The block grid and the additive term's blocks read a mapped stack in place, in two threads, and in the
+    calling thread alone with UVPS_THREADS=1 (uvps batch's worker processes): the same blocks as the images
+    read whole into memory."""
+    import uvps.core.flatfield as ff
+    import uvps.core.offset as off
+
+    images = read_capture(folder).images
+    whole = np.asarray(images)
+    pools = []
+    monkeypatch.setattr(off, "ThreadPoolExecutor", lambda n: pools.append(n) or ThreadPoolExecutor(n))
+    for threads, want in (("1", []), ("2", [2] if len(os.sched_getaffinity(0)) >= 2 else [])):
+        monkeypatch.setenv("UVPS_THREADS", threads)
+        pools.clear()
+        got, ref = ff.block_grid(images, saturation=65535.0), ff.block_grid(whole, saturation=65535.0)
+        np.testing.assert_array_equal(got.values, ref.values)
+        np.testing.assert_array_equal(got.valid, ref.valid)
+        got, ref = (off._channel_blocks(x, block=16, mask=None, saturation=65535.0) for x in (images, whole))
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+        assert pools == want * 4
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional
 
@@ -23,8 +22,8 @@ import numpy as np
 from numpy.polynomial import legendre as L
 
 from ..errors import UVPSInputError
-from .stack import StackView
-from .offset import block_stats
+from .stack import StackView, raw_parts
+from .offset import corrected_band, each_image, image_block_stats
 
 log = logging.getLogger(__name__)
 
@@ -107,11 +106,6 @@ def to_unit(coord, size):
     return (2.0 * np.asarray(coord, dtype=float) - (size - 1)) / max(size - 1, 1)
 
 
-#: Threads :func:`block_grid` reads and reduces the images with (the machine's 2 cores; memory: one image
-#: as float32 per thread, when the stack is a view that corrects on access).
-BLOCK_GRID_WORKERS = 2
-
-
 def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
     """Block means of each image on a grid of about ``target`` blocks along the longer side.
 
@@ -138,18 +132,15 @@ def block_grid(images, *, mask=None, saturation=None, target=96) -> BlockGrid:
         valid &= mblk[None]
 
     def one(k):
-        st = block_stats(images[k, r0:r0 + R * b, c0:c0 + C * b], b, saturation)
+        # a view (dark frame, beams) read as stored, each sample corrected as read; mapped files in place
+        st = image_block_stats(images, k, slice(r0, r0 + R * b), slice(c0, c0 + C * b), b, saturation)
         values[k] = st.means.mean(axis=-1) if st.means.ndim == 3 else st.means
         # a block is unusable when any of its pixels is dark (shadow) or saturated
         valid[k] &= (st.grey_min > 0) & ~st.saturated
 
-    # the first image in this thread (numba types the kernel on its first call, never in two threads at
-    # once), the others two at a time: the kernel, the file reads and a view's correction (numpy) release
-    # the GIL, so both cores are busy; each image's values are its own, whatever the order
-    one(0)
-    if K > 1:
-        with ThreadPoolExecutor(BLOCK_GRID_WORKERS) as pool:
-            list(pool.map(one, range(1, K)))
+    # the kernel, the file reads and a view's correction (numpy) release the GIL, so both cores are busy;
+    # each image's values are its own, whatever the order
+    each_image(one, K)
     rows = r0 + b * np.arange(R) + (b - 1) / 2.0
     cols = c0 + b * np.arange(C) + (b - 1) / 2.0
     return BlockGrid(values, valid, rows, cols, (M, N), b)
@@ -397,7 +388,38 @@ class GainCorrected(StackView):
         super().__init__(images)
         self.coeffs = np.asarray(coeffs, dtype=float)
 
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        kk, rk, ck = (key + (slice(None),) * 3)[:3]
+        if (len(key) <= 3 and isinstance(rk, slice) and isinstance(ck, slice)
+                and isinstance(kk, (int, np.integer, slice))):
+            # a band of one or more images (the normals' bands): the factors of all at once, as
+            # correct() makes them, and each image's band read as stored and corrected in one pass
+            ks = np.arange(self.shape[0])[kk]
+            parts = [raw_parts(self.base, int(k), rk, ck) for k in np.atleast_1d(ks)]
+            if parts and all(p is not None and p.factor is None for p in parts):
+                f = self.factor(kk, rk, ck)
+                f = f[None] if np.ndim(ks) == 0 else f
+                out = np.empty((len(parts),) + parts[0].raw.shape, np.float32)
+                for i, p in enumerate(parts):
+                    corrected_band(dataclasses.replace(p, factor=f[i]), out=out[i])
+                return out[0] if np.ndim(ks) == 0 else out
+        return super().__getitem__(key)
+
     def correct(self, out, kk, rk, ck):
+        f = self.factor(kk, rk, ck)
+        return out * (f[..., None] if self.ndim == 4 else f)     # out may be the stack itself: not in place
+
+    def raw_parts(self, k: int, rows: slice, cols: slice):
+        """The band as stored (and a dark frame) with this view's factor (1 / the gain map) to multiply
+        (:class:`uvps.core.stack.RawParts`)."""
+        p = raw_parts(self.base, k, rows, cols)
+        if p is None or p.factor is not None:
+            return None
+        return dataclasses.replace(p, factor=self.factor(k, rows, cols))
+
+    def factor(self, kk, rk, ck) -> np.ndarray:
+        """The float32 factor ``1 / gain`` the values indexed by ``(kk, rk, ck)`` are multiplied by."""
         K, M, N = self.shape[:3]
         ks, rows, cols = np.arange(K)[kk], np.arange(M)[rk], np.arange(N)[ck]
         deg = self.coeffs.shape[1] - 1
@@ -417,8 +439,7 @@ class GainCorrected(StackView):
         if np.ndim(ks) == 0:
             g = g[0]
         np.negative(g, out=g)
-        f = np.exp(g, out=g).astype(np.float32)
-        return out * (f[..., None] if self.ndim == 4 else f)     # out may be the stack itself: not in place
+        return np.exp(g, out=g).astype(np.float32)
 
 
 def fit_log_grid(values, rows, cols, shape, degree) -> np.ndarray:

@@ -36,6 +36,8 @@ lamps by any image cue: take a frame with the UV lamp off and pass it as the dar
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
@@ -44,7 +46,8 @@ import numpy as np
 from numpy.polynomial import legendre as Lg
 
 from ..errors import UVPSInputError
-from .stack import StackView
+from .stack import StackView, raw_parts
+from .threads import default_threads
 
 log = logging.getLogger(__name__)
 
@@ -235,6 +238,151 @@ def _block_stats_kernel(a, block, sat):  # pragma: no cover - compiled
     return means / (block * block), gmin, smin, satd
 
 
+def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
+    """:func:`block_stats` of the band a view yields, read from its :class:`uvps.core.stack.RawParts`:
+    each sample converted, dark-subtracted and multiplied as it is read (one pass over the band as
+    stored, no temporary), to the same float32 values the view yields, so the same statistics to the
+    bit. ``parts.done()`` is called once the band is read."""
+    a = parts.raw
+    grey = a.ndim == 2
+    a3 = a[..., None] if grey else a
+    none = np.zeros((1, 1, 1), np.float32)
+    d = none if parts.dark is None else (parts.dark[..., None] if grey else parts.dark)
+    f = none[..., 0] if parts.factor is None else parts.factor
+    sat = np.inf if saturation is None else float(saturation)
+    try:
+        means, gmin, smin, satd = _first_call(_block_stats_parts_kernel, a3, d, f, parts.dark is not None,
+                                              parts.factor is not None, int(block), sat)
+    finally:
+        parts.done()
+    return BlockStats(means[..., 0] if grey else means, gmin, smin, satd)
+
+
+@numba.njit(nogil=True, cache=True)
+def _block_stats_parts_kernel(a, d, f, has_dark, has_factor, block, sat):  # pragma: no cover - compiled
+    # _block_stats_kernel's loop on the samples a view computes, in its float32 arithmetic: the value
+    # float32(raw), minus the dark frame and clipped at 0, times the factor (separate from it: that
+    # kernel sums an array's own values, float64 ones too, which a float32 conversion would round)
+    R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
+    rows = np.zeros((R, Cb * block, C))
+    gmin = np.full((R, Cb), np.inf)
+    smin = np.full((R, Cb), np.inf)
+    satd = np.zeros((R, Cb), np.bool_)
+    zero = np.float32(0.0)
+    for i in range(R * block):
+        r = i // block
+        for cb in range(Cb):
+            lo_g, lo_s, hit = gmin[r, cb], smin[r, cb], satd[r, cb]
+            for j in range(cb * block, (cb + 1) * block):
+                g = 0.0
+                for c in range(C):
+                    x = np.float32(a[i, j, c])
+                    if has_dark:
+                        x = x - d[i, j, c]
+                        if x < zero:
+                            x = zero
+                    if has_factor:
+                        x = x * f[i, j]
+                    v = float(x)
+                    rows[r, j, c] += v
+                    g += v
+                    lo_s = min(lo_s, v)
+                    hit |= v >= sat
+                lo_g = min(lo_g, g)
+            gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
+    means = np.zeros((R, Cb, C))
+    for r in range(R):
+        for j in range(Cb * block):
+            for c in range(C):
+                means[r, j // block, c] += rows[r, j, c]
+    return means / (block * block), gmin, smin, satd
+
+
+def corrected_band(parts, *, out: np.ndarray) -> np.ndarray:
+    """The band a view yields, from its :class:`uvps.core.stack.RawParts`, written into ``out`` (float32,
+    the band's shape): each sample converted, dark-subtracted and multiplied in one pass, in the view's
+    own float32 arithmetic (the same values to the bit). ``parts.done()`` is called once it is read."""
+    a = parts.raw
+    grey = a.ndim == 2
+    none = np.zeros((1, 1, 1), np.float32)
+    d = none if parts.dark is None else (parts.dark[..., None] if grey else parts.dark)
+    f = none[..., 0] if parts.factor is None else parts.factor
+    try:
+        _first_call(_corrected_band_kernel, a[..., None] if grey else a, d, f, parts.dark is not None,
+                    parts.factor is not None, out[..., None] if grey else out)
+    finally:
+        parts.done()
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _corrected_band_kernel(a, d, f, has_dark, has_factor, out):  # pragma: no cover - compiled
+    zero = np.float32(0.0)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            for c in range(a.shape[2]):
+                x = np.float32(a[i, j, c])
+                if has_dark:
+                    x = x - d[i, j, c]
+                    if x < zero:
+                        x = zero
+                if has_factor:
+                    x = x * f[i, j]
+                out[i, j, c] = x
+
+
+def image_block_stats(images, k: int, rows: slice, cols: slice, block: int, saturation=None) -> BlockStats:
+    """:func:`block_stats` of ``images[k, rows, cols]``: a view of files or an array whose corrections are
+    :class:`uvps.core.stack.RawParts` (a dark frame, the beams) read as stored and corrected as each sample is
+    read (:func:`block_stats_parts`); memory-mapped files summed where they lie (no copy: their own values);
+    anything else indexed."""
+    parts = None if isinstance(images, np.ndarray) else raw_parts(images, k, rows, cols)
+    if parts is None:
+        return block_stats(images[k, rows, cols], block, saturation)
+    if isinstance(images, StackView):
+        return block_stats_parts(parts, block, saturation)
+    try:
+        return block_stats(parts.raw, block, saturation)
+    finally:
+        parts.done()
+
+
+#: Threads :func:`each_image` runs a pass over the images in (the machine's 2 cores, at most
+#: :func:`uvps.core.threads.default_threads`).
+IMAGE_WORKERS = 2
+
+
+def each_image(one, K: int) -> None:
+    """``one(k)`` for every image: the first in this thread (numba types a kernel on its first call, never in
+    two threads at once), the others in :data:`IMAGE_WORKERS` threads (one with ``UVPS_THREADS=1``)."""
+    if K < 1:
+        return
+    one(0)
+    workers = default_threads(IMAGE_WORKERS)
+    if K > 1 and workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(one, range(1, K)))
+    else:
+        for k in range(1, K):
+            one(k)
+
+
+_COMPILING = threading.Lock()
+_TYPED = set()
+
+
+def _first_call(kernel, *args):
+    """``kernel(*args)``; its first call with a signature under a lock: numba types a kernel on its first
+    call with new argument types, and the stages call these from their threads."""
+    sig = (kernel, tuple(numba.typeof(a) for a in args))
+    if sig in _TYPED:
+        return kernel(*args)
+    with _COMPILING:
+        r = kernel(*args)
+        _TYPED.add(sig)
+    return r
+
+
 def _channel_blocks(images, *, block, mask, saturation):
     """Per-channel block means (K, C, R, Cb) and the blocks usable in every image (R, Cb)."""
     K, M, N = images.shape[:3]
@@ -242,11 +390,17 @@ def _channel_blocks(images, *, block, mask, saturation):
     R, Cb = M // block, N // block
     r0, c0 = (M - R * block) // 2, (N - Cb * block) // 2
     out = np.empty((K, C, R, Cb))
-    ok = np.ones((R, Cb), bool)
-    for k in range(K):
-        st = block_stats(images[k, r0:r0 + R * block, c0:c0 + Cb * block], block, saturation)
+    usable = np.empty((K, R, Cb), bool)
+
+    def one(k):
+        st = image_block_stats(images, k, slice(r0, r0 + R * block), slice(c0, c0 + Cb * block), block, saturation)
         out[k] = np.moveaxis(st.means, -1, 0) if st.means.ndim == 3 else st.means[None]
-        ok &= ~st.saturated & (st.sample_min > 0)
+        usable[k] = ~st.saturated & (st.sample_min > 0)
+
+    # the first image in this thread (numba types the kernel on its first call), the others in
+    # default_threads(2) threads: the kernel and the file reads release the GIL; each image's own
+    each_image(one, K)
+    ok = usable.all(axis=0)
     if mask is not None:
         ok &= mask[r0:r0 + R * block, c0:c0 + Cb * block].reshape(R, block, Cb, block).all(axis=(1, 3))
     rows = r0 + block * np.arange(R) + (block - 1) / 2.0

@@ -9,7 +9,7 @@ docs/architecture.md, "Lazy stacks".
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Protocol, runtime_checkable
+from typing import Callable, Optional, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -134,6 +134,48 @@ class StackView(LazyStack):
 
     def correct(self, values, kk, rk, ck):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def raw_parts(self, k: int, rows: slice, cols: slice) -> Optional["RawParts"]:
+        """The band as stored and this view's correction as :class:`RawParts`, or None when the
+        correction is not one of theirs (a view that is no dark frame or gain map says None)."""
+        return None
+
+
+@dataclass
+class RawParts:
+    """One image's band as stored and the corrections the views over it apply on access, for a
+    compiled kernel that applies them as it reads each sample (:func:`uvps.core.offset.block_stats_parts`)
+    instead of making the corrected float32 band first (a copy of the band in the files' dtype, its
+    float32 conversion, the dark frame's subtraction and the gain's division: four passes and three
+    temporaries of the band). The value a view yields is, in float32 as the views compute it,
+    ``max(float32(raw) - dark, 0) * factor`` (each term only when given).
+
+    Attributes
+    ----------
+    raw : ndarray, (m, n) or (m, n, C)
+        The band as stored (a memory-mapped file's view, not copied), in this machine's byte order.
+    dark : ndarray of float32 like ``raw``, or None
+        A dark frame subtracted, clipped at 0 (:class:`uvps.files.io.DarkSubtracted`).
+    factor : ndarray of float32, (m, n), or None
+        A factor multiplied: 1 / a lamp's gain map (:class:`uvps.core.flatfield.GainCorrected`).
+    done : callable
+        Called once the band is read (a mapped file's pages are released from the resident set).
+    """
+
+    raw: np.ndarray
+    dark: Optional[np.ndarray] = None
+    factor: Optional[np.ndarray] = None
+    done: Callable = lambda: None
+
+
+def raw_parts(stack, k: int, rows: slice, cols: slice) -> Optional[RawParts]:
+    """Image ``k``'s band ``rows`` x ``cols`` of ``stack`` as :class:`RawParts`: a numpy array in native
+    byte order as it is, a lazy stack by its own ``raw_parts`` (memory-mapped files, a dark frame, a gain
+    map); None for anything else (the band is then read by indexing)."""
+    if isinstance(stack, np.ndarray):
+        return RawParts(stack[k, rows, cols]) if stack.dtype.isnative else None
+    f = getattr(stack, "raw_parts", None)
+    return None if f is None else f(k, rows, cols)
 
 
 def row_bands(n_rows: int, row_cost: int, budget: int) -> list:

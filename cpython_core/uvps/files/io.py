@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import fnmatch
 import hashlib
 import json
@@ -36,7 +37,7 @@ import tifffile
 
 from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
-from ..core.stack import Capture, LazyStack, StackView, row_bands
+from ..core.stack import Capture, LazyStack, RawParts, StackView, raw_parts, row_bands
 from .atomic import atomic_path
 from .raw import RAW_DEVELOP, _rawpy, raw_image_size, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
 
@@ -118,6 +119,11 @@ class MappedStack(LazyStack):
         out = np.array(m[rest], dtype=self.dtype, copy=True)
         release(m)
         return out
+
+    def raw_parts(self, k: int, rows: slice, cols: slice):
+        """Image ``k``'s band as mapped, its pages released once read (:class:`uvps.core.stack.RawParts`)."""
+        m = self.maps[k]
+        return RawParts(m[rows, cols], done=lambda: release(m)) if m.dtype.isnative else None
 
 
 def release(arr) -> None:
@@ -1110,6 +1116,13 @@ class DarkSubtracted(StackView):
     def correct(self, out, kk, rk, ck):
         v = out - self.dark[rk, ck]
         return np.maximum(v, 0, out=v)
+
+    def raw_parts(self, k: int, rows: slice, cols: slice):
+        """The files' band with this dark frame to subtract (:class:`uvps.core.stack.RawParts`)."""
+        p = raw_parts(self.base, k, rows, cols)
+        if p is None or p.dark is not None or p.factor is not None:
+            return None
+        return dataclasses.replace(p, dark=self.dark[rows, cols])
 
 
 def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
