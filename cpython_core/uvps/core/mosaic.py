@@ -130,6 +130,9 @@ def _common(wa, wb, sy: int, sx: int):
 #: Phase-correlation peaks whose shifts are scored (Preibisch et al. 2009 check the few highest, 5 by default).
 N_PEAKS = 5
 
+#: Of those, the best few (by the NCC around them) climbed to their NCC's local maxima.
+N_CLIMB = 3
+
 #: Below this correlation of a window with itself one pixel over, the overlap holds no structure (noise only):
 #: white noise decorrelates in one pixel, paint texture imaged at ~15 um per pixel does not.
 MIN_TEXTURE = 0.2
@@ -181,11 +184,12 @@ def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, ups
     cands = {(0, 0)}
     for py, px in _peaks(win_a, win_b, max_shift_px, n_peaks):
         cands.update((sy, sx) for sy in (py, py - H) for sx in (px, px - W))
-    # a peak's whole-pixel shift can sit a pixel off the NCC's maximum: each scored by its 3 x 3 best
-    best = max((score.best_near(c) for c in cands), key=score)
+    # a peak's whole-pixel shift can sit a pixel or two off the NCC's maximum: each scored by its 3 x 3
+    # best, the N_CLIMB best climbed to their NCC's maxima, the highest kept
+    near = sorted({score.best_near(c) for c in cands}, key=score, reverse=True)[:N_CLIMB]
+    best = max((score.climb(c) for c in near), key=score)
     if score(best) <= -1.0:
         return (0.0, 0.0, -1.0, 0)
-    best = score.climb(best)
     fy, fx = score.subpixel(best, upsample)
     return (best[0] + fy, best[1] + fx, score(best), score.size(best))
 
