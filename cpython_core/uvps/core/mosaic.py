@@ -4,13 +4,17 @@ A painting photographed in tiles by a moving rig (camera and lamps together, on 
 XY stage) comes with each tile's nominal corner in the painting (the stage's positions), off by the
 stage's error. As Fiji's Grid/Collection Stitching and BigStitcher do (Preibisch, Saalfeld and
 Tomancak, Bioinformatics 2009, "Globally optimal stitching of tiled 3D microscopic image
-acquisitions"), each pair of overlapping tiles is registered on its overlap (phase correlation,
-sub-pixel, ``skimage.registration.phase_cross_correlation``; the peak's 2 x 2 wrap-around
-candidates told apart by the normalised cross-correlation of what they would make overlap, which
-is also the pair's confidence), then all pairs are reconciled by one weighted least-squares over
-the tiles' corners, dropping the pair that disagrees most with the solution while it disagrees by
-more than ``max_residual_px`` and the tiles stay connected. A pair with nothing to register (blank
-paint: confidence below ``min_confidence``) keeps its nominal relative offset, as a weak link.
+acquisitions"), each pair of overlapping tiles is registered on its overlap: the few highest peaks
+of the phase correlation (``skimage.feature.peak_local_max``), each with the shifts its FFT
+wrap-around allows, scored by the normalised cross-correlation (NCC) of what they make overlap
+(on a near-periodic paint texture the highest peak is often a copy of the pattern a few pixels
+off, while the NCC is highest at the true shift), the best climbed to the NCC's maximum and refined
+sub-pixel (``skimage.registration.phase_cross_correlation``, upsampled); its NCC is the pair's
+confidence. Then all pairs are reconciled by one weighted least-squares over the tiles' corners,
+dropping the pair that disagrees most with the solution while it disagrees by more than
+``max_residual_px`` and the tiles stay connected. A pair left unregistered (its best NCC below
+``min_confidence``) keeps its nominal relative offset, as a weak link, and its warning names why:
+blank paint (no structure in the overlap), no shift within reach, or no shift that matches.
 
 Frames: corners ``(x, y)`` in painting pixels (x to the right = column, y down = row: the layout's
 and the tables' ``x_px``, ``y_px``); a tile's pixel ``(r, c)`` is the painting's ``(y + r, x + c)``.
@@ -264,8 +268,9 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     max_shift_px : float
         Largest correction of one tile relative to a neighbour (twice the stage's error).
     min_confidence : float
-        Pairs whose best normalised cross-correlation is lower have nothing to register (blank
-        paint): their nominal relative offset is kept as a weak link, and a warning names them.
+        Pairs whose best normalised cross-correlation is lower are not registered: their
+        nominal relative offset is kept as a weak link, and a warning names them and why (blank
+        paint, no shift within reach, or no shift that matches).
     max_residual_px : float
         A pair whose shift disagrees with the global solution by more is dropped (worst first,
         as long as every tile stays linked) and named in a warning.
