@@ -40,8 +40,8 @@ class PairShift:
     ``dx, dy``: the correction of ``b``'s corner relative to ``a``'s (painting pixels): the pair
     says ``corner_b - corner_a = guess_b - guess_a + (dx, dy)``. ``confidence``: normalised
     cross-correlation of the overlap once shifted (-1..1; -1: no shift within ``search_px`` leaves
-    enough in common). ``texture``: the overlap's structure (:func:`texture`). ``used``: kept by the global solution;
-    ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
+    enough in common). ``texture``: the overlap's structure (:func:`texture`). ``used``: kept by the
+    global solution; ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
     """
 
     a: str
