@@ -158,6 +158,18 @@ def test_an_overlap_of_two_different_textures_is_named_for_matching_nothing():
     assert "blank" not in reg.warnings[0]
 
 
+def test_an_overlap_too_thin_for_any_shift_is_named_for_it():
+    """An 8 x 40 px overlap (320 px, fewer than the 400 px a shift must leave in common)."""
+    from scipy import ndimage
+
+    img = 1000 + 50 * ndimage.gaussian_filter(np.random.default_rng(2).normal(0, 1, (40, 80)), 2)
+    reg = register_tiles({"left": img[:, :40], "right": img[:, 32:72]},
+                         {"left": (0.0, 0.0), "right": (32.0, 0.0)}, max_shift_px=10)
+    assert len(reg.warnings) == 1
+    assert reg.warnings[0].startswith("mosaic: pair left-right: no shift within +-4 px of the first pass's solution "
+                                      "leaves enough of the overlap in common")
+
+
 def test_an_inconsistent_pair_is_dropped_by_the_global_solution():
     """Four tiles in a 2 x 2 grid; the diagonal pair's shift is off by 12 px (a repeated motif
     registered on the wrong copy): dropped, named, and the corners follow the other pairs."""

@@ -39,7 +39,7 @@ class PairShift:
 
     ``dx, dy``: the correction of ``b``'s corner relative to ``a``'s (painting pixels): the pair
     says ``corner_b - corner_a = guess_b - guess_a + (dx, dy)``. ``confidence``: normalised
-    cross-correlation of the overlap once shifted (-1..1; -1: no shift within ``search_px`` leaves
+    cross-correlation of the overlap once shifted (-1..1; -1: no shift within ``search`` leaves
     enough in common). ``texture``: the overlap's structure (:func:`texture`). ``used``: kept by the
     global solution; ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
     """
@@ -55,7 +55,7 @@ class PairShift:
     why: str = ""
     dropped: bool = False
     texture: float = 1.0
-    search_px: float = 0.0
+    search: str = ""
 
     @property
     def fallback(self) -> bool:
@@ -291,7 +291,8 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     current = dict(nominal)
     pairs = []
     for k in range(max(1, passes)):
-        pairs = _measure(tiles, shapes, nominal if k == 0 else current, max_shift_px if k == 0 else 4.0, sigma)
+        search = (max_shift_px, "the nominal offset") if k == 0 else (4.0, "the first pass's solution")
+        pairs = _measure(tiles, shapes, nominal if k == 0 else current, search, sigma)
         current, pairs = _solve(names, nominal, pairs, min_confidence, max_residual_px)
     warnings = []
     for p in pairs:
@@ -300,7 +301,9 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     return Registration(current, pairs, warnings)
 
 
-def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
+def _measure(tiles, shapes, corners, search, sigma) -> list:
+    """Every overlapping pair's shift within ``search = (max_shift_px, around what)``."""
+    max_shift = search[0]
     names = list(tiles)
     out = []
     for i, a in enumerate(names):
@@ -313,7 +316,8 @@ def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
             x_lo, y_lo, x_hi, y_hi = box
             wa = _high_pass(tiles[a].window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), sigma)
             wb = _high_pass(tiles[b].window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), sigma)
-            p = PairShift(a, b, overlap_px=int(wa.size), texture=min(texture(wa), texture(wb)), search_px=max_shift)
+            p = PairShift(a, b, overlap_px=int(wa.size), texture=min(texture(wa), texture(wb)),
+                          search=f"+-{max_shift:g} px of {search[1]}")
             if min(wa.shape) < 8:
                 p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
             else:
@@ -332,7 +336,7 @@ def _why_unregistered(p: PairShift, min_confidence: float) -> str:
         return (f"nothing to register in the overlap (blank paint: texture {p.texture:.2f} < {MIN_TEXTURE:g}); "
                 "nominal offset kept")
     if p.confidence <= -1.0:
-        return (f"no shift within +-{p.search_px:g} px leaves enough of the overlap in common; "
+        return (f"no shift within {p.search} leaves enough of the overlap in common; "
                 "nominal offset kept")
     return (f"no shift matches (best correlation {p.confidence:.2f} < {min_confidence:g}); "
             "nominal offset kept")
