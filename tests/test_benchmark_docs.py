@@ -139,7 +139,7 @@ def test_a_stale_section_fails_the_check_and_is_rewritten_from_its_json(tmp_path
     r = subprocess.run(CHECK[:-1] + ["--md", str(md), "--json-dir", str(jd)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     text = md.read_text()
-    assert "| 1 | 0.16 | 0.07 | 0.500 |" in text and "| **worst** | **0.21** | 0.07 | **0.500** |" in text
+    assert "| 1 | 0.10 | 0.19 | 0.500 |" in text and "| **worst** | **0.10** | 0.19 | **0.500** |" in text
     assert _check(md, jd).returncode == 0
 
 

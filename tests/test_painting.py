@@ -94,6 +94,82 @@ def test_a_blank_overlap_keeps_its_nominal_offset_and_names_the_pair():
     assert len(reg.warnings) == 1 and reg.warnings[0].startswith("mosaic: pair left-right: nothing to register")
 
 
+def _weave(seed, shape=(420, 520), period=(6.0, 7.0)):
+    """A canvas weave: warp and weft threads of 6 and 7 px periods whose phase wanders slowly (up to
+    a few pixels over tens of pixels), with a faint mottle: near-periodic, so shifting it by a
+    period nearly matches it again."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    jy, jx = (ndimage.gaussian_filter(rng.normal(0, 1, shape), 20) * 10 for _ in range(2))
+    threads = np.cos(2 * np.pi * (xx + jx) / period[0]) + np.cos(2 * np.pi * (yy + jy) / period[1])
+    return threads + 0.4 * ndimage.gaussian_filter(rng.normal(0, 1, shape), 2)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_near_periodic_weave_is_registered_where_the_highest_phase_peak_is_not(seed):
+    """Two views of a weave, the second shifted by a known sub-pixel amount, each with its own
+    noise: phase correlation's highest peak lands more than a pixel off (on a neighbouring copy of
+    the weave's pattern) for some shifts; the peaks scored by the NCC of their overlap give the
+    shift within 0.5 px for all."""
+    from scipy import ndimage
+    from skimage.registration import phase_cross_correlation
+    from uvps.core.mosaic import _high_pass, pair_shift
+
+    img = _weave(seed)
+    rng = np.random.default_rng(100 + seed)
+    plain, new = [], []
+    for shift in [(3.32, -17.63), (-22.27, 9.41), (11.74, 25.18)]:
+        moved = ndimage.shift(img, (-shift[0], -shift[1]), order=3, mode="nearest")
+        a, b = (_high_pass(v[60:300, 60:360] + rng.normal(0, 0.3, (240, 300)), 8) for v in (img, moved))
+        s0, _, _ = phase_cross_correlation(a, b, upsample_factor=20, normalization="phase")
+        dy, dx, conf, _ = pair_shift(a, b, max_shift_px=60)
+        plain.append(float(np.hypot(*np.subtract(s0, shift))))
+        new.append(float(np.hypot(dy - shift[0], dx - shift[1])))
+    print(f"seed {seed}: highest peak off by {np.round(plain, 2)} px, scored peaks {np.round(new, 3)} px")
+    assert max(plain) > 1.0          # twice the target: the highest peak is a neighbouring copy's
+    assert max(new) < 0.5 and conf > 0.5
+
+
+def test_a_weave_between_two_tiles_registers_their_corners():
+    """register_tiles on two tiles of the weave, the second's nominal corner 20 px off."""
+    img = _weave(3)
+    rng = np.random.default_rng(3)
+    a = img[0:240, 0:300] + rng.normal(0, 0.3, (240, 300))
+    b = img[7:247, 180:480] + rng.normal(0, 0.3, (240, 300))     # true corner (180, 7)
+    reg = register_tiles({"a": a, "b": b}, {"a": (0.0, 0.0), "b": (196.0, -12.0)}, max_shift_px=60)
+    rel = np.subtract(reg.corners["b"], reg.corners["a"])
+    assert not reg.warnings
+    assert np.hypot(rel[0] - 180.0, rel[1] - 7.0) < 0.5, rel
+
+
+def test_an_overlap_of_two_different_textures_is_named_for_matching_nothing():
+    """Textured overlaps that show different paint (a wrong layout): no shift matches, and the
+    warning says so with the best correlation instead of blaming blank paint."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(1)
+    a, b = (1000 + 50 * ndimage.gaussian_filter(rng.normal(0, 1, (100, 120)), 2) for _ in range(2))
+    reg = register_tiles({"left": a, "right": b}, {"left": (0.0, 0.0), "right": (80.0, 3.0)}, max_shift_px=30)
+    assert reg.corners["right"] == pytest.approx((80.0, 3.0), abs=1e-6)
+    assert len(reg.warnings) == 1
+    assert reg.warnings[0].startswith("mosaic: pair left-right: no shift matches (best correlation 0.")
+    assert "blank" not in reg.warnings[0]
+
+
+def test_an_overlap_too_thin_for_any_shift_is_named_for_it():
+    """An 8 x 40 px overlap (320 px, fewer than the 400 px a shift must leave in common)."""
+    from scipy import ndimage
+
+    img = 1000 + 50 * ndimage.gaussian_filter(np.random.default_rng(2).normal(0, 1, (40, 80)), 2)
+    reg = register_tiles({"left": img[:, :40], "right": img[:, 32:72]},
+                         {"left": (0.0, 0.0), "right": (32.0, 0.0)}, max_shift_px=10)
+    assert len(reg.warnings) == 1
+    assert reg.warnings[0].startswith("mosaic: pair left-right: no shift within +-4 px of the first pass's solution "
+                                      "leaves enough of the overlap in common")
+
+
 def test_an_inconsistent_pair_is_dropped_by_the_global_solution():
     """Four tiles in a 2 x 2 grid; the diagonal pair's shift is off by 12 px (a repeated motif
     registered on the wrong copy): dropped, named, and the corners follow the other pairs."""

@@ -4,13 +4,17 @@ A painting photographed in tiles by a moving rig (camera and lamps together, on 
 XY stage) comes with each tile's nominal corner in the painting (the stage's positions), off by the
 stage's error. As Fiji's Grid/Collection Stitching and BigStitcher do (Preibisch, Saalfeld and
 Tomancak, Bioinformatics 2009, "Globally optimal stitching of tiled 3D microscopic image
-acquisitions"), each pair of overlapping tiles is registered on its overlap (phase correlation,
-sub-pixel, ``skimage.registration.phase_cross_correlation``; the peak's 2 x 2 wrap-around
-candidates told apart by the normalised cross-correlation of what they would make overlap, which
-is also the pair's confidence), then all pairs are reconciled by one weighted least-squares over
-the tiles' corners, dropping the pair that disagrees most with the solution while it disagrees by
-more than ``max_residual_px`` and the tiles stay connected. A pair with nothing to register (blank
-paint: confidence below ``min_confidence``) keeps its nominal relative offset, as a weak link.
+acquisitions"), each pair of overlapping tiles is registered on its overlap: the few highest peaks
+of the phase correlation (``skimage.feature.peak_local_max``), each with the shifts its FFT
+wrap-around allows, scored by the normalised cross-correlation (NCC) of what they make overlap
+(on a near-periodic paint texture the highest peak is often a copy of the pattern a few pixels
+off, while the NCC is highest at the true shift), the best climbed to the NCC's maximum and refined
+sub-pixel (``skimage.registration.phase_cross_correlation``, upsampled); its NCC is the pair's
+confidence. Then all pairs are reconciled by one weighted least-squares over the tiles' corners,
+dropping the pair that disagrees most with the solution while it disagrees by more than
+``max_residual_px`` and the tiles stay connected. A pair left unregistered (its best NCC below
+``min_confidence``) keeps its nominal relative offset, as a weak link, and its warning names why:
+blank paint (no structure in the overlap), no shift within reach, or no shift that matches.
 
 Frames: corners ``(x, y)`` in painting pixels (x to the right = column, y down = row: the layout's
 and the tables' ``x_px``, ``y_px``); a tile's pixel ``(r, c)`` is the painting's ``(y + r, x + c)``.
@@ -35,8 +39,9 @@ class PairShift:
 
     ``dx, dy``: the correction of ``b``'s corner relative to ``a``'s (painting pixels): the pair
     says ``corner_b - corner_a = guess_b - guess_a + (dx, dy)``. ``confidence``: normalised
-    cross-correlation of the overlap once shifted (-1..1). ``used``: kept by the global solution;
-    ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
+    cross-correlation of the overlap once shifted (-1..1; -1: no shift within ``search`` leaves
+    enough in common). ``texture``: the overlap's structure (:func:`texture`). ``used``: kept by the
+    global solution; ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
     """
 
     a: str
@@ -49,6 +54,8 @@ class PairShift:
     residual_px: Optional[float] = None
     why: str = ""
     dropped: bool = False
+    texture: float = 1.0
+    search: str = ""
 
     @property
     def fallback(self) -> bool:
@@ -124,33 +131,127 @@ def _common(wa, wb, sy: int, sx: int):
     return wa[ya:ya + h, xa:xa + w], wb[yb:yb + h, xb:xb + w]
 
 
+#: Phase-correlation peaks whose shifts are scored (Preibisch et al. 2009 check the few highest, 5 by default).
+N_PEAKS = 5
+
+#: Of those, the best few (by the NCC around them) climbed to their NCC's local maxima.
+N_CLIMB = 3
+
+#: Below this correlation of a window with itself one pixel over, the overlap holds no structure (noise only):
+#: white noise decorrelates in one pixel, paint texture imaged at ~15 um per pixel does not.
+MIN_TEXTURE = 0.2
+
+
+def texture(win: np.ndarray) -> float:
+    """How much the (high-passed) window holds to register: its correlation with itself one pixel
+    over, the smaller of the two axes (about 0 for noise alone, near 1 for texture)."""
+    if min(win.shape) < 2:
+        return 0.0
+    return min(_ncc(win[1:], win[:-1]), _ncc(win[:, 1:], win[:, :-1]))
+
+
+def _peaks(win_a, win_b, max_shift_px: float, n_peaks: int) -> list:
+    """The ``n_peaks`` highest local maxima of the phase-correlation surface (indices modulo the
+    window) among those whose shift, or a wrap-around of it, lies within ``max_shift_px``."""
+    from skimage.feature import peak_local_max   # lazily: skimage's import is slow
+    from scipy import fft
+
+    prod = fft.fft2(win_a) * np.conj(fft.fft2(win_b))
+    surface = fft.ifft2(prod / np.maximum(np.abs(prod), np.finfo(float).tiny)).real
+    H, W = surface.shape
+    m = max_shift_px + 1
+    iy, ix = np.arange(H), np.arange(W)
+    ok = ((iy <= m) | (H - iy <= m))[:, None] & ((ix <= m) | (W - ix <= m))[None, :]
+    surface = np.where(ok, surface, surface.min())
+    return [tuple(q) for q in peak_local_max(surface, min_distance=1, num_peaks=n_peaks, exclude_border=False)
+            if ok[q[0], q[1]]]
+
+
 def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, upsample: int = 20,
-               min_common_px: int = 400) -> tuple:
-    """Shift ``(dy, dx)`` of the painting between two windows of one nominal overlap, and its confidence.
+               min_common_px: int = 400, n_peaks: int = N_PEAKS) -> tuple:
+    """Shift ``(dy, dx)`` of the painting between two windows of one nominal overlap, its confidence
+    and common size.
 
     ``win_a`` and ``win_b`` show the same nominal region of the painting from tiles a and b; the
     result is ``e_b - e_a`` (b's corner error minus a's), so that ``win_b[u - s] = win_a[u]``.
-    Phase correlation gives the shift modulo the window; the candidates within ``max_shift_px``
-    are scored by the normalised cross-correlation of their common part (at least
-    ``min_common_px`` pixels), the best is returned with that score as confidence.
+    As Fiji's stitching does (Preibisch, Saalfeld and Tomancak 2009): the ``n_peaks`` highest
+    peaks of the phase correlation, each with the shifts its wrap-around allows within
+    ``max_shift_px`` (and the zero shift, the guess itself), are scored by the normalised
+    cross-correlation (NCC) of what they make coincide (at least ``min_common_px`` pixels); the
+    best climbs to the NCC's local maximum over whole pixels, then is refined sub-pixel. On a
+    near-periodic texture the highest phase peak can be a copy of the pattern a few pixels off,
+    while the NCC is highest at the true shift. Returns ``(dy, dx, confidence, common_px)``, the
+    confidence being the best NCC (-1 when no shift within ``max_shift_px`` leaves enough in common).
     """
-    from skimage.registration import phase_cross_correlation   # lazily: skimage's import is slow
-
     H, W = win_a.shape
-    s, _, _ = phase_cross_correlation(win_a, win_b, upsample_factor=upsample, normalization="phase")
-    best = (0.0, 0.0, -1.0, 0)
-    for ky in (-1, 0, 1):
-        for kx in (-1, 0, 1):
-            sy, sx = s[0] + ky * H, s[1] + kx * W
-            if abs(sy) > max_shift_px + 1 or abs(sx) > max_shift_px + 1:
-                continue
-            ca, cb = _common(win_a, win_b, int(round(sy)), int(round(sx)))
-            if ca is None or ca.size < min_common_px:
-                continue
-            c = _ncc(ca, cb)
-            if c > best[2]:
-                best = (float(sy), float(sx), c, int(ca.size))
-    return best
+    score = _NccScore(win_a, win_b, max_shift_px, min_common_px)
+    cands = {(0, 0)}
+    for py, px in _peaks(win_a, win_b, max_shift_px, n_peaks):
+        cands.update((sy, sx) for sy in (py, py - H) for sx in (px, px - W))
+    # a peak's whole-pixel shift can sit a pixel or two off the NCC's maximum: each scored by its 3 x 3
+    # best, the N_CLIMB best climbed to their NCC's maxima, the highest kept
+    near = sorted({score.best_near(c) for c in cands}, key=score, reverse=True)[:N_CLIMB]
+    best = max((score.climb(c) for c in near), key=score)
+    if score(best) <= -1.0:
+        return (0.0, 0.0, -1.0, 0)
+    fy, fx = score.subpixel(best, upsample)
+    return (best[0] + fy, best[1] + fx, score(best), score.size(best))
+
+
+class _NccScore:
+    """The NCC of the windows' common part at an integer shift, cached; -1 outside the search.
+
+    Hand-written: skimage's ``match_template`` scores a template wholly inside the image, whereas
+    here both windows are cut to what each shift makes coincide (a common part that shrinks with
+    the shift), the score Fiji's stitching gives its candidates."""
+
+    def __init__(self, wa, wb, max_shift_px, min_common_px):
+        self.wa, self.wb, self.m, self.min_px = wa, wb, max_shift_px + 1, min_common_px
+        self.cache = {}
+
+    def size(self, s) -> int:
+        ca, _ = _common(self.wa, self.wb, *s)
+        return 0 if ca is None else int(ca.size)
+
+    def __call__(self, s) -> float:
+        if s not in self.cache:
+            ca, cb = _common(self.wa, self.wb, *s)
+            inside = abs(s[0]) <= self.m and abs(s[1]) <= self.m
+            ok = inside and ca is not None and ca.size >= self.min_px
+            self.cache[s] = _ncc(ca, cb) if ok else -1.0
+        return self.cache[s]
+
+    def best_near(self, s) -> tuple:
+        """The best-scoring of ``s`` and its 8 neighbours."""
+        return max(((int(s[0]) + dy, int(s[1]) + dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)), key=self)
+
+    def climb(self, s, steps: int = 20) -> tuple:
+        """Uphill over the 8 neighbours to the NCC's local maximum."""
+        for _ in range(steps):
+            nb = self.best_near(s)
+            if nb == s:
+                break
+            s = nb
+        return s
+
+    def subpixel(self, s, upsample: int) -> tuple:
+        """The fraction of a pixel: the upsampled cross-correlation of the common parts, which ``s``
+        has aligned within a pixel (not phase-normalised: that whitening, which sharpens the peak for
+        finding it, amplifies the noise once it is found); a parabola through the NCC if that lands
+        more than a pixel off."""
+        from skimage.registration import phase_cross_correlation   # lazily: skimage's import is slow
+
+        ca, cb = _common(self.wa, self.wb, *s)
+        f, _, _ = phase_cross_correlation(ca, cb, upsample_factor=upsample, normalization=None)
+        if np.all(np.abs(f) <= 1.0):
+            return float(f[0]), float(f[1])
+        out = []
+        for k in range(2):
+            e = np.eye(2, dtype=int)[k]
+            lo, c, hi = self(tuple(np.subtract(s, e))), self(s), self(tuple(np.add(s, e)))
+            d = lo - 2 * c + hi
+            out.append(float(np.clip(0.5 * (lo - hi) / d, -0.5, 0.5)) if d < 0 and lo > -1 and hi > -1 else 0.0)
+        return tuple(out)
 
 
 def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min_confidence: float = 0.3,
@@ -167,8 +268,9 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     max_shift_px : float
         Largest correction of one tile relative to a neighbour (twice the stage's error).
     min_confidence : float
-        Pairs whose best normalised cross-correlation is lower have nothing to register (blank
-        paint): their nominal relative offset is kept as a weak link, and a warning names them.
+        Pairs whose best normalised cross-correlation is lower are not registered: their
+        nominal relative offset is kept as a weak link, and a warning names them and why (blank
+        paint, no shift within reach, or no shift that matches).
     max_residual_px : float
         A pair whose shift disagrees with the global solution by more is dropped (worst first,
         as long as every tile stays linked) and named in a warning.
@@ -189,7 +291,8 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     current = dict(nominal)
     pairs = []
     for k in range(max(1, passes)):
-        pairs = _measure(tiles, shapes, nominal if k == 0 else current, max_shift_px if k == 0 else 4.0, sigma)
+        search = (max_shift_px, "the nominal offset") if k == 0 else (4.0, "the first pass's solution")
+        pairs = _measure(tiles, shapes, nominal if k == 0 else current, search, sigma)
         current, pairs = _solve(names, nominal, pairs, min_confidence, max_residual_px)
     warnings = []
     for p in pairs:
@@ -198,7 +301,9 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     return Registration(current, pairs, warnings)
 
 
-def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
+def _measure(tiles, shapes, corners, search, sigma) -> list:
+    """Every overlapping pair's shift within ``search = (max_shift_px, around what)``."""
+    max_shift = search[0]
     names = list(tiles)
     out = []
     for i, a in enumerate(names):
@@ -211,7 +316,8 @@ def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
             x_lo, y_lo, x_hi, y_hi = box
             wa = _high_pass(tiles[a].window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), sigma)
             wb = _high_pass(tiles[b].window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), sigma)
-            p = PairShift(a, b, overlap_px=int(wa.size))
+            p = PairShift(a, b, overlap_px=int(wa.size), texture=min(texture(wa), texture(wb)),
+                          search=f"+-{max_shift:g} px of {search[1]}")
             if min(wa.shape) < 8:
                 p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
             else:
@@ -222,6 +328,18 @@ def _measure(tiles, shapes, corners, max_shift, sigma) -> list:
                 p.confidence = conf
             out.append(p)
     return out
+
+
+def _why_unregistered(p: PairShift, min_confidence: float) -> str:
+    """Why a measured pair is not used: blank paint only when its overlap holds no structure."""
+    if p.texture < MIN_TEXTURE:
+        return (f"nothing to register in the overlap (blank paint: texture {p.texture:.2f} < {MIN_TEXTURE:g}); "
+                "nominal offset kept")
+    if p.confidence <= -1.0:
+        return (f"no shift within {p.search} leaves enough of the overlap in common; "
+                "nominal offset kept")
+    return (f"no shift matches (best correlation {p.confidence:.2f} < {min_confidence:g}); "
+            "nominal offset kept")
 
 
 def _connected(names, links) -> bool:
@@ -243,8 +361,7 @@ def _solve(names, nominal, pairs, min_confidence, max_residual_px):
         p.dropped = False
         p.used = p.confidence >= min_confidence and not p.why
         if not p.used and not p.why:
-            p.why = (f"nothing to register in the overlap (confidence {p.confidence:.2f} < {min_confidence:g}, "
-                     "blank paint?); nominal offset kept")
+            p.why = _why_unregistered(p, min_confidence)
     while True:
         rows, rhs, w = [], [], []
         links = [p for p in pairs if not p.dropped]
