@@ -401,7 +401,7 @@ def test_the_command_runs_with_one_blas_thread_unless_told_otherwise(monkeypatch
     assert out.strip() == "False"
 
 
-def test_ctrl_c_ends_with_one_line_exit_130_and_no_partial_output(tmp_path):
+def test_ctrl_c_ends_with_one_line_exit_130_and_no_partial_output(tmp_path, ctrl_c):
     """A real SIGINT to a running `uvps run`: the shell's status 130, one line, no run folder."""
     import signal
 

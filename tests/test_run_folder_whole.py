@@ -62,7 +62,7 @@ def capture(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture, tmp_path, tmp_path_factory):
+def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture, tmp_path, tmp_path_factory, ctrl_c):
     """Each point is tried on the same old folder: a run that finishes before its Ctrl-C lands (on a
     loaded machine the log line can reach the test after the swap began) must leave a whole new folder;
     the old one is then put back, byte for byte, and the point tried once more. At least four of the
@@ -115,7 +115,7 @@ def test_ctrl_c_at_five_points_leaves_the_old_folder_or_a_whole_new_one(capture,
 
 
 @pytest.mark.slow
-def test_ctrl_c_into_a_new_nested_folder_leaves_nothing(capture, tmp_path):
+def test_ctrl_c_into_a_new_nested_folder_leaves_nothing(capture, tmp_path, ctrl_c):
     out = tmp_path / "runs" / "region1"
     code, err = _interrupt_at(["run", capture, "-o", out, "--regions", "auto", "--lights",
                                capture / "lights_positions_mm.csv"], "uvps.core.detect: detect:")
@@ -183,7 +183,7 @@ def test_new_output_dir_swaps_whole_and_carries_the_users_files(tmp_path):
     assert _snapshot(run) == before and sorted(p.name for p in tmp_path.iterdir()) == ["run"]
 
 
-def test_a_signal_during_the_swap_waits_for_its_end(tmp_path):
+def test_a_signal_during_the_swap_waits_for_its_end(tmp_path, ctrl_c):
     """SIGINT raised inside deferred_signals is delivered after the block, not in the middle."""
     done = []
     with pytest.raises(KeyboardInterrupt):
