@@ -411,6 +411,26 @@ def test_crater_and_mesa_found_by_relief_alone_with_width_within_10_percent(kind
         assert (det.labels[80:121, 80:121] == 1).all() or det.labels[100, 100] == 1
 
 
+@pytest.mark.parametrize("width_um, height_um, seed", [(240.0, 40.0, 12), (330.0, 60.0, 11), (390.0, 80.0, 13)])
+def test_crater_collapsed_to_the_paint_found_not_rejected_as_a_ridge(width_um, height_um, seed):
+    """A crater whose caldera is as deep as the dome is high (its centre at the paint's level): the
+    few pixels of the pit below the footprint's level are a hole in it, which halved the largest
+    inscribed radius, so the round crater read as elongated (elongation 4.2-4.3 > 3) and ``ridge``
+    rejected it; the inscribed radius is measured with the hole filled."""
+    px = 15.0
+    alb, h = scene((200, 200), seed=seed)
+    rho = rho_map(h.shape, (100, 100), width_um / 2 / px)
+    dome = np.where(rho < 1, np.clip(1 - rho ** 2, 0, None) ** 1.3, 0)
+    prof = np.clip(dome - np.clip(1 - (rho / 0.45) ** 2, 0, None) ** 2, 0, None)
+    assert prof[100, 100] == 0                          # the centre collapsed to the paint
+    h += (height_um * prof).astype(np.float32)
+    det = detect_protrusions(alb, h, pixel_size_um=px)
+    rim = (100, 100 + int(0.3 * width_um / px))
+    assert reason_at(det, rim) == ""
+    assert det.labels.max() == 1 and det.labels[100, 100] == 1
+    assert abs(width_of(det.labels, rim, px) / width_um - 1) <= 0.10
+
+
 def test_dark_protrusion_found_with_width_within_10_percent():
     """A protrusion that does not fluoresce (darker than the paint) is found by its relief."""
     px = 15.0

@@ -75,7 +75,9 @@ def _axis_lengths(lab: np.ndarray, n: int) -> tuple:
 
 def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
     """Largest inscribed radius per label (px): the largest distance from one of its pixels to
-    the nearest pixel outside it (touching labels count as outside).
+    the nearest pixel outside it (touching labels count as outside), its unlabelled holes filled:
+    a crater's collapsed centre, a few pixels below the footprint's level, would halve the radius
+    and read as elongation (``ridge``); the hole itself is judged by ``max_hole_fraction``.
 
     Each label in its own crop, its box widened by 1 px: a label touching no other has, along
     its row and its column, an unlabelled pixel within that ring, nearer than any pixel beyond
@@ -90,10 +92,12 @@ def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
         if s is None:
             continue
         sl = tuple(slice(max(k.start - 1, 0), k.stop + 1) for k in s)
+        crop = lab[sl]
+        own = ndi.binary_fill_holes(crop == i) & ((crop == i) | (crop == 0))
         if touching[i]:
-            r_in[i - 1] = _edt(np.pad(lab[sl] == i, 1)).max()
+            r_in[i - 1] = _edt(np.pad(own, 1)).max()
         else:
-            r_in[i - 1] = _edt(lab[sl] > 0)[lab[sl] == i].max()
+            r_in[i - 1] = _edt((crop > 0) | own)[own].max()
     return np.maximum(r_in, 0.5)
 
 

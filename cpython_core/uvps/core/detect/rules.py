@@ -137,7 +137,7 @@ RULES = (
          "equivalent diameter 2 sqrt(area / pi)", "< min_width_um",
          {"min_width_um": Range(0.0, "max_width_um", True, True)}, ("eqd",), _too_small, rescue=True),
     Rule("ridge", "elongated: brush strokes or crack lips",
-         "elongation area / (pi r_in^2) (r_in: largest inscribed radius); "
+         "elongation area / (pi r_in^2) (r_in: largest inscribed radius, its holes filled); "
          "minor / major axis; compact fraction (relief within L / relief over the "
          "surround, for raised areas without a compact peak)",
          "elongation > ridge_elongation, or axis ratio < ridge_axis_ratio with a major "
