@@ -205,37 +205,36 @@ def block_stats(img, block: int, saturation=None) -> BlockStats:
     grey = a.ndim == 2
     a3 = a[..., None] if grey else a
     sat = np.inf if saturation is None else float(saturation)
-    means, gmin, smin, satd = _block_stats_kernel(a3, int(block), sat)
+    none = np.zeros((1, 1, 1), np.float32)
+    means, gmin, smin, satd = _first_call(_block_stats_kernel, a3, none, none[..., 0], False, False, False,
+                                          int(block), sat)
     return BlockStats(means[..., 0] if grey else means, gmin, smin, satd)
 
 
-@numba.njit(nogil=True, cache=True)
-def _block_stats_kernel(a, block, sat):  # pragma: no cover - compiled
-    R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
-    rows = np.zeros((R, Cb * block, C))
-    gmin = np.full((R, Cb), np.inf)
-    smin = np.full((R, Cb), np.inf)
-    satd = np.zeros((R, Cb), np.bool_)
-    for i in range(R * block):
-        r = i // block
-        for cb in range(Cb):
-            lo_g, lo_s, hit = gmin[r, cb], smin[r, cb], satd[r, cb]
-            for j in range(cb * block, (cb + 1) * block):
-                g = 0.0
-                for c in range(C):
-                    v = float(a[i, j, c])
-                    rows[r, j, c] += v
-                    g += v
-                    lo_s = min(lo_s, v)
-                    hit |= v >= sat
-                lo_g = min(lo_g, g)
-            gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
-    means = np.zeros((R, Cb, C))
+@numba.njit(inline="always", nogil=True, cache=True)
+def _view_sample(a, d, f, has_dark, has_factor, i, j, c):  # pragma: no cover - compiled
+    # one sample as a view computes it, in its float32 arithmetic: float32(raw), minus the dark frame
+    # and clipped at 0, times the beam's factor
+    x = np.float32(a[i, j, c])
+    if has_dark:
+        x = x - d[i, j, c]
+        if x < np.float32(0.0):
+            x = np.float32(0.0)
+    if has_factor:
+        x = x * f[i, j]
+    return x
+
+
+@numba.njit(inline="always", nogil=True, cache=True)
+def _block_means(rows, block):  # pragma: no cover - compiled
+    # the block kernels' last step: each block's mean from its rows' column sums, in one order
+    R, N, C = rows.shape
+    means = np.zeros((R, N // block, C))
     for r in range(R):
-        for j in range(Cb * block):
+        for j in range(N):
             for c in range(C):
                 means[r, j // block, c] += rows[r, j, c]
-    return means / (block * block), gmin, smin, satd
+    return means / (block * block)
 
 
 def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
@@ -251,7 +250,7 @@ def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
     f = none[..., 0] if parts.factor is None else parts.factor
     sat = np.inf if saturation is None else float(saturation)
     try:
-        means, gmin, smin, satd = _first_call(_block_stats_parts_kernel, a3, d, f, parts.dark is not None,
+        means, gmin, smin, satd = _first_call(_block_stats_kernel, a3, d, f, True, parts.dark is not None,
                                               parts.factor is not None, int(block), sat)
     finally:
         parts.done()
@@ -259,16 +258,15 @@ def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
 
 
 @numba.njit(nogil=True, cache=True)
-def _block_stats_parts_kernel(a, d, f, has_dark, has_factor, block, sat):  # pragma: no cover - compiled
-    # _block_stats_kernel's loop on the samples a view computes, in its float32 arithmetic: the value
-    # float32(raw), minus the dark frame and clipped at 0, times the factor (separate from it: that
-    # kernel sums an array's own values, float64 ones too, which a float32 conversion would round)
+def _block_stats_kernel(a, d, f, as_view, has_dark, has_factor, block, sat):  # pragma: no cover - compiled
+    # block means, minima and saturation of an array's own values (as_view False: float64 ones too,
+    # which a float32 conversion would round), or of the samples a view computes, in its float32
+    # arithmetic: the value float32(raw), minus the dark frame and clipped at 0, times the factor
     R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
     rows = np.zeros((R, Cb * block, C))
     gmin = np.full((R, Cb), np.inf)
     smin = np.full((R, Cb), np.inf)
     satd = np.zeros((R, Cb), np.bool_)
-    zero = np.float32(0.0)
     for i in range(R * block):
         r = i // block
         for cb in range(Cb):
@@ -276,26 +274,17 @@ def _block_stats_parts_kernel(a, d, f, has_dark, has_factor, block, sat):  # pra
             for j in range(cb * block, (cb + 1) * block):
                 g = 0.0
                 for c in range(C):
-                    x = np.float32(a[i, j, c])
-                    if has_dark:
-                        x = x - d[i, j, c]
-                        if x < zero:
-                            x = zero
-                    if has_factor:
-                        x = x * f[i, j]
-                    v = float(x)
+                    if as_view:
+                        v = float(_view_sample(a, d, f, has_dark, has_factor, i, j, c))
+                    else:
+                        v = float(a[i, j, c])
                     rows[r, j, c] += v
                     g += v
                     lo_s = min(lo_s, v)
                     hit |= v >= sat
                 lo_g = min(lo_g, g)
             gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
-    means = np.zeros((R, Cb, C))
-    for r in range(R):
-        for j in range(Cb * block):
-            for c in range(C):
-                means[r, j // block, c] += rows[r, j, c]
-    return means / (block * block), gmin, smin, satd
+    return _block_means(rows, block), gmin, smin, satd
 
 
 def corrected_band(parts, *, out: np.ndarray) -> np.ndarray:
@@ -317,18 +306,10 @@ def corrected_band(parts, *, out: np.ndarray) -> np.ndarray:
 
 @numba.njit(nogil=True, cache=True)
 def _corrected_band_kernel(a, d, f, has_dark, has_factor, out):  # pragma: no cover - compiled
-    zero = np.float32(0.0)
     for i in range(a.shape[0]):
         for j in range(a.shape[1]):
             for c in range(a.shape[2]):
-                x = np.float32(a[i, j, c])
-                if has_dark:
-                    x = x - d[i, j, c]
-                    if x < zero:
-                        x = zero
-                if has_factor:
-                    x = x * f[i, j]
-                out[i, j, c] = x
+                out[i, j, c] = _view_sample(a, d, f, has_dark, has_factor, i, j, c)
 
 
 def image_block_stats(images, k: int, rows: slice, cols: slice, block: int, saturation=None) -> BlockStats:
