@@ -19,10 +19,14 @@ Everything is written into a temporary folder and swapped into ``OUT/painting/``
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import csv
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass
 from io import StringIO
 from pathlib import Path
@@ -364,12 +368,18 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
         _write_regions(tmp / PAINTING_REGIONS, areas, len(kept), float(covered.sum()) * cm2, names)
         write_label_tiff(tmp / "regions_overview.tif", labels, pixel_size_um=pixel_size_um * step,
                          metadata={"origin_px": list(origin), "step": step})
+        figures = dict(albedo=overview, labels=labels, covered=covered, kept=kept, areas=areas, registration=reg,
+                       shapes=shapes, origin=origin, step=step, pixel_size_um=pixel_size_um)
         if maps:
             report(progress, 0.85, "painting: the painting-wide maps")
             t_maps = time.perf_counter()
-            result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape, labels,
-                                         step, pixel_size_um, chunk_px)
-            timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
+            # the report's figures need nothing of the maps: drawn in a thread of this process while the
+            # maps' chunks are computed (on the cluster's workers, or Dask's threads), not after them
+            with _in_thread(_timed_figures if report_html else None, tmp, figures, timings) as drawn:
+                result.heights = _write_maps(tmp, out_dir, every, corners, shapes, gains, reg, origin, shape,
+                                             labels, step, pixel_size_um, chunk_px)
+                timings["maps_s"] = round(time.perf_counter() - t_maps, 3)
+                drawn()
         result.timings = timings
         if report_html:
             _write_view_and_report(tmp, result, overview=overview, labels=labels, covered=covered, kept=kept,
@@ -434,9 +444,35 @@ def _area_counts(kept, labels, area_names, corners, shapes, origin, step, pixel_
     return areas
 
 
+def _timed_figures(tmp: Path, figures: dict, timings: dict) -> None:
+    from .report.painting import write_painting_figures
+    t0 = time.perf_counter()
+    write_painting_figures(tmp, **figures)
+    timings["figures_s"] = round(time.perf_counter() - t0, 3)
+
+
+@contextlib.contextmanager
+def _in_thread(fn, *args):
+    """Run ``fn(*args)`` in a thread of its own (none when ``fn`` is None) while the block runs; the block
+    gets a callable that waits for it and raises its error. Leaving the block always waits for the thread
+    (it writes into the block's folder), and an error of the block wins over the thread's."""
+    if fn is None:
+        yield lambda: None
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="uvps-painting-report") as pool:
+        # the caller's context (a distributed client made current with as_current, dask's config) as it is
+        future = pool.submit(contextvars.copy_context().run, fn, *args)
+        try:
+            yield future.result
+        except BaseException:
+            futures_wait([future])
+            raise
+
+
 def _write_view_and_report(tmp: Path, result: PaintingResult, *, overview, labels, covered, kept, shapes, maps):
     """The painting's zoomable view (Deep Zoom tiles of the maps, when they were written) and its
-    ``report.html`` with figures, into the new painting folder ``tmp``."""
+    ``report.html`` (with its figures, unless the maps' step drew them: ``figures_s`` in the timings),
+    into the new painting folder ``tmp``."""
     from .report.painting import write_painting_report
     view = None
     if maps:
@@ -448,7 +484,7 @@ def _write_view_and_report(tmp: Path, result: PaintingResult, *, overview, label
     write_painting_report(tmp, albedo=overview, labels=labels, covered=covered, kept=kept, areas=result.areas,
                           registration=result.registration, shapes=shapes, origin=result.origin,
                           step=result.overview_step, pixel_size_um=result.pixel_size_um, warnings=result.warnings,
-                          view=view)
+                          view=view, figures="figures_s" not in result.timings)
 
 
 def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, reg, origin, shape, labels, step,
