@@ -41,6 +41,7 @@ from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_d
                             write_json_atomic)
 from ..core.mosaic import overlap_box
 from ..core.threads import THREADS_VARIABLE
+from ..workers import exit_after_atexit
 from ..painting import PAINTING_DIR, PAINTING_LAYOUT, PAINTING_PROTRUSIONS, PAINTING_REGIONS, stitch_painting
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..spec import CommandSpec, Param, coerce_value
@@ -342,7 +343,7 @@ class _Cluster:
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)
             if processes:   # the batch's own worker processes end without the interpreter's teardown
-                client.run(_exit_after_atexit)
+                client.run(exit_after_atexit)
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})
@@ -377,33 +378,6 @@ def _without_nanny_trim():
         yield
     finally:
         os.environ[name] = old
-
-
-def _exit_after_atexit() -> None:
-    """Make this (worker) process end, when it exits, right after its ``atexit`` handlers, without the
-    interpreter's teardown of its modules and objects.
-
-    Once a worker of the batch's own cluster has closed, that teardown is all that is left of it, and
-    after a tile's run (numpy, SciPy, OpenCV, numba, zarr loaded) it took 0.7-3.7 s at load 2-5, past
-    the nanny's 4 s wait at times ("Worker process still alive after 4.0 seconds, killing"); the batch's
-    close waited for it. Registered first among this process's ``atexit`` handlers to run, it runs the
-    others (logging's flush, distributed's, the libraries' own) itself, flushes stdout and stderr and
-    ends the process with status 0 (docs/decisions/painting.md, "The batch's fixed costs (small tiles)").
-    Only for the batch's own local worker processes: never a ``--scheduler`` cluster's, nor this process
-    (``processes=False``). A worker that ends otherwise (killed by the nanny, a signal) has no ``atexit``.
-    """
-    import atexit
-    import sys
-
-    def _exit():
-        atexit.unregister(_exit)
-        atexit._run_exitfuncs()   # every other handler, as the interpreter would run them
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        os._exit(0)
-
-    atexit.register(_exit)
 
 
 def _malloc_trim() -> int:

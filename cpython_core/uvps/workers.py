@@ -1,0 +1,36 @@
+"""What ``uvps batch`` runs in the worker processes of its own local cluster at their start.
+
+A module of its own, importing nothing of uvps's pipeline: the cluster's start waits for the workers
+to import it (the tiles' tasks import :mod:`uvps.commands.batch` and the pipeline as before).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+
+def exit_after_atexit() -> None:
+    """Make this (worker) process end, when it exits, right after its ``atexit`` handlers, without the
+    interpreter's teardown of its modules and objects.
+
+    Once a worker of the batch's own cluster has closed, that teardown is all that is left of it, and
+    after a tile's run (numpy, SciPy, OpenCV, numba, zarr loaded) it took 0.7-3.7 s at load 2-5, past
+    the nanny's 4 s wait at times ("Worker process still alive after 4.0 seconds, killing"); the batch's
+    close waited for it. Registered first among this process's ``atexit`` handlers to run, it runs the
+    others (logging's flush, distributed's, the libraries' own) itself, flushes stdout and stderr and
+    ends the process with status 0 (docs/decisions/painting.md, "The batch's fixed costs (small tiles)").
+    Only for the batch's own local worker processes: never a ``--scheduler`` cluster's, nor this process
+    (``processes=False``). A worker that ends otherwise (killed by the nanny, a signal) has no ``atexit``.
+    """
+    import atexit
+    import sys
+
+    def _exit():
+        atexit.unregister(_exit)
+        atexit._run_exitfuncs()   # every other handler, as the interpreter would run them
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(0)
+
+    atexit.register(_exit)
