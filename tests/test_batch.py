@@ -366,3 +366,20 @@ def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
     assert list(trimmed.values()) in ([0], [1])             # glibc's malloc_trim ran in the worker
     assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's environment is left as it was
     assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # only for the batch's own cluster
+
+
+def test_a_worker_process_ends_after_its_atexit_handlers_with_its_output_flushed(tmp_path):
+    """The batch's own workers end right after their atexit handlers (uvps.workers): every other
+    handler still runs (one registered before and one after the hook), buffered output still reaches
+    the pipe, and the status is 0."""
+
+    code = ("import atexit, sys\n"
+            "from uvps.workers import exit_after_atexit\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'before')!r}, 'w').write('ran'))\n"
+            "exit_after_atexit()\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'after')!r}, 'w').write('ran'))\n"
+            "sys.stdout.write('buffered, no newline')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "buffered, no newline"
+    assert (tmp_path / "before").read_text() == "ran" and (tmp_path / "after").read_text() == "ran"
