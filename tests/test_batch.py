@@ -383,3 +383,23 @@ def test_a_worker_process_ends_after_its_atexit_handlers_with_its_output_flushed
     assert done.returncode == 0, done.stderr
     assert done.stdout == "buffered, no newline"
     assert (tmp_path / "before").read_text() == "ran" and (tmp_path / "after").read_text() == "ran"
+
+
+@pytest.mark.parametrize("status", [0, 1, 2])
+def test_the_batch_process_ends_with_its_status_after_its_threads_and_atexit_handlers(tmp_path, status):
+    """uvps.workers.exit_now, as the batch's own process ends: its status kept, a thread that is not a
+    daemon finished first (an executor's idle threads told to end), the atexit handlers run, output flushed."""
+    code = ("import atexit, sys, threading, time\n"
+            "from concurrent.futures import ThreadPoolExecutor\n"
+            "from uvps.workers import exit_now\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'atexit')!r}, 'w').write('ran'))\n"
+            "pool = ThreadPoolExecutor(2)\n"
+            "pool.submit(time.sleep, 0.01).result()\n"       # an idle worker thread, never shut down
+            f"threading.Thread(target=lambda: (time.sleep(0.5), open({str(tmp_path / 'thread')!r}, 'w')"
+            ".write('done'))).start()\n"
+            "sys.stdout.write('buffered')\n"
+            f"exit_now({status})\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == status, done.stderr
+    assert done.stdout == "buffered"
+    assert (tmp_path / "atexit").read_text() == "ran" and (tmp_path / "thread").read_text() == "done"

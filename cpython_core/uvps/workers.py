@@ -1,4 +1,4 @@
-"""What ``uvps batch`` runs in the worker processes of its own local cluster at their start.
+"""How ``uvps batch``'s processes end: the worker processes of its own local cluster, and its own.
 
 A module of its own, importing nothing of uvps's pipeline: the cluster's start waits for the workers
 to import it (the tiles' tasks import :mod:`uvps.commands.batch` and the pipeline as before).
@@ -23,14 +23,28 @@ def exit_after_atexit() -> None:
     (``processes=False``). A worker that ends otherwise (killed by the nanny, a signal) has no ``atexit``.
     """
     import atexit
-    import sys
 
     def _exit():
         atexit.unregister(_exit)
-        atexit._run_exitfuncs()   # every other handler, as the interpreter would run them
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        os._exit(0)
+        exit_now(0)
 
     atexit.register(_exit)
+
+
+def exit_now(status: int) -> None:
+    """End this process now with ``status``, as the interpreter would but for its teardown: the threads
+    that are not daemons joined, every ``atexit`` handler run, stdout and stderr flushed, then
+    ``os._exit``. For a process whose work is all written (the batch's files are written atomically and
+    closed); the teardown only frees what the process held."""
+    import atexit
+    import sys
+    import threading
+
+    # what the interpreter does first at its exit: concurrent.futures' executors told to end, the threads
+    # that are not daemons joined (a no-op when the interpreter has done it, as before atexit handlers)
+    getattr(threading, "_shutdown", lambda: None)()
+    atexit._run_exitfuncs()   # every handler, as the interpreter would run them
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
