@@ -369,20 +369,27 @@ def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
 
 
 def test_a_worker_process_ends_after_its_atexit_handlers_with_its_output_flushed(tmp_path):
-    """The batch's own workers end right after their atexit handlers (uvps.workers): every other
-    handler still runs (one registered before and one after the hook), buffered output still reaches
-    the pipe, and the status is 0."""
-
+    """The batch's own workers end right after their atexit handlers (uvps.workers): every handler
+    still runs, once (one registered before the hook and one after), buffered output still reaches the
+    pipe, the status is 0, and the objects' teardown does not run (a finaliser left for it never writes)."""
     code = ("import atexit, sys\n"
             "from uvps.workers import exit_after_atexit\n"
-            f"atexit.register(lambda: open({str(tmp_path / 'before')!r}, 'w').write('ran'))\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'before')!r}, 'a').write('ran'))\n"
             "exit_after_atexit()\n"
-            f"atexit.register(lambda: open({str(tmp_path / 'after')!r}, 'w').write('ran'))\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'after')!r}, 'a').write('ran'))\n"
+            "class Left:\n"
+            f"    def __del__(self, _open=open): _open({str(tmp_path / 'teardown')!r}, 'w').write('ran')\n"
+            "left = Left()\n"
             "sys.stdout.write('buffered, no newline')\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout == "buffered, no newline"
     assert (tmp_path / "before").read_text() == "ran" and (tmp_path / "after").read_text() == "ran"
+    assert not (tmp_path / "teardown").exists()
+    # without the hook the same script's teardown runs the finaliser (the test sees the difference)
+    plain = subprocess.run([sys.executable, "-c", code.replace("exit_after_atexit()\n", "")], capture_output=True,
+                           text=True, timeout=60)
+    assert plain.returncode == 0 and (tmp_path / "teardown").read_text() == "ran"
 
 
 @pytest.mark.parametrize("status", [0, 1, 2])

@@ -14,21 +14,28 @@ def exit_after_atexit() -> None:
     interpreter's teardown of its modules and objects.
 
     Once a worker of the batch's own cluster has closed, that teardown is all that is left of it, and
-    after a tile's run (numpy, SciPy, OpenCV, numba, zarr loaded) it took 0.7-3.7 s at load 2-5, past
+    after a tile's run (numpy, SciPy, OpenCV, numba, zarr loaded) it took 0.7-3.7 s at load 2-9, past
     the nanny's 4 s wait at times ("Worker process still alive after 4.0 seconds, killing"); the batch's
-    close waited for it. Registered first among this process's ``atexit`` handlers to run, it runs the
-    others (logging's flush, distributed's, the libraries' own) itself, flushes stdout and stderr and
-    ends the process with status 0 (docs/decisions/painting.md, "The batch's fixed costs (small tiles)").
-    Only for the batch's own local worker processes: never a ``--scheduler`` cluster's, nor this process
-    (``processes=False``). A worker that ends otherwise (killed by the nanny, a signal) has no ``atexit``.
+    close waited for it (docs/decisions/painting.md, "The batch's fixed costs (small tiles)"). The
+    interpreter ends as usual (its threads joined, every ``atexit`` handler run once, stdout and stderr
+    flushed), and at the garbage collection that starts its teardown the process ends with status 0.
+    (An ``atexit`` handler of this process's own cannot be the last one to run: handlers registered
+    before it, by distributed and the modules it imported, run after it.) A process whose garbage
+    collector is off at its exit just ends as usual. Only for the batch's own local worker processes:
+    never a ``--scheduler`` cluster's, nor the batch's process (``processes=False``).
     """
-    import atexit
+    import gc
+    import sys
 
-    def _exit():
-        atexit.unregister(_exit)
-        exit_now(0)
+    def _at_teardown(phase, info):
+        if phase == "start" and sys.is_finalizing():
+            for stream in (sys.stdout, sys.stderr):
+                with contextlib.suppress(Exception):
+                    stream.flush()
+            os._exit(0)
 
-    atexit.register(_exit)
+    if _at_teardown not in gc.callbacks:
+        gc.callbacks.append(_at_teardown)
 
 
 def exit_now(status: int) -> None:
