@@ -10,7 +10,7 @@ import os
 import sys
 
 #: Commands whose process (``uvps`` or ``python -m uvps``, not a caller of :func:`main`) ends right after
-#: its ``atexit`` handlers, without the interpreter's teardown (:func:`uvps.workers.exit_now`): ``batch``'s
+#: its ``atexit`` handlers, without the interpreter's teardown (:func:`uvps.workers.exit_at_teardown`): ``batch``'s
 #: process holds Dask, distributed, zarr and matplotlib, whose teardown took ~1 s once the batch was done.
 EXIT_WITHOUT_TEARDOWN = ("batch",)
 #: Environment variables set to "1" when absent.
@@ -24,6 +24,6 @@ def main(argv=None):
 
     code = cli_main(argv)
     if argv is None and next((w for w in sys.argv[1:] if not w.startswith("-")), None) in EXIT_WITHOUT_TEARDOWN:
-        from .workers import exit_now
-        exit_now(code)
+        from .workers import exit_at_teardown
+        exit_at_teardown(code)
     return code

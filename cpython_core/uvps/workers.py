@@ -9,20 +9,20 @@ import contextlib
 import os
 
 
-def exit_after_atexit() -> None:
-    """Make this (worker) process end, when it exits, right after its ``atexit`` handlers, without the
-    interpreter's teardown of its modules and objects.
+def exit_at_teardown(status: int = 0) -> None:
+    """Make this process end with ``status``, when it exits, right after its ``atexit`` handlers, without
+    the interpreter's teardown of its modules and objects.
 
     Once a worker of the batch's own cluster has closed, that teardown is all that is left of it, and
     after a tile's run (numpy, SciPy, OpenCV, numba, zarr loaded) it took 0.7-3.7 s at load 2-9, past
     the nanny's 4 s wait at times ("Worker process still alive after 4.0 seconds, killing"); the batch's
-    close waited for it (docs/decisions/painting.md, "The batch's fixed costs (small tiles)"). The
-    interpreter ends as usual (its threads joined, every ``atexit`` handler run once, stdout and stderr
-    flushed), and at the garbage collection that starts its teardown the process ends with status 0.
-    (An ``atexit`` handler of this process's own cannot be the last one to run: handlers registered
-    before it, by distributed and the modules it imported, run after it.) A process whose garbage
-    collector is off at its exit just ends as usual. Only for the batch's own local worker processes:
-    never a ``--scheduler`` cluster's, nor the batch's process (``processes=False``).
+    close waited for it; the batch's own process (Dask, distributed, zarr, matplotlib) took ~1 s
+    (docs/decisions/painting.md, "The batch's fixed costs (small tiles)"). The interpreter ends as usual
+    (its threads joined, every ``atexit`` handler run once, stdout and stderr flushed), and at the garbage
+    collection that starts its teardown the process ends. (An ``atexit`` handler cannot be the last one
+    to run: handlers registered before it run after it.) A process whose garbage collector is off at its
+    exit ends as usual. For the batch's own local worker processes (status 0: a worker ends so when it
+    closes; never a ``--scheduler`` cluster's) and the batch's process from the console entry (its status).
     """
     import gc
     import sys
@@ -32,26 +32,7 @@ def exit_after_atexit() -> None:
             for stream in (sys.stdout, sys.stderr):
                 with contextlib.suppress(Exception):
                     stream.flush()
-            os._exit(0)
+            os._exit(int(status))
 
-    if _at_teardown not in gc.callbacks:
-        gc.callbacks.append(_at_teardown)
-
-
-def exit_now(status: int) -> None:
-    """End this process now with ``status``, as the interpreter would but for its teardown: the threads
-    that are not daemons joined, every ``atexit`` handler run, stdout and stderr flushed, then
-    ``os._exit``. For a process whose work is all written (the batch's files are written atomically and
-    closed); the teardown only frees what the process held."""
-    import atexit
-    import sys
-    import threading
-
-    # what the interpreter does first at its exit: concurrent.futures' executors told to end, the threads
-    # that are not daemons joined (a no-op when the interpreter has done it, as before atexit handlers)
-    getattr(threading, "_shutdown", lambda: None)()
-    atexit._run_exitfuncs()   # every handler, as the interpreter would run them
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    os._exit(status)
+    gc.callbacks[:] = [cb for cb in gc.callbacks if getattr(cb, "__qualname__", "") != _at_teardown.__qualname__]
+    gc.callbacks.append(_at_teardown)
