@@ -281,12 +281,20 @@ class StoreBatch:
     the levels run one after the other.
     """
 
-    def __init__(self):
+    def __init__(self, *, joint: bool = True):
+        self.joint = joint
         self.levels = []      # per level: [(dask array, zarr array)]
         self.finish = []      # callables, in order
         self.temporaries = []
 
     def store(self, k: int, source, target) -> None:
+        """Store ``source`` (level ``k`` of a pyramid) into ``target`` when the batch runs. Not ``joint``:
+        each store a graph of its own, in the order they were added (as a store written alone: the
+        caller's in-memory arrays embedded in one graph each, not in one graph together, which
+        distributed warns about above 10 MB)."""
+        if not self.joint:
+            self.levels.append([(source, target)])
+            return
         while len(self.levels) <= k:
             self.levels.append([])
         self.levels[k].append((source, target))
@@ -324,7 +332,7 @@ def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, 
     final = Path(final)
     tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
     own = batch is None
-    batch = StoreBatch() if own else batch
+    batch = StoreBatch(joint=False) if own else batch
     batch.temporaries.append(tmp)
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
@@ -365,7 +373,7 @@ def write_dask_ome_labels(final, labels, pixel_size_um: float, *, image: str, ch
     final = Path(final)
     tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
     own = batch is None
-    batch = StoreBatch() if own else batch
+    batch = StoreBatch(joint=False) if own else batch
     batch.temporaries.append(tmp)
     try:
         after = _store_labels(zarr, tmp, labels, pixel_size_um, chunk_px, origin_um, source=image, batch=batch)
