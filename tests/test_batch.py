@@ -366,3 +366,49 @@ def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
     assert list(trimmed.values()) in ([0], [1])             # glibc's malloc_trim ran in the worker
     assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's environment is left as it was
     assert dask.config.get(MALLOC_TRIM_KEY) == 65536      # only for the batch's own cluster
+
+
+def test_a_worker_process_ends_after_its_atexit_handlers_with_its_output_flushed(tmp_path):
+    """The batch's own workers end right after their atexit handlers (uvps.workers): every handler
+    still runs, once (one registered before the hook and one after), buffered output still reaches the
+    pipe, the status is 0, and the objects' teardown does not run (a finaliser left for it never writes)."""
+    code = ("import atexit, sys\n"
+            "from uvps.workers import exit_at_teardown\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'before')!r}, 'a').write('ran'))\n"
+            "exit_at_teardown()\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'after')!r}, 'a').write('ran'))\n"
+            "class Left:\n"
+            f"    def __del__(self, _open=open): _open({str(tmp_path / 'teardown')!r}, 'w').write('ran')\n"
+            "left = Left()\n"
+            "sys.stdout.write('buffered, no newline')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "buffered, no newline"
+    assert (tmp_path / "before").read_text() == "ran" and (tmp_path / "after").read_text() == "ran"
+    assert not (tmp_path / "teardown").exists()
+    # without the hook the same script's teardown runs the finaliser (the test sees the difference)
+    plain = subprocess.run([sys.executable, "-c", code.replace("exit_at_teardown()\n", "")], capture_output=True,
+                           text=True, timeout=60)
+    assert plain.returncode == 0 and (tmp_path / "teardown").read_text() == "ran"
+
+
+@pytest.mark.parametrize("status", [0, 1, 2])
+def test_the_batch_process_ends_with_its_status_after_its_threads_and_atexit_handlers(tmp_path, status):
+    """uvps.workers.exit_at_teardown as the batch's own process takes it (its status, from the console
+    entry): the status kept, a thread that is not a daemon finished first, an executor's idle threads
+    told to end, the atexit handlers run, output flushed."""
+    code = ("import atexit, sys, threading, time\n"
+            "from concurrent.futures import ThreadPoolExecutor\n"
+            "from uvps.workers import exit_at_teardown\n"
+            f"atexit.register(lambda: open({str(tmp_path / 'atexit')!r}, 'w').write('ran'))\n"
+            "pool = ThreadPoolExecutor(2)\n"
+            "pool.submit(time.sleep, 0.01).result()\n"       # an idle worker thread, never shut down
+            f"threading.Thread(target=lambda: (time.sleep(0.5), open({str(tmp_path / 'thread')!r}, 'w')"
+            ".write('done'))).start()\n"
+            "sys.stdout.write('buffered')\n"
+            f"exit_at_teardown({status})\n"
+            f"sys.exit({status})\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == status, done.stderr
+    assert done.stdout == "buffered"
+    assert (tmp_path / "atexit").read_text() == "ran" and (tmp_path / "thread").read_text() == "done"

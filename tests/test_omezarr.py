@@ -143,3 +143,55 @@ def test_through_the_bridge(run_dir, tmp_path):
     assert resp["status"] == "ok" and resp["diagnostics"]["ngff_version"] == "0.4"
     assert [o["name"] for o in resp["outputs"]] == ["depth_zarr"]
     np.testing.assert_array_equal(_level(tmp_path / "run" / "depth.ome.zarr", 0), tifffile.imread(run_dir / "depth.tif"))
+
+
+def _painting_like(folder, batch=None):
+    """Labels of their own (two images), an RGB albedo with those labels attached by copy, and a height:
+    the painting's stores, each written alone or all added to ``batch``."""
+    import dask.array as da
+
+    rng = np.random.default_rng(3)
+    M, N = 700, 900
+    alb = da.from_array(rng.uniform(0, 900, (3, M, N)).astype(np.float32), chunks=(1, 256, 256))
+    height = da.from_array(rng.normal(0, 20, (M, N)).astype(np.float32), chunks=(256, 256))
+    labs = [da.from_array((rng.uniform(0, 1, (M, N)) * k * 40).astype(np.uint32), chunks=(256, 256))
+            for k in (1, 2)]
+    kw = {} if batch is None else {"batch": batch}
+    labels = omezarr.write_dask_ome_labels(folder / "labels.ome.zarr", list(zip(omezarr.LABELS, labs)), PX,
+                                           image="../../albedo.ome.zarr", chunk_px=256, **kw)
+    omezarr.write_dask_ome_zarr(folder / "albedo.ome.zarr", omezarr.ZarrImage("albedo", "", ("R", "G", "B")), alb,
+                                PX, chunk_px=256, labels=[(lb, labels / lb.name) for lb in omezarr.LABELS], **kw)
+    omezarr.write_dask_ome_zarr(folder / "height.ome.zarr", omezarr.ZarrImage("height", "", (), unit="micrometer"),
+                                height, PX, chunk_px=256, **kw)
+    if batch is not None:
+        assert not (folder / "albedo.ome.zarr").exists()       # nothing in place before the batch runs
+        batch.run()
+
+
+def test_a_batch_of_stores_writes_the_same_files_as_each_store_alone(tmp_path):
+    """The painting stores its maps as one Dask graph per level (StoreBatch): the same files, byte for
+    byte, as one store after the other, the labels copied into the albedo once they are written."""
+    (tmp_path / "alone").mkdir()
+    (tmp_path / "batch").mkdir()
+    _painting_like(tmp_path / "alone")
+    _painting_like(tmp_path / "batch", omezarr.StoreBatch())
+
+    def files(root):
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    alone, batched = files(tmp_path / "alone"), files(tmp_path / "batch")
+    assert len(alone) > 40 and any("albedo.ome.zarr/labels/protrusions/1/" in k for k in alone)
+    assert sorted(alone) == sorted(batched)
+    assert [k for k in alone if alone[k] != batched[k]] == []
+    assert sorted(p.name for p in (tmp_path / "batch").iterdir()) == ["albedo.ome.zarr", "height.ome.zarr",
+                                                                       "labels.ome.zarr"]
+
+
+def test_a_failed_batch_leaves_no_store_and_no_temporary(tmp_path, monkeypatch):
+    def boom(block, kind):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(omezarr, "_halve", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        _painting_like(tmp_path, omezarr.StoreBatch())
+    assert list(tmp_path.iterdir()) == []

@@ -41,6 +41,7 @@ from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_d
                             write_json_atomic)
 from ..core.mosaic import overlap_box
 from ..core.threads import THREADS_VARIABLE
+from ..workers import exit_at_teardown
 from ..painting import PAINTING_DIR, PAINTING_LAYOUT, PAINTING_PROTRUSIONS, PAINTING_REGIONS, stitch_painting
 from ..workflow import CAPTURE_PARAMS, OPTION_PARAMS, OUTPUT_PARAMS, PROTRUSION_PARAMS, RUN, run_into_folder
 from ..spec import CommandSpec, Param, coerce_value
@@ -341,6 +342,8 @@ class _Cluster:
             client = Client(cluster)
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)
+            if processes:   # the batch's own worker processes end without the interpreter's teardown
+                client.run(exit_at_teardown)
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})

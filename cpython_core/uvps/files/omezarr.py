@@ -45,7 +45,7 @@ from .outputs import Progress, replace_dir, report
 log = logging.getLogger(__name__)
 
 __all__ = ["NGFF_VERSION", "MIN_LEVEL_PX", "CHUNK_PX", "ZarrImage", "IMAGES", "LABELS", "write_ome_zarr",
-           "write_dask_ome_zarr", "write_dask_ome_labels"]
+           "write_dask_ome_zarr", "write_dask_ome_labels", "StoreBatch"]
 
 #: The OME-NGFF version written (Zarr format 2).
 NGFF_VERSION = "0.4"
@@ -270,8 +270,52 @@ def read_tiff_pixel_size(path: Path) -> Optional[float]:
         return _tiff_pixel_size_um(tif)
 
 
+class StoreBatch:
+    """The stores of several OME-Zarr pyramids run together: one Dask graph per pyramid level for all
+    of them (:func:`write_dask_ome_zarr`, :func:`write_dask_ome_labels` with ``batch=``), then each
+    store's last step (its metadata, the rename into place) in the order the stores were added.
+
+    On a ``distributed`` cluster a graph is a round trip of the scheduler and its workers: the five
+    maps of a small painting as one graph per map and level took 10 graphs (``uvps.painting``); a
+    batch takes one per level. Level k of every pyramid is read back from level k-1 of its store, so
+    the levels run one after the other.
+    """
+
+    def __init__(self, *, joint: bool = True):
+        self.joint = joint
+        self.levels = []      # per level: [(dask array, zarr array)]
+        self.finish = []      # callables, in order
+        self.temporaries = []
+
+    def store(self, k: int, source, target) -> None:
+        """Store ``source`` (level ``k`` of a pyramid) into ``target`` when the batch runs. Not ``joint``:
+        each store a graph of its own, in the order they were added (as a store written alone: the
+        caller's in-memory arrays embedded in one graph each, not in one graph together, which
+        distributed warns about above 10 MB)."""
+        if not self.joint:
+            self.levels.append([(source, target)])
+            return
+        while len(self.levels) <= k:
+            self.levels.append([])
+        self.levels[k].append((source, target))
+
+    def run(self) -> None:
+        """Every level's stores (one ``dask.array.store`` each), then every store's last step; on an
+        error, the stores' temporary folders are removed."""
+        import dask.array as da
+        try:
+            for pairs in self.levels:
+                da.store([src for src, _ in pairs], [dst for _, dst in pairs], lock=False)
+            for fn in self.finish:
+                fn()
+        except BaseException:
+            for tmp in self.temporaries:
+                shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+
 def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, chunk_px: int = CHUNK_PX,
-                        labels=(), origin_um=(0.0, 0.0)) -> Path:
+                        labels=(), origin_um=(0.0, 0.0), batch: Optional[StoreBatch] = None) -> Path:
     """Write a Dask array ((Y, X) or (C, Y, X), chunked ``chunk_px`` a side) as an OME-Zarr image
     pyramid, chunk by chunk: no level is ever whole in memory, and on a ``distributed`` cluster the
     chunks are computed and written by its workers (they must see ``final``'s folder).
@@ -281,67 +325,100 @@ def write_dask_ome_zarr(final, image: ZarrImage, data, pixel_size_um: float, *, 
     array)`` pairs attached as OME-Zarr labels of this image, or ``(ZarrImage, path)`` of a label
     image already stored (:func:`write_dask_ome_labels`), whose files are copied. ``origin_um``:
     the (y, x) translation of pixel (0, 0). Written to a temporary folder and renamed into place.
+    ``batch``: only added to it (written by ``batch.run()``, with the batch's other stores; a label
+    image given as a path is copied then, so it may be one of the batch's own, added before).
     """
     zarr = _zarr()
     final = Path(final)
     tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
+    own = batch is None
+    batch = StoreBatch(joint=False) if own else batch
+    batch.temporaries.append(tmp)
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-        levels = _store_pyramid(root, image, data, chunk_px)
-        low = np.asarray(root[str(len(levels) - 1)])
-        ms = _multiscales(image.name, levels, data.ndim == 3, pixel_size_um)
-        _translate(ms, origin_um, data.ndim == 3)
-        channels = list(image.channels[:data.shape[0]]) if data.ndim == 3 else []
-        root.attrs.update({"multiscales": ms, "omero": _omero(image, channels, low),
-                           "uvps": {"unit": image.unit, "version": __version__}})
-        if labels:
-            _store_labels(zarr, tmp / "labels", labels, pixel_size_um, chunk_px, origin_um, source="../../")
-        del root
-        replace_dir(tmp, final)
+        levels = _store_pyramid(root, image, data, chunk_px, batch)
+        after_labels = _store_labels(zarr, tmp / "labels", labels, pixel_size_um, chunk_px, origin_um,
+                                     source="../../", batch=batch) if labels else None
+
+        def finish():
+            low = np.asarray(root[str(len(levels) - 1)])
+            ms = _multiscales(image.name, levels, data.ndim == 3, pixel_size_um)
+            _translate(ms, origin_um, data.ndim == 3)
+            channels = list(image.channels[:data.shape[0]]) if data.ndim == 3 else []
+            root.attrs.update({"multiscales": ms, "omero": _omero(image, channels, low),
+                               "uvps": {"unit": image.unit, "version": __version__}})
+            if after_labels is not None:
+                after_labels()
+            replace_dir(tmp, final)
+
+        batch.finish.append(finish)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if own:
+        batch.run()
     return final
 
 
 def write_dask_ome_labels(final, labels, pixel_size_um: float, *, image: str, chunk_px: int = CHUNK_PX,
-                          origin_um=(0.0, 0.0)) -> Path:
+                          origin_um=(0.0, 0.0), batch: Optional[StoreBatch] = None) -> Path:
     """Write label images (``(ZarrImage, dask array)`` pairs, (Y, X) integers) as an OME-Zarr store
     of their own: an NGFF labels group (``{"labels": [...]}``) at its root, each label image a
     multiscale image-label under it (``final/<name>/0, 1, ...``, pyramids as
     :func:`write_dask_ome_zarr` builds them) whose ``source`` is ``image`` (the path, from the
     label image, of the image it labels, e.g. ``"../../albedo.ome.zarr"``). Chunk by chunk; written
-    to a temporary folder and renamed into place.
+    to a temporary folder and renamed into place (``batch``: as :func:`write_dask_ome_zarr`'s).
     """
     zarr = _zarr()
     final = Path(final)
     tmp = Path(tempfile.mkdtemp(prefix="." + final.name + ".tmp-", dir=final.parent))
+    own = batch is None
+    batch = StoreBatch(joint=False) if own else batch
+    batch.temporaries.append(tmp)
     try:
-        _store_labels(zarr, tmp, labels, pixel_size_um, chunk_px, origin_um, source=image)
-        replace_dir(tmp, final)
+        after = _store_labels(zarr, tmp, labels, pixel_size_um, chunk_px, origin_um, source=image, batch=batch)
+
+        def finish():
+            after()
+            replace_dir(tmp, final)
+
+        batch.finish.append(finish)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if own:
+        batch.run()
     return final
 
 
-def _store_labels(zarr, folder: Path, labels, pixel_size_um, chunk_px, origin_um, *, source: str) -> None:
-    """An NGFF labels group at ``folder``: each label image stored from its Dask array, or copied
-    file by file from a label image already stored (a path), then pointed at ``source``."""
+def _store_labels(zarr, folder: Path, labels, pixel_size_um, chunk_px, origin_um, *, source: str, batch: StoreBatch):
+    """An NGFF labels group at ``folder``: each label image stored from its Dask array (added to
+    ``batch``), or copied file by file from a label image already stored (a path); returns the step
+    to take once ``batch``'s stores are written: the copies, and every label image pointed at ``source``."""
     group = zarr.open_group(str(folder), mode="w", zarr_format=2)
+    stored = []
     for lb, arr in labels:
         if isinstance(arr, (str, Path)):
-            # the same chunks, compressor and metadata: a copy of the files is the same label image
-            shutil.copytree(arr, folder / lb.name)
-            sub = zarr.open_group(str(folder / lb.name), mode="r+", zarr_format=2)
-        else:
-            sub = group.create_group(lb.name)
-            lv = _store_pyramid(sub, lb, arr, chunk_px)
-            ms = _multiscales(lb.name, lv, False, pixel_size_um)
-            _translate(ms, origin_um, False)
-            sub.attrs["multiscales"] = ms
-        sub.attrs["image-label"] = {"version": NGFF_VERSION, "source": {"image": source}}
-    group.attrs["labels"] = [lb.name for lb, _ in labels]
+            continue
+        sub = group.create_group(lb.name)
+        lv = _store_pyramid(sub, lb, arr, chunk_px, batch)
+        ms = _multiscales(lb.name, lv, False, pixel_size_um)
+        _translate(ms, origin_um, False)
+        sub.attrs["multiscales"] = ms
+        stored.append(lb.name)
+
+    def after():
+        for lb, arr in labels:
+            if isinstance(arr, (str, Path)):
+                # the same chunks, compressor and metadata: a copy of the files is the same label image
+                shutil.copytree(arr, folder / lb.name)
+                sub = zarr.open_group(str(folder / lb.name), mode="r+", zarr_format=2)
+            else:
+                sub = group[lb.name]
+            sub.attrs["image-label"] = {"version": NGFF_VERSION, "source": {"image": source}}
+        group.attrs["labels"] = [lb.name for lb, _ in labels]
+
+    return after
 
 
 def _translate(ms: list, origin_um, channel: bool) -> None:
@@ -351,8 +428,8 @@ def _translate(ms: list, origin_um, channel: bool) -> None:
         t[-1] += float(origin_um[1])
 
 
-def _store_pyramid(group, image: ZarrImage, data, chunk_px: int) -> list:
-    """Every level of ``data`` (a Dask array) stored into ``group`` chunk by chunk."""
+def _store_pyramid(group, image: ZarrImage, data, chunk_px: int, batch: StoreBatch) -> list:
+    """Every level of ``data`` (a Dask array) added to ``batch``'s stores, into ``group`` chunk by chunk."""
     import dask.array as da
     from numcodecs import Blosc
 
@@ -365,7 +442,7 @@ def _store_pyramid(group, image: ZarrImage, data, chunk_px: int) -> list:
         dtype=dtype, compressors=compressor, fill_value=0, chunk_key_encoding={"name": "v2", "separator": "/"},
         config={"write_empty_chunks": True}) for k, (rows, cols) in enumerate(levels)]
     level = data.astype(dtype).rechunk((1,) * len(lead) + (chunk_px, chunk_px))
-    da.store(level, arrays[0], lock=False)
+    batch.store(0, level, arrays[0])
     for k in range(1, len(levels)):
         # normals are renormalised over their channels: a block holds all of them
         lead_chunks = tuple(lead) if image.kind == "normals" else (1,) * len(lead)
@@ -375,5 +452,5 @@ def _store_pyramid(group, image: ZarrImage, data, chunk_px: int) -> list:
                                chunks=prev.chunks[:-2] + (tuple(c // 2 for c in prev.chunks[-2]),
                                                           tuple(c // 2 for c in prev.chunks[-1])))
         half = half[..., :rows, :cols].rechunk((1,) * len(lead) + (chunk_px, chunk_px))
-        da.store(half, arrays[k], lock=False)
+        batch.store(k, half, arrays[k])
     return levels

@@ -131,18 +131,30 @@ def _widths(kept, areas, path):
     return save_figure(fig, path)
 
 
-def write_painting_report(folder, *, albedo, labels, covered, kept, areas, registration, shapes, origin, step,
-                          pixel_size_um, warnings=(), view=None) -> Path:
-    """Write ``folder/report.html`` and ``folder/figures/*.png`` for a stitched painting; ``view``
-    (:func:`uvps.report.deepzoom.write_view`'s result) adds the zoomable view of ``folder/view/``."""
-    folder = Path(folder)
-    figs = folder / "figures"
+def write_painting_figures(folder, *, albedo, labels, covered, kept, areas, registration, shapes, origin, step,
+                           pixel_size_um) -> Path:
+    """Write the report's figures, ``folder/figures/*.png`` (matplotlib Figure objects, no pyplot: they
+    may be drawn in a thread of their own, while the painting's maps are computed); returns the folder."""
+    figs = Path(folder) / "figures"
     figs.mkdir(exist_ok=True)
     extent = _extent(labels.shape, step, origin, pixel_size_um)
     _overview(albedo, labels, kept, extent, pixel_size_um, figs / "painting_overview.png")
     _density(kept, covered, extent, pixel_size_um, step, figs / "painting_density.png")
     _tile_map(registration.corners, shapes, registration.pairs, pixel_size_um, figs / "painting_tiles.png")
     _widths(kept, areas, figs / "painting_widths.png")
+    return figs
+
+
+def write_painting_report(folder, *, albedo, labels, covered, kept, areas, registration, shapes, origin, step,
+                          pixel_size_um, warnings=(), view=None, figures: bool = True) -> Path:
+    """Write ``folder/report.html`` and ``folder/figures/*.png`` for a stitched painting; ``view``
+    (:func:`uvps.report.deepzoom.write_view`'s result) adds the zoomable view of ``folder/view/``;
+    ``figures=False``: the figures are there already (:func:`write_painting_figures`)."""
+    folder = Path(folder)
+    if figures:
+        write_painting_figures(folder, albedo=albedo, labels=labels, covered=covered, kept=kept, areas=areas,
+                               registration=registration, shapes=shapes, origin=origin, step=step,
+                               pixel_size_um=pixel_size_um)
     rows = []
     for name, a in areas.items():
         w = np.array([float(r.get("width_um") or np.nan) for r in kept if r.get("area") == name])
