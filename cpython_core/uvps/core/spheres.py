@@ -94,8 +94,7 @@ MATTE_MIN_COS = 0.2
 #: for them (a ball's veins or sheen under a lamp near the view, which lights the whole disc: the
 #: offset, ``b_z`` and the near term are then all nearly functions of ``n_z``), and :func:`_fit_matte`
 #: fits ``n . b + c`` alone. Without this bound the UW/Seitz grey ball's per-lamp fits did not settle
-#: (beam terms up to 1.2 ``|b|``) and ``uvps calibrate`` came 14.3 deg median, 22.2 max off the published
-#: directions; with it 10.9 / 18.5 (decisions/spheres.md).
+#: (beam terms up to 1.2 ``|b|``; decisions/spheres.md).
 MATTE_TERM_MAX = 0.15
 #: A matte sphere's additive term (black level, the room's light) is read in its attached shadow: the
 #: samples whose ``n . l`` under a lamp's first fit is below ``-MATTE_SHADOW_COS`` (clear of the
