@@ -489,8 +489,8 @@ def test_front_lamps_and_vignetting_with_the_shadows_additive_term():
 def test_the_shadows_additive_term_is_held_only_where_lambert_holds_with_it(sigma, held):
     """A Lambertian ball's attached shadows show its additive term (the black level, 20 counts) and the lamps
     that see their terminator fit their lit part with it; a rough ball (Oren-Nayar, 0.3 rad) lights its lit
-    part beyond Lambert's law as a term its shadow does not show (0.1-0.2 |b| over it), and the term is left
-    to each fit."""
+    part beyond Lambert's law as a term its shadow does not show (6 % of |b| over it, where holding the
+    shadow's term would cost 0.5 deg), and the term is left to each fit."""
     import uvps.core.spheres as sp
 
     imgs, lamps, circle = _ball_under_front_lamps(sigma=sigma)

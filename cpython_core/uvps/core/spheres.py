@@ -102,13 +102,16 @@ MATTE_TERM_MAX = 0.15
 MATTE_SHADOW_COS = 0.1
 MATTE_SHADOW_MIN = 0.01
 #: ... and is held in the fits only where the lamps that show their terminator best fit their lit
-#: part with it within this fraction of ``|b|`` (:func:`_shadow_offsets`).
+#: part with it within this fraction of ``|b|`` (:func:`_shadow_offsets`: where holding it stops
+#: helping on rendered rough balls).
 MATTE_SHADOW_AGREE = 0.05
 #: A matte sphere's circle and gain (:func:`_refine_matte_circle`) are fitted on this many of its
 #: samples in all, shared among the lamps.
 MATTE_CIRCLE_SAMPLES = 60000
 #: The shading moves a matte sphere's circle by at most this fraction of its radius.
 MATTE_CIRCLE_MOVE = 0.03
+#: ... and when its fit runs to those bounds, the rim is kept (:func:`_refine_matte_circle`).
+MATTE_KEEP_RIM = True
 #: Terms of the gain across a matte sphere's disc (:func:`_gain`: to third order).
 GAIN_TERMS = 9
 #: Relative position uncertainty above which two or more spheres are said not to give positions
@@ -732,8 +735,10 @@ def _shadow_offsets(vals, normals, sat):
     # Lambert's law with the shadow's term must hold where it can be told: the lamps that show most of
     # their terminator (the quarter, at least one, with the largest shadows) fit the lit part with the
     # shadow's term. A rough ball (Oren-Nayar) or a translucent one lights its lit part beyond the
-    # law, as an additive term the shadow does not show (their lit parts fit 0.14-0.24 |b| over the
-    # shadow); its term is then left to each fit.
+    # law, as an additive term the shadow does not show; its term is then left to each fit. Rendered
+    # rough balls under lamps near the view: roughness 0.05-0.2 rad fit 1.3-3.2 % of |b| over the
+    # shadow and the held term is the better; 0.25 rad 4.2 %, even; 0.3-0.35 rad 5.5-7 %, held 0.2-0.6
+    # deg worse (scripts/analyse_matte_sphere.py --rough). The UW/Seitz grey ball: 3.9 %.
     tell = np.argsort(-shadow)[:max(1, int(np.isfinite(levels).sum()) // 4)]
     if not np.median(np.abs(fitted[tell])) <= MATTE_SHADOW_AGREE:
         return None
@@ -776,7 +781,7 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
                                 [lim, lim, MATTE_CIRCLE_MOVE] + [0.5] * GAIN_TERMS),
                         x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * GAIN_TERMS, diff_step=1e-3)
     x = res.x
-    if np.any(np.abs(x[:3]) >= 0.98 * np.array([lim, lim, MATTE_CIRCLE_MOVE])):
+    if MATTE_KEEP_RIM and np.any(np.abs(x[:3]) >= 0.98 * np.array([lim, lim, MATTE_CIRCLE_MOVE])):
         # the shading pulls the circle to the bounds: it is the ball, not the rim, that Lambert's law
         # does not describe there (a rough or translucent surface's flatter fall toward the limb and
         # the terminator; on the UW/Seitz grey ball 3 px off a rim the set's hand-drawn mask confirms
