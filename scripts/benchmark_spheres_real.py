@@ -20,6 +20,7 @@ NAME, keeping that row's description of its source (``label``) and ``note``; the
 """
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -48,6 +49,24 @@ def _published(path):
 
 def _angles(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1)))
+
+
+def split_by_baseline(d1, d2, baseline):
+    """Two spheres' directions to the same lamps, their difference split (deg, per lamp) into the part in the
+    plane of the spheres' baseline and the ray, positive where the rays converge in front (the only part
+    a lamp's parallax gives), and the part across that plane (no lamp position gives it: the two spheres'
+    frames disagree). ``baseline``: from the first sphere to the second (any length)."""
+    b = np.asarray(baseline, float)
+    inplane, across = [], []
+    for u, v in zip(d1, d2):
+        m = (u + v) / np.linalg.norm(u + v)
+        nrm = np.cross(b, m)
+        nrm /= np.linalg.norm(nrm)
+        e = np.cross(m, nrm)
+        dd = v - u
+        across.append(math.degrees(dd @ nrm))
+        inplane.append(-math.degrees(dd @ e) * np.sign(b @ e))
+    return np.array(inplane), np.array(across)
 
 
 def render_doc(results: dict) -> str:
@@ -95,6 +114,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--capture", action="append", default=[], help="NAME=FOLDER[:LIGHTS]")
     ap.add_argument("--same-lamps", action="append", default=[], help="NAME,NAME")
+    ap.add_argument("--crop", action="append", default=[],
+                    help="NAME=COL,ROW: where a capture's images were cropped from the frame (PSBox's "
+                         "data/ManualData/probes_bbox.txt); with --same-lamps, the difference is split along "
+                         "the spheres' baseline")
     ap.add_argument("--pixel-size-um", type=float, default=100.0)
     ap.add_argument("--doc", action="store_true",
                     help="write the captures' rows into docs/benchmarks.md (section spheres_real) and "
@@ -103,7 +126,8 @@ def main(argv=None):
     measured = []
     caps = args.capture or [f"psbox_lightprobe2={DATA / 'sphere_mirror_psbox'}:"
                             f"{DATA / 'sphere_mirror_psbox' / 'light_directions.txt'}"]
-    dirs = {}
+    dirs, centres = {}, {}
+    crops = {n: np.array(v.split(","), float) for n, v in (c.split("=", 1) for c in args.crop)}
     print("| capture | found (centre, radius px) | kind | vs published: median / max (deg) | time (s) |")
     print("|---|---|---|---|---|")
     for spec in caps:
@@ -124,6 +148,7 @@ def main(argv=None):
         d = np.array([lamp["direction"] for lamp in doc["lamps"]])
         dirs[name] = d
         s = doc["spheres"][0]
+        centres[name] = np.array(s["centre_px"][:2], float)
         vs = ""
         row = {"name": name, "centre_px": [float(v) for v in s["centre_px"][:2]], "radius_px": float(s["radius_px"]),
                "kind": s["kind"], "time_s": dt}
@@ -139,6 +164,12 @@ def main(argv=None):
         if a in dirs and b in dirs:
             ang = _angles(dirs[a], dirs[b])
             print(f"\n{a} against {b} (one capture's two spheres): median {np.median(ang):.2f}, max {ang.max():.2f} deg")
+            if a in crops and b in crops:
+                (ca, ra), (cb, rb) = centres[a] + crops[a], centres[b] + crops[b]
+                inplane, across = split_by_baseline(dirs[a], dirs[b], [cb - ca, ra - rb, 0.0])
+                print(f"  in the plane of their baseline (parallax: + converging) {np.round(inplane, 2).tolist()}\n"
+                      f"  across it (no lamp position gives it): median {np.median(np.abs(across)):.2f}, "
+                      f"max {np.abs(across).max():.2f} deg")
     if args.doc and measured:
         print("wrote", write_doc_section(measured, sys.argv[1:] if argv is None else argv))
     return 0

@@ -63,8 +63,9 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     """A lens whose corners fall to 60 % (vignetting 0.4) brightens each corner sphere's side toward the
     image centre by about 10 % per radius; a per-lamp Lambert fit reads it as every lamp turned toward
     the centre by degrees and the two spheres' rays meet far too close. The gain fitted with the circle
-    takes it out: directions within 0.5 deg (1.7 deg without it), positions within 6.5 % (over 200 % without;
-    8.1 % with the gain to second order only, whose 5e-4 misfit the circle takes up as a tenth of a pixel)."""
+    takes it out: directions within 0.2 deg (0.07; 4.8 deg without it), positions within 4.5 % (3.7 %; without
+    it the rays meet nowhere near; 5.8 % with the gain to second order only, whose 5e-4 misfit the circle
+    takes up as a tenth of a pixel). The additive term is held at the attached shadows' (_shadow_offsets)."""
     import uvps.core.spheres as spheres
 
     vignetted = make_capture(shape=(360, 480), n_lights=8, seed=3, pixel_size_um=PX, rgb=False, vignetting=0.4)
@@ -74,15 +75,17 @@ def test_two_matte_spheres_under_vignetting_give_the_lamps(monkeypatch):
     def errors():
         cal = calibrate_spheres(sc.images, pixel_size_um=PX, saturation=65535.0)
         per_sphere = [_angles(f.directions, _true_dirs(vignetted, t)) for f, t in zip(cal.fits, sc.spheres)]
+        if cal.positions_mm is None:        # rays too far off to meet: no positions at all
+            return max(e.max() for e in per_sphere), np.inf
         pos = np.linalg.norm(cal.positions_mm - L, axis=1) / np.linalg.norm(L, axis=1) * 100
         return max(e.max() for e in per_sphere), pos.max()
 
     ang, pos = errors()
     # spheres of 60 px radius 20 mm apart: 0.4 deg moves a lamp 300-500 mm away by a fifth of its distance
-    assert ang < 0.5 and pos < 6.5, (ang, pos)
+    assert ang < 0.2 and pos < 4.5, (ang, pos)
     monkeypatch.setattr(spheres, "GAIN_TERMS", 5)
     ang2, pos2 = errors()
-    assert pos2 > 7.5 and pos2 > 1.4 * pos, (pos, pos2)
+    assert pos2 > 5.0 and pos2 > 1.4 * pos, (pos, pos2)
     monkeypatch.setattr(spheres, "_gain", lambda g, nx, ny: np.ones_like(nx))
     ang0, pos0 = errors()
     assert ang0 > 1.0 and ang0 > 3 * ang and pos0 > 50.0, (ang, ang0, pos0)
@@ -422,3 +425,98 @@ def test_a_matte_fit_whose_near_and_beam_terms_run_away_falls_back_to_lambert(mo
         got, want = sp._fit_matte(v[k], n, None), sp._fit_matte_numpy(v[k], n, None)
         np.testing.assert_allclose(got[0], want[0], rtol=1e-9)
         assert got[3] == want[3]
+
+
+# ------------------------------------------------------------------------------------------------
+# a matte ball under lamps near the view (the UW/Seitz grey ball's setting): the additive term read in
+# the attached shadows, the rim kept when the shading pulls the circle to its bounds
+# ------------------------------------------------------------------------------------------------
+
+def _ball_under_front_lamps(*, sigma=0.0, falloff=0.0, shape=(240, 320), R=70.0, black=20.0, seed=0):
+    """A matte ball near the frame's centre under 12 lamps 6-42 deg from the view, all from above (as the
+    UW/Seitz set's), on a dark ground, a black level of ``black`` counts: Oren-Nayar's rough surface of
+    roughness ``sigma`` rad (0: Lambert) and the lens's cos^4 vignetting falling to ``1 - falloff`` at the
+    corners. Rim pixels are averaged over 4 x 4 subpixels. Returns (images (K, M, N) float32, lamps (K, 3),
+    circle (col, row, radius))."""
+    rng = np.random.default_rng(seed)
+    el = np.radians(np.linspace(6, 42, 12))
+    az = np.radians(rng.uniform(20, 160, 12))
+    lamps = np.column_stack([np.sin(el) * np.cos(az), np.sin(el) * np.sin(az), np.cos(el)])
+    M, N = shape
+    c0, r0 = (N - 1) / 2 + 6.0, (M - 1) / 2 - 4.0
+    rr, cc = np.mgrid[:M, :N].astype(float)
+    A = 1 - 0.5 * sigma ** 2 / (sigma ** 2 + 0.33)
+    B = 0.45 * sigma ** 2 / (sigma ** 2 + 0.09)
+    imgs = np.zeros((12, M, N))
+    sub = (np.arange(4) + 0.5) / 4 - 0.5
+    for dy in sub:
+        for dx in sub:
+            nx, ny = (cc + dx - c0) / R, (r0 - rr - dy) / R
+            inside = nx * nx + ny * ny < 1
+            nz = np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))
+            n = np.stack([nx, ny, nz], -1)
+            view = np.arccos(nz)
+            for k, l in enumerate(lamps):
+                c = n @ l
+                inc = np.arccos(np.clip(c, -1, 1))
+                lt, vt = l - c[..., None] * n, np.array([0.0, 0.0, 1.0]) - nz[..., None] * n
+                cphi = np.einsum("...i,...i", lt, vt) / np.maximum(np.linalg.norm(lt, axis=-1) * np.linalg.norm(vt, axis=-1), 1e-12)
+                shade = np.clip(c, 0, None) * (A + B * np.maximum(cphi, 0) * np.sin(np.maximum(inc, view))
+                                               * np.tan(np.minimum(inc, view)))
+                imgs[k] += np.where(inside, 180.0 * shade, 3.0) / 16
+    hd = np.hypot((M - 1) / 2, (N - 1) / 2)
+    r2 = (np.arange(M)[:, None] - (M - 1) / 2) ** 2 + (np.arange(N)[None, :] - (N - 1) / 2) ** 2
+    vig = 1.0 if falloff == 0 else 1 / (1 + r2 * ((1 - falloff) ** -0.5 - 1) / (hd * hd)) ** 2
+    imgs = imgs * vig + black + rng.normal(0, 0.5, imgs.shape)
+    return imgs.astype(np.float32), lamps, (c0, r0, R)
+
+
+def test_front_lamps_and_vignetting_with_the_shadows_additive_term():
+    """Lamps near the view light the whole disc, where a fitted additive term is nearly a function of ``n_z``
+    as ``b_z`` is: with it free, a gain across the disc (a lens's fall-off to 50 % at the corners, here 10 %
+    across the ball) reads as the lamps' elevations, 0.6 deg median, 1.0 max, and on the UW/Seitz grey ball
+    the circle's joint fit ran to its bounds (10.9 deg median). Held at what the attached shadows show (the
+    black level), the gain is told from the elevations: <= 0.3 deg (0.1)."""
+    imgs, lamps, circle = _ball_under_front_lamps(falloff=0.5)
+    cal = calibrate_spheres(imgs, pixel_size_um=100.0, saturation=None)
+    assert [s.kind for s in cal.spheres] == ["matte"]
+    assert np.hypot(*np.subtract(cal.spheres[0].centre_px, circle[:2])) < 0.3
+    err = _angles(cal.directions, lamps)
+    assert err.max() < 0.3, err
+
+
+@pytest.mark.parametrize("sigma, held", [(0.0, True), (0.3, False)])
+def test_the_shadows_additive_term_is_held_only_where_lambert_holds_with_it(sigma, held):
+    """A Lambertian ball's attached shadows show its additive term (the black level, 20 counts) and the lamps
+    that see their terminator fit their lit part with it; a rough ball (Oren-Nayar, 0.3 rad) lights its lit
+    part beyond Lambert's law as a term its shadow does not show (6 % of |b| over it, where holding the
+    shadow's term would cost 0.5 deg), and the term is left to each fit."""
+    import uvps.core.spheres as sp
+
+    imgs, lamps, circle = _ball_under_front_lamps(sigma=sigma)
+    disc = sp._Disc(Sphere(circle[:2], circle[2], "matte", "given"), imgs.shape[1:], 100.0)
+    vals = sp._disc_values(imgs, (0, imgs.shape[1], 0, imgs.shape[2]), disc)
+    got = sp._shadow_offsets(vals, disc.normals, None)
+    if held:
+        assert got is not None and np.all(np.abs(got - 20.0) < 1.0), got
+    else:
+        assert got is None, got
+
+
+def test_a_shading_that_pulls_the_circle_to_its_bounds_keeps_the_rim(monkeypatch):
+    """When the joint fit of the circle and the gain runs to the circle's bounds, the shading contradicts the
+    rim (on the UW/Seitz grey ball 3 px off a rim its hand-drawn mask confirms within 1 px): the rim is
+    kept, and the gain is fitted on it alone."""
+    import uvps.core.spheres as sp
+
+    imgs, lamps, (c0, r0, R) = _ball_under_front_lamps(falloff=0.5)
+    off = Sphere((c0 + 0.8, r0 - 0.6), R * 1.01, "matte", "given")        # a rim 1 px off
+    disc = sp._Disc(off, imgs.shape[1:], 100.0)
+    vals = sp._disc_values(imgs, (0, imgs.shape[1], 0, imgs.shape[2]), disc)
+    offsets = sp._shadow_offsets(vals, disc.normals, None)
+    free, g_free = sp._refine_matte_circle(off, disc, vals, None, offsets=offsets)
+    assert np.hypot(free.centre_px[0] - c0, free.centre_px[1] - r0) < 0.3      # within bounds: the shading's
+    monkeypatch.setattr(sp, "MATTE_CIRCLE_MOVE", 0.002)                         # 0.14 px: the bounds bind
+    kept, g = sp._refine_matte_circle(off, disc, vals, None, offsets=offsets)
+    assert kept.centre_px == off.centre_px and kept.radius_px == off.radius_px
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0.005 and np.abs(g).max() < 0.5, g

@@ -94,12 +94,24 @@ MATTE_MIN_COS = 0.2
 #: for them (a ball's veins or sheen under a lamp near the view, which lights the whole disc: the
 #: offset, ``b_z`` and the near term are then all nearly functions of ``n_z``), and :func:`_fit_matte`
 #: fits ``n . b + c`` alone. Without this bound the UW/Seitz grey ball's per-lamp fits did not settle
-#: (beam terms up to 1.2 ``|b|``) and ``uvps calibrate`` came 14.3 deg median, 22.2 max off the published
-#: directions; with it 10.9 / 18.5 (decisions/spheres.md).
+#: (beam terms up to 1.2 ``|b|``; decisions/spheres.md).
 MATTE_TERM_MAX = 0.15
+#: A matte sphere's additive term (black level, the room's light) is read in its attached shadow: the
+#: samples whose ``n . l`` under a lamp's first fit is below ``-MATTE_SHADOW_COS`` (clear of the
+#: terminator's penumbra), where a lamp shows at least :data:`MATTE_SHADOW_MIN` of the disc's samples.
+MATTE_SHADOW_COS = 0.1
+MATTE_SHADOW_MIN = 0.01
+#: ... and is held in the fits only where the lamps that show their terminator best fit their lit
+#: part with it within this fraction of ``|b|`` (:func:`_shadow_offsets`: where holding it stops
+#: helping on rendered rough balls).
+MATTE_SHADOW_AGREE = 0.05
 #: A matte sphere's circle and gain (:func:`_refine_matte_circle`) are fitted on this many of its
 #: samples in all, shared among the lamps.
 MATTE_CIRCLE_SAMPLES = 60000
+#: The shading moves a matte sphere's circle by at most this fraction of its radius.
+MATTE_CIRCLE_MOVE = 0.03
+#: ... and when its fit runs to those bounds, the rim is kept (:func:`_refine_matte_circle`).
+MATTE_KEEP_RIM = True
 #: Terms of the gain across a matte sphere's disc (:func:`_gain`: to third order).
 GAIN_TERMS = 9
 #: Relative position uncertainty above which two or more spheres are said not to give positions
@@ -426,7 +438,7 @@ def _solve(G, rhs):
         return np.linalg.lstsq(G, rhs, rcond=None)[0]
 
 
-def _fit_matte(v, normals, sat):
+def _fit_matte(v, normals, sat, offset=None):
     """``v = n . b + c + beta (3 (n . l)^2 - 1) + (n . l)(g1 n . e1 + g2 n . e2)`` (the near lamp's term
     :func:`_near_column`, the beam's :func:`_beam_columns`) over the lit, unsaturated samples, trimmed:
     (b, c, cov of b, n used, rms over |b|, the samples used).
@@ -436,7 +448,9 @@ def _fit_matte(v, normals, sat):
     four robust standard deviations (a MAD over every fourth sample in use), until the samples in
     use stop changing. When the full model's near-lamp or beam term comes out above
     :data:`MATTE_TERM_MAX` of ``|b|`` (:func:`_matte_terms_plausible`), the same rounds are run with
-    ``n . b + c`` alone. Each round is three passes over the samples (:func:`_matte_gram`,
+    ``n . b + c`` alone. With ``offset`` given (the additive term read in the sphere's attached
+    shadows, :func:`_shadow_offsets`) ``c`` is that value and is not fitted.
+    Each round is three passes over the samples (:func:`_matte_gram`,
     :func:`_matte_update`, :func:`_matte_select`), compiled: a disc holds 10^4-10^5 samples and a sphere capture 64 lamps,
     and numpy's temporaries made the fits 6.5 of the 14.8 s ``uvps calibrate`` took on 64 lamps
     (``scripts/benchmark_calibrate_speed.py --kind matte``). Its statement in numpy:
@@ -444,9 +458,9 @@ def _fit_matte(v, normals, sat):
     """
     v = np.ascontiguousarray(v)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
-    fit = _fit_matte_terms(v, normals, sat, 7)
+    fit = _fit_matte_terms(v, normals, sat, 7, offset)
     if fit is not None and not _matte_terms_plausible(fit[6]):
-        fit = _fit_matte_terms(v, normals, sat, 4)
+        fit = _fit_matte_terms(v, normals, sat, 4, offset)
     return None if fit is None else fit[:6]
 
 
@@ -459,10 +473,12 @@ def _matte_terms_plausible(coef) -> bool:
     return bool(abs(coef[4]) <= MATTE_TERM_MAX * nb and math.hypot(coef[5], coef[6]) <= MATTE_TERM_MAX * nb)
 
 
-def _fit_matte_terms(v, normals, sat, terms):
+def _fit_matte_terms(v, normals, sat, terms, offset=None):
     """:func:`_fit_matte` with ``terms`` 7 (the full model) or 4 (``n . b + c``): its result and the
-    coefficients, or None."""
+    coefficients, or None. ``offset`` given: ``c`` held at it (its column left out of the solve)."""
     ok = np.isfinite(v) if sat is None else v < sat
+    if offset is not None:
+        v = np.ascontiguousarray(v - np.float32(offset), dtype=v.dtype)
     lo, hi = np.percentile(v, (2, 99.5))
     sel = ok & (v > lo + 0.3 * (hi - lo))
     n_sel = int(sel.sum())
@@ -478,7 +494,7 @@ def _fit_matte_terms(v, normals, sat, terms):
     for it in range(6):
         if n_sel < 20:
             return None
-        coef = _solve(*_matte_gram(A, v, sel, cols))
+        coef = _solve_held(*_matte_gram(A, v, sel, cols), offset is not None)
         b = coef[:3]
         nb = np.linalg.norm(b)
         if not nb > 0:
@@ -493,10 +509,32 @@ def _fit_matte_terms(v, normals, sat, terms):
         sel, new = new, sel
         n_sel, cols = n_new, terms
     res, _ = _matte_update(A, normals, v, coef, l, e1, e2, sel, buf)
-    dof = max(1, n_sel - cols)
+    dof = max(1, n_sel - cols + (offset is not None))
     s2 = float(np.sum(res[sel] ** 2)) / dof
-    cov = s2 * np.linalg.pinv(_matte_gram(A, v, sel, cols)[0])[:3, :3]
-    return coef[:3], float(coef[3]), cov, n_sel, math.sqrt(s2) / np.linalg.norm(coef[:3]), sel, coef
+    cov = s2 * _held_pinv(_matte_gram(A, v, sel, cols)[0], offset is not None)[:3, :3]
+    c = float(coef[3]) if offset is None else float(offset)
+    return coef[:3], c, cov, n_sel, math.sqrt(s2) / np.linalg.norm(coef[:3]), sel, coef
+
+
+def _held(n, held):
+    """The columns of a matte fit's ``n`` terms that are solved: all, or all but the offset's (3)."""
+    return np.array([j for j in range(n) if not (held and j == 3)])
+
+
+def _solve_held(G, rhs, held):
+    """:func:`_solve` with the offset's column (3) held at zero when ``held``: the coefficients (``n``,)."""
+    idx = _held(len(rhs), held)
+    coef = np.zeros(len(rhs))
+    coef[idx] = _solve(G[np.ix_(idx, idx)], rhs[idx])
+    return coef
+
+
+def _held_pinv(G, held):
+    """The pseudo-inverse of a matte fit's normal matrix, the held offset's row and column zero."""
+    idx = _held(len(G), held)
+    out = np.zeros_like(G)
+    out[np.ix_(idx, idx)] = np.linalg.pinv(G[np.ix_(idx, idx)])
+    return out
 
 
 def _matte_gram(A, v, sel, cols):
@@ -609,17 +647,20 @@ def _matte_select(normals, l, res, ok, min_cos, limit, sel, new):
     return n, same
 
 
-def _fit_matte_numpy(v, normals, sat):
+def _fit_matte_numpy(v, normals, sat, offset=None):
     """:func:`_fit_matte` in numpy, its statement (the tests hold the compiled form to it): the design
     held column by column (``AT``, terms x samples), the samples in use as 0/1 weights."""
-    fit = _fit_matte_numpy_terms(v, normals, sat, 7)
+    fit = _fit_matte_numpy_terms(v, normals, sat, 7, offset)
     if fit is not None and not _matte_terms_plausible(fit[6]):
-        fit = _fit_matte_numpy_terms(v, normals, sat, 4)
+        fit = _fit_matte_numpy_terms(v, normals, sat, 4, offset)
     return None if fit is None else fit[:6]
 
 
-def _fit_matte_numpy_terms(v, normals, sat, terms):
+def _fit_matte_numpy_terms(v, normals, sat, terms, offset=None):
     ok = np.isfinite(v) if sat is None else v < sat
+    held = offset is not None
+    if held:
+        v = v - np.float32(offset)
     lo, hi = np.percentile(v, (2, 99.5))
     sel = ok & (v > lo + 0.3 * (hi - lo))
     AT = np.zeros((7, len(v)))
@@ -631,7 +672,7 @@ def _fit_matte_numpy_terms(v, normals, sat, terms):
         if sel.sum() < 20:
             return None
         Aw = AT[:cols] * sel
-        coef = _solve(Aw @ AT[:cols].T, Aw @ v)
+        coef = _solve_held(Aw @ AT[:cols].T, Aw @ v, held)
         b = coef[:3]
         nb = np.linalg.norm(b)
         if not nb > 0:
@@ -645,15 +686,68 @@ def _fit_matte_numpy_terms(v, normals, sat, terms):
             break
         sel, cols = new, terms
     res = (v - coef @ AT[:cols])[sel]
-    dof = max(1, sel.sum() - cols)
+    dof = max(1, sel.sum() - cols + held)
     s2 = float(res @ res) / dof
     Aw = AT[:cols] * sel
-    cov = s2 * np.linalg.pinv(Aw @ AT[:cols].T)[:3, :3]
-    return (coef[:3], float(coef[3]), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel,
+    cov = s2 * _held_pinv(Aw @ AT[:cols].T, held)[:3, :3]
+    return (coef[:3], float(coef[3]) if not held else float(offset), cov, int(sel.sum()), math.sqrt(s2) / np.linalg.norm(coef[:3]), sel,
             coef)
 
 
-def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MATTE_CIRCLE_SAMPLES):
+def _shadow_offsets(vals, normals, sat):
+    """Each lamp's additive term (black level, the room's light) read in the sphere's attached shadow:
+    (K,) or None when no lamp leaves a shadow on the disc.
+
+    Lambert's law with an additive term, ``v = max(n . b, 0) + c``, shows ``c`` alone where the lamp
+    does not reach (``n . l < 0``). Fitted with the lit part instead, ``c`` is nearly a function of
+    ``n_z`` as ``b_z`` is when a lamp lights most of the disc, and takes up whatever makes the shading
+    flatter or steeper than Lambert's law (a rough or translucent ball, a gain across the disc):
+    on the UW/Seitz grey ball the fitted ``c`` grew from 0.5 % to 40 % of ``|b|`` as the lamps came
+    toward the view, while its attached shadows read 0-2 counts of ~170, and the lamps near the view
+    came 4-9 deg too high (decisions/spheres.md). A lamp's shadow is the samples below
+    ``-MATTE_SHADOW_COS`` under its first fit's direction that some other lamp lights to half the
+    disc's median peak or more (a holder or the ground inside the circle is dark under every lamp),
+    read when it holds at least :data:`MATTE_SHADOW_MIN` of the disc (its median); a
+    lamp near the view, whose shadow lies beyond the rim, takes the median of the others' (the black
+    level and the room's light, the same in every picture of a darkroom capture).
+    """
+    K, P = vals.shape
+    every = max(1, P // 20000)          # the first fits only point the lamp: 20 000 samples are plenty
+    # the sphere's own samples: lit by some lamp (a holder, a stand or the ground seen inside the circle
+    # stays dark under every lamp, and is no shadow of the sphere's)
+    peak = vals.max(axis=0)
+    seen = peak >= 0.5 * np.median(peak)
+    levels = np.full(K, np.nan)
+    fitted = np.full(K, np.nan)             # the lit part's own additive term, over |b|, less the shadow's
+    shadow = np.zeros(K)
+    for k in range(K):
+        fit = _fit_matte(vals[k, ::every], normals[::every], sat)
+        if fit is None:
+            continue
+        nb = np.linalg.norm(fit[0])
+        dark = (normals @ (fit[0] / nb) < -MATTE_SHADOW_COS) & seen
+        shadow[k] = dark.sum()
+        if shadow[k] >= max(20, MATTE_SHADOW_MIN * P):
+            levels[k] = float(np.median(vals[k][dark]))
+            fitted[k] = (fit[1] - levels[k]) / nb
+    if not np.isfinite(levels).any():
+        return None
+    # Lambert's law with the shadow's term must hold where it can be told: the lamps that show most of
+    # their terminator (the quarter, at least one, with the largest shadows) fit the lit part with the
+    # shadow's term. A rough ball (Oren-Nayar) or a translucent one lights its lit part beyond the
+    # law, as an additive term the shadow does not show; its term is then left to each fit. Rendered
+    # rough balls under lamps near the view: roughness 0.05-0.2 rad fit 1.3-3.2 % of |b| over the
+    # shadow and the held term is the better; 0.25 rad 4.2 %, even; 0.3-0.35 rad 5.5-7 %, held 0.2-0.6
+    # deg worse (scripts/analyse_matte_sphere.py --rough). The UW/Seitz grey ball: 3.9 %.
+    tell = np.argsort(-shadow)[:max(1, int(np.isfinite(levels).sum()) // 4)]
+    if not np.median(np.abs(fitted[tell])) <= MATTE_SHADOW_AGREE:
+        return None
+    levels[~np.isfinite(levels)] = np.median(levels[np.isfinite(levels)])
+    return levels
+
+
+def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MATTE_CIRCLE_SAMPLES,
+                         offsets=None):
     """Centre and radius of a matte sphere, and the gain across its disc, that make Lambert's law fit
     its shading best: (Sphere, g) with the gain :func:`_gain`.
 
@@ -670,25 +764,38 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
     circle's spread: on the robustness benchmark's clean row the centre came 0.03-0.04 px off with
     1500 samples per image and 0.01 px with all of them (80 000); 60 000 in all keeps the fit of a
     sphere under 64 lamps to about 2 s. The first fits, which only choose the samples, read a
-    regular subset of the disc where it is large.
+    regular subset of the disc where it is large. ``offsets`` (K,): each lamp's additive term read in
+    the attached shadows (:func:`_shadow_offsets`), held in every image's fit; None: fitted.
     """
     from scipy.optimize import least_squares
 
-    picks, used, scale = _matte_picks(disc, vals, sat, samples)
+    picks, used, scale = _matte_picks(disc, vals, sat, samples, offsets)
     if len(picks) < 3:
         return sphere, np.zeros(GAIN_TERMS)
     c0, r0 = sphere.centre_px
     R0 = sphere.radius_px
-    residuals = _matte_circle_residuals(disc, vals, picks, used, scale, (c0, r0, R0))
-    lim = 0.03 * R0
+    residuals = _matte_circle_residuals(disc, vals, picks, used, scale, (c0, r0, R0), offsets)
+    lim = MATTE_CIRCLE_MOVE * R0
     res = least_squares(residuals, np.zeros(3 + GAIN_TERMS),
-                        bounds=([-lim, -lim, -0.03] + [-0.5] * GAIN_TERMS, [lim, lim, 0.03] + [0.5] * GAIN_TERMS),
+                        bounds=([-lim, -lim, -MATTE_CIRCLE_MOVE] + [-0.5] * GAIN_TERMS,
+                                [lim, lim, MATTE_CIRCLE_MOVE] + [0.5] * GAIN_TERMS),
                         x_scale=[1.0, 1.0, 1.0 / R0] + [0.05] * GAIN_TERMS, diff_step=1e-3)
     x = res.x
+    if MATTE_KEEP_RIM and np.any(np.abs(x[:3]) >= 0.98 * np.array([lim, lim, MATTE_CIRCLE_MOVE])):
+        # the shading pulls the circle to the bounds: it is the ball, not the rim, that Lambert's law
+        # does not describe there (a rough or translucent surface's flatter fall toward the limb and
+        # the terminator; on the UW/Seitz grey ball 3 px off a rim the set's hand-drawn mask confirms
+        # within 1 px). The rim is kept and the gain fitted on it alone.
+        log.info("matte sphere at (%.0f, %.0f) px: its shading pulls the circle %s px off the rim (bounds); "
+                 "the rim is kept", c0, r0, np.round([x[0], x[1], x[2] * R0], 1).tolist())
+        res = least_squares(lambda g: residuals(np.concatenate([[0.0, 0.0, 0.0], g])), np.zeros(GAIN_TERMS),
+                            bounds=([-0.5] * GAIN_TERMS, [0.5] * GAIN_TERMS), x_scale=[0.05] * GAIN_TERMS,
+                            diff_step=1e-3)
+        x = np.concatenate([[0.0, 0.0, 0.0], res.x])
     return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
 
 
-def _matte_picks(disc: "_Disc", vals, sat, samples):
+def _matte_picks(disc: "_Disc", vals, sat, samples, offsets=None):
     """The disc samples the circle's fit reads per image (those its first Lambert fit kept, ``samples``
     in all, >= 500 each), the images used and each one's first ``|b|``. A sample's fixed uniform number
     picks it: one sample more or less kept changes the picks by itself alone (drawn anew, a change in
@@ -699,7 +806,7 @@ def _matte_picks(disc: "_Disc", vals, sat, samples):
     # the first fits read every ``every``-th sample where the disc holds four times the picks or more
     every = max(1, min(8, disc.normals.shape[0] // (4 * per_image)))
     for k, v in enumerate(vals):
-        fit = _fit_matte(v[::every], disc.normals[::every], sat)
+        fit = _fit_matte(v[::every], disc.normals[::every], sat, None if offsets is None else offsets[k])
         if fit is None:
             continue
         idx = np.flatnonzero(fit[5]) * every
@@ -709,16 +816,17 @@ def _matte_picks(disc: "_Disc", vals, sat, samples):
     return picks, used, scale
 
 
-def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle):
+def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle, offsets=None):
     """``residuals(x)``: each pick's residual after its image's linear fit (variable projection) under
     ``circle`` (column, row, radius) moved by ``x[:3]``, gain ``x[3:]``; the picks laid out image by
-    image (zero rows padding) so the per-image fits are solved together by batched normal equations."""
+    image (zero rows padding) so the per-image fits are solved together by batched normal equations.
+    ``offsets`` (K,) given: each image's additive term held (``v - c = gain (n . b + near)``)."""
     c0, r0, R0 = circle
     rows = disc.rows + disc.box[0]
     cols = disc.cols + disc.box[2]
     pix = np.concatenate(picks)
     pr, pc = rows[pix].astype(float), cols[pix].astype(float)
-    pv = np.concatenate([vals[k][idx] for k, idx in zip(used, picks)])
+    pv = np.concatenate([vals[k][idx] - (0.0 if offsets is None else offsets[k]) for k, idx in zip(used, picks)])
     sizes = np.array([idx.size for idx in picks])
     kid = np.repeat(np.arange(len(picks)), sizes)
     psc = np.asarray(scale)[kid]
@@ -740,8 +848,11 @@ def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle):
         gain = _gain(x[3:], nx, ny)
         nrm = np.column_stack([nx, ny, nz])
         A = np.column_stack([nrm, np.ones_like(nx), np.zeros_like(nx)]) * gain[:, None]
-        coef = per_image_fit(A[:, :4], pv)
-        A[:, 4] = _near_column(nrm, coef[kid, :3]) * gain
+        if offsets is not None:         # the additive term held: no column of ones
+            A = np.delete(A, 3, axis=1)
+        m = A.shape[1] - 1
+        coef = per_image_fit(A[:, :m], pv)
+        A[:, m] = _near_column(nrm, coef[kid, :3]) * gain
         coef = per_image_fit(A, pv)
         return (pv - np.einsum("ij,ij->i", A, coef[kid])) / psc
 
@@ -916,12 +1027,19 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
         # the circle and the gain across the disc (vignetting), fitted together on the disc the lamps are
         # read on: its outer tenth, where the normals turn fastest, pins the radius (on 0.9 of it the
         # radius came 0.2 px off in the robustness benchmark, and every lamp's elevation 0.1 deg with it)
-        sphere, g = _refine_matte_circle(sphere, disc, vals, sat)
-        log.debug("matte %s: gain across the disc %s", where, np.round(g, 4).tolist())
+        offsets = _shadow_offsets(vals, disc.normals, sat)
+        sphere, g = _refine_matte_circle(sphere, disc, vals, sat, offsets=offsets)
+        log.debug("matte %s: gain across the disc %s, additive terms from the attached shadows %s", where,
+                  np.round(g, 4).tolist(), None if offsets is None else np.round(offsets, 2).tolist())
         disc = _Disc(sphere, (M, N), pixel_size_um)
         gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
-        vals = _disc_values(crops, outer, disc) / gain
+        vals = _disc_values(crops, outer, disc)
+        if offsets is not None:     # v = c + gain (n . b): the held term comes off before the gain
+            sat = None if sat is None else sat - offsets[:, None]
+            vals = vals - offsets[:, None].astype(np.float32)
+        vals = vals / gain
         sat = None if sat is None else sat / gain
+        offsets = None if offsets is None else np.zeros(K)
     pts = np.empty((K, 3))
     dirs = np.empty((K, 3))
     sig = np.empty(K)
@@ -931,7 +1049,8 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     for k in range(K):
         name = files[k] if files else f"image {k + 1}"
         if kind == "matte":
-            fit = _fit_matte(vals[k], disc.normals, sat)
+            fit = _fit_matte(vals[k], disc.normals, sat if sat is None or np.ndim(sat) < 2 else sat[k],
+                             None if offsets is None else offsets[k])
             if fit is None or fit[4] > 0.2:
                 raise UVPSInputError(f"sphere capture {name}: the matte {where} shows no lit part that Lambert's "
                                      "law fits (no sphere there, the lamp off, or the sphere not matte); "
