@@ -21,8 +21,8 @@ and optionally (``--profile``) a cProfile of :func:`uvps.core.pipeline.run` in t
 lines go with the table. Each process's CPU use is its user + system CPU time over its wall time (``os.wait4``'s rusage:
 2.0 = both cores busy throughout). The table is printed with the machine (cores, RAM, load) and the
 command line. ``--doc`` (the default 4000 x 3000 x 16 capture) also writes docs/benchmarks.md's first
-speed table (section ``speed``: :func:`render_doc`: the read, ``uvps run``, the calibrated route and
-``uvps demo``; each row's CPU / wall and load kept in the JSON) and
+speed table (section ``speed``: :func:`render_doc`: the read, ``uvps run``, the calibrated route, each
+with ``--regions auto`` when measured, and ``uvps demo``; each row's CPU / wall and load kept in the JSON) and
 docs/benchmarks/speed.json (scripts/benchdoc.py); with ``--shape 1500 2000`` it writes the second
 (section ``speed_load``: :func:`render_load_doc`), each row the best (-worst) of the last 3 invocations that
 measured it, all kept in docs/benchmarks/speed_load.json. ``--no-md`` is accepted and does nothing (the
@@ -59,7 +59,9 @@ UVPS = [sys.executable, "-m", "uvps"]   # the command as installed (uvps._entry:
 DOC_SECTION = "speed"
 #: The doc's rows (run_child names) and their labels in docs/benchmarks.md's table.
 DOC_ROWS = {"read the stack with tifffile": "read the stack with tifffile", "uvps run": "`uvps run`",
+            "uvps run --regions auto": "`uvps run --regions auto`",
             "uvps run --calibration --dark": "`uvps run --calibration CAL --dark DARK`",
+            "uvps run --calibration --dark --regions auto": "the same `--regions auto`",
             "uvps demo (600 x 800, 12 lights)": "`uvps demo` (600 x 800, 12 lamps)"}
 
 

@@ -308,18 +308,20 @@ def test_benchmark_spheres_real_doc_replaces_a_captures_row_keeping_its_label(tm
 
 def test_benchmark_speed_doc_rows_render_as_the_table(tmp_path, monkeypatch):
     """The processes measured become the doc's rows (the read's own time, ratios to the read and the raw stack,
-    the demo's peak RSS in GiB, stages in run order, ``uvps run``'s wall bold); the other processes are left
-    out; --doc on another capture is refused before anything is made."""
+    the demo's peak RSS in GiB, stages in run order, ``uvps run``'s wall bold; with detection too); the other
+    processes (``--ome-zarr``) are left out; --doc on another capture is refused before anything is made."""
     import benchmark_speed as bs
     gib = 2 ** 30
     ms = [bs.Measure("read the stack with tifffile", 0.4, 1.2, 0, inner_s=0.25),
           bs.Measure("uvps run", 11.26, 0.8, 0, stages={"additive": 1.04, "lights": 3.0, "integrate": 0.55}),
-          bs.Measure("uvps run --regions auto", 15.0, 0.9, 0),
+          bs.Measure("uvps run --regions auto", 15.0, 0.9, 0, stages={"protrusions": 4.0}),
+          bs.Measure("uvps run --ome-zarr", 12.0, 0.9, 0),
           bs.Measure("uvps demo (600 x 800, 12 lights)", 8.04, 0.5, 0)]
     text = bs.render_doc({"rows": bs.doc_rows(ms, 0.25, 1.0 * gib)})
     assert text.splitlines()[2:] == [
         "| read the stack with tifffile | 0.25 | 1 | 1.20 | |",
         "| `uvps run` | **11.3** | 45 | 0.80 | additive 1.0, lights 3.0, integrate 0.6 |",
+        "| `uvps run --regions auto` | 15.0 | 60 | 0.90 | protrusions 4.0 |",
         "| `uvps demo` (600 x 800, 12 lamps) | 8.0 | | (0.50 GiB) | |"]
     with pytest.raises(SystemExit):
         bs.main(["--shape", "300", "400", "--work", str(tmp_path), "--doc"])

@@ -443,3 +443,31 @@ if __name__ == "__main__":
     if sys.argv[1:] == ["GOLDEN"]:
         with tempfile.TemporaryDirectory() as tmp:
             np.savez_compressed(GOLDEN_CALIBRATED, **_calibrated_outputs(_calibrated_scene(Path(tmp))))
+
+
+def test_run_folder_written_beside_the_run_holds_the_same_files(folder, tmp_path, monkeypatch):
+    """The input files hashed in a background thread while the run computes, and the run folder's files written
+    two at a time: the same TIFFs, byte for byte, as one writer after the run, and run.json's input hashes are
+    the files' own SHA-256."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    import uvps.files.runfolder as runfolder
+    import uvps.workflow as workflow
+    from uvps.cli import main
+
+    assert main(["run", str(folder), "-o", str(tmp_path / "now")]) == 0
+    monkeypatch.setattr(runfolder, "WRITERS", 1)
+    monkeypatch.setattr(workflow, "hash_inputs_meanwhile", lambda capture: None)   # hashed by write_run, after
+    assert main(["run", str(folder), "-o", str(tmp_path / "serial")]) == 0
+    tiffs = sorted(p.name for p in (tmp_path / "now").glob("*.tif"))
+    assert {"normals.tif", "albedo.tif", "gradients.tif", "depth.tif", "dropoff.tif"} <= set(tiffs)
+    assert tiffs == sorted(p.name for p in (tmp_path / "serial").glob("*.tif"))
+    for name in tiffs:
+        assert (tmp_path / "now" / name).read_bytes() == (tmp_path / "serial" / name).read_bytes(), name
+    inputs = [json.loads((tmp_path / d / "run.json").read_text())["inputs"] for d in ("now", "serial")]
+    files = sorted(folder.glob("uv_*.tif"))
+    assert inputs[0] == inputs[1] and len(inputs[0]) == len(files)
+    for entry in inputs[0]:
+        assert entry["sha256"] == hashlib.sha256(Path(entry["path"]).read_bytes()).hexdigest()

@@ -27,10 +27,9 @@ from .files.cards import load_card
 from .files.io import read_capture
 from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
                             report, sub_progress)
-from .files.runfolder import (FILES, STEP_REWRITES, RunImages, drop_manual_work, manual_work, read_run, set_aside_for_step,
-                              set_aside_manual_work, write_run)
+from .files.runfolder import (FILES, STEP_REWRITES, RunImages, drop_manual_work, hash_inputs_meanwhile, manual_work,
+                              read_run, set_aside_for_step, set_aside_manual_work, write_run)
 from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
-from .report.page import print_pdf, write_report
 from .spec import Param
 
 log = logging.getLogger(__name__)
@@ -202,6 +201,7 @@ def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *
     capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
     if cal is not None:
         capture = apply_calibration(cal, capture)
+    hashes = hash_inputs_meanwhile(capture)       # run.json's input hashes, made while the run computes
     protrusions = step.whole_run and bool(params.get("regions") or params.get("detect"))
     regions = params.get("regions") if protrusions else None
     if regions is not None and regions != "auto":
@@ -223,7 +223,7 @@ def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *
                  n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
     if cal is not None:
         _with_calibration(result, cal)
-    out = _write_folder(step, run_dir, result, params, protrusions, progress)
+    out = _write_folder(step, run_dir, result, params, protrusions, progress, inputs=hashes)
     out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
     out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
     report(progress, 1.0, f"{step.name}: done")
@@ -256,7 +256,7 @@ def _with_calibration(result, cal) -> None:
 
 
 def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protrusions: bool,
-                  progress) -> CommandResult:
+                  progress, *, inputs=None) -> CommandResult:
     """Write the run's files into ``run_dir``: a step's moved in one by one; the whole run's (report
     included) built in a new folder that replaces the old one in one step, so that a run folder is
     never a mixture of two runs."""
@@ -267,7 +267,7 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
         with atomic_output_dir(run_dir) as tmp:
             kept = set_aside_for_step(run_dir, tmp, step=step.name) if rewrites else None
             outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
-                                progress=sub_progress(progress, 0.9, 0.95))
+                                progress=sub_progress(progress, 0.9, 0.95), inputs=inputs)
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
         if kept is not None:
             kept_aside(run_dir, run_dir / kept.relative_to(tmp), out, step=step.name)
@@ -277,7 +277,7 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
     with new_output_dir(run_dir, carry_over=carried_over) as new:
         kept = set_aside_manual_work(run_dir, new)
         outputs = write_run(new, result, command=step.name, params=params, final=run_dir,
-                            progress=sub_progress(progress, 0.9, 0.95))
+                            progress=sub_progress(progress, 0.9, 0.95), inputs=inputs)
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
         if protrusions:
             out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))
@@ -392,6 +392,8 @@ def statistics(run_dir, *, table=None, regions=None, bins_um=100.0, pixel_size_u
     if regions is None:
         regions = whole_image(images.shape)
         warnings.append("no colour areas (regions_labels.tif): statistics over the whole image")
+    from .report.page import print_pdf, write_report   # here: a run without detection never imports the report
+
     report(progress, 0.05, "statistics")
     with atomic_output_dir(run_dir) as tmp:
         stats = _stats_and_csv(tmp, run_dir, regions, images.pixel_size_um,

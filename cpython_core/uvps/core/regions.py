@@ -13,16 +13,13 @@ import logging
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional, Union
 
-import cv2
 import numpy as np
 from scipy import ndimage as ndi
-from scipy.cluster.hierarchy import fcluster, linkage
-from scipy.cluster.vq import vq
-from skimage.color import rgb2lab
-from skimage.filters.rank import majority
 from skimage.measure import label as cc_label
-from skimage.morphology import disk
-from skimage.transform import downscale_local_mean
+
+# The proposal's libraries (cv2, scipy.cluster, skimage.color / filters.rank / morphology / transform) are
+# imported by the functions that use them: a run without --regions auto reads region statistics only,
+# and does not pay their ~0.1-0.2 s of start-up (python -X importtime -m uvps run --help).
 
 from ..errors import UVPSInputError, check_pixel_size
 from .progress import report
@@ -154,6 +151,8 @@ def _srgb_encode(linear: np.ndarray) -> np.ndarray:
 
 
 def _kmeans(data: np.ndarray, k: int, seed: int):
+    import cv2
+
     cv2.setRNGSeed(int(seed))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     _, lab, centres = cv2.kmeans(data.astype(np.float32), int(k), None, criteria, 3,
@@ -165,6 +164,8 @@ def _merge_close(centres: np.ndarray, delta_e: float) -> np.ndarray:
     """Group index per centre: average-linkage clustering of the centres cut at ``delta_e``."""
     if len(centres) < 2:
         return np.zeros(len(centres), dtype=int)
+    from scipy.cluster.hierarchy import fcluster, linkage
+
     z = linkage(centres, method="average")
     return fcluster(z, t=delta_e, criterion="distance") - 1
 
@@ -206,6 +207,8 @@ def propose_regions(albedo, *, pixel_size_um: float, n_areas: Optional[int] = No
     (nearest neighbour). It is a proposal: the user
     edits ``regions_labels.tif`` in ImageJ and loads it back with :func:`load_regions`.
     """
+    from skimage.color import rgb2lab
+
     opts = options or ProposalOptions()
     pixel_size_um = check_pixel_size(pixel_size_um)
     if n_areas is not None and (int(n_areas) != n_areas or n_areas < 1):
@@ -287,6 +290,8 @@ class _Blocks(NamedTuple):
 
 
 def _block_means(channels, valid, step) -> _Blocks:
+    from skimage.transform import downscale_local_mean
+
     count = downscale_local_mean(valid.astype(np.float32), (step, step))
     any_valid = count > 0
     sums = [downscale_local_mean(np.where(valid, ch, 0).astype(np.float32), (step, step))
@@ -331,6 +336,8 @@ def _colour_centres(data, n_areas, opts: ProposalOptions, seed: int) -> np.ndarr
 
 def _nearest_centre(feats, centres, any_valid) -> np.ndarray:
     """uint16 label 1.. of each block's nearest centre (0 in blocks without a valid pixel)."""
+    from scipy.cluster.vq import vq
+
     flat = feats.reshape(-1, feats.shape[-1])
     nearest, _ = vq(flat, centres.astype(flat.dtype))
     labels = (nearest + 1).reshape(feats.shape[:2]).astype(np.uint16)
@@ -340,6 +347,9 @@ def _nearest_centre(feats, centres, any_valid) -> np.ndarray:
 
 def _majority_filter(labels, any_valid, radius: int) -> np.ndarray:
     """Majority filter over a disc of ``radius`` blocks, within the blocks holding a valid pixel."""
+    from skimage.filters.rank import majority
+    from skimage.morphology import disk
+
     smooth = majority(labels, disk(radius), mask=any_valid)
     smooth[~any_valid] = 0
     return smooth

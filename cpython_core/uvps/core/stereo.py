@@ -329,8 +329,9 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     K, M, N = images.shape[:3]
     ranks = _rank_range(K, trim) if robust else None
     C = images.shape[3] if images.ndim == 4 else 0
-    out = _Outputs(np.full((M, N, 3), np.nan, np.float32),
-                   np.full((M, N, C) if C else (M, N), np.nan, np.float32), np.zeros((M, N), np.uint8))
+    # every band fills its own rows (NaN where unsolved) in its thread: no fill of the whole outputs first
+    out = _Outputs(np.empty((M, N, 3), np.float32), np.empty((M, N, C) if C else (M, N), np.float32),
+                   np.empty((M, N), np.uint8))
     rows_per = max(1, int(chunk_pixels or CHUNK_PIXELS) // N)
     bands = [(r0, min(M, r0 + rows_per)) for r0 in range(0, M, rows_per)]
 
@@ -401,14 +402,15 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     L = lights.positions_mm if near else np.zeros((K, 3))
     dirs = (lights.directions * lights.intensities[:, None]).astype(np.float32)
     lo, hi = ranks if ranks is not None else (0, 0)
-    normals = np.full((P, 3), np.nan, np.float32)
-    albedo = np.full((P, max(C, 1)), np.nan, np.float32)
-    n_used = np.zeros(P, np.uint8)
+    # the kernel writes into the outputs' rows themselves (contiguous views), NaN / 0 where it solves nothing
+    normals = out.normals[r0:r1].reshape(P, 3)
+    albedo = out.albedo[r0:r1].reshape(P, max(C, 1))
+    n_used = out.n_used[r0:r1].reshape(P)
+    normals.fill(np.nan)
+    albedo.fill(np.nan)
+    n_used.fill(0)
     res = _solve_pixels(band, bool(C), np.ascontiguousarray(L, dtype=np.float64),
                         np.ascontiguousarray(lights.intensities, dtype=np.float64), dirs, near, xs, ys, use,
                         np.float32(saturation) if saturation is not None else np.float32(0), float(dark_fraction),
                         float(shadow_cos), int(lo), int(hi), normals, albedo, n_used)
-    out.normals[r0:r1] = normals.reshape(r1 - r0, N, 3)
-    out.albedo[r0:r1] = albedo.reshape((r1 - r0, N, C) if C else (r1 - r0, N))
-    out.n_used[r0:r1] = n_used.reshape(r1 - r0, N)
     return float(res[0]), float(res[1]), int(res[2])

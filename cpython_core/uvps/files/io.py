@@ -28,8 +28,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
 
-import cv2
-import imageio.v3 as iio
 import numpy as np
 import tifffile
 
@@ -383,7 +381,10 @@ def _read_image_px(path: PathLike) -> tuple:
                 ):
                     arr = np.moveaxis(arr, 0, -1)  # planar RGB -> channels last
         elif kind == "png":
-            # OpenCV keeps 16-bit colour PNGs (Pillow would reduce them to 8 bits).
+            # OpenCV keeps 16-bit colour PNGs (Pillow would reduce them to 8 bits). cv2 and imageio are
+            # imported where a PNG or JPEG is read: a run on TIFFs does not pay their start-up.
+            import cv2
+
             buf = np.fromfile(path, dtype=np.uint8)
             arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
             if arr is None:
@@ -391,6 +392,8 @@ def _read_image_px(path: PathLike) -> tuple:
             if arr.ndim == 3:
                 arr = arr[..., [2, 1, 0, 3][: arr.shape[2]]] if arr.shape[2] >= 3 else arr
         else:
+            import imageio.v3 as iio
+
             arr = iio.imread(path)
     except UVPSInputError:
         raise
@@ -558,6 +561,8 @@ def _image_size(path: Path):
             # LibRaw's own header read (imageio would hand a DNG to OpenCV, which prints warnings)
             with _rawpy().imread(str(path)) as raw:
                 return raw_image_size(raw)
+        import imageio.v3 as iio
+
         return tuple(iio.improps(path).shape[:2])
     except Exception:   # an unreadable file is reported by the reader itself, with its own message
         return None

@@ -26,6 +26,7 @@ from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file,
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import row_bands
+from ..core.threads import default_threads
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
 from ..core.regions import region_statistics
 from .tables import write_regions_csv
@@ -184,29 +185,36 @@ def input_hashes(capture: Capture) -> list:
 # ------------------------------------------------------------------------------------------------
 
 def write_run(folder: Path, result, *, command: str, params: dict, final: Optional[Path] = None, warnings=(),
-              progress: Progress = None) -> list:
+              progress: Progress = None, inputs=None) -> list:
     """Write a :class:`uvps.core.pipeline.RunResult` into ``folder``.
 
     ``folder`` is usually the temporary folder of :func:`uvps.files.outputs.atomic_output_dir`, moved to
     the run folder ``final`` afterwards. ``params`` (the request's) and ``warnings`` go into
-    ``run.json`` with the result's diagnostics and timings. Returns the
+    ``run.json`` with the result's diagnostics and timings. ``inputs``: the input files' hashes
+    (:func:`input_hashes`), a list or a future of one (hashed while the run computed:
+    :func:`hash_inputs_meanwhile`); None hashes them here. Returns the
     :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``.
+
+    The lights, normals, albedo, gradients and depth files are written two at a time (:data:`WRITERS`
+    threads: tifffile's writes and numpy's copies release the GIL); each file is the one a single thread
+    writes.
     """
     final = Path(final or folder)
     cap = result.capture
     relief = getattr(result, "relief", None) or None
-    write_lights(folder, cap, result.lights)
     names = ["lights", "dropoff"]
     if "flatfield" in result.stages:
         write_flatfield(folder, cap, result.lights, progress=progress)
         names.append("flatfield")
+    jobs = [lambda: write_lights(folder, cap, result.lights)]
     if result.stereo is not None:
-        write_stereo(folder, result.stereo, cap.pixel_size_um)
+        jobs += stereo_writers(folder, result.stereo, cap.pixel_size_um)
         names += ["normals", "albedo", "gradients"]
     if result.height is not None:
-        write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method, relief=relief,
-                     level=getattr(result, "level", None))
+        jobs.append(lambda: write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method,
+                                         relief=relief, level=getattr(result, "level", None)))
         names.append("depth")
+    _write_all(jobs)
     if result.protrusions is not None:
         names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
                                    bins_um=params.get("bins_um") or 100.0, relief=relief)
@@ -215,7 +223,9 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
         stores = write_ome_zarr(folder, pixel_size_um=cap.pixel_size_um)
         names += [s.name.split(".")[0] + "_zarr" for s in stores]
     log = RunLog(command, dict(params), warnings=list(warnings) + list(result.warnings))
-    log.inputs = input_hashes(cap)
+    if inputs is None:
+        inputs = input_hashes(cap)
+    log.inputs = inputs.result() if hasattr(inputs, "result") else inputs
     log.params.update({**asdict(result.options), "pixel_size_um": cap.pixel_size_um,
                        "image_shape": list(cap.images.shape[1:]), "bit_depth": cap.bit_depth})
     log.timings_s = dict(result.timings_s)
@@ -227,6 +237,35 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     names.append("run")
     # dtypes of label images are read from the files just written
     return [_spec_in(final, folder, n) for n in names]
+
+
+#: Threads writing a run folder's files (each file by one of them).
+WRITERS = 2
+
+
+def _write_all(jobs) -> None:
+    """Call every job (a file's writer), :data:`WRITERS` at a time (at most ``UVPS_THREADS``); the first
+    error is raised once all have ended."""
+    workers = min(len(jobs), default_threads(WRITERS))
+    if workers <= 1:
+        for job in jobs:
+            job()
+        return
+    with ThreadPoolExecutor(workers, thread_name_prefix="uvps-write") as pool:
+        futures = [pool.submit(job) for job in jobs]
+    for f in futures:
+        f.result()
+
+
+def hash_inputs_meanwhile(capture: Capture):
+    """:func:`input_hashes` of ``capture`` started in a background thread: a future whose result is the list
+    (the hashing of a 1 GB stack, ~1-2 CPU s, overlaps the run's one-thread parts instead of following
+    it). The files are those just read; a run that fails leaves the thread to end on its own."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash")
+    try:
+        return pool.submit(input_hashes, capture)
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _spec_in(final: Path, written: Path, name: str) -> OutputSpec:
@@ -295,18 +334,30 @@ def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
     """``normals.tif`` (3, M, N), ``albedo.tif`` ((C,) M, N) and ``gradients.tif`` (2, M, N).
 
     The channel-last arrays are written channel-first band by band (never transposed whole)."""
-    write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
-                      pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
-    if res.albedo.ndim == 3:
-        write_imagej_tiff(folder / "albedo.tif", np.moveaxis(res.albedo, -1, 0), axes="CYX",
-                          pixel_size_um=pixel_size_um, labels=["R", "G", "B"][:res.albedo.shape[-1]])
-    else:
-        write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
-    g = gradients_from_normals(res.normals)
-    with imagej_tiff_writer(folder / "gradients.tif", (2,) + g.p.shape, np.float32, axes="CYX",
-                            pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"]) as tif:
-        tif.put(0, g.p)
-        tif.put(1, g.q)
+    for job in stereo_writers(folder, res, pixel_size_um):
+        job()
+
+
+def stereo_writers(folder: Path, res, pixel_size_um: float) -> list:
+    """The writers of :func:`write_stereo`'s three files, one callable each (independent of one another)."""
+    def normals():
+        write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
+                          pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
+
+    def albedo():
+        if res.albedo.ndim == 3:
+            write_imagej_tiff(folder / "albedo.tif", np.moveaxis(res.albedo, -1, 0), axes="CYX",
+                              pixel_size_um=pixel_size_um, labels=["R", "G", "B"][:res.albedo.shape[-1]])
+        else:
+            write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
+
+    def gradients():
+        g = gradients_from_normals(res.normals)
+        with imagej_tiff_writer(folder / "gradients.tif", (2,) + g.p.shape, np.float32, axes="CYX",
+                                pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"]) as tif:
+            tif.put(0, g.p)
+            tif.put(1, g.q)
+    return [normals, albedo, gradients]
 
 
 #: ImageJ's value unit (``vunit`` in the TIFF's ImageJ description) of a height map without a scale.
