@@ -69,6 +69,9 @@ def test_three_captures_run_as_uvps_run_then_a_rerun_skips_them(captures, client
         run_dir = out / name
         assert row["status"] == "done" and row["error"] == ""
         assert int(row["n_protrusions"]) == len(_rows(run_dir / "protrusions.csv"))
+        page = (run_dir / "report.html").read_text(encoding="utf-8")
+        assert f"<title>Protrusion report: {name}</title>" in page    # the run folder's name, not its stage's
+        assert "batch-tmp" not in page
         for area in _rows(run_dir / "regions.csv"):
             if area["label"] != "all":
                 assert int(row[f"{area['name']}: count"]) == int(area["count"])

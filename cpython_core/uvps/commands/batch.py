@@ -270,7 +270,10 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
     folder, out_dir = Path(folder), Path(out_dir)
     target = out_dir / name
     record = {"capture": name, "folder": str(folder), "status": "done", "error": None, "warnings": []}
-    tmp = out_dir / f".{name}{_TMP}{uuid.uuid4().hex[:8]}"
+    # built in <out>/.<name>.batch-tmp-XXXX/<name>: its own name is the capture's, so the report written
+    # into it names the run folder as it will be (title, "Run folder", the stats command), not the stage
+    stage = out_dir / f".{name}{_TMP}{uuid.uuid4().hex[:8]}"
+    tmp = stage / name
     try:
         done, why = (False, "forced") if force else complete(target, folder, params)
         if done:
@@ -288,7 +291,7 @@ def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool 
         log.debug("%s failed", name, exc_info=True)
         record.update(status="failed", error=_one_line(exc), failure=failure_kind(exc))
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(stage, ignore_errors=True)
     record["elapsed_s"] = round(time.perf_counter() - t0, 3)
     return record
 
