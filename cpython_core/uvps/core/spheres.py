@@ -990,6 +990,30 @@ def _fit_glossy(v, disc: _Disc, sat, static=None):
     return nm, peak, n_used, sigma_px
 
 
+def _matte_disc(sphere: Sphere, disc: "_Disc", crops, outer, vals, sat, *, shape, pixel_size_um: float,
+                where: str) -> tuple:
+    """A matte sphere's refined circle and disc, its values with the attached shadows' additive term taken
+    off and divided by the gain across the disc, and the saturation level to match: (sphere, disc, vals,
+    sat, offsets), offsets zeros once taken off (None when not held).
+
+    The circle and the gain across the disc (vignetting) are fitted together on the disc the lamps are
+    read on: its outer tenth, where the normals turn fastest, pins the radius (on 0.9 of it the radius
+    came 0.2 px off in the robustness benchmark, and every lamp's elevation 0.1 deg with it)."""
+    offsets = _shadow_offsets(vals, disc.normals, sat)
+    sphere, g = _refine_matte_circle(sphere, disc, vals, sat, offsets=offsets)
+    log.debug("matte %s: gain across the disc %s, additive terms from the attached shadows %s", where,
+              np.round(g, 4).tolist(), None if offsets is None else np.round(offsets, 2).tolist())
+    disc = _Disc(sphere, shape, pixel_size_um)
+    gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
+    vals = _disc_values(crops, outer, disc)
+    if offsets is not None:     # v = c + gain (n . b): the held term comes off before the gain
+        sat = None if sat is None else sat - offsets[:, None]
+        vals = vals - offsets[:, None].astype(np.float32)
+    vals = vals / gain
+    sat = None if sat is None else sat / gain
+    return sphere, disc, vals, sat, None if offsets is None else np.zeros(len(offsets))
+
+
 def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None, files=None) -> SphereFit:
     """Every lamp's ray from one sphere (see the module notes).
 
@@ -1023,23 +1047,10 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
     static = None if kind == "matte" else _static_part(vals)
     sphere = Sphere(tuple(sphere.centre_px), float(sphere.radius_px), kind, sphere.source)
     where = f"sphere at ({sphere.centre_px[0]:.0f}, {sphere.centre_px[1]:.0f}) px"
+    offsets = None
     if kind == "matte":
-        # the circle and the gain across the disc (vignetting), fitted together on the disc the lamps are
-        # read on: its outer tenth, where the normals turn fastest, pins the radius (on 0.9 of it the
-        # radius came 0.2 px off in the robustness benchmark, and every lamp's elevation 0.1 deg with it)
-        offsets = _shadow_offsets(vals, disc.normals, sat)
-        sphere, g = _refine_matte_circle(sphere, disc, vals, sat, offsets=offsets)
-        log.debug("matte %s: gain across the disc %s, additive terms from the attached shadows %s", where,
-                  np.round(g, 4).tolist(), None if offsets is None else np.round(offsets, 2).tolist())
-        disc = _Disc(sphere, (M, N), pixel_size_um)
-        gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
-        vals = _disc_values(crops, outer, disc)
-        if offsets is not None:     # v = c + gain (n . b): the held term comes off before the gain
-            sat = None if sat is None else sat - offsets[:, None]
-            vals = vals - offsets[:, None].astype(np.float32)
-        vals = vals / gain
-        sat = None if sat is None else sat / gain
-        offsets = None if offsets is None else np.zeros(K)
+        sphere, disc, vals, sat, offsets = _matte_disc(sphere, disc, crops, outer, vals, sat, shape=(M, N),
+                                                       pixel_size_um=pixel_size_um, where=where)
     pts = np.empty((K, 3))
     dirs = np.empty((K, 3))
     sig = np.empty(K)
