@@ -1,0 +1,251 @@
+#!/usr/bin/env python3
+"""Why two mirror spheres of one capture disagree: the figures behind docs/decisions/spheres.md's analysis of
+PSBox's LightProbe-1 and -2 (two spheres cropped from the same frames), measured on ``uvps calibrate``'s own fits.
+
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/analyse_sphere_pair.py A=FOLDER B=FOLDER \\
+        --crop A=COL,ROW --crop B=COL,ROW [--reference A=FILE --reference B=FILE] \\
+        [--focal-px F ...] [--principal COL,ROW ...]
+
+``FOLDER``: one sphere's lamp images (as ``uvps calibrate --spheres`` reads them); ``--crop``: where its images
+were cut from the full frame (column, row of the top-left pixel, rows counted down from the frame's top:
+PSBox's ``data/ManualData/probes_bbox.txt`` counts rows up, 991-1990 and 991-1940, so LightProbe-2's top row lies
+50 rows below LightProbe-1's: ``A=0,990 B=2750,1040``). Prints, per lamp and as median / max (deg):
+
+1. the two spheres' directions as ``uvps calibrate`` gives them (orthographic camera, view (0, 0, 1)), their
+   difference split along the baseline (``benchmark_spheres_real.split_by_baseline``: in the plane of the
+   baseline and the ray, where a lamp's parallax lies, and across it, where no lamp position does);
+2. the same highlights read through a pinhole camera (focal length ``--focal-px`` in pixels of the full
+   frame, principal point ``--principal``, default the spheres' midpoint): each highlight pixel's ray meets its
+   sphere (the sphere's distance from its apparent radius), ``l = 2 (n . v) n - v`` with ``v`` toward the
+   camera from that point; the difference split along the spheres' baseline in 3-D; the lamps' distances
+   where the two rays meet (from the spheres' midpoint), over the camera's; and the least across-baseline median
+   over a grid of focal lengths and principal points;
+3. the highlights themselves (8-bit grey, mean of the channels): the saturated core's length and width (4
+   sigma) and long axis, how far its centroid moves between the clip levels 252 and 235, and the split of the
+   directions the centroids at clip levels 252-200 give;
+4. with ``--reference`` (a room-lit picture of the sphere): its rim (sub-pixel gradient maxima along rays,
+   the stand's lower 130 deg left out) fitted with a circle and with an ellipse.
+"""
+import argparse
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage, optimize
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchmark_spheres_real as bsr  # noqa: E402
+
+from uvps.commands import COMMANDS  # noqa: E402
+from uvps.core.spheres import triangulate  # noqa: E402
+
+Z = np.array([0.0, 0.0, 1.0])
+CLIPS = (252, 240, 220, 200)
+
+
+def _fit(folder):
+    """uvps calibrate's directions (K, 3), circle centre (col, row) and radius on one sphere's images."""
+    with tempfile.TemporaryDirectory() as tmp:
+        COMMANDS["calibrate"]({"spheres": [folder]}, {"pixel_size_um": 100.0}, Path(tmp) / "CAL")
+        doc = json.loads((Path(tmp) / "CAL" / "calibration.json").read_text())
+    s = doc["spheres"][0]
+    return np.array([lamp["direction"] for lamp in doc["lamps"]]), np.array(s["centre_px"][:2]), s["radius_px"]
+
+
+def _highlight_px(dirs, centre, radius):
+    """The highlight pixels (K, 2: col, row) the orthographic directions came from."""
+    n = dirs + Z
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.c_[centre[0] + radius * n[:, 0], centre[1] - radius * n[:, 1]]
+
+
+def _ray(px, principal, f):
+    v = np.array([px[0] - principal[0], principal[1] - px[1], -f])
+    return v / np.linalg.norm(v)
+
+
+def pinhole_sphere(centre, radius, principal, f):
+    """A sphere's centre in the camera's frame (x right, y up, z toward the camera; radius 1) and its off-axis
+    angle (deg), from its image's centre and radius (full-frame px): the outline's centre and radius along
+    the radial line are ``f (tan(t + a) + tan(t - a)) / 2`` and ``f (tan(t + a) - tan(t - a)) / 2``."""
+    s = math.hypot(centre[0] - principal[0], centre[1] - principal[1])
+
+    def eq(x):
+        t, a = x
+        return [f * (math.tan(t + a) + math.tan(t - a)) / 2 - s, f * (math.tan(t + a) - math.tan(t - a)) / 2 - radius]
+
+    t, a = optimize.fsolve(eq, [math.atan(s / f), math.atan(radius / f)])
+    az = np.array([centre[0] - principal[0], principal[1] - centre[1]]) / max(s, 1e-9)
+    u = np.array([math.sin(t) * az[0], math.sin(t) * az[1], -math.cos(t)])
+    return u / math.sin(a), math.degrees(t)
+
+
+def pinhole_directions(px, centre, radius, principal, f):
+    """Each highlight pixel's lamp direction through a pinhole camera: (K, 3), the sphere's centre, off-axis
+    angle (deg) and the surface points (K, 3)."""
+    C, off = pinhole_sphere(centre, radius, principal, f)
+    out, pts = [], []
+    for p in px:
+        d = _ray(p, principal, f)
+        b = d @ C
+        t = b - math.sqrt(max(b * b - (C @ C - 1.0), 0.0))
+        n = t * d - C
+        n /= np.linalg.norm(n)
+        v = -d
+        lamp = 2 * (n @ v) * n - v
+        out.append(lamp / np.linalg.norm(lamp))
+        pts.append(t * d)
+    return np.array(out), C, off, np.array(pts)
+
+
+def _summary(d1, d2, baseline):
+    a = bsr._angles(d1, d2)
+    inp, acr = bsr.split_by_baseline(d1, d2, baseline)
+    return (f"apart {np.median(a):.2f} / {a.max():.2f}, in the plane {inp.min():+.2f} to {inp.max():+.2f}, "
+            f"across {np.median(np.abs(acr)):.2f} / {np.abs(acr).max():.2f}"), inp, acr
+
+
+def perspective(fits, principal, f):
+    """Part 2 at one camera: the split and the lamps' distances over the spheres'."""
+    (d1, c1, r1), (d2, c2, r2) = fits
+    e1, C1, o1, p1 = pinhole_directions(_highlight_px(d1, c1, r1), c1, r1, principal, f)
+    e2, C2, o2, p2 = pinhole_directions(_highlight_px(d2, c2, r2), c2, r2, principal, f)
+    text, _, acr = _summary(e1, e2, C2 - C1)
+    mid = 0.5 * (C1 + C2)
+    dist = []
+    for k in range(len(e1)):
+        pos = triangulate(np.array([p1[k], p2[k]]), np.array([e1[k], e2[k]]), np.full(2, 1e-3))[0]
+        dist.append(np.linalg.norm(pos - mid) / np.linalg.norm(mid))
+    return text, (o1, o2), np.array(dist), float(np.median(np.abs(acr)))
+
+
+def _core(img, seed, clip):
+    lab, _ = ndimage.label(img >= clip)
+    lab_id = lab[int(round(seed[1])), int(round(seed[0]))]
+    ys, xs = np.nonzero(lab == lab_id) if lab_id else (np.array([seed[1]]), np.array([seed[0]]))
+    return xs.astype(float), ys.astype(float)
+
+
+def _centroid_dirs(grey, px, centre, radius, clip):
+    out = []
+    for img, seed in zip(grey, px):
+        xs, ys = _core(img, seed, clip)
+        x, y = (xs.mean() - centre[0]) / radius, (centre[1] - ys.mean()) / radius
+        m = np.array([x, y, math.sqrt(max(0.0, 1 - x * x - y * y))])
+        out.append(2 * m[2] * m - Z)
+    return np.array(out)
+
+
+def highlights(name, grey, px, centre, radius):
+    """Part 3 for one sphere: the saturated cores' shape and how their centroid moves with the clip level."""
+    size, axis, move = [], [], []
+    for img, seed in zip(grey, px):
+        xs, ys = _core(img, seed, 252)
+        w, V = np.linalg.eigh(np.cov(np.c_[xs, ys].T))
+        size.append((4 * math.sqrt(w[1]), 4 * math.sqrt(w[0])))
+        axis.append(math.degrees(math.atan2(-V[1, 1], V[0, 1])) % 180)
+        lo = _core(img, seed, 235)
+        move.append((abs(lo[0].mean() - xs.mean()), abs(lo[1].mean() - ys.mean())))
+    size, move = np.array(size), np.array(move)
+    to_deg = math.degrees(2 / radius)
+    print(f"{name}: saturated core {np.median(size[:, 0]):.0f} x {np.median(size[:, 1]):.0f} px (4 sigma, median), "
+          f"long axis {np.round(axis).astype(int).tolist()} deg from +x\n"
+          f"  centroid moves between clip 252 and 235: x {np.round(move[:, 0], 1).tolist()}, "
+          f"y {np.round(move[:, 1], 1).tolist()} px (median x {np.median(move[:, 0]):.1f}, "
+          f"y {np.median(move[:, 1]):.1f} px = {np.median(move[:, 0]) * to_deg:.2f}, "
+          f"{np.median(move[:, 1]) * to_deg:.2f} deg of direction)")
+
+
+def rim(name, path, centre, radius):
+    """Part 4: a room-lit picture's rim fitted with a circle and with an ellipse (cv2.fitEllipse)."""
+    g = ndimage.gaussian_filter(cv2.imread(str(path)).astype(float).mean(axis=2), 1.0)
+    pts = []
+    for deg in np.arange(0.0, 360.0, 0.5):
+        if 205 < deg < 335:           # the stand
+            continue
+        phi = math.radians(deg)
+        rr = np.linspace(0.92 * radius, 1.08 * radius, 400)
+        xs, ys = centre[0] + rr * math.cos(phi), centre[1] - rr * math.sin(phi)
+        if xs.min() < 1 or ys.min() < 1 or xs.max() > g.shape[1] - 2 or ys.max() > g.shape[0] - 2:
+            continue
+        d = np.gradient(ndimage.map_coordinates(g, [ys, xs], order=1))
+        i = int(np.argmax(d))
+        if 2 <= i < len(d) - 2 and d[i] >= 1.5:
+            off = 0.5 * (d[i - 1] - d[i + 1]) / (d[i - 1] - 2 * d[i] + d[i + 1])
+            r = rr[i] + off * (rr[1] - rr[0])
+            pts.append([centre[0] + r * math.cos(phi), centre[1] - r * math.sin(phi)])
+    pts = np.array(pts, np.float32)
+    n_all = len(pts)
+
+    def circle(q):
+        return optimize.least_squares(lambda p: np.hypot(q[:, 0] - p[0], q[:, 1] - p[1]) - p[2],
+                                      [centre[0], centre[1], radius])
+
+    res = np.abs(circle(pts).fun)
+    pts = pts[res < 3 * np.median(res) + 0.5]           # a reflection's edge taken for the rim
+    fit = circle(pts)
+    (ex, ey), (a, b), ang = cv2.fitEllipse(pts)
+    major = (ang if a >= b else ang + 90.0) % 180.0     # cv2: degrees clockwise in the image (rows down)
+    print(f"{name} rim: {len(pts)} of {n_all} points; circle ({fit.x[0]:.1f}, {fit.x[1]:.1f}), {fit.x[2]:.1f} px, "
+          f"rms {np.sqrt(np.mean(fit.fun ** 2)):.2f}; ellipse ({ex:.1f}, {ey:.1f}), semi-axes {max(a, b) / 2:.1f} x "
+          f"{min(a, b) / 2:.1f} px (ratio {max(a, b) / min(a, b):.4f}), long axis {(180 - major) % 180:.0f} deg "
+          "from +x (y up)")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("spheres", nargs=2, help="NAME=FOLDER")
+    ap.add_argument("--crop", action="append", default=[], help="NAME=COL,ROW (rows from the frame's top)")
+    ap.add_argument("--reference", action="append", default=[], help="NAME=FILE: a room-lit picture")
+    ap.add_argument("--focal-px", type=float, nargs="+", default=[4000, 8000, 12000, 20000, 50000])
+    ap.add_argument("--principal", action="append", default=[], help="COL,ROW in the full frame")
+    args = ap.parse_args(argv)
+    names, folders = zip(*(s.split("=", 1) for s in args.spheres))
+    crops = {n: np.array(v.split(","), float) for n, v in (c.split("=", 1) for c in args.crop)}
+    fits = []
+    for n, folder in zip(names, folders):
+        d, c, r = _fit(folder)
+        fits.append((d, c, r))
+    full = [(d, c + crops.get(n, np.zeros(2)), r) for n, (d, c, r) in zip(names, fits)]
+    base = full[1][1] - full[0][1]
+    text, inp, acr = _summary(full[0][0], full[1][0], [base[0], -base[1], 0.0])
+    print(f"1. orthographic (uvps calibrate): {text}\n  in the plane {np.round(inp, 2).tolist()}\n"
+          f"  across {np.round(acr, 2).tolist()}")
+    _perspective_table(full, args)
+    for n, folder, (d, c, r) in zip(names, folders, fits):
+        files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif")
+                       and not p.stem.lower().startswith("ref"))
+        grey = [cv2.imread(str(p)).astype(float).mean(axis=2) for p in files]
+        highlights(f"3. {n}", grey, _highlight_px(d, c, r), c, r)
+        fits[names.index(n)] = (d, c, r, grey)
+    for clip in CLIPS:
+        dd = [_centroid_dirs(g, _highlight_px(d, c, r), c, r, clip) for d, c, r, g in fits]
+        print(f"  centroids at clip {clip}: {_summary(dd[0], dd[1], [base[0], -base[1], 0.0])[0]}")
+    refs = dict(s.split("=", 1) for s in args.reference)
+    for n, (d, c, r, _) in zip(names, fits):
+        if n in refs:
+            rim(f"4. {n}", refs[n], c, r)
+    return 0
+
+
+def _perspective_table(full, args):
+    principals = [np.array(p.split(","), float) for p in args.principal] or [0.5 * (full[0][1] + full[1][1])]
+    for pp in principals:
+        for f in args.focal_px:
+            text, off, dist, _ = perspective(full, pp, f)
+            print(f"2. pinhole f {f:.0f} px, principal ({pp[0]:.0f}, {pp[1]:.0f}): off-axis {off[0]:.1f}, "
+                  f"{off[1]:.1f} deg; {text}; lamps {dist.min():.2f}-{dist.max():.2f} x the camera's distance from the spheres")
+    grid = [(perspective(full, np.array([cx, cy]), f)[3], f, cx, cy)
+            for f in (2500, 5000, 10000, 20000, 60000)
+            for cx in np.linspace(-2000, 6000, 5) for cy in np.linspace(-2000, 5000, 5)]
+    best = min(grid)
+    print(f"  least across median over f 2500-60000 px and principal points (-2000..6000, -2000..5000): "
+          f"{best[0]:.2f} deg (f {best[1]:.0f}, principal {best[2]:.0f}, {best[3]:.0f})")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
