@@ -4,7 +4,8 @@ PSBox's LightProbe-1 and -2 (two spheres cropped from the same frames), measured
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/analyse_sphere_pair.py A=FOLDER B=FOLDER \\
         --crop A=COL,ROW --crop B=COL,ROW [--reference A=FILE --reference B=FILE] \\
-        [--focal-px F ...] [--principal COL,ROW ...]
+        [--focal-px F ...] [--principal COL,ROW ...] [--circle A=COL,ROW,RADIUS] [--lights A=FILE] \
+        [--distortion PCT ...]
 
 ``FOLDER``: one sphere's lamp images (as ``uvps calibrate --spheres`` reads them); ``--crop``: where its images
 were cut from the full frame (column, row of the top-left pixel, rows counted down from the frame's top:
@@ -19,7 +20,9 @@ PSBox's ``data/ManualData/probes_bbox.txt`` counts rows up, 991-1990 and 991-194
    sphere (the sphere's distance from its apparent radius), ``l = 2 (n . v) n - v`` with ``v`` toward the
    camera from that point; the difference split along the spheres' baseline in 3-D; the lamps' distances
    where the two rays meet (from the spheres' midpoint), over the camera's; and the least across-baseline median
-   over a grid of focal lengths and principal points;
+   over a grid of focal lengths and principal points; with ``--distortion``, the orthographic split with a radial
+   lens distortion taken out of the highlights and the rims; with ``--lights``, each sphere's pinhole directions
+   against its published ones (one sphere alone: these only, about its images' centre);
 3. the highlights themselves (8-bit grey, mean of the channels): the saturated core's length and width (4
    sigma) and long axis, how far its centroid moves between the clip levels 252 and 235, and the split of the
    directions the centroids at clip levels 252-200 give;
@@ -47,10 +50,15 @@ Z = np.array([0.0, 0.0, 1.0])
 CLIPS = (252, 240, 220, 200)
 
 
-def _fit(folder):
-    """uvps calibrate's directions (K, 3), circle centre (col, row) and radius on one sphere's images."""
+def _fit(folder, circle=None):
+    """uvps calibrate's directions (K, 3), circle centre (col, row) and radius on one sphere's images; ``circle``
+    "COL,ROW,RADIUS" given instead of found (``--sphere-circles``)."""
     with tempfile.TemporaryDirectory() as tmp:
-        COMMANDS["calibrate"]({"spheres": [folder]}, {"pixel_size_um": 100.0}, Path(tmp) / "CAL")
+        inputs = {"spheres": [folder]}
+        if circle:
+            (Path(tmp) / "circle.csv").write_text(f"col,row,radius_px\n{circle}\n")
+            inputs["sphere_circles"] = str(Path(tmp) / "circle.csv")
+        COMMANDS["calibrate"](inputs, {"pixel_size_um": 100.0}, Path(tmp) / "CAL")
         doc = json.loads((Path(tmp) / "CAL" / "calibration.json").read_text())
     s = doc["spheres"][0]
     return np.array([lamp["direction"] for lamp in doc["lamps"]]), np.array(s["centre_px"][:2]), s["radius_px"]
@@ -196,35 +204,107 @@ def rim(name, path, centre, radius):
           "from +x (y up)")
 
 
+def _undistort(px, principal, k):
+    """Pixels with the radial distortion ``r_d = r_u (1 + k r_u^2)`` about ``principal`` taken out."""
+    d = np.asarray(px, float) - principal
+    ru = d.copy()
+    for _ in range(30):
+        ru = d / (1 + k * (ru ** 2).sum(axis=-1, keepdims=True))
+    return principal + ru
+
+
+def undistorted(dirs, centre, radius, principal, k):
+    """A sphere's orthographic directions and image centre with a radial lens distortion taken out of its highlight
+    pixels and its rim (the rim's points undistorted and averaged for the centre and radius)."""
+    t = np.radians(np.arange(0.0, 360.0, 2.0))
+    rim = _undistort(np.c_[centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t)], principal, k)
+    c = rim.mean(axis=0)
+    r = float(np.hypot(*(rim - c).T).mean())
+    q = _undistort(_highlight_px(dirs, centre, radius), principal, k)
+    x, y = (q[:, 0] - c[0]) / r, (c[1] - q[:, 1]) / r
+    m = np.c_[x, y, np.sqrt(np.clip(1 - x * x - y * y, 0, None))]
+    return 2 * m[:, 2:] * m - Z, c
+
+
+def _images(folder):
+    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif")
+                   and not p.stem.lower().startswith("ref"))
+    return [cv2.imread(str(p)).astype(float).mean(axis=2) for p in files]
+
+
+def _matched_areas(fits):
+    """Part 3: per lamp, the smaller core (area over the radius squared, clip 252) clipped lower until it matches
+    the other's; the directions of both centroids. Returns (d1, d2, the area ratios)."""
+    out, ratios = ([], []), []
+    for k in range(len(fits[0][0])):
+        seeds = [_highlight_px(d, c, r)[k] for d, c, r, _ in fits]
+        area = [len(_core(g[k], sd, 252)[0]) / r ** 2 for (_, _, r, g), sd in zip(fits, seeds)]
+        ratios.append(area[1] / area[0])
+        small = int(np.argmin(area))
+        for i, ((_, c, r, g), sd) in enumerate(zip(fits, seeds)):
+            clip = 252
+            while i == small and clip > 100 and len(_core(g[k], sd, clip)[0]) / r ** 2 < area[1 - small]:
+                clip -= 1
+            out[i].append(_centroid_dirs([g[k]], [sd], c, r, clip)[0])
+    return np.array(out[0]), np.array(out[1]), np.array(ratios)
+
+
+def _against_published(names, full, lights, principal, f):
+    parts = []
+    for n, (d, c, r) in zip(names, full):
+        if n in lights:
+            e = pinhole_directions(_highlight_px(d, c, r), c, r, principal, f)[0]
+            a = bsr._angles(e, bsr._published(lights[n]))
+            parts.append(f"{n} against its published directions {np.median(a):.2f} / {a.max():.2f}")
+    return ("; " + "; ".join(parts)) if parts else ""
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("spheres", nargs=2, help="NAME=FOLDER")
+    ap.add_argument("spheres", nargs="+", help="NAME=FOLDER (one sphere, or two of one capture)")
     ap.add_argument("--crop", action="append", default=[], help="NAME=COL,ROW (rows from the frame's top)")
     ap.add_argument("--reference", action="append", default=[], help="NAME=FILE: a room-lit picture")
+    ap.add_argument("--circle", action="append", default=[],
+                    help="NAME=COL,ROW,RADIUS: that sphere's circle (px of its images) instead of the one found")
+    ap.add_argument("--lights", action="append", default=[], help="NAME=FILE: that sphere's published directions")
     ap.add_argument("--focal-px", type=float, nargs="+", default=[4000, 8000, 12000, 20000, 50000])
-    ap.add_argument("--principal", action="append", default=[], help="COL,ROW in the full frame")
+    ap.add_argument("--distortion", type=float, nargs="*", default=[],
+                    help="radial lens distortions to take out (percent at --distortion-radius px from the principal "
+                         "point; negative: barrel), for the orthographic split")
+    ap.add_argument("--distortion-radius", type=float, default=2300.0)
+    ap.add_argument("--principal", action="append", default=[],
+                    help="COL,ROW in the full frame (default: two spheres' midpoint, one sphere's image centre)")
     args = ap.parse_args(argv)
     names, folders = zip(*(s.split("=", 1) for s in args.spheres))
     crops = {n: np.array(v.split(","), float) for n, v in (c.split("=", 1) for c in args.crop)}
-    fits = []
-    for n, folder in zip(names, folders):
-        d, c, r = _fit(folder)
-        fits.append((d, c, r))
-    full = [(d, c + crops.get(n, np.zeros(2)), r) for n, (d, c, r) in zip(names, fits)]
-    base = full[1][1] - full[0][1]
-    text, inp, acr = _summary(full[0][0], full[1][0], [base[0], -base[1], 0.0])
-    print(f"1. orthographic (uvps calibrate): {text}\n  in the plane {np.round(inp, 2).tolist()}\n"
-          f"  across {np.round(acr, 2).tolist()}")
-    _perspective_table(full, args)
-    for n, folder, (d, c, r) in zip(names, folders, fits):
-        files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif")
-                       and not p.stem.lower().startswith("ref"))
-        grey = [cv2.imread(str(p)).astype(float).mean(axis=2) for p in files]
-        highlights(f"3. {n}", grey, _highlight_px(d, c, r), c, r)
-        fits[names.index(n)] = (d, c, r, grey)
-    for clip in CLIPS:
-        dd = [_centroid_dirs(g, _highlight_px(d, c, r), c, r, clip) for d, c, r, g in fits]
-        print(f"  centroids at clip {clip}: {_summary(dd[0], dd[1], [base[0], -base[1], 0.0])[0]}")
+    circles = dict(c.split("=", 1) for c in args.circle)
+    fits = [_fit(folder, circles.get(n)) + (_images(folder),) for n, folder in zip(names, folders)]
+    full = [(d, c + crops.get(n, np.zeros(2)), r) for n, (d, c, r, _) in zip(names, fits)]
+    if args.principal:
+        principals = [np.array(p.split(","), float) for p in args.principal]
+    elif len(full) == 2:
+        principals = [0.5 * (full[0][1] + full[1][1])]
+    else:
+        principals = [(np.array(fits[0][3][0].shape[::-1]) - 1) / 2.0 + crops.get(names[0], np.zeros(2))]
+    lights = dict(s.split("=", 1) for s in args.lights)
+    if len(full) == 2:
+        _pair(full, [lights.get(n) for n in names])
+    for pp in principals:
+        for f in args.focal_px:
+            print(_camera_line(names, full, pp, f) + _against_published(names, full, lights, pp, f))
+    if len(full) == 2:
+        _least_across(full)
+        _distortions(full, principals, args)
+    for n, (d, c, r, g) in zip(names, fits):
+        highlights(f"3. {n}", g, _highlight_px(d, c, r), c, r)
+    if len(full) == 2:
+        base = full[1][1] - full[0][1]
+        for clip in CLIPS:
+            dd = [_centroid_dirs(g, _highlight_px(d, c, r), c, r, clip) for d, c, r, g in fits]
+            print(f"  centroids at clip {clip}: {_summary(dd[0], dd[1], [base[0], -base[1], 0.0])[0]}")
+        d1, d2, ratio = _matched_areas(fits)
+        print(f"  cores' areas at clip 252, second over first: {ratio.min():.2f}-{ratio.max():.2f}; the smaller "
+              f"clipped lower to match: {_summary(d1, d2, [base[0], -base[1], 0.0])[0]}")
     refs = dict(s.split("=", 1) for s in args.reference)
     for n, (d, c, r, _) in zip(names, fits):
         if n in refs:
@@ -232,13 +312,41 @@ def main(argv=None):
     return 0
 
 
-def _perspective_table(full, args):
-    principals = [np.array(p.split(","), float) for p in args.principal] or [0.5 * (full[0][1] + full[1][1])]
+def _pair(full, lights):
+    text, inp, acr = _summary(full[0][0], full[1][0], _baseline(full[0][1], full[1][1]))
+    print(f"1. orthographic (uvps calibrate): {text}\n  in the plane {np.round(inp, 2).tolist()}\n"
+          f"  across {np.round(acr, 2).tolist()}: mean {acr.mean():+.2f}, rms about it {acr.std():.2f}")
+    if all(lights):
+        pub = [bsr._published(f) for f in lights]
+        print(f"  the published directions: {_summary(pub[0], pub[1], _baseline(full[0][1], full[1][1]))[0]}")
+
+
+def _camera_line(names, full, pp, f):
+    head = f"2. pinhole f {f:.0f} px, principal ({pp[0]:.0f}, {pp[1]:.0f})"
+    if len(full) == 1:
+        d, c, r = full[0]
+        return head + f": off-axis {pinhole_sphere(c, r, pp, f)[1]:.1f} deg"
+    text, off, dist, _ = perspective(full, pp, f)
+    return (head + f": off-axis {off[0]:.1f}, {off[1]:.1f} deg; {text}; lamps {dist.min():.2f}-{dist.max():.2f} x "
+            "the camera's distance from the spheres")
+
+
+def _distortions(full, principals, args):
+    _, _, acr0 = _summary(full[0][0], full[1][0], _baseline(full[0][1], full[1][1]))
     for pp in principals:
-        for f in args.focal_px:
-            text, off, dist, _ = perspective(full, pp, f)
-            print(f"2. pinhole f {f:.0f} px, principal ({pp[0]:.0f}, {pp[1]:.0f}): off-axis {off[0]:.1f}, "
-                  f"{off[1]:.1f} deg; {text}; lamps {dist.min():.2f}-{dist.max():.2f} x the camera's distance from the spheres")
+        for pct in args.distortion:
+            k = pct / 100.0 / args.distortion_radius ** 2
+            (e1, c1), (e2, c2) = (undistorted(d, c, r, pp, k) for d, c, r in full)
+            text, _, acr = _summary(e1, e2, _baseline(c1, c2))
+            print(f"  lens distortion {pct:+g} % at {args.distortion_radius:.0f} px from ({pp[0]:.0f}, {pp[1]:.0f}) "
+                  f"taken out: {text} (across moved {np.abs(acr - acr0).max():.2f} at most)")
+
+
+def _baseline(c1, c2):
+    return [c2[0] - c1[0], c1[1] - c2[1], 0.0]
+
+
+def _least_across(full):
     grid = [(perspective(full, np.array([cx, cy]), f)[3], f, cx, cy)
             for f in (2500, 5000, 10000, 20000, 60000)
             for cx in np.linspace(-2000, 6000, 5) for cy in np.linspace(-2000, 5000, 5)]

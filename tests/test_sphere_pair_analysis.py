@@ -1,5 +1,5 @@
 """scripts/analyse_sphere_pair.py's pinhole reading of a mirror sphere's highlight, on a known geometry: the
-figures in docs/decisions/spheres.md ("The camera's perspective") rest on it."""
+figures in docs/decisions/spheres.md ("Two spheres of one capture") rest on it."""
 import math
 import sys
 from pathlib import Path
