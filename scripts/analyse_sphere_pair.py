@@ -27,7 +27,9 @@ PSBox's ``data/ManualData/probes_bbox.txt`` counts rows up, 991-1990 and 991-194
    sigma) and long axis, how far its centroid moves between the clip levels 252 and 235, and the split of the
    directions the centroids at clip levels 252-200 give;
 4. with ``--reference`` (a room-lit picture of the sphere): its rim (sub-pixel gradient maxima along rays,
-   the stand's lower 130 deg left out) fitted with a circle and with an ellipse.
+   the stand's lower 130 deg left out) fitted with a circle and with an ellipse;
+5. ``--off-axis-example`` alone: a computed macro geometry (a 5 mm mirror ball 0-15 mm off the axis of a camera
+   150 mm above the painting, lamps on a 100 mm dome): how far the orthographic reading is from the true directions.
 """
 import argparse
 import json
@@ -226,6 +228,44 @@ def undistorted(dirs, centre, radius, principal, k):
     return 2 * m[:, 2:] * m - Z, c
 
 
+def mirror_point(centre, lamp):
+    """The surface point of the unit sphere at ``centre`` (camera at the origin) where ``lamp`` reflects into the
+    camera: its normal halves the angle between the camera and the lamp (fixed-point iteration)."""
+    n = -centre / np.linalg.norm(centre)
+    for _ in range(500):
+        x = centre + n
+        to_cam, to_lamp = -x / np.linalg.norm(x), (lamp - x) / np.linalg.norm(lamp - x)
+        n = (to_cam + to_lamp) / np.linalg.norm(to_cam + to_lamp)
+    return centre + n
+
+
+def off_axis_example(*, radius_mm=2.5, distance_mm=150.0, dome_mm=100.0, offsets_mm=(0.0, 6.0, 12.0, 15.0)):
+    """How far an orthographic reading of a mirror sphere off the lens axis is from the true directions (from its
+    centre): a pinhole camera ``distance_mm`` above the painting, the sphere ``offsets_mm`` off the axis on the
+    painting, lamps on a dome of radius ``dome_mm`` around the axis at 30-75 deg elevation, every 45 deg."""
+    f = 6000.0
+    for off in offsets_mm:
+        C = np.array([off, 0.0, radius_mm - distance_mm]) / radius_mm
+        lamps = [np.array([dome_mm * math.cos(e) * math.cos(a), dome_mm * math.cos(e) * math.sin(a),
+                           dome_mm * math.sin(e) - distance_mm]) / radius_mm
+                 for e in np.radians([30, 45, 60, 75]) for a in np.radians(np.arange(0, 360, 45))]
+        pts = [mirror_point(C, P) for P in lamps]
+        px = np.array([[f * x[0] / -x[2], -f * x[1] / -x[2]] for x in pts])
+        d, t = np.linalg.norm(C), math.acos(-C[2] / np.linalg.norm(C))
+        a = math.asin(1.0 / d)
+        centre = np.array([f * (math.tan(t + a) + math.tan(t - a)) / 2, 0.0])
+        radius = f * (math.tan(t + a) - math.tan(t - a)) / 2
+        n = np.c_[(px[:, 0] - centre[0]) / radius, -(px[:, 1] - centre[1]) / radius]
+        n = np.c_[n, np.sqrt(1 - (n ** 2).sum(axis=1))]
+        ortho = 2 * n[:, 2:] * n - Z
+        err = bsr._angles(ortho, np.array([(P - C) / np.linalg.norm(P - C) for P in lamps]))
+        err_pt = bsr._angles(ortho, np.array([(P - x) / np.linalg.norm(P - x) for P, x in zip(lamps, pts)]))
+        print(f"5. a {2 * radius_mm:g} mm mirror sphere {off:g} mm off the axis, camera {distance_mm:g} mm above "
+              f"({math.degrees(t):.1f} deg off), lamps on a {dome_mm:g} mm dome: orthographic reading "
+              f"{np.median(err):.2f} / {err.max():.2f} deg from the true directions from its centre, "
+              f"{np.median(err_pt):.2f} / {err_pt.max():.2f} from the highlight's point")
+
+
 def _images(folder):
     files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif")
                    and not p.stem.lower().startswith("ref"))
@@ -261,7 +301,9 @@ def _against_published(names, full, lights, principal, f):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("spheres", nargs="+", help="NAME=FOLDER (one sphere, or two of one capture)")
+    ap.add_argument("spheres", nargs="*", help="NAME=FOLDER (one sphere, or two of one capture)")
+    ap.add_argument("--off-axis-example", action="store_true",
+                    help="only the rendered geometry of part 5 (a macro field's corner sphere), no capture")
     ap.add_argument("--crop", action="append", default=[], help="NAME=COL,ROW (rows from the frame's top)")
     ap.add_argument("--reference", action="append", default=[], help="NAME=FILE: a room-lit picture")
     ap.add_argument("--circle", action="append", default=[],
@@ -275,6 +317,9 @@ def main(argv=None):
     ap.add_argument("--principal", action="append", default=[],
                     help="COL,ROW in the full frame (default: two spheres' midpoint, one sphere's image centre)")
     args = ap.parse_args(argv)
+    if args.off_axis_example or not args.spheres:
+        off_axis_example()
+        return 0
     names, folders = zip(*(s.split("=", 1) for s in args.spheres))
     crops = {n: np.array(v.split(","), float) for n, v in (c.split("=", 1) for c in args.crop)}
     circles = dict(c.split("=", 1) for c in args.circle)
