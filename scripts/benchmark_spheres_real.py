@@ -9,7 +9,9 @@ and the captures given as one capture's spheres with each other.
 Default: ``../shared/data/sphere_mirror_psbox`` (PSBox's LightProbe-2, MIT) with its
 ``light_directions.txt``. ``LIGHTS`` is a published directions file: 3 x K or K x 3 numbers, an optional
 first line holding K alone (x right, y up, z toward the camera). ``--same-lamps A,B``: two spheres of one
-capture (cropped from the same frames, e.g. PSBox's LightProbe-1 and -2), whose directions must agree.
+capture (cropped from the same frames, e.g. PSBox's LightProbe-1 and -2), whose rays must meet: with ``--crop``,
+the part of their difference across the spheres' baseline, which no lamp position gives (nor, measured on
+PSBox's pair, the camera's perspective: scripts/analyse_sphere_pair.py).
 Other public captures are not shipped with the project: fetch them yourself (docs/benchmarks.md,
 "Calibration and spheres", names them and their sources).
 
@@ -115,9 +117,10 @@ def main(argv=None):
     ap.add_argument("--capture", action="append", default=[], help="NAME=FOLDER[:LIGHTS]")
     ap.add_argument("--same-lamps", action="append", default=[], help="NAME,NAME")
     ap.add_argument("--crop", action="append", default=[],
-                    help="NAME=COL,ROW: where a capture's images were cropped from the frame (PSBox's "
-                         "data/ManualData/probes_bbox.txt); with --same-lamps, the difference is split along "
-                         "the spheres' baseline")
+                    help="NAME=COL,ROW: where a capture's images were cropped from the frame, rows counted down "
+                         "from its top (PSBox's data/ManualData/probes_bbox.txt counts rows up, 991-1990 and "
+                         "991-1940: psbox_lightprobe1=0,990 psbox_lightprobe2=2750,1040); with --same-lamps, the "
+                         "difference is split along the spheres' baseline")
     ap.add_argument("--pixel-size-um", type=float, default=100.0)
     ap.add_argument("--doc", action="store_true",
                     help="write the captures' rows into docs/benchmarks.md (section spheres_real) and "
