@@ -43,6 +43,10 @@ time against the tiles' sum over the workers::
     OMP_NUM_THREADS=1 python scripts/heldout_painting.py render /tmp/heldout --seed 7
     OMP_NUM_THREADS=1 python scripts/heldout_painting.py run /tmp/heldout -o /tmp/heldout_out --workers 2 [--doc]
 
+The registration alone, re-run on a finished run's tile folders (prints the corner errors and each pair's)::
+
+    OMP_NUM_THREADS=1 python scripts/heldout_painting.py register /tmp/heldout -o /tmp/heldout_out
+
 ``--doc`` writes the result into docs/benchmarks.md's section ``heldout`` and docs/benchmarks/heldout.json.
 """
 from __future__ import annotations
@@ -479,6 +483,26 @@ _HEAD = ("| painting | corner error (px) | F1 >= 60 um | counted twice | count /
          "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
 
 
+def register(src: Path, out: Path) -> dict:
+    """The registration alone (``uvps.core.mosaic.register_tiles`` on the tiles' ``albedo.tif``, as the batch
+    calls it, within a quarter of the smaller tile side) on a finished run's folders ``out/rNcM``, scored
+    against the true corners: the worst and median corner error and each pair's error and use."""
+    from uvps.core.mosaic import register_tiles
+    from uvps.painting import AlbedoTile
+
+    truth, nominal = read_layout(src / "truth" / "layout.csv"), read_layout(src / "layout.csv")
+    albedo = {k: AlbedoTile(out / k) for k in nominal}
+    t0 = time.perf_counter()
+    reg = register_tiles(albedo, nominal, max_shift_px=0.25 * min(min(a.shape) for a in albedo.values()))
+    elapsed = time.perf_counter() - t0
+    err = {k: float(np.hypot(*np.subtract(reg.corners[k], truth[k]))) for k in truth}
+    pairs = {p.name: {"err_px": round(float(np.hypot(p.dx - truth[p.b][0] + truth[p.a][0],
+                                                     p.dy - truth[p.b][1] + truth[p.a][1])), 3),
+                      "used": p.used, "residual_px": p.residual_px and round(p.residual_px, 3)} for p in reg.pairs}
+    return {"corner_err_px": max(err.values()), "corner_err_median_px": float(np.median(list(err.values()))),
+            "register_s": elapsed, "load": round(os.getloadavg()[0], 1), "pairs": pairs}
+
+
 def render_doc(results: dict) -> str:
     """docs/benchmarks.md's ``heldout`` table: one row per held-out run kept in docs/benchmarks/heldout.json."""
     lines = [_HEAD.format(w=results["rows"][0]["workers"])]
@@ -503,9 +527,15 @@ def main(argv=None):
     s.add_argument("--label", default=None, help="the row's name in the doc's table")
     s.add_argument("--doc", action="store_true",
                    help="add the row to docs/benchmarks/heldout.json and rewrite docs/benchmarks.md's section heldout")
+    g = sub.add_parser("register", help="re-run the registration alone on a finished run's folders and score it")
+    g.add_argument("folder", type=Path)
+    g.add_argument("-o", "--output", type=Path, required=True, help="the run's output (its rNcM folders)")
     args = ap.parse_args(argv)
     if args.cmd == "render":
         render(args.folder, args.seed)
+        return
+    if args.cmd == "register":
+        print(json.dumps(register(args.folder, args.output)), flush=True)
         return
     seed = json.loads((args.folder / "truth" / "painting.json").read_text())["seed"]
     row = {"label": args.label or f"held-out seed {seed}, 4 x 3 of 1200 x 900", "seed": seed,

@@ -10,8 +10,11 @@ wrap-around allows, scored by the normalised cross-correlation (NCC) of what the
 (on a near-periodic paint texture the highest peak is often a copy of the pattern a few pixels
 off, while the NCC is highest at the true shift), the best climbed to the NCC's maximum and refined
 sub-pixel (``skimage.registration.phase_cross_correlation``, upsampled); its NCC is the pair's
-confidence. Then all pairs are reconciled by one weighted least-squares over the tiles' corners,
-dropping the pair that disagrees most with the solution while it disagrees by more than
+confidence, and the NCC peak's curvature the directions it determines (an overlap crossed by one
+straight paint edge matches all along the edge: its NCC is a ridge, and where along it the maximum
+falls follows whatever else differs between the tiles). Then all pairs are reconciled by one
+least-squares over the tiles' corners, each pair weighted by its confidence along the directions it
+determines, dropping the pair that disagrees most with the solution while it disagrees by more than
 ``max_residual_px`` and the tiles stay connected. A pair left unregistered (its best NCC below
 ``min_confidence``) keeps its nominal relative offset, as a weak link, and its warning names why:
 blank paint (no structure in the overlap), no shift within reach, or no shift that matches.
@@ -41,7 +44,11 @@ class PairShift:
     says ``corner_b - corner_a = guess_b - guess_a + (dx, dy)``. ``confidence``: normalised
     cross-correlation of the overlap once shifted (-1..1; -1: no shift within ``search`` leaves
     enough in common). ``texture``: the overlap's structure (:func:`texture`). ``used``: kept by the
-    global solution; ``residual_px``: its disagreement with the solution; ``why``: why it was not used.
+    global solution; ``residual_px``: its disagreement with the solution, measured along the directions
+    the pair determines (:func:`_least_squares`); ``why``: why it was not used. ``information``: ``(xx, xy,
+    yy)`` of the NCC peak's curvature in painting ``(x, y)``, scaled so its sharpest direction is 1
+    (:meth:`_NccScore.information`): ``(1, 0, 1)`` a round peak, a ridge (an overlap crossed by one straight
+    paint edge) near 0 along itself; None: round.
     """
 
     a: str
@@ -56,6 +63,7 @@ class PairShift:
     dropped: bool = False
     texture: float = 1.0
     search: str = ""
+    information: Optional[tuple] = None
 
     @property
     def fallback(self) -> bool:
@@ -137,6 +145,10 @@ N_PEAKS = 5
 #: Of those, the best few (by the NCC around them) climbed to their NCC's local maxima.
 N_CLIMB = 3
 
+#: The least weight a pair's shift has along its weakest direction, relative to its sharpest (a pair whose
+#: NCC is a ridge says almost nothing along it; the floor keeps its normal matrix invertible).
+MIN_INFORMATION = 1e-3
+
 #: Below this correlation of a window with itself one pixel over, the overlap holds no structure (noise only):
 #: white noise decorrelates in one pixel, paint texture imaged at ~15 um per pixel does not.
 MIN_TEXTURE = 0.2
@@ -167,10 +179,24 @@ def _peaks(win_a, win_b, max_shift_px: float, n_peaks: int) -> list:
             if ok[q[0], q[1]]]
 
 
+@dataclass
+class PairFit:
+    """What :func:`pair_shift` measures between two windows: the shift ``(dy, dx)``, its confidence (the
+    best NCC; -1: no shift within reach leaves enough in common), the common part's size in pixels, and
+    ``information``: the NCC peak's curvature ``((yy, yx), (xy, xx))`` in window ``(row, column)``,
+    scaled so its sharpest direction is 1 (None when it cannot be measured: taken as round)."""
+
+    dy: float
+    dx: float
+    confidence: float
+    common_px: int
+    information: Optional[np.ndarray] = None
+
+
 def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, upsample: int = 20,
-               min_common_px: int = 400, n_peaks: int = N_PEAKS) -> tuple:
-    """Shift ``(dy, dx)`` of the painting between two windows of one nominal overlap, its confidence
-    and common size.
+               min_common_px: int = 400, n_peaks: int = N_PEAKS) -> PairFit:
+    """Shift ``(dy, dx)`` of the painting between two windows of one nominal overlap, its confidence,
+    common size and the NCC peak's curvature (a :class:`PairFit`).
 
     ``win_a`` and ``win_b`` show the same nominal region of the painting from tiles a and b; the
     result is ``e_b - e_a`` (b's corner error minus a's), so that ``win_b[u - s] = win_a[u]``.
@@ -180,8 +206,9 @@ def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, ups
     cross-correlation (NCC) of what they make coincide (at least ``min_common_px`` pixels); the
     best climbs to the NCC's local maximum over whole pixels, then is refined sub-pixel. On a
     near-periodic texture the highest phase peak can be a copy of the pattern a few pixels off,
-    while the NCC is highest at the true shift. Returns ``(dy, dx, confidence, common_px)``, the
-    confidence being the best NCC (-1 when no shift within ``max_shift_px`` leaves enough in common).
+    while the NCC is highest at the true shift. The NCC peak's curvature (:meth:`_NccScore.information`)
+    says which directions the overlap determines: one straight paint edge across it determines the shift
+    across the edge only, and along it the NCC's maximum follows whatever else differs between the tiles.
     """
     H, W = win_a.shape
     score = _NccScore(win_a, win_b, max_shift_px, min_common_px)
@@ -193,9 +220,9 @@ def pair_shift(win_a: np.ndarray, win_b: np.ndarray, *, max_shift_px: float, ups
     near = sorted({score.best_near(c) for c in cands}, key=score, reverse=True)[:N_CLIMB]
     best = max((score.climb(c) for c in near), key=score)
     if score(best) <= -1.0:
-        return (0.0, 0.0, -1.0, 0)
+        return PairFit(0.0, 0.0, -1.0, 0)
     fy, fx = score.subpixel(best, upsample)
-    return (best[0] + fy, best[1] + fx, score(best), score.size(best))
+    return PairFit(best[0] + fy, best[1] + fx, score(best), score.size(best), score.information(best))
 
 
 class _NccScore:
@@ -224,6 +251,24 @@ class _NccScore:
     def best_near(self, s) -> tuple:
         """The best-scoring of ``s`` and its 8 neighbours."""
         return max(((int(s[0]) + dy, int(s[1]) + dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)), key=self)
+
+    def information(self, s) -> Optional[np.ndarray]:
+        """The NCC's curvature at its maximum ``s``: minus the Hessian of a quadratic fitted to the 3 x 3
+        shifts around it (least squares), ``((yy, yx), (xy, xx))``, scaled so its largest eigenvalue is 1,
+        eigenvalues floored at ``MIN_INFORMATION``. A round peak gives the identity; a ridge (the NCC
+        of an overlap crossed by one straight edge, high all along the edge) a small eigenvalue along it.
+        None when a neighbour is outside the search or the peak is not curved downwards."""
+        d = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+        f = np.array([self((int(s[0]) + int(dy), int(s[1]) + int(dx))) for dy, dx in d])
+        if np.any(f <= -1.0):
+            return None
+        design = np.column_stack([np.ones(9), d, 0.5 * d[:, 0] ** 2, d[:, 0] * d[:, 1], 0.5 * d[:, 1] ** 2])
+        c = np.linalg.lstsq(design, f, rcond=None)[0]
+        lam, vec = np.linalg.eigh(-np.array([[c[3], c[4]], [c[4], c[5]]]))
+        if lam[-1] <= 0:
+            return None
+        lam = np.maximum(lam / lam[-1], MIN_INFORMATION)
+        return (vec * lam) @ vec.T
 
     def climb(self, s, steps: int = 20) -> tuple:
         """Uphill over the 8 neighbours to the NCC's local maximum."""
@@ -321,11 +366,14 @@ def _measure(tiles, shapes, corners, search, sigma) -> list:
             if min(wa.shape) < 8:
                 p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
             else:
-                sy, sx, conf, _ = pair_shift(wa, wb, max_shift_px=max_shift)
+                fit = pair_shift(wa, wb, max_shift_px=max_shift)
                 # the windows show the painting at (corner - rounded corner) past the box, so
                 # corner_b - corner_a = rounded_b - rounded_a + (sx, sy)
-                p.dx, p.dy = sx + rb[0] - ra[0], sy + rb[1] - ra[1]
-                p.confidence = conf
+                p.dx, p.dy = fit.dx + rb[0] - ra[0], fit.dy + rb[1] - ra[1]
+                p.confidence = fit.confidence
+                if fit.information is not None:       # (row, column) -> painting (x, y)
+                    i = fit.information
+                    p.information = (float(i[1, 1]), float(i[0, 1]), float(i[0, 0]))
             out.append(p)
     return out
 
@@ -353,9 +401,9 @@ def _connected(names, links) -> bool:
 
 def _solve(names, nominal, pairs, min_confidence, max_residual_px):
     """Weighted least squares of the corners from the pairs' offsets (``p.dx, p.dy`` hold the
-    measured ``corner_b - corner_a``); gauge: mean correction from ``nominal`` zero."""
+    measured ``corner_b - corner_a``), each pair weighted by its confidence along the directions its
+    overlap determines (``p.information``); gauge: mean correction from ``nominal`` zero."""
     idx = {n: i for i, n in enumerate(names)}
-    n = len(names)
     q = np.array([nominal[k] for k in names])
     for p in pairs:
         p.dropped = False
@@ -363,24 +411,8 @@ def _solve(names, nominal, pairs, min_confidence, max_residual_px):
         if not p.used and not p.why:
             p.why = _why_unregistered(p, min_confidence)
     while True:
-        rows, rhs, w = [], [], []
         links = [p for p in pairs if not p.dropped]
-        for p in links:
-            row = np.zeros(n)
-            row[idx[p.b]], row[idx[p.a]] = 1.0, -1.0
-            rows.append(row)
-            if p.used:
-                rhs.append((p.dx, p.dy))
-                w.append(max(p.confidence, 0.05))
-            else:   # the stage's relative offset, weakly
-                rhs.append(tuple(q[idx[p.b]] - q[idx[p.a]]))
-                w.append(1e-3)
-        rows.append(np.full(n, 1.0 / n))
-        rhs.append(tuple(q.mean(axis=0)))
-        w.append(1.0)
-        A, B, sw = np.array(rows), np.array(rhs), np.sqrt(np.array(w))[:, None]
-        sol, *_ = np.linalg.lstsq(A * sw, B * sw, rcond=None)
-        res = np.hypot(*(A[:-1] @ sol - B[:-1]).T)
+        xy, res = _least_squares(idx, q, links)
         worst, worst_r = None, max_residual_px
         for p, r in zip(links, res):
             p.residual_px = float(r) if p.used else None
@@ -393,8 +425,48 @@ def _solve(names, nominal, pairs, min_confidence, max_residual_px):
         worst.why = (f"its shift ({worst.dx:.1f}, {worst.dy:.1f}) px disagrees with the global solution by "
                      f"{worst_r:.1f} px; dropped")
         log.info("mosaic: pair %s dropped (%.1f px)", worst.name, worst_r)
-    corners = {k: (float(sol[idx[k], 0]), float(sol[idx[k], 1])) for k in names}
+    corners = {k: (float(xy[idx[k], 0]), float(xy[idx[k], 1])) for k in names}
     return corners, pairs
+
+
+def _information(p: PairShift) -> np.ndarray:
+    """The pair's 2 x 2 weight shape in painting ``(x, y)`` (identity when round or unknown)."""
+    if p.information is None:
+        return np.eye(2)
+    xx, xy, yy = p.information
+    return np.array([[xx, xy], [xy, yy]])
+
+
+def _least_squares(idx: dict, q: np.ndarray, links: list) -> tuple:
+    """Corners ``(n, 2)`` minimising the sum over the links of ``w r' I r`` (``r``: the link's misfit,
+    ``I``: its information, ``w``: its confidence; a link not used holds the nominal offset with weight
+    1e-3), and each link's residual in pixels along the direction it determines best,
+    ``sqrt(r' I r)`` (the plain distance for a round peak)."""
+    n = len(q)
+    rows, rhs, misfit = [], [], []
+    for p in links:
+        a = np.zeros((2, 2 * n))                  # unknowns x_0 .. x_n-1, y_0 .. y_n-1
+        for k in range(2):
+            a[k, k * n + idx[p.b]], a[k, k * n + idx[p.a]] = 1.0, -1.0
+        if p.used:
+            b, w, info = np.array([p.dx, p.dy]), max(p.confidence, 0.05), _information(p)
+        else:                                     # the stage's relative offset, weakly
+            b, w, info = q[idx[p.b]] - q[idx[p.a]], 1e-3, np.eye(2)
+        lam, vec = np.linalg.eigh(w * info)
+        root = (vec * np.sqrt(np.maximum(lam, 0.0))) @ vec.T
+        rows.append(root @ a)
+        rhs.append(root @ b)
+        misfit.append((a, b, info))
+    gauge = np.zeros((2, 2 * n))
+    gauge[0, :n] = gauge[1, n:] = 1.0 / n
+    rows.append(gauge)
+    rhs.append(q.mean(axis=0))
+    sol = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    res = []
+    for a, b, info in misfit:
+        r = a @ sol - b
+        res.append(float(np.sqrt(max(r @ info @ r, 0.0))))
+    return np.column_stack([sol[:n], sol[n:]]), res
 
 
 #: Scale of the planes' coordinates: x, y in thousands of painting pixels (a well-conditioned system).
