@@ -74,3 +74,26 @@ def test_too_few_usable_blocks_is_a_clear_error():
     images[:, :, : int(N * 0.97)] = 0  # almost everything dark
     with pytest.raises(UVPSInputError, match="blocks are lit"):
         fit_dropoffs(block_grid(images), degree=6)
+
+
+def test_divided_grid_is_the_gain_corrected_stacks_grid():
+    """The blocks of a stack with smooth gains divided out (:class:`GainCorrected`) made from the stack's own
+    blocks without a pass over it (:func:`divided_grid`): within the gains' variation across a block times the
+    block's contrast (here, with gains far steeper than a lamp's beam, 3.5e-3 of the means in the blocks that
+    hold a sharp colour edge, median 8e-5), the same validity; a gain of 1 changes nothing."""
+    from uvps.core.flatfield import GainCorrected, divided_grid
+
+    images, _ = _capture(seed=3)
+    images[1, 100, 150] = 0.0                                   # a dark pixel: its block stays invalid
+    gains = 0.1 * np.random.default_rng(4).standard_normal((5, 5, 5))
+    grid = block_grid(images)
+    want = block_grid(GainCorrected(images, gains))
+    got = divided_grid(grid, gains)
+    rel = np.abs(got.values / want.values - 1)
+    assert rel.max() < 5e-3 and np.median(rel) < 1e-4, (rel.max(), np.median(rel))
+    np.testing.assert_array_equal(got.valid, want.valid)
+    assert not got.valid[1].all()
+    assert np.abs(got.values / grid.values - 1).max() > 0.1     # the gains were there to divide out
+    np.testing.assert_array_equal(divided_grid(grid, np.zeros((5, 5, 5))).values, grid.values)
+    with pytest.raises(UVPSInputError):
+        divided_grid(grid, gains[:3])

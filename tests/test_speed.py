@@ -277,11 +277,12 @@ def test_calibrated_route_keeps_its_outputs(tmp_path, monkeypatch):
     files are read and before the beams' gain maps were evaluated as matrix products (labels to the
     bit, maps to 1e-6 of their range: the gain maps' float64 sums are taken in another order). The
     sphere calibration gives no intensities: they are measured on the images with the beams divided
-    out, fitted again (two passes of drop-off fits)."""
+    out, fitted again on the one pass's blocks divided by the beams' gains (one pass over the stack, two
+    drop-off fits)."""
     root = _calibrated_scene(tmp_path)
     calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
     out = _calibrated_outputs(root)
-    assert calls == {"block_grid": 2, "fit_dropoffs": 2}
+    assert calls == {"block_grid": 1, "fit_dropoffs": 2}
     ref = np.load(GOLDEN_CALIBRATED)
     for name, value in out.items():
         want = ref[name]
@@ -296,8 +297,8 @@ def test_given_intensities_fit_the_dropoff_once(folder, tmp_path, monkeypatch):
     """Known positions and intensities (a rig's light file): the drop-off is fitted once, for the lamps'
     beams; the images with the beams divided out are not fitted again (nothing but dropoff.tif used
     those fits: it now holds the drop-off as captured, beam included). The normals are those of the
-    images divided by those beams under the given lamps; measured intensities and the flat-fielded
-    images still take two passes."""
+    images divided by those beams under the given lamps; measured intensities take a second fit (on the
+    first pass's blocks, :func:`uvps.core.flatfield.divided_grid`), the flat-fielded images two passes."""
     from uvps.core.flatfield import block_grid, fit_dropoffs
     from uvps.core.pipeline import with_common
     from uvps.core.lights import dropoff_common
@@ -321,12 +322,69 @@ def test_given_intensities_fit_the_dropoff_once(folder, tmp_path, monkeypatch):
         assert f.level == g.level
     calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
     run(cap, RunOptions(estimate_intensities=True), stages=("normals",))
-    assert calls == {"block_grid": 2, "fit_dropoffs": 2}
+    assert calls == {"block_grid": 1, "fit_dropoffs": 2}     # refitted on the first pass's blocks
     # the flat-fielded images asked for: the images with the beams divided out, over their own drop-off
     calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
     ff = run(cap, RunOptions(), stages=("flatfield", "normals"))
     assert calls == {"block_grid": 2, "fit_dropoffs": 2}
     np.testing.assert_array_equal(ff.stereo.normals, res.stereo.normals)
+
+
+@pytest.fixture(scope="module")
+def beams_capture(tmp_path_factory):
+    """A capture with lamp beams aimed off the centre (so the beams' gains are not 1) and its dark frame."""
+    cap = make_capture(shape=(120, 160), n_lights=8, seed=3, pixel_size_um=30.0, black_level=300.0,
+                       beam_exponent=30.0, beam_aim_error_deg=5.0)
+    out = tmp_path_factory.mktemp("beams") / "cap"
+    write_capture(cap, out, truth=False, dark_frame=True)
+    return out
+
+
+@pytest.mark.parametrize("intensities", [False, True])
+def test_calibrated_route_fits_only_what_it_uses(beams_capture, tmp_path, monkeypatch, intensities):
+    """``uvps calibrate --lights`` (positions; with an intensity column, intensities too) and ``uvps run
+    --calibration --dark``: the stack is read ONCE for the drop-off (one block pass, each image's blocks read
+    once). Measured intensities are fitted again on those blocks with the beams divided out
+    (:func:`uvps.core.flatfield.divided_grid`), not on a second pass, and give the intensities of that second
+    pass (to 1e-9) and the same normals; given intensities are not fitted again at all. Asking for the
+    flat-fielded images, whose drop-off must be theirs exactly, takes the second pass. A change that refits
+    or rereads what the run does not use fails here."""
+    import json
+
+    import tifffile
+    import uvps.core.flatfield as ff
+    from uvps.cli import main
+
+    K = 8
+    dark = beams_capture / "dark" / "dark.tif"
+    assert main(["calibrate", "--lights", str(beams_capture / "lights_positions_mm.csv"), "--dark", str(dark),
+                 "--pixel-size-um", "30", "-o", str(tmp_path / "cal")]) == 0
+    if intensities:   # a calibration that holds them (uvps calibrate --lights keeps the positions only)
+        E = np.linspace(0.8, 1.2, K)
+        doc = json.loads((tmp_path / "cal" / "lights.json").read_text())
+        for lamp, e in zip(doc["lights"], E):
+            lamp["intensity"] = float(e)
+        (tmp_path / "cal" / "lights.json").write_text(json.dumps(doc))
+    read = []
+    real = ff.image_block_stats
+    monkeypatch.setattr(ff, "image_block_stats", lambda images, k, *a, **kw: (read.append(k), real(images, k, *a, **kw))[1])
+    out = {}
+    for extra, want in (([], (1, 1 if intensities else 2)), (["--flatfield-images"], (2, 2))):
+        read.clear()
+        calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+        run_dir = tmp_path / ("run" + "".join(extra))
+        assert main(["run", str(beams_capture), "--calibration", str(tmp_path / "cal"), "-o", str(run_dir)] + extra) == 0
+        assert calls == {"block_grid": want[0], "fit_dropoffs": want[1]}, extra
+        assert sorted(read) == sorted(list(range(K)) * want[0]), extra        # each image's blocks read once a pass
+        lights = json.loads((run_dir / "lights.json").read_text())
+        out[bool(extra)] = (np.array([lamp["intensity"] for lamp in lights["lights"]]),
+                            tifffile.imread(run_dir / "normals.tif"))
+    (E_one, n_one), (E_two, n_two) = out[False], out[True]
+    assert lights["dropoff_beyond_model_rms"] > 0.003       # 0.0055: the beams' gains are there to divide out
+    if intensities:
+        np.testing.assert_allclose(E_one, E / np.median(E), rtol=1e-9)
+    np.testing.assert_allclose(E_one, E_two, rtol=1e-9)
+    np.testing.assert_allclose(n_one, n_two, rtol=0, atol=1e-6)
 
 
 def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):

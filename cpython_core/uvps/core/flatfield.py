@@ -27,8 +27,8 @@ from .offset import corrected_band, each_image, image_block_stats
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "fit_dropoffs", "fit_log_grid", "with_common",
-           "flatfield", "to_unit"]
+__all__ = ["BlockGrid", "DropoffFit", "GainCorrected", "block_grid", "divided_grid", "fit_dropoffs", "fit_log_grid",
+           "with_common", "flatfield", "to_unit"]
 
 
 @dataclass
@@ -440,6 +440,31 @@ class GainCorrected(StackView):
             g = g[0]
         np.negative(g, out=g)
         return np.exp(g, out=g).astype(np.float32)
+
+
+def divided_grid(grid: BlockGrid, coeffs) -> BlockGrid:
+    """The block grid of ``GainCorrected(images, coeffs)`` made from the grid of ``images``, without a pass
+    over them: each block's mean divided by its image's gain at the block's centre.
+
+    The gains are smooth (degree-4 Legendre maps over the field) and a block is ~1 % of the field a side,
+    so a block's mean of ``image / gain`` is its mean over the gain at its centre to within the gain's
+    variation across the block times the block's texture (measured on
+    ``make_capture(shape=(1000, 1300), n_lights=16, seed=1, beam_exponent=30, beam_aim_error_deg=5)``
+    with a dark frame: the means within 2.9e-4 (rms 1.2e-5) of the second pass's, the fitted log drop-offs
+    within 1.4e-5, the measured intensities within 2e-12). The blocks' validity is the grid's: a dark pixel
+    stays dark, and saturation is judged on the counts before the beams are divided out (the second pass
+    judged it after).
+    """
+    K = grid.values.shape[0]
+    M, N = grid.shape
+    coeffs = np.asarray(coeffs, dtype=float)
+    deg = coeffs.shape[1] - 1
+    Vv = L.legvander(to_unit(grid.rows, M), deg)
+    Vu = L.legvander(to_unit(grid.cols, N), deg)
+    if len(coeffs) != K:
+        raise UVPSInputError(f"divided_grid: {len(coeffs)} gain maps for a grid of {K} images")
+    log_gain = np.matmul(np.matmul(Vv, coeffs), Vu.T)          # (K, R, C)
+    return dataclasses.replace(grid, values=grid.values * np.exp(-log_gain), valid=grid.valid.copy())
 
 
 def fit_log_grid(values, rows, cols, shape, degree) -> np.ndarray:

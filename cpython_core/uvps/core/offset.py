@@ -261,21 +261,29 @@ def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
 def _block_stats_kernel(a, d, f, as_view, has_dark, has_factor, block, sat):  # pragma: no cover - compiled
     # block means, minima and saturation of an array's own values (as_view False: float64 ones too,
     # which a float32 conversion would round), or of the samples a view computes, in its float32
-    # arithmetic: the value float32(raw), minus the dark frame and clipped at 0, times the factor
+    # arithmetic: the value float32(raw), minus the dark frame and clipped at 0, times the factor.
+    # With a dark frame each row's values are made first (_dark_row), then summed: its clip in the
+    # per-sample loop made that loop 12x slower (14 ns a sample against 1-2; the same sums in the same order)
     R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
     rows = np.zeros((R, Cb * block, C))
     gmin = np.full((R, Cb), np.inf)
     smin = np.full((R, Cb), np.inf)
     satd = np.zeros((R, Cb), np.bool_)
+    dark_rows = as_view and has_dark
+    row = np.empty((Cb * block if dark_rows else 1, C), np.float32)
     for i in range(R * block):
         r = i // block
+        if dark_rows:
+            _dark_row(a, d, f, has_factor, i, row)
         for cb in range(Cb):
             lo_g, lo_s, hit = gmin[r, cb], smin[r, cb], satd[r, cb]
             for j in range(cb * block, (cb + 1) * block):
                 g = 0.0
                 for c in range(C):
-                    if as_view:
-                        v = float(_view_sample(a, d, f, has_dark, has_factor, i, j, c))
+                    if dark_rows:
+                        v = float(row[j, c])
+                    elif as_view:
+                        v = float(_view_sample(a, d, f, False, has_factor, i, j, c))
                     else:
                         v = float(a[i, j, c])
                     rows[r, j, c] += v
@@ -285,6 +293,14 @@ def _block_stats_kernel(a, d, f, as_view, has_dark, has_factor, block, sat):  # 
                 lo_g = min(lo_g, g)
             gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
     return _block_means(rows, block), gmin, smin, satd
+
+
+@numba.njit(inline="always", nogil=True, cache=True)
+def _dark_row(a, d, f, has_factor, i, row):  # pragma: no cover - compiled
+    # row i's first row.shape[0] samples as a dark-subtracted view yields them (_view_sample's arithmetic)
+    for j in range(row.shape[0]):
+        for c in range(row.shape[1]):
+            row[j, c] = _view_sample(a, d, f, True, has_factor, i, j, c)
 
 
 def corrected_band(parts, *, out: np.ndarray) -> np.ndarray:

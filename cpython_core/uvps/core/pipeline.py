@@ -26,7 +26,7 @@ import numpy as np
 
 from .card import CardCalibration, apply_card
 from ..errors import UVPSInputError
-from .flatfield import GainCorrected, block_grid, fit_dropoffs, fit_log_grid, with_common
+from .flatfield import GainCorrected, block_grid, divided_grid, fit_dropoffs, fit_log_grid, with_common
 from .integrate import (IntegrationResult, frankot_chellappa, gradients_from_normals, integrate_normals,
                         nonintegrable_patches)
 from .stack import Capture
@@ -853,9 +853,11 @@ def estimate_capture_lights(capture: Capture, *, options: RunOptions, offset_std
     ``offset_stderr`` (grey counts, from :func:`remove_additive`) goes into their uncertainty.
 
     ``flatfield``: the fits are those of the images as the stages see them (the flat-fielded images,
-    :func:`uvps.files.runfolder.write_flatfield`, divide those by them). False, with known positions and
-    intensities whose beams are divided out: the fits of the images as captured, made once for the
-    beams, are kept (one pass over the stack instead of two; the lights, normals and all else the same).
+    :func:`uvps.files.runfolder.write_flatfield`, divide those by them). False, with known positions whose
+    beams are divided out: one pass over the stack instead of two; with the intensities given, the fits of
+    the images as captured, made once for the beams, are kept (the lights, normals and all else the same);
+    with the intensities measured, the fits of the first pass's blocks divided by the beams' gains
+    (:func:`uvps.core.flatfield.divided_grid`: the same intensities, drop-offs within ~1e-5).
 
     With a ``card`` (:mod:`uvps.core.card`, known lamps only) every image is first divided by the card's
     gain for its lamp: the lamps are then equal (``E_k = 1``) and beamless, and ``lamp_beams`` has
@@ -916,13 +918,16 @@ def _lights_at_given_positions(capture: Capture, options: RunOptions, grid, fits
     if beams != "none":
         gains = fit_log_grid(delta, rows, cols, shape, int(options.degree))
         capture = dataclasses.replace(capture, images=GainCorrected(capture.images, gains))
-        if measure_E or flatfield:
-            # the intensities are measured on the images with the beams divided out, and the flat-fielded
-            # images are those images over their drop-off: their own fits. With the intensities given
-            # (a rig, a calibration that holds them) and no flat-fielded images asked for, nothing else
-            # uses these fits: dropoff.tif and lights.json then hold the drop-off of the images as
-            # captured (the fits above, the beams included), and a pass over the whole stack is saved.
-            grid = block_grid(capture.images, mask=capture.mask, saturation=capture.saturation)
+        # the intensities are measured on the images with the beams divided out, and the flat-fielded
+        # images are those images over their drop-off: their own fits. The flat-fielded images take a
+        # second pass over the stack (their drop-off exactly theirs); the intensities alone take the
+        # first pass's blocks divided by the gains (divided_grid: the same intensities to 2e-12). With
+        # the intensities given (a rig, a calibration that holds them) and no flat-fielded images asked
+        # for, nothing else uses these fits: dropoff.tif and lights.json then hold the drop-off of the
+        # images as captured (the fits above, the beams included).
+        if flatfield or measure_E:
+            grid = (block_grid(capture.images, mask=capture.mask, saturation=capture.saturation) if flatfield
+                    else divided_grid(grid, gains))
             fits = fit_dropoffs(grid, degree=int(options.degree))
     fits = with_common(fits, grid, dropoff_common(P, shape, px))
     if measure_E:
