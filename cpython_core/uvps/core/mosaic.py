@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import ndimage, sparse, stats
 from scipy.sparse import csgraph
 
 log = logging.getLogger(__name__)
@@ -485,6 +485,11 @@ SHARED_DEGREE = 2
 #: error). Chosen on the generator (``scripts/benchmark_painting.py --beam 30 3 --bow 60``; docs/decisions/painting.md).
 TILT_WEIGHT = 1e-3
 
+#: The shared surface is kept only where it stands out of the tilts' noise: its chi-square above this
+#: quantile (of F, :func:`_shrunk_shared`; the generator's painting without lamp bias: chi-square 4.7 on 3
+#: terms against 25 for its 6 tiles, with the rig's beams 45 and 1420).
+SHARED_SIGNIFICANCE = 0.99
+
 
 @dataclass
 class RigAlignment:
@@ -546,7 +551,8 @@ def _overlap_samples(ha, hb, ca, cb, step, margin):
 
 
 def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degree: int = SHARED_DEGREE,
-                      tilt_weight: Optional[float] = TILT_WEIGHT, step: int = 4, margin: int = 8) -> RigAlignment:
+                      tilt_weight: Optional[float] = TILT_WEIGHT, shrink: bool = True, step: int = 4,
+                      margin: int = 8) -> RigAlignment:
     """Per-tile offset and one error surface shared by every tile that make the tiles' heights agree.
 
     Under a rig (the lamps move with the camera) a bias of the lamps is the same in every tile, in the
@@ -591,6 +597,14 @@ def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degr
     reg[tilts, tilts] = 1e12 if tilt_weight is None else tilt_weight * max(count, 1) / max(n, 1)
     reg += 1e-9 * max(np.trace(AtA), 1.0) / len(Atb) * np.eye(len(Atb))
     sol, *_ = np.linalg.lstsq(AtA + reg, Atb, rcond=None)
+    if shrink and tilt_weight is not None:
+        # the shared surface as far as it stands out of the tilts' noise, then the rest solved again around it
+        e = _shrunk_shared(AtA + reg, sol, tilts, reg[tilts, tilts], n)
+        held, rhs = reg.copy(), Atb.copy()
+        held[3 * n:, 3 * n:] += 1e12 * np.eye(m)
+        rhs[3 * n:] += 1e12 * e
+        sol, *_ = np.linalg.lstsq(AtA + held, rhs, rcond=None)
+        sol[3 * n:] = e
     rms = float(np.sqrt(max(sol @ AtA @ sol - 2 * sol @ Atb + btb, 0.0) / count)) if count else float("nan")
     shared = np.zeros((degree + 1, degree + 1))
     for (i, j), e in zip(terms, sol[3 * n:]):
@@ -605,6 +619,41 @@ def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degr
     plane = _painting_plane(heights, corners, forms, offsets, 4 * step, margin)
     return RigAlignment({k: (offsets[k] - plane[0], -plane[1], -plane[2]) for k in names}, forms, shared, offsets,
                         rms)
+
+
+def _shrunk_shared(A, sol, tilts, w, n) -> np.ndarray:
+    """The shared surface's terms shrunk toward zero by how far they stand out of the tilts' noise
+    (empirical Bayes: a normal prior of zero mean whose variance is what the estimate holds beyond its
+    noise; James and Stein 1961, Efron and Morris 1973).
+
+    The overlaps set every relative tilt but the shared surface's part; that part comes from the tilts the
+    tiles measured, weighted ``w`` in the normal matrix ``A``. The tilts' corrections ``sol[tilts]`` are their
+    errors where the overlaps measure them (about ``2 n - 5`` of the ``2 n``: not the painting's common tilt
+    nor the shared quadratic's three terms): their sum of squares over ``trace(R R^T)``, ``R`` the map
+    from the tilts' errors to the corrections, is the tilts' noise, which the map to the shared terms
+    carries to the estimate ``e``'s covariance ``C``. With no shared error
+    (lamps that hold), ``e`` is that noise: its chi-square ``e^T C^-1 e`` below ``m`` times the
+    :data:`SHARED_SIGNIFICANCE` quantile of F(m, dof) (the noise itself estimated), it is taken as zero, and
+    each tile keeps the plane the overlaps give it."""
+    m = len(sol) - 3 * n
+    e = sol[3 * n:]
+    if m == 0 or n < 3:
+        return e
+    # how the tilts' errors reach the solution: an error e_t of a measured tilt acts as the tilt's prior
+    # moved by e_t, so the corrections are -(I - R) e and the shared terms J e, with G = A^-1 w
+    G = np.linalg.solve(A, np.eye(len(sol))[:, tilts] * w)
+    R, J = np.eye(len(tilts)) - G[tilts], G[3 * n:]
+    dof = float(np.sum(R * R))
+    noise = float(sol[tilts] @ sol[tilts]) / max(dof, 1e-12)
+    C = noise * J @ J.T
+    chi2 = float(e @ np.linalg.lstsq(C, e, rcond=None)[0])
+    log.info("mosaic heights: shared surface %s um, its noise %s um (tilts' noise %.3g um, chi2 %.3g on %d terms)",
+             np.round(e, 3).tolist(), np.round(np.sqrt(np.diag(C)), 3).tolist(), np.sqrt(noise), chi2, m)
+    # the noise is estimated from a few tilts' worth of degrees of freedom: chi2 / m is F(m, dof) distributed
+    if dof < 1 or chi2 < m * stats.f.ppf(SHARED_SIGNIFICANCE, m, dof):
+        return np.zeros(m)
+    tau2 = max(0.0, (float(e @ e) - float(np.trace(C))) / m)
+    return tau2 * np.linalg.solve(tau2 * np.eye(m) + C, e)
 
 
 def _rig_normal_equations(heights, corners, pairs, levels, degree, step, margin):
