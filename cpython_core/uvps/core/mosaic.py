@@ -16,6 +16,10 @@ dropping the pair that disagrees most with the solution while it disagrees by mo
 ``min_confidence``) keeps its nominal relative offset, as a weak link, and its warning names why:
 blank paint (no structure in the overlap), no shift within reach, or no shift that matches.
 
+The tiles' heights are then aligned on the overlaps (:func:`align_rig_heights`): per tile an offset
+and a tilt, and one error surface shared by every tile in its own frame (the rig's lamps move with the
+camera); :func:`align_heights` (a free plane per tile) for tiles without their levelling record.
+
 Frames: corners ``(x, y)`` in painting pixels (x to the right = column, y down = row: the layout's
 and the tables' ``x_px``, ``y_px``); a tile's pixel ``(r, c)`` is the painting's ``(y + r, x + c)``.
 The solution's frame is the nominal layout's: the mean correction over the tiles is zero.
@@ -562,8 +566,11 @@ def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degr
     ``degree`` are measured by the overlaps (``E(u) - E(u + d)`` of a quadratic is a plane), while a
     free plane per tile would absorb them pair by pair and chain each tile's curvature error across the
     painting. One least squares over every used pair's overlap (sampled every ``step`` px, ``margin`` px
-    in from both tiles' edges) finds the offsets and ``E``; the tiles keep the tilt their normals
-    measured; then the painting-wide plane of the aligned surface is removed.
+    in from both tiles' edges) finds the offsets, the tilts' corrections and ``E``: the overlaps set every
+    relative tilt they measure, the tilts the normals measured (weighted ``tilt_weight``) only the rest
+    (``E``'s quadratic against the painting's, one to the overlaps when the tilts are free). ``E`` is kept
+    as far as it stands out of the tilts' noise (:func:`_shrunk_shared`), the rest solved again around
+    it; then the painting-wide plane of the aligned surface is removed.
 
     Parameters
     ----------
@@ -579,6 +586,11 @@ def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degr
         ``legendre_coeffs_um``; ``raw = depth + legval2d(u, v, coeffs)``).
     degree : int
         Total degree of the shared surface (>= 2).
+    tilt_weight : float or None
+        Each tile's measured tilt's weight, a fraction of a tile's share of the overlap samples
+        (:data:`TILT_WEIGHT`); None: the tilts held as measured.
+    shrink : bool
+        Keep ``E`` only as far as it stands out of the tilts' noise (with a ``tilt_weight``).
 
     Returns
     -------
