@@ -41,7 +41,7 @@ def run(seed, args, root: Path) -> dict:
                                        score_height, score_painting, write_painting)
 
     p = make_painting(grid=tuple(args.grid), tile_shape=tuple(args.tile), overlap=args.overlap,
-                      stage_error_px=args.stage_error, seed=seed)
+                      stage_error_px=args.stage_error, seed=seed, **rig_overrides(args))
     src = write_painting(p, root / f"painting{seed}")
     out = root / f"out{seed}"
     cmd = [sys.executable, "-m", "uvps", "batch", str(src / "tiles"), "-o", str(out), "--lights",
@@ -69,6 +69,16 @@ def run(seed, args, root: Path) -> dict:
             "max_residual_px": meta["max_residual_px"], **s, **{f"height_{k}": v for k, v in hs.items()},
             "batch_s": elapsed, "tiles_sum_s": tiles_s, "workers": args.workers,
             "ratio_to_ideal": elapsed / (tiles_s / args.workers), **{f"stitch_{k}": v for k, v in meta["timings"].items()}}
+
+
+def rig_overrides(args) -> dict:
+    """The generator's painting fields ``--bow`` and ``--beam`` set (none: the generator's defaults)."""
+    out = {}
+    if args.bow is not None:
+        out["bow_um"] = args.bow
+    if args.beam is not None:
+        out["beam_exponent"], out["beam_aim_error_deg"] = args.beam
+    return out
 
 
 def worst_of(rows: list) -> dict:
@@ -111,13 +121,18 @@ def main(argv=None):
     ap.add_argument("--overlap", type=float, default=0.4)
     ap.add_argument("--stage-error", type=float, default=30.0)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--bow", type=float, default=None, help="the canvas's bow over the painting (um; default 15)")
+    ap.add_argument("--beam", type=float, nargs=2, default=None, metavar=("EXPONENT", "AIM_DEG"),
+                    help="the rig's lamps' beams (cos^EXPONENT, aimed within AIM_DEG of the centre): the same in every "
+                         "tile and not in the light file")
+    ap.add_argument("--keep", type=Path, default=None, help="render and run into this folder and keep it")
     ap.add_argument("--doc", action="store_true",
                     help="write the table into docs/benchmarks.md (section painting) and docs/benchmarks/painting.json")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="uvps_painting_") as tmp:
         for seed in args.seeds:
-            r = run(seed, args, Path(tmp))
+            r = run(seed, args, args.keep or Path(tmp))
             rows.append(r)
             print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()}), flush=True)
     worst = worst_of(rows)

@@ -2,7 +2,7 @@
 
 The generator's painting (:mod:`uvps.testing.painting`) at COLUMNS x ROWS tiles is written as the
 run folders a batch would leave (each tile's true albedo times its exposure, its true height off by
-its own offset and plane, its normals, its protrusions), then
+its own offset and plane, levelled with its levelling in ``run.json``, its normals, its protrusions), then
 :func:`uvps.painting.stitch_painting` runs on them in a fresh process with Dask's
 synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
 memory during the stitching (``VmHWM`` after the imports, the peak reset through
@@ -25,6 +25,7 @@ import numpy as np
 
 
 def write_runs(args, root: Path) -> dict:
+    from uvps.core.level import level_height
     from uvps.files.io import write_imagej_tiff
     from uvps.files.tables import write_label_tiff
     from uvps.testing.painting import make_painting
@@ -38,6 +39,9 @@ def write_runs(args, root: Path) -> dict:
         d = root / t.name
         d.mkdir(parents=True)
         h = t.capture.height_um + rng.normal(0, 20) + rng.normal(0, 0.02) * cc + rng.normal(0, 0.02) * rr
+        # levelled as `uvps run` writes it, the levelling in run.json (the stitching rebuilds the raw height)
+        h, lev = level_height(h.astype(np.float32), pixel_size_um=15.0)
+        (d / "run.json").write_text(json.dumps({"level": lev.to_json()}))
         write_imagej_tiff(d / "depth.tif", h.astype(np.float32), axes="YX", pixel_size_um=15.0)
         write_imagej_tiff(d / "albedo.tif", np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32),
                           axes="CYX", pixel_size_um=15.0)

@@ -42,6 +42,10 @@ time against the tiles' sum over the workers::
 
     OMP_NUM_THREADS=1 python scripts/heldout_painting.py render /tmp/heldout --seed 7
     OMP_NUM_THREADS=1 python scripts/heldout_painting.py run /tmp/heldout -o /tmp/heldout_out --workers 2 [--doc]
+    OMP_NUM_THREADS=1 python scripts/heldout_painting.py score /tmp/heldout -o /tmp/heldout_out
+
+``run`` into a finished output folder runs only the stitching again (``uvps batch`` skips done tiles: its times are
+then the stitching's, not a batch's); ``score`` scores an output folder as it is, running nothing.
 
 The registration alone, re-run on a finished run's tile folders (prints the corner errors and each pair's)::
 
@@ -438,7 +442,8 @@ class RSSSampler(threading.Thread):
 
 
 def run(src: Path, out: Path, workers: int) -> dict:
-    import zarr
+    """``uvps batch --mosaic`` on the rendered painting ``src`` into ``out`` (a finished ``out``: its tiles
+    skipped, the painting stitched again), timed, then :func:`score`."""
     cmd = [sys.executable, "-m", "uvps", "batch", str(src / "tiles"), "-o", str(out), "--lights",
            str(src / "lights_positions_mm.csv"), "--regions", "auto", "--mosaic", str(src / "layout.csv"),
            "--workers", str(workers)]
@@ -455,6 +460,17 @@ def run(src: Path, out: Path, workers: int) -> dict:
     if proc.returncode:
         raise SystemExit(stderr)
     warnings = [ln for ln in stderr.splitlines() if "warning" in ln.lower()]
+    log = json.loads((out / "batch.json").read_text())
+    tiles_s = sum(c["elapsed_s"] for c in log["captures"])
+    return {**score(src, out), "batch_s": elapsed, "tiles_sum_s": tiles_s, "workers": workers,
+            "ratio_to_ideal": elapsed / (tiles_s / workers), "peak_rss_mb": sampler.peak_mb,
+            "load": [round(load0, 1), round(load1, 1)], "warnings": warnings,
+            **{f"batch_{k}": v for k, v in log.get("timings", {}).items()}}
+
+
+def score(src: Path, out: Path) -> dict:
+    """The painting of a finished batch folder ``out`` scored against the truth of ``src`` (no run)."""
+    import zarr
     truth_layout = read_layout(src / "truth" / "layout.csv")
     refined = read_layout(out / "painting" / "layout.csv")
     nominal = read_layout(src / "layout.csv")
@@ -466,15 +482,9 @@ def run(src: Path, out: Path, workers: int) -> dict:
     h = np.asarray(zarr.open_group(str(out / "painting" / "height.ome.zarr"), mode="r")["0"])
     hs = score_height(h, meta["origin_px"], tifffile.imread(src / "truth" / "height_um.tif"), truth_layout)
     regions = read_csv(out / "painting" / "painting_regions.csv")
-    log = json.loads((out / "batch.json").read_text())
-    tiles_s = sum(c["elapsed_s"] for c in log["captures"])
     return {"tiles": len(truth_layout), "tile_shape": list(TILE), "nominal_err_px": max(nominal_err),
             "corner_err_px": max(err), "max_residual_px": meta["max_residual_px"], **s,
             **{f"height_{k}": v for k, v in hs.items()}, "areas": len(regions) - 1, "paints": N_PAINTS,
-            "batch_s": elapsed, "tiles_sum_s": tiles_s, "workers": workers,
-            "ratio_to_ideal": elapsed / (tiles_s / workers), "peak_rss_mb": sampler.peak_mb,
-            "load": [round(load0, 1), round(load1, 1)], "warnings": warnings,
-            **{f"batch_{k}": v for k, v in log.get("timings", {}).items()},
             **{f"stitch_{k}": v for k, v in meta["timings"].items()}}
 
 
@@ -530,6 +540,14 @@ def main(argv=None):
     g = sub.add_parser("register", help="re-run the registration alone on a finished run's folders and score it")
     g.add_argument("folder", type=Path)
     g.add_argument("-o", "--output", type=Path, required=True, help="the run's output (its rNcM folders)")
+    c = sub.add_parser("score", help="score the painting of a finished batch folder OUT (nothing run)")
+    c.add_argument("folder", type=Path)
+    c.add_argument("-o", "--output", type=Path, required=True)
+    c.add_argument("--label", default=None, help="the row's name in the doc's table")
+    c.add_argument("--doc", action="store_true",
+                   help="replace the scores (not the batch's times, memory and load) of the row of that label in "
+                        "docs/benchmarks/heldout.json, e.g. after `run` stitched a finished folder again, and rewrite "
+                        "docs/benchmarks.md's section heldout")
     args = ap.parse_args(argv)
     if args.cmd == "render":
         render(args.folder, args.seed)
@@ -538,16 +556,25 @@ def main(argv=None):
         print(json.dumps(register(args.folder, args.output)), flush=True)
         return
     seed = json.loads((args.folder / "truth" / "painting.json").read_text())["seed"]
-    row = {"label": args.label or f"held-out seed {seed}, 4 x 3 of 1200 x 900", "seed": seed,
-           **run(args.folder, args.output, args.workers)}
+    label = args.label or f"held-out seed {seed}, 4 x 3 of 1200 x 900"
+    if args.cmd == "score":
+        row = {"label": label, "seed": seed, **score(args.folder, args.output)}
+    else:
+        row = {"label": label, "seed": seed, **run(args.folder, args.output, args.workers)}
     print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     if args.doc:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from benchdoc import JSON_DIR, write_doc
         path = JSON_DIR / f"{DOC_SECTION}.json"
         old = json.loads(path.read_text())["rows"] if path.exists() else []
+        if args.cmd == "score":   # the row's batch (times, memory, load) kept, its scores replaced
+            kept = [o for o in old if o["label"] == row["label"]]
+            if not kept:
+                raise SystemExit(f"no row {row['label']!r} in {path} to score again")
+            row = {**kept[0], **{k: v for k, v in row.items() if not k.startswith("stitch_")}, "rescored": True}
         results = {"argv": list(sys.argv[1:] if argv is None else argv),
-                   "rows": [o for o in old if o["label"] != row["label"]] + [row]}
+                   "rows": [o if o["label"] != row["label"] else row for o in old]
+                   + ([row] if row["label"] not in {o["label"] for o in old} else [])}
         print("wrote", write_doc(DOC_SECTION, results, render_doc(results), source="scripts/heldout_painting.py"))
 
 

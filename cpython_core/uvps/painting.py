@@ -35,7 +35,7 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import COLUMNS
-from .core.mosaic import Registration, align_heights, overlap_box, register_tiles
+from .core.mosaic import Registration, align_heights, align_rig_heights, overlap_box, register_tiles
 from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
 from .files.omezarr import (CHUNK_PX, LABELS, StoreBatch, ZarrImage, open_tiff, write_dask_ome_labels,
@@ -85,7 +85,7 @@ class PaintingResult:
                        "residual_px": None if p.residual_px is None else round(p.residual_px, 3),
                        "why_not_used": p.why or None} for p in self.registration.pairs],
             "max_residual_px": round(self.registration.max_residual_px, 3),
-            "height_planes": self.heights, "timings": self.timings, "areas": self.areas}
+            "height_alignment": self.heights, "timings": self.timings, "areas": self.areas}
 
 
 def _channels_last(a: np.ndarray) -> np.ndarray:
@@ -505,9 +505,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
-    heights = {k: open_tiff(out_dir / k / "depth.tif") for k in names}
-    planes = align_heights(heights, corners, reg.pairs)
-    del heights
+    planes, forms, record = _align_heights(out_dir, names, corners, reg)
     luts = {}
     for k in names:
         mine = [r for r in every if r["tile"] == k]
@@ -517,7 +515,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
             lut[int(r["id"])] = every[r["kept_as"]]["painting_id"]
         luts[k] = lut
     placed = [PlacedTile(k, str(out_dir / k), corners[k][0] - origin[0], corners[k][1] - origin[1], tuple(shapes[k]),
-                         gains[k], planes[k], luts[k]) for k in names]
+                         gains[k], planes[k], luts[k], forms[k]) for k in names]
     ctx = MapContext(placed, tuple(origin), tuple(shape), channels=AlbedoTile(out_dir / names[0]).channels)
     rctx = MapContext([PlacedTile(t.name, t.run_dir, t.x, t.y, t.shape) for t in placed], tuple(origin),
                       tuple(shape), regions=labels, step=step)
@@ -543,7 +541,34 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
                         painting_array("height", ctx, chunk_px=chunk_px), pixel_size_um, chunk_px=chunk_px,
                         origin_um=origin_um, batch=batch)
     batch.run()
-    return {k: [round(v, 6) for v in planes[k]] for k in names}
+    return record
+
+
+def _align_heights(out_dir: Path, names: list, corners: dict, reg) -> tuple:
+    """Each tile's height plane and form (:class:`uvps.painting_maps.PlacedTile`) and what
+    ``painting.json`` records of them. With every tile's levelling in its ``run.json`` (a ``uvps run``),
+    its height as integrated is rebuilt and the tiles share one error surface (the lamps move with the
+    camera: :func:`uvps.core.mosaic.align_rig_heights`); otherwise each tile takes a free plane
+    (:func:`uvps.core.mosaic.align_heights`)."""
+    import json
+
+    heights = {k: open_tiff(out_dir / k / "depth.tif") for k in names}
+    levels = {}
+    for k in names:
+        try:
+            levels[k] = json.loads((out_dir / k / "run.json").read_text(encoding="utf-8"))["level"]["legendre_coeffs_um"]
+        except (OSError, ValueError, KeyError, TypeError):
+            break
+    if len(levels) == len(names) and len({tuple(h.shape) for h in heights.values()}) == 1:
+        rig = align_rig_heights(heights, corners, reg.pairs, levels)
+        record = {"model": "rig: per-tile offset, the tilt measured, one shared error surface in the tile's frame",
+                  "shared_legendre_um": [[round(float(v), 6) for v in row] for row in rig.shared],
+                  "overlap_rms_um": round(rig.rms_um, 4),
+                  "planes": {k: [round(v, 6) for v in rig.planes[k]] for k in names}}
+        return rig.planes, rig.forms, record
+    planes = align_heights(heights, corners, reg.pairs)
+    return planes, {k: None for k in names}, {"model": "free: per-tile offset and plane",
+                                              "planes": {k: [round(v, 6) for v in planes[k]] for k in names}}
 
 
 def _cell(v) -> str:

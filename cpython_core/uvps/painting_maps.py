@@ -7,8 +7,8 @@ in memory; the chunks are written into OME-Zarr stores (:func:`uvps.files.omezar
 by the cluster's workers. A tile is placed at its registered corner, sub-pixel (bilinear
 interpolation; labels: nearest pixel), and the overlaps are feathered: each tile weighted by
 1 + its pixel's distance to the tile's nearest edge. The albedo is divided by the tile's gain
-(its exposure relative to the others), the height takes the tile's offset and plane
-(:func:`uvps.core.mosaic.align_heights`), the normals are renormalised after blending. Labels are
+(its exposure relative to the others), the height takes the tile's offset, plane and form
+(:func:`uvps.core.mosaic.align_rig_heights`: what levelling removed, less the tiles' shared error), the normals are renormalised after blending. Labels are
 not blended: each pixel takes the label of the tile it is most central in, the protrusion labels
 renumbered to the painting's ids (a duplicate of an overlap takes the id of the copy kept), the
 colour areas from the painting's overview.
@@ -29,7 +29,9 @@ from .files.omezarr import open_tiff
 @dataclass
 class PlacedTile:
     """A tile as the maps need it: its run folder, corner (painting pixels from the origin), shape,
-    gain, height plane ``(a, b, c)`` and protrusion-label lookup (tile id -> painting id)."""
+    gain, height plane ``(a, b, c)`` (painting pixels), height form (Legendre coefficients in the tile's
+    frame, :mod:`uvps.core.level`, added to its ``depth.tif``; None: none) and protrusion-label lookup
+    (tile id -> painting id)."""
 
     name: str
     run_dir: str
@@ -39,6 +41,7 @@ class PlacedTile:
     gain: float = 1.0
     plane: tuple = (0.0, 0.0, 0.0)
     lut: Optional[np.ndarray] = None
+    form: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -102,11 +105,25 @@ def render_chunk(kind: str, ctx: MapContext, r0: int, r1: int, c0: int, c1: int)
             elif kind == "height":
                 a, b, c = t.plane
                 v = v + a + b * (bcols + ctx.origin[0]) / PLANE_SCALE_PX + c * (brows + ctx.origin[1]) / PLANE_SCALE_PX
+                if t.form is not None:
+                    v = v + _form(t.form, ty, tx, t.shape)
             acc[ch][box] += np.nan_to_num(v) * w
         wsum[box] += w
     if kind == "protrusions":
         return out_label
     return _finish_chunk(kind, ctx, acc, wsum, (r0, r1, c0, c1))
+
+
+def _form(coeffs, ty, tx, shape) -> np.ndarray:
+    """The Legendre surface ``coeffs`` of a tile of ``shape`` (:mod:`uvps.core.level`'s variables) at its
+    rows ``ty`` (column vector) and columns ``tx`` (row vector), separably."""
+    from numpy.polynomial import legendre
+
+    M, N = shape
+    degree = coeffs.shape[0] - 1
+    lv = legendre.legvander(1.0 - 2.0 * np.ravel(ty) / max(M - 1, 1), degree)
+    lu = legendre.legvander(2.0 * np.ravel(tx) / max(N - 1, 1) - 1.0, degree)
+    return lv @ np.asarray(coeffs).T @ lu.T
 
 
 def _tile_window(kind: str, t: PlacedTile, box, ty, tx):

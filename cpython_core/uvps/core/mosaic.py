@@ -19,6 +19,10 @@ determines, dropping the pair that disagrees most with the solution while it dis
 ``min_confidence``) keeps its nominal relative offset, as a weak link, and its warning names why:
 blank paint (no structure in the overlap), no shift within reach, or no shift that matches.
 
+The tiles' heights are then aligned on the overlaps (:func:`align_rig_heights`): per tile an offset
+and a tilt, and one error surface shared by every tile in its own frame (the rig's lamps move with the
+camera); :func:`align_heights` (a free plane per tile) for tiles without their levelling record.
+
 Frames: corners ``(x, y)`` in painting pixels (x to the right = column, y down = row: the layout's
 and the tables' ``x_px``, ``y_px``); a tile's pixel ``(r, c)`` is the painting's ``(y + r, x + c)``.
 The solution's frame is the nominal layout's: the mean correction over the tiles is zero.
@@ -30,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import ndimage, sparse, stats
 from scipy.sparse import csgraph
 
 log = logging.getLogger(__name__)
@@ -545,3 +549,257 @@ def align_heights(heights: dict, corners: dict, pairs, *, step: int = 4, margin:
         vals.append(v[ok])
     plane, *_ = np.linalg.lstsq(np.vstack(pts), np.concatenate(vals), rcond=None)
     return {k: tuple(float(v) for v in coef[k] - plane) for k in names}
+
+
+#: Total degree of the error surface every tile shares in its own frame (:func:`align_rig_heights`): a
+#: quadratic (a rig's lamps' beams, off their light file, bend every tile's height alike).
+SHARED_DEGREE = 2
+
+#: The weight of each tile's measured tilt in :func:`align_rig_heights`, as a fraction of a tile's share of
+#: the overlap samples: small, so the overlaps set every relative tilt they measure and the tilts the
+#: normals measured set only what the overlaps cannot (the painting's curvature against the tiles' shared
+#: error). Chosen on the generator (``scripts/benchmark_painting.py --beam 30 3 --bow 60``; docs/decisions/painting.md).
+TILT_WEIGHT = 1e-3
+
+#: The shared surface is kept only where it stands out of the tilts' noise: its chi-square above this
+#: quantile (of F, :func:`_shrunk_shared`; the generator's painting without lamp bias: chi-square 4.7 on 3
+#: terms against 25 for its 6 tiles, with the rig's beams 45 and 1420).
+SHARED_SIGNIFICANCE = 0.99
+
+
+@dataclass
+class RigAlignment:
+    """What :func:`align_rig_heights` found: each tile's height in the painting is
+    ``depth + legval2d(u, v, forms[t]) + a + b x + c y`` (``planes[t] = (a, b, c)``, ``x, y`` painting
+    pixels / :data:`PLANE_SCALE_PX`; ``u, v`` the tile's Legendre variables, :mod:`uvps.core.level`).
+
+    ``forms[t]``: what levelling removed from tile ``t`` (restored) minus the ``shared`` surface (the
+    tiles' common error, Legendre coefficients in a tile's frame, um); ``offsets``: each tile's constant
+    before the painting-wide plane was removed; ``rms_um``: the overlaps' disagreement once aligned."""
+
+    planes: dict
+    forms: dict
+    shared: np.ndarray
+    offsets: dict
+    rms_um: float = float("nan")
+
+
+def _legendre_uv(rows, cols, shape):
+    """A tile's Legendre variables (:mod:`uvps.core.level`) at its pixels ``(rows, cols)``."""
+    M, N = shape
+    return 2.0 * np.asarray(cols, np.float64) / max(N - 1, 1) - 1.0, 1.0 - 2.0 * np.asarray(rows, np.float64) / max(M - 1, 1)
+
+
+def _shared_terms(degree: int) -> list:
+    """The Legendre terms ``(i, j)`` of the shared surface: total degree 2 to ``degree`` (a constant and a
+    plane common to every tile make a painting-wide plane, which the overlaps cannot see)."""
+    return [(i, d - i) for d in range(2, degree + 1) for i in range(d + 1)]
+
+
+def _shared_basis(rows, cols, shape, degree: int) -> np.ndarray:
+    """The shared surface's terms at a tile's pixels: (samples, terms)."""
+    from numpy.polynomial import legendre
+
+    u, v = _legendre_uv(rows, cols, shape)
+    full = legendre.legvander2d(u, v, [degree, degree])
+    return full[:, [i * (degree + 1) + j for i, j in _shared_terms(degree)]]
+
+
+def _raw_at(height, level, rows, cols) -> np.ndarray:
+    """A tile's height as integrated (``depth`` + what levelling removed) at its pixels ``(rows, cols)``."""
+    from numpy.polynomial import legendre
+
+    v = _bilinear(height, rows, cols)
+    u_, v_ = _legendre_uv(rows, cols, height.shape)
+    return v + legendre.legval2d(u_, v_, level)
+
+
+def _overlap_samples(ha, hb, ca, cb, step, margin):
+    """Painting pixels ``(X, Y)`` sampled every ``step`` px over two tiles' overlap, ``margin`` px in
+    from both tiles' edges; None when too few."""
+    box = overlap_box(ca, ha.shape, cb, hb.shape)
+    if box is None:
+        return None
+    x_lo, y_lo, x_hi, y_hi = box
+    X, Y = np.meshgrid(np.arange(np.ceil(x_lo) + margin, x_hi - margin, step),
+                       np.arange(np.ceil(y_lo) + margin, y_hi - margin, step))
+    return (X.ravel(), Y.ravel()) if X.size >= 3 else None
+
+
+def align_rig_heights(heights: dict, corners: dict, pairs, levels: dict, *, degree: int = SHARED_DEGREE,
+                      tilt_weight: Optional[float] = TILT_WEIGHT, shrink: bool = True, step: int = 4,
+                      margin: int = 8) -> RigAlignment:
+    """Per-tile offset and one error surface shared by every tile that make the tiles' heights agree.
+
+    Under a rig (the lamps move with the camera) a bias of the lamps is the same in every tile, in the
+    tile's own frame: each tile's height as integrated (``depth`` + what levelling removed, ``levels``)
+    is the painting's, plus a constant, plus one surface ``E(u, v)`` common to all tiles. On an overlap
+    two tiles see ``E`` at different places of their frames, so ``E``'s terms of total degree 2 to
+    ``degree`` are measured by the overlaps (``E(u) - E(u + d)`` of a quadratic is a plane), while a
+    free plane per tile would absorb them pair by pair and chain each tile's curvature error across the
+    painting. One least squares over every used pair's overlap (sampled every ``step`` px, ``margin`` px
+    in from both tiles' edges) finds the offsets, the tilts' corrections and ``E``: the overlaps set every
+    relative tilt they measure, the tilts the normals measured (weighted ``tilt_weight``) only the rest
+    (``E``'s quadratic against the painting's, one to the overlaps when the tilts are free). ``E`` is kept
+    as far as it stands out of the tilts' noise (:func:`_shrunk_shared`), the rest solved again around
+    it; then the painting-wide plane of the aligned surface is removed.
+
+    Parameters
+    ----------
+    heights : dict
+        ``{tile: (M, N) array}`` of the levelled heights (``depth.tif``; a memory map is read only where
+        sampled); every tile of one shape.
+    corners : dict
+        The registered corners ``{tile: (x, y)}``.
+    pairs : list of PairShift
+        The registration's pairs (the used ones are aligned).
+    levels : dict
+        ``{tile: Legendre coefficients}`` of what levelling removed (``run.json`` ``level``'s
+        ``legendre_coeffs_um``; ``raw = depth + legval2d(u, v, coeffs)``).
+    degree : int
+        Total degree of the shared surface (>= 2).
+    tilt_weight : float or None
+        Each tile's measured tilt's weight, a fraction of a tile's share of the overlap samples
+        (:data:`TILT_WEIGHT`); None: the tilts held as measured.
+    shrink : bool
+        Keep ``E`` only as far as it stands out of the tilts' noise (with a ``tilt_weight``).
+
+    Returns
+    -------
+    RigAlignment
+    """
+    names = list(heights)
+    n, terms = len(names), _shared_terms(degree)
+    m = len(terms)
+    AtA, Atb, btb, count = _rig_normal_equations(heights, corners, pairs, levels, degree, step, margin)
+    # the gauge (the offsets' sum 0); each tile's tilt held to what its normals measured, with the weight of
+    # ``tilt_weight`` overlap samples (None: held exactly); a vanishing ridge for a term no overlap measures
+    # (one row of tiles: no vertical curvature)
+    reg = np.zeros_like(AtA)
+    reg[0:3 * n:3, 0:3 * n:3] = 1e6
+    tilts = np.r_[np.arange(1, 3 * n, 3), np.arange(2, 3 * n, 3)]
+    reg[tilts, tilts] = 1e12 if tilt_weight is None else tilt_weight * max(count, 1) / max(n, 1)
+    reg += 1e-9 * max(np.trace(AtA), 1.0) / len(Atb) * np.eye(len(Atb))
+    sol, *_ = np.linalg.lstsq(AtA + reg, Atb, rcond=None)
+    if shrink and tilt_weight is not None:
+        # the shared surface as far as it stands out of the tilts' noise, then the rest solved again around it
+        e = _shrunk_shared(AtA + reg, sol, tilts, reg[tilts, tilts], n)
+        held, rhs = reg.copy(), Atb.copy()
+        held[3 * n:, 3 * n:] += 1e12 * np.eye(m)
+        rhs[3 * n:] += 1e12 * e
+        sol, *_ = np.linalg.lstsq(AtA + held, rhs, rcond=None)
+        sol[3 * n:] = e
+    rms = float(np.sqrt(max(sol @ AtA @ sol - 2 * sol @ Atb + btb, 0.0) / count)) if count else float("nan")
+    shared = np.zeros((degree + 1, degree + 1))
+    for (i, j), e in zip(terms, sol[3 * n:]):
+        shared[i, j] = e
+    offsets = {k: float(sol[3 * i]) for i, k in enumerate(names)}
+    forms = {}
+    for i, k in enumerate(names):
+        f = _pad(levels[k], degree) - _pad(shared, int(np.shape(levels[k])[0]) - 1)
+        f[1, 0] += sol[3 * i + 1]
+        f[0, 1] += sol[3 * i + 2]
+        forms[k] = f
+    plane = _painting_plane(heights, corners, forms, offsets, 4 * step, margin)
+    return RigAlignment({k: (offsets[k] - plane[0], -plane[1], -plane[2]) for k in names}, forms, shared, offsets,
+                        rms)
+
+
+def _shrunk_shared(A, sol, tilts, w, n) -> np.ndarray:
+    """The shared surface's terms shrunk toward zero by how far they stand out of the tilts' noise
+    (empirical Bayes: a normal prior of zero mean whose variance is what the estimate holds beyond its
+    noise; James and Stein 1961, Efron and Morris 1973).
+
+    The overlaps set every relative tilt but the shared surface's part; that part comes from the tilts the
+    tiles measured, weighted ``w`` in the normal matrix ``A``. The tilts' corrections ``sol[tilts]`` are their
+    errors where the overlaps measure them (about ``2 n - 5`` of the ``2 n``: not the painting's common tilt
+    nor the shared quadratic's three terms): their sum of squares over ``trace(R R^T)``, ``R`` the map
+    from the tilts' errors to the corrections, is the tilts' noise, which the map to the shared terms
+    carries to the estimate ``e``'s covariance ``C``. With no shared error
+    (lamps that hold), ``e`` is that noise: its chi-square ``e^T C^-1 e`` below ``m`` times the
+    :data:`SHARED_SIGNIFICANCE` quantile of F(m, dof) (the noise itself estimated), it is taken as zero, and
+    each tile keeps the plane the overlaps give it."""
+    m = len(sol) - 3 * n
+    e = sol[3 * n:]
+    if m == 0 or n < 3:
+        return e
+    # how the tilts' errors reach the solution: an error e_t of a measured tilt acts as the tilt's prior
+    # moved by e_t, so the corrections are -(I - R) e and the shared terms J e, with G = A^-1 w
+    G = np.linalg.solve(A, np.eye(len(sol))[:, tilts] * w)
+    R, J = np.eye(len(tilts)) - G[tilts], G[3 * n:]
+    dof = float(np.sum(R * R))
+    noise = float(sol[tilts] @ sol[tilts]) / max(dof, 1e-12)
+    C = noise * J @ J.T
+    chi2 = float(e @ np.linalg.lstsq(C, e, rcond=None)[0])
+    log.info("mosaic heights: shared surface %s um, its noise %s um (tilts' noise %.3g um, chi2 %.3g on %d terms)",
+             np.round(e, 3).tolist(), np.round(np.sqrt(np.diag(C)), 3).tolist(), np.sqrt(noise), chi2, m)
+    # the noise is estimated from a few tilts' worth of degrees of freedom: chi2 / m is F(m, dof) distributed
+    if dof < 1 or chi2 < m * stats.f.ppf(SHARED_SIGNIFICANCE, m, dof):
+        return np.zeros(m)
+    tau2 = max(0.0, (float(e @ e) - float(np.trace(C))) / m)
+    return tau2 * np.linalg.solve(tau2 * np.eye(m) + C, e)
+
+
+def _rig_normal_equations(heights, corners, pairs, levels, degree, step, margin):
+    """:func:`align_rig_heights`'s normal equations over ``[offset, tilt_u, tilt_v]`` of each tile and
+    the shared terms, pair by pair (a pair's rows touch its two tiles' columns and the shared ones
+    alone), the right-hand side's sum of squares and the samples' count."""
+    names = list(heights)
+    idx = {k: i for i, k in enumerate(names)}
+    n, m = len(names), len(_shared_terms(degree))
+    AtA, Atb, btb, count = np.zeros((3 * n + m, 3 * n + m)), np.zeros(3 * n + m), 0.0, 0
+    for p in pairs:
+        if not p.used:
+            continue
+        ha, hb = heights[p.a], heights[p.b]
+        (xa, ya), (xb, yb) = corners[p.a], corners[p.b]
+        xy = _overlap_samples(ha, hb, (xa, ya), (xb, yb), step, margin)
+        if xy is None:
+            continue
+        X, Y = xy
+        va, vb = _raw_at(ha, levels[p.a], Y - ya, X - xa), _raw_at(hb, levels[p.b], Y - yb, X - xb)
+        ok = np.isfinite(va) & np.isfinite(vb)
+        X, Y, r = X[ok], Y[ok], (vb - va)[ok]
+        # aligned, raw_t + o_t + tilt_t . (u, v) - E(in t's frame) agree:
+        # [1, u, v]_a . (o, tilt)_a - [1, u, v]_b . (o, tilt)_b + (S_b - S_a) e = raw_b - raw_a
+        ua, wa = _legendre_uv(Y - ya, X - xa, ha.shape)
+        ub, wb = _legendre_uv(Y - yb, X - xb, hb.shape)
+        one = np.ones(X.size)
+        D = np.column_stack([one, ua, wa, -one, -ub, -wb,
+                             _shared_basis(Y - yb, X - xb, hb.shape, degree)
+                             - _shared_basis(Y - ya, X - xa, ha.shape, degree)])
+        ix = np.r_[3 * idx[p.a] + np.arange(3), 3 * idx[p.b] + np.arange(3), 3 * n + np.arange(m)]
+        AtA[np.ix_(ix, ix)] += D.T @ D
+        Atb[ix] += D.T @ r
+        btb += float(r @ r)
+        count += X.size
+    return AtA, Atb, btb, count
+
+
+def _pad(coeffs, degree: int) -> np.ndarray:
+    """Legendre coefficients padded with zeros to at least ``degree + 1`` a side."""
+    c = np.asarray(coeffs, np.float64)
+    d = max(c.shape[0], degree + 1)
+    out = np.zeros((d, d))
+    out[:c.shape[0], :c.shape[1]] = c
+    return out
+
+
+def _painting_plane(heights, corners, forms, offsets, step, margin) -> np.ndarray:
+    """The least-squares plane ``(a, b, c)`` (painting pixels / :data:`PLANE_SCALE_PX`) of every tile's
+    aligned height (``depth + form + offset``) on an inner grid of each tile."""
+    from numpy.polynomial import legendre
+
+    pts, vals = [], []
+    for k, h in heights.items():
+        M, N = h.shape
+        rr, cc = np.meshgrid(np.arange(margin, M - margin, step), np.arange(margin, N - margin, step), indexing="ij")
+        rr, cc = rr.ravel(), cc.ravel()
+        u, v = _legendre_uv(rr, cc, h.shape)
+        z = np.asarray(h[rr, cc], np.float64) + legendre.legval2d(u, v, forms[k]) + offsets[k]
+        ok = np.isfinite(z)
+        X, Y = (cc[ok] + corners[k][0]) / PLANE_SCALE_PX, (rr[ok] + corners[k][1]) / PLANE_SCALE_PX
+        pts.append(np.column_stack([np.ones(ok.sum()), X, Y]))
+        vals.append(z[ok])
+    plane, *_ = np.linalg.lstsq(np.vstack(pts), np.concatenate(vals), rcond=None)
+    return plane

@@ -27,6 +27,7 @@ from scipy import ndimage
 from ..errors import UVPSInputError
 from ..files.io import write_imagej_tiff
 from ..files.outputs import atomic_output_dir, write_json_atomic
+from .synthetic_spec import Nuisances
 from .synthetic import SyntheticCapture, make_capture, normals_from_height, render_images, write_capture
 
 
@@ -97,7 +98,10 @@ def make_painting(*, grid=(3, 2), tile_shape=(200, 240), overlap: float = 0.4, s
     protrusion_density : float
         Protrusions per cm^2 in light and dark areas alike (enough to score a small painting).
     **overrides
-        Further :class:`uvps.testing.synthetic.SyntheticSpec` fields of the painting.
+        Further :class:`uvps.testing.synthetic.SyntheticSpec` fields of the painting: ``bow_um``
+        (the canvas's bow over the whole painting), ``beam_exponent`` and ``beam_aim_error_deg`` (the
+        rig's lamps' beams, the same relative to every tile: an irradiance the light file does not
+        give, so a bias of the normals common to every tile).
 
     Returns
     -------
@@ -123,6 +127,10 @@ def make_painting(*, grid=(3, 2), tile_shape=(200, 240), overlap: float = 0.4, s
     drift = 1 + rng.uniform(-exposure_drift, exposure_drift, rows * cols)
     drift[0] = 1.0
     px = whole.spec.pixel_size_um
+    # the lamps' beams (``beam_exponent``, ``beam_aim_error_deg``) ride with the rig: the same axes for every
+    # tile, so the irradiance's fall-off the light file does not give is the same in every tile
+    rig = Nuisances(beam_axes=whole.nuisances.beam_axes, beam_exponent=whole.nuisances.beam_exponent) \
+        if whole.nuisances.beam_axes is not None else None
     tiles = []
     for k in range(rows * cols):
         r, c = divmod(k, cols)
@@ -134,7 +142,7 @@ def make_painting(*, grid=(3, 2), tile_shape=(200, 240), overlap: float = 0.4, s
         images = render_images(height, albedo, pixel_size_um=px, light_positions_mm=whole.light_positions_mm,
                                intensities=whole.intensities, rng=np.random.default_rng([seed, k]),
                                noise=whole.spec.noise, gain=whole.gain, read_noise=whole.spec.read_noise,
-                               exposure=exposure, dtype=np.uint16)
+                               exposure=exposure, dtype=np.uint16, nuisances=rig)
         regions = _sample(whole.regions, *true, (M, N), order=0).astype(whole.regions.dtype)
         cap = dataclasses.replace(whole, images=images, height_um=height, albedo=albedo, regions=regions,
                                   normals=normals_from_height(height, pixel_size_um=px), exposure=exposure,
