@@ -262,7 +262,8 @@ class _SphereScene:
             w = np.stack([x, y, np.zeros(x.shape)], axis=-1) - C
             w /= np.linalg.norm(w, axis=-1, keepdims=True)
             b = w @ (S - C)
-            return w, b, float((S - C) @ (S - C)) - b * b          # the ray's squared miss of S
+            miss = np.cross(w, S - C)
+            return w, b, np.einsum("...i,...i->...", miss, miss)     # the ray's squared miss of S
         w, b, miss2 = rays(X, Y)
         frac = (miss2 < R * R).astype(np.float64)
         rim = np.abs(np.sqrt(miss2) - R) < 1.5 * px_mm
