@@ -33,8 +33,8 @@ def seen(tmp_path_factory):
 
     def capture(kind):
         if kind not in out:
-            out[kind] = make_sphere_capture(cap, [SphereSpec(kind, (0.15, 0.2), 3.0), SphereSpec(kind, (0.85, 0.8), 3.0)],
-                                            camera_distance_mm=D)
+            spheres = [SphereSpec(kind, (0.15, 0.2), 3.0), SphereSpec(kind, (0.85, 0.8), 3.0)]
+            out[kind] = make_sphere_capture(cap, spheres, camera_distance_mm=D)
         return out[kind]
     return capture
 

@@ -17,8 +17,11 @@ two or more spheres, its 3-D position (the bas-relief ambiguity of a sphere-free
 - **Glossy black sphere**: the lamp's mirror highlight. Its centre is the intensity-weighted mean
   of the normals under the highlight, weighted per unit of solid angle (``1 / n_z`` per pixel), so
   the foreshortening near the limb does not pull it; a saturated highlight counts as a disc, and thin
-  flare spikes are opened away first. With the viewer along +z (orthographic camera),
-  ``l = 2 n_z n - (0, 0, 1)``, from the highlight's surface point.
+  flare spikes are opened away first. ``l = 2 (n . v) n - v`` from the highlight's surface point, ``v``
+  the view: (0, 0, 1) for an orthographic camera (the default), or toward a pinhole camera's centre
+  ``camera_distance_mm`` above the image centre (:mod:`uvps.core.sphere_view`: each pixel's normal is
+  then where its ray meets the sphere, for matte spheres too; a sphere off the lens's axis read
+  orthographically is about its off-axis angle off, decisions/spheres.md).
 
 Each sphere gives each lamp a ray (a point in mm and a direction). One sphere gives far-light
 directions (the RTI case); two or more give the lamp's position as the point closest to every ray
@@ -1118,7 +1121,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
             # the reflection law at the highlight's surface point: its view vector is exact there (across a
             # 2.5 mm ball under a camera 300 mm away the view turns by 0.5 deg, across its highlight by 0.02)
             view = disc.view(nm)
-            cos_v = float(nm @ view)
+            cos_v = nm @ view           # a numpy float (sigma_px may be float32: the division stays in float64)
             d = 2 * cos_v * nm - view
             dirs[k] = d / np.linalg.norm(d)
             pts[k] = disc.centre_mm + disc.radius_mm * nm
@@ -1250,8 +1253,7 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
     capture : str, optional
         The capture's name (folder or file) for the messages.
     camera_distance_mm : float, optional
-        The camera's centre of projection above the painting (mm; :func:`fit_sphere`); None: orthographic.
-        Recorded in ``diagnostics["camera_distance_mm"]``.
+        Its centre of projection above the painting, mm (:func:`fit_sphere`; in ``diagnostics``); None: orthographic.
     progress : callable, optional
 
     Returns
@@ -1320,9 +1322,8 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}): the circles found "
                              "show no highlight or Lambertian shading; give the kind with --sphere-kind or the "
                              "circles with --sphere-circles (col,row,radius_px)")
-    diag = {"spheres": [f.sphere.to_json() for f in fits],
-            "direction_spread_deg": None, "positions": "one sphere: far-light directions",
-            "camera_distance_mm": None if camera_distance_mm is None else float(camera_distance_mm)}
+    diag = {"spheres": [f.sphere.to_json() for f in fits], "direction_spread_deg": None,
+            "positions": "one sphere: far-light directions", "camera_distance_mm": camera_distance_mm}
     dirs = np.array([f.directions for f in fits])                        # (S, K, 3)
     sig = np.array([f.sigma_deg for f in fits])                          # (S, K)
     if len(fits) == 1:
