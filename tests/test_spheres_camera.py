@@ -12,6 +12,7 @@ import pytest
 from uvps.core.sphere_view import outline, pixel_normals, sphere_from_outline
 from uvps.core.spheres import calibrate_spheres
 from uvps.errors import UVPSInputError
+from uvps.files.calibration import read_calibration
 from uvps.testing.synthetic import make_capture
 from uvps.testing.synthetic_spheres import SphereSpec, make_sphere_capture, write_sphere_capture
 
@@ -109,6 +110,7 @@ def test_calibrate_records_the_camera_and_refuses_bad_distances(seen, tmp_path):
     lights = json.loads((cal / "lights.json").read_text())
     assert lights["mode"] == "near"
     assert _angles([lp["direction"] for lp in lights["lights"]], sc.light_positions_mm).max() < 0.5
+    assert read_calibration(cal).summary()["camera_distance_mm"] == D      # what a run records of it
     for bad in ("0", "-300", "nan", "5"):      # 5 mm: below the 6 mm spheres' tops
         out = tmp_path / f"BAD{bad}"
         r = _uvps("calibrate", "--spheres", tmp_path / "spheres", "--camera-distance-mm", bad, "-o", out)
