@@ -1119,7 +1119,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
                                      "sphere) or the circles with --sphere-circles")
             nm, peak, n_used, sigma_px = fit
             # the reflection law at the highlight's surface point: its view vector is exact there (across a
-            # 2.5 mm ball under a camera 300 mm away the view turns by 0.5 deg, across its highlight by 0.02)
+            # 5 mm ball under a camera 300 mm away the view turns by 0.95 deg, across a 0.25 mm lobe by 0.05)
             view = disc.view(nm)
             cos_v = nm @ view           # a numpy float (sigma_px may be float32: the division stays in float64)
             d = 2 * cos_v * nm - view
