@@ -36,6 +36,7 @@ def main():
     dialogs.add_param(dlg, (COMMAND, "dome"), key="dome")
     dialogs.add_param(dlg, (COMMAND, "lights"), key="lights")
     dialogs.add_param(dlg, (COMMAND, "pixel_size_um"), key="pixel", decimals=3)
+    dialogs.add_param(dlg, (COMMAND, "camera_distance_mm"), key="camera", decimals=1)
     dlg.directory("Calibration folder (outputs)", "")
     dlg.describe("Calibration folder (outputs)", "the folder of the calibration (calibration.json, "
                  "lights.json, rig.dome, dark.tif, spheres.png); give it to Run Whole Pipeline")

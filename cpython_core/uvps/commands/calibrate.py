@@ -114,6 +114,7 @@ def _from_spheres(inputs, params, progress, pool):
     # the kind given applies to detected spheres too, before their fit
     cal = calibrate_spheres(cap.images, pixel_size_um=cap.pixel_size_um, spheres=given, saturation=saturation,
                             files=names, kind=params["sphere_kind"], capture=capture_name,
+                            camera_distance_mm=params.get("camera_distance_mm"),
                             progress=sub_progress(progress, 0.3, 0.9))
     return cap, cal, names, hashes
 
@@ -255,6 +256,7 @@ def _calibrate(route, inputs, params, out, pool, t0, progress):
     doc = {"format": FORMAT, "version": VERSION, "pixel_size_um": px,
            "image_shape": None if image_shape is None else list(image_shape), "n_lamps": K, "route": route,
            "spheres": spheres_json, "lamps": lamps,
+           "camera_distance_mm": params.get("camera_distance_mm") if route == "spheres" else None,
            "inputs": {**(hashed_capture.result() if hashed_capture is not None else {}), **_hashes(hashed)},
            "card": None if card is None else card.to_json(),
            "dark": dark_path is not None, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -287,6 +289,13 @@ SPECS = (
                           help="matte (white or grey: shading), glossy (black: a highlight's lobe) or mirror "
                                "(chrome: the lamp's small image); auto: from the highlight; applies to detected "
                                "spheres and to given circles without a kind"),
+                    Param("camera_distance_mm", "float", minimum=0, exclusive_minimum=True, unit="mm",
+                          label="Camera distance, mm (0 = orthographic: a far camera)",
+                          help="mm from the painting to the lens's centre of projection (about f (1 + 1/m), "
+                               "docs/capture.md): a glossy or mirror sphere off the lens's axis reflects the "
+                               "view from the camera, not from straight above, and every sphere's outline is "
+                               "that camera's; default: orthographic (a sphere 8 mm off the axis of a camera "
+                               "300 mm away reads its lamps about 2 deg off)"),
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",
                           help="a frame with the UV lamps off: subtracted from the sphere capture and kept in "
                                "the calibration for the captures that use it"),

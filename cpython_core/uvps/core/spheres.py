@@ -17,8 +17,11 @@ two or more spheres, its 3-D position (the bas-relief ambiguity of a sphere-free
 - **Glossy black sphere**: the lamp's mirror highlight. Its centre is the intensity-weighted mean
   of the normals under the highlight, weighted per unit of solid angle (``1 / n_z`` per pixel), so
   the foreshortening near the limb does not pull it; a saturated highlight counts as a disc, and thin
-  flare spikes are opened away first. With the viewer along +z (orthographic camera),
-  ``l = 2 n_z n - (0, 0, 1)``, from the highlight's surface point.
+  flare spikes are opened away first. ``l = 2 (n . v) n - v`` from the highlight's surface point, ``v``
+  the view: (0, 0, 1) for an orthographic camera (the default), or toward a pinhole camera's centre
+  ``camera_distance_mm`` above the image centre (:mod:`uvps.core.sphere_view`: each pixel's normal is
+  then where its ray meets the sphere, for matte spheres too; a sphere off the lens's axis read
+  orthographically is about its off-axis angle off, decisions/spheres.md).
 
 Each sphere gives each lamp a ray (a point in mm and a direction). One sphere gives far-light
 directions (the RTI case); two or more give the lamp's position as the point closest to every ray
@@ -69,6 +72,7 @@ from .sphere_find import (DETECT_LONG_SIDE, MIN_RADIUS_PX, MIN_RADIUS_RATIO,  # 
                           MIN_RIM_FRACTION, RANSAC_RIM_FRACTION, REFERENCE_RIM_FRACTION, Sphere,
                           _crop_box, _grey, _mean_image, _median_over_images, _projections,
                           _refine_circle, _to8, detect_spheres)
+from .sphere_view import pixel_normals, sphere_from_outline, view_at
 
 log = logging.getLogger(__name__)
 
@@ -258,25 +262,35 @@ _DISK2 = np.hypot(*np.mgrid[-2:3, -2:3]) <= 2.0
 class _Disc:
     """The pixels of a sphere's disc inside ``shrink`` of its radius, with their normals."""
 
-    def __init__(self, sphere: Sphere, shape, pixel_size_um, shrink=0.96):
+    def __init__(self, sphere: Sphere, shape, pixel_size_um, shrink=0.96, camera_distance_mm=None):
         M, N = shape
         self.box = _crop_box(sphere.centre_px, sphere.radius_px, shape, margin=1.0)
         r0, r1, c0, c1 = self.box
         rr, cc = np.mgrid[r0:r1, c0:c1]
         c_, r_ = sphere.centre_px
         R = sphere.radius_px
-        nx, ny = (cc - c_) / R, (r_ - rr) / R
-        rho2 = nx * nx + ny * ny
-        self.mask = rho2 < shrink * shrink
+        px_mm = pixel_size_um / 1000.0
+        self.frame, self.px_mm, self.camera_distance_mm = (M, N), px_mm, camera_distance_mm
+        if camera_distance_mm is None:
+            nx, ny = (cc - c_) / R, (r_ - rr) / R
+            rho2 = nx * nx + ny * ny
+            self.mask = rho2 < shrink * shrink
+        else:       # a pinhole camera: each pixel's ray meets the sphere the circle outlines (sphere_view)
+            self.centre_mm, self.radius_mm = self._sphere_mm(c_, r_, R)
+            nrm, rho = pixel_normals((cc - (N - 1) / 2.0) * px_mm, ((M - 1) / 2.0 - rr) * px_mm, self.centre_mm,
+                                     self.radius_mm, camera_distance_mm)
+            self.mask = rho < shrink
         if self.mask.sum() < 50:
             raise UVPSInputError(f"sphere at ({c_:.0f}, {r_:.0f}) px: fewer than 50 pixels of its disc lie in the "
                                  f"{N} x {M} image; expected a circle inside the frame")
-        nz = np.sqrt(np.clip(1 - rho2, 0, None))
-        self.normals = np.stack([nx, ny, nz], axis=-1)[self.mask]          # (P, 3)
-        px_mm = pixel_size_um / 1000.0
-        R_mm = R * px_mm
-        self.centre_mm = np.array([(c_ - (N - 1) / 2.0) * px_mm, ((M - 1) / 2.0 - r_) * px_mm, R_mm])
-        self.radius_mm = R_mm
+        if camera_distance_mm is None:
+            nz = np.sqrt(np.clip(1 - rho2, 0, None))
+            self.normals = np.stack([nx, ny, nz], axis=-1)[self.mask]          # (P, 3)
+            R_mm = R * px_mm
+            self.centre_mm = np.array([(c_ - (N - 1) / 2.0) * px_mm, ((M - 1) / 2.0 - r_) * px_mm, R_mm])
+            self.radius_mm = R_mm
+        else:
+            self.normals = nrm[self.mask]
         self.centre_px = (float(c_), float(r_))
         self.radius_px = float(R)
         self.rows, self.cols = rr[self.mask] - r0, cc[self.mask] - c0
@@ -286,6 +300,19 @@ class _Disc:
         self.inside[self.rows, self.cols] = True
         self.normal_map = np.zeros(self.shape + (3,), np.float32)
         self.normal_map[self.rows, self.cols] = self.normals
+
+    def _sphere_mm(self, c, r, R):
+        """The sphere (centre mm (3,), radius mm) whose outline is the circle at column ``c``, row ``r``,
+        radius ``R`` px, seen by the camera (:func:`uvps.core.sphere_view.sphere_from_outline`)."""
+        M, N = self.frame
+        E = ((c - (N - 1) / 2.0) * self.px_mm, ((M - 1) / 2.0 - r) * self.px_mm)
+        return sphere_from_outline(E, R * self.px_mm, self.camera_distance_mm)
+
+    def view(self, normal) -> np.ndarray:
+        """The unit vector toward the camera from the surface point of ``normal``: +z when orthographic."""
+        if self.camera_distance_mm is None:
+            return np.array([0.0, 0.0, 1.0])
+        return view_at(self.centre_mm + self.radius_mm * np.asarray(normal), self.camera_distance_mm)
 
 
 def _disc_values(crops, outer, disc: _Disc) -> np.ndarray:
@@ -826,6 +853,7 @@ def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle, off
     cols = disc.cols + disc.box[2]
     pix = np.concatenate(picks)
     pr, pc = rows[pix].astype(float), cols[pix].astype(float)
+    pX, pY = (pc - (disc.frame[1] - 1) / 2.0) * disc.px_mm, ((disc.frame[0] - 1) / 2.0 - pr) * disc.px_mm
     pv = np.concatenate([vals[k][idx] - (0.0 if offsets is None else offsets[k]) for k, idx in zip(used, picks)])
     sizes = np.array([idx.size for idx in picks])
     kid = np.repeat(np.arange(len(picks)), sizes)
@@ -843,10 +871,14 @@ def _matte_circle_residuals(disc: "_Disc", vals, picks, used, scale, circle, off
 
     def residuals(x):
         c, r, R = c0 + x[0], r0 + x[1], R0 * (1 + x[2])
-        nx, ny = (pc - c) / R, (r - pr) / R
-        nz = np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))
+        if disc.camera_distance_mm is None:
+            nx, ny = (pc - c) / R, (r - pr) / R
+            nz = np.sqrt(np.clip(1 - nx * nx - ny * ny, 0, None))
+            nrm = np.column_stack([nx, ny, nz])
+        else:
+            nrm = pixel_normals(pX, pY, *disc._sphere_mm(c, r, R), disc.camera_distance_mm)[0]
+            nx, ny = nrm[:, 0], nrm[:, 1]
         gain = _gain(x[3:], nx, ny)
-        nrm = np.column_stack([nx, ny, nz])
         A = np.column_stack([nrm, np.ones_like(nx), np.zeros_like(nx)]) * gain[:, None]
         if offsets is not None:         # the additive term held: no column of ones
             A = np.delete(A, 3, axis=1)
@@ -1003,7 +1035,7 @@ def _matte_disc(sphere: Sphere, disc: "_Disc", crops, outer, vals, sat, *, shape
     sphere, g = _refine_matte_circle(sphere, disc, vals, sat, offsets=offsets)
     log.debug("matte %s: gain across the disc %s, additive terms from the attached shadows %s", where,
               np.round(g, 4).tolist(), None if offsets is None else np.round(offsets, 2).tolist())
-    disc = _Disc(sphere, shape, pixel_size_um)
+    disc = _Disc(sphere, shape, pixel_size_um, camera_distance_mm=disc.camera_distance_mm)
     gain = _gain(g, disc.normals[:, 0], disc.normals[:, 1])
     vals = _disc_values(crops, outer, disc)
     if offsets is not None:     # v = c + gain (n . b): the held term comes off before the gain
@@ -1014,7 +1046,8 @@ def _matte_disc(sphere: Sphere, disc: "_Disc", crops, outer, vals, sat, *, shape
     return sphere, disc, vals, sat, None if offsets is None else np.zeros(len(offsets))
 
 
-def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None, files=None) -> SphereFit:
+def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None, files=None,
+               camera_distance_mm: Optional[float] = None) -> SphereFit:
     """Every lamp's ray from one sphere (see the module notes).
 
     Parameters
@@ -1029,6 +1062,10 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
         saturated samples are its disc).
     files : list of str, optional
         Image names for the messages.
+    camera_distance_mm : float, optional
+        The camera's centre of projection above the painting's plane (mm): each pixel's normal is where
+        its ray meets the sphere, and a highlight reflects the view from its own surface point
+        (:mod:`uvps.core.sphere_view`); None: orthographic (viewer along +z).
 
     Raises
     ------
@@ -1036,7 +1073,7 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
         When an image shows no highlight (glossy) or no lit part Lambert's law fits (matte), naming it.
     """
     K, M, N = images.shape[:3]
-    disc = _Disc(sphere, (M, N), pixel_size_um)
+    disc = _Disc(sphere, (M, N), pixel_size_um, camera_distance_mm=camera_distance_mm)
     # the sphere's box under every lamp, read once in the files' own type: the refined circle's disc
     # (its centre and radius move by at most 3 %, _refine_matte_circle's bounds) is read from it too
     outer = _crop_box(sphere.centre_px, sphere.radius_px, (M, N), margin=1.08)
@@ -1081,10 +1118,14 @@ def fit_sphere(images, sphere: Sphere, *, pixel_size_um: float, saturation=None,
                                      "or the lamp off); give the kind with --sphere-kind (matte for a shaded "
                                      "sphere) or the circles with --sphere-circles")
             nm, peak, n_used, sigma_px = fit
-            d = 2 * nm[2] * nm - np.array([0.0, 0.0, 1.0])
+            # the reflection law at the highlight's surface point: its view vector is exact there (across a
+            # 5 mm ball under a camera 300 mm away the view turns by 0.95 deg, across a 0.25 mm lobe by 0.05)
+            view = disc.view(nm)
+            cos_v = nm @ view           # a numpy float (sigma_px may be float32: the division stays in float64)
+            d = 2 * cos_v * nm - view
             dirs[k] = d / np.linalg.norm(d)
             pts[k] = disc.centre_mm + disc.radius_mm * nm
-            sig[k] = math.degrees(2 * sigma_px / (sphere.radius_px * max(nm[2], 0.3)))
+            sig[k] = math.degrees(2 * sigma_px / (sphere.radius_px * max(cos_v, 0.3)))
             strength[k], npx[k] = peak, n_used
     return SphereFit(sphere, pts, dirs, sig, strength, npx, resid)
 
@@ -1174,9 +1215,24 @@ def _from_rays(fits, dirs, sig, K, diag) -> LampCalibration:
     return out
 
 
+def _check_camera_distance(camera_distance_mm, sphere: Optional[Sphere], pixel_size_um: float) -> None:
+    """One line naming the option when the camera's distance is not a distance above the sphere (or,
+    without one, not a positive number)."""
+    D = camera_distance_mm
+    if D is None:
+        return
+    top = 0.0 if sphere is None else 2.0 * sphere.radius_px * pixel_size_um / 1000.0
+    ok = isinstance(D, (int, float)) and not isinstance(D, bool) and math.isfinite(D) and D > top
+    if not ok:
+        where = "" if sphere is None else (f", above the spheres (the one at ({sphere.centre_px[0]:.0f}, "
+                                           f"{sphere.centre_px[1]:.0f}) px is {top:.3g} mm tall)")
+        raise UVPSInputError(f"camera_distance_mm must be the distance in mm from the painting to the lens's centre "
+                             f"of projection{where}; got {D!r}")
+
+
 def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequence[Sphere]] = None,
                       saturation=None, files=None, kind: str = "auto", capture: Optional[str] = None,
-                      progress: Progress = None) -> LampCalibration:
+                      camera_distance_mm: Optional[float] = None, progress: Progress = None) -> LampCalibration:
     """Every lamp's direction, and with two or more spheres its position, from a sphere capture.
 
     Parameters
@@ -1196,6 +1252,8 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         auto: from the images (:func:`_kind_of`).
     capture : str, optional
         The capture's name (folder or file) for the messages.
+    camera_distance_mm : float, optional
+        Its centre of projection above the painting, mm (:func:`fit_sphere`; in ``diagnostics``); None: orthographic.
     progress : callable, optional
 
     Returns
@@ -1218,6 +1276,7 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
     K, M, N = images.shape[:3]
     if kind not in KINDS + ("auto",):
         raise UVPSInputError(f"sphere kind must be auto, {', '.join(KINDS)}; got {kind!r}")
+    _check_camera_distance(camera_distance_mm, None, pixel_size_um)
     given = spheres is not None
     first = files[0] if files else "the first image"
     first = f"{capture}, {first}" if capture else first
@@ -1241,12 +1300,13 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         c, r = s.centre_px
         if not (0 <= c < N and 0 <= r < M):
             raise UVPSInputError(f"sphere at ({c:g}, {r:g}) px lies outside the {N} x {M} images")
+        _check_camera_distance(camera_distance_mm, s, pixel_size_um)
     fits = []
     # the spheres are fitted side by side, one thread each (their numpy and compiled work releases the
     # GIL): 64 lamps on two matte spheres took 10.0 s one after the other, 7.5 s side by side
     with ThreadPoolExecutor(max_workers=max(1, min(len(spheres), os.cpu_count() or 1))) as pool:
         futures = [pool.submit(fit_sphere, images, s, pixel_size_um=pixel_size_um, saturation=saturation,
-                               files=files) for s in spheres]
+                               files=files, camera_distance_mm=camera_distance_mm) for s in spheres]
         for i, (s, fut) in enumerate(zip(spheres, futures)):
             try:
                 fits.append(fut.result())
@@ -1262,8 +1322,8 @@ def calibrate_spheres(images, *, pixel_size_um: float, spheres: Optional[Sequenc
         raise UVPSInputError(f"no sphere found in the sphere capture ({K} images from {first}): the circles found "
                              "show no highlight or Lambertian shading; give the kind with --sphere-kind or the "
                              "circles with --sphere-circles (col,row,radius_px)")
-    diag = {"spheres": [f.sphere.to_json() for f in fits],
-            "direction_spread_deg": None, "positions": "one sphere: far-light directions"}
+    diag = {"spheres": [f.sphere.to_json() for f in fits], "direction_spread_deg": None,
+            "positions": "one sphere: far-light directions", "camera_distance_mm": camera_distance_mm}
     dirs = np.array([f.directions for f in fits])                        # (S, K, 3)
     sig = np.array([f.sigma_deg for f in fits])                          # (S, K)
     if len(fits) == 1:

@@ -4,7 +4,8 @@ taken with the same lamp positions (``uvps calibrate``, ``uvps run --calibration
 A calibration folder ``CAL`` holds (docs/capture.md, the contract in docs/architecture.md):
 
 - ``calibration.json``: ``{"format": "uvps-calibration", "version": 1, "pixel_size_um", "image_shape",
-  "n_lamps", "route": "spheres" | "positions" | "dome" | "lp", "spheres": [...], "lamps": [...],
+  "n_lamps", "route": "spheres" | "positions" | "dome" | "lp", "spheres": [...], "camera_distance_mm": null |
+  mm (the spheres read through a pinhole camera that far above the image centre), "lamps": [...],
   "inputs": {path: sha256}, "card": {...} or null, "dark": bool}``;
 - ``lights.json``: the run folder's format (a direction per lamp; a position in mm where two or more
   spheres, a positions file or a 3-D dome give one), matched to a capture's images by order;
@@ -177,7 +178,8 @@ class Calibration:
                 "created_utc": self.doc.get("created_utc"),
                 "sha256": sha256_file(self.folder / FILES["calibration"]),
                 "positions": any(lp.get("position_mm") is not None for lp in self.doc.get("lamps", [])),
-                "dark": bool(self.doc.get("dark")), "card": self.doc.get("card") is not None}
+                "dark": bool(self.doc.get("dark")), "card": self.doc.get("card") is not None,
+                "camera_distance_mm": self.doc.get("camera_distance_mm")}
 
 
 def read_calibration(path) -> Calibration:

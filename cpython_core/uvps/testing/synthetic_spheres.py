@@ -8,7 +8,10 @@ against the lamps that rendered them.
 
 Frames follow ``docs/architecture.md`` (x right, y up, z toward the camera; mm from the image
 centre). Each sphere rests on the plane of the painting (z = 0): its centre is one radius above it.
-The camera is orthographic (viewer +z), as for the painting capture.
+The camera is orthographic (viewer +z), as for the painting capture, or a pinhole ``camera_distance_mm``
+above the image centre: each pixel then sees where the ray from the camera's centre through its point on
+the painting's plane first meets a sphere (the sphere's outline a slight ellipse), and the highlight
+reflects the view vector of that point.
 
 Image model (counts, ``c`` the exposure)::
 
@@ -91,7 +94,7 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
                         stand: bool = False, stand_top: float = 0.55, stand_half_width: float = 0.35,
                         flare: bool = True, seed: Optional[int] = None,
                         gloss_deg: float = GLOSS_SPREAD_DEG, specular: float = 20.0,
-                        exposure: float = 0.5) -> SphereCapture:
+                        exposure: float = 0.5, camera_distance_mm: Optional[float] = None) -> SphereCapture:
     """Render the spheres under the lamps of ``capture`` (uint16; RGB when the capture is).
 
     Parameters
@@ -117,6 +120,10 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     exposure : float
         The exposure relative to the painting capture's (a white sphere facing a lamp is brighter
         than the painting; at 0.5 part of a matte sphere still saturates under the lowest lamps).
+    camera_distance_mm : float, optional
+        A pinhole camera this far above the image centre (mm); None: orthographic. The spheres' truth
+        ``centre_px`` and ``radius_px`` are then their outline's centre and mean radius (from the
+        pixels they cover), ``centre_mm`` the sphere's own centre.
 
     Returns
     -------
@@ -135,7 +142,11 @@ def make_sphere_capture(capture: SyntheticCapture, spheres: Sequence[SphereSpec]
     for s in spheres:
         if s.kind not in ALBEDO or not s.radius_mm > 0:
             raise UVPSInputError(f"sphere {s}: kind must be 'matte', 'glossy' or 'mirror' and radius_mm > 0")
+    if camera_distance_mm is not None and not (math.isfinite(camera_distance_mm)
+                                               and camera_distance_mm > 2 * max(s.radius_mm for s in spheres)):
+        raise UVPSInputError(f"camera_distance_mm must be above the spheres; got {camera_distance_mm!r}")
     scene = _SphereScene.of_capture(capture, gloss_deg)
+    scene.camera_mm = camera_distance_mm
     truth = [scene.add_sphere(s, stand=stand, stand_top=stand_top, stand_half_width=stand_half_width)
              for s in spheres]
     rng = np.random.default_rng(_substream(spec.seed if seed is None else seed, "spheres").integers(2 ** 32))
@@ -169,6 +180,8 @@ class _SphereScene:
     spec_w: np.ndarray
     spread: np.ndarray
     flat: np.ndarray
+    #: the pinhole camera's height above the image centre (mm); None: orthographic
+    camera_mm: Optional[float] = None
 
     @classmethod
     def of_capture(cls, capture: SyntheticCapture, gloss_deg: float) -> "_SphereScene":
@@ -197,6 +210,9 @@ class _SphereScene:
         R = s.radius_mm
         rpx = R / px_mm
         cx, cy = (c0 - (n - 1) / 2.0) * px_mm, ((m - 1) / 2.0 - r0) * px_mm
+        if self.camera_mm is not None:
+            return self._add_sphere_seen(s, (cx, cy), stand=stand, stand_top=stand_top,
+                                         stand_half_width=stand_half_width)
         dx, dy = (X - cx) / R, (Y - cy) / R
         rho = np.sqrt(dx * dx + dy * dy)
         frac = _coverage((X - cx) / px_mm, (Y - cy) / px_mm, rpx)
@@ -208,6 +224,16 @@ class _SphereScene:
         self.cover[on] = frac[on]
         self.sN[on] = np.stack([dx, dy, nz], axis=-1)[on]
         self.sP[on] = np.stack([cx + R * dx, cy + R * dy, R + R * nz], axis=-1)[on]
+        self._kind_and_stand(s, on, (cx, cy), stand=stand, stand_top=stand_top, stand_half_width=stand_half_width)
+        return {"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
+                "centre_mm": [float(cx), float(cy), float(R)]}
+
+    def _kind_and_stand(self, s: SphereSpec, on, centre_xy, *, stand, stand_top, stand_half_width):
+        """The sphere's albedo and highlight on the pixels it covers (``on``), and its stand."""
+        X, Y = self.X, self.Y
+        m, n = X.shape
+        cx, cy = centre_xy
+        R = s.radius_mm
         self.s_alb[on] = ALBEDO[s.kind]
         if s.kind != "matte":
             self.spec_w[on] = 1.0
@@ -219,8 +245,46 @@ class _SphereScene:
             self.cover[post] = 0.0
             self.P[post] = np.stack([X, Y, np.full((m, n), R)], axis=-1)[post]
             self.albedo[post] = 0.04
-        return {"kind": s.kind, "centre_px": [float(c0), float(r0)], "radius_px": float(rpx),
-                "centre_mm": [float(cx), float(cy), float(R)]}
+
+    def _add_sphere_seen(self, s: SphereSpec, centre_xy, *, stand, stand_top, stand_half_width) -> dict:
+        """:meth:`add_sphere` under the pinhole camera at ``camera_mm``: each pixel's ray from the camera's
+        centre through its point on the plane, met by the sphere where ``t^2 - 2 b t + c = 0`` has a root
+        (``b = w . (S - C)``, ``c = |S - C|^2 - R^2``, ``w`` the ray's unit direction); the cover from an
+        8 x 8 grid of rays across each pixel near the outline."""
+        X, Y, px_mm = self.X, self.Y, self.px_mm
+        m, n = X.shape
+        R = s.radius_mm
+        S = np.array([centre_xy[0], centre_xy[1], R])
+        C = np.array([0.0, 0.0, float(self.camera_mm)])
+
+        def rays(x, y):
+            x, y = np.broadcast_arrays(x, y)
+            w = np.stack([x, y, np.zeros(x.shape)], axis=-1) - C
+            w /= np.linalg.norm(w, axis=-1, keepdims=True)
+            b = w @ (S - C)
+            miss = np.cross(w, S - C)
+            return w, b, np.einsum("...i,...i->...", miss, miss)     # the ray's squared miss of S
+        w, b, miss2 = rays(X, Y)
+        frac = (miss2 < R * R).astype(np.float64)
+        rim = np.abs(np.sqrt(miss2) - R) < 1.5 * px_mm
+        o = ((np.arange(8) + 0.5) / 8 - 0.5) * px_mm
+        sub = rays(X[rim][:, None, None] + o[None, None, :], Y[rim][:, None, None] + o[None, :, None])[2]
+        frac[rim] = (sub < R * R).mean(axis=(1, 2))
+        on = frac > 0
+        # a rim pixel shows the sphere just inside its outline
+        d = np.sqrt(miss2)
+        d_in = np.minimum(d, R * (1.0 - 0.5 * px_mm / R))
+        q = (C + b[..., None] * w - S) * (d_in / np.maximum(d, 1e-12))[..., None]
+        hit = S + q - np.sqrt(R * R - d_in * d_in)[..., None] * w
+        self.cover[on] = frac[on]
+        self.sN[on] = ((hit - S) / R)[on]
+        self.sP[on] = hit[on]
+        tot = frac.sum()
+        truth = {"kind": s.kind, "centre_px": [float((frac * np.arange(n)[None, :]).sum() / tot),
+                                               float((frac * np.arange(m)[:, None]).sum() / tot)],
+                 "radius_px": float(math.sqrt(tot / math.pi)), "centre_mm": [float(v) for v in S]}
+        self._kind_and_stand(s, on, centre_xy, stand=stand, stand_top=stand_top, stand_half_width=stand_half_width)
+        return truth
 
 
 def _render_sphere_images(capture, scene: _SphereScene, rng, *, flare, specular, exposure):
@@ -238,6 +302,10 @@ def _render_sphere_images(capture, scene: _SphereScene, rng, *, flare, specular,
     glossy = np.zeros(m * n)
     glossy[idx] = spec_s * (cover_s >= 0.5)
     glossy = glossy.reshape(m, n)
+    view = None
+    if scene.camera_mm is not None:         # each surface point's own view vector
+        view = np.array([0.0, 0.0, scene.camera_mm]) - sP
+        view /= np.linalg.norm(view, axis=-1, keepdims=True)
     nzs = capture.nuisances
     lamps = capture.light_positions_mm
     E = capture.intensities
@@ -256,7 +324,7 @@ def _render_sphere_images(capture, scene: _SphereScene, rng, *, flare, specular,
         ax = nzs.beam_axes[k] if beam else None
         sig = _radiance(L, e, scene.P.reshape(-1, 3), scene.N.reshape(-1, 3), scene.albedo.ravel(), None,
                         ax, nzs.beam_exponent, specular, s2)
-        on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2, a0)
+        on_s = _radiance(L, e, sP, sN, s_alb, spec_s, ax, nzs.beam_exponent, specular, s2, a0, view=view)
         sig[idx] = cover_s * on_s + (1.0 - cover_s) * sig[idx]
         sig = sig.reshape(m, n)
         if vig is not None:
@@ -305,9 +373,10 @@ def _coverage(u, v, radius_px, *, sub=8):
     return frac
 
 
-def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2, flat=0.0):
+def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2, flat=0.0, view=None):
     """``E * (|L| / |L - P|)^2 * beam * [albedo max(0, n . l) + spec]`` at points ``P`` (n, 3) with
-    normals ``N`` (n, 3): the module's image model before vignetting, exposure and noise."""
+    normals ``N`` (n, 3): the module's image model before vignetting, exposure and noise. ``view`` (n, 3):
+    each point's unit vector toward the camera (None: +z)."""
     V = L - P
     d = np.linalg.norm(V, axis=-1)
     lv = V / d[..., None]
@@ -317,7 +386,7 @@ def _radiance(L, e, P, N, albedo, spec_w, beam_axis, beam_exponent, specular, s2
     ndl = np.einsum("...i,...i->...", N, lv)
     shade = albedo * np.maximum(ndl, 0.0)
     if spec_w is not None:
-        h = lv + np.array([0.0, 0.0, 1.0])
+        h = lv + (np.array([0.0, 0.0, 1.0]) if view is None else view)
         h /= np.linalg.norm(h, axis=-1, keepdims=True)
         ang = np.arccos(np.clip(np.einsum("...i,...i->...", N, h), -1.0, 1.0))
         off = np.maximum(ang - flat, 0.0)
