@@ -115,6 +115,10 @@ MATTE_KEEP_RIM = True
 #: ... and each lamp's beam terms join that fit (:func:`_beams_significant`) where they explain the
 #: shading beyond its noise at this significance (the F test of the two nested least squares).
 MATTE_BEAM_P = 1e-3
+#: ... and where, with them, the shading is Lambert's to within this factor of its noise's variance
+#: (:func:`_picks_noise`): a rough ball's flatter shading is not a beam. The robustness benchmark's beams
+#: 1.09-1.13; rendered Oren-Nayar balls 1.07 (0.1 rad, 25.8 F) and 1.66 (0.2 rad, there 7.4 deg off with them).
+MATTE_BEAM_FIT = 1.25
 #: Terms of the gain across a matte sphere's disc (:func:`_gain`: to third order).
 GAIN_TERMS = 9
 #: Relative position uncertainty above which two or more spheres are said not to give positions
@@ -787,7 +791,8 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
     x = least_squares(plain, np.zeros(3 + GAIN_TERMS), **fit).x
     bounded = lambda x: np.any(np.abs(x[:3]) >= 0.98 * np.array([lim, lim, MATTE_CIRCLE_MOVE]))  # noqa: E731
     beams = _matte_circle_residuals(disc, vals, picks, used, scale, (c0, r0, R0), offsets, beam=True)
-    if not bounded(x) and _beams_significant(plain(x), beams(x), len(picks), offsets is None):
+    if not bounded(x) and _beams_significant(plain(x), beams(x), len(picks), offsets is None,
+                                             _picks_noise(disc, vals, picks, used, scale)):
         # each lamp's beam across the disc (a gradient the common gain cannot follow) pulled the circle:
         # under the robustness benchmark's beams 0.1-0.23 px, every lamp 0.1-0.27 deg (decisions/spheres.md).
         # Not asked where the shading already pulls the circle to its bounds: that ball is outside the
@@ -809,7 +814,29 @@ def _refine_matte_circle(sphere: Sphere, disc: "_Disc", vals, sat, *, samples=MA
     return Sphere((c0 + x[0], r0 + x[1]), R0 * (1 + x[2]), sphere.kind, sphere.source), x[3:]
 
 
-def _beams_significant(plain, beams, images, free_offset) -> bool:
+def _picks_noise(disc: "_Disc", vals, picks, used, scale) -> float:
+    """The noise of the circle's fit's samples (its residuals' units: each image's first ``|b|``), their
+    mean variance: from each pick's second difference along its row, ``v[c - 1] - 2 v[c] + v[c + 1]``
+    (variance six times the noise's; the shading's curvature over a pixel is ``|b| / R^2``, far below),
+    a robust spread (MAD) per image. NaN where no pick has both neighbours on the disc."""
+    at = np.full(disc.shape, -1, np.int64)
+    at[disc.rows, disc.cols] = np.arange(disc.rows.size)
+    var = []
+    for k, idx, sc in zip(used, picks, scale):
+        r, c = disc.rows[idx], disc.cols[idx]
+        ok = (c > 0) & (c < disc.shape[1] - 1)
+        r, c, mid = r[ok], c[ok], idx[ok]
+        left, right = at[r, c - 1], at[r, c + 1]
+        ok = (left >= 0) & (right >= 0)
+        if ok.sum() < 20:
+            continue
+        v = vals[k]
+        d2 = v[left[ok]].astype(np.float64) - 2.0 * v[mid[ok]] + v[right[ok]]
+        var.append((1.4826 * np.median(np.abs(d2 - np.median(d2))) / sc) ** 2 / 6.0 * len(idx))
+    return float(np.sum(var) / sum(len(i) for i in picks)) if var else float("nan")
+
+
+def _beams_significant(plain, beams, images, free_offset, noise=float("nan")) -> bool:
     """Whether each image's beam terms (:func:`_beam_columns`, two per image) explain a matte sphere's
     shading beyond its noise: the F test of the circle's fit with them (residuals ``beams``) against
     the fit without (``plain``), both at one circle and gain, at :data:`MATTE_BEAM_P`.
@@ -818,7 +845,10 @@ def _beams_significant(plain, beams, images, free_offset) -> bool:
     across each lamp's direction of its own, which the gain common to every lamp cannot follow: left out,
     it pulls the circle. Kept in where there is none, the two terms per image take up part of the common
     gain (vignetting), which the circle then misses. On the robustness benchmark's 12-lamp spheres
-    F is 0.8-1.1 without beams (vignetting among them), 85-290 under its beams."""
+    F is 0.5-1.1 without beams (vignetting among them), 47-290 under its beams. A shading outside
+    Lambert's law (a rough ball's) is also explained better by more terms: they are taken only where
+    the fit with them leaves the residual of the noise (``noise``, :func:`_picks_noise`, within
+    :data:`MATTE_BEAM_FIT`)."""
     from scipy.special import fdtrc
 
     n = plain.size
@@ -827,7 +857,7 @@ def _beams_significant(plain, beams, images, free_offset) -> bool:
     if not (rss1 > 0 and dof > 0):
         return False
     F = (rss0 - rss1) / (2 * images) / (rss1 / dof)
-    return bool(fdtrc(2 * images, dof, F) < MATTE_BEAM_P)
+    return bool(fdtrc(2 * images, dof, F) < MATTE_BEAM_P and rss1 / dof <= MATTE_BEAM_FIT * noise)
 
 
 def _matte_picks(disc: "_Disc", vals, sat, samples, offsets=None):
