@@ -7,9 +7,14 @@ its own offset and plane, its normals, its protrusions), then
 synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
 memory during the stitching (``VmHWM`` after the imports, the peak reset through
 ``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
+With ``--workers N`` it stitches on a LocalCluster of N one-thread worker processes instead, as
+``uvps batch`` does (the pairs' shifts and the maps' chunks its tasks; the peak memory is then this
+process's alone, the workers' not counted; ``timings`` has ``register_tasks`` and
+``register_cpu_s``, the pair tasks' CPU seconds on the workers included).
 
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 3 2 --tile 600 800
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800
+    OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800 --no-maps --workers 2
 """
 from __future__ import annotations
 
@@ -83,9 +88,21 @@ def timed_maps(*a, **k):
 
 uvps.painting._write_maps = timed_maps
 t0, c0 = time.perf_counter(), time.process_time()
-with dask.config.set(scheduler="synchronous"):
-    res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
-print(json.dumps({"elapsed_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+n_workers = int(sys.argv[4])
+if n_workers:      # the batch's cluster: the pairs' shifts and the maps' chunks its tasks
+    import distributed
+    with distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as client:
+        t0, c0 = time.perf_counter(), time.process_time()
+        with client.as_current():
+            res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto",
+                                  maps=sys.argv[3] == "maps")
+        elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+else:
+    with dask.config.set(scheduler="synchronous"):
+        res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+print(json.dumps({"elapsed_s": elapsed, "cpu_s": cpu, "workers": n_workers,
                   "maps_cpu_s": sum(maps_cpu), "peak_rss_mb": hwm_mb(), "rss_after_imports_mb": rss0,
                   "peak_during_imports_mb": before,
                   "shape": list(res.shape), "timings": res.timings, "n_protrusions": res.n_protrusions}))
@@ -99,11 +116,15 @@ def main(argv=None):
     ap.add_argument("--overlap", type=float, default=0.4)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-maps", action="store_true", help="registration, counts and report only")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="stitch on a LocalCluster of this many one-thread worker processes, as the batch does "
+                         "(default 0: Dask's synchronous scheduler, everything in this process)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="uvps_stitch_") as tmp:
         tiles = write_runs(args, Path(tmp))
         done = subprocess.run([sys.executable, "-c", CHILD, tmp, json.dumps(tiles),
-                               "no-maps" if args.no_maps else "maps"], capture_output=True, text=True)
+                               "no-maps" if args.no_maps else "maps", str(args.workers)],
+                              capture_output=True, text=True)
         if done.returncode:
             raise SystemExit(done.stderr)
         out = json.loads(done.stdout.strip().splitlines()[-1])

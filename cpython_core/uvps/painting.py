@@ -435,8 +435,13 @@ class _PairTasks:
 
     @classmethod
     def on_current_client(cls) -> Optional["_PairTasks"]:
-        """On the current client (the batch's cluster: ``client.as_current()``), or None without one."""
+        """On the current client (the batch's cluster: ``client.as_current()``; as Dask's own ``compute``
+        finds it), or None without one or when Dask's ``scheduler`` setting names another (``synchronous``:
+        everything in this process)."""
         if "distributed" not in sys.modules:      # no client without distributed imported
+            return None
+        import dask
+        if dask.config.get("scheduler", None) not in (None, "dask.distributed", "distributed"):
             return None
         from distributed import Client
         try:
