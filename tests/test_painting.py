@@ -600,6 +600,8 @@ def test_the_painting_labels_are_an_ome_zarr_of_their_own_and_attached_to_the_al
     tiles = {t.name: (t.nominal[0], t.nominal[1], (M, N)) for t in p.tiles}
     with dask.config.set(scheduler="synchronous"):
         res = stitch_painting(tmp_path, tiles, pixel_size_um=15.0, regions="auto", chunk_px=128, report_html=False)
+    # Dask's synchronous scheduler: everything in this process, the registration's pairs too
+    assert res.timings["register_tasks"] == 0 and 0 <= res.timings["merge_s"] <= res.timings["total_s"]
     painting = tmp_path / "painting"
     store = painting / "labels.ome.zarr"
     assert isinstance(open_ome_zarr(zarr.open_group(str(store), mode="r")), Labels)
