@@ -7,10 +7,12 @@ its own offset and plane, its normals, its protrusions), then
 synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
 memory during the stitching (``VmHWM`` after the imports, the peak reset through
 ``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
-With ``--workers N`` it stitches on a LocalCluster of N one-thread worker processes instead, as
-``uvps batch`` does (the pairs' shifts and the maps' chunks its tasks; the peak memory is then this
-process's alone, the workers' not counted; ``timings`` has ``register_tasks`` and
-``register_cpu_s``, the pair tasks' CPU seconds on the workers included).
+With ``--workers N`` it stitches on N one-thread worker processes instead, on the cluster
+``uvps batch`` starts (:class:`uvps.commands.batch._Cluster`, whose workers leave distributed's nanny
+default ``MALLOC_TRIM_THRESHOLD_`` unset: with it, the registration's pair tasks took 3.5x their CPU).
+The pairs' shifts and the maps' chunks are then its tasks, and the peak memory is this process's
+alone (the workers' is not counted); ``timings`` has ``register_tasks`` and ``register_cpu_s`` (the
+pair tasks' CPU seconds on the workers included).
 
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 3 2 --tile 600 800
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800
@@ -89,15 +91,17 @@ def timed_maps(*a, **k):
 uvps.painting._write_maps = timed_maps
 t0, c0 = time.perf_counter(), time.process_time()
 n_workers = int(sys.argv[4])
-if n_workers:      # the batch's cluster: the pairs' shifts and the maps' chunks its tasks
-    import distributed
-    with distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as client:
+if n_workers:      # the batch's own cluster (its workers' settings): the pairs' shifts and the maps' chunks its tasks
+    from uvps.commands.batch import _Cluster
+    cluster = _Cluster(n_workers=n_workers)
+    try:
         t0, c0 = time.perf_counter(), time.process_time()
-        with client.as_current():
+        with cluster.client.as_current():
             res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto",
                                   maps=sys.argv[3] == "maps")
         elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    finally:
+        cluster.close()
 else:
     with dask.config.set(scheduler="synchronous"):
         res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
@@ -117,7 +121,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-maps", action="store_true", help="registration, counts and report only")
     ap.add_argument("--workers", type=int, default=0,
-                    help="stitch on a LocalCluster of this many one-thread worker processes, as the batch does "
+                    help="stitch on the batch's local cluster of this many one-thread worker processes "
                          "(default 0: Dask's synchronous scheduler, everything in this process)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="uvps_stitch_") as tmp:
