@@ -9,7 +9,7 @@ memory during the stitching (``VmHWM`` after the imports, the peak reset through
 ``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
 With ``--workers N`` it stitches on N one-thread worker processes instead, on the cluster
 ``uvps batch`` starts (:class:`uvps.commands.batch._Cluster`, whose workers leave distributed's nanny
-default ``MALLOC_TRIM_THRESHOLD_`` unset: with it, the registration's pair tasks took 3.5x their CPU).
+default ``MALLOC_TRIM_THRESHOLD_`` unset: with it, the registration's pair tasks took 3.4-3.7x their CPU).
 The pairs' shifts and the maps' chunks are then its tasks, and the peak memory is this process's
 alone (the workers' is not counted); ``timings`` has ``register_tasks`` and ``register_cpu_s`` (the
 pair tasks' CPU seconds on the workers included).

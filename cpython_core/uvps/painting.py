@@ -4,7 +4,9 @@ After ``uvps batch --mosaic LAYOUT`` has run every tile, :func:`stitch_painting`
 
 1. registers the tiles on their albedo (:func:`uvps.core.mosaic.register_tiles`: pairwise phase
    correlation of the overlaps, one global least squares that drops inconsistent pairs), from the
-   layout's nominal corners to refined ones;
+   layout's nominal corners to refined ones: the pairs' shifts as tasks of the current ``distributed``
+   client when there is one (the batch's cluster), each reading its two overlap windows from the run
+   folders; the least squares in this process;
 2. evens out the tiles' exposures (one gain per tile, from the overlaps' albedo ratios, one least
    squares over the log-gains) and blends their albedo into an overview of the painting (feathered:
    each tile weighted by its pixels' distance to its edge);
