@@ -7,9 +7,16 @@ its own offset and plane, levelled with its levelling in ``run.json``, its norma
 synchronous scheduler (so the process holds every chunk it computes) and reports its peak resident
 memory during the stitching (``VmHWM`` after the imports, the peak reset through
 ``/proc/self/clear_refs``) and time. The tiles' pipeline is not run: this measures the stitching.
+With ``--workers N`` it stitches on N one-thread worker processes instead, on the cluster
+``uvps batch`` starts (:class:`uvps.commands.batch._Cluster`, whose workers leave distributed's nanny
+default ``MALLOC_TRIM_THRESHOLD_`` unset: with it, the registration's pair tasks took 3.4-3.7x their CPU).
+The pairs' shifts and the maps' chunks are then its tasks, and the peak memory is this process's
+alone (the workers' is not counted); ``timings`` has ``register_tasks`` and ``register_cpu_s`` (the
+pair tasks' CPU seconds on the workers included).
 
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 3 2 --tile 600 800
     OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800
+    OMP_NUM_THREADS=1 python scripts/benchmark_painting_memory.py --grid 6 4 --tile 600 800 --no-maps --workers 2
 """
 from __future__ import annotations
 
@@ -87,9 +94,23 @@ def timed_maps(*a, **k):
 
 uvps.painting._write_maps = timed_maps
 t0, c0 = time.perf_counter(), time.process_time()
-with dask.config.set(scheduler="synchronous"):
-    res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
-print(json.dumps({"elapsed_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+n_workers = int(sys.argv[4])
+if n_workers:      # the batch's own cluster (its workers' settings): the pairs' shifts and the maps' chunks its tasks
+    from uvps.commands.batch import _Cluster
+    cluster = _Cluster(n_workers=n_workers)
+    try:
+        t0, c0 = time.perf_counter(), time.process_time()
+        with cluster.client.as_current():
+            res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto",
+                                  maps=sys.argv[3] == "maps")
+        elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    finally:
+        cluster.close()
+else:
+    with dask.config.set(scheduler="synchronous"):
+        res = stitch_painting(sys.argv[1], tiles, pixel_size_um=15.0, regions="auto", maps=sys.argv[3] == "maps")
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+print(json.dumps({"elapsed_s": elapsed, "cpu_s": cpu, "workers": n_workers,
                   "maps_cpu_s": sum(maps_cpu), "peak_rss_mb": hwm_mb(), "rss_after_imports_mb": rss0,
                   "peak_during_imports_mb": before,
                   "shape": list(res.shape), "timings": res.timings, "n_protrusions": res.n_protrusions}))
@@ -103,11 +124,15 @@ def main(argv=None):
     ap.add_argument("--overlap", type=float, default=0.4)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-maps", action="store_true", help="registration, counts and report only")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="stitch on the batch's local cluster of this many one-thread worker processes "
+                         "(default 0: Dask's synchronous scheduler, everything in this process)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="uvps_stitch_") as tmp:
         tiles = write_runs(args, Path(tmp))
         done = subprocess.run([sys.executable, "-c", CHILD, tmp, json.dumps(tiles),
-                               "no-maps" if args.no_maps else "maps"], capture_output=True, text=True)
+                               "no-maps" if args.no_maps else "maps", str(args.workers)],
+                              capture_output=True, text=True)
         if done.returncode:
             raise SystemExit(done.stderr)
         out = json.loads(done.stdout.strip().splitlines()[-1])

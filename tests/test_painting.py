@@ -371,6 +371,33 @@ def _rows(path):
         return list(csv.DictReader(fh))
 
 
+def test_the_pairs_measured_on_the_cluster_are_those_of_one_process(paintings, client, tmp_path):
+    """The stitching's registration with the batch's cluster current (``client.as_current()``, as
+    ``uvps batch`` stitches): each pair's shift a task of its workers, reading its two windows of the
+    run folders' albedo.tif; the corners and every pair's shift, confidence and curvature the same,
+    bit for bit, as measured pair after pair in this process."""
+    from uvps.files.io import write_imagej_tiff
+    from uvps.painting import AlbedoTile, _register
+
+    p = paintings[2]
+    for t in p.tiles:
+        (tmp_path / t.name).mkdir()
+        write_imagej_tiff(tmp_path / t.name / "albedo.tif",
+                          np.moveaxis(t.capture.albedo * t.exposure, -1, 0).astype(np.float32), axes="CYX",
+                          pixel_size_um=15.0)
+    tiles = {t.name: (t.nominal[0], t.nominal[1], p.tile_shape) for t in p.tiles}
+    timings = {}
+    with client.as_current():
+        _, _, there = _register(tmp_path, tiles, None, timings)
+    here = register_tiles({k: AlbedoTile(tmp_path / k) for k in tiles}, p.nominal_corners(),
+                          max_shift_px=0.25 * min(p.tile_shape))
+    assert len(here.pairs) == 11 and all(q.used for q in here.pairs)
+    assert timings["register_tasks"] == 2 * len(here.pairs)          # both passes' pairs on the workers
+    assert there.corners == here.corners
+    assert there.pairs == here.pairs
+    assert max(_corner_errors(there.corners, p).values()) < 0.5
+
+
 @pytest.mark.slow
 def test_a_painting_of_3_x_2_tiles_is_registered_and_counted_once(paintings, written, client, tmp_path):
     """`uvps batch --mosaic` on Dask: refined corners within 0.5 px of the truth (stage off by up to
@@ -599,6 +626,8 @@ def test_the_painting_labels_are_an_ome_zarr_of_their_own_and_attached_to_the_al
     tiles = {t.name: (t.nominal[0], t.nominal[1], (M, N)) for t in p.tiles}
     with dask.config.set(scheduler="synchronous"):
         res = stitch_painting(tmp_path, tiles, pixel_size_um=15.0, regions="auto", chunk_px=128, report_html=False)
+    # Dask's synchronous scheduler: everything in this process, the registration's pairs too
+    assert res.timings["register_tasks"] == 0 and 0 <= res.timings["merge_s"] <= res.timings["total_s"]
     painting = tmp_path / "painting"
     store = painting / "labels.ome.zarr"
     assert isinstance(open_ome_zarr(zarr.open_group(str(store), mode="r")), Labels)

@@ -4,7 +4,9 @@ After ``uvps batch --mosaic LAYOUT`` has run every tile, :func:`stitch_painting`
 
 1. registers the tiles on their albedo (:func:`uvps.core.mosaic.register_tiles`: pairwise phase
    correlation of the overlaps, one global least squares that drops inconsistent pairs), from the
-   layout's nominal corners to refined ones;
+   layout's nominal corners to refined ones: the pairs' shifts as tasks of the current ``distributed``
+   client when there is one (the batch's cluster), each reading its two overlap windows from the run
+   folders; the least squares in this process;
 2. evens out the tiles' exposures (one gain per tile, from the overlaps' albedo ratios, one least
    squares over the log-gains) and blends their albedo into an overview of the painting (feathered:
    each tile weighted by its pixels' distance to its edge);
@@ -24,6 +26,7 @@ import contextvars
 import csv
 import logging
 import math
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
@@ -338,7 +341,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     out_dir = Path(out_dir)
     names = list(tiles)
     report(progress, 0.0, "painting: registering the tiles")
-    albedo, shapes, reg = _register(out_dir, tiles, max_shift_px)
+    albedo, shapes, reg = _register(out_dir, tiles, max_shift_px, timings)
     timings["register_s"] = round(time.perf_counter() - t0, 3)
     warnings = list(reg.warnings)
     for w in warnings:
@@ -359,7 +362,7 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     kept, every = _merged_protrusions(out_dir, names, corners, shapes, pixel_size_um=pixel_size_um)
     areas = _area_counts(kept, labels, area_names, corners, shapes, origin, step, pixel_size_um)
     result = PaintingResult(reg, gains, origin, shape, len(kept), len(every), areas, pixel_size_um, step, warnings)
-    timings["merge_s"] = round(time.perf_counter() - t0 - sum(timings.values()), 3)
+    timings["merge_s"] = round(time.perf_counter() - t0 - timings["register_s"], 3)
     report(progress, 0.8, "painting: writing")
     cm2 = (pixel_size_um * step) ** 2 / UM2_PER_CM2
     # built whole in a new folder that replaces the old one in one step (uvps.files.outputs.new_output_dir)
@@ -391,17 +394,69 @@ def stitch_painting(out_dir, tiles: dict, *, pixel_size_um: float, regions=None,
     return result
 
 
-def _register(out_dir: Path, tiles: dict, max_shift_px):
+def _register(out_dir: Path, tiles: dict, max_shift_px, timings: dict):
     """Each tile's albedo (read from its run folder, which gives its true shape) and the tiles'
     registration from their nominal corners, within ``max_shift_px`` (default: a quarter of the
-    smaller tile side)."""
+    smaller tile side). The pairs' shifts are tasks of the current ``distributed`` client when there
+    is one (:class:`_PairTasks`), else measured in this process; the global solution is this process's.
+    ``timings`` gets ``register_tasks`` (pairs measured on the cluster, 0 here) and ``register_cpu_s``
+    (CPU seconds of this process during the registration plus the pair tasks' on the workers)."""
+    c0 = time.process_time()
     names = list(tiles)
     nominal = {k: (float(tiles[k][0]), float(tiles[k][1])) for k in names}
     albedo = {k: AlbedoTile(out_dir / k) for k in names}
     shapes = {k: tuple(albedo[k].shape) for k in names}
     if max_shift_px is None:
         max_shift_px = 0.25 * min(min(s) for s in shapes.values())
-    return albedo, shapes, register_tiles(albedo, nominal, max_shift_px=max_shift_px)
+    tasks = _PairTasks.on_current_client()
+    reg = register_tiles(albedo, nominal, max_shift_px=max_shift_px, map_pairs=tasks)
+    timings["register_tasks"] = tasks.n_tasks if tasks else 0
+    timings["register_cpu_s"] = round(time.process_time() - c0 + (tasks.cpu_s if tasks else 0.0), 3)
+    return albedo, shapes, reg
+
+
+def _cpu_timed(fn, job):
+    """``(fn(job), CPU seconds of the thread that ran it)``: a pair task's result and its cost on its worker."""
+    c0 = time.thread_time()
+    out = fn(job)
+    return out, time.thread_time() - c0
+
+
+class _PairTasks:
+    """The registration's pairs as tasks of a ``distributed`` client (``map_pairs`` of
+    :func:`uvps.core.mosaic.register_tiles`): each task carries its :class:`uvps.core.mosaic.PairJob`
+    (the two tiles' :class:`AlbedoTile`, a path each, and the overlap's box), reads just its two
+    windows of the run folders' memory-mapped ``albedo.tif`` on its worker and returns the pair's
+    :class:`uvps.core.mosaic.PairShift`; no tile goes through the scheduler. The same function as in
+    one process, on the same windows: the same shifts, bit for bit (``tests/test_painting.py``)."""
+
+    def __init__(self, client):
+        self.client = client
+        self.n_tasks = 0
+        self.cpu_s = 0.0
+
+    @classmethod
+    def on_current_client(cls) -> Optional["_PairTasks"]:
+        """On the current client (the batch's cluster: ``client.as_current()``; as Dask's own ``compute``
+        finds it), or None without one or when Dask's ``scheduler`` setting names another (``synchronous``:
+        everything in this process)."""
+        if "distributed" not in sys.modules:      # no client without distributed imported
+            return None
+        import dask
+        if dask.config.get("scheduler", None) not in (None, "dask.distributed", "distributed"):
+            return None
+        from distributed import Client
+        try:
+            return cls(Client.current())
+        except ValueError:
+            return None
+
+    def __call__(self, fn, jobs: list) -> list:
+        futures = self.client.map(_cpu_timed, [fn] * len(jobs), jobs, key="uvps-painting-pair", pure=False)
+        done = self.client.gather(futures)
+        self.n_tasks += len(jobs)
+        self.cpu_s += sum(c for _, c in done)
+        return [p for p, _ in done]
 
 
 def _merged_protrusions(out_dir: Path, names, corners, shapes, *, pixel_size_um):

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 from scipy import ndimage, sparse, stats
@@ -304,7 +304,8 @@ class _NccScore:
 
 
 def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min_confidence: float = 0.3,
-                   max_residual_px: float = 2.0, passes: int = 2, sigma: float = 8.0) -> Registration:
+                   max_residual_px: float = 2.0, passes: int = 2, sigma: float = 8.0,
+                   map_pairs: Optional[Callable] = None) -> Registration:
     """Refine the tiles' corners from their overlaps.
 
     Parameters
@@ -326,6 +327,13 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     passes : int
         Measure, solve, then measure again on the overlaps of the solution (the second pass sees
         the whole common area, not what the stage's error left of the nominal overlap).
+    sigma : float
+        The high-pass of the overlaps (px).
+    map_pairs : callable, optional
+        ``map_pairs(measure_pair, jobs) -> [measure_pair(job) for job in jobs]``, in order: where a
+        pass's pairs are measured (each :class:`PairJob` reads its own two windows), for example as
+        tasks of a Dask cluster (:func:`uvps.painting.stitch_painting`); default: in this process, one
+        after the other. The global solution is computed here either way, and gives the same corners.
 
     Returns
     -------
@@ -341,7 +349,7 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     pairs = []
     for k in range(max(1, passes)):
         search = (max_shift_px, "the nominal offset") if k == 0 else (4.0, "the first pass's solution")
-        pairs = _measure(tiles, shapes, nominal if k == 0 else current, search, sigma)
+        pairs = _measure(tiles, shapes, nominal if k == 0 else current, search, sigma, map_pairs)
         current, pairs = _solve(names, nominal, pairs, min_confidence, max_residual_px)
     warnings = []
     for p in pairs:
@@ -350,9 +358,51 @@ def register_tiles(images: dict, guess: dict, *, max_shift_px: float = 60.0, min
     return Registration(current, pairs, warnings)
 
 
-def _measure(tiles, shapes, corners, search, sigma) -> list:
-    """Every overlapping pair's shift within ``search = (max_shift_px, around what)``."""
-    max_shift = search[0]
+@dataclass
+class PairJob:
+    """One overlapping pair to measure (:func:`measure_pair`): small, so it can travel to a cluster's
+    worker: the two tiles as window readers (``shape`` and ``window``: on disk, a path; an in-memory
+    :class:`ArrayTile` travels whole), their rounded corners ``ra``, ``rb`` and their overlap ``box``
+    ``(x_lo, y_lo, x_hi, y_hi)`` in painting pixels, the search ``(max_shift_px, around what)`` and the
+    high-pass ``sigma``."""
+
+    a: str
+    b: str
+    tile_a: object
+    tile_b: object
+    ra: tuple
+    rb: tuple
+    box: tuple
+    search: tuple
+    sigma: float
+
+
+def measure_pair(job: PairJob) -> PairShift:
+    """The pair's shift on its overlap (:func:`pair_shift` on the two tiles' high-passed overlap windows,
+    read from the tiles alone): its :class:`PairShift`, not yet solved (``used`` False)."""
+    x_lo, y_lo, x_hi, y_hi = job.box
+    ra, rb = job.ra, job.rb
+    wa = _high_pass(job.tile_a.window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), job.sigma)
+    wb = _high_pass(job.tile_b.window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), job.sigma)
+    max_shift = job.search[0]
+    p = PairShift(job.a, job.b, overlap_px=int(wa.size), texture=min(texture(wa), texture(wb)),
+                  search=f"+-{max_shift:g} px of {job.search[1]}")
+    if min(wa.shape) < 8:
+        p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
+        return p
+    fit = pair_shift(wa, wb, max_shift_px=max_shift)
+    # the windows show the painting at (corner - rounded corner) past the box, so
+    # corner_b - corner_a = rounded_b - rounded_a + (sx, sy)
+    p.dx, p.dy = fit.dx + rb[0] - ra[0], fit.dy + rb[1] - ra[1]
+    p.confidence = fit.confidence
+    if fit.information is not None:       # (row, column) -> painting (x, y)
+        i = fit.information
+        p.information = (float(i[1, 1]), float(i[0, 1]), float(i[0, 0]))
+    return p
+
+
+def pair_jobs(tiles: dict, shapes: dict, corners: dict, search: tuple, sigma: float) -> list:
+    """A :class:`PairJob` for every pair of tiles that overlap at their corners (rounded), in the tiles' order."""
     names = list(tiles)
     out = []
     for i, a in enumerate(names):
@@ -360,26 +410,18 @@ def _measure(tiles, shapes, corners, search, sigma) -> list:
             ra = (round(corners[a][0]), round(corners[a][1]))
             rb = (round(corners[b][0]), round(corners[b][1]))
             box = overlap_box(ra, shapes[a], rb, shapes[b])
-            if box is None:
-                continue
-            x_lo, y_lo, x_hi, y_hi = box
-            wa = _high_pass(tiles[a].window(y_lo - ra[1], y_hi - ra[1], x_lo - ra[0], x_hi - ra[0]), sigma)
-            wb = _high_pass(tiles[b].window(y_lo - rb[1], y_hi - rb[1], x_lo - rb[0], x_hi - rb[0]), sigma)
-            p = PairShift(a, b, overlap_px=int(wa.size), texture=min(texture(wa), texture(wb)),
-                          search=f"+-{max_shift:g} px of {search[1]}")
-            if min(wa.shape) < 8:
-                p.why = f"overlap of {wa.shape[1]} x {wa.shape[0]} px is too small to register; nominal offset kept"
-            else:
-                fit = pair_shift(wa, wb, max_shift_px=max_shift)
-                # the windows show the painting at (corner - rounded corner) past the box, so
-                # corner_b - corner_a = rounded_b - rounded_a + (sx, sy)
-                p.dx, p.dy = fit.dx + rb[0] - ra[0], fit.dy + rb[1] - ra[1]
-                p.confidence = fit.confidence
-                if fit.information is not None:       # (row, column) -> painting (x, y)
-                    i = fit.information
-                    p.information = (float(i[1, 1]), float(i[0, 1]), float(i[0, 0]))
-            out.append(p)
+            if box is not None:
+                out.append(PairJob(a, b, tiles[a], tiles[b], ra, rb, box, search, sigma))
     return out
+
+
+def _measure(tiles, shapes, corners, search, sigma, map_pairs=None) -> list:
+    """Every overlapping pair's shift within ``search = (max_shift_px, around what)``: in this process,
+    one pair after the other, or through ``map_pairs(measure_pair, jobs)`` (for example on a cluster)."""
+    jobs = pair_jobs(tiles, shapes, corners, search, sigma)
+    if map_pairs is None:
+        return [measure_pair(j) for j in jobs]
+    return list(map_pairs(measure_pair, jobs))
 
 
 def _why_unregistered(p: PairShift, min_confidence: float) -> str:
