@@ -14,17 +14,6 @@ F = 6000.0
 PRINCIPAL = np.array([2000.0, 1500.0])
 
 
-def _mirror_point(centre, lamp):
-    """The surface point of the unit sphere at ``centre`` (camera at the origin) where ``lamp`` reflects into
-    the camera: its normal halves the angle between the camera and the lamp."""
-    n = -centre / np.linalg.norm(centre)
-    for _ in range(500):
-        x = centre + n
-        to_cam, to_lamp = -x / np.linalg.norm(x), (lamp - x) / np.linalg.norm(lamp - x)
-        n = (to_cam + to_lamp) / np.linalg.norm(to_cam + to_lamp)
-    return centre + n
-
-
 def _image(x):
     return np.array([PRINCIPAL[0] + F * x[0] / -x[2], PRINCIPAL[1] - F * x[1] / -x[2]])
 
@@ -46,7 +35,7 @@ def test_two_off_axis_spheres_rays_meet_at_the_lamp():
     got, ortho, pts = [], [], []
     for C in spheres:
         centre, radius = _outline(C)
-        px = np.array([_image(_mirror_point(C, P)) for P in lamps])
+        px = np.array([_image(asp.mirror_point(C, P)) for P in lamps])
         d, C_fit, off, p = asp.pinhole_directions(px, centre, radius, PRINCIPAL, F)
         assert np.allclose(C_fit, C, atol=1e-3 * np.linalg.norm(C))
         truth = np.array([(P - x) / np.linalg.norm(P - x) for P, x in zip(lamps, p)])
