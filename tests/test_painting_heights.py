@@ -101,3 +101,33 @@ def test_without_a_shared_error_the_tiles_keep_the_planes_the_overlaps_give(pain
     # (0.10 against 0.04 um: the measured tilts, weighted a little, still pull the tilts' chain along the
     # painting, which the overlaps measure only by the curvature it leaves on them)
     assert s["rms_um"] < 0.2 and s["overlap_rms_um"] < 0.2
+
+
+def test_two_tiles_share_no_error_surface_their_one_overlap_cannot_measure(painting, tmp_path):
+    """One pair: the shared surface would be the two tiles' measured tilts' noise alone, nothing to test it
+    against; it is taken as zero, and the pair's planes are the free ones'."""
+    depths, levels, pairs = _rig_tiles(painting, tmp_path, 1.0)
+    a, b = pairs[0].a, pairs[0].b
+    two = {k: depths[k] for k in (a, b)}
+    corners = {k: painting.true_corners()[k] for k in (a, b)}
+    rig = align_rig_heights(two, corners, [pairs[0]], {k: levels[k] for k in (a, b)})
+    assert np.abs(rig.shared).max() == 0
+    assert np.isfinite(rig.rms_um)
+
+
+def test_a_painting_of_one_tile_records_its_height_alignment_in_json(painting, tmp_path):
+    """No overlap sampled (one tile, or no pair used): the alignment's rms is unknown, and painting.json
+    (strict JSON, no NaN) records it as null instead of failing after the maps are written."""
+    import json
+    from types import SimpleNamespace
+
+    from uvps.painting import _align_heights
+
+    depths, levels, _ = _rig_tiles(painting, tmp_path, 1.0)
+    name = next(iter(depths))
+    (tmp_path / name / "run.json").write_text(json.dumps({"level": {"legendre_coeffs_um": np.asarray(
+        levels[name]).tolist()}}), encoding="utf-8")
+    planes, forms, record = _align_heights(tmp_path, [name], {name: (0.0, 0.0)}, SimpleNamespace(pairs=[]))
+    assert record["model"].startswith("rig") and record["overlap_rms_um"] is None
+    json.dumps(record, allow_nan=False)
+    assert all(np.isfinite(planes[name]))

@@ -120,3 +120,11 @@ def test_calibrate_records_the_camera_and_refuses_bad_distances(seen, tmp_path):
         assert not out.exists()
     with pytest.raises(UVPSInputError, match="camera_distance_mm"):
         calibrate_spheres(sc.images[:, :10, :10], pixel_size_um=PX, camera_distance_mm=float("inf"))
+    # a light file's lamps are not read through the camera: the option is refused, not silently dropped
+    lp = tmp_path / "lamps.lp"
+    lp.write_text("2\nimg0.tif 0.5 0.0 0.866\nimg1.tif 0.0 0.5 0.866\n")
+    out = tmp_path / "LP"
+    r = _uvps("calibrate", "--lights", lp, "--camera-distance-mm", D, "-o", out)
+    lines = [ln for ln in r.stderr.strip().splitlines() if "error" in ln]
+    assert r.returncode == 1 and len(lines) == 1 and "camera_distance_mm applies to spheres" in lines[0], r.stderr
+    assert not out.exists()

@@ -618,7 +618,8 @@ def _align_heights(out_dir: Path, names: list, corners: dict, reg) -> tuple:
         rig = align_rig_heights(heights, corners, reg.pairs, levels)
         record = {"model": "rig: per-tile offset, the tilt measured, one shared error surface in the tile's frame",
                   "shared_legendre_um": [[round(float(v), 6) for v in row] for row in rig.shared],
-                  "overlap_rms_um": round(rig.rms_um, 4),
+                  # None when no overlap was sampled (one tile, no pair used): JSON has no NaN
+                  "overlap_rms_um": round(rig.rms_um, 4) if math.isfinite(rig.rms_um) else None,
                   "planes": {k: [round(v, 6) for v in rig.planes[k]] for k in names}}
         return rig.planes, rig.forms, record
     planes = align_heights(heights, corners, reg.pairs)

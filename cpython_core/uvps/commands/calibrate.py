@@ -130,6 +130,9 @@ def _cmd_calibrate(inputs, params, output_dir, *, progress=None):
         raise UVPSInputError("calibrate needs exactly one of spheres (a sphere capture), dome (a relight .dome "
                              f"file) or lights (.lp or a positions file); got {', '.join(routes) or 'none'}")
     route = routes[0]
+    if route != "spheres" and params.get("camera_distance_mm") is not None:
+        raise UVPSInputError(f"camera_distance_mm applies to spheres (how the camera sees them); calibrate from "
+                             f"{route} takes the lamps as the file gives them: leave it out")
     with ThreadPoolExecutor(max_workers=1) as pool:
         return _calibrate(route, inputs, params, out, pool, t0, progress)
 
@@ -294,8 +297,8 @@ SPECS = (
                           help="mm from the painting to the lens's centre of projection (about f (1 + 1/m), "
                                "docs/capture.md): a glossy or mirror sphere off the lens's axis reflects the "
                                "view from the camera, not from straight above, and every sphere's outline is "
-                               "that camera's; default: orthographic (a sphere 8 mm off the axis of a camera "
-                               "300 mm away reads its lamps about 2 deg off)"),
+                               "that camera's; default: orthographic (a sphere read so is off by about its angle "
+                               "off the axis: 8 mm off the axis of a camera 300 mm away, about 1.5 deg)"),
                     Param("dark", "path", where="inputs", label="Dark frame (optional: the UV lamps off)",
                           help="a frame with the UV lamps off: subtracted from the sphere capture and kept in "
                                "the calibration for the captures that use it"),

@@ -763,8 +763,12 @@ def _shrunk_shared(A, sol, tilts, w, n) -> np.ndarray:
     each tile keeps the plane the overlaps give it."""
     m = len(sol) - 3 * n
     e = sol[3 * n:]
-    if m == 0 or n < 3:
+    if m == 0:
         return e
+    if n < 3:
+        # one pair: its overlap cannot tell the shared curvature from the two tiles' relative tilt, so the
+        # estimate is the measured tilts' noise alone, with nothing to test it against
+        return np.zeros(m)
     # how the tilts' errors reach the solution: an error e_t of a measured tilt acts as the tilt's prior
     # moved by e_t, so the corrections are -(I - R) e and the shared terms J e, with G = A^-1 w
     G = np.linalg.solve(A, np.eye(len(sol))[:, tilts] * w)
