@@ -22,6 +22,7 @@ from typing import Optional
 import numpy as np
 from scipy import ndimage
 
+from .core.level import legendre_uv
 from .core.mosaic import PLANE_SCALE_PX
 from .files.omezarr import open_tiff
 
@@ -119,11 +120,9 @@ def _form(coeffs, ty, tx, shape) -> np.ndarray:
     rows ``ty`` (column vector) and columns ``tx`` (row vector), separably."""
     from numpy.polynomial import legendre
 
-    M, N = shape
     degree = coeffs.shape[0] - 1
-    lv = legendre.legvander(1.0 - 2.0 * np.ravel(ty) / max(M - 1, 1), degree)
-    lu = legendre.legvander(2.0 * np.ravel(tx) / max(N - 1, 1) - 1.0, degree)
-    return lv @ np.asarray(coeffs).T @ lu.T
+    u, v = legendre_uv(np.ravel(ty), np.ravel(tx), shape)
+    return legendre.legvander(v, degree) @ np.asarray(coeffs).T @ legendre.legvander(u, degree).T
 
 
 def _tile_window(kind: str, t: PlacedTile, box, ty, tx):

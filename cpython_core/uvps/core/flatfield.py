@@ -456,11 +456,8 @@ def divided_grid(grid: BlockGrid, coeffs) -> BlockGrid:
     judged it after).
     """
     K = grid.values.shape[0]
-    M, N = grid.shape
     coeffs = np.asarray(coeffs, dtype=float)
-    deg = coeffs.shape[1] - 1
-    Vv = L.legvander(to_unit(grid.rows, M), deg)
-    Vu = L.legvander(to_unit(grid.cols, N), deg)
+    Vv, Vu = _design(grid.rows, grid.cols, grid.shape, coeffs.shape[1] - 1)
     if len(coeffs) != K:
         raise UVPSInputError(f"divided_grid: {len(coeffs)} gain maps for a grid of {K} images")
     log_gain = np.matmul(np.matmul(Vv, coeffs), Vu.T)          # (K, R, C)

@@ -45,8 +45,8 @@ from .stack import row_bands
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "legendre_surface", "raw_height",
-           "tilt_slope_um_per_mm"]
+__all__ = ["LEVELS", "FORM_DEGREE", "Levelling", "level_height", "fit_surface", "legendre_surface", "legendre_uv",
+           "raw_height", "tilt_slope_um_per_mm"]
 
 #: What :func:`level_height` removes: nothing, the best plane (default), or a low-order form.
 LEVELS = ("none", "plane", "form")
@@ -143,14 +143,20 @@ class Levelling:
             raise UVPSInputError(f"run.json level: not a levelling record ({exc})") from None
 
 
+def legendre_uv(rows, cols, shape) -> tuple:
+    """The Legendre variables ``(u, v)`` (module notes: ``u`` from the columns, ``v`` up from the rows, both
+    in [-1, 1]) of an ``(M, N)`` map at its pixels ``rows`` and ``cols`` (any shape, sub-pixel allowed)."""
+    m, n = shape
+    return (2.0 * np.asarray(cols, np.float64) / max(n - 1, 1) - 1.0,
+            1.0 - 2.0 * np.asarray(rows, np.float64) / max(m - 1, 1))
+
+
 def legendre_surface(coeffs, shape, rows: slice = slice(None)) -> np.ndarray:
     """The surface of the Legendre ``coeffs`` (module notes; :func:`fit_surface`) on the rows ``rows``
     of an ``(M, N)`` map, float32."""
     m, n = shape
     degree = coeffs.shape[0] - 1
-    r = np.arange(m)[rows]
-    v = 1.0 - 2.0 * r / max(m - 1, 1)
-    u = 2.0 * np.arange(n) / max(n - 1, 1) - 1.0
+    u, v = legendre_uv(np.arange(m)[rows], np.arange(n), shape)
     # separable: S[r, c] = sum_ij c_ij L_i(u_c) L_j(v_r) = (Lv @ C^T @ Lu^T)[r, c]
     lu = legendre.legvander(u, degree)           # (N, d + 1)
     lv = legendre.legvander(v, degree)           # (rows, d + 1)
@@ -184,10 +190,8 @@ def fit_surface(height_um, *, degree: int, mask=None, robust: bool = True) -> np
         log.warning("levelling: %d valid pixels, too few to fit a surface of degree %d: nothing removed",
                     int(np.count_nonzero(valid)), degree)
         return coeffs
-    m, n = h.shape
     r, c, z = _sample(h, valid, FIT_SAMPLES)
-    u = 2.0 * c / max(n - 1, 1) - 1.0
-    v = 1.0 - 2.0 * r / max(m - 1, 1)
+    u, v = legendre_uv(r, c, h.shape)
     full = legendre.legvander2d(u, v, [degree, degree])        # columns: i * (d + 1) + j
     A = full[:, [i * (degree + 1) + j for i, j in terms]]
     w = np.ones_like(z)

@@ -37,6 +37,8 @@ import numpy as np
 from scipy import ndimage, sparse, stats
 from scipy.sparse import csgraph
 
+from .level import legendre_uv
+
 log = logging.getLogger(__name__)
 
 
@@ -626,12 +628,6 @@ class RigAlignment:
     rms_um: float = float("nan")
 
 
-def _legendre_uv(rows, cols, shape):
-    """A tile's Legendre variables (:mod:`uvps.core.level`) at its pixels ``(rows, cols)``."""
-    M, N = shape
-    return 2.0 * np.asarray(cols, np.float64) / max(N - 1, 1) - 1.0, 1.0 - 2.0 * np.asarray(rows, np.float64) / max(M - 1, 1)
-
-
 def _shared_terms(degree: int) -> list:
     """The Legendre terms ``(i, j)`` of the shared surface: total degree 2 to ``degree`` (a constant and a
     plane common to every tile make a painting-wide plane, which the overlaps cannot see)."""
@@ -642,7 +638,7 @@ def _shared_basis(rows, cols, shape, degree: int) -> np.ndarray:
     """The shared surface's terms at a tile's pixels: (samples, terms)."""
     from numpy.polynomial import legendre
 
-    u, v = _legendre_uv(rows, cols, shape)
+    u, v = legendre_uv(rows, cols, shape)
     full = legendre.legvander2d(u, v, [degree, degree])
     return full[:, [i * (degree + 1) + j for i, j in _shared_terms(degree)]]
 
@@ -652,7 +648,7 @@ def _raw_at(height, level, rows, cols) -> np.ndarray:
     from numpy.polynomial import legendre
 
     v = _bilinear(height, rows, cols)
-    u_, v_ = _legendre_uv(rows, cols, height.shape)
+    u_, v_ = legendre_uv(rows, cols, height.shape)
     return v + legendre.legval2d(u_, v_, level)
 
 
@@ -808,8 +804,8 @@ def _rig_normal_equations(heights, corners, pairs, levels, degree, step, margin)
         X, Y, r = X[ok], Y[ok], (vb - va)[ok]
         # aligned, raw_t + o_t + tilt_t . (u, v) - E(in t's frame) agree:
         # [1, u, v]_a . (o, tilt)_a - [1, u, v]_b . (o, tilt)_b + (S_b - S_a) e = raw_b - raw_a
-        ua, wa = _legendre_uv(Y - ya, X - xa, ha.shape)
-        ub, wb = _legendre_uv(Y - yb, X - xb, hb.shape)
+        ua, wa = legendre_uv(Y - ya, X - xa, ha.shape)
+        ub, wb = legendre_uv(Y - yb, X - xb, hb.shape)
         one = np.ones(X.size)
         D = np.column_stack([one, ua, wa, -one, -ub, -wb,
                              _shared_basis(Y - yb, X - xb, hb.shape, degree)
@@ -841,7 +837,7 @@ def _painting_plane(heights, corners, forms, offsets, step, margin) -> np.ndarra
         M, N = h.shape
         rr, cc = np.meshgrid(np.arange(margin, M - margin, step), np.arange(margin, N - margin, step), indexing="ij")
         rr, cc = rr.ravel(), cc.ravel()
-        u, v = _legendre_uv(rr, cc, h.shape)
+        u, v = legendre_uv(rr, cc, h.shape)
         z = np.asarray(h[rr, cc], np.float64) + legendre.legval2d(u, v, forms[k]) + offsets[k]
         ok = np.isfinite(z)
         X, Y = (cc[ok] + corners[k][0]) / PLANE_SCALE_PX, (rr[ok] + corners[k][1]) / PLANE_SCALE_PX
