@@ -157,8 +157,9 @@ def _crop_box(centre, radius, shape, margin=1.35):
 
 def _refine_circle(proj, centre, radius):
     """Centre (col, row) and radius of the rim near a coarse circle, at full resolution: the steepest
-    radial step along 720 rays (sub-pixel), then a RANSAC circle; with the fraction of the rays that
-    meet the rim on it and which ones. None if the rim is not found."""
+    radial step along 720 rays (sub-pixel), then a RANSAC circle (:func:`_robust_circle`); with the
+    fraction of the rays that meet the rim on it, which ones, and the rim points it kept ((n, 2), col
+    and row). None if the rim is not found."""
 
     sm = ndimage.gaussian_filter(proj.astype(np.float32), 1.0)
     theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
@@ -192,10 +193,10 @@ def _refine_circle(proj, centre, radius):
     on = np.abs(np.hypot(pts[:, 0] - xc, pts[:, 1] - yc) - r) < max(1.0, 0.01 * radius)
     rays = np.zeros(len(theta), bool)
     rays[np.flatnonzero(ok)[on]] = True
-    return (xc, yc), r, float(on.sum() / len(theta)), rays
+    return (xc, yc), r, float(on.sum() / len(theta)), rays, pts[inl]
 
 
-def _robust_circle(pts, rad, radius, *, need):
+def _robust_circle(pts, rad, radius, *, need, band=None):
     """The circle (x, y, r) of the rim points ``pts`` (one per ray, in the rays' order, ``rad`` their
     distances from the first centre) and which points it keeps; (None, None) when fewer than ``need``.
 
@@ -209,8 +210,8 @@ def _robust_circle(pts, rad, radius, *, need):
     until they stop changing."""
     from skimage.measure import CircleModel, ransac
 
-    jitter = 1.4826 * np.median(np.abs(np.diff(rad))) / math.sqrt(2.0) if len(rad) > 2 else 0.0
-    band = float(np.clip(3.0 * jitter, 0.5, max(1.0, 0.01 * radius)))
+    if band is None:
+        band = _rim_band(rad, radius)
     model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=band, max_trials=500,
                         stop_probability=0.9999, rng=0)
     if model is None or inl is None or inl.sum() < need:
@@ -229,6 +230,14 @@ def _robust_circle(pts, rad, radius, *, need):
             break
         inl, fitted = keep, refit
     return fitted, inl
+
+
+def _rim_band(rad, radius):
+    """The consensus band of a rim's points (px): three robust standard deviations of the step from ray to
+    ray of their distances ``rad`` from the first centre (in the rays' order), 0.5 px at least, 1 % of
+    the radius (1 px at least) at most."""
+    jitter = 1.4826 * np.median(np.abs(np.diff(rad))) / math.sqrt(2.0) if len(rad) > 2 else 0.0
+    return float(np.clip(3.0 * jitter, 0.5, max(1.0, 0.01 * radius)))
 
 
 def _circle(points):
@@ -375,8 +384,25 @@ def _fit_rim(images, centre, radius, min_rim_fraction):
     rim = np.logical_or.reduce([r_[3] for r_ in refs if _same_circle(r_, ref, 1.0)])
     if ref is not best:
         rim |= best[3]
-    (xc, yc), rr = ref[:2]
+    (xc, yc), rr = _pooled_rim(refs[:linear], ref, radius)
     return Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected"), rim
+
+
+def _pooled_rim(linear, ref, radius):
+    """The circle of the rim points of every linear view that found the same sphere as ``ref`` (within
+    10 % of its radius): each view sees the rim where it is sharp (a mirror sphere's median its dark
+    disc against the ground, where the highlights' glow leaves the upper limb soft; the maximum the
+    upper limb lit, where a stand hides the lower one), and one view's circle rests on its arcs alone
+    (PSBox's two mirror spheres: the median's and the maximum's circles 2.3 px apart in their rows).
+    Fitted robustly with the views' own consensus band (:func:`_robust_circle`); ``ref``'s circle when
+    only it found the sphere or the pooled fit keeps too little."""
+    views = [r_ for r_ in linear if _same_circle(r_, ref, 0.1 * ref[1])]
+    if len(views) < 2:
+        return ref[:2]
+    pts = np.concatenate([r_[4] for r_ in views])
+    band = max(_rim_band(np.hypot(r_[4][:, 0] - r_[0][0], r_[4][:, 1] - r_[0][1]), radius) for r_ in views)
+    fitted, _ = _robust_circle(pts, None, radius, need=max(len(r_[4]) for r_ in views), band=band)
+    return ref[:2] if fitted is None else ((fitted[0], fitted[1]), fitted[2])
 
 
 def _same_circle(a, b, tol):
