@@ -4,7 +4,9 @@ calibrates them (and re-exports these names).
 
 Spheres are found by circle detection (OpenCV's gradient Hough transform, ``HOUGH_GRADIENT_ALT``,
 on a reduced maximum projection of the capture), their rims then located along 720 rays at full
-resolution and fitted by a RANSAC circle (``skimage.measure.ransac``); see :mod:`uvps.core.spheres`.
+resolution in each view (median, maximum; mean and logarithms for dark spheres) and fitted by a RANSAC
+circle (``skimage.measure.ransac``) whose band is the rim's own scatter, then one circle through the
+rim points of every linear view that found the sphere; see :mod:`uvps.core.spheres`.
 """
 from __future__ import annotations
 
