@@ -4,7 +4,9 @@ calibrates them (and re-exports these names).
 
 Spheres are found by circle detection (OpenCV's gradient Hough transform, ``HOUGH_GRADIENT_ALT``,
 on a reduced maximum projection of the capture), their rims then located along 720 rays at full
-resolution and fitted by a RANSAC circle (``skimage.measure.ransac``); see :mod:`uvps.core.spheres`.
+resolution in each view (median, maximum; mean and logarithms for dark spheres) and fitted by a RANSAC
+circle (``skimage.measure.ransac``) whose band is the rim's own scatter, then one circle through the
+rim points of every linear view that found the sphere; see :mod:`uvps.core.spheres`.
 """
 from __future__ import annotations
 
@@ -157,9 +159,9 @@ def _crop_box(centre, radius, shape, margin=1.35):
 
 def _refine_circle(proj, centre, radius):
     """Centre (col, row) and radius of the rim near a coarse circle, at full resolution: the steepest
-    radial step along 720 rays (sub-pixel), then a RANSAC circle; with the fraction of the rays that
-    meet the rim on it and which ones. None if the rim is not found."""
-    from skimage.measure import CircleModel, ransac
+    radial step along 720 rays (sub-pixel), then a RANSAC circle (:func:`_robust_circle`); with the
+    fraction of the rays that meet the rim on it, which ones, and the rim points it kept ((n, 2), col
+    and row). None if the rim is not found."""
 
     sm = ndimage.gaussian_filter(proj.astype(np.float32), 1.0)
     theta = np.linspace(0, 2 * np.pi, 720, endpoint=False)
@@ -185,31 +187,59 @@ def _refine_circle(proj, centre, radius):
     if ok.sum() < 30:
         return None
     pts = np.column_stack([centre[0] + rad * np.cos(theta), centre[1] - rad * np.sin(theta)])[ok]
-    model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=max(1.0, 0.01 * radius),
-                        max_trials=60, stop_probability=0.999, rng=0)
-    if model is None or inl is None or inl.sum() < max(30, 0.3 * len(theta) * ok.mean()):
-        return None
-    fitted = _circle(pts[inl])
+    fitted, inl = _robust_circle(pts, rad[ok], radius, need=max(30, 0.3 * len(theta) * ok.mean()))
     if fitted is None:
         return None
-    # the RANSAC's band (1 % of the radius) is loose for a large sphere: a stand's edge or a holder
-    # that follows the rim within it pulls the circle (the PSBox mirror sphere's cork stand: 3 px down,
-    # 0.5 deg on every lamp); the circle is refitted to the points within 2.5 robust standard
-    # deviations of it until they stop changing
+    xc, yc, r = fitted
+    # the rays on the rim: within the first consensus band of the circle (1 % of the radius, 1 px at least)
+    on = np.abs(np.hypot(pts[:, 0] - xc, pts[:, 1] - yc) - r) < max(1.0, 0.01 * radius)
+    rays = np.zeros(len(theta), bool)
+    rays[np.flatnonzero(ok)[on]] = True
+    return (xc, yc), r, float(on.sum() / len(theta)), rays, pts[inl]
+
+
+def _robust_circle(pts, rad, radius, *, need, band=None):
+    """The circle (x, y, r) of the rim points ``pts`` (one per ray, in the rays' order, ``rad`` their
+    distances from the first centre) and which points it keeps; (None, None) when fewer than ``need``.
+
+    A stand, a holder or the lit ground a mirror sphere's limb reflects moves the steepest step of a
+    whole arc of rays off the rim by a few pixels, coherently: a band of 1 % of the radius (4 px on a
+    400 px sphere) takes both arcs, and the circle between them has more points in it than the rim (a
+    mirror sphere's lower third reflecting the ground 3.7 px inside the rim: 2.3 px up, 3 deg on every
+    lamp). So the consensus band is the rim's own scatter: three robust standard deviations of the step
+    from ray to ray (0.5 px at least, the first band at most), which a coherent arc off by more than it
+    leaves out; then the circle is refitted to the points within 2.5 robust standard deviations of it
+    until they stop changing."""
+    from skimage.measure import CircleModel, ransac
+
+    if band is None:
+        band = _rim_band(rad, radius)
+    model, inl = ransac(pts, CircleModel, min_samples=3, residual_threshold=band, max_trials=500,
+                        stop_probability=0.9999, rng=0)
+    if model is None or inl is None or inl.sum() < need:
+        return None, None
+    fitted = _circle(pts[inl])
+    if fitted is None:
+        return None, None
     for _ in range(5):
         d = np.hypot(pts[:, 0] - fitted[0], pts[:, 1] - fitted[1]) - fitted[2]
         s_ = 1.4826 * np.median(np.abs(d[inl])) + 1e-6
         keep = np.abs(d) < max(0.5, 2.5 * s_)
-        if keep.sum() < max(30, 0.3 * len(theta) * ok.mean()) or np.array_equal(keep, inl):
+        if keep.sum() < need or np.array_equal(keep, inl):
             break
         refit = _circle(pts[keep])
         if refit is None:
             break
         inl, fitted = keep, refit
-    xc, yc, r = fitted
-    rays = np.zeros(len(theta), bool)
-    rays[np.flatnonzero(ok)[inl]] = True
-    return (xc, yc), r, float(inl.sum() / len(theta)), rays
+    return fitted, inl
+
+
+def _rim_band(rad, radius):
+    """The consensus band of a rim's points (px): three robust standard deviations of the step from ray to
+    ray of their distances ``rad`` from the first centre (in the rays' order), 0.5 px at least, 1 % of
+    the radius (1 px at least) at most."""
+    jitter = 1.4826 * np.median(np.abs(np.diff(rad))) / math.sqrt(2.0) if len(rad) > 2 else 0.0
+    return float(np.clip(3.0 * jitter, 0.5, max(1.0, 0.01 * radius)))
 
 
 def _circle(points):
@@ -338,22 +368,62 @@ def _fit_rim(images, centre, radius, min_rim_fraction):
     at = (centre[0] - box[2], centre[1] - box[0])
     refs = [r_ for r_ in (_refine_circle(crop, at, radius) for crop in (_median_over_images(crops),
                                                                         crops.max(axis=0))) if r_ is not None]
+    linear = len(refs)
     if not refs or max(r_[2] for r_ in refs) < min_rim_fraction:
         # a dark sphere on a dark ground: its rim in the mean and the mean's logarithm, where the
         # median and the maximum find too little of it
         mean = crops.mean(axis=0)
-        refs += [r_ for r_ in (_refine_circle(crop, at, radius)
-                               for crop in (mean, _log_view(mean), _log_view(_median_over_images(crops))))
-                 if r_ is not None]
+        more = [_refine_circle(crop, at, radius) for crop in (mean, _log_view(mean),
+                                                              _log_view(_median_over_images(crops)))]
+        linear += more[0] is not None
+        refs = refs + [r_ for r_ in more if r_ is not None]
     if not refs:
         return None
-    ref = max(refs, key=lambda r_: r_[2])
+    best = max(refs, key=lambda r_: r_[2])
+    ref = _linear_rim(refs[:linear], best)
     # a matte sphere's rim is sharp in the median on some sides and in the maximum on the others:
     # where the two find the same circle, a ray on the rim in either counts
-    rim = np.logical_or.reduce([r_[3] for r_ in refs if math.hypot(r_[0][0] - ref[0][0], r_[0][1] - ref[0][1])
-                                < 1.0 and abs(r_[1] - ref[1]) < 1.0])
-    (xc, yc), rr = ref[:2]
+    rim = np.logical_or.reduce([r_[3] for r_ in refs if _same_circle(r_, ref, 1.0)])
+    if ref is not best:
+        rim |= best[3]
+    (xc, yc), rr = _pooled_rim(refs[:linear], ref, radius)
     return Sphere((xc + box[2], yc + box[0]), rr, "auto", "detected"), rim
+
+
+def _pooled_rim(linear, ref, radius):
+    """The circle of the rim points of every linear view that found the same sphere as ``ref`` (within
+    10 % of its radius): each view sees the rim where it is sharp (a mirror sphere's median its dark
+    disc against the ground, where the highlights' glow leaves the upper limb soft; the maximum the
+    upper limb lit, where a stand hides the lower one), and one view's circle rests on its arcs alone
+    (PSBox's two mirror spheres: the median's and the maximum's circles 2.3 px apart in their rows).
+    Fitted robustly with the views' own consensus band (:func:`_robust_circle`); ``ref``'s circle when
+    only it found the sphere or the pooled fit keeps too little."""
+    views = [r_ for r_ in linear if _same_circle(r_, ref, 0.1 * ref[1])]
+    if len(views) < 2:
+        return ref[:2]
+    pts = np.concatenate([r_[4] for r_ in views])
+    band = max(_rim_band(np.hypot(r_[4][:, 0] - r_[0][0], r_[4][:, 1] - r_[0][1]), radius) for r_ in views)
+    fitted, _ = _robust_circle(pts, None, radius, need=max(len(r_[4]) for r_ in views), band=band)
+    return ref[:2] if fitted is None else ((fitted[0], fitted[1]), fitted[2])
+
+
+def _same_circle(a, b, tol):
+    """Whether two refined circles (centre, radius, ...) agree within ``tol`` px in centre and radius."""
+    return math.hypot(a[0][0] - b[0][0], a[0][1] - b[0][1]) < tol and abs(a[1] - b[1]) < tol
+
+
+def _linear_rim(linear, best):
+    """The circle to keep of the views' refined circles: the linear views' (median, maximum, mean) one
+    with the most rim near ``best`` (the view with the most rim), else ``best``. A logarithm's steepest
+    step lies on the dark side of a blurred rim (``d log I = dI / I``): a mirror sphere's rim blurred
+    by 1.5 / 3 px sits 1.2-1.8 / 2.3-4.0 px inside in the logarithm of the mean of a rendered capture
+    (80 px radius); the linear views' step at the rim itself. A linear view's circle is kept when it
+    is the same sphere as ``best``'s (refined from the same proposal, within 10 % of the radius in
+    centre and radius) and on :data:`RANSAC_RIM_FRACTION` of its rays at least, though with less of the
+    rim than ``best`` (a mirror sphere's lower limb reflecting the lit ground: 0.57 of the rays in the
+    median, 0.67 in the logarithm)."""
+    near = [r_ for r_ in linear if r_[2] >= RANSAC_RIM_FRACTION and _same_circle(r_, best, 0.1 * best[1])]
+    return max(near, key=lambda r_: r_[2]) if near else best
 
 
 def _without_small(found: list) -> list:
