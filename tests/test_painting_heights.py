@@ -127,7 +127,8 @@ def test_a_painting_of_one_tile_records_its_height_alignment_in_json(painting, t
     name = next(iter(depths))
     (tmp_path / name / "run.json").write_text(json.dumps({"level": {"legendre_coeffs_um": np.asarray(
         levels[name]).tolist()}}), encoding="utf-8")
-    planes, forms, record = _align_heights(tmp_path, [name], {name: (0.0, 0.0)}, SimpleNamespace(pairs=[]))
+    planes, forms, record = _align_heights(tmp_path, [name], {name: (0.0, 0.0)}, SimpleNamespace(pairs=[]),
+                                           pixel_size_um=15.0)
     assert record["model"].startswith("rig") and record["overlap_rms_um"] is None
     json.dumps(record, allow_nan=False)
     assert all(np.isfinite(planes[name]))

@@ -561,7 +561,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
-    planes, forms, record = _align_heights(out_dir, names, corners, reg, pixel_size_um)
+    planes, forms, record = _align_heights(out_dir, names, corners, reg, pixel_size_um=pixel_size_um)
     luts = {}
     for k in names:
         mine = [r for r in every if r["tile"] == k]
@@ -600,7 +600,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
     return record
 
 
-def _align_heights(out_dir: Path, names: list, corners: dict, reg, pixel_size_um: float) -> tuple:
+def _align_heights(out_dir: Path, names: list, corners: dict, reg, *, pixel_size_um: float) -> tuple:
     """Each tile's height plane and form (:class:`uvps.painting_maps.PlacedTile`) and what
     ``painting.json`` records of them. With every tile's levelling in its ``run.json`` (a ``uvps run``),
     its height as integrated is rebuilt, less the tilt its own lamp intensities gave it when the tiles'
