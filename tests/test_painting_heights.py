@@ -193,3 +193,7 @@ def test_a_tiles_tilt_taken_up_by_its_lamp_intensities_is_given_back():
     assert np.abs(after - after.mean(axis=0)).max() < 1.0
     # not one rig: another tile's lamps elsewhere
     assert intensity_tilts({0: P, 1: P + 1.0}, {0: E, 1: E}, (150, 200), 15.0) is None
+    assert intensity_tilts({0: P, 1: P}, {0: E, 1: np.r_[0.0, E[1:]]}, (150, 200), 15.0) is None
+    # intensities given in the light file (the same in every tile, up to the exposure): nothing to give back
+    same = intensity_tilts({0: P, 1: P}, {0: E, 1: 1.1 * E}, (150, 200), 15.0)
+    assert np.abs(list(same.values())).max() < 1e-9

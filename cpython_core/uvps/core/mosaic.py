@@ -700,7 +700,8 @@ def intensity_tilts(positions_mm: dict, intensities: dict, shape, pixel_size_um:
     dict or None
         ``{tile: (du, dv)}``: the Legendre coefficients (um; ``u``, ``v`` of :mod:`uvps.core.level`) of the plane
         the tile's height took from its intensities, to subtract from it; None when the tiles' lamps are not one
-        rig's (a tile without positions, another number of lamps, positions that differ).
+        rig's (a tile without positions, another number of lamps, positions that differ) or an intensity is not
+        a positive number.
     """
     names = list(positions_mm)
     P = [None if positions_mm[k] is None else np.asarray(positions_mm[k], float) for k in names]
@@ -708,7 +709,10 @@ def intensity_tilts(positions_mm: dict, intensities: dict, shape, pixel_size_um:
                                                                                    atol=RIG_POSITION_TOL_MM)
                              for p in P):
         return None
-    logE = np.log(np.array([np.asarray(intensities[k], float) for k in names]))
+    E = np.array([np.asarray(intensities[k], float) for k in names])
+    if E.shape != (len(names), len(P[0])) or not np.all(np.isfinite(E) & (E > 0)):
+        return None
+    logE = np.log(E)
     logE -= logE.mean(axis=1, keepdims=True)                 # each tile's exposure
     M, N = shape
     g = np.linspace(0.0, 1.0, INTENSITY_TILT_GRID)
