@@ -127,7 +127,73 @@ def test_a_painting_of_one_tile_records_its_height_alignment_in_json(painting, t
     name = next(iter(depths))
     (tmp_path / name / "run.json").write_text(json.dumps({"level": {"legendre_coeffs_um": np.asarray(
         levels[name]).tolist()}}), encoding="utf-8")
-    planes, forms, record = _align_heights(tmp_path, [name], {name: (0.0, 0.0)}, SimpleNamespace(pairs=[]))
+    planes, forms, record = _align_heights(tmp_path, [name], {name: (0.0, 0.0)}, SimpleNamespace(pairs=[]),
+                                           pixel_size_um=15.0)
     assert record["model"].startswith("rig") and record["overlap_rms_um"] is None
     json.dumps(record, allow_nan=False)
     assert all(np.isfinite(planes[name]))
+
+
+#: Tilts (um, Legendre u and v terms over a 150 x 200 px tile: 20 um is 13 um/mm, 0.76 deg) of the tiles of
+#: :func:`test_a_tiles_tilt_taken_up_by_its_lamp_intensities_is_given_back`.
+RIG_TILTS_UM = [(20.0, -10.0), (-15.0, 25.0), (5.0, 15.0), (-10.0, -20.0)]
+
+
+#: The canvas's texture (um, two sinusoids of 0.35 and 0.5 mm).
+TEXTURE_UM = 1.0
+
+
+def _tilted_tile(tilt, rng, P, E):
+    """A flat canvas tilted by ``tilt`` (Legendre um) with a faint texture (0.3 um), rendered under the rig's
+    lamps ``P`` of intensities ``E`` (unknown to the light file) at its own exposure: the tile's ``Capture``."""
+    from uvps.core.stack import Capture
+    from uvps.testing.synthetic_render import render_images
+
+    M, N = 150, 200
+    rr, cc = np.mgrid[0:M, 0:N].astype(float)
+    u, v = 2 * cc / (N - 1) - 1, 1 - 2 * rr / (M - 1)
+    tex = TEXTURE_UM * (np.sin(2 * np.pi * cc / 23 + rng.uniform(0, 6)) + np.sin(2 * np.pi * (rr + 0.4 * cc) / 31 + rng.uniform(0, 6)))
+    height = tilt[0] * u + tilt[1] * v + tex
+    albedo = 0.5 * (1 + 0.02 * np.sin(2 * np.pi * (cc - rr) / 90))
+    images = render_images(height, albedo, pixel_size_um=15.0, light_positions_mm=P, intensities=E, rng=rng,
+                           exposure=rng.uniform(20000, 30000), dtype=np.uint16)
+    return Capture(images=images, files=[f"uv_{k:02d}.tif" for k in range(len(P))], pixel_size_um=15.0, mask=None,
+                   saturation=65535.0, light_directions=None, light_positions_mm=P, bit_depth="uint16",
+                   light_intensities=None)
+
+
+def test_a_tiles_tilt_taken_up_by_its_lamp_intensities_is_given_back():
+    """Tiles of a rig whose light file gives the lamps' positions, not their powers: each tile measures the
+    intensities from its own images, and on a canvas with little texture they take up part of the tile's
+    tilt (a tilt shades each lamp by a constant, as an intensity does). The tilt each tile's intensities
+    gave it (against the tiles' mean, the rig's lamps being the same in every tile) is given back: the tiles'
+    tilts within 1 um of the truth, up to one tilt common to all (a painting-wide plane), where the normals
+    alone are off by several um."""
+    from uvps.core.mosaic import intensity_tilts
+    from uvps.core.pipeline import RunOptions, run
+
+    rng = np.random.default_rng(7)
+    az, el = np.linspace(0, 2 * np.pi, 8, endpoint=False) + 0.3, np.deg2rad(rng.uniform(30, 50, 8))
+    d = rng.uniform(250, 350, 8)
+    P = np.column_stack([d * np.cos(el) * np.cos(az), d * np.cos(el) * np.sin(az), d * np.sin(el)])
+    E = rng.uniform(0.97, 1.03, 8)
+    measured, intensities = {}, {}
+    for i, tilt in enumerate(RIG_TILTS_UM):
+        res = run(_tilted_tile(tilt, rng, P, E), RunOptions(), stages=("flatfield", "normals"))
+        n = res.stereo.normals
+        M, N = n.shape[:2]
+        measured[i] = (np.nanmean(-n[..., 0] / n[..., 2]) * (N - 1) / 2 * 15.0,
+                       np.nanmean(-n[..., 1] / n[..., 2]) * (M - 1) / 2 * 15.0)
+        intensities[i] = res.lights.model.intensities
+    taken = intensity_tilts({i: P for i in measured}, intensities, (150, 200), 15.0)
+    before = np.array([measured[i] for i in measured]) - RIG_TILTS_UM
+    after = before - np.array([taken[i] for i in measured])
+    print("tilts' errors before", np.round(before, 2).tolist(), "after", np.round(after, 2).tolist())
+    assert np.abs(before - before.mean(axis=0)).max() > 3.0
+    assert np.abs(after - after.mean(axis=0)).max() < 1.0
+    # not one rig: another tile's lamps elsewhere
+    assert intensity_tilts({0: P, 1: P + 1.0}, {0: E, 1: E}, (150, 200), 15.0) is None
+    assert intensity_tilts({0: P, 1: P}, {0: E, 1: np.r_[0.0, E[1:]]}, (150, 200), 15.0) is None
+    # intensities given in the light file (the same in every tile, up to the exposure): nothing to give back
+    same = intensity_tilts({0: P, 1: P}, {0: E, 1: 1.1 * E}, (150, 200), 15.0)
+    assert np.abs(list(same.values())).max() < 1e-9

@@ -38,7 +38,8 @@ from typing import Optional
 import numpy as np
 
 from .core.measure import COLUMNS
-from .core.mosaic import Registration, align_heights, align_rig_heights, overlap_box, register_tiles
+from .core.mosaic import (Registration, align_heights, align_rig_heights, intensity_tilts, overlap_box,
+                          register_tiles)
 from .core.regions import UM2_PER_CM2, _as_label_image, propose_regions
 from .errors import UVPSInputError
 from .files.omezarr import (CHUNK_PX, LABELS, StoreBatch, ZarrImage, open_tiff, write_dask_ome_labels,
@@ -560,7 +561,7 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
 
     chunk_px = int(chunk_px or CHUNK_PX)
     names = list(corners)
-    planes, forms, record = _align_heights(out_dir, names, corners, reg)
+    planes, forms, record = _align_heights(out_dir, names, corners, reg, pixel_size_um=pixel_size_um)
     luts = {}
     for k in names:
         mine = [r for r in every if r["tile"] == k]
@@ -599,12 +600,13 @@ def _write_maps(tmp: Path, out_dir: Path, every: list, corners, shapes, gains, r
     return record
 
 
-def _align_heights(out_dir: Path, names: list, corners: dict, reg) -> tuple:
+def _align_heights(out_dir: Path, names: list, corners: dict, reg, *, pixel_size_um: float) -> tuple:
     """Each tile's height plane and form (:class:`uvps.painting_maps.PlacedTile`) and what
     ``painting.json`` records of them. With every tile's levelling in its ``run.json`` (a ``uvps run``),
-    its height as integrated is rebuilt and the tiles share one error surface (the lamps move with the
-    camera: :func:`uvps.core.mosaic.align_rig_heights`); otherwise each tile takes a free plane
-    (:func:`uvps.core.mosaic.align_heights`)."""
+    its height as integrated is rebuilt, less the tilt its own lamp intensities gave it when the tiles'
+    lamps are one rig's (:func:`uvps.core.mosaic.intensity_tilts`), and the tiles share one error surface
+    (the lamps move with the camera: :func:`uvps.core.mosaic.align_rig_heights`); otherwise each tile takes
+    a free plane (:func:`uvps.core.mosaic.align_heights`)."""
     import json
 
     heights = {k: open_tiff(out_dir / k / "depth.tif") for k in names}
@@ -615,16 +617,50 @@ def _align_heights(out_dir: Path, names: list, corners: dict, reg) -> tuple:
         except (OSError, ValueError, KeyError, TypeError):
             break
     if len(levels) == len(names) and len({tuple(h.shape) for h in heights.values()}) == 1:
+        tilts = _intensity_tilts(out_dir, names, next(iter(heights.values())).shape, pixel_size_um)
+        if tilts is not None:
+            for k in names:
+                c = _pad_plane(levels[k])
+                c[1, 0] -= tilts[k][0]
+                c[0, 1] -= tilts[k][1]
+                levels[k] = c
         rig = align_rig_heights(heights, corners, reg.pairs, levels)
         record = {"model": "rig: per-tile offset, the tilt measured, one shared error surface in the tile's frame",
                   "shared_legendre_um": [[round(float(v), 6) for v in row] for row in rig.shared],
                   # None when no overlap was sampled (one tile, no pair used): JSON has no NaN
                   "overlap_rms_um": round(rig.rms_um, 4) if math.isfinite(rig.rms_um) else None,
+                  "intensity_tilts_um": None if tilts is None else {k: [round(v, 4) for v in tilts[k]] for k in names},
                   "planes": {k: [round(v, 6) for v in rig.planes[k]] for k in names}}
         return rig.planes, rig.forms, record
     planes = align_heights(heights, corners, reg.pairs)
     return planes, {k: None for k in names}, {"model": "free: per-tile offset and plane",
                                               "planes": {k: [round(v, 6) for v in planes[k]] for k in names}}
+
+
+def _pad_plane(coeffs) -> np.ndarray:
+    """Legendre coefficients as an array of at least 2 x 2 (a plane's terms)."""
+    c = np.asarray(coeffs, np.float64)
+    out = np.zeros((max(c.shape[0], 2), max(c.shape[1], 2)))
+    out[:c.shape[0], :c.shape[1]] = c
+    return out
+
+
+def _intensity_tilts(out_dir: Path, names: list, shape, pixel_size_um: float) -> Optional[dict]:
+    """:func:`uvps.core.mosaic.intensity_tilts` of the tiles' ``lights.json``; None when a tile has none or
+    its lamps are not at positions (far lights)."""
+    import json
+
+    positions, intensities = {}, {}
+    for k in names:
+        try:
+            lights = json.loads((out_dir / k / "lights.json").read_text(encoding="utf-8"))["lights"]
+            positions[k] = [lt["position_mm"] for lt in lights]
+            intensities[k] = [float(lt["intensity"]) for lt in lights]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if any(p is None for p in positions[k]):
+            return None
+    return intensity_tilts(positions, intensities, shape, pixel_size_um)
 
 
 def _cell(v) -> str:
