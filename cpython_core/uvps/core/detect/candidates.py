@@ -88,8 +88,9 @@ class Candidates:
 
 
 def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: DetectionParams,
-                progress: Progress) -> Candidates:
-    """The cues and their union (module docstring, steps 3-6)."""
+                progress: Progress, *, mask_albedo: np.ndarray = None) -> Candidates:
+    """The cues and their union (module docstring, steps 3-6); ``mask_albedo``: the albedo cue
+    when it was run already (:func:`_albedo_cue`, as here)."""
     _report(progress, 0.3, "height cue")
     hl, markers, n_h, n_peaks = _height_cue(surf.relief, th, px, p, surf.disc)
     relief = np.zeros(0)
@@ -104,7 +105,8 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
             hl = np.where(sh, compact, np.where(hl > n_peaks, 0, hl))
             relief[n_peaks:] = np.maximum(_label_max(surf.relief, compact, n_h)[n_peaks:], 0)
     _report(progress, 0.5, "albedo cue")
-    mask_albedo = _albedo_cue(lum, valid, px, th, p)
+    if mask_albedo is None:
+        mask_albedo = _albedo_cue(lum, valid, px, th, p)
     long_lab, t_disc = _long_areas(surf, valid, th, hl > 0)
     _report(progress, 0.7, "union")
     lab, kind, glow = _union(hl, n_h, mask_albedo, long_lab, max(2.0, p.albedo_grow_um / px))
