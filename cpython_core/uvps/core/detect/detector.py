@@ -108,8 +108,9 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         return Detection(none, np.zeros(0, "<U13"), none > 0, none > 0, rejected)
     _report(progress, 0.0, "height: noise, weave, compact relief")
     # the albedo cue reads the albedo and the widths only: beside the height's surface
-    surf, mask_albedo = concurrently(lambda: _surface(h, valid, px, p),
-                                     lambda: _albedo_cue(lum, valid, px, _widths(px, p), p))
+    surf, (mask_albedo, unmeasured) = concurrently(
+        lambda: _surface(h, valid, px, p),
+        lambda: (_albedo_cue(lum, valid, px, _widths(px, p), p), _unmeasured(measured, normals)))
     th = _thresholds(surf, px, p)
     surf = replace(surf, relief=_beside_long(surf, valid, th, p))
     cand = _candidates(lum, valid, surf, th, px, p, progress, mask_albedo=mask_albedo)
@@ -119,7 +120,6 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         return Detection(none, np.zeros(0, "<U13"), cand.mask_albedo, cand.height > 0, rejected,
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
-    unmeasured = _unmeasured(measured, normals)
     feats = _candidate_features(cand, surf, normals, th, px, p, unmeasured,
                                 None if left_out is None else np.asarray(left_out, bool))
     on_long, stroke_min = _stroke_slope(feats, th, px, p)
