@@ -266,7 +266,10 @@ def _shoulder_curvature(t: np.ndarray, px: float, p: DetectionParams) -> tuple:
     if p.shoulder_width_um <= 0:
         return None, None
     curv = _log_curvature(t, p.shoulder_width_um / px / (2.0 * math.sqrt(2.0)))
-    return curv, 1.4826 * float(np.median(np.abs(curv - np.median(curv))))
+    # one copy, partitioned in place by both medians (the same multisets, the same medians)
+    d = curv.copy()
+    med = np.median(d, overwrite_input=True)
+    return curv, 1.4826 * float(np.median(np.abs(np.subtract(curv, med, out=d), out=d), overwrite_input=True))
 
 
 def _curvature_maxima(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, curv: np.ndarray,
