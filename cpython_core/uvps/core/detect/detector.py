@@ -77,7 +77,10 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     watershed, a robust plane and a watershed per group of footprints in its crop, the
     measurements on the candidates' crops: 9.9-11.2 s at 4000 x 3000 on one core
     (``scripts/benchmark_detection_speed.py``; ``docs/benchmarks.md``, "Detection on other shapes
-    and surfaces").
+    and surfaces"). Independent steps run side by side when two threads are allowed
+    (:func:`uvps.core.threads.concurrently`: the albedo cue beside the surface, the noise beside
+    the weave, the curvature beside the peaks, ...; the same outputs to the bit;
+    ``docs/decisions/speed.md``, "The detection's independent steps side by side").
 
     References
     ----------
