@@ -57,8 +57,9 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
     joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
-    if na:
-        lab = np.where(acomp > 0, acomp + n_h, lab).astype(np.int32)
+    if na:                                               # in place: lab is ours
+        sel = acomp > 0
+        lab[sel] = acomp[sel] + n_h
     taken = cv2.dilate((lab > 0).view(np.uint8), np.ones((3, 3), np.uint8),
                        borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     touch = np.zeros(int(long_lab.max()) + 1, bool)
@@ -66,7 +67,8 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     keep = (long_lab > 0) & ~touch[long_lab]
     lcomp, nl = ndi.label(keep, structure=np.ones((3, 3)))
     if nl:
-        lab = np.where(lcomp > 0, lcomp + n_h + na, lab).astype(np.int32)
+        sel = lcomp > 0
+        lab[sel] = lcomp[sel] + (n_h + na)
     kind = np.array([""] + [HEIGHT] * n_h + [ALBEDO] * na + [LONG] * nl, dtype="<U6")
     return lab, kind, glow
 
