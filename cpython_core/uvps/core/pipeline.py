@@ -17,6 +17,7 @@ Example
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ from .offset import AdditiveTerm, OffsetImages, estimate_additive, known_additiv
 from .progress import Progress, report, sub_progress
 from .regions import RegionMap, propose_regions
 from .stereo import EVERY_SAMPLE, StereoResult, solve_normals
+from .threads import concurrently
 
 log = logging.getLogger(__name__)
 
@@ -691,14 +693,17 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
     detection is restricted to them (the paper masks each area) and each protrusion gets its area.
     """
     proposed = isinstance(regions, str) and regions == "auto"
-    if proposed:
-        regions = propose_regions(albedo, pixel_size_um=pixel_size_um, n_areas=n_areas, seed=seed)
-    elif regions is not None and not isinstance(regions, RegionMap):
+    if not proposed and regions is not None and not isinstance(regions, RegionMap):
         raise UVPSInputError(f"regions must be None, 'auto' or a RegionMap (files: uvps.files.tables.load_regions); "
                              f"got {type(regions).__name__}")
-    mask = regions.labels > 0 if regions is not None else None
     params = params or _detector("DetectionParams")()
-    dh = detection_height(height_um, normals, pixel_size_um=pixel_size_um, params=params)
+    height = functools.partial(detection_height, height_um, normals, pixel_size_um=pixel_size_um, params=params)
+    if proposed:    # the areas from the albedo, the detection's height from the normals: side by side
+        dh, regions = concurrently(height, functools.partial(propose_regions, albedo, pixel_size_um=pixel_size_um,
+                                                             n_areas=n_areas, seed=seed))
+    else:
+        dh = height()
+    mask = regions.labels > 0 if regions is not None else None
     det = _detector("detect_protrusions")(albedo, dh.height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
                              params=params, left_out=dh.left_out,
                              progress=sub_progress(progress, 0.0, 0.85))

@@ -57,8 +57,9 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
     joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
-    if na:
-        lab = np.where(acomp > 0, acomp + n_h, lab).astype(np.int32)
+    if na:                                               # in place: lab is ours
+        sel = acomp > 0
+        lab[sel] = acomp[sel] + n_h
     taken = cv2.dilate((lab > 0).view(np.uint8), np.ones((3, 3), np.uint8),
                        borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     touch = np.zeros(int(long_lab.max()) + 1, bool)
@@ -66,7 +67,8 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     keep = (long_lab > 0) & ~touch[long_lab]
     lcomp, nl = ndi.label(keep, structure=np.ones((3, 3)))
     if nl:
-        lab = np.where(lcomp > 0, lcomp + n_h + na, lab).astype(np.int32)
+        sel = lcomp > 0
+        lab[sel] = lcomp[sel] + (n_h + na)
     kind = np.array([""] + [HEIGHT] * n_h + [ALBEDO] * na + [LONG] * nl, dtype="<U6")
     return lab, kind, glow
 
@@ -88,8 +90,9 @@ class Candidates:
 
 
 def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: DetectionParams,
-                progress: Progress) -> Candidates:
-    """The cues and their union (module docstring, steps 3-6)."""
+                progress: Progress, *, mask_albedo: np.ndarray = None) -> Candidates:
+    """The cues and their union (module docstring, steps 3-6); ``mask_albedo``: the albedo cue
+    when it was run already (:func:`_albedo_cue`, as here)."""
     _report(progress, 0.3, "height cue")
     hl, markers, n_h, n_peaks = _height_cue(surf.relief, th, px, p, surf.disc)
     relief = np.zeros(0)
@@ -104,7 +107,8 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
             hl = np.where(sh, compact, np.where(hl > n_peaks, 0, hl))
             relief[n_peaks:] = np.maximum(_label_max(surf.relief, compact, n_h)[n_peaks:], 0)
     _report(progress, 0.5, "albedo cue")
-    mask_albedo = _albedo_cue(lum, valid, px, th, p)
+    if mask_albedo is None:
+        mask_albedo = _albedo_cue(lum, valid, px, th, p)
     long_lab, t_disc = _long_areas(surf, valid, th, hl > 0)
     _report(progress, 0.7, "union")
     lab, kind, glow = _union(hl, n_h, mask_albedo, long_lab, max(2.0, p.albedo_grow_um / px))

@@ -8,15 +8,16 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.segmentation import expand_labels
 
+from ..threads import concurrently
 from ._common import Thresholds, _holes
-from .albedo import _brightness
+from .albedo import _albedo_cue, _brightness
 from .along_stroke import _bumps_on_strokes
 from .candidates import Candidates, _candidates
 from .features import CandidateFeatures, _candidate_features, _unmeasured
 from .params import Detection, Progress, _report, _validate
 from .rules import PARAM_RANGES, REJECTION_REASONS, REJECTION_RULES, _apply_rules
 from .strokes import _ripples, _stroke_slope
-from .surface import Surface, _beside_long, _surface, _thresholds
+from .surface import Surface, _beside_long, _surface, _thresholds, _widths
 
 # the package's name, not the module's: the detector's summary line reads "uvps.core.detect: detect: ..."
 # in the Log and the CLI as it did when the detector was one module
@@ -76,7 +77,10 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
     watershed, a robust plane and a watershed per group of footprints in its crop, the
     measurements on the candidates' crops: 9.9-11.2 s at 4000 x 3000 on one core
     (``scripts/benchmark_detection_speed.py``; ``docs/benchmarks.md``, "Detection on other shapes
-    and surfaces").
+    and surfaces"). Independent steps run side by side when two threads are allowed
+    (:func:`uvps.core.threads.concurrently`: the albedo cue beside the surface, the noise beside
+    the weave, the curvature beside the peaks, ...; the same outputs to the bit;
+    ``docs/decisions/speed.md``, "The detection's independent steps side by side").
 
     References
     ----------
@@ -106,17 +110,19 @@ def detect_protrusions(albedo, height_um, *, pixel_size_um, normals=None, mask=N
         _report(progress, 1.0, "done: no valid pixels")
         return Detection(none, np.zeros(0, "<U13"), none > 0, none > 0, rejected)
     _report(progress, 0.0, "height: noise, weave, compact relief")
-    surf = _surface(h, valid, px, p)
+    # the albedo cue reads the albedo and the widths only: beside the height's surface
+    surf, (mask_albedo, unmeasured) = concurrently(
+        lambda: _surface(h, valid, px, p),
+        lambda: (_albedo_cue(lum, valid, px, _widths(px, p), p), _unmeasured(measured, normals)))
     th = _thresholds(surf, px, p)
     surf = replace(surf, relief=_beside_long(surf, valid, th, p))
-    cand = _candidates(lum, valid, surf, th, px, p, progress)
+    cand = _candidates(lum, valid, surf, th, px, p, progress, mask_albedo=mask_albedo)
     diag = _diagnostics(surf, th, cand, px)
     if cand.labels.max() == 0:
         _report(progress, 1.0, "done: no candidates")
         return Detection(none, np.zeros(0, "<U13"), cand.mask_albedo, cand.height > 0, rejected,
                          surf.noise_um, diag)
     _report(progress, 0.85, "rejection")
-    unmeasured = _unmeasured(measured, normals)
     feats = _candidate_features(cand, surf, normals, th, px, p, unmeasured,
                                 None if left_out is None else np.asarray(left_out, bool))
     on_long, stroke_min = _stroke_slope(feats, th, px, p)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..threads import concurrently
 from ._common import Thresholds, _edt, _expand_labels, _holes, _label_max, _label_mean
 from .candidates import HEIGHT, Candidates
 from .params import DetectionParams
@@ -256,22 +257,16 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
     lbl = np.flatnonzero(area_all) + 1
     area = area_all[lbl - 1].astype(np.float64)
     eqd = np.sqrt(4 * area / np.pi)
-    ring_w = max(RING_PX, 0.25 * th.min_w + 1)
-    ring = _expand_labels(lab, ring_w) * (lab == 0)
-    ring2 = ring if ring_w == RING_PX else _expand_labels(lab, RING_PX) * (lab == 0)
     t = surf.relief
-    relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     is_h = cand.kind[lbl] == HEIGHT
-    relief[is_h] = cand.height_relief[lbl[is_h] - 1]
-    rel_all = np.zeros(n_lab)
-    rel_all[lbl - 1] = relief
-    crack = _crack_fraction(lab, ring2, surf.height, rel_all, n_lab, p.crack_width_um / px,
-                            th.relief_um, check_above=p.max_crack_fraction, known=left_out)[lbl - 1]
-    relief_disc = (_label_max(t_disc, lab, n_lab) - _label_mean(t_disc, ring, n_lab))[lbl - 1]
-    elong = area / (np.pi * _inscribed_radius(lab, n_lab)[lbl - 1] ** 2)
-    holes = _hole_area(lab, n_lab)[lbl - 1]
+    # the shapes and the normals' measures read the labels alone: beside the reliefs over the rings
+    (relief, crack, relief_disc), (radius, holes, glow_area, (tilt, mismatch)) = concurrently(
+        lambda: _ring_reliefs(cand, surf, lbl, is_h, th, px, p, left_out),
+        lambda: (_inscribed_radius(lab, n_lab), _hole_area(lab, n_lab), _glow_area(lab, n_lab, cand.glow),
+                 _normals_features(normals, surf.raw, lab, n_lab, px, left_out)))
+    elong = area / (np.pi * radius[lbl - 1] ** 2)
+    holes, glow_area = holes[lbl - 1], glow_area[lbl - 1]
     n_alb = np.bincount(lab[cand.mask_albedo], minlength=n_lab + 1)[lbl]
-    glow_area = _glow_area(lab, n_lab, cand.glow)[lbl - 1]
     own_glow = np.where(glow_area > 0, n_alb / np.maximum(glow_area, 1), 0.0)
     major = np.zeros(lbl.size)
     ratio = np.ones(lbl.size)
@@ -280,7 +275,6 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
         ax_major, ax_minor = _axis_lengths(lab, n_lab)
         major[need] = ax_major[lbl[need] - 1]
         ratio[need] = ax_minor[lbl[need] - 1] / np.maximum(major[need], 1e-9)
-    tilt, mismatch = _normals_features(normals, surf.raw, lab, n_lab, px, left_out)
     under = _label_mean(t_disc - t, lab, n_lab)[lbl - 1]
     rr, cc = np.nonzero(lab)
     ll = lab[rr, cc]
@@ -296,6 +290,25 @@ def _candidate_features(cand: Candidates, surf: Surface, normals, th: Thresholds
                              own_glow=own_glow,
                              crack_fraction=crack, tilt_deg=tilt[lbl - 1],
                              mismatch=mismatch[lbl - 1], unmeasured=unm)
+
+
+def _ring_reliefs(cand: Candidates, surf: Surface, lbl, is_h, th: Thresholds, px: float,
+                  p: DetectionParams, left_out) -> tuple:
+    """:func:`_candidate_features`' measures over the rings around the candidates ``lbl``: relief
+    (a height candidate's: over its local plane), crack fraction, relief of the disc top-hat."""
+    lab, t_disc, t = cand.labels, cand.t_disc, surf.relief
+    n_lab = int(lab.max())
+    ring_w = max(RING_PX, 0.25 * th.min_w + 1)
+    ring = _expand_labels(lab, ring_w) * (lab == 0)
+    ring2 = ring if ring_w == RING_PX else _expand_labels(lab, RING_PX) * (lab == 0)
+    relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
+    relief[is_h] = cand.height_relief[lbl[is_h] - 1]
+    rel_all = np.zeros(n_lab)
+    rel_all[lbl - 1] = relief
+    crack = _crack_fraction(lab, ring2, surf.height, rel_all, n_lab, p.crack_width_um / px,
+                            th.relief_um, check_above=p.max_crack_fraction, known=left_out)[lbl - 1]
+    relief_disc = (_label_max(t_disc, lab, n_lab) - _label_mean(t_disc, ring, n_lab))[lbl - 1]
+    return relief, crack, relief_disc
 
 
 def _glow_area(lab: np.ndarray, n_lab: int, glow: np.ndarray) -> np.ndarray:

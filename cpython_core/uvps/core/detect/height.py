@@ -10,6 +10,7 @@ from scipy import ndimage as ndi
 from skimage.morphology import h_maxima, reconstruction
 from skimage.segmentation import watershed
 
+from ..threads import concurrently
 from ._common import Thresholds, _edt, _label_max, _label_mean, _on_long_structure
 from .params import DetectionParams
 
@@ -196,7 +197,8 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
 
 
 def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Thresholds,
-                      px: float, p: DetectionParams, disc: np.ndarray = None) -> tuple:
+                      px: float, p: DetectionParams, disc: np.ndarray = None, *,
+                      curvature: tuple = None) -> tuple:
     """Markers of small protrusions that are only a shoulder of a taller neighbour, and the
     curvature they were found on.
 
@@ -218,14 +220,13 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     the neighbour's flank under it included; a stroke's lump is no protrusion's shoulder). Hand-
     written because no library detects blobs inside another's footprint: skimage's
     ``blob_log`` finds scale-space maxima over the whole image, without the footprint, the
-    isotropy or a dynamic. Returns (markers with the shoulders added, n, curvature)."""
+    isotropy or a dynamic. ``curvature``: :func:`_shoulder_curvature`'s of ``t`` when it was
+    measured already. Returns (markers with the shoulders added, n, curvature)."""
     n_h = int(markers.max())
     if p.shoulder_width_um <= 0 or not n_h:
         return markers, n_h, None
     w = p.shoulder_width_um / px
-    sigma = w / (2.0 * math.sqrt(2.0))
-    curv = _log_curvature(t, sigma)
-    noise = 1.4826 * float(np.median(np.abs(curv - np.median(curv))))
+    curv, noise = curvature if curvature is not None else _shoulder_curvature(t, px, p)
     dyn = max(p.shoulder_k * noise, 4.0 * th.relief_um / (0.5 * w) ** 2)
     inside = ws > 0
     if not inside.any():
@@ -256,6 +257,19 @@ def _shoulder_markers(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, th: Th
     out = markers.copy()
     out[keep] = lut[lab[keep]]
     return out, int(out.max()), curv
+
+
+def _shoulder_curvature(t: np.ndarray, px: float, p: DetectionParams) -> tuple:
+    """The curvature :func:`_shoulder_markers` seeks shoulders on (minus the Laplacian of Gaussian
+    of ``t`` at sigma ``w / (2 sqrt 2)``, :func:`_log_curvature`) and its noise (a MAD over the
+    image); (None, None) without the shoulder cue."""
+    if p.shoulder_width_um <= 0:
+        return None, None
+    curv = _log_curvature(t, p.shoulder_width_um / px / (2.0 * math.sqrt(2.0)))
+    # one copy, partitioned in place by both medians (the same multisets, the same medians)
+    d = curv.copy()
+    med = np.median(d, overwrite_input=True)
+    return curv, 1.4826 * float(np.median(np.abs(np.subtract(curv, med, out=d), out=d), overwrite_input=True))
 
 
 def _curvature_maxima(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, curv: np.ndarray,
@@ -352,9 +366,32 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams,
     shoulder gets the part of the basin its own curvature encloses; ``disc`` (the disc top-hat)
     goes to :func:`_shoulder_markers` for its long-structure test (None: no such test).
     Returns (labels, markers, n, n_peaks): labels above ``n_peaks`` are shoulders."""
-    markers, n_h, weak = _peak_markers(t, th, p)
+    # the shoulders' curvature reads t alone: beside the peaks and their basins
+    (markers, n_h, ws), curvature = concurrently(lambda: _peak_basins(t, th, p),
+                                                 lambda: _shoulder_curvature(t, px, p))
     if not n_h:
         return np.zeros(t.shape, np.int32), markers, 0, 0
+    n_peaks = n_h
+    markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p, disc, curvature=curvature)
+    if n_h > n_peaks:
+        split = np.zeros(n_peaks + 1, bool)
+        split[np.unique(ws[markers > n_peaks])] = True
+        split[0] = False
+        region = split[ws]
+        sub = watershed(-curv, np.where(region, markers, 0), mask=region)
+        ws = np.where(region, sub, ws)
+    peak = _label_max(t, ws, n_h)
+    cut = np.concatenate([[np.inf], p.footprint_fraction * peak])
+    return _seeded(ws, (t >= cut[ws]) & (ws > 0), markers), markers, n_h, n_peaks
+
+
+def _peak_basins(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
+    """:func:`_height_cue`'s peaks (:func:`_peak_markers`, a crater's rim joined, the weak
+    splits decided) and their watershed basins of ``-t``. Returns (markers, n, basins); no
+    basins (None) without a peak."""
+    markers, n_h, weak = _peak_markers(t, th, p)
+    if not n_h:
+        return markers, 0, None
     floor = p.footprint_fraction * th.relief_um
     ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     lut = _rim_merges(t, ws, th, p)                 # one crater's rim: its ends joined
@@ -370,18 +407,7 @@ def _height_cue(t: np.ndarray, th: Thresholds, px: float, p: DetectionParams,
             markers = np.where(keep, np.cumsum(keep) - 1, 0).astype(np.int32)[markers]
             n_h = int(markers.max())
             ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
-    n_peaks = n_h
-    markers, n_h, curv = _shoulder_markers(t, ws, markers, th, px, p, disc)
-    if n_h > n_peaks:
-        split = np.zeros(n_peaks + 1, bool)
-        split[np.unique(ws[markers > n_peaks])] = True
-        split[0] = False
-        region = split[ws]
-        sub = watershed(-curv, np.where(region, markers, 0), mask=region)
-        ws = np.where(region, sub, ws)
-    peak = _label_max(t, ws, n_h)
-    cut = np.concatenate([[np.inf], p.footprint_fraction * peak])
-    return _seeded(ws, (t >= cut[ws]) & (ws > 0), markers), markers, n_h, n_peaks
+    return markers, n_h, ws
 
 
 def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray:

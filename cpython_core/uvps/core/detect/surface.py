@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 from skimage.morphology import max_tree
 
+from ..threads import concurrently
 from ._common import MIN_SMOOTH_PX, Thresholds
 from ._kernels import _diameter_filter, _flood_beside
 from .params import DetectionParams
@@ -45,10 +46,17 @@ def _noise_sigma(h: np.ndarray, valid: np.ndarray) -> float:
 
     A second difference cancels planes and slopes; for white noise its variance is 6 sigma^2.
     """
-    across, along = h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2], h[2:] - 2 * h[1:-1] + h[:-2]
-    if valid.all():
-        d = np.concatenate([across.ravel(), along.ravel()])
+    if valid.all():     # both written into one array: the same operations, no temporaries
+        shapes = (h[:, 2:].shape, h[2:].shape)
+        d = np.empty(sum(math.prod(s) for s in shapes), np.result_type(h, 2))
+        cut = math.prod(shapes[0])
+        for diff, (a, b, c) in ((d[:cut].reshape(shapes[0]), (h[:, 2:], h[:, 1:-1], h[:, :-2])),
+                                (d[cut:].reshape(shapes[1]), (h[2:], h[1:-1], h[:-2]))):
+            np.multiply(b, 2, out=diff)
+            np.subtract(a, diff, out=diff)
+            np.add(diff, c, out=diff)
     else:
+        across, along = h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2], h[2:] - 2 * h[1:-1] + h[:-2]
         d = np.concatenate([across[valid[:, 2:] & valid[:, 1:-1] & valid[:, :-2]],
                             along[valid[2:] & valid[1:-1] & valid[:-2]]])
     if d.size == 0:
@@ -173,18 +181,21 @@ def _surface(h: np.ndarray, valid: np.ndarray, px: float, p: DetectionParams) ->
     """Noise, weave and compact relief of the height (see the module docstring, steps 1-2)."""
     fill = float(np.median(h[valid])) if not valid.all() else 0.0    # no pixel to fill: 0.3 s
     h0 = np.where(valid, h, fill).astype(np.float32)
-    noise = _noise_sigma(h0, valid)
     s = p.smooth_um / px
+
+    def smoothed():
+        hs = cv2.GaussianBlur(h0, (0, 0), s, borderType=cv2.BORDER_REFLECT) if s >= MIN_SMOOTH_PX else h0
+        return _remove_weave(hs, px, p)
+
+    # the noise (two medians) beside the smoothing and the weave; the relief beside the top-hat
+    (hn, weave), noise = concurrently(smoothed, lambda: _noise_sigma(h0, valid))
+    noise_s = noise
     if s >= MIN_SMOOTH_PX:
-        hs = cv2.GaussianBlur(h0, (0, 0), s, borderType=cv2.BORDER_REFLECT)
         k1 = cv2.getGaussianKernel(2 * int(math.ceil(4 * s)) + 1, s)
         noise_s = noise * float(np.sum(k1 ** 2))  # white noise through the separable kernel
-    else:
-        hs, noise_s = h0, noise
-    hn, weave = _remove_weave(hs, px, p)
     length = COMPACT_LENGTH_FACTOR * p.max_width_um / px + COMPACT_LENGTH_PAD_PX
-    return Surface(raw=h0, height=hn, relief=_compact_relief(hn, valid, length),
-                   disc=_disc_tophat(hn, length), noise_um=noise, noise_smoothed_um=noise_s,
+    relief, disc = concurrently(lambda: _compact_relief(hn, valid, length), lambda: _disc_tophat(hn, length))
+    return Surface(raw=h0, height=hn, relief=relief, disc=disc, noise_um=noise, noise_smoothed_um=noise_s,
                    weave=weave, length_px=length)
 
 
@@ -192,3 +203,9 @@ def _thresholds(surf: Surface, px: float, p: DetectionParams) -> Thresholds:
     relief = max(p.min_dynamic_um, p.dynamic_k * surf.noise_smoothed_um)
     slope = max(2 * p.min_relief_ratio, p.weave_slope_k * surf.weave.slope_rms)
     return Thresholds(relief, slope, p.min_width_um / px, p.max_width_um / px)
+
+
+def _widths(px: float, p: DetectionParams) -> Thresholds:
+    """:func:`_thresholds`' widths (px), known before the surface: its relief and slope NaN
+    (what reads only the widths, the albedo cue, runs beside :func:`_surface`)."""
+    return Thresholds(math.nan, math.nan, p.min_width_um / px, p.max_width_um / px)

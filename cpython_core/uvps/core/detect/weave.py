@@ -69,7 +69,8 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     m, n = hs.shape
     centred = hs.astype(np.float64) - float(np.mean(hs))
     win = np.outer(np.hanning(m), np.hanning(n))
-    power = np.abs(scipy.fft.rfft2(centred * win)) ** 2
+    power = np.abs(scipy.fft.rfft2(np.multiply(centred, win, out=win)))    # the window's array reused
+    np.square(power, out=power)
     fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
     band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
     if not band.any():
