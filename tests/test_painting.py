@@ -289,6 +289,28 @@ def test_protrusions_of_the_overlaps_are_counted_once(paintings):
     assert s["f1"] == 1.0 and s["twice"] == 0 and s["count_ratio"] == 1.0
 
 
+def test_a_protrusion_a_tiles_edge_splits_in_two_is_counted_once():
+    """A 325 um crater centred 1.4 px left of tile b's edge: b sees two cut fragments of it, a sees it whole.
+    Closest first, the one-to-one match pairs a's copy with the nearer fragment; the other fragment,
+    cut by b's edge within a's copy's footprint, joins that match (it was counted a second time). A
+    whole protrusion of b near the fragments but not cut is still its own."""
+    def table(rows):
+        return {c: np.array([r[k] for r in rows], float) for k, c in enumerate(("id", "x_px", "y_px", "width_um"))}
+    corners = {"a": (0.0, 0.0), "b": (1003.8, 0.0)}
+    shapes = {"a": (900, 1200), "b": (900, 1200)}
+    tables = {"a": table([(1, 1002.4, 502.5, 325.0), (2, 1033.8, 520.0, 90.0)]),
+              "b": table([(1, 4.8, 500.5, 187.0), (2, 1.8, 507.4, 108.0), (3, 30.0, 520.0, 90.0),
+                          (4, 16.0, 470.0, 60.0)])}
+    kept, every = merge_protrusions(tables, corners, shapes, pixel_size_um=15.0)
+    ids = sorted((r["tile"], int(r["id"])) for r in kept)
+    # the crater once (a's whole copy), the 90 um one once (a's: farther from its edge), b's 60 um one
+    # 32 px above the crater's centre (outside every footprint) kept
+    assert ids == [("a", 1), ("a", 2), ("b", 4)], ids
+    root = {(r["tile"], int(r["id"])): every[r["kept_as"]] for r in every}
+    assert (root[("b", 1)]["tile"], root[("b", 2)]["tile"]) == ("a", "a")
+    assert int(root[("b", 1)]["id"]) == int(root[("b", 2)]["id"]) == 1
+
+
 @pytest.fixture(scope="module")
 def written(paintings, tmp_path_factory):
     return write_painting(paintings[1], tmp_path_factory.mktemp("painting") / "p1")

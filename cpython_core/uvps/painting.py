@@ -250,10 +250,12 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
                 limit = np.maximum(0.5 * np.maximum(W[ia, None], W[None, ib]), tolerance_px)
                 # a detection cut by its tile's edge has its centroid off the protrusion's centre,
                 # by up to its own radius: matched when the two footprints overlap
-                cut = (E[ia, None] < 0.5 * W[ia, None] + 1) | (E[None, ib] < 0.5 * W[None, ib] + 1)
+                cut_a, cut_b = E[ia] < 0.5 * W[ia] + 1, E[ib] < 0.5 * W[ib] + 1
+                cut = cut_a[:, None] | cut_b[None, :]
                 limit = np.where(cut, np.maximum(limit, 0.5 * (W[ia, None] + W[None, ib]) + tolerance_px), limit)
+                near = sorted(zip(*np.nonzero(d < limit)), key=lambda pq: d[pq])
                 used_a, used_b = set(), set()
-                for p, q in sorted(zip(*np.nonzero(d < limit)), key=lambda pq: d[pq]):
+                for p, q in near:
                     if p in used_a or q in used_b:
                         continue
                     used_a.add(p)
@@ -262,12 +264,32 @@ def merge_protrusions(tables: dict, corners: dict, shapes: dict, *, pixel_size_u
                     lose, win = (j, i) if E[i] >= E[j] else (i, j)
                     keep[lose] = False
                     into[lose] = win
+                _join_fragments(near, cut_a, cut_b, ia, ib, used_a, used_b, keep, into)
     for k, r in enumerate(rows):      # the copy each detection ended up as (corners: followed)
         root = k
         while into[root] != root:
             root = into[root]
         r["kept_as"] = int(root)
     return [r for r, k in zip(rows, keep) if k], rows
+
+
+def _join_fragments(near, cut_a, cut_b, ia, ib, used_a, used_b, keep, into) -> None:
+    """A tile's edge can split one protrusion's visible part into two detections, each cut by that
+    edge; the one-to-one match pairs the closer with the other tile's whole copy and would leave the
+    second counted again. A cut detection left unmatched whose footprint meets a matched detection
+    of the other tile joins that match (closest first). An uncut one is never joined: the other tile
+    saw that place away from its own edge, and two protrusions there would be two of its detections."""
+    for p, q in near:
+        if p in used_a and q not in used_b and cut_b[q]:
+            lose, win = ib[q], ia[p]
+            used_b.add(q)
+        elif q in used_b and p not in used_a and cut_a[p]:
+            lose, win = ia[p], ib[q]
+            used_a.add(p)
+        else:
+            continue
+        keep[lose] = False
+        into[lose] = win
 
 
 def _region_labels(regions, overview, covered, step, origin, *, pixel_size_um, n_areas):
