@@ -197,3 +197,20 @@ def test_a_tiles_tilt_taken_up_by_its_lamp_intensities_is_given_back():
     # intensities given in the light file (the same in every tile, up to the exposure): nothing to give back
     same = intensity_tilts({0: P, 1: P}, {0: E, 1: 1.1 * E}, (150, 200), 15.0)
     assert np.abs(list(same.values())).max() < 1e-9
+
+
+def test_intensity_tilts_none_for_intensities_not_one_per_lamp_or_too_few_lamps():
+    """One rig's lamp positions, but intensities that cannot be one rig's lamps' (a tile's list one lamp short,
+    a tile without any) or too few lamps to solve a normal from (two): no tilt to give back (None), not a
+    crash of the painting's height alignment."""
+    from uvps.core.mosaic import intensity_tilts
+
+    rng = np.random.default_rng(3)
+    P = np.column_stack([rng.uniform(-200, 200, 8), rng.uniform(-200, 200, 8), rng.uniform(200, 300, 8)])
+    E = rng.uniform(0.9, 1.1, 8)
+    assert intensity_tilts({0: P, 1: P}, {0: E, 1: E[:7]}, (150, 200), 15.0) is None
+    assert intensity_tilts({0: P, 1: P}, {0: E}, (150, 200), 15.0) is None
+    assert intensity_tilts({0: P[:2], 1: P[:2]}, {0: E[:2], 1: 1.1 * E[:2] * [1.0, 1.05]}, (150, 200), 15.0) is None
+    # three lamps are enough: a finite tilt for each tile
+    three = intensity_tilts({0: P[:3], 1: P[:3]}, {0: E[:3], 1: E[:3] * [1.0, 1.05, 1.0]}, (150, 200), 15.0)
+    assert sorted(three) == [0, 1] and np.all(np.isfinite(list(three.values())))

@@ -700,8 +700,8 @@ def intensity_tilts(positions_mm: dict, intensities: dict, shape, pixel_size_um:
     dict or None
         ``{tile: (du, dv)}``: the Legendre coefficients (um; ``u``, ``v`` of :mod:`uvps.core.level`) of the plane
         the tile's height took from its intensities, to subtract from it; None when the tiles' lamps are not one
-        rig's (a tile without positions, another number of lamps, positions that differ) or an intensity is not
-        a positive number.
+        rig's (a tile without positions, another number of lamps, positions that differ), a tile's intensities
+        are not one per lamp, there are fewer than 3 lamps or an intensity is not a positive number.
     """
     names = list(positions_mm)
     P = [None if positions_mm[k] is None else np.asarray(positions_mm[k], float) for k in names]
@@ -709,8 +709,12 @@ def intensity_tilts(positions_mm: dict, intensities: dict, shape, pixel_size_um:
                                                                                    atol=RIG_POSITION_TOL_MM)
                              for p in P):
         return None
-    E = np.array([np.asarray(intensities[k], float) for k in names])
-    if E.shape != (len(names), len(P[0])) or not np.all(np.isfinite(E) & (E > 0)):
+    # checked tile by tile: a list of another length would make a ragged array (numpy raises)
+    E = [np.asarray(np.nan if intensities.get(k) is None else intensities[k], float) for k in names]
+    if len(P[0]) < 3 or any(e.shape != (len(P[0]),) for e in E):   # fewer than 3 lamps: no normal
+        return None
+    E = np.array(E)
+    if not np.all(np.isfinite(E) & (E > 0)):
         return None
     logE = np.log(E)
     logE -= logE.mean(axis=1, keepdims=True)                 # each tile's exposure
