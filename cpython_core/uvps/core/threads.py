@@ -36,7 +36,9 @@ def concurrently(*calls) -> list:
     For independent steps whose work releases the GIL (numpy, scipy.ndimage, OpenCV, numba's ``nogil``
     kernels), each only reading what it shares with the others: every call's arithmetic is its
     one-thread arithmetic, so the results are the same to the bit whatever the thread count
-    (``tests/test_threads.py``). An exception in any call is raised once all have ended.
+    (``tests/test_threads.py``). An exception in any call is raised once all have ended (the first
+    call's own, else the earliest other's). The cap holds per call: a call that itself calls
+    ``concurrently`` (the detector's surface inside its steps) can have one more thread busy.
     """
     n = min(len(calls), default_threads(len(calls)))
     if n <= 1:
