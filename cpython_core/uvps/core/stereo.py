@@ -15,7 +15,8 @@ than three usable lights is NaN and counted.
 shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
 normal; for captures with many lights (RTI domes, visible light). Work proceeds in bands of rows so
 that memory stays proportional to one band (the stack may be memory-mapped, :class:`uvps.files.io.MappedStack`);
-each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels`).
+each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels`; without rank trimming
+:func:`_solve_lanes`, the same arithmetic for 128 pixels side by side).
 """
 from __future__ import annotations
 
@@ -439,7 +440,7 @@ def _lanes_albedo(band, p0, nw, V0, V1, V2, w, nrm, num, den):  # pragma: no cov
 @numba.njit(inline="always", **_JIT_LANES)
 def _lanes_residual(grey, pred, w, res, nw):  # pragma: no cover - compiled
     """Each lane's samples used, sum of its grey samples, and its used samples' sum of squared residuals and
-    count, into ``res`` (4, lanes): :func:`_solve_pixels`'s per-pixel sums, in its order."""
+    count, into ``res`` (3, lanes): :func:`_solve_pixels`'s per-pixel sums, in its order."""
     K = grey.shape[0]
     res[:, :nw] = 0.0
     for k in range(K):
@@ -535,8 +536,9 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     ``n . l`` is below ``shadow_cos``: the attached-shadow test, after a first solve) and saturated
     samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
     closed-form 3x3 solves per pixel and one pass over the samples, in a compiled kernel
-    (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.6 s for 4000 x 3000 x
-    16 RGB on 2 cores (docs/benchmarks.md, "Speed and memory"), against 46-49 s for a numpy version
+    (:func:`_solve_lanes`, numba; :func:`_solve_pixels` with ``robust``) that runs in threads over bands of
+    rows: 2.6 s for 4000 x 3000 x 16 RGB on 2 cores before the lanes (docs/benchmarks.md, "Speed and
+    memory"; docs/decisions/speed.md, "The normals in SIMD lanes"), against 46-49 s for a numpy version
     with (K, P, 3) float64 temporaries and 10-19 s for a float32 numpy version (each timed by
     ``scripts/benchmark_speed.py``; docs/decisions/speed.md, "The normals in a compiled kernel (numba)").
     ``robust`` sorts the K samples.
@@ -607,8 +609,8 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     """Solve rows ``r0:r1`` into ``out``; -> (sum of squared residuals, the signal's sum of squares over the
     same samples, invalid pixels): :func:`_solve_pixels`.
 
-    The band is read and converted to float32 here; :func:`_solve_pixels` (compiled, GIL released)
-    does the rest, so bands run in parallel threads.
+    The band is read and converted to float32 here; :func:`_solve_lanes` (:func:`_solve_pixels` with ranks;
+    compiled, GIL released) does the rest, so bands run in parallel threads.
     """
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 0
