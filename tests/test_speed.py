@@ -82,6 +82,13 @@ def test_mapped_stack_indexes_like_an_array(folder):
                 (np.array([0, 3]), slice(None, None, 8), slice(None, None, 8)), (slice(2, 5), 7, slice(None))):
         np.testing.assert_array_equal(mapped[key], whole[key])
     np.testing.assert_array_equal(np.asarray(mapped), whole)
+    # the normals' bands: the files converted straight into float32, the same values as indexing gives
+    from uvps.core.stack import float_band
+    for rows in (slice(0, 7), slice(40, 90), slice(89, 90)):
+        band = float_band(mapped, rows)
+        assert band.dtype == np.float32
+        np.testing.assert_array_equal(band, whole[:, rows].astype(np.float32))
+        np.testing.assert_array_equal(float_band(whole, rows), band)
 
 
 def test_band_path_gives_the_in_memory_results(folder, monkeypatch):

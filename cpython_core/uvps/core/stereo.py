@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import UVPSInputError
 from .irradiance import LightModel, near_scale_compiled, pixel_coordinates_mm
 from .progress import Progress, report
+from .stack import float_band
 from .threads import default_threads
 
 log = logging.getLogger(__name__)
@@ -615,7 +616,7 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 0
     P = (r1 - r0) * N
-    band = np.asarray(images[:, r0:r1], dtype=np.float32).reshape(K, P, max(C, 1))
+    band = float_band(images, slice(r0, r1)).reshape(K, P, max(C, 1))
     X = pixel_coordinates_mm(np.arange(r0, r1)[:, None], np.arange(N)[None, :], (M, N), pixel_size_um)
     xs = X[..., 0].astype(np.float32).ravel()
     ys = X[..., 1].astype(np.float32).ravel()
