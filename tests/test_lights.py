@@ -253,12 +253,21 @@ def test_lamp_refinement_same_in_one_and_two_threads(monkeypatch):
     for a, b in zip(lights._vp_normal_equations(sample, th, workers=1),
                     lights._vp_normal_equations(sample, th, workers=2)):
         assert np.array_equal(a, b)
-    got = {}
+    # the known positions' intensity Jacobian (refine_intensities) in pixel bands
+    P0, E0 = cap.light_positions_mm, cap.intensities
+    jac = {w: np.full((n * len(P0), len(P0)), np.nan) for w in (1, 2)}
+    for w in (1, 2):
+        lights._intensity_jacobian(sample, P0, E0, 350.0, out=jac[w], factor=0.5, workers=w)
+    _, ref = lights._vp_residual_and_jacobian(sample, P0, E0, 350.0, intensities_only=True)
+    assert np.array_equal(jac[1], 0.5 * ref) and np.array_equal(jac[2], jac[1])
+    got, E = {}, {}
     for w in (1, 2):
         monkeypatch.setattr(lights, "lamp_threads", lambda workers=None, w=w: w if workers is None else workers)
         got[w] = estimate_lights(grid, fits, sample, pixel_size_um=PX)
+        E[w] = lights.refine_intensities(sample, P0)
     assert np.array_equal(got[1].model.positions_mm, got[2].model.positions_mm)
     assert np.array_equal(got[1].model.intensities, got[2].model.intensities)
+    assert np.array_equal(E[1], E[2]) and np.abs(E[1] * np.median(E0) - E0).max() < 0.05 * E0.max()
     # and the estimate is a real one: the azimuths within ~10 degrees on average, as on the 10-lamp
     # field of test_estimated_lights_from_the_images_alone (a sign or frame error gives tens)
     P, Q = cap.light_positions_mm, got[2].model.positions_mm

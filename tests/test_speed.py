@@ -82,6 +82,13 @@ def test_mapped_stack_indexes_like_an_array(folder):
                 (np.array([0, 3]), slice(None, None, 8), slice(None, None, 8)), (slice(2, 5), 7, slice(None))):
         np.testing.assert_array_equal(mapped[key], whole[key])
     np.testing.assert_array_equal(np.asarray(mapped), whole)
+    # the normals' bands: the files converted straight into float32, the same values as indexing gives
+    from uvps.core.stack import float_band
+    for rows in (slice(0, 7), slice(40, 90), slice(89, 90)):
+        band = float_band(mapped, rows)
+        assert band.dtype == np.float32
+        np.testing.assert_array_equal(band, whole[:, rows].astype(np.float32))
+        np.testing.assert_array_equal(float_band(whole, rows), band)
 
 
 def test_band_path_gives_the_in_memory_results(folder, monkeypatch):
@@ -529,3 +536,47 @@ def test_run_folder_written_beside_the_run_holds_the_same_files(folder, tmp_path
     assert inputs[0] == inputs[1] and len(inputs[0]) == len(files)
     for entry in inputs[0]:
         assert entry["sha256"] == hashlib.sha256(Path(entry["path"]).read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("near, colour, every", [(True, True, False), (False, True, False), (True, False, False),
+                                                 (True, True, True)])
+def test_normals_in_lanes_same_as_one_pixel_at_a_time(near, colour, every):
+    """stereo._solve_lanes (LANES pixels side by side, the default solve) writes the outputs of the
+    one-pixel-at-a-time kernel _solve_pixels to the bit, with the same sums of squares, on samples that
+    exercise every rule: shadowed (dark and attached), saturated, masked-out pixels, a pixel with fewer
+    than 3 usable lamps, near and far lamps, grey and RGB, a pixel count that is no multiple of LANES, and
+    every sample kept (EVERY_SAMPLE)."""
+    from uvps.core import stereo
+
+    model = _lights(near)
+    images, _ = _scene(model)
+    rng = np.random.default_rng(7)
+    images = images * rng.uniform(0.7, 1.3, images.shape[:3] + (1,)).astype(np.float32)   # misfit: residuals
+    images[rng.random(images.shape[:3]) < 0.08] = 0.0                                      # cast shadows
+    images[:, 3, 5] = 0.0
+    images[:2, 3, 6] = 4000.0                                                              # few lamps usable
+    sat = np.float32(np.quantile(images, 0.97))                                            # some saturated
+    band = images[:, :, :N - 3] if colour else images[:, :, :N - 3].mean(axis=-1)
+    K, m, n = band.shape[:3]
+    P = m * n
+    assert P % stereo.LANES
+    flat = np.ascontiguousarray(band.reshape(K, P, -1))
+    X = pixel_coordinates_mm(np.arange(m)[:, None], np.arange(n)[None, :], (M, N), PX)
+    xs, ys = (X[..., i].astype(np.float32).ravel() for i in (0, 1))
+    use = rng.random(P) > 0.05
+    L = model.positions_mm if near else np.zeros((K, 3))
+    dirs = (model.directions * model.intensities[:, None]).astype(np.float32)
+    rules = (np.float32(0), -1.0, float("-inf")) if every else (sat, 0.02, 0.05)
+    args = (flat, colour, np.ascontiguousarray(L, dtype=np.float64), model.intensities.astype(np.float64), dirs,
+            near, xs, ys, use) + rules
+    outs = {}
+    for name in ("pixels", "lanes"):
+        out = (np.full((P, 3), np.nan, np.float32), np.full((P, flat.shape[2]), np.nan, np.float32),
+               np.zeros(P, np.uint8))
+        sums = (stereo._solve_pixels(*args, 0, 0, *out) if name == "pixels" else stereo._solve_lanes(*args, *out))
+        outs[name] = (out, sums)
+    (a, sa), (b, sb) = outs["pixels"], outs["lanes"]
+    assert sa == sb and sa[2] > 0 and sa[0] > 0
+    for x, y in zip(a, b):
+        assert np.array_equal(x, y, equal_nan=True)
+    assert np.isnan(a[0]).any() and (a[2] < K).any() and np.isfinite(a[0]).mean() > 0.5

@@ -1385,6 +1385,33 @@ def _tile_misfit(sample: PixelSample, th, Hinv, w_h, n_res, tiles: int = 8) -> f
     return float(np.sqrt(G / (G - 1) * np.sum(proj ** 2)))
 
 
+def _intensity_jacobian(sample: PixelSample, P, E, scale, *, out, factor, workers=None) -> None:
+    """:func:`_vp_residual_and_jacobian`'s log E columns (``intensities_only``) times ``factor`` into ``out``
+    (K * pixels, K), in bands of pixels over :func:`lamp_threads` threads as :func:`photometric_residual`:
+    each pixel's rows are its own arithmetic (its light matrix, its inverse, its residual), so the Jacobian
+    is the one-thread one to the bit (``tests/test_lights.py::test_lamp_refinement_same_in_one_and_two_threads``)."""
+    K, n = sample.I.shape
+    parts = max(1, min(lamp_threads(workers), n // MIN_PIXELS_PER_THREAD))
+    if parts == 1:
+        _vp_residual_and_jacobian(sample, P, E, scale, out=out, factor=factor, intensities_only=True)
+        return
+    edges = np.linspace(0, n, parts + 1).astype(int)
+    J = out.reshape(K, n, K)
+
+    def part(i):
+        a, b = edges[i], edges[i + 1]
+        band = np.empty((K * (b - a), K))
+        _vp_residual_and_jacobian(sample.take(slice(a, b)), P, E, scale, out=band, factor=factor,
+                                  intensities_only=True)
+        J[:, a:b] = band.reshape(K, b - a, K)
+
+    with ThreadPoolExecutor(parts - 1) as pool:
+        rest = [pool.submit(part, i) for i in range(1, parts)]
+        part(0)
+        for f in rest:
+            f.result()
+
+
 def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> np.ndarray:
     """Relative lamp intensities (median 1) for KNOWN positions, by the photometric residual.
 
@@ -1405,8 +1432,7 @@ def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> n
 
     def jac(logE):
         J = np.empty((n + 1, K))
-        _vp_residual_and_jacobian(sample, P, np.exp(logE), scale, out=J[:n], factor=1.0 / np.sqrt(n),
-                                  intensities_only=True)
+        _intensity_jacobian(sample, P, np.exp(logE), scale, out=J[:n], factor=1.0 / np.sqrt(n))
         J[-1] = 1.0 / K
         return J
 

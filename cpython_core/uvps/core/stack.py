@@ -178,6 +178,28 @@ def raw_parts(stack, k: int, rows: slice, cols: slice) -> Optional[RawParts]:
     return None if f is None else f(k, rows, cols)
 
 
+def float_band(stack, rows: slice) -> np.ndarray:
+    """``stack[:, rows]`` (every image's band of rows) as float32, as ``np.asarray(stack[:, rows], np.float32)``
+    gives it: memory-mapped files (a lazy stack that is no :class:`StackView`, whose :func:`raw_parts` are the
+    stored band alone) converted straight from the files into the float32 band, one pass, instead of a copy per
+    image, their stack and its conversion (the same values: integers convert to float32 exactly, and a float32
+    file is copied). Anything else is indexed."""
+    if isinstance(stack, (np.ndarray, StackView)):
+        return np.asarray(stack[:, rows], dtype=np.float32)
+    parts = [raw_parts(stack, k, rows, slice(None)) for k in range(stack.shape[0])]
+    if not parts or any(p is None or p.dark is not None or p.factor is not None
+                        or not np.can_cast(p.raw.dtype, np.float32, casting="safe") for p in parts):
+        for p in parts:
+            if p is not None:
+                p.done()
+        return np.asarray(stack[:, rows], dtype=np.float32)
+    out = np.empty((len(parts),) + parts[0].raw.shape, np.float32)
+    for k, p in enumerate(parts):
+        np.copyto(out[k], p.raw, casting="safe")
+        p.done()
+    return out
+
+
 def row_bands(n_rows: int, row_cost: int, budget: int) -> list:
     """Row slices covering ``n_rows`` rows, each of at most ``budget`` (at least one row), a row
     costing ``row_cost`` (pixels or bytes): how every band-by-band step cuts an image."""

@@ -15,7 +15,8 @@ than three usable lights is NaN and counted.
 shadows and dimmed samples at the bottom and specular highlights at the top no longer pull the
 normal; for captures with many lights (RTI domes, visible light). Work proceeds in bands of rows so
 that memory stays proportional to one band (the stack may be memory-mapped, :class:`uvps.files.io.MappedStack`);
-each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels`).
+each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels`; without rank trimming
+:func:`_solve_lanes`, the same arithmetic for 128 pixels side by side).
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ import numpy as np
 from ..errors import UVPSInputError
 from .irradiance import LightModel, near_scale_compiled, pixel_coordinates_mm
 from .progress import Progress, report
+from .stack import float_band
 from .threads import default_threads
 
 log = logging.getLogger(__name__)
@@ -59,6 +61,9 @@ CHUNK_PIXELS = 65536
 
 
 _JIT = dict(nogil=True, cache=True, fastmath=False)
+#: :func:`_solve_lanes`: a float division by 0 gives inf / NaN (numpy's rule) instead of raising, which spares
+#: each division a test and branch that keeps its lane loops out of SIMD registers (15-20 % of that kernel).
+_JIT_LANES = dict(_JIT, error_model="numpy")
 
 
 @numba.njit(inline="always", **_JIT)
@@ -143,6 +148,12 @@ def _weighted_solve(V, grey, w):  # pragma: no cover - compiled
         y0 += v0 * grey[k]
         y1 += v1 * grey[k]
         y2 += v2 * grey[k]
+    return _closed_form(a00, a01, a02, a11, a12, a22, y0, y1, y2)
+
+
+@numba.njit(inline="always", **_JIT)
+def _closed_form(a00, a01, a02, a11, a12, a22, y0, y1, y2):  # pragma: no cover - compiled
+    """The symmetric 3 x 3 system ``A b = y`` solved by its adjugate (float64); NaN when singular."""
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -258,6 +269,213 @@ def _solve_pixels(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fractio
     return sq_sum, sq_n, n_bad
 
 
+#: Pixels :func:`_solve_lanes` solves side by side: its per-sample arrays are (K, LANES), 7 of float32 (57 KB at
+#: 16 lamps, in the core's L2 cache).
+LANES = 128
+
+
+@numba.njit(**_JIT_LANES)
+def _solve_lanes(band, colour, L, E, dirs, near, xs, ys, use, sat, dark_fraction, shadow_cos,
+                 normals, albedo, n_used):  # pragma: no cover - compiled
+    """:func:`_solve_pixels` without rank trimming, :data:`LANES` pixels side by side.
+
+    Every per-pixel step is a loop over the lanes inside a loop over the samples, which the compiler runs
+    in SIMD registers; each pixel's arithmetic is :func:`_solve_pixels`'s, in its order (a sample left out
+    adds +0.0 to a sum instead of being skipped: the same sums, which start at +0.0 and so never hold -0.0),
+    and the image's sums of squares are added pixel by pixel in pixel order: the same outputs to the bit
+    (``tests/test_speed.py::test_normals_in_lanes_same_as_one_pixel_at_a_time``), in about half the time
+    (one thread, 800000 pixels of the 4000 x 3000 x 16 RGB capture: 172-183 against 340-375 ns a pixel).
+    Hand-written for :func:`_solve_pixels`'s reason; its loops over one pixel's samples cannot run in SIMD
+    registers without reordering their sums.
+    """
+    K, P, C = band.shape
+    W = LANES
+    grey, bright = np.empty((K, W), np.float32), np.empty((K, W), np.float32)
+    V0, V1, V2 = np.empty((K, W), np.float32), np.empty((K, W), np.float32), np.empty((K, W), np.float32)
+    vn, w, pred = np.empty((K, W), np.float32), np.empty((K, W), np.float32), np.empty((K, W), np.float32)
+    acc, b, nb, gmax = np.empty((9, W)), np.empty((3, W)), np.empty(W), np.empty(W, np.float32)
+    num, den, nrm, res = np.empty((max(C, 1), W)), np.empty(W), np.empty((3, W), np.float32), np.empty((3, W))
+    good = np.empty(W, np.uint8)
+    LT = _lamp_terms(L, E)
+    sq_sum, sq_n, n_bad = 0.0, 0.0, 0
+    for p0 in range(0, P, W):
+        nw = min(W, P - p0)
+        _lanes_samples(band, p0, nw, use, sat, np.float32(dark_fraction), grey, bright, gmax, w)
+        _lanes_vectors(LT, dirs, near, xs, ys, p0, nw, V0, V1, V2, vn)
+        _lanes_shadows(V0, V1, V2, vn, grey, w, pred, acc, b, nb, nrm, nw, np.float32(shadow_cos))
+        if colour:
+            _lanes_albedo(band, p0, nw, V0, V1, V2, w, nrm, num, den)
+        _lanes_residual(grey, pred, w, res, nw)
+        _lanes_write(p0, nw, res, b, nb, nrm, num, den, colour, use, normals, albedo, n_used, good)
+        for l in range(nw):      # the image's sums, pixel by pixel in pixel order
+            if good[l] == 1:
+                mean = res[1, l] / K
+                sq_sum += res[2, l]
+                sq_n += int(res[0, l]) * mean * mean
+            elif good[l] == 2:
+                n_bad += 1
+    return sq_sum, sq_n, n_bad
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lamp_terms(L, E):  # pragma: no cover - compiled
+    """(4, K) float32: each lamp's position and ``E_k |L_k|^2``, as :func:`_light_vectors` rounds them."""
+    K = L.shape[0]
+    LT = np.empty((4, K), np.float32)
+    for k in range(K):
+        LT[0, k] = np.float32(L[k, 0])
+        LT[1, k] = np.float32(L[k, 1])
+        LT[2, k] = np.float32(L[k, 2])
+        LT[3, k] = np.float32(E[k] * (L[k, 0] ** 2 + L[k, 1] ** 2 + L[k, 2] ** 2))
+    return LT
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_samples(band, p0, nw, use, sat, dark_fraction, grey, bright, gmax, w):  # pragma: no cover - compiled
+    """:func:`_grey_and_bright` and :func:`_usable_samples` (no ranks) of pixels ``p0 .. p0 + nw - 1``."""
+    K, _, C = band.shape
+    gmax[:nw] = -np.inf
+    for k in range(K):
+        for l in range(nw):
+            p = p0 + l
+            g = band[k, p, 0]
+            br = g
+            for c in range(1, C):
+                v = band[k, p, c]
+                g += v
+                br = v if v > br else br
+            g = g / np.float32(C)
+            grey[k, l] = g
+            bright[k, l] = br
+            gmax[l] = g if g > gmax[l] else gmax[l]
+    for k in range(K):
+        for l in range(nw):
+            thr = dark_fraction * gmax[l]
+            ok = grey[k, l] > thr and (thr < 0 or grey[k, l] > 0) and use[p0 + l]
+            if sat > 0 and bright[k, l] >= sat:
+                ok = False
+            w[k, l] = 1.0 if ok else 0.0
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_vectors(LT, dirs, near, xs, ys, p0, nw, V0, V1, V2, vn):  # pragma: no cover - compiled
+    """:func:`_light_vectors` of every lane (``LT``: :func:`_lamp_terms`)."""
+    for k in range(LT.shape[1]):
+        if near:
+            for l in range(nw):
+                d0 = LT[0, k] - xs[p0 + l]
+                d1 = LT[1, k] - ys[p0 + l]
+                d2 = LT[2, k]
+                f = near_scale_compiled(d0, d1, d2, LT[3, k])
+                V0[k, l] = d0 * f
+                V1[k, l] = d1 * f
+                V2[k, l] = d2 * f
+        else:
+            for l in range(nw):
+                V0[k, l] = dirs[k, 0]
+                V1[k, l] = dirs[k, 1]
+                V2[k, l] = dirs[k, 2]
+        for l in range(nw):
+            vn[k, l] = np.sqrt(V0[k, l] * V0[k, l] + V1[k, l] * V1[k, l] + V2[k, l] * V2[k, l])
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_shadows(V0, V1, V2, vn, grey, w, pred, acc, b, nb, nrm, nw, f_shadow):  # pragma: no cover - compiled
+    """:func:`_solve_with_shadows` of every lane, then each lane's float32 unit normal into ``nrm``."""
+    K = w.shape[0]
+    for it in range(2):
+        _lanes_solve(V0, V1, V2, grey, w, acc, b, nw)
+        for l in range(nw):
+            nb[l] = np.sqrt(b[0, l] * b[0, l] + b[1, l] * b[1, l] + b[2, l] * b[2, l])
+        for k in range(K):
+            for l in range(nw):
+                pred[k, l] = (V0[k, l] * np.float32(b[0, l]) + V1[k, l] * np.float32(b[1, l])
+                              + V2[k, l] * np.float32(b[2, l]))
+        if it == 0:
+            for k in range(K):
+                for l in range(nw):
+                    if not (pred[k, l] > f_shadow * max(vn[k, l] * np.float32(nb[l]), np.float32(1e-30))):
+                        w[k, l] = 0.0
+    for l in range(nw):
+        nrm[0, l] = np.float32(b[0, l] / nb[l])
+        nrm[1, l] = np.float32(b[1, l] / nb[l])
+        nrm[2, l] = np.float32(b[2, l] / nb[l])
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_solve(V0, V1, V2, grey, w, acc, b, nw):  # pragma: no cover - compiled
+    """:func:`_weighted_solve` of every lane: the nine sums over the samples (+0.0 for one left out), then
+    the closed form, into ``b`` (3, lanes)."""
+    K, W = grey.shape
+    acc[:, :nw] = 0.0
+    for k in range(K):
+        for l in range(nw):
+            use = w[k, l] != 0.0
+            v0, v1, v2, g = V0[k, l], V1[k, l], V2[k, l], grey[k, l]
+            acc[0, l] += v0 * v0 if use else 0.0
+            acc[1, l] += v0 * v1 if use else 0.0
+            acc[2, l] += v0 * v2 if use else 0.0
+            acc[3, l] += v1 * v1 if use else 0.0
+            acc[4, l] += v1 * v2 if use else 0.0
+            acc[5, l] += v2 * v2 if use else 0.0
+            acc[6, l] += v0 * g if use else 0.0
+            acc[7, l] += v1 * g if use else 0.0
+            acc[8, l] += v2 * g if use else 0.0
+    for l in range(nw):
+        b[0, l], b[1, l], b[2, l] = _closed_form(acc[0, l], acc[1, l], acc[2, l], acc[3, l], acc[4, l], acc[5, l],
+                                                 acc[6, l], acc[7, l], acc[8, l])
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_albedo(band, p0, nw, V0, V1, V2, w, nrm, num, den):  # pragma: no cover - compiled
+    """:func:`_colour_albedo`'s sums of every lane (the normal ``nrm`` fixed), into ``num`` (C, lanes) and ``den``."""
+    K = w.shape[0]
+    num[:, :nw] = 0.0
+    den[:nw] = 0.0
+    for k in range(K):
+        for l in range(nw):
+            ws = V0[k, l] * nrm[0, l] + V1[k, l] * nrm[1, l] + V2[k, l] * nrm[2, l]
+            use = w[k, l] != 0.0
+            den[l] += np.float64(ws) * np.float64(ws) if use else 0.0
+            for c in range(band.shape[2]):
+                num[c, l] += ws * band[k, p0 + l, c] if use else 0.0
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_residual(grey, pred, w, res, nw):  # pragma: no cover - compiled
+    """Each lane's samples used, sum of its grey samples, and its used samples' sum of squared residuals and
+    count, into ``res`` (3, lanes): :func:`_solve_pixels`'s per-pixel sums, in its order."""
+    K = grey.shape[0]
+    res[:, :nw] = 0.0
+    for k in range(K):
+        for l in range(nw):
+            use = w[k, l] != 0.0
+            r = np.float64(grey[k, l] - pred[k, l])
+            res[0, l] += 1.0 if use else 0.0
+            res[1, l] += grey[k, l]
+            res[2, l] += r * r if use else 0.0
+
+
+@numba.njit(inline="always", **_JIT_LANES)
+def _lanes_write(p0, nw, res, b, nb, nrm, num, den, colour, use, normals, albedo, n_used, good):  # pragma: no cover
+    """Each lane's lights used, and its normal and albedo where it is solved (elsewhere the outputs keep their
+    NaN), as :func:`_solve_pixels` writes them; ``good``: 1 solved, 2 unsolved inside ``use``, 0 else."""
+    for l in range(nw):
+        p = p0 + l
+        cnt = int(res[0, l])
+        n_used[p] = min(cnt, 255)
+        bad = cnt < 3 or not (np.isfinite(b[0, l]) and np.isfinite(b[1, l]) and np.isfinite(b[2, l]))
+        ok = use[p] and not bad
+        good[l] = 1 if ok else (2 if use[p] else 0)
+        for i in range(3):
+            normals[p, i] = nrm[i, l] if ok else normals[p, i]
+        if colour:
+            for c in range(albedo.shape[1]):
+                albedo[p, c] = (num[c, l] / den[l] if den[l] > 0 else np.nan) if ok else albedo[p, c]
+        else:
+            albedo[p, 0] = nb[l] if ok else albedo[p, 0]
+
+
 def _rank_range(K, trim):
     """Ranks ``lo .. hi - 1`` (0 = darkest of K samples) that the trimmed solve keeps, at least 3."""
     lo_q, hi_q = (float(t) for t in trim)
@@ -315,8 +533,9 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     ``n . l`` is below ``shadow_cos``: the attached-shadow test, after a first solve) and saturated
     samples are always left out; ``robust`` adds the rank trimming before both solves. Cost: two
     closed-form 3x3 solves per pixel and one pass over the samples, in a compiled kernel
-    (:func:`_solve_pixels`, numba) that runs in threads over bands of rows: 2.6 s for 4000 x 3000 x
-    16 RGB on 2 cores (docs/benchmarks.md, "Speed and memory"), against 46-49 s for a numpy version
+    (:func:`_solve_lanes`, numba; :func:`_solve_pixels` with ``robust``) that runs in threads over bands of
+    rows: 2.6 s for 4000 x 3000 x 16 RGB on 2 cores before the lanes (docs/benchmarks.md, "Speed and
+    memory"; docs/decisions/speed.md, "The normals in SIMD lanes"), against 46-49 s for a numpy version
     with (K, P, 3) float64 temporaries and 10-19 s for a float32 numpy version (each timed by
     ``scripts/benchmark_speed.py``; docs/decisions/speed.md, "The normals in a compiled kernel (numba)").
     ``robust`` sorts the K samples.
@@ -387,13 +606,13 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     """Solve rows ``r0:r1`` into ``out``; -> (sum of squared residuals, the signal's sum of squares over the
     same samples, invalid pixels): :func:`_solve_pixels`.
 
-    The band is read and converted to float32 here; :func:`_solve_pixels` (compiled, GIL released)
-    does the rest, so bands run in parallel threads.
+    The band is read and converted to float32 here; :func:`_solve_lanes` (:func:`_solve_pixels` with ranks;
+    compiled, GIL released) does the rest, so bands run in parallel threads.
     """
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 0
     P = (r1 - r0) * N
-    band = np.asarray(images[:, r0:r1], dtype=np.float32).reshape(K, P, max(C, 1))
+    band = float_band(images, slice(r0, r1)).reshape(K, P, max(C, 1))
     X = pixel_coordinates_mm(np.arange(r0, r1)[:, None], np.arange(N)[None, :], (M, N), pixel_size_um)
     xs = X[..., 0].astype(np.float32).ravel()
     ys = X[..., 1].astype(np.float32).ravel()
@@ -409,8 +628,12 @@ def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, s
     normals.fill(np.nan)
     albedo.fill(np.nan)
     n_used.fill(0)
-    res = _solve_pixels(band, bool(C), np.ascontiguousarray(L, dtype=np.float64),
-                        np.ascontiguousarray(lights.intensities, dtype=np.float64), dirs, near, xs, ys, use,
-                        np.float32(saturation) if saturation is not None else np.float32(0), float(dark_fraction),
-                        float(shadow_cos), int(lo), int(hi), normals, albedo, n_used)
+    args = (band, bool(C), np.ascontiguousarray(L, dtype=np.float64),
+            np.ascontiguousarray(lights.intensities, dtype=np.float64), dirs, near, xs, ys, use,
+            np.float32(saturation) if saturation is not None else np.float32(0), float(dark_fraction),
+            float(shadow_cos))
+    if hi > 0:      # rank trimming sorts each pixel's samples: one pixel at a time
+        res = _solve_pixels(*args, int(lo), int(hi), normals, albedo, n_used)
+    else:
+        res = _solve_lanes(*args, normals, albedo, n_used)
     return float(res[0]), float(res[1]), int(res[2])
