@@ -86,7 +86,8 @@ def test_three_captures_run_as_uvps_run_then_a_rerun_skips_them(captures, client
     # the batch's parts add up to (at most) its whole: where a batch's time beyond its tiles goes
     parts = log["timings"]
     assert set(parts) == {"cluster_start_s", "tiles_s", "stitch_s", "close_s"}
-    assert all(v >= 0 for v in parts.values()) and sum(parts.values()) <= log["elapsed_s"]
+    # each time is rounded to 1 ms (batch.json): the parts' sum may pass the whole by the roundings alone
+    assert all(v >= 0 for v in parts.values()) and sum(parts.values()) <= log["elapsed_s"] + 0.0005 * (len(parts) + 1)
     assert parts["tiles_s"] >= max(c["elapsed_s"] for c in log["captures"])
     # a re-run skips all three and leaves their files alone
     mtime = (out / "cap1" / "run.json").stat().st_mtime_ns
