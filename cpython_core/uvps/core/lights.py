@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import logging
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -47,7 +46,7 @@ from ..errors import UVPSInputError
 from .flatfield import BlockGrid, DropoffFit, to_unit, with_common
 from .irradiance import LightModel, lamp_vectors, near_scale, pixel_coordinates_mm
 from .progress import Progress, report, sub_progress
-from .threads import default_threads
+from .threads import concurrently, default_threads, map_bands
 
 log = logging.getLogger(__name__)
 
@@ -417,19 +416,13 @@ def photometric_residual(sample: PixelSample, model: LightModel, *, workers=None
     parts = max(1, min(lamp_threads(workers), n // MIN_PIXELS_PER_THREAD))
     if parts == 1:
         return _residual_rows(sample, model, fallback=True).ravel()
-    edges = np.linspace(0, n, parts + 1).astype(int)
     out = np.empty((K, n))
 
-    def part(i):
-        out[:, edges[i]:edges[i + 1]] = _residual_rows(sample.take(slice(edges[i], edges[i + 1])), model,
-                                                       fallback=False)
+    def part(pixels):
+        out[:, pixels] = _residual_rows(sample.take(pixels), model, fallback=False)
 
     try:
-        with ThreadPoolExecutor(parts - 1) as pool:
-            rest = [pool.submit(part, i) for i in range(1, parts)]
-            part(0)
-            for f in rest:
-                f.result()
+        map_bands(part, n, parts=parts, threads=parts)
     except np.linalg.LinAlgError:
         # a singular pixel: the whole sample by the pseudo-inverse, as in one thread
         return _residual_rows(sample, model, fallback=True).ravel()
@@ -1008,13 +1001,9 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers=None):
     Zq = np.empty((4 * K, 3 * n))
     Zu = np.empty((4 * K, 3 * n))
     args = (np.ascontiguousarray(L), np.ascontiguousarray(along), scale, X, I, wt, r, e, Zq, Zu)
-    edges = np.linspace(0, n, max(1, min(int(workers), n)) + 1).astype(int)
-    # the first band in this thread: numba compiles (or loads from its cache) on a function's first
-    # call, and two threads making that call at once can fail to type it ("Unknown attribute 'shape'")
-    _vp_rows(*args, edges[0], edges[1])
-    if len(edges) > 2:
-        with ThreadPoolExecutor(len(edges) - 2) as pool:
-            list(pool.map(lambda i: _vp_rows(*args, edges[i], edges[i + 1]), range(1, len(edges) - 1)))
+    # the first band alone: numba compiles (or loads from its cache) on a function's first call
+    map_bands(lambda pixels: _vp_rows(*args, pixels.start, pixels.stop), n, parts=workers, threads=workers,
+              first_alone=True)
     return _assemble(r, e, Zq, Zu, workers=workers)
 
 
@@ -1066,13 +1055,11 @@ def _assemble(r, e, Zq, Zu, *, workers=1):
     :func:`_vp_normal_equations_numpy`'s statement: ``J^T J = Zq Zq^T - Zu Zu^T + diag_k(e e^T)``.
 
     ``workers`` > 1: ``Zu Zu^T`` and the blocks in a second thread while this one forms ``Zq Zq^T``
-    (BLAS and einsum release the GIL; with one BLAS thread, ``uvps._entry``, the refinement's
-    products otherwise keep one core busy); each product is the one-thread product, to the bit."""
+    (:func:`uvps.core.threads.concurrently`, so not with ``UVPS_THREADS=1``; BLAS and einsum release the
+    GIL; with one BLAS thread, ``uvps._entry``, the refinement's products otherwise keep one core busy);
+    each product is the one-thread product, to the bit."""
     if workers > 1:
-        with ThreadPoolExecutor(1) as pool:
-            other = pool.submit(lambda: (Zu @ Zu.T, np.einsum("kjp,klp->kjl", e, e)))
-            JtJ = Zq @ Zq.T
-            ZuZu, blocks = other.result()
+        JtJ, (ZuZu, blocks) = concurrently(lambda: Zq @ Zq.T, lambda: (Zu @ Zu.T, np.einsum("kjp,klp->kjl", e, e)))
         JtJ -= ZuZu
         _add_blocks(JtJ, blocks)
         return r, e, 0.5 * (JtJ + JtJ.T), np.einsum("kjp,kp->kj", e, r).ravel()
@@ -1395,21 +1382,14 @@ def _intensity_jacobian(sample: PixelSample, P, E, scale, *, out, factor, worker
     if parts == 1:
         _vp_residual_and_jacobian(sample, P, E, scale, out=out, factor=factor, intensities_only=True)
         return
-    edges = np.linspace(0, n, parts + 1).astype(int)
     J = out.reshape(K, n, K)
 
-    def part(i):
-        a, b = edges[i], edges[i + 1]
-        band = np.empty((K * (b - a), K))
-        _vp_residual_and_jacobian(sample.take(slice(a, b)), P, E, scale, out=band, factor=factor,
-                                  intensities_only=True)
-        J[:, a:b] = band.reshape(K, b - a, K)
+    def part(pixels):
+        band = np.empty((K * (pixels.stop - pixels.start), K))
+        _vp_residual_and_jacobian(sample.take(pixels), P, E, scale, out=band, factor=factor, intensities_only=True)
+        J[:, pixels] = band.reshape(K, -1, K)
 
-    with ThreadPoolExecutor(parts - 1) as pool:
-        rest = [pool.submit(part, i) for i in range(1, parts)]
-        part(0)
-        for f in rest:
-            f.result()
+    map_bands(part, n, parts=parts, threads=parts)
 
 
 def refine_intensities(sample: PixelSample, positions_mm, intensities=None) -> np.ndarray:

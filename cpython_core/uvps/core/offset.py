@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
@@ -47,7 +46,7 @@ from numpy.polynomial import legendre as Lg
 
 from ..errors import UVPSInputError
 from .stack import StackView, raw_parts
-from .threads import default_threads
+from .threads import default_threads, map_bands
 
 log = logging.getLogger(__name__)
 
@@ -352,16 +351,7 @@ IMAGE_WORKERS = 2
 def each_image(one, K: int) -> None:
     """``one(k)`` for every image: the first in this thread (numba types a kernel on its first call, never in
     two threads at once), the others in :data:`IMAGE_WORKERS` threads (one with ``UVPS_THREADS=1``)."""
-    if K < 1:
-        return
-    one(0)
-    workers = default_threads(IMAGE_WORKERS)
-    if K > 1 and workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(one, range(1, K)))
-    else:
-        for k in range(1, K):
-            one(k)
+    map_bands(lambda k: one(k.start), K, size=1, threads=default_threads(IMAGE_WORKERS), first_alone=True)
 
 
 _COMPILING = threading.Lock()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional
 
@@ -20,6 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from .progress import Progress, report
+from .threads import default_threads, map_bands
 
 log = logging.getLogger("uvps.core.spheres")   # one logger for finding and fitting spheres
 
@@ -75,15 +75,10 @@ def _grey(img) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 
 def _in_two_bands(fn, M, step=1):
-    """``[fn(r0, r1), ...]`` over two bands of ``M`` rows, side by side, one thread each (numpy's
-    reading, median and sums release the GIL); the second band starts on the grid of every
-    ``step``-th row, so a band's ``r0:r1:step`` rows are the whole's."""
-    rows = len(range(0, M, step))
-    if rows < 2:
-        return [fn(0, M)]
-    cut = step * (rows // 2)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        return list(pool.map(lambda rng: fn(*rng), [(0, cut), (cut, M)]))
+    """``[fn(r0, r1), ...]`` over two bands of ``M`` rows, side by side in :func:`uvps.core.threads.default_threads`
+    (2) threads (numpy's reading, median and sums release the GIL); the second band starts on the grid of
+    every ``step``-th row, so a band's ``r0:r1:step`` rows are the whole's."""
+    return map_bands(lambda rows: fn(rows.start, rows.stop), M, parts=2, step=step, threads=default_threads(2))
 
 
 def _projections(images, step):

@@ -21,7 +21,6 @@ each pixel is solved in one compiled pass over its samples (:func:`_solve_pixels
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -32,7 +31,7 @@ from ..errors import UVPSInputError
 from .irradiance import LightModel, near_scale_compiled, pixel_coordinates_mm
 from .progress import Progress, report
 from .stack import float_band
-from .threads import default_threads
+from .threads import default_threads, map_bands
 
 log = logging.getLogger(__name__)
 
@@ -551,21 +550,17 @@ def solve_normals(images, lights: LightModel, *, pixel_size_um, mask=None, satur
     # every band fills its own rows (NaN where unsolved) in its thread: no fill of the whole outputs first
     out = _Outputs(np.empty((M, N, 3), np.float32), np.empty((M, N, C) if C else (M, N), np.float32),
                    np.empty((M, N), np.uint8))
-    rows_per = max(1, int(chunk_pixels or CHUNK_PIXELS) // N)
-    bands = [(r0, min(M, r0 + rows_per)) for r0 in range(0, M, rows_per)]
 
-    def one(band):
-        return _solve_band(images, lights, *band, out, pixel_size_um=pixel_size_um, mask=mask,
+    def one(rows):
+        return _solve_band(images, lights, rows.start, rows.stop, out, pixel_size_um=pixel_size_um, mask=mask,
                            saturation=saturation, ranks=ranks, shadow_cos=shadow_cos, dark_fraction=dark_fraction)
 
-    # the first band in this thread: numba compiles (or loads from its cache) on a function's first
-    # call, and two threads making that call at once can fail to type it
-    sq_sum, sq_n, n_invalid = one(bands[0])
-    report(progress, bands[0][1] / M, f"normals: rows {bands[0][1]}/{M}")
-    with _pool(workers, len(bands) - 1) as pool:
-        for (_, r1), (s, n, bad) in zip(bands[1:], pool.map(one, bands[1:])):
-            sq_sum, sq_n, n_invalid = sq_sum + s, sq_n + n, n_invalid + bad
-            report(progress, r1 / M, f"normals: rows {r1}/{M}")
+    # bands of fixed rows whatever the threads, their sums added in the bands' order: the same to the bit;
+    # the first band alone (numba compiles, or loads from its cache, on a function's first call)
+    sums = map_bands(one, M, size=max(1, int(chunk_pixels or CHUNK_PIXELS) // N), first_alone=True,
+                     threads=default_threads(4) if workers is None else workers,
+                     each=lambda rows, _: report(progress, rows.stop / M, f"normals: rows {rows.stop}/{M}"))
+    sq_sum, sq_n, n_invalid = (sum(band[i] for band in sums) for i in range(3))
     if n_invalid:
         log.info("%d pixels had fewer than 3 usable lights and are NaN", n_invalid)
     return StereoResult(out.normals, out.albedo, out.n_used, n_invalid,
@@ -576,29 +571,6 @@ class _Outputs(NamedTuple):
     normals: np.ndarray
     albedo: np.ndarray
     n_used: np.ndarray
-
-
-class _Serial:
-    """A stand-in for a thread pool with one worker: ``map`` in this thread."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def map(fn, items):
-        return map(fn, items)
-
-
-def _pool(workers, n_tasks):
-    """A thread pool of ``workers`` (default: the CPUs this process may use, at most 4 and ``UVPS_THREADS``,
-    :func:`uvps.core.threads.default_threads`), or none."""
-    if workers is None:
-        workers = default_threads(4)
-    workers = max(1, min(int(workers), n_tasks))
-    return _Serial() if workers == 1 else ThreadPoolExecutor(workers, thread_name_prefix="uvps-normals")
 
 
 def _solve_band(images, lights, r0, r1, out: _Outputs, *, pixel_size_um, mask, saturation, ranks, shadow_cos,

@@ -26,7 +26,7 @@ from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file,
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import row_bands
-from ..core.threads import default_threads
+from ..core.threads import default_threads, map_bands
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
 from ..core.regions import region_statistics
 from .tables import write_regions_csv
@@ -322,11 +322,9 @@ def write_flatfield(folder: Path, capture: Capture, lights, *, workers: int = 2,
                 ff = flatfield(capture.images[k, rows], lights.fits[k], channels_first=True, row0=rows.start)
                 tif.write((slice(None), rows) if C else rows, ff)
 
-    one(0)        # in this thread: compiled readers (numba) are typed on their first call, never in two at once
-    report(progress, 1 / K, f"flat field 1/{K}")
-    with ThreadPoolExecutor(max(1, int(workers))) as pool:
-        for i, _ in enumerate(pool.map(one, range(1, K)), start=1):
-            report(progress, (i + 1) / K, f"flat field {i + 1}/{K}")
+    # the first image alone: compiled readers (numba) are typed on their first call, never in two at once
+    map_bands(lambda k: one(k.start), K, size=1, threads=workers, first_alone=True,
+              each=lambda k, _: report(progress, k.stop / K, f"flat field {k.stop}/{K}"))
     return out
 
 
