@@ -486,12 +486,13 @@ def test_block_passes_keep_to_uvps_threads(folder, monkeypatch):
     read whole into memory."""
     import uvps.core.flatfield as ff
     import uvps.core.offset as off
+    import uvps.core.threads as th
 
     images = read_capture(folder).images
     whole = np.asarray(images)
-    pools = []
-    monkeypatch.setattr(off, "ThreadPoolExecutor", lambda n: pools.append(n) or ThreadPoolExecutor(n))
-    for threads, want in (("1", []), ("2", [2] if len(os.sched_getaffinity(0)) >= 2 else [])):
+    pools = []       # each pass's pool: one thread beside the calling one (map_bands), two in all
+    monkeypatch.setattr(th, "ThreadPoolExecutor", lambda n, **kw: pools.append(n) or ThreadPoolExecutor(n, **kw))
+    for threads, want in (("1", []), ("2", [1] if len(os.sched_getaffinity(0)) >= 2 else [])):
         monkeypatch.setenv("UVPS_THREADS", threads)
         pools.clear()
         got, ref = ff.block_grid(images, saturation=65535.0), ff.block_grid(whole, saturation=65535.0)
