@@ -422,6 +422,7 @@ def _peak_basins(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
         if not keep[1:].all():                      # renumber the markers kept, 1..n
             markers = np.where(keep, np.cumsum(keep) - 1, 0).astype(np.int32)[markers]
             n_h = int(markers.max())
+            ws = None           # the first basins released before the watershed's own full-size copies
             ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
     return markers, n_h, ws
 
