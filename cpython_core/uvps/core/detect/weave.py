@@ -71,9 +71,16 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     # noise and the albedo cue, at the run's peak of memory (scripts/benchmark_speed.py --skip run zarr
     # cal demo); the centred height is made again for the fit rather than kept through the spectrum
     mean = float(np.mean(hs))
-    win = np.outer(np.hanning(m), np.hanning(n))
-    power = np.abs(scipy.fft.rfft2(np.multiply(hs.astype(np.float64) - mean, win, out=win)))  # win reused
-    del win
+    # the centred height times the 2-D Hann window, whose rows are made band by band (each element
+    # hm[i] * hn[j], as np.outer makes it) and multiplied in place: one full-size float64 map, not three
+    x = hs.astype(np.float64) - mean
+    hm, hn = np.hanning(m), np.hanning(n)
+    for r0 in range(0, m, 256):
+        x[r0:r0 + 256] *= np.outer(hm[r0:r0 + 256], hn)
+    spec = scipy.fft.rfft2(x)
+    del x
+    power = np.abs(spec)
+    del spec
     np.square(power, out=power)
     fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
     band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
