@@ -1307,6 +1307,22 @@ def shouldered_dome(seed, frac, small_um):
     return alb, h + small, big_c, (110, int(round(small_c[1])))
 
 
+def test_odd_at_reads_the_odd_reflected_padding():
+    """The normals' features read the height at the candidates' pixels and their neighbours 1 px
+    beyond the image's edges as ``np.pad(h.astype(np.float64), 1, "reflect", reflect_type="odd")``
+    holds them, to the bit, on every pixel of images 2 to 40 px high."""
+    from uvps.core.detect.features import _odd_at
+    rng = np.random.default_rng(1)
+    for shape in ((7, 9), (2, 5), (40, 33)):
+        h = rng.normal(size=shape).astype(np.float32)
+        hp = np.pad(h.astype(np.float64), 1, mode="reflect", reflect_type="odd")
+        rr, cc = np.nonzero(np.ones(shape, bool))
+        assert np.array_equal(_odd_at(h, rr, cc + 1, 1), hp[rr + 1, cc + 2])
+        assert np.array_equal(_odd_at(h, rr, cc - 1, 1), hp[rr + 1, cc])
+        assert np.array_equal(_odd_at(h, rr + 1, cc, 0), hp[rr + 2, cc + 1])
+        assert np.array_equal(_odd_at(h, rr - 1, cc, 0), hp[rr, cc + 1])
+
+
 def test_log_curvature_in_bands_is_the_whole_images(monkeypatch):
     """The curvature filtered in bands of rows (each with its kernel's reach on either side) is the
     whole image filtered at once, to the bit: bands of 7 rows, kernels wider than a band, shapes of
