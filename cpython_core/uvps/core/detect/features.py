@@ -318,8 +318,13 @@ def _ring_reliefs(cand: Candidates, surf: Surface, lbl, is_h, th: Thresholds, px
     lab, t_disc, t = cand.labels, cand.t_disc, surf.relief
     n_lab = int(lab.max())
     ring_w = max(RING_PX, 0.25 * th.min_w + 1)
-    ring = _expand_labels(lab, ring_w) * (lab == 0)
-    ring2 = ring if ring_w == RING_PX else _expand_labels(lab, RING_PX) * (lab == 0)
+    ring = _expand_labels(lab, ring_w)
+    ring *= lab == 0            # in place (int32 times bool: the same labels), no second label image
+    if ring_w == RING_PX:
+        ring2 = ring
+    else:
+        ring2 = _expand_labels(lab, RING_PX)
+        ring2 *= lab == 0
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     relief[is_h] = cand.height_relief[lbl[is_h] - 1]
     rel_all = np.zeros(n_lab)
