@@ -1307,6 +1307,44 @@ def shouldered_dome(seed, frac, small_um):
     return alb, h + small, big_c, (110, int(round(small_c[1])))
 
 
+def test_odd_at_reads_the_odd_reflected_padding():
+    """The normals' features read the height at the candidates' pixels and their neighbours 1 px
+    beyond the image's edges as ``np.pad(h.astype(np.float64), 1, "reflect", reflect_type="odd")``
+    holds them, to the bit, on every pixel of images 2 to 40 px high."""
+    from uvps.core.detect.features import _odd_at
+    rng = np.random.default_rng(1)
+    for shape in ((7, 9), (2, 5), (40, 33)):
+        h = rng.normal(size=shape).astype(np.float32)
+        hp = np.pad(h.astype(np.float64), 1, mode="reflect", reflect_type="odd")
+        rr, cc = np.nonzero(np.ones(shape, bool))
+        assert np.array_equal(_odd_at(h, rr, cc + 1, 1), hp[rr + 1, cc + 2])
+        assert np.array_equal(_odd_at(h, rr, cc - 1, 1), hp[rr + 1, cc])
+        assert np.array_equal(_odd_at(h, rr + 1, cc, 0), hp[rr + 2, cc + 1])
+        assert np.array_equal(_odd_at(h, rr - 1, cc, 0), hp[rr, cc + 1])
+
+
+def test_log_curvature_in_bands_is_the_whole_images(monkeypatch):
+    """The curvature filtered in bands of rows (each with its kernel's reach on either side) is the
+    whole image filtered at once, to the bit: bands of 7 rows, kernels wider than a band, shapes of
+    one band and of a band and a row, an image fewer rows high than the kernel."""
+    import cv2
+    from uvps.core.detect import height
+
+    def whole(t, sigma):
+        g, _, d2 = height._gaussian_kernels(sigma)
+        t64 = t.astype(np.float64)
+        return -(cv2.sepFilter2D(t64, cv2.CV_64F, g, d2, borderType=cv2.BORDER_REFLECT)
+                 + cv2.sepFilter2D(t64, cv2.CV_64F, d2, g, borderType=cv2.BORDER_REFLECT))
+
+    rng = np.random.default_rng(5)
+    monkeypatch.setattr(height, "LOG_BAND_ROWS", 7)
+    for shape in ((60, 70), (7, 30), (8, 30), (3, 40)):
+        t = rng.normal(size=shape).astype(np.float32)
+        for sigma in (0.8, 2.5, 6.0):
+            got = height._log_curvature(t, sigma)
+            assert got.dtype == np.float64 and np.array_equal(got, whole(t, sigma)), (shape, sigma)
+
+
 def test_shoulder_curvature_and_isotropy_are_scipys():
     """The shoulder cue's curvature (OpenCV's separable filter) is minus scipy's Laplacian of
     Gaussian, and its isotropy at chosen pixels is the ratio of the eigenvalues of scipy's

@@ -98,7 +98,12 @@ def _holes(mask: np.ndarray) -> tuple:
     inner[0] = False
     lut = np.zeros(n_bg + 1, np.int32)
     lut[inner] = np.arange(1, int(inner.sum()) + 1, dtype=np.int32)
-    return lut[bg], int(inner.sum())
+    # renumbered in place (each element read, then written; every id within lut, so "clip" clips
+    # nothing and spares take's buffered copy): no second full-size label image beside the
+    # candidates' reliefs at the detection's peak of memory (scripts/benchmark_speed.py)
+    if bg.dtype != lut.dtype:
+        return lut[bg], int(inner.sum())
+    return np.take(lut, bg, out=bg, mode="clip"), int(inner.sum())
 
 
 def _on_long_structure(under: np.ndarray, relief: np.ndarray, th: Thresholds) -> np.ndarray:

@@ -41,14 +41,24 @@ def _albedo_contrast(lum, valid, sigma_px, thr):
     crowded protrusions do not raise their own background and a non-fluorescing one does not
     lower it (which would ring it with a bright halo).
     """
-    lum0 = np.where(valid, lum, 0).astype(np.float32)
+    # the same operations as ``bg = smooth(lum0 * w) / maximum(smooth(w), 1e-6)`` with each result
+    # written over an operand read for the last time, and no copy made by a cast to float32 of what
+    # is float32 already: this runs beside the height's surface at the detection's peak of memory
+    # (scripts/benchmark_speed.py)
+    lum0 = np.where(valid, lum, 0).astype(np.float32, copy=False)
     w = valid.astype(np.float32)
-    bg = None
     for _ in range(2):
-        bg = _smooth_large(lum0 * w, sigma_px) / np.maximum(_smooth_large(w, sigma_px), 1e-6)
+        bg = None
+        den = _smooth_large(w, sigma_px)
+        bg = np.divide(_smooth_large(lum0 * w, sigma_px), np.maximum(den, 1e-6, out=den), out=den)
+        del w
         w = (valid & (np.abs(lum0 - bg) <= bg * thr)).astype(np.float32)
     scale = float(np.median(lum0[valid])) if valid.any() else 1.0
-    return np.where(valid, lum0 / np.maximum(bg, 1e-6 * max(scale, 1e-30)) - 1, 0).astype(np.float32)
+    out = np.maximum(bg, 1e-6 * max(scale, 1e-30), out=bg)
+    np.divide(lum0, out, out=out)
+    del bg
+    out -= 1
+    return np.where(valid, out, 0).astype(np.float32, copy=False)
 
 
 def _disc_template(d: float) -> np.ndarray:
@@ -102,7 +112,7 @@ def _albedo_cue(lum, valid, px: float, th: Thresholds, p: DetectionParams) -> np
     """Bright components (contrast above ``albedo_contrast``) that match a disc template."""
     s = p.smooth_um / px
     fill = float(np.median(lum[valid])) if not valid.all() else 0.0    # no pixel to fill
-    lum_s = np.where(valid, lum, fill).astype(np.float32)
+    lum_s = np.where(valid, lum, fill).astype(np.float32, copy=False)
     if s >= MIN_SMOOTH_PX:
         lum_s = cv2.GaussianBlur(lum_s, (0, 0), s, borderType=cv2.BORDER_REFLECT)
     contrast = _albedo_contrast(lum_s, valid, max(2.0, 0.5 * th.max_w), p.albedo_contrast)

@@ -31,7 +31,7 @@ def _long_areas(surf: Surface, valid, th: Thresholds, taken: np.ndarray) -> tupl
     """
     raised = valid & (surf.disc - surf.relief >= th.relief_um) & ~taken
     lab, _ = ndi.label(raised, structure=np.ones((3, 3)))
-    return lab.astype(np.int32), surf.disc
+    return lab.astype(np.int32, copy=False), surf.disc
 
 
 def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarray,
@@ -56,6 +56,7 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     lab[ext] = np.where(ok, near[ext], 0)
     joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
     joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
+    del near, both, ext, ok                              # full-size maps read for the last time
     acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
     if na:                                               # in place: lab is ours
         sel = acomp > 0
@@ -106,6 +107,10 @@ def _candidates(lum, valid, surf: Surface, th: Thresholds, px: float, p: Detecti
             sh = compact > n_peaks
             hl = np.where(sh, compact, np.where(hl > n_peaks, 0, hl))
             relief[n_peaks:] = np.maximum(_label_max(surf.relief, compact, n_h)[n_peaks:], 0)
+        # the cue's own label images are read for the last time: released before the union's
+        # (the detection's peak of memory, scripts/benchmark_speed.py)
+        del compact
+    del markers
     _report(progress, 0.5, "albedo cue")
     if mask_albedo is None:
         mask_albedo = _albedo_cue(lum, valid, px, th, p)

@@ -207,6 +207,26 @@ def _hole_area(lab: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(hi[own], weights=size[own].astype(np.float64), minlength=n + 1)[1:n + 1]
 
 
+def _odd_at(h: np.ndarray, rr: np.ndarray, cc: np.ndarray, axis: int) -> np.ndarray:
+    """``h`` (float64) at pixels one of whose coordinates, along ``axis``, may lie 1 px beyond the
+    image: there its odd reflection ``2 h[edge] - h[edge -+ 1]`` (one-sided differences at the edges),
+    the values of ``np.pad(h.astype(np.float64), 1, mode="reflect", reflect_type="odd")`` read at
+    those pixels, without its two full-size float64 copies (0.18 GB at 4000 x 3000, at the
+    detection's peak of memory: scripts/benchmark_speed.py)."""
+    size = h.shape[axis]
+    idx = rr if axis == 0 else cc
+    inside = np.clip(idx, 0, size - 1)
+    at = (lambda i: h[i, cc]) if axis == 0 else (lambda i: h[rr, i])
+    v = at(inside).astype(np.float64)
+    out = (idx < 0) | (idx >= size)
+    if out.any():
+        edge = np.where(idx < 0, 0, size - 1)[out]
+        mirror = np.where(idx < 0, 1, size - 2)[out]
+        sub = (lambda i: h[i, cc[out]]) if axis == 0 else (lambda i: h[rr[out], i])
+        v[out] = 2 * sub(edge).astype(np.float64) - sub(mirror).astype(np.float64)
+    return v
+
+
 def _normals_features(normals, h, lab, n, px: float, left_out=None) -> tuple:
     """Per label 1..n: the mean tilt of the normals (deg) and how far the height's slope departs
     from the normals' (``p = -nx/nz``, ``q = -ny/nz`` in the frame of ``docs/architecture.md``),
@@ -226,9 +246,8 @@ def _normals_features(normals, h, lab, n, px: float, left_out=None) -> tuple:
     tilt = _label_mean(np.degrees(np.arccos(nz)), lb, n)
     nz = np.maximum(nz, 0.05)
     g = (np.nan_to_num(-nrm[:, 0] / nz), np.nan_to_num(-nrm[:, 1] / nz))
-    hp = np.pad(h.astype(np.float64), 1, mode="reflect", reflect_type="odd")  # one-sided at edges
-    d_col = (hp[rr + 1, cc + 2] - hp[rr + 1, cc]) / (2 * px)
-    d_row = (hp[rr + 2, cc + 1] - hp[rr, cc + 1]) / (2 * px)
+    d_col = (_odd_at(h, rr, cc + 1, 1) - _odd_at(h, rr, cc - 1, 1)) / (2 * px)
+    d_row = (_odd_at(h, rr + 1, cc, 0) - _odd_at(h, rr - 1, cc, 0)) / (2 * px)
     e = (d_col - g[0], -d_row - g[1])                # y is up: dz/dy = -dz/d(row)
     if left_out is not None:                         # the mismatch over the pixels off the band,
         off = left_out[rr, cc]                       # where they are at least half the label
@@ -299,8 +318,13 @@ def _ring_reliefs(cand: Candidates, surf: Surface, lbl, is_h, th: Thresholds, px
     lab, t_disc, t = cand.labels, cand.t_disc, surf.relief
     n_lab = int(lab.max())
     ring_w = max(RING_PX, 0.25 * th.min_w + 1)
-    ring = _expand_labels(lab, ring_w) * (lab == 0)
-    ring2 = ring if ring_w == RING_PX else _expand_labels(lab, RING_PX) * (lab == 0)
+    ring = _expand_labels(lab, ring_w)
+    ring *= lab == 0            # in place (int32 times bool: the same labels), no second label image
+    if ring_w == RING_PX:
+        ring2 = ring
+    else:
+        ring2 = _expand_labels(lab, RING_PX)
+        ring2 *= lab == 0
     relief = (_label_max(t, lab, n_lab) - _label_mean(t, ring, n_lab))[lbl - 1]
     relief[is_h] = cand.height_relief[lbl[is_h] - 1]
     rel_all = np.zeros(n_lab)

@@ -56,13 +56,18 @@ def _noise_sigma(h: np.ndarray, valid: np.ndarray) -> float:
             np.subtract(a, diff, out=diff)
             np.add(diff, c, out=diff)
     else:
-        across, along = h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2], h[2:] - 2 * h[1:-1] + h[:-2]
-        d = np.concatenate([across[valid[:, 2:] & valid[:, 1:-1] & valid[:, :-2]],
-                            along[valid[2:] & valid[1:-1] & valid[:-2]]])
+        # one difference map at a time (each dropped once its valid pixels are taken): this runs beside
+        # the weave and the albedo cue, at the run's peak of memory
+        across = h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2]
+        across = across[valid[:, 2:] & valid[:, 1:-1] & valid[:, :-2]]
+        along = h[2:] - 2 * h[1:-1] + h[:-2]
+        along = along[valid[2:] & valid[1:-1] & valid[:-2]]
+        d = np.concatenate([across, along])
+        del across, along
     if d.size == 0:
         return 0.0
     # d is ours: both medians partition it in place (the same multiset, the same medians)
-    mad = np.median(np.abs(d - np.median(d, overwrite_input=True), out=d), overwrite_input=True)
+    mad = np.median(np.abs(np.subtract(d, np.median(d, overwrite_input=True), out=d), out=d), overwrite_input=True)
     return float(1.4826 * mad / math.sqrt(6.0))
 
 

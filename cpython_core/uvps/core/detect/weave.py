@@ -67,18 +67,33 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     if p.weave_factor <= 0:
         return hs, none
     m, n = hs.shape
-    centred = hs.astype(np.float64) - float(np.mean(hs))
-    win = np.outer(np.hanning(m), np.hanning(n))
-    power = np.abs(scipy.fft.rfft2(np.multiply(centred, win, out=win)))    # the window's array reused
+    # each full-size map is released once read for the last time (del): the weave runs beside the
+    # noise and the albedo cue, at the run's peak of memory (scripts/benchmark_speed.py --skip run zarr
+    # cal demo); the centred height is made again for the fit rather than kept through the spectrum
+    mean = float(np.mean(hs))
+    # the centred height times the 2-D Hann window, whose rows are made band by band (each element
+    # hm[i] * hn[j], as np.outer makes it) and multiplied in place: one full-size float64 map, not three
+    x = hs.astype(np.float64) - mean
+    hm, hn = np.hanning(m), np.hanning(n)
+    for r0 in range(0, m, 256):
+        x[r0:r0 + 256] *= np.outer(hm[r0:r0 + 256], hn)
+    spec = scipy.fft.rfft2(x)
+    del x
+    power = np.abs(spec)
+    del spec
     np.square(power, out=power)
     fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
     band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
     if not band.any():
         return hs, none
     ring = np.minimum((fr * max(m, n)).astype(np.int64), max(m, n))
+    del fr
     med = _ring_median(power, ring, band)[ring]
+    del ring
     ratio = np.divide(power, med, out=np.zeros_like(power), where=band & (med > 0))
+    del med
     lab, k = ndi.label(band & (ratio > p.weave_factor), structure=np.ones((3, 3)))
+    del ratio, band
     if not k:
         return hs, none
     logp = np.log(power + 1e-300)
@@ -88,7 +103,8 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     last = np.r_[np.flatnonzero(np.diff(lab.ravel()[sel][order])), order.size - 1]
     freqs = np.array([_peak_frequency(logp, *np.unravel_index(sel[order[i]], lab.shape))
                       for i in last])
-    coef, gram = _fit_sinusoids(centred, freqs)
+    del power, lab, logp, sel, order
+    coef, gram = _fit_sinusoids(hs.astype(np.float64) - mean, freqs)
     comp = _sinusoids(freqs, coef, (m, n))
     periods = [round(px / math.hypot(fy, fx), 1) for fy, fx in freqs]
     mn = float(m * n)
@@ -101,7 +117,7 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
         slope2 += float(dcoef @ gram @ dcoef) / mn
     est = WeaveEstimate(periods_um=sorted(periods), rms_um=math.sqrt(max(w2, 0.0)),
                         slope_rms=math.sqrt(max(slope2, 0.0)), n_peaks=int(k))
-    return (hs - comp).astype(np.float32), est
+    return (hs - comp).astype(np.float32, copy=False), est
 
 
 def _sinusoid_sums(freqs: np.ndarray, shape) -> callable:
