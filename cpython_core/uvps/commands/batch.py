@@ -484,7 +484,7 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
             cluster.trim()
         t_part = time.perf_counter()
         if layout is not None:
-            warm.start(cluster)     # when no worker went idle before the last tile ended
+            warm.start(cluster)     # when no tile ran (all skipped or failed on their input)
             warm.wait()
             _painting(result, cluster, layout, params, painting_regions, progress, painting_chunk_px)
         timings["stitch_s"] = round(time.perf_counter() - t_part, 3)
@@ -505,8 +505,8 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
 def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: bool, progress,
                on_idle=None) -> None:
     """Every capture of ``todo`` as a task of the cluster; each one's record into ``records`` as it finishes.
-    ``on_idle(cluster)``, when given, is called once, as soon as fewer captures are left than the cluster has
-    workers (a worker has nothing left to run)."""
+    ``on_idle(cluster, future)``, when given, is called as soon as fewer captures are left than the cluster has
+    workers (the worker that ran ``future``'s capture has nothing left to run), and after each later one."""
     from distributed import as_completed   # lazily, as above
 
     futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
@@ -517,7 +517,7 @@ def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: 
     for fut in as_completed(futures):
         left -= 1
         if on_idle is not None and left < cluster.info["workers"]:
-            on_idle(cluster)
+            on_idle(cluster, fut)
         j = futures[fut]
         try:
             rec = fut.result()
@@ -544,28 +544,40 @@ def _import_modules(names=STITCH_IMPORTS) -> None:
             importlib.import_module(name)
 
 
+def _import_beside(names=STITCH_IMPORTS) -> None:
+    """:func:`_import_modules` in a thread of its own of this process (a worker's: its task thread stays free)."""
+    import threading
+    threading.Thread(target=_import_modules, args=(names,), name="uvps-stitch-imports", daemon=True).start()
+
+
 class _StitchWarmUp:
     """The stitching's imports done while the last tiles run, once a worker has no tile left: in a
-    thread of the batch's process (which only waits for the tiles then) and as a task of the cluster,
-    which the idle worker takes. Without it the painting began with them: the maps' first graph waited
-    for zarr and dask.array in this process and in each worker, the report's first figure for matplotlib
-    (1.1-1.4 s of this process's CPU, ``python -X importtime``; docs/decisions/painting.md, "The batch's
-    fixed costs (small tiles)"). Nothing of the painting's outputs depends on when a module was imported."""
+    thread of the batch's process (which only waits for the tiles then) and in a thread of that idle
+    worker, not as a task, so that a pair of the registration never waits behind it. Without it the
+    painting began with them: the maps' first graph waited for zarr and dask.array in this process and
+    in each worker, the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's
+    Figure, ~0.7 s for zarr and dask.array in a cProfile of the stitching; docs/decisions/painting.md,
+    "The batch's fixed costs (small tiles)"). Nothing of the painting's outputs depends on when a module
+    was imported."""
 
     def __init__(self):
-        self.thread = self.future = None    # the future held: a task whose future is dropped may be cancelled
+        self.thread = None
+        self.warmed = set()     # workers told to import
 
-    def start(self, cluster) -> None:
-        """Start both (once); ``cluster`` None: this process's part only."""
-        if self.thread is not None:
+    def start(self, cluster, future=None) -> None:
+        """This process's imports (once); and those of the worker that ran ``future`` (once a worker)."""
+        if self.thread is None:
+            import threading
+            self.thread = threading.Thread(target=_import_modules, args=(STITCH_PROCESS_IMPORTS,),
+                                           name="uvps-stitch-imports", daemon=True)
+            self.thread.start()
+        if cluster is None or future is None:
             return
-        import threading
-        self.thread = threading.Thread(target=_import_modules, args=(STITCH_PROCESS_IMPORTS,),
-                                       name="uvps-stitch-imports", daemon=True)
-        self.thread.start()
-        if cluster is not None:
-            self.future = cluster.client.submit(_import_modules, key=f"uvps-stitch-imports-{uuid.uuid4().hex[:8]}",
-                                                pure=False)
+        with contextlib.suppress(Exception):    # a worker gone, or the scheduler: its imports are then the maps'
+            idle = set(cluster.client.who_has([future]).get(future.key, ())) - self.warmed
+            if idle:
+                cluster.client.run(_import_beside, workers=sorted(idle))
+                self.warmed |= idle
 
     def wait(self) -> None:
         """Until this process's imports are done (they are the stitching's own first step otherwise); an
