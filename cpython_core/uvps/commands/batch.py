@@ -530,10 +530,12 @@ def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: 
 
 #: What the painting's stitching imports at its first use of them, and a process of the batch's cluster
 #: otherwise imports while the painting waits: the maps' stores (zarr, its codecs, dask.array) on the workers
-#: and in the batch's process, which also draws the report's figures (matplotlib) and the zoomable view.
+#: and in the batch's process, which also aligns the heights (scipy.stats), draws the report's figures
+#: (matplotlib) and the zoomable view.
 STITCH_IMPORTS = ("zarr", "numcodecs", "dask.array")
-STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("matplotlib.figure", "matplotlib.collections", "matplotlib.patches",
-                                           "PIL.Image", "cv2", "uvps.report.painting", "uvps.report.deepzoom")
+STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("scipy.stats", "matplotlib.figure", "matplotlib.collections",
+                                           "matplotlib.patches", "PIL.Image", "cv2", "uvps.report.painting",
+                                           "uvps.report.deepzoom")
 
 
 def _import_modules(names=STITCH_IMPORTS) -> None:
