@@ -559,8 +559,8 @@ class _StitchWarmUp:
     painting began with them: the maps' first graph waited for zarr and dask.array in this process and
     in each worker, the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's
     Figure, ~0.7 s for zarr and dask.array in a cProfile of the stitching; docs/decisions/painting.md,
-    "The batch's fixed costs (small tiles)"). Nothing of the painting's outputs depends on when a module
-    was imported."""
+    "The batch's fixed costs (small tiles): the stitching's imports while the last tiles run"). Nothing of
+    the painting's outputs depends on when a module was imported."""
 
     def __init__(self):
         self.thread = None
