@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from uvps.commands.batch import SUMMARY, complete, list_captures, run_batch
+from uvps.commands.batch import SUMMARY, _import_modules, _StitchWarmUp, complete, list_captures, run_batch
 from uvps.commands import COMMANDS
 from uvps.errors import UVPSInputError
 from uvps.testing.synthetic import make_capture, write_capture
@@ -241,6 +241,30 @@ def test_a_mosaic_counts_each_protrusion_of_the_overlap_once(mosaic, client, tmp
     assert float(total["area_cm2"]) == pytest.approx(160 * 280 * 15.0**2 / 1e8)
     assert sum(int(r["count"]) for r in regions[:-1]) <= len(merged)
     assert sum(float(r["area_cm2"]) for r in regions[:-1]) == pytest.approx(float(total["area_cm2"]))
+
+
+def test_the_stitching_warm_up_never_fails_a_batch():
+    """The stitching's imports, done while the last tiles run, leave a module that fails to import to fail where
+    the stitching uses it, and a worker that cannot be asked (gone, a scheduler's error) to the maps."""
+    _import_modules(("uvps_no_such_module", "json"))
+    assert "json" in sys.modules
+
+    class Gone:
+        info = {"workers": 2, "local": True}
+
+        class client:
+            @staticmethod
+            def who_has(futures):
+                raise OSError("the scheduler is gone")
+
+    class Done:
+        key = "a-tile"
+
+    warm = _StitchWarmUp()
+    warm.start(Gone(), Done())
+    warm.start(Gone(), Done())      # this process's thread once
+    warm.wait()
+    assert not warm.thread.is_alive() and warm.warmed == set()
 
 
 @pytest.mark.parametrize("layout,message", [

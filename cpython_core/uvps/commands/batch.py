@@ -471,9 +471,10 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     t_part = time.perf_counter()
     cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
     timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
+    warm = _StitchWarmUp() if layout is not None else None
     try:
         t_part = time.perf_counter()
-        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress)
+        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=warm and warm.start)
         result = BatchResult([records[j.name] for j in jobs], out_dir,
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
@@ -483,6 +484,8 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
             cluster.trim()
         t_part = time.perf_counter()
         if layout is not None:
+            warm.start(cluster)     # when no tile ran (all skipped or failed on their input)
+            warm.wait()
             _painting(result, cluster, layout, params, painting_regions, progress, painting_chunk_px)
         timings["stitch_s"] = round(time.perf_counter() - t_part, 3)
     finally:
@@ -499,15 +502,22 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     return result
 
 
-def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: bool, progress) -> None:
-    """Every capture of ``todo`` as a task of the cluster; each one's record into ``records`` as it finishes."""
+def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: bool, progress,
+               on_idle=None) -> None:
+    """Every capture of ``todo`` as a task of the cluster; each one's record into ``records`` as it finishes.
+    ``on_idle(cluster, future)``, when given, is called as soon as fewer captures are left than the cluster has
+    workers (the worker that ran ``future``'s capture has nothing left to run), and after each later one."""
     from distributed import as_completed   # lazily, as above
 
     futures = {cluster.client.submit(run_capture, j.name, str(j.folder), str(out_dir), j.params, force,
                                      key=f"uvps-batch-{j.name}-{uuid.uuid4().hex[:8]}", pure=False): j
                for j in todo}
     _report_counts(progress, records, n_jobs)
+    left = len(futures)
     for fut in as_completed(futures):
+        left -= 1
+        if on_idle is not None and left < cluster.info["workers"]:
+            on_idle(cluster, fut)
         j = futures[fut]
         try:
             rec = fut.result()
@@ -516,6 +526,66 @@ def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: 
                    "error": _one_line(exc), "failure": "internal", "warnings": [], "elapsed_s": None}
         records[j.name] = rec
         _report_counts(progress, records, n_jobs)
+
+
+#: What the painting's stitching imports at its first use of them, and a process of the batch's cluster
+#: otherwise imports while the painting waits: the maps' stores (zarr, its codecs, dask.array) on the workers
+#: and in the batch's process, which also aligns the heights (scipy.stats), draws the report's figures
+#: (matplotlib) and the zoomable view.
+STITCH_IMPORTS = ("zarr", "numcodecs", "dask.array")
+STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("scipy.stats", "matplotlib.figure", "matplotlib.collections",
+                                           "matplotlib.patches", "PIL.Image", "cv2", "uvps.report.painting",
+                                           "uvps.report.deepzoom")
+
+
+def _import_modules(names=STITCH_IMPORTS) -> None:
+    """Import ``names``; one that fails is left to fail where it is used, with its error there."""
+    import importlib
+    for name in names:
+        with contextlib.suppress(ImportError):
+            importlib.import_module(name)
+
+
+def _import_beside(names=STITCH_IMPORTS) -> None:
+    """:func:`_import_modules` in a thread of its own of this process (a worker's: its task thread stays free)."""
+    import threading
+    threading.Thread(target=_import_modules, args=(names,), name="uvps-stitch-imports", daemon=True).start()
+
+
+class _StitchWarmUp:
+    """The stitching's imports done while the last tiles run, once a worker has no tile left: in a
+    thread of the batch's process (which only waits for the tiles then) and in a thread of that idle
+    worker, not as a task, so that a pair of the registration never waits behind it. Without it the
+    painting began with them: the maps' first graph waited for zarr and dask.array in this process and
+    in each worker, the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's
+    Figure, ~0.7 s for zarr and dask.array in a cProfile of the stitching; docs/decisions/painting.md,
+    "The batch's fixed costs (small tiles): the stitching's imports while the last tiles run"). Nothing of
+    the painting's outputs depends on when a module was imported."""
+
+    def __init__(self):
+        self.thread = None
+        self.warmed = set()     # workers told to import
+
+    def start(self, cluster, future=None) -> None:
+        """This process's imports (once); and those of the worker that ran ``future`` (once a worker)."""
+        if self.thread is None:
+            import threading
+            self.thread = threading.Thread(target=_import_modules, args=(STITCH_PROCESS_IMPORTS,),
+                                           name="uvps-stitch-imports", daemon=True)
+            self.thread.start()
+        if cluster is None or future is None:
+            return
+        with contextlib.suppress(Exception):    # a worker gone, or the scheduler: its imports are then the maps'
+            idle = set(cluster.client.who_has([future]).get(future.key, ())) - self.warmed
+            if idle:
+                cluster.client.run(_import_beside, workers=sorted(idle))
+                self.warmed |= idle
+
+    def wait(self) -> None:
+        """Until this process's imports are done (they are the stitching's own first step otherwise); an
+        import that failed fails again, with its error, where the stitching imports the module."""
+        if self.thread is not None:
+            self.thread.join()
 
 
 def _painting(result: BatchResult, cluster, layout: dict, params: dict, painting_regions, progress, chunk_px) -> None:

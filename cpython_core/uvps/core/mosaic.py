@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
-from scipy import ndimage, sparse, stats
+from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
 from .irradiance import lamp_vectors, pixel_coordinates_mm
@@ -843,6 +843,9 @@ def _shrunk_shared(A, sol, tilts, w, n) -> np.ndarray:
     log.info("mosaic heights: shared surface %s um, its noise %s um (tilts' noise %.3g um, chi2 %.3g on %d terms)",
              np.round(e, 3).tolist(), np.round(np.sqrt(np.diag(C)), 3).tolist(), np.sqrt(noise), chi2, m)
     # the noise is estimated from a few tilts' worth of degrees of freedom: chi2 / m is F(m, dof) distributed
+    # scipy.stats imported here, not with the module: a tile's run never needs it, and each batch worker imported
+    # it (~0.25 s, python -X importtime) with uvps.commands.batch before its first tile
+    from scipy import stats
     if dof < 1 or chi2 < m * stats.f.ppf(SHARED_SIGNIFICANCE, m, dof):
         return np.zeros(m)
     tau2 = max(0.0, (float(e @ e) - float(np.trace(C))) / m)
