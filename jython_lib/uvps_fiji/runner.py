@@ -136,6 +136,21 @@ def _show_progress(line):
     IJ.showProgress(fraction)
 
 
+def _stop(process):
+    """End the core: SIGTERM first (it removes its temporary output and answers within its 2 s
+    grace), SIGKILL after 5 s. ImageJ may stop this thread again while it waits (a second Esc, or
+    the macro's abort: ThreadDeath); then the core is killed at once before that propagates, so
+    it never outlives the menu item."""
+    process.destroy()
+    try:
+        if not process.waitFor(5, TimeUnit.SECONDS):
+            process.destroyForcibly()
+            process.waitFor()
+    except (Exception, Throwable):
+        process.destroyForcibly()
+        raise
+
+
 def run_process(args, timeout_s=DEFAULT_TIMEOUT_S, on_line=_show_progress, cwd=None):
     """Run ``args`` and return (exit_code, stdout_text, stderr_text).
 
@@ -176,10 +191,7 @@ def run_process(args, timeout_s=DEFAULT_TIMEOUT_S, on_line=_show_progress, cwd=N
         # also when ImageJ stops this thread (Esc in a macro: ThreadDeath): the core never
         # outlives the menu item
         if process.isAlive():
-            process.destroy()
-            if not process.waitFor(5, TimeUnit.SECONDS):
-                process.destroyForcibly()
-                process.waitFor()
+            _stop(process)
     out.join(10)
     err.join(10)
     IJ.showProgress(1.0)
