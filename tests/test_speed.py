@@ -439,6 +439,45 @@ def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
 
 
 
+def test_dark_frame_is_made_float32_once_and_released_before_the_detection(tmp_path, monkeypatch):
+    """A memory-mapped capture's integer dark frame is converted to float32 once for the stages that read the
+    stack (not once per band and image: 1464 conversions at 4000 x 3000 x 16), and those float32 values are
+    dropped before the detection, whose peak of memory they would add to; read again, the same values."""
+    import tifffile
+    import uvps.core.pipeline as pl
+    from uvps.files.io import DarkSubtracted
+
+    cap = make_capture(shape=(60, 80), n_lights=4, seed=1, pixel_size_um=30.0, black_level=300.0)
+    write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
+    dark = tmp_path / "cap" / "dark" / "dark.tif"
+    capture = read_capture(tmp_path / "cap", dark=dark, lights=tmp_path / "cap" / "lights_positions_mm.csv")
+    view = capture.images
+    assert isinstance(view, DarkSubtracted) and view.dark.dtype == np.uint16
+    made = []
+    real_astype = np.ndarray.astype
+
+    class Counting(np.ndarray):
+        def astype(self, *a, **k):
+            made.append(self.shape)
+            return real_astype(np.asarray(self), *a, **k)
+
+    view.dark = view.dark.view(Counting)
+    seen = {}
+    real_find = pl.find_protrusions
+
+    def find(*a, **k):
+        seen["held"] = view._dark32 is not None
+        return real_find(*a, **k)
+
+    monkeypatch.setattr(pl, "find_protrusions", find)
+    res = run(capture, RunOptions(), stages=("normals", "height", "protrusions"), dark_given=True)
+    assert res.protrusions is not None and seen == {"held": False}
+    assert made == [view.dark.shape]                    # the whole frame, once, for every band of every image
+    want = np.maximum(np.stack([tifffile.imread(f) for f in sorted((tmp_path / "cap").glob("uv_*.tif"))])
+                      .astype(np.float32) - tifffile.imread(dark).astype(np.float32), 0)
+    np.testing.assert_array_equal(view[:, 5:30], want[:, 5:30])   # made again when read again
+
+
 @pytest.mark.parametrize("grey", [False, True])
 def test_block_grid_reads_a_view_as_stored_to_the_bit(tmp_path, monkeypatch, grey):
     """The drop-off's block grid of memory-mapped files seen through a dark frame, and through a dark frame

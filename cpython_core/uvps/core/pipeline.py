@@ -30,7 +30,7 @@ from ..errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, divided_grid, fit_dropoffs, fit_log_grid, with_common
 from .integrate import (IntegrationResult, frankot_chellappa, gradients_from_normals, integrate_normals,
                         nonintegrable_patches)
-from .stack import Capture
+from .stack import Capture, release_caches
 from .lights import (LightEstimate, LightModel, beyond_model, dropoff_common, estimate_lights, intensities_from_levels,
                      refine_intensities, sample_pixels)
 from .level import LEVELS, Levelling, level_height
@@ -274,6 +274,8 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
                                        method=options.integration, mask=res.capture.mask)
         res.timings_s["integrate"] = _since(t0)
+    # no stage below reads the stack: what its views keep to be read faster is not held by the detection
+    release_caches(res.capture.images)
     if "protrusions" in stages:
         t0 = time.perf_counter()
         res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,

@@ -135,6 +135,11 @@ class StackView(LazyStack):
     def correct(self, values, kk, rk, ck):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def release_caches(self) -> None:
+        """Drop what this view and the views under it keep to be read faster (made again if the stack
+        is read again): called once the stages that read the stack are done."""
+        release_caches(self.base)
+
     def raw_parts(self, k: int, rows: slice, cols: slice) -> Optional["RawParts"]:
         """The band as stored and this view's correction as :class:`RawParts`, or None when the
         correction is not one of theirs (a view that is no dark frame or gain map says None)."""
@@ -166,6 +171,13 @@ class RawParts:
     dark: Optional[np.ndarray] = None
     factor: Optional[np.ndarray] = None
     done: Callable = lambda: None
+
+
+def release_caches(stack) -> None:
+    """:meth:`StackView.release_caches` of a view; nothing for an array or a lazy stack without one."""
+    f = getattr(stack, "release_caches", None)
+    if f is not None:
+        f()
 
 
 def raw_parts(stack, k: int, rows: slice, cols: slice) -> Optional[RawParts]:
