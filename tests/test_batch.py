@@ -57,7 +57,7 @@ def _rows(path):
 
 @pytest.mark.slow
 def test_three_captures_run_as_uvps_run_then_a_rerun_skips_them(captures, client, tmp_path):
-    out = tmp_path / "out"
+    out = tmp_path / "not yet made" / "out"             # missing parents are made, as by uvps run
     t0 = time.perf_counter()
     res = run_batch([captures], out, PARAMS, client=client)
     elapsed = time.perf_counter() - t0
@@ -287,7 +287,7 @@ def test_inputs_folders_lists_and_names(captures, tmp_path):
         list_captures([captures / "cap1", captures])
     with pytest.raises(UVPSInputError, match="holds no images and no capture folders"):
         list_captures([tmp_path])
-    with pytest.raises(UVPSInputError, match="lights: nolamps.csv is no file, and no capture folder has"):
+    with pytest.raises(UVPSInputError, match="lights: nolamps.csv is no file, and none of the capture folders holds nolamps.csv"):
         run_batch([captures], tmp_path / "out", {"lights": "nolamps.csv"})
 
 

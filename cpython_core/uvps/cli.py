@@ -27,12 +27,12 @@ _REPORTING = ("demo", "run", "stats", "report")
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse's parser, but a mistyped command line is bad input like any other: its usage, one
-    line naming the argument and where to look, exit status 1 (argparse's own is 2, which uvps
-    keeps for failures the user cannot fix). Sub-command parsers are of this class too."""
+    """argparse's parser, but a mistyped command line is bad input like any other: one line naming
+    the argument and where to look (not argparse's usage block above it, which buried that line under
+    a dozen of options), exit status 1 (argparse's own is 2, which uvps keeps for failures the user
+    cannot fix). Sub-command parsers are of this class too."""
 
     def error(self, message):
-        self.print_usage(sys.stderr)
         self.exit(1, f"{self.prog}: error: {message}; see {self.prog} --help\n")
 
 

@@ -170,7 +170,9 @@ def make_jobs(folders, params: dict) -> list:
         jobs.append(Job(folder.name, folder, p, error))
     for key in PER_CAPTURE_FILES:
         if jobs and all(j.error and j.error.startswith(key + ":") for j in jobs):
-            raise UVPSInputError(jobs[0].error.replace(f"capture folder {jobs[0].name}", "no capture folder"))
+            value = jobs[0].params.get(key)
+            raise UVPSInputError(f"{key}: {value} is no file, and none of the capture folders holds "
+                                 f"{Path(value).name}")
     return jobs
 
 
@@ -461,7 +463,7 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
         raise UVPSInputError("painting regions: a painting-wide label image needs --mosaic or --grid")
     if painting_regions and not Path(painting_regions).is_file():
         raise UVPSInputError(f"painting regions: {painting_regions} does not exist")
-    out_dir.mkdir(exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)          # missing parents made, as every command makes them
     _clean_temporaries(out_dir)
     records = {j.name: {"capture": j.name, "folder": str(j.folder), "status": "failed", "error": j.error,
                         "failure": "input", "warnings": [], "elapsed_s": 0.0} for j in jobs if j.error}

@@ -162,7 +162,8 @@ def write_label_tiff(path, labels: np.ndarray, *, pixel_size_um: float,
 
 def _read_array(path: Path) -> np.ndarray:
     if not path.is_file():
-        raise UVPSInputError(f"region file {path} does not exist")
+        raise UVPSInputError(f"region file {path} does not exist (or give auto: colour areas proposed "
+                             "from the albedo)")
     if path.suffix.lower() in (".tif", ".tiff"):
         return np.asarray(read_tiff(path).data)
     return np.asarray(read_image(path))
