@@ -124,6 +124,12 @@ USER_MISTAKES = {
                         "unrecognized arguments: --sensitivty 5; see uvps --help"),
     "a missing argument": (["compare", "-o", "{tmp}/o5"],
                            "the following arguments are required: a, b; see uvps compare --help"),
+    "a typo of auto": (["run", "{cap}", "-o", "{tmp}/o6", "--regions", "autp"],
+                       "region file autp does not exist (or give auto: colour areas proposed from the albedo)"),
+    "a value not among the choices": (["run", "{cap}", "-o", "{tmp}/o7", "--level", "plan"],
+                                      "argument --level: invalid choice: 'plan'"),
+    "a batch's lights file in no folder": (["batch", "{cap}", "-o", "{tmp}/o8", "--lights", "lamps.csv"],
+                                           "lights: lamps.csv is no file, and none of the capture folders holds lamps.csv"),
 }
 
 
@@ -137,7 +143,8 @@ def test_a_users_mistake_exits_1_with_one_line(small_run, tmp_path, mistake):
     args = [a.format(**names) for a in args]
     r = subprocess.run([sys.executable, "-m", "uvps", *args], capture_output=True, text=True, timeout=300)
     assert r.returncode == 1, r.stderr
-    lines = [ln for ln in r.stderr.splitlines() if not ln.startswith(("INFO ", "usage:", " "))]
+    # one line: no usage block above it, and a mistake known before the images are read is caught first
+    lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("INFO ") or mistake != "a typo of auto"]
     assert len(lines) == 1, r.stderr
     assert lines[0].split(": error: ", 1)[1].startswith(expected.format(**names)), lines
     assert "Traceback" not in r.stderr and "Warning" not in r.stderr

@@ -29,7 +29,7 @@ from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_d
                             report, sub_progress)
 from .files.runfolder import (FILES, STEP_REWRITES, RunImages, drop_manual_work, hash_inputs_meanwhile, manual_work,
                               read_run, set_aside_for_step, set_aside_manual_work, write_run)
-from .files.tables import load_regions, read_protrusions_csv, write_regions_csv
+from .files.tables import check_region_files, load_regions, read_protrusions_csv, write_regions_csv
 from .spec import Param
 
 log = logging.getLogger(__name__)
@@ -198,6 +198,8 @@ def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *
     params, cal = run_params(params)     # the calibration's lamps, dark frame, pixel size
     if cal is None and step.reuse_lights:
         params = _folder_lights(run_dir, params)
+    if step.whole_run and params.get("regions") not in (None, "auto"):
+        check_region_files(params["regions"])      # a typo of auto, before the images are read
     capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
     if cal is not None:
         capture = apply_calibration(cal, capture)

@@ -160,10 +160,16 @@ def write_label_tiff(path, labels: np.ndarray, *, pixel_size_um: float,
                       pixel_size_um=pixel_size_um, metadata=metadata)
 
 
+def check_region_files(paths) -> None:
+    """Refuse a region file that does not exist, in one line (before a run reads its images)."""
+    for path in [paths] if isinstance(paths, (str, Path)) else paths:
+        if not Path(path).is_file():
+            raise UVPSInputError(f"region file {path} does not exist (or give auto: colour areas proposed "
+                                 "from the albedo)")
+
+
 def _read_array(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise UVPSInputError(f"region file {path} does not exist (or give auto: colour areas proposed "
-                             "from the albedo)")
+    check_region_files(path)
     if path.suffix.lower() in (".tif", ".tiff"):
         return np.asarray(read_tiff(path).data)
     return np.asarray(read_image(path))
