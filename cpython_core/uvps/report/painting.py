@@ -125,7 +125,7 @@ def _widths(kept, areas, path):
         w = [float(r.get("width_um") or 0) for r in kept if r.get("area") == name]
         if w:
             ax.hist(w, bins=bins, histtype="step", label=f"{name} ({len(w)})")
-    ax.set_xlabel("width (um)")
+    ax.set_xlabel("width (\u00b5m)")
     ax.set_ylabel("protrusions")
     ax.legend(fontsize=8)
     return save_figure(fig, path)
@@ -161,9 +161,9 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
         hist = np.histogram(w[np.isfinite(w)], bins=WIDTH_EDGES_UM)[0] if w.size else [0] * (len(WIDTH_EDGES_UM) - 1)
         rows.append([name, a["tiles"], a["area_cm2"], a["count"], a["density_per_cm2"],
                      float(np.nanmedian(w)) if np.isfinite(w).any() else float("nan"), *map(int, hist)])
-    bins = [f"{lo:g}-{hi:g} um" if np.isfinite(hi) else f">= {lo:g} um"
+    bins = [f"{lo:g}-{hi:g} \u00b5m" if np.isfinite(hi) else f"\u2265 {lo:g} \u00b5m"
             for lo, hi in zip(WIDTH_EDGES_UM[:-1], WIDTH_EDGES_UM[1:])]
-    area_table = table_html(["area", "tiles", "area (cm2)", "count", "per cm2", "median width (um)", *bins], rows)
+    area_table = table_html(["area", "tiles", "area (cm\u00b2)", "count", "per cm\u00b2", "median width (\u00b5m)", *bins], rows)
     pair_table = table_html(["pair", "dx (px)", "dy (px)", "confidence", "residual (px)", "used", "why not"],
                             [[p.name, p.dx, p.dy, p.confidence, p.residual_px if p.residual_px is not None
                               else float("nan"), "yes" if p.used else "no", p.why] for p in registration.pairs])
@@ -178,7 +178,7 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}img{{max-width:100%}}
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}</style></head>
 <body><h1>The painting: {len(registration.corners)} tiles, {total} protrusions</h1>
-<p>Pixel size {pixel_size_um:g} um; registered tiles (largest pair residual {registration.max_residual_px:.2f} px);
+<p>Pixel size {pixel_size_um:g} \u00b5m; registered tiles (largest pair residual {registration.max_residual_px:.2f} px);
 each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr, labels.ome.zarr.</p>
 <h2>Warnings</h2><ul>{warn}</ul>
 <h2>The painting and its protrusions</h2><img src="figures/painting_overview.png" alt="overview">
