@@ -476,6 +476,22 @@ def test_dark_frame_is_made_float32_once_and_released_before_the_detection(tmp_p
     want = np.maximum(np.stack([tifffile.imread(f) for f in sorted((tmp_path / "cap").glob("uv_*.tif"))])
                       .astype(np.float32) - tifffile.imread(dark).astype(np.float32), 0)
     np.testing.assert_array_equal(view[:, 5:30], want[:, 5:30])   # made again when read again
+    # two threads reading a released view first (the sphere search's two bands): still made once
+    import time
+    from uvps.core.threads import concurrently
+
+    class Slow(np.ndarray):
+        def astype(self, *a, **k):
+            made.append(self.shape)
+            time.sleep(0.2)
+            return real_astype(np.asarray(self), *a, **k)
+
+    view.release_caches()
+    view.dark = np.asarray(view.dark).view(Slow)
+    made.clear()
+    top, bottom = concurrently(lambda: view[:, :30], lambda: view[:, 30:])
+    assert made == [view.dark.shape]
+    np.testing.assert_array_equal(np.concatenate([top, bottom], axis=1), want)
 
 
 @pytest.mark.parametrize("grey", [False, True])

@@ -23,6 +23,7 @@ import math
 import mmap
 import os
 import re
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -882,6 +883,10 @@ def _minus_dark(image: np.ndarray, d: np.ndarray) -> None:
         np.maximum(image, 0, out=image)
 
 
+#: Held while a :class:`DarkSubtracted` makes its float32 frame (module-wide: a view stays picklable).
+_DARK_LOCK = threading.Lock()
+
+
 class DarkSubtracted(StackView):
     """Memory-mapped files seen with a dark frame subtracted, clipped at 0, computed on access (float32).
 
@@ -903,10 +908,14 @@ class DarkSubtracted(StackView):
         self._dark32 = None
 
     def _dark(self, rows, cols) -> np.ndarray:
-        """The dark frame's band as float32."""
-        if self._dark32 is None:
-            self._dark32 = self.dark.astype(np.float32, copy=False)
-        return self._dark32[rows, cols]
+        """The dark frame's band as float32 (made once, also when two threads read the stack first)."""
+        d = self._dark32
+        if d is None:
+            with _DARK_LOCK:
+                d = self._dark32
+                if d is None:
+                    d = self._dark32 = self.dark.astype(np.float32, copy=False)
+        return d[rows, cols]
 
     def release_caches(self) -> None:
         self._dark32 = None

@@ -25,7 +25,7 @@ from ..core.integrate import gradients_from_normals
 from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
-from ..core.stack import row_bands
+from ..core.stack import release_caches, row_bands
 from ..core.threads import default_threads, map_bands
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
 from ..core.regions import region_statistics
@@ -205,6 +205,7 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     names = ["lights", "dropoff"]
     if "flatfield" in result.stages:
         write_flatfield(folder, cap, result.lights, progress=progress)
+        release_caches(cap.images)        # the stack read again: what its views made for it is dropped
         names.append("flatfield")
     jobs = [lambda: write_lights(folder, cap, result.lights)]
     if result.stereo is not None:
