@@ -541,10 +541,11 @@ STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("scipy.stats", "matplotlib.figure", "
 
 
 def _import_modules(names=STITCH_IMPORTS) -> None:
-    """Import ``names``; one that fails is left to fail where it is used, with its error there."""
+    """Import ``names``; one that fails (whatever it raises) is left to fail where it is used, with its
+    error there, and the others are still imported."""
     import importlib
     for name in names:
-        with contextlib.suppress(ImportError):
+        with contextlib.suppress(Exception):
             importlib.import_module(name)
 
 

@@ -111,7 +111,7 @@ def map_bands(func, n: int, *, size=None, parts=None, step: int = 1, threads=Non
     stay busy to the last band. An exception in a band stops the bands not yet begun; once the begun
     ones have ended it is raised (the earliest band's, when several failed). Hand-written over
     :class:`concurrent.futures.ThreadPoolExecutor`: its ``map`` keeps this thread idle, queues every
-    band at once, and neither types a kernel first nor reports in order.
+    band at once, and does not type a kernel first.
     """
     bands = _cut(int(n), size, parts, max(1, int(step)))
     out = [None] * len(bands)
