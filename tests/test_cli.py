@@ -1,5 +1,6 @@
 """The whole pipeline through the real `uvps` command (a subprocess) and every bad input."""
 import hashlib
+import csv
 import json
 import subprocess
 import sys
@@ -136,6 +137,17 @@ def test_run_estimating_lights_with_detection_and_report(capture_dir, tmp_path):
     for f in ("protrusions.csv", "protrusions_labels.tif", "regions.csv", "regions_labels.tif", "report.html"):
         assert (out / f).is_file(), f
     assert "report:" in r.stdout
+    # what it found, in one line, as regions.csv has it (its "all" row not counted twice)
+    with open(out / "regions.csv", newline="", encoding="utf-8") as fh:
+        areas = [row for row in csv.DictReader(fh)]
+    total = next(row for row in areas if row["label"] == "all")
+    n_areas = len(areas) - 1
+    found = [ln for ln in r.stdout.splitlines() if ln.startswith("found: ")]
+    assert found == [f"found: {total['count']} protrusion{'s' if total['count'] != '1' else ''} in "
+                     f"{n_areas} colour area{'s' if n_areas != 1 else ''} "
+                     f"({float(total['area_cm2']):.3g} cm\u00b2, {float(total['density_per_cm2']):.3g} per cm\u00b2)"], r.stdout
+    with open(out / "protrusions.csv", newline="", encoding="utf-8") as fh:
+        assert int(total["count"]) == len(list(csv.DictReader(fh)))
 
 
 def test_lp_directions_give_far_lights(capture_dir, tmp_path):
