@@ -830,8 +830,8 @@ def read_capture(images, *, lights=None, mask=None, dark=None, pixel_size_um=Non
         raw = raw_reading([s.path for s in sources])
         saturation = raw["saturation_counts"]
     report(progress, 1.0, f"read {len(sources)} images {shape_img} {dtype}")
-    log.info("capture %s: %d images %s %s, pixel %.4g um", stack_path or Path(sources[0].path).parent,
-             len(sources), shape_img, dtype, pixel_size_um)
+    log.info("capture: %d images %s %s, pixel %.4g um, from %s", len(sources), shape_img, dtype, pixel_size_um,
+             stack_path or Path(sources[0].path).parent)
     return Capture(
         images=arr,
         files=[s.label for s in sources],
