@@ -112,26 +112,27 @@ def _run_command(a) -> int:
     if out is not None:
         print(f"uvps {a.command}: wrote {out}")
         if a.command in _REPORTING and (out / "report.html").is_file():
-            found = _found(out / "regions.csv")
+            found = _found(out)
             if found:
                 print(found)
             print(f"report: {out / 'report.html'}")
     return 0
 
 
-def _found(regions_csv: Path) -> str:
-    """What a run found, in one line, from its ``regions.csv``: "found: 97 protrusions in 8 colour areas
-    (2.38 cm², 40.7 per cm²)"; empty when there is no such table."""
-    import csv
+def _found(run_dir: Path) -> str:
+    """What a run found, in one line, from its ``regions.csv`` (:func:`uvps.files.tables.read_counts`):
+    "found: 97 protrusions in 8 colour areas (4.32 cm², 22.5 per cm²)"; empty without that table."""
+    from .files.tables import read_counts
 
     try:
-        with open(regions_csv, newline="", encoding="utf-8") as fh:
-            rows = [r for r in csv.DictReader(fh) if r["label"] != "all"]     # not the total row
-        count = sum(int(r["count"]) for r in rows)
-        area = sum(float(r["area_cm2"]) for r in rows)
+        areas = read_counts(run_dir)["areas"]
     except (OSError, KeyError, ValueError):
         return ""
-    where = f"{len(rows)} colour area{'s' if len(rows) != 1 else ''}"
+    if not areas:
+        return ""
+    count = sum(a["count"] for a in areas)
+    area = sum(a["area_cm2"] for a in areas)
+    where = f"{len(areas)} colour area{'s' if len(areas) != 1 else ''}"
     density = f", {count / area:.3g} per cm\u00b2" if area > 0 else ""
     return f"found: {count} protrusion{'s' if count != 1 else ''} in {where} ({area:.3g} cm\u00b2{density})"
 

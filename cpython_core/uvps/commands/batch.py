@@ -36,7 +36,7 @@ import tifffile
 from .. import __version__
 from ..errors import UVPSComputeError, UVPSError, UVPSInputError
 from ..files.io import IMAGE_EXTS, TIFF_EXTS, read_image, read_text, sha256_file
-from ..files.tables import atomic_write_text
+from ..files.tables import atomic_write_text, read_counts
 from ..files.outputs import (CommandResult, OutputSpec, Progress, check_output_dir, replace_dir, report,
                             write_json_atomic)
 from ..core.mosaic import overlap_box
@@ -242,23 +242,6 @@ def failure_kind(exc: BaseException) -> str:
     if isinstance(exc, UVPSInputError):
         return "input"
     return "compute" if isinstance(exc, UVPSComputeError) else "internal"
-
-
-def read_counts(run_dir: Path) -> dict:
-    """``n_protrusions`` (rows of ``protrusions.csv``) and the rows of ``regions.csv`` of a run
-    folder (``areas``: name, area_cm2, count, density_per_cm2; the "all" row left out)."""
-    out = {"n_protrusions": None, "areas": []}
-    table = run_dir / "protrusions.csv"
-    if table.is_file():
-        with open(table, encoding="utf-8") as fh:
-            out["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
-    regions = run_dir / "regions.csv"
-    if regions.is_file():
-        with open(regions, newline="", encoding="utf-8") as fh:
-            out["areas"] = [{"name": r["name"], "area_cm2": float(r["area_cm2"]), "count": int(r["count"]),
-                             "density_per_cm2": float(r["density_per_cm2"])}
-                            for r in csv.DictReader(fh) if r["label"] != "all"]
-    return out
 
 
 def run_capture(name: str, folder: str, out_dir: str, params: dict, force: bool = False) -> dict:

@@ -301,3 +301,20 @@ def write_regions_csv(path, stats: RegionStats) -> None:
     """
     cols = stats_columns(stats)
     atomic_write_text(path, table_to_csv_text(cols, list(cols)))
+
+
+def read_counts(run_dir: Path) -> dict:
+    """``n_protrusions`` (rows of ``protrusions.csv``) and the rows of ``regions.csv`` of a run
+    folder (``areas``: name, area_cm2, count, density_per_cm2; the "all" row left out)."""
+    out = {"n_protrusions": None, "areas": []}
+    table = run_dir / "protrusions.csv"
+    if table.is_file():
+        with open(table, encoding="utf-8") as fh:
+            out["n_protrusions"] = max(0, sum(1 for line in fh if line.strip()) - 1)
+    regions = run_dir / "regions.csv"
+    if regions.is_file():
+        with open(regions, newline="", encoding="utf-8") as fh:
+            out["areas"] = [{"name": r["name"], "area_cm2": float(r["area_cm2"]), "count": int(r["count"]),
+                             "density_per_cm2": float(r["density_per_cm2"])}
+                            for r in csv.DictReader(fh) if r["label"] != "all"]
+    return out
