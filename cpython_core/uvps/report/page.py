@@ -104,9 +104,40 @@ def extent_mm(shape, px_um):
     return (-n / 2 * px, n / 2 * px, -m / 2 * px, m / 2 * px)
 
 
+def outer_boundaries(labels: np.ndarray) -> np.ndarray:
+    """``skimage.segmentation.find_boundaries(labels, mode="outer")``, pixel for pixel, by OpenCV.
+
+    The same 3 x 3 dilations and erosions (a cross, then a square) as scikit-image's, which runs
+    them through ``scipy.ndimage``'s generic grey morphology: 0.34 s at 3000 x 4000 against
+    0.07 s here (``tests/test_report.py`` checks the two agree, the image's edges included: OpenCV
+    leaves pixels outside the image out of a minimum or maximum, as ndimage's reflection does).
+    Labels are non-negative integers of any width (scikit-image's own answer for int64 labels
+    marks objects' edges too: the background it lifts to 2^63 - 1 is not held exactly).
+    """
+    import cv2
+
+    lab = np.asarray(labels)
+    top = int(lab.max()) if lab.size else 0
+    # exact in each type: uint16 below 65535 labels, float32 below 2^24
+    kind = np.uint16 if top < 0xFFFF else np.float32 if top < 2 ** 24 - 1 else np.float64
+    f = lab.astype(kind)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    square = np.ones((3, 3), np.uint8)
+    edge = cv2.dilate(f, cross) != cv2.erode(f, cross)
+    background = f == 0
+    # an object's own pixels stay only where an 8-neighbour is another object (touching
+    # protrusions share an outline): scikit-image's test, the background lifted above every label
+    lifted = f.copy()
+    lifted[background] = top + 1
+    keep = cv2.dilate(f, square) != cv2.erode(lifted, square)
+    keep |= background
+    edge &= keep
+    return edge
+
+
 def _outline(labels: np.ndarray, step: int) -> np.ndarray:
     """Protrusion outlines at display resolution (max-pooled so thin lines survive)."""
-    b = find_boundaries(labels, mode="outer")
+    b = outer_boundaries(labels)
     return block_reduce(b, (step, step), np.max) if step > 1 else b
 
 
@@ -189,7 +220,7 @@ def _draw_outlines(ax, labels, step, shape, ext, colour=(1.0, 0.0, 0.0, 1.0)) ->
     overlay = np.zeros(edge.shape + (4,))
     overlay[edge] = colour
     ax.imshow(overlay, extent=ext, interpolation="nearest")
-    return int(len(np.unique(labels)) - 1)
+    return int(np.unique(labels[labels != 0]).size)
 
 
 def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float,
@@ -249,7 +280,7 @@ def height_scale(height_um: np.ndarray, *, relative: bool = False) -> HeightScal
 
 def plot_height(height_um: np.ndarray, path, *, pixel_size_um: float,
                 labels: Optional[np.ndarray] = None, relative: bool = False) -> Path:
-    """Height map with the protrusion outlines in red (``find_boundaries``).
+    """Height map with the protrusion outlines in red (:func:`outer_boundaries`).
 
     The colours span the 1st-99th percentile of the heights (:func:`height_scale`); the colour
     bar says so and, when heights lie beyond it, gives their real range and ends in arrows.
@@ -399,12 +430,17 @@ def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float) -> 
     ax.imshow(overlay, extent=ext, interpolation="nearest")
     small = regions.labels[::step, ::step]
     m, n = regions.labels.shape
+    boxes = ndi.find_objects(small)
     for i in regions.ids:
-        inside = small == i
-        if not inside.any():
+        box = boxes[i - 1] if 0 < i <= len(boxes) else np.s_[:, :]
+        if box is None or not (inside := small[box] == i).any():
             continue
+        # the deepest point of the area, searched in its bounding box: the box's ring of padding
+        # is nearer to every inside pixel than any background beyond it, so the distances (and
+        # the first maximum in row order) are those of the whole image
         d = ndi.distance_transform_edt(np.pad(inside, 1))[1:-1, 1:-1]
         r, c = np.unravel_index(np.argmax(d), d.shape)
+        r, c = r + (box[0].start or 0), c + (box[1].start or 0)
         x = (c * step - n / 2) * pixel_size_um / 1000
         y = (m / 2 - r * step) * pixel_size_um / 1000
         ax.text(x, y, f"{i}: {regions.names[i]}", color="yellow", fontsize=8, ha="center",
@@ -778,7 +814,7 @@ def _protrusion_labels(inputs: _RunInputs) -> Optional[np.ndarray]:
     """The protrusion label image when it matches the run's images."""
     plabels = inputs.protrusion_labels
     if plabels is not None and inputs.shape is not None and plabels.shape == tuple(inputs.shape[:2]):
-        return plabels.astype(np.int64)
+        return plabels if plabels.dtype.kind in "ui" else plabels.astype(np.int64)
     return None
 
 
