@@ -172,9 +172,10 @@ def _separable_gram(Vv, Vu, use):
     """``gram(w)`` = ``A^T diag(w) A`` for the blocks ``use`` (flat, raster order) of the grid whose design
     ``A`` has the rows ``Vv[r] (x) Vu[c]`` (:func:`_fit_values`), by the separable sums
     ``sum_r Vv[r, i] Vv[r, i'] sum_c w[r, c] Vu[c, j] Vu[c, j']``: 0.03 ms a product where ``A^T (A * w)`` took
-    0.36 ms (degree 4, 6745 blocks; 1024 products in a 16-lamp partly-lit capture's two fits: 0.64 s -> 0.3 s in
-    all). The sums are taken in another order (the fits agree to ~1e-13). Hand-written: no library call forms a
-    weighted Gram matrix of a Kronecker-structured design."""
+    0.36 ms (degree 4, 6745 blocks; the two fits of the calibrated route on ``scripts/benchmark_speed.py``'s
+    4000 x 3000 x 16 capture make 1024 of them: 0.64 s -> 0.30 s of CPU, ``python -m cProfile``). The sums
+    are taken in another order (those fits agree to 1.1e-14). Hand-written: no library call forms a weighted
+    Gram matrix of a Kronecker-structured design."""
     R, C, n = len(Vv), len(Vu), Vv.shape[1]
     vv = (Vv[:, :, None] * Vv[:, None, :]).reshape(R, n * n)
     uu = (Vu[:, :, None] * Vu[:, None, :]).reshape(C, n * n)
@@ -190,7 +191,8 @@ def _separable_gram(Vv, Vu, use):
 
 def _grid_design(grid, degree) -> tuple:
     """``(Vv, Vu, A)``: the block grid's Legendre design matrices and their Kronecker rows ``A`` (blocks in
-    raster order, n^2), made once for all the lamps' fits (made per fit, they took 0.1 s of 0.42)."""
+    raster order, n^2), made once for all the lamps' fits (made per fit: 128 times in the calibrated route's two
+    fits, 0.1 s of their 0.42 s under ``python -m cProfile``)."""
     n = degree + 1
     Vv, Vu = _design(grid.rows, grid.cols, grid.shape, degree)
     return Vv, Vu, np.einsum("ri,cj->rcij", Vv, Vu).reshape(-1, n * n)
