@@ -356,9 +356,10 @@ def test_calibrated_route_fits_only_what_it_uses(beams_capture, tmp_path, monkey
     --calibration --dark``: the stack is read ONCE for the drop-off (one block pass, each image's blocks read
     once). Measured intensities are fitted again on those blocks with the beams divided out
     (:func:`uvps.core.flatfield.divided_grid`), not on a second pass, and give the intensities of that second
-    pass (to 1e-9) and the same normals; given intensities are not fitted again at all. Asking for the
-    flat-fielded images, whose drop-off must be theirs exactly, takes the second pass. A change that refits
-    or rereads what the run does not use fails here."""
+    pass (to 1e-9) and the same normals; given intensities are not fitted again at all, and no pixels are
+    sampled nor intensities refined for them. Asking for the flat-fielded images, whose drop-off must be theirs
+    exactly, takes the second pass. A change that refits, resamples or rereads what the run does not use fails
+    here."""
     import json
 
     import tifffile
@@ -379,12 +380,14 @@ def test_calibrated_route_fits_only_what_it_uses(beams_capture, tmp_path, monkey
     real = ff.image_block_stats
     monkeypatch.setattr(ff, "image_block_stats", lambda images, k, *a, **kw: (read.append(k), real(images, k, *a, **kw))[1])
     out = {}
+    measured = 0 if intensities else 1      # the pixel sample and the refinement of the intensities
     for extra, want in (([], (1, 1 if intensities else 2)), (["--flatfield-images"], (2, 2))):
         read.clear()
-        calls = _counting(monkeypatch, "block_grid", "fit_dropoffs")
+        calls = _counting(monkeypatch, "block_grid", "fit_dropoffs", "sample_pixels", "refine_intensities")
         run_dir = tmp_path / ("run" + "".join(extra))
         assert main(["run", str(beams_capture), "--calibration", str(tmp_path / "cal"), "-o", str(run_dir)] + extra) == 0
-        assert calls == {"block_grid": want[0], "fit_dropoffs": want[1]}, extra
+        assert calls == {"block_grid": want[0], "fit_dropoffs": want[1], "sample_pixels": measured,
+                         "refine_intensities": measured}, extra
         assert sorted(read) == sorted(list(range(K)) * want[0]), extra        # each image's blocks read once a pass
         lights = json.loads((run_dir / "lights.json").read_text())
         out[bool(extra)] = (np.array([lamp["intensity"] for lamp in lights["lights"]]),

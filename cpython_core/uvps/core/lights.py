@@ -1001,9 +1001,10 @@ def _vp_normal_equations(sample: PixelSample, th, *, workers=None):
     Zq = np.empty((4 * K, 3 * n))
     Zu = np.empty((4 * K, 3 * n))
     args = (np.ascontiguousarray(L), np.ascontiguousarray(along), scale, X, I, wt, r, e, Zq, Zu)
-    # the first band alone: numba compiles (or loads from its cache) on a function's first call
+    # the first band alone on the kernel's first call in this process (numba compiles, or loads from its cache,
+    # then); after it, both bands at once (first_alone always left the second band alone on 2 threads)
     map_bands(lambda pixels: _vp_rows(*args, pixels.start, pixels.stop), n, parts=workers, threads=workers,
-              first_alone=True)
+              first_alone=not _vp_rows.signatures)
     return _assemble(r, e, Zq, Zu, workers=workers)
 
 
