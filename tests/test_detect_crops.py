@@ -39,3 +39,22 @@ def test_basins_with_tied_markers_flood_the_whole_image():
 def test_basins_without_markers_are_empty():
     t, _ = _bumps(1)
     assert not _basins(t, np.zeros(t.shape, np.int32), 0.5).any()
+
+
+def test_touching_pairs_are_the_shifted_images():
+    from uvps.core.detect._common import STEPS_4, STEPS_8, _touching
+    rng = np.random.default_rng(3)
+    lab = ndi.label(rng.random((60, 70)) > 0.45)[0]
+    lab[rng.random(lab.shape) > 0.8] += 1                   # touching labels
+    lab = lab.astype(np.int32)
+    shifts = {(0, 1): (lab[:, :-1], lab[:, 1:]), (1, 0): (lab[:-1], lab[1:]),
+              (1, 1): (lab[:-1, :-1], lab[1:, 1:]), (1, -1): (lab[:-1, 1:], lab[1:, :-1])}
+    for steps in (STEPS_4, STEPS_8):
+        i, j = _touching(lab, steps)
+        got = sorted(zip(lab.ravel()[i], lab.ravel()[j]))
+        ref = []
+        for s in steps:
+            a, b = shifts[s]
+            sel = (a > 0) & (b > 0) & (a != b)
+            ref += list(zip(a[sel], b[sel]))
+        assert got == sorted(ref) and len(got) > 50

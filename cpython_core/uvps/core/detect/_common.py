@@ -88,6 +88,32 @@ def _expand_labels(lab: np.ndarray, distance: float) -> np.ndarray:
     return out
 
 
+#: The steps to a pixel's right and lower neighbours (4-connected), and its two lower diagonal
+#: ones as well (8-connected): each pair of neighbours once.
+STEPS_4 = ((0, 1), (1, 0))
+STEPS_8 = ((0, 1), (1, 0), (1, 1), (1, -1))
+
+
+def _touching(lab: np.ndarray, steps=STEPS_8) -> tuple:
+    """The pairs of neighbouring pixels (one ``steps`` apart) both labelled with different labels:
+    (flat index of the first, flat index of the second), each pair of pixels once. The pairs of
+    ``lab[:, :-1]`` against ``lab[:, 1:]`` and the like, found from the labelled pixels alone
+    (a few % of a 4000 x 3000 image: the shifted comparisons scan it four times per step)."""
+    m, n = lab.shape
+    flat = lab.ravel()
+    idx = np.flatnonzero(flat)
+    row, col = np.divmod(idx, n)
+    first, second = [], []
+    for dr, dc in steps:
+        i = idx[(row + dr < m) & (col + dc >= 0) & (col + dc < n)]
+        j = i + (dr * n + dc)
+        b = flat[j]
+        sel = (b > 0) & (b != flat[i])
+        first.append(i[sel])
+        second.append(j[sel])
+    return np.concatenate(first), np.concatenate(second)
+
+
 def _holes(mask: np.ndarray) -> tuple:
     """The holes of ``mask`` labelled 1..k, as ``ndimage.label(fill_holes(mask) & ~mask)``
     (4-connected, numbered in raster order of their first pixel): the background's components

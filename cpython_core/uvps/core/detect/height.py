@@ -11,7 +11,7 @@ from skimage.morphology import h_maxima, reconstruction
 from skimage.segmentation import watershed
 
 from ..threads import concurrently
-from ._common import Thresholds, _edt, _label_max, _label_mean, _on_long_structure
+from ._common import Thresholds, _edt, _label_max, _label_mean, _on_long_structure, _touching
 from .params import DetectionParams
 
 
@@ -67,22 +67,14 @@ def _touching_pairs(t: np.ndarray, ws: np.ndarray) -> tuple:
     height of the pass between them: the highest, over the pixel pairs across their border, of
     the lower of the two. Returns (pairs (k, 2) int, passes (k,) float)."""
     n = int(ws.max())
-    keys, vals = [], []
-    for sa, sb in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-                   ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-                   ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
-                   ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1)))):
-        a, b = ws[sa], ws[sb]
-        sel = (a > 0) & (b > 0) & (a != b)
-        lo, hi = np.minimum(a[sel], b[sel]), np.maximum(a[sel], b[sel])
-        keys.append(lo.astype(np.int64) * (n + 1) + hi)
-        vals.append(np.minimum(t[sa][sel], t[sb][sel]))
-    keys = np.concatenate(keys)
+    i, j = _touching(ws)
+    a, b = ws.ravel()[i], ws.ravel()[j]
+    keys = np.minimum(a, b).astype(np.int64) * (n + 1) + np.maximum(a, b)
     if not keys.size:
         return np.zeros((0, 2), np.int64), np.zeros(0)
     uniq, inv = np.unique(keys, return_inverse=True)
     passes = np.full(uniq.size, -np.inf)
-    np.maximum.at(passes, inv, np.concatenate(vals).astype(np.float64))
+    np.maximum.at(passes, inv, np.minimum(t.ravel()[i], t.ravel()[j]).astype(np.float64))
     return np.column_stack([uniq // (n + 1), uniq % (n + 1)]), passes
 
 
@@ -169,11 +161,9 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
     n = weak.size - 1
     if n < 1 or not weak.any():
         return keep
-    pairs = []                                  # basins side by side (8-connected), both ways
-    for a, b in ((ws[:, :-1], ws[:, 1:]), (ws[:-1], ws[1:]), (ws[:-1, :-1], ws[1:, 1:]),
-                 (ws[:-1, 1:], ws[1:, :-1])):
-        sel = (a > 0) & (b > 0) & (a != b)
-        pairs += [np.column_stack([a[sel], b[sel]]), np.column_stack([b[sel], a[sel]])]
+    i, j = _touching(ws)                        # basins side by side (8-connected), both ways
+    a, b = ws.ravel()[i], ws.ravel()[j]
+    pairs = [np.column_stack([a, b]), np.column_stack([b, a])]
     pairs = np.unique(np.concatenate(pairs), axis=0)        # sorted by the first basin
     start = np.searchsorted(pairs[:, 0], np.arange(n + 2))
     top = np.concatenate([[0.0], _label_max(t, ws, n)])
