@@ -58,3 +58,24 @@ def test_touching_pairs_are_the_shifted_images():
             sel = (a > 0) & (b > 0) & (a != b)
             ref += list(zip(a[sel], b[sel]))
         assert got == sorted(ref) and len(got) > 50
+
+
+def test_packed_h_maxima_are_each_images_own():
+    from skimage.morphology import h_maxima
+    from uvps.core.detect._common import _packed_h_maxima
+    t, _ = _bumps(5, shape=(200, 260), n=40)
+    low = t >= 2.0
+    comp, n = ndi.label(low, structure=np.ones((3, 3)))
+    images, owns = [], []
+    for k, sl in enumerate(ndi.find_objects(comp)):
+        own = comp[sl] == k + 1
+        owns.append(own)
+        images.append(np.where(own, np.log(t[sl].astype(np.float64) + 1.0), -1.0))
+    images.append(np.full((1, 1), 3.0))            # no background pixel: its own call
+    owns.append(np.ones((1, 1), bool))
+    got = _packed_h_maxima(images, owns, -1.0, (0.3, 0.1))
+    assert got[-1] is None and sum(g is not None for g in got) >= 0.8 * n > 20
+    for im, own, g in zip(images, owns, got):
+        if g is not None:
+            for dyn, m in zip((0.3, 0.1), g):
+                assert np.array_equal(m.astype(bool) & own, h_maxima(im, dyn).astype(bool) & own)

@@ -11,7 +11,8 @@ from skimage.morphology import h_maxima, reconstruction
 from skimage.segmentation import watershed
 
 from ..threads import concurrently
-from ._common import Thresholds, _edt, _label_max, _label_mean, _on_long_structure, _touching
+from ._common import (Thresholds, _edt, _label_max, _label_mean, _on_long_structure, _packed_h_maxima,
+                      _shelves, _touching)
 from .params import DetectionParams
 
 
@@ -36,16 +37,19 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
     use_weak = 0 < p.weak_split_fraction < p.split_fraction
     dyn_w = -math.log(1.0 - p.weak_split_fraction) if use_weak else 0.0
     k_all = 0
-    for k_comp, sl in enumerate(ndi.find_objects(comp)):
-        if top[k_comp] < th.relief_um:
-            continue
-        inside = comp[sl] == k_comp + 1
-        sub = np.where(inside, np.log(t[sl].astype(np.float64) + th.relief_um), -1.0)
-        hm = h_maxima(sub, dyn).astype(bool) & inside & (t[sl] >= th.relief_um)
+    slices = ndi.find_objects(comp)
+    todo = np.flatnonzero(top >= th.relief_um)
+    owns = [comp[slices[k]] == k + 1 for k in todo]
+    subs = [np.where(own, np.log(t[slices[k]].astype(np.float64) + th.relief_um), -1.0)
+            for k, own in zip(todo, owns)]
+    packed = _packed_h_maxima(subs, owns, -1.0, (dyn, dyn_w) if dyn_w else (dyn,))
+    for j, (k_comp, inside, sub) in enumerate(zip(todo, owns, subs)):
+        sl = slices[k_comp]
+        hm = (packed[j][0] if packed[j] else h_maxima(sub, dyn)).astype(bool) & inside & (t[sl] >= th.relief_um)
         lab, k = ndi.label(hm, structure=np.ones((3, 3)))
         n_w = 0
         if dyn_w:                                   # the weak peaks: numbered after the strong
-            hw = h_maxima(sub, dyn_w).astype(bool) & inside & (t[sl] >= th.relief_um)
+            hw = (packed[j][1] if packed[j] else h_maxima(sub, dyn_w)).astype(bool) & inside & (t[sl] >= th.relief_um)
             lw, kw = ndi.label(hw, structure=np.ones((3, 3)))
             strong = np.zeros(kw + 1, bool)
             strong[lw[hm]] = True                   # the strong peaks' own components
@@ -455,22 +459,6 @@ def _basins(t: np.ndarray, markers: np.ndarray, floor: float) -> np.ndarray:
     for sl, (own, dst) in zip(boxes, owns):
         out[sl][own] = flooded[dst][own]
     return out
-
-
-def _shelves(sizes: list) -> tuple:
-    """Places (row, column) for boxes of ``sizes`` (rows, columns) on shelves, tallest first,
-    1 px apart, in an image about as wide as it is tall; returns (places, image shape)."""
-    width = max(int(math.sqrt(sum((h + 1) * (w + 1) for h, w in sizes))) + 1,
-                max(w for _, w in sizes) + 1)
-    place = [None] * len(sizes)
-    r = c = shelf = 0
-    for k in sorted(range(len(sizes)), key=lambda k: -sizes[k][0]):
-        h, w = sizes[k]
-        if c + w > width:
-            r, c, shelf = r + shelf + 1, 0, 0
-        place[k] = (r, c)
-        c, shelf = c + w + 1, max(shelf, h)
-    return place, (r + shelf, width)
 
 
 def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray:
