@@ -463,8 +463,14 @@ def _basins(t: np.ndarray, markers: np.ndarray, floor: float) -> np.ndarray:
 
 def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray:
     """``ws`` where ``foot`` is connected to a marker pixel, else 0."""
-    parts, _ = ndi.label(foot, structure=np.ones((3, 3)))
-    seeded = np.zeros(parts.max() + 1, bool)
+    parts, n = ndi.label(foot, structure=np.ones((3, 3)))
+    seeded = np.zeros(n + 1, bool)
     seeded[parts[markers > 0]] = True
     seeded[0] = False
-    return np.where(seeded[parts], ws, 0).astype(np.int32)
+    # written at the parts' pixels alone: on the whole image (a few % of it in parts) a full-size
+    # np.where and its int32 copy cost ~0.1 s at 4000 x 3000
+    out = np.zeros(ws.shape, np.int32)
+    at = np.flatnonzero(parts)
+    at = at[seeded[parts.ravel()[at]]]
+    out.ravel()[at] = ws.ravel()[at]
+    return out
