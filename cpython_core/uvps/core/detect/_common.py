@@ -44,7 +44,7 @@ def _label_mean(values: np.ndarray, labels: np.ndarray, n: int, default: float =
     """Mean of ``values`` per label 1..n (``default`` for an empty label), via ``np.bincount``."""
     sel = labels > 0
     cnt = np.bincount(labels[sel], minlength=n + 1)[1:n + 1]
-    tot = np.bincount(labels[sel], weights=values[sel].astype(np.float64), minlength=n + 1)[1:n + 1]
+    tot = np.bincount(labels[sel], weights=values[sel].astype(np.float64, copy=False), minlength=n + 1)[1:n + 1]
     return np.where(cnt > 0, tot / np.maximum(cnt, 1), default)
 
 
