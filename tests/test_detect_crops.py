@@ -79,3 +79,16 @@ def test_packed_h_maxima_are_each_images_own():
         if g is not None:
             for dyn, m in zip((0.3, 0.1), g):
                 assert np.array_equal(m.astype(bool) & own, h_maxima(im, dyn).astype(bool) & own)
+
+
+def test_kept_components_are_a_second_labelling():
+    from uvps.core.detect._common import _kept_components
+    rng = np.random.default_rng(11)
+    for structure in (None, np.ones((3, 3))):
+        comp, n = ndi.label(rng.random((80, 90)) > 0.6, structure=structure)
+        keep = rng.random(n + 1) > 0.4
+        ref, k_ref = ndi.label(keep[comp] & (comp > 0), structure=structure)
+        at, new, k = _kept_components(comp, keep)
+        got = np.zeros(comp.shape, np.int32)
+        got.ravel()[at] = new
+        assert k == k_ref > 10 and np.array_equal(got, ref)

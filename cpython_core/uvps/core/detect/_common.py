@@ -171,6 +171,22 @@ def _packed_h_maxima(images: list, owns: list, background: float, dyns: tuple) -
     return out
 
 
+def _kept_components(comp: np.ndarray, keep: np.ndarray) -> tuple:
+    """The components of ``comp`` (a ``scipy.ndimage.label`` image: numbered in raster order of
+    their first pixel) whose ``keep`` (per id 0..n; 0 ignored) is True, labelled again: what
+    ``ndi.label(keep[comp] & (comp > 0))`` with ``comp``'s structure numbers them (whole
+    components, in the same order: 1..k by id), from a lookup at the labelled pixels instead of a
+    second labelling of the whole image. Returns (flat indices of their pixels, their new ids, k)."""
+    lut = np.zeros(keep.size, np.int32)
+    kept = keep.copy()
+    kept[0] = False
+    k = int(np.count_nonzero(kept))
+    lut[kept] = np.arange(1, k + 1, dtype=np.int32)
+    at = np.flatnonzero(comp)
+    new = lut[comp.ravel()[at]]
+    return at[new > 0], new[new > 0], k
+
+
 def _holes(mask: np.ndarray) -> tuple:
     """The holes of ``mask`` labelled 1..k, as ``ndimage.label(fill_holes(mask) & ~mask)``
     (4-connected, numbered in raster order of their first pixel): the background's components
