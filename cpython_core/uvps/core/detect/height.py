@@ -291,14 +291,23 @@ def _curvature_maxima(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, curv: 
     m, n = t.shape
     hm = np.zeros(t.shape, bool)
     far = np.zeros(t.shape, bool)
-    for i, sl in enumerate(ndi.find_objects(area)):
-        if not able[i + 1]:
-            continue
+    boxes = [(i, sl) for i, sl in enumerate(ndi.find_objects(area)) if able[i + 1]]
+    # the maxima at once on the areas' own boxes packed side by side: at an area's own pixels the
+    # padded crop's, whose margin only adds pixels at ``fill`` (:func:`_packed_h_maxima`)
+    owns = [area[sl] == i + 1 for i, sl in boxes]
+    packed = _packed_h_maxima([np.where(own, curv[sl], fill) for (_, sl), own in zip(boxes, owns)],
+                              owns, fill, (dyn,))
+    for (i, sl), done in zip(boxes, packed):
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
         own = area[crop] == i + 1
-        c = curv[crop]
-        peaks = (h_maxima(np.where(own, c, fill), dyn) > 0) & own & (t[crop] >= th.relief_um)
+        if done:
+            maxima = np.zeros(own.shape, bool)
+            maxima[sl[0].start - crop[0].start:sl[0].stop - crop[0].start,
+                   sl[1].start - crop[1].start:sl[1].stop - crop[1].start] = done[0] > 0
+        else:
+            maxima = h_maxima(np.where(own, curv[crop], fill), dyn) > 0
+        peaks = maxima & own & (t[crop] >= th.relief_um)
         hm[crop] |= peaks
         far[crop] |= own & (_edt(markers[crop] == 0) >= w / 2.0 + 1.0)
     return hm, far
