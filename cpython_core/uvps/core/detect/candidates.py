@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from ._common import Thresholds, _expand_labels, _label_max
+from ._common import Thresholds, _expand_labels, _kept_components, _label_max
 from .albedo import _albedo_cue
 from .footprints import _local_footprints
 from .height import _height_cue
@@ -57,19 +57,14 @@ def _union(hl: np.ndarray, n_h: int, mask_albedo: np.ndarray, long_lab: np.ndarr
     joined = np.zeros(na + 1, bool)                      # a lookup: np.isin sorts the image
     joined[acomp[mask_albedo & (near > 0)]] = True       # what lies beyond grow_px is dropped
     del near, both, ext, ok                              # full-size maps read for the last time
-    acomp, na = ndi.label(mask_albedo & ~joined[acomp], structure=np.ones((3, 3)))
-    if na:                                               # in place: lab is ours
-        sel = acomp > 0
-        lab[sel] = acomp[sel] + n_h
+    at, new, na = _kept_components(glow, ~joined)
+    lab.ravel()[at] = new + n_h                          # in place: lab is ours
     taken = cv2.dilate((lab > 0).view(np.uint8), np.ones((3, 3), np.uint8),
                        borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     touch = np.zeros(int(long_lab.max()) + 1, bool)
     touch[long_lab[taken]] = True
-    keep = (long_lab > 0) & ~touch[long_lab]
-    lcomp, nl = ndi.label(keep, structure=np.ones((3, 3)))
-    if nl:
-        sel = lcomp > 0
-        lab[sel] = lcomp[sel] + (n_h + na)
+    at, new, nl = _kept_components(long_lab, ~touch)
+    lab.ravel()[at] = new + (n_h + na)
     kind = np.array([""] + [HEIGHT] * n_h + [ALBEDO] * na + [LONG] * nl, dtype="<U6")
     return lab, kind, glow
 

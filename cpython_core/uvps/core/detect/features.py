@@ -9,7 +9,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..threads import concurrently
-from ._common import Thresholds, _edt, _expand_labels, _holes, _label_max, _label_mean
+from ._common import (STEPS_4, Thresholds, _edt, _expand_labels, _holes, _label_max, _label_mean,
+                      _touching)
 from .candidates import HEIGHT, Candidates
 from .params import DetectionParams
 from .surface import Surface
@@ -86,9 +87,8 @@ def _inscribed_radius(lab: np.ndarray, n: int) -> np.ndarray:
     4000 x 3000 for candidates covering a tenth of it)."""
     r_in = np.full(n, -np.inf)
     touching = np.zeros(n + 1, bool)
-    for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1], lab[1:])):
-        sel = (a != b) & (a > 0) & (b > 0)
-        touching[a[sel]] = touching[b[sel]] = True
+    first, second = _touching(lab, STEPS_4)
+    touching[lab.ravel()[first]] = touching[lab.ravel()[second]] = True
     for i, s in enumerate(ndi.find_objects(lab), start=1):
         if s is None:
             continue

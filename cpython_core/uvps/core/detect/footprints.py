@@ -87,6 +87,10 @@ def _refine_group(h, hl, markers, cur, usable, reach, ring_w, p: DetectionParams
         ok = outside <= OPEN_SHARE * np.bincount(new.ravel(), minlength=size)
         closed[members] = ok[root[members]]
         new = np.where(closed[new], new, np.where(closed[compact], 0, compact))
+        if np.array_equal(new > 0, cur):
+            # the footprints drew the same pixels again: the second pass would read the same ring
+            # and redo this one to the bit (393 of 812 groups on a 4000 x 3000 `uvps run --regions auto`)
+            break
         cur = new > 0
     return new, pk, closed
 

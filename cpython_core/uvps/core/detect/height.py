@@ -11,7 +11,8 @@ from skimage.morphology import h_maxima, reconstruction
 from skimage.segmentation import watershed
 
 from ..threads import concurrently
-from ._common import Thresholds, _edt, _label_max, _label_mean, _on_long_structure
+from ._common import (Thresholds, _edt, _label_max, _label_mean, _on_long_structure, _packed_h_maxima,
+                      _shelves, _touching)
 from .params import DetectionParams
 
 
@@ -36,16 +37,19 @@ def _peak_markers(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
     use_weak = 0 < p.weak_split_fraction < p.split_fraction
     dyn_w = -math.log(1.0 - p.weak_split_fraction) if use_weak else 0.0
     k_all = 0
-    for k_comp, sl in enumerate(ndi.find_objects(comp)):
-        if top[k_comp] < th.relief_um:
-            continue
-        inside = comp[sl] == k_comp + 1
-        sub = np.where(inside, np.log(t[sl].astype(np.float64) + th.relief_um), -1.0)
-        hm = h_maxima(sub, dyn).astype(bool) & inside & (t[sl] >= th.relief_um)
+    slices = ndi.find_objects(comp)
+    todo = np.flatnonzero(top >= th.relief_um)
+    owns = [comp[slices[k]] == k + 1 for k in todo]
+    subs = [np.where(own, np.log(t[slices[k]].astype(np.float64) + th.relief_um), -1.0)
+            for k, own in zip(todo, owns)]
+    packed = _packed_h_maxima(subs, owns, -1.0, (dyn, dyn_w) if dyn_w else (dyn,))
+    for j, (k_comp, inside, sub) in enumerate(zip(todo, owns, subs)):
+        sl = slices[k_comp]
+        hm = (packed[j][0] if packed[j] else h_maxima(sub, dyn)).astype(bool) & inside & (t[sl] >= th.relief_um)
         lab, k = ndi.label(hm, structure=np.ones((3, 3)))
         n_w = 0
         if dyn_w:                                   # the weak peaks: numbered after the strong
-            hw = h_maxima(sub, dyn_w).astype(bool) & inside & (t[sl] >= th.relief_um)
+            hw = (packed[j][1] if packed[j] else h_maxima(sub, dyn_w)).astype(bool) & inside & (t[sl] >= th.relief_um)
             lw, kw = ndi.label(hw, structure=np.ones((3, 3)))
             strong = np.zeros(kw + 1, bool)
             strong[lw[hm]] = True                   # the strong peaks' own components
@@ -67,22 +71,14 @@ def _touching_pairs(t: np.ndarray, ws: np.ndarray) -> tuple:
     height of the pass between them: the highest, over the pixel pairs across their border, of
     the lower of the two. Returns (pairs (k, 2) int, passes (k,) float)."""
     n = int(ws.max())
-    keys, vals = [], []
-    for sa, sb in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-                   ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-                   ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
-                   ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1)))):
-        a, b = ws[sa], ws[sb]
-        sel = (a > 0) & (b > 0) & (a != b)
-        lo, hi = np.minimum(a[sel], b[sel]), np.maximum(a[sel], b[sel])
-        keys.append(lo.astype(np.int64) * (n + 1) + hi)
-        vals.append(np.minimum(t[sa][sel], t[sb][sel]))
-    keys = np.concatenate(keys)
+    i, j = _touching(ws)
+    a, b = ws.ravel()[i], ws.ravel()[j]
+    keys = np.minimum(a, b).astype(np.int64) * (n + 1) + np.maximum(a, b)
     if not keys.size:
         return np.zeros((0, 2), np.int64), np.zeros(0)
     uniq, inv = np.unique(keys, return_inverse=True)
     passes = np.full(uniq.size, -np.inf)
-    np.maximum.at(passes, inv, np.concatenate(vals).astype(np.float64))
+    np.maximum.at(passes, inv, np.minimum(t.ravel()[i], t.ravel()[j]).astype(np.float64))
     return np.column_stack([uniq // (n + 1), uniq % (n + 1)]), passes
 
 
@@ -169,11 +165,9 @@ def _weak_splits(t: np.ndarray, ws: np.ndarray, weak: np.ndarray, p: DetectionPa
     n = weak.size - 1
     if n < 1 or not weak.any():
         return keep
-    pairs = []                                  # basins side by side (8-connected), both ways
-    for a, b in ((ws[:, :-1], ws[:, 1:]), (ws[:-1], ws[1:]), (ws[:-1, :-1], ws[1:, 1:]),
-                 (ws[:-1, 1:], ws[1:, :-1])):
-        sel = (a > 0) & (b > 0) & (a != b)
-        pairs += [np.column_stack([a[sel], b[sel]]), np.column_stack([b[sel], a[sel]])]
+    i, j = _touching(ws)                        # basins side by side (8-connected), both ways
+    a, b = ws.ravel()[i], ws.ravel()[j]
+    pairs = [np.column_stack([a, b]), np.column_stack([b, a])]
     pairs = np.unique(np.concatenate(pairs), axis=0)        # sorted by the first basin
     start = np.searchsorted(pairs[:, 0], np.arange(n + 2))
     top = np.concatenate([[0.0], _label_max(t, ws, n)])
@@ -297,14 +291,23 @@ def _curvature_maxima(t: np.ndarray, ws: np.ndarray, markers: np.ndarray, curv: 
     m, n = t.shape
     hm = np.zeros(t.shape, bool)
     far = np.zeros(t.shape, bool)
-    for i, sl in enumerate(ndi.find_objects(area)):
-        if not able[i + 1]:
-            continue
+    boxes = [(i, sl) for i, sl in enumerate(ndi.find_objects(area)) if able[i + 1]]
+    # the maxima at once on the areas' own boxes packed side by side: at an area's own pixels the
+    # padded crop's, whose margin only adds pixels at ``fill`` (:func:`_packed_h_maxima`)
+    owns = [area[sl] == i + 1 for i, sl in boxes]
+    packed = _packed_h_maxima([np.where(own, curv[sl], fill) for (_, sl), own in zip(boxes, owns)],
+                              owns, fill, (dyn,))
+    for (i, sl), done in zip(boxes, packed):
         crop = (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, m)),
                 slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, n)))
         own = area[crop] == i + 1
-        c = curv[crop]
-        peaks = (h_maxima(np.where(own, c, fill), dyn) > 0) & own & (t[crop] >= th.relief_um)
+        if done:
+            maxima = np.zeros(own.shape, bool)
+            maxima[sl[0].start - crop[0].start:sl[0].stop - crop[0].start,
+                   sl[1].start - crop[1].start:sl[1].stop - crop[1].start] = done[0] > 0
+        else:
+            maxima = h_maxima(np.where(own, curv[crop], fill), dyn) > 0
+        peaks = maxima & own & (t[crop] >= th.relief_um)
         hm[crop] |= peaks
         far[crop] |= own & (_edt(markers[crop] == 0) >= w / 2.0 + 1.0)
     return hm, far
@@ -409,7 +412,7 @@ def _peak_basins(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
     if not n_h:
         return markers, 0, None
     floor = p.footprint_fraction * th.relief_um
-    ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
+    ws = _basins(t, markers, floor)
     lut = _rim_merges(t, ws, th, p)                 # one crater's rim: its ends joined
     if lut.max() < n_h:
         markers, ws, n_h = lut[markers], lut[ws], int(lut.max())
@@ -423,14 +426,61 @@ def _peak_basins(t: np.ndarray, th: Thresholds, p: DetectionParams) -> tuple:
             markers = np.where(keep, np.cumsum(keep) - 1, 0).astype(np.int32)[markers]
             n_h = int(markers.max())
             ws = None           # the first basins released before the watershed's own full-size copies
-            ws = watershed(-t, markers, mask=(t >= floor) | (markers > 0))
+            ws = _basins(t, markers, floor)
     return markers, n_h, ws
+
+
+def _basins(t: np.ndarray, markers: np.ndarray, floor: float) -> np.ndarray:
+    """``watershed(-t, markers, mask=(t >= floor) | (markers > 0))``, the same labels, from the
+    mask's components that hold a marker, packed side by side into one small image.
+
+    The flood (4-connected, as the watershed's) never leaves a component of the mask, and within
+    one it pops its pixels in the order of (value, age of push), which no other component
+    changes, once no two markers tie in value: the markers are all pushed at age 0, and a heap
+    breaks such ties by its whole content. So with distinct marker values each component's
+    basins are the whole image's; else the whole image is flooded. On a 4000 x 3000 run
+    (``uvps run --regions auto``, 16 lamps) the mask was 1 % of the image and the boxes of its
+    components 2 %: the whole-image call spent most of its 0.1-0.2 s (CPU) converting and padding
+    the image, the packed one takes 0.08 s. Hand-written packing around
+    skimage's watershed (no library floods a set of crops at once)."""
+    mask = (t >= floor) | (markers > 0)
+    at = markers > 0
+    if np.unique(t[at]).size < np.count_nonzero(at):
+        return watershed(-t, markers, mask=mask)
+    comp, _ = ndi.label(mask)                       # the watershed's own connectivity
+    slices = ndi.find_objects(comp)
+    ids = np.unique(comp[at])
+    ids = ids[ids > 0]
+    out = np.zeros(t.shape, np.int32)
+    if not ids.size:
+        return out
+    boxes = [slices[i - 1] for i in ids]
+    place, shape = _shelves([(s[0].stop - s[0].start, s[1].stop - s[1].start) for s in boxes])
+    img = np.zeros(shape, t.dtype)
+    mk = np.zeros(shape, np.int32)
+    inside = np.zeros(shape, bool)
+    owns = []
+    for i, sl, (r, c) in zip(ids, boxes, place):   # a 1-px gap of mask False between crops
+        own = comp[sl] == i
+        dst = (slice(r, r + own.shape[0]), slice(c, c + own.shape[1]))
+        img[dst], mk[dst], inside[dst] = t[sl], np.where(own, markers[sl], 0), own
+        owns.append((own, dst))
+    flooded = watershed(-img, mk, mask=inside)
+    for sl, (own, dst) in zip(boxes, owns):
+        out[sl][own] = flooded[dst][own]
+    return out
 
 
 def _seeded(ws: np.ndarray, foot: np.ndarray, markers: np.ndarray) -> np.ndarray:
     """``ws`` where ``foot`` is connected to a marker pixel, else 0."""
-    parts, _ = ndi.label(foot, structure=np.ones((3, 3)))
-    seeded = np.zeros(parts.max() + 1, bool)
+    parts, n = ndi.label(foot, structure=np.ones((3, 3)))
+    seeded = np.zeros(n + 1, bool)
     seeded[parts[markers > 0]] = True
     seeded[0] = False
-    return np.where(seeded[parts], ws, 0).astype(np.int32)
+    # written at the parts' pixels alone: on the whole image (a few % of it in parts) a full-size
+    # np.where and its int32 copy cost ~0.1 s at 4000 x 3000 (line_profiler, `uvps run --regions auto`)
+    out = np.zeros(ws.shape, np.int32)
+    at = np.flatnonzero(parts)
+    at = at[seeded[parts.ravel()[at]]]
+    out.ravel()[at] = ws.ravel()[at]
+    return out

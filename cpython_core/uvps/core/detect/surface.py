@@ -117,7 +117,7 @@ def _compact_relief(hn: np.ndarray, valid: np.ndarray, length_px: float) -> np.n
     coarse = cv2.copyMakeBorder(_block_max(hn, f), pad, pad, pad, pad, cv2.BORDER_REFLECT)
     opened = _diameter_opening(coarse, pad)[pad:-pad, pad:-pad]
     up = np.repeat(np.repeat(opened, f, axis=0), f, axis=1)[:m, :n]
-    t = (hn - np.minimum(hn, up)).astype(np.float32)
+    t = (hn - np.minimum(hn, up)).astype(np.float32, copy=False)   # no second copy of a float32 difference
     t[~valid] = 0
     return t
 
@@ -136,7 +136,7 @@ def _disc_tophat(hn: np.ndarray, length_px: float) -> np.ndarray:
     opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, se, borderType=cv2.BORDER_REFLECT)
     if f > 1:
         opened = np.minimum(cv2.resize(opened, (n, m), interpolation=cv2.INTER_LINEAR), hn)
-    return (hn - opened).astype(np.float32)
+    return (hn - opened).astype(np.float32, copy=False)
 
 
 def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionParams) -> np.ndarray:
@@ -185,7 +185,7 @@ def _beside_long(surf: Surface, valid: np.ndarray, th: Thresholds, p: DetectionP
 def _surface(h: np.ndarray, valid: np.ndarray, px: float, p: DetectionParams) -> Surface:
     """Noise, weave and compact relief of the height (see the module docstring, steps 1-2)."""
     fill = float(np.median(h[valid])) if not valid.all() else 0.0    # no pixel to fill: 0.3 s
-    h0 = np.where(valid, h, fill).astype(np.float32)
+    h0 = np.where(valid, h, fill).astype(np.float32, copy=False)
     s = p.smooth_um / px
 
     def smoothed():

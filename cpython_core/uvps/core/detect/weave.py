@@ -73,7 +73,8 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     mean = float(np.mean(hs))
     # the centred height times the 2-D Hann window, whose rows are made band by band (each element
     # hm[i] * hn[j], as np.outer makes it) and multiplied in place: one full-size float64 map, not three
-    x = hs.astype(np.float64) - mean
+    x = hs.astype(np.float64)
+    x -= mean                   # in place: the same values, one full-size float64 map
     hm, hn = np.hanning(m), np.hanning(n)
     for r0 in range(0, m, 256):
         x[r0:r0 + 256] *= np.outer(hm[r0:r0 + 256], hn)
@@ -104,7 +105,10 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     freqs = np.array([_peak_frequency(logp, *np.unravel_index(sel[order[i]], lab.shape))
                       for i in last])
     del power, lab, logp, sel, order
-    coef, gram = _fit_sinusoids(hs.astype(np.float64) - mean, freqs)
+    x = hs.astype(np.float64)
+    x -= mean
+    coef, gram = _fit_sinusoids(x, freqs)
+    del x
     comp = _sinusoids(freqs, coef, (m, n))
     periods = [round(px / math.hypot(fy, fx), 1) for fy, fx in freqs]
     mn = float(m * n)
@@ -169,4 +173,6 @@ def _sinusoids(freqs: np.ndarray, coef: np.ndarray, shape) -> np.ndarray:
     cols = np.arange(shape[1], dtype=np.float64)
     u = np.exp(2j * np.pi * np.outer(rows, freqs[:, 0])) * (coef[0::2] - 1j * coef[1::2])
     v = np.exp(2j * np.pi * np.outer(freqs[:, 1], cols))
-    return (u.real @ v.real - u.imag @ v.imag).astype(np.float32)
+    out = u.real @ v.real
+    out -= u.imag @ v.imag      # in place: the same values, one float64 map fewer
+    return out.astype(np.float32)
