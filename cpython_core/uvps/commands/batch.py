@@ -297,9 +297,12 @@ MALLOC_TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
 class _Cluster:
     """A ``distributed.Client``: the one given, one on ``scheduler``, or on a new ``LocalCluster``."""
 
-    def __init__(self, client=None, scheduler=None, n_workers=1, processes=True):
+    def __init__(self, client=None, scheduler=None, n_workers=1, processes=True, while_starting=None):
         import dask
         from distributed import Client, LocalCluster   # lazily: dask costs every other command its import
+
+        if while_starting is not None:
+            while_starting()    # after dask's and distributed's imports here: two threads never import one module
 
         if not log.isEnabledFor(logging.DEBUG):
             # the scheduler's and workers' INFO lines (ports, nannies) bury the batch's own (uvps -v shows them)
@@ -317,7 +320,10 @@ class _Cluster:
             # machine warned "Port 8787 is already in use"; the link is in the log (uvps -v)
             # UVPS_THREADS=1 keeps each capture's own stages (the normals' bands, the lamp refinement) to
             # that one thread too (uvps.core.threads)
-            extra = {"env": {THREADS_VARIABLE: "1"}} if processes else {}
+            # each worker process imports this module, and with it the pipeline, as it starts (distributed's
+            # preload; its `dask_setup` below), beside this process's own imports and before it registers,
+            # rather than when its first tile's task is unpickled after the cluster is up
+            extra = {"env": {THREADS_VARIABLE: "1"}, "preload": [__name__]} if processes else {}
             # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
             # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
             # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
@@ -330,8 +336,6 @@ class _Cluster:
             client = Client(cluster)
             self.own = [client, cluster]
             log.debug("Dask dashboard: %s", client.dashboard_link)
-            if processes:   # the batch's own worker processes end without the interpreter's teardown
-                client.run(exit_at_teardown)
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})
@@ -349,6 +353,13 @@ class _Cluster:
     def close(self):
         for obj in self.own:
             obj.close()
+
+
+def dask_setup(worker) -> None:
+    """A worker process of the batch's own local cluster, as it starts (distributed's preload of this module,
+    :class:`_Cluster`; never a ``--scheduler`` cluster's workers): it ends without the interpreter's teardown
+    (:func:`uvps.workers.exit_at_teardown`)."""
+    exit_at_teardown()
 
 
 @contextlib.contextmanager
@@ -454,9 +465,11 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
     timings = {}
     t_part = time.perf_counter()
-    cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
-    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     warm = _StitchWarmUp() if layout is not None else None
+    # this process's imports for the stitching while the cluster starts: it waits for its workers then
+    cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes,
+                       while_starting=warm and warm.start) if todo else None
+    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
         t_part = time.perf_counter()
         _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=warm and warm.start)
@@ -515,10 +528,9 @@ def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: 
 
 #: What the painting's stitching imports at its first use of them, and a process of the batch's cluster
 #: otherwise imports while the painting waits: the maps' stores (zarr, its codecs, dask.array) on the workers
-#: and in the batch's process, which also aligns the heights (scipy.stats), draws the report's figures
-#: (matplotlib) and the zoomable view.
+#: and in the batch's process, which also draws the report's figures (matplotlib) and the zoomable view.
 STITCH_IMPORTS = ("zarr", "numcodecs", "dask.array")
-STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("scipy.stats", "matplotlib.figure", "matplotlib.collections",
+STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("matplotlib.figure", "matplotlib.collections",
                                            "matplotlib.patches", "PIL.Image", "cv2", "uvps.report.painting",
                                            "uvps.report.deepzoom")
 
@@ -552,7 +564,7 @@ class _StitchWarmUp:
         self.thread = None
         self.warmed = set()     # workers told to import
 
-    def start(self, cluster, future=None) -> None:
+    def start(self, cluster=None, future=None) -> None:
         """This process's imports (once); and those of the worker that ran ``future`` (once a worker)."""
         if self.thread is None:
             import threading
