@@ -373,16 +373,16 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
 
 
 def _started_as_the_batchs_worker() -> tuple:
-    """In a worker: (the pipeline imported, uvps.workers.exit_at_teardown's hook set)."""
+    """In a worker: (the pipeline and the maps' zarr imported, uvps.workers.exit_at_teardown's hook set)."""
     import gc
-    return ("uvps.workflow" in sys.modules,
+    return ("uvps.workflow" in sys.modules and "zarr" in sys.modules,
             any(getattr(cb, "__qualname__", "").startswith("exit_at_teardown.") for cb in gc.callbacks))
 
 
 def test_the_batch_workers_import_the_pipeline_as_they_start_and_a_given_clusters_do_not(captures, client,
                                                                                          tmp_path):
-    """uvps batch's own local workers import uvps.commands.batch (and with it the pipeline) while the cluster
-    starts (distributed's preload), before any task, and end without the interpreter's teardown; the workers of
+    """uvps batch's own local workers import uvps.commands.batch (and with it the pipeline) and the maps' modules
+    while the cluster starts (distributed's preload), before any task, and end without the interpreter's teardown; the workers of
     a cluster given to the batch (--scheduler, or a client) are left as they are, also after a batch ran there."""
     from uvps.commands.batch import _Cluster
 

@@ -309,6 +309,7 @@ class _Cluster:
             logging.getLogger("distributed").setLevel(logging.WARNING)
             dask.config.set({"logging.distributed": "warning"})
         self.own = []
+        self.preloaded = False      # the workers imported this module and the maps' modules as they started
         if client is None and scheduler:
             client = Client(scheduler, timeout="30s")
             self.own = [client]
@@ -335,6 +336,7 @@ class _Cluster:
                                        dashboard_address=":0", **extra)
             client = Client(cluster)
             self.own = [client, cluster]
+            self.preloaded = processes
             log.debug("Dask dashboard: %s", client.dashboard_link)
         self.client = client
         info = client.scheduler_info()
@@ -358,8 +360,11 @@ class _Cluster:
 def dask_setup(worker) -> None:
     """A worker process of the batch's own local cluster, as it starts (distributed's preload of this module,
     :class:`_Cluster`; never a ``--scheduler`` cluster's workers): it ends without the interpreter's teardown
-    (:func:`uvps.workers.exit_at_teardown`)."""
+    (:func:`uvps.workers.exit_at_teardown`), and it imports what the painting's maps import on a worker
+    (:data:`STITCH_IMPORTS`), which the last worker to finish its tiles otherwise imported while the
+    registration's tasks ran."""
     exit_at_teardown()
+    _import_modules(STITCH_IMPORTS)
 
 
 @contextlib.contextmanager
@@ -472,7 +477,9 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
         t_part = time.perf_counter()
-        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=warm and warm.start)
+        # a worker with no tile left imports the maps' modules, unless it did as it started (the batch's own)
+        idle = warm.start if warm is not None and cluster is not None and not cluster.preloaded else None
+        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=idle)
         result = BatchResult([records[j.name] for j in jobs], out_dir,
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
@@ -551,14 +558,14 @@ def _import_beside(names=STITCH_IMPORTS) -> None:
 
 
 class _StitchWarmUp:
-    """The stitching's imports done while the last tiles run, once a worker has no tile left: in a
-    thread of the batch's process (which only waits for the tiles then) and in a thread of that idle
-    worker, not as a task, so that a pair of the registration never waits behind it. Without it the
-    painting began with them: the maps' first graph waited for zarr and dask.array in this process and
-    in each worker, the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's
-    Figure, ~0.7 s for zarr and dask.array in a cProfile of the stitching; docs/decisions/painting.md,
-    "The batch's fixed costs (small tiles): the stitching's imports while the last tiles run"). Nothing of
-    the painting's outputs depends on when a module was imported."""
+    """The stitching's imports done before the stitching: in a thread of the batch's process while its
+    cluster starts (it only waits for its workers then), and, for a cluster the batch did not start (its own
+    workers import them as they start, :func:`dask_setup`), in a thread of each worker once it has no tile
+    left, not as a task, so that a pair of the registration never waits behind it. Without it the painting
+    began with them: the maps' first graph waited for zarr and dask.array in this process and in each worker,
+    the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's Figure, ~0.7 s for zarr
+    and dask.array in a cProfile of the stitching; docs/decisions/painting.md, "The batch's fixed costs
+    (small tiles)"). Nothing of the painting's outputs depends on when a module was imported."""
 
     def __init__(self):
         self.thread = None
