@@ -323,8 +323,12 @@ class _Cluster:
             # that one thread too (uvps.core.threads)
             # each worker process imports this module, and with it the pipeline, as it starts (distributed's
             # preload; its `dask_setup` below), beside this process's own imports and before it registers,
-            # rather than when its first tile's task is unpickled after the cluster is up
-            extra = {"env": {THREADS_VARIABLE: "1"}, "preload": [__name__]} if processes else {}
+            # rather than when its first tile's task is unpickled after the cluster is up (after the user's own
+            # preloads, which the argument would otherwise replace)
+            preload = list(dask.config.get("distributed.worker.preload", [])) + [__name__]
+            argv = list(dask.config.get("distributed.worker.preload-argv", []))
+            argv = argv + [[]] if argv and not isinstance(argv[0], str) else argv     # one list per preload
+            extra = {"env": {THREADS_VARIABLE: "1"}, "preload": preload, "preload_argv": argv} if processes else {}
             # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
             # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
             # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
