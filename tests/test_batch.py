@@ -381,9 +381,10 @@ def _started_as_the_batchs_worker() -> tuple:
 
 def test_the_batch_workers_import_the_pipeline_as_they_start_and_a_given_clusters_do_not(captures, client,
                                                                                          tmp_path):
-    """uvps batch's own local workers import uvps.commands.batch (and with it the pipeline) and the maps' modules
-    while the cluster starts (distributed's preload), before any task, and end without the interpreter's teardown; the workers of
-    a cluster given to the batch (--scheduler, or a client) are left as they are, also after a batch ran there."""
+    """uvps batch's own local workers import uvps.commands.batch (and with it the pipeline) and the maps'
+    modules while the cluster starts (distributed's preload), before any task, and end without the
+    interpreter's teardown; the workers of a cluster given to the batch (--scheduler, or a client) are left
+    as they are, also after a batch ran there."""
     from uvps.commands.batch import _Cluster
 
     cluster = _Cluster(n_workers=1, processes=True)

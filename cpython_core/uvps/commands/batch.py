@@ -302,7 +302,7 @@ class _Cluster:
         from distributed import Client, LocalCluster   # lazily: dask costs every other command its import
 
         if while_starting is not None:
-            while_starting()    # after dask's and distributed's imports here: two threads never import one module
+            while_starting()    # after dask's and distributed's imports here, which its thread then finds done
 
         if not log.isEnabledFor(logging.DEBUG):
             # the scheduler's and workers' INFO lines (ports, nannies) bury the batch's own (uvps -v shows them)

@@ -843,9 +843,8 @@ def _shrunk_shared(A, sol, tilts, w, n) -> np.ndarray:
     log.info("mosaic heights: shared surface %s um, its noise %s um (tilts' noise %.3g um, chi2 %.3g on %d terms)",
              np.round(e, 3).tolist(), np.round(np.sqrt(np.diag(C)), 3).tolist(), np.sqrt(noise), chi2, m)
     # the noise is estimated from a few tilts' worth of degrees of freedom: chi2 / m is F(m, dof) distributed;
-    # its quantile by scipy.special's fdtri, which scipy.stats.f.ppf returns for it: importing scipy.stats took
-    # 0.33 s of the batch's process's CPU (its stitching's imports, made while its workers start; the workers
-    # imported it with uvps.commands.batch once), scipy.special is loaded with scipy.ndimage
+    # its quantile by scipy.special's fdtri, the value scipy.stats.f.ppf returns: importing scipy.stats cost the
+    # batch's process 0.33 s of CPU while its workers start; scipy.special comes with scipy.ndimage
     from scipy.special import fdtri
     if dof < 1 or chi2 < m * fdtri(m, dof, SHARED_SIGNIFICANCE):
         return np.zeros(m)
