@@ -372,6 +372,32 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
     assert list(got.values()) == [("1", 1)]
 
 
+def _started_as_the_batchs_worker() -> tuple:
+    """In a worker: (the pipeline and the maps' zarr imported, uvps.workers.exit_at_teardown's hook set)."""
+    import gc
+    return ("uvps.workflow" in sys.modules and "zarr" in sys.modules,
+            any(getattr(cb, "__qualname__", "").startswith("exit_at_teardown.") for cb in gc.callbacks))
+
+
+def test_the_batch_workers_import_the_pipeline_as_they_start_and_a_given_clusters_do_not(captures, client,
+                                                                                         tmp_path):
+    """uvps batch's own local workers import uvps.commands.batch (and with it the pipeline) and the maps'
+    modules while the cluster starts (distributed's preload), before any task, and end without the
+    interpreter's teardown; the workers of a cluster given to the batch (--scheduler, or a client) are left
+    as they are, also after a batch ran there."""
+    from uvps.commands.batch import _Cluster
+
+    cluster = _Cluster(n_workers=1, processes=True)
+    try:
+        got = cluster.client.run(_started_as_the_batchs_worker)
+    finally:
+        cluster.close()
+    assert list(got.values()) == [(True, True)]
+    res = run_batch([captures / "cap1"], tmp_path / "out", PARAMS, client=client)
+    assert [r["status"] for r in res.records] == ["done"]
+    assert {hook for _, hook in client.run(_started_as_the_batchs_worker).values()} == {False}
+
+
 def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
     """uvps batch's own local workers run with glibc's allocator as a `uvps run` process does: no
     MALLOC_TRIM_THRESHOLD_ (distributed's nanny sets 65536 by default, which fixes the mmap threshold

@@ -1,7 +1,7 @@
 """How ``uvps batch``'s processes end: the worker processes of its own local cluster, and its own.
 
-A module of its own, importing nothing of uvps's pipeline: the cluster's start waits for the workers
-to import it (the tiles' tasks import :mod:`uvps.commands.batch` and the pipeline as before).
+A module of its own, importing nothing of uvps's pipeline: the batch's process imports it at its exit
+whatever it ran, and the batch's workers call it from :func:`uvps.commands.batch.dask_setup` as they start.
 """
 from __future__ import annotations
 

@@ -297,15 +297,19 @@ MALLOC_TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
 class _Cluster:
     """A ``distributed.Client``: the one given, one on ``scheduler``, or on a new ``LocalCluster``."""
 
-    def __init__(self, client=None, scheduler=None, n_workers=1, processes=True):
+    def __init__(self, client=None, scheduler=None, n_workers=1, processes=True, while_starting=None):
         import dask
         from distributed import Client, LocalCluster   # lazily: dask costs every other command its import
+
+        if while_starting is not None:
+            while_starting()    # after dask's and distributed's imports here, which its thread then finds done
 
         if not log.isEnabledFor(logging.DEBUG):
             # the scheduler's and workers' INFO lines (ports, nannies) bury the batch's own (uvps -v shows them)
             logging.getLogger("distributed").setLevel(logging.WARNING)
             dask.config.set({"logging.distributed": "warning"})
         self.own = []
+        self.preloaded = False      # the workers imported this module and the maps' modules as they started
         if client is None and scheduler:
             client = Client(scheduler, timeout="30s")
             self.own = [client]
@@ -317,7 +321,14 @@ class _Cluster:
             # machine warned "Port 8787 is already in use"; the link is in the log (uvps -v)
             # UVPS_THREADS=1 keeps each capture's own stages (the normals' bands, the lamp refinement) to
             # that one thread too (uvps.core.threads)
-            extra = {"env": {THREADS_VARIABLE: "1"}} if processes else {}
+            # each worker process imports this module, and with it the pipeline, as it starts (distributed's
+            # preload; its `dask_setup` below), beside this process's own imports and before it registers,
+            # rather than when its first tile's task is unpickled after the cluster is up (after the user's own
+            # preloads, which the argument would otherwise replace)
+            preload = list(dask.config.get("distributed.worker.preload", [])) + [__name__]
+            argv = list(dask.config.get("distributed.worker.preload-argv", []))
+            argv = argv + [[]] if argv and not isinstance(argv[0], str) else argv     # one list per preload
+            extra = {"env": {THREADS_VARIABLE: "1"}, "preload": preload, "preload_argv": argv} if processes else {}
             # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
             # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
             # every large numpy temporary is mmapped, page-faulted and unmapped again; the painting
@@ -329,9 +340,8 @@ class _Cluster:
                                        dashboard_address=":0", **extra)
             client = Client(cluster)
             self.own = [client, cluster]
+            self.preloaded = processes
             log.debug("Dask dashboard: %s", client.dashboard_link)
-            if processes:   # the batch's own worker processes end without the interpreter's teardown
-                client.run(exit_at_teardown)
         self.client = client
         info = client.scheduler_info()
         workers = info.get("workers", {})
@@ -349,6 +359,16 @@ class _Cluster:
     def close(self):
         for obj in self.own:
             obj.close()
+
+
+def dask_setup(worker) -> None:
+    """A worker process of the batch's own local cluster, as it starts (distributed's preload of this module,
+    :class:`_Cluster`; never a ``--scheduler`` cluster's workers): it ends without the interpreter's teardown
+    (:func:`uvps.workers.exit_at_teardown`), and it imports what the painting's maps import on a worker
+    (:data:`STITCH_IMPORTS`), which the last worker to finish its tiles otherwise imported while the
+    registration's tasks ran."""
+    exit_at_teardown()
+    _import_modules(STITCH_IMPORTS)
 
 
 @contextlib.contextmanager
@@ -454,12 +474,16 @@ def run_batch(captures, out_dir, params: dict, *, force: bool = False, mosaic=No
     report(progress, 0.0, f"starting the cluster for {len(todo)} captures")
     timings = {}
     t_part = time.perf_counter()
-    cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes) if todo else None
-    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     warm = _StitchWarmUp() if layout is not None else None
+    # this process's imports for the stitching while the cluster starts: it waits for its workers then
+    cluster = _Cluster(client, scheduler, n_workers or default_workers(len(todo)), processes,
+                       while_starting=warm and warm.start) if todo else None
+    timings["cluster_start_s"] = round(time.perf_counter() - t_part, 3)
     try:
         t_part = time.perf_counter()
-        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=warm and warm.start)
+        # a worker with no tile left imports the maps' modules, unless it did as it started (the batch's own)
+        idle = warm.start if warm is not None and cluster is not None and not cluster.preloaded else None
+        _run_tiles(cluster, todo, records, len(jobs), out_dir, force, progress, on_idle=idle)
         result = BatchResult([records[j.name] for j in jobs], out_dir,
                              cluster.info if cluster else {"workers": 0})
         result.warnings = [f"{r['capture']} failed: {r['error']}" for r in result.records
@@ -515,10 +539,9 @@ def _run_tiles(cluster, todo, records: dict, n_jobs: int, out_dir: Path, force: 
 
 #: What the painting's stitching imports at its first use of them, and a process of the batch's cluster
 #: otherwise imports while the painting waits: the maps' stores (zarr, its codecs, dask.array) on the workers
-#: and in the batch's process, which also aligns the heights (scipy.stats), draws the report's figures
-#: (matplotlib) and the zoomable view.
+#: and in the batch's process, which also draws the report's figures (matplotlib) and the zoomable view.
 STITCH_IMPORTS = ("zarr", "numcodecs", "dask.array")
-STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("scipy.stats", "matplotlib.figure", "matplotlib.collections",
+STITCH_PROCESS_IMPORTS = STITCH_IMPORTS + ("matplotlib.figure", "matplotlib.collections",
                                            "matplotlib.patches", "PIL.Image", "cv2", "uvps.report.painting",
                                            "uvps.report.deepzoom")
 
@@ -539,20 +562,20 @@ def _import_beside(names=STITCH_IMPORTS) -> None:
 
 
 class _StitchWarmUp:
-    """The stitching's imports done while the last tiles run, once a worker has no tile left: in a
-    thread of the batch's process (which only waits for the tiles then) and in a thread of that idle
-    worker, not as a task, so that a pair of the registration never waits behind it. Without it the
-    painting began with them: the maps' first graph waited for zarr and dask.array in this process and
-    in each worker, the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's
-    Figure, ~0.7 s for zarr and dask.array in a cProfile of the stitching; docs/decisions/painting.md,
-    "The batch's fixed costs (small tiles): the stitching's imports while the last tiles run"). Nothing of
-    the painting's outputs depends on when a module was imported."""
+    """The stitching's imports done before the stitching: in a thread of the batch's process while its
+    cluster starts (it only waits for its workers then), and, for a cluster the batch did not start (its own
+    workers import them as they start, :func:`dask_setup`), in a thread of each worker once it has no tile
+    left, not as a task, so that a pair of the registration never waits behind it. Without it the painting
+    began with them: the maps' first graph waited for zarr and dask.array in this process and in each worker,
+    the report's first figure for matplotlib (this process: ~0.7 s for matplotlib's Figure, ~0.7 s for zarr
+    and dask.array in a cProfile of the stitching; docs/decisions/painting.md, "The batch's fixed costs
+    (small tiles)"). Nothing of the painting's outputs depends on when a module was imported."""
 
     def __init__(self):
         self.thread = None
         self.warmed = set()     # workers told to import
 
-    def start(self, cluster, future=None) -> None:
+    def start(self, cluster=None, future=None) -> None:
         """This process's imports (once); and those of the worker that ran ``future`` (once a worker)."""
         if self.thread is None:
             import threading
