@@ -398,6 +398,37 @@ def test_the_batch_workers_import_the_pipeline_as_they_start_and_a_given_cluster
     assert {hook for _, hook in client.run(_started_as_the_batchs_worker).values()} == {False}
 
 
+def _has_mailbox() -> bool:
+    return "mailbox" in sys.modules
+
+
+def test_the_users_own_preload_given_as_one_string_is_kept():
+    """A ``distributed.worker.preload`` of one module name (as ``DASK_DISTRIBUTED__WORKER__PRELOAD=mailbox``
+    sets it; distributed reads it as one preload) stays one preload beside the batch's own: read as a list
+    of characters the workers failed to start ("No module named 'm'")."""
+    import dask
+    from uvps.commands.batch import _Cluster
+
+    with dask.config.set({"distributed.worker.preload": "mailbox", "distributed.worker.preload-argv": "-x"}):
+        cluster = _Cluster(n_workers=1, processes=True)
+    try:
+        got = cluster.client.run(_has_mailbox)
+    finally:
+        cluster.close()
+    assert list(got.values()) == [True]
+
+
+def test_the_workers_preloads_one_argv_list_per_preload_or_one_for_all():
+    import dask
+    from uvps.commands.batch import _worker_preloads
+
+    with dask.config.set({"distributed.worker.preload": "mailbox", "distributed.worker.preload-argv": "-x"}):
+        assert _worker_preloads("b") == (["mailbox", "b"], ["-x"])
+    with dask.config.set({"distributed.worker.preload": ["mailbox"],
+                          "distributed.worker.preload-argv": [["-x"]]}):
+        assert _worker_preloads("b") == (["mailbox", "b"], [["-x"], []])
+
+
 def test_the_batch_workers_keep_glibcs_own_allocator_settings(monkeypatch):
     """uvps batch's own local workers run with glibc's allocator as a `uvps run` process does: no
     MALLOC_TRIM_THRESHOLD_ (distributed's nanny sets 65536 by default, which fixes the mmap threshold

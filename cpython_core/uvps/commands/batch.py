@@ -325,9 +325,7 @@ class _Cluster:
             # preload; its `dask_setup` below), beside this process's own imports and before it registers,
             # rather than when its first tile's task is unpickled after the cluster is up (after the user's own
             # preloads, which the argument would otherwise replace)
-            preload = list(dask.config.get("distributed.worker.preload", [])) + [__name__]
-            argv = list(dask.config.get("distributed.worker.preload-argv", []))
-            argv = argv + [[]] if argv and not isinstance(argv[0], str) else argv     # one list per preload
+            preload, argv = _worker_preloads(__name__)
             extra = {"env": {THREADS_VARIABLE: "1"}, "preload": preload, "preload_argv": argv} if processes else {}
             # glibc's own allocator settings in the workers, as in a `uvps run` process: the nanny's
             # default MALLOC_TRIM_THRESHOLD_=65536 also freezes glibc's mmap threshold at 128 KB, so
@@ -359,6 +357,22 @@ class _Cluster:
     def close(self):
         for obj in self.own:
             obj.close()
+
+
+def _worker_preloads(name: str) -> tuple:
+    """(preloads, their argv) for a worker: the user's own (``distributed.worker.preload`` and
+    ``-argv``), then the module ``name`` with no argument. Either setting may be one string, as
+    distributed reads it (a ``DASK_DISTRIBUTED__WORKER__PRELOAD=mymodule`` environment variable gives
+    one): one preload, one argument for every preload."""
+    import dask
+
+    preload = dask.config.get("distributed.worker.preload", None) or []
+    preload = [preload] if isinstance(preload, str) else list(preload)
+    argv = dask.config.get("distributed.worker.preload-argv", None) or []
+    argv = [argv] if isinstance(argv, str) else list(argv)
+    if argv and not isinstance(argv[0], str):
+        argv = argv + [[]]                      # one list per preload
+    return preload + [name], argv
 
 
 def dask_setup(worker) -> None:
