@@ -131,7 +131,6 @@ def _shelves(sizes: list) -> tuple:
     return place, (r + shelf, width)
 
 
-
 def _packed_h_maxima(images: list, owns: list, background: float, dyns: tuple) -> list:
     """``[[h_maxima(image, dyn) for dyn in dyns] for image in images]`` (``image`` float64, its
     pixels outside ``own`` all ``background``), from one call per ``dyn`` on the images packed
@@ -146,8 +145,8 @@ def _packed_h_maxima(images: list, owns: list, background: float, dyns: tuple) -
     a path from the image's own top already gives), and when its own call would not return
     early on ``dyn`` above its range (it has a background pixel, and ``dyn`` is within its
     range). On a 4000 x 3000 run (``uvps run --regions auto``, 16 lamps; line_profiler) the raised
-    areas' crops were ~800, each call ~0.1 ms of skimage's set-up for a few hundred pixels. Hand-written packing around skimage's h_maxima (no library
-    runs it on a set of crops at once)."""
+    areas' crops were ~800, each call ~0.1 ms of skimage's set-up for a few hundred pixels.
+    Hand-written packing around skimage's h_maxima (no library runs it on a set of crops at once)."""
     out = [None] * len(images)
     ok = [k for k, (im, own) in enumerate(zip(images, owns)) if not own.all()]
     vals = [images[k][owns[k]] for k in ok]
