@@ -89,6 +89,9 @@ class Gradients:
     n_clamped : int
         Number of pixels whose slope ``sqrt(p**2 + q**2)`` exceeded ``max_slope`` (this includes
         every normal with ``nz <= 0``) and was scaled down to ``max_slope``.
+    mask : ndarray of bool or None
+        The mask they were computed with (boolean, as checked), None without one: whoever reuses
+        them (a run's detection and its gradients.tif, :mod:`uvps.core.pipeline`) compares it.
     """
 
     p: np.ndarray
@@ -96,6 +99,7 @@ class Gradients:
     invalid: np.ndarray
     n_invalid: int
     n_clamped: int
+    mask: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -120,6 +124,9 @@ class IntegrationResult:
     n_invalid : int
         Number of pixels inside the mask with non-finite gradients (or normals), set to 0 before
         solving.
+    gradients : Gradients or None
+        :func:`integrate_normals` with ``keep_gradients``: the normals' gradients as
+        :func:`gradients_from_normals` gave them (the solver had copies); else None.
     """
 
     height_um: np.ndarray
@@ -127,6 +134,7 @@ class IntegrationResult:
     residual_rms: float
     integrability: float
     n_invalid: int
+    gradients: Optional[Gradients] = None
 
 
 # ----------------------------------------------------------------------------- validation
@@ -237,7 +245,7 @@ def gradients_from_normals(normals, *, mask=None, max_slope: float = 20.0) -> Gr
         )
     if n_clamped:
         logger.info("%d pixel(s) steeper than max_slope=%g clamped", n_clamped, max_slope)
-    return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped)
+    return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped, mask=mask)
 
 
 #: Pixels per band of the per-pixel steps (gradients, diagnostics): a band's temporaries are a few
@@ -587,7 +595,7 @@ def _dct_poisson(p, q, *, pixel_size_um, mask, copy) -> IntegrationResult:
 
 
 def integrate_normals(
-    normals, *, pixel_size_um, method: str = "fc", mask=None
+    normals, *, pixel_size_um, method: str = "fc", mask=None, keep_gradients: bool = False
 ) -> IntegrationResult:
     """Height in micrometres from a normal map.
 
@@ -602,6 +610,9 @@ def integrate_normals(
         ``"dct"``: :func:`dct_poisson`.
     mask : ndarray of bool, shape (M, N), optional
         True = use; the height is NaN outside.
+    keep_gradients : bool
+        Keep the normals' gradients, unchanged, in the result's ``gradients`` (the solver works on
+        copies): a run reuses them (its detection, gradients.tif) instead of computing them again.
 
     Returns
     -------
@@ -618,15 +629,19 @@ def integrate_normals(
         raise UVPSInputError(f"method must be one of {METHODS}; got {method!r}")
     pixel_size_um = check_pixel_size(pixel_size_um)
     grads = gradients_from_normals(normals, mask=mask)
+    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000),
+    # unless they are kept
+    p, q = (grads.p.copy(), grads.q.copy()) if keep_gradients else (grads.p, grads.q)
     if grads.n_invalid:
         # NaN marks them for the solver: set to 0 there, excluded from the median/diagnostics.
-        grads.p[grads.invalid] = np.nan
-        grads.q[grads.invalid] = np.nan
-    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000)
+        p[grads.invalid] = np.nan
+        q[grads.invalid] = np.nan
     if method == "fc":
-        return _frankot_chellappa(grads.p, grads.q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask,
-                                  copy=False)
-    return _dct_poisson(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask, copy=False)
+        res = _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask, copy=False)
+    else:
+        res = _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=False)
+    res.gradients = grads if keep_gradients else None
+    return res
 
 
 def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER_MAD, floor: float = CURL_FLOOR,
