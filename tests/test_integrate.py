@@ -544,26 +544,36 @@ def test_the_detections_height_from_kept_gradients_is_the_same_and_leaves_them_u
     np.testing.assert_array_equal(got.height_um, want.height_um)
 
 
-@pytest.mark.parametrize("method", ["fc", "dct"])
-def test_kept_gradients_are_the_normals_and_change_no_height(method):
+@pytest.mark.parametrize("method, zero", [("fc", False), ("dct", False), ("fc", True)])
+def test_kept_gradients_are_the_normals_and_change_no_height(method, zero):
     """``integrate_normals(keep_gradients=True)``: the same height and diagnostics to the bit, and the kept
-    gradients those :func:`gradients_from_normals` gives (invalid normals at 0, not the solver's NaN marks),
-    with the mask they were computed with."""
+    gradients those :func:`gradients_from_normals` gives (invalid normals at 0; a (0, 0, 0) normal's NaN,
+    which the solver sets to 0 in its own copies), with the mask they were computed with."""
     rng = np.random.default_rng(5)
     n = np.dstack([rng.normal(0, 0.2, (40, 50)), rng.normal(0, 0.2, (40, 50)), np.ones((40, 50))])
-    n[3, 4] = np.nan                                    # an invalid normal: NaN for the solver, 0 kept
+    n[3, 4] = np.nan                                    # an invalid normal: left out by the solver, 0 kept
+    if zero:
+        n[7, 8] = 0.0                                   # a NaN gradient, not counted invalid
     mask = np.ones((40, 50), bool)
     mask[30:, :10] = False
     for m in (None, mask):
         plain = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=m)
         kept = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=m, keep_gradients=True)
-        assert plain.gradients is None and kept.n_invalid == plain.n_invalid == 1
+        assert plain.gradients is None and kept.n_invalid == plain.n_invalid == 1 + zero
         np.testing.assert_array_equal(kept.height_um, plain.height_um)
         assert (kept.residual_rms, kept.integrability) == (plain.residual_rms, plain.integrability)
         g = gradients_from_normals(n, mask=m)
         np.testing.assert_array_equal(kept.gradients.p, g.p)
         np.testing.assert_array_equal(kept.gradients.q, g.q)
         assert kept.gradients.p[3, 4] == 0 and (kept.gradients.mask is None) == (m is None)
+        assert np.isnan(kept.gradients.p[7, 8]) == zero
+        pn, qn = g.p.copy(), g.q.copy()                 # the invalid pixels marked NaN for the solver
+        pn[g.invalid] = np.nan
+        qn[g.invalid] = np.nan
+        ref = SOLVERS[method](pn, qn, pixel_size_um=PX_UM, mask=m)
+        np.testing.assert_array_equal(plain.height_um, ref.height_um)
+        assert (plain.residual_rms, plain.integrability, plain.n_invalid) == (ref.residual_rms, ref.integrability,
+                                                                              ref.n_invalid)
 
 
 def test_gradients_are_the_same_whatever_the_threads(monkeypatch):

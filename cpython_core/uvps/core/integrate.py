@@ -126,7 +126,7 @@ class IntegrationResult:
         solving.
     gradients : Gradients or None
         :func:`integrate_normals` with ``keep_gradients``: the normals' gradients as
-        :func:`gradients_from_normals` gave them (the solver had copies); else None.
+        :func:`gradients_from_normals` gave them; else None.
     """
 
     height_um: np.ndarray
@@ -293,11 +293,12 @@ def _gradients_band(normals, mask, max_slope, p, q, invalid) -> int:
 # ----------------------------------------------------------------------------- solvers
 
 
-def _prepare(p, q, mask, *, copy: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Float32 p, q with non-finite values and pixels outside the mask set to 0: copies, or (``copy``
-    False, for float32 arrays this module made) the arrays themselves, modified in place.
+def _prepare(p, q, mask, *, copy: bool = True, invalid=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Float32 p, q with non-finite values, ``invalid`` pixels (bool, counted as non-finite) and pixels
+    outside the mask set to 0: copies, or (``copy`` False, for float32 arrays this module made) the
+    arrays themselves, modified in place.
 
-    Returns p, q, the valid-pixel map and the number of non-finite pixels inside the mask.
+    Returns p, q, the valid-pixel map and the number of non-finite (or ``invalid``) pixels inside the mask.
     """
     p, q = _check_gradients(p, q)
     mask = _check_mask(mask, p.shape)
@@ -305,6 +306,8 @@ def _prepare(p, q, mask, *, copy: bool = True) -> tuple[np.ndarray, np.ndarray, 
     q = q.astype(np.float32, copy=copy)
     valid = np.isfinite(p)
     valid &= np.isfinite(q)
+    if invalid is not None:
+        valid &= ~invalid
     n_invalid = int(p.size - np.count_nonzero(valid)) if mask is None else int(np.count_nonzero(mask & ~valid))
     if mask is not None:
         valid &= mask
@@ -431,11 +434,11 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     return _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad=pad, mask=mask, copy=True)
 
 
-def _frankot_chellappa(p, q, *, pixel_size_um, pad, mask, copy) -> IntegrationResult:
+def _frankot_chellappa(p, q, *, pixel_size_um, pad, mask, copy, invalid=None) -> IntegrationResult:
     pixel_size_um = check_pixel_size(pixel_size_um)
     if pad not in _PADS:
         raise UVPSInputError(f"pad must be one of {_PADS}; got {pad!r}")
-    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy)
+    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy, invalid=invalid)
     M, N = p.shape
     z = _fc_mirrored(p, q) if pad == "reflect" else _fc_periodic(p, q)
     logger.debug("frankot_chellappa on (%d, %d), pad=%s", M, N, pad)
@@ -562,9 +565,9 @@ def dct_poisson(p, q, *, pixel_size_um, mask=None) -> IntegrationResult:
     return _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=True)
 
 
-def _dct_poisson(p, q, *, pixel_size_um, mask, copy) -> IntegrationResult:
+def _dct_poisson(p, q, *, pixel_size_um, mask, copy, invalid=None) -> IntegrationResult:
     pixel_size_um = check_pixel_size(pixel_size_um)
-    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy)
+    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy, invalid=invalid)
     M, N = p.shape
 
     # Right-hand side b = D^T h of the normal equations D^T D z = D^T h, where h holds the
@@ -611,8 +614,8 @@ def integrate_normals(
     mask : ndarray of bool, shape (M, N), optional
         True = use; the height is NaN outside.
     keep_gradients : bool
-        Keep the normals' gradients, unchanged, in the result's ``gradients`` (the solver works on
-        copies): a run reuses them (its detection, gradients.tif) instead of computing them again.
+        Keep the normals' gradients, unchanged, in the result's ``gradients``: a run reuses them (its
+        detection, gradients.tif) instead of computing them again.
 
     Returns
     -------
@@ -629,17 +632,19 @@ def integrate_normals(
         raise UVPSInputError(f"method must be one of {METHODS}; got {method!r}")
     pixel_size_um = check_pixel_size(pixel_size_um)
     grads = gradients_from_normals(normals, mask=mask)
-    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000),
-    # unless they are kept
-    p, q = (grads.p.copy(), grads.q.copy()) if keep_gradients else (grads.p, grads.q)
-    if grads.n_invalid:
-        # NaN marks them for the solver: set to 0 there, excluded from the median/diagnostics.
-        p[grads.invalid] = np.nan
-        q[grads.invalid] = np.nan
+    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000). The
+    # solver writes into them only the 0 of its left-out pixels: the invalid ones (excluded from the
+    # median/diagnostics) and those outside the mask, already 0, and non-finite ones (a (0, 0, 0) normal's
+    # gradient is NaN), which kept gradients keep: they are solved on copies then.
+    p, q = grads.p, grads.q
+    if keep_gradients and not (np.isfinite(p).all() and np.isfinite(q).all()):
+        p, q = p.copy(), q.copy()
+    invalid = grads.invalid if grads.n_invalid else None
     if method == "fc":
-        res = _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask, copy=False)
+        res = _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask, copy=False,
+                                 invalid=invalid)
     else:
-        res = _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=False)
+        res = _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=False, invalid=invalid)
     res.gradients = grads if keep_gradients else None
     return res
 
