@@ -274,8 +274,8 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         # the normals' gradients kept where the run reuses them, for the detection (computed with the same
         # mask) and gradients.tif (without one): each computed again took 0.33-0.40 s wall in one thread at
         # 4000 x 3000, 0.19-0.29 s in two. Held to the writing (p, q: 96 MB), they raise a --regions run's
-        # peak, its detection's (/usr/bin/time's maxrss 1489-1494 -> 1607-1610 MB, the calibrated route on
-        # scripts/benchmark_speed.py's capture), and a run without it by 11-14 MB (940 -> 951-954 MB).
+        # peak, its detection's (/usr/bin/time's maxrss 1461-1516 -> 1528-1610 MB over 5 runs each, the
+        # calibrated route on scripts/benchmark_speed.py's capture), a run without it 940 -> 951-954 MB.
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
                                        method=options.integration, mask=res.capture.mask,
                                        keep_gradients="protrusions" in stages or res.capture.mask is None)
