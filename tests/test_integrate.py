@@ -506,3 +506,90 @@ def test_find_protrusions_hands_the_left_out_patches_to_the_detector(monkeypatch
     np.testing.assert_allclose(got_h, want.height_um)
     assert got_out[crack].mean() > 0.75
     assert plain_h is run_height and plain_out is None
+
+
+def test_the_detections_height_from_kept_gradients_is_the_same_and_leaves_them_unchanged(monkeypatch):
+    """:func:`uvps.core.pipeline.detection_height` given the normals' gradients (a run's height stage keeps
+    them): with their mask the one it computes with (none, or the finite heights'), the same height and
+    left-out pixels to the bit, the gradients not computed again and left unchanged (the left-out pixels are
+    zeroed in copies); with another mask, computed again."""
+    from uvps.core import pipeline
+    from uvps.core.detect import DetectionParams
+
+    px = 15.0
+    p, q, _, _, crack = _domes_and_a_crack(1, px=px)
+    n = np.stack([-p, -q, np.ones_like(p)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    inside = np.ones(p.shape, bool)
+    inside[:12, :40] = False
+    calls = []
+    real = pipeline.gradients_from_normals
+    monkeypatch.setattr(pipeline, "gradients_from_normals", lambda *a, **kw: (calls.append(1), real(*a, **kw))[1])
+    for mask in (None, inside):
+        run_height = frankot_chellappa(p, q, pixel_size_um=px, mask=mask).height_um
+        want = pipeline.detection_height(run_height, n, pixel_size_um=px, params=DetectionParams())
+        assert want.left_out[crack].mean() > 0.75
+        kept = integrate_normals(n, pixel_size_um=px, mask=mask, keep_gradients=True).gradients
+        before = kept.p.copy(), kept.q.copy()
+        calls.clear()
+        got = pipeline.detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(), gradients=kept)
+        assert calls == []
+        np.testing.assert_array_equal(got.height_um, want.height_um)
+        np.testing.assert_array_equal(got.left_out, want.left_out)
+        np.testing.assert_array_equal(kept.p, before[0])
+        np.testing.assert_array_equal(kept.q, before[1])
+    other = integrate_normals(n, pixel_size_um=px, keep_gradients=True).gradients     # no mask; the height has one
+    got = pipeline.detection_height(run_height, n, pixel_size_um=px, params=DetectionParams(), gradients=other)
+    assert calls == [1]
+    np.testing.assert_array_equal(got.height_um, want.height_um)
+
+
+@pytest.mark.parametrize("method, zero", [("fc", False), ("dct", False), ("fc", True)])
+def test_kept_gradients_are_the_normals_and_change_no_height(method, zero):
+    """``integrate_normals(keep_gradients=True)``: the same height and diagnostics to the bit, and the kept
+    gradients those :func:`gradients_from_normals` gives (invalid normals at 0; a (0, 0, 0) normal's NaN,
+    which the solver sets to 0 in its own copies), with the mask they were computed with."""
+    rng = np.random.default_rng(5)
+    n = np.dstack([rng.normal(0, 0.2, (40, 50)), rng.normal(0, 0.2, (40, 50)), np.ones((40, 50))])
+    n[3, 4] = np.nan                                    # an invalid normal: left out by the solver, 0 kept
+    if zero:
+        n[7, 8] = 0.0                                   # a NaN gradient, not counted invalid
+    mask = np.ones((40, 50), bool)
+    mask[30:, :10] = False
+    for m in (None, mask):
+        plain = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=m)
+        kept = integrate_normals(n, pixel_size_um=PX_UM, method=method, mask=m, keep_gradients=True)
+        assert plain.gradients is None and kept.n_invalid == plain.n_invalid == 1 + zero
+        np.testing.assert_array_equal(kept.height_um, plain.height_um)
+        assert (kept.residual_rms, kept.integrability) == (plain.residual_rms, plain.integrability)
+        g = gradients_from_normals(n, mask=m)
+        np.testing.assert_array_equal(kept.gradients.p, g.p)
+        np.testing.assert_array_equal(kept.gradients.q, g.q)
+        assert kept.gradients.p[3, 4] == 0 and (kept.gradients.mask is None) == (m is None)
+        assert np.isnan(kept.gradients.p[7, 8]) == zero
+        pn, qn = g.p.copy(), g.q.copy()                 # the invalid pixels marked NaN for the solver
+        pn[g.invalid] = np.nan
+        qn[g.invalid] = np.nan
+        ref = SOLVERS[method](pn, qn, pixel_size_um=PX_UM, mask=m)
+        np.testing.assert_array_equal(plain.height_um, ref.height_um)
+        assert (plain.residual_rms, plain.integrability, plain.n_invalid) == (ref.residual_rms, ref.integrability,
+                                                                              ref.n_invalid)
+
+
+def test_gradients_are_the_same_whatever_the_threads(monkeypatch):
+    """:func:`gradients_from_normals`' bands over two threads (``UVPS_THREADS`` 2) give the one thread's
+    gradients, invalid map and counts to the bit (bands of 4 rows here: 10 of them)."""
+    import uvps.core.integrate as integrate
+
+    rng = np.random.default_rng(6)
+    n = np.dstack([rng.normal(0, 1.0, (40, 50)), rng.normal(0, 1.0, (40, 50)), rng.uniform(-0.1, 1, (40, 50))])
+    n[5, 5] = np.nan
+    monkeypatch.setattr(integrate, "BAND_PIXELS", 200)
+    got = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("UVPS_THREADS", threads)
+        got[threads] = gradients_from_normals(n, mask=(np.arange(40 * 50) % 7 > 0).reshape(40, 50))
+    a, b = got["1"], got["2"]
+    assert a.n_clamped == b.n_clamped > 100 and a.n_invalid == b.n_invalid == 1
+    for name in ("p", "q", "invalid"):
+        assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name

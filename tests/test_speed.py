@@ -642,3 +642,62 @@ def test_normals_in_lanes_same_as_one_pixel_at_a_time(near, colour, every):
     for x, y in zip(a, b):
         assert np.array_equal(x, y, equal_nan=True)
     assert np.isnan(a[0]).any() and (a[2] < K).any() and np.isfinite(a[0]).mean() > 0.5
+
+
+def _counting_gradients(monkeypatch) -> list:
+    """Count :func:`uvps.core.integrate.gradients_from_normals`'s calls wherever a run makes them (the height
+    stage, the detection's height, gradients.tif's writer): a list of each call's mask (None or an array)."""
+    import uvps.core.integrate as integrate
+    import uvps.core.pipeline as pipeline
+    import uvps.files.runfolder as runfolder
+
+    masks = []
+    real = integrate.gradients_from_normals
+
+    def counted(normals, **kw):
+        masks.append(kw.get("mask"))
+        return real(normals, **kw)
+
+    for module in (integrate, pipeline, runfolder):
+        monkeypatch.setattr(module, "gradients_from_normals", counted)
+    return masks
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_a_run_computes_the_gradients_once(folder, tmp_path, monkeypatch, masked):
+    """``uvps run --detect``: the normals' gradients computed once, by the height stage, and reused by the
+    detection's height (the same mask: none, or the run's where every height inside it is finite) and by
+    gradients.tif (none); with a mask, gradients.tif's are computed again without it. The written gradients
+    are those computed from the written normals, and the depth and labels those of a run whose every step
+    computes its own (the reuse changes no bit)."""
+    import tifffile
+
+    import uvps.core.pipeline as pipeline
+    import uvps.files.runfolder as runfolder
+    from uvps.cli import main
+    from uvps.core.integrate import gradients_from_normals
+
+    args = ["run", str(folder), "--detect"]
+    if masked:
+        mask = np.ones((90, 120), np.uint8)
+        mask[:20, :30] = 0
+        tifffile.imwrite(tmp_path / "mask.tif", mask)
+        args += ["--mask", str(tmp_path / "mask.tif")]
+    masks = _counting_gradients(monkeypatch)
+    assert main(args + ["-o", str(tmp_path / "once")]) == 0
+    if masked:      # the height stage's with the mask (the detection's too), gradients.tif's without
+        assert len(masks) == 2 and masks[0] is not None and masks[1] is None
+    else:
+        assert masks == [None]
+    out = {n: tifffile.imread(tmp_path / "once" / f"{n}.tif") for n in ("normals", "gradients", "depth",
+                                                                         "protrusions_labels")}
+    g = gradients_from_normals(np.ascontiguousarray(np.moveaxis(out["normals"], 0, -1)))
+    np.testing.assert_array_equal(out["gradients"], np.stack([g.p, g.q]))
+    # every step its own gradients: the detection's height and gradients.tif's computed again
+    monkeypatch.setattr(pipeline, "_same_mask", lambda a, b: False)
+    monkeypatch.setattr(runfolder, "_unmasked_gradients", lambda result: None)
+    masks.clear()
+    assert main(args + ["-o", str(tmp_path / "each")]) == 0
+    assert len(masks) == 3
+    for name, value in out.items():
+        np.testing.assert_array_equal(tifffile.imread(tmp_path / "each" / f"{name}.tif"), value, err_msg=name)

@@ -40,6 +40,7 @@ import scipy.fft
 
 from ..errors import UVPSInputError, check_pixel_size
 from .stack import row_bands
+from .threads import default_threads, map_bands
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +89,9 @@ class Gradients:
     n_clamped : int
         Number of pixels whose slope ``sqrt(p**2 + q**2)`` exceeded ``max_slope`` (this includes
         every normal with ``nz <= 0``) and was scaled down to ``max_slope``.
+    mask : ndarray of bool or None
+        The mask they were computed with (boolean, as checked), None without one: whoever reuses
+        them (a run's detection and its gradients.tif, :mod:`uvps.core.pipeline`) compares it.
     """
 
     p: np.ndarray
@@ -95,6 +99,7 @@ class Gradients:
     invalid: np.ndarray
     n_invalid: int
     n_clamped: int
+    mask: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -119,6 +124,9 @@ class IntegrationResult:
     n_invalid : int
         Number of pixels inside the mask with non-finite gradients (or normals), set to 0 before
         solving.
+    gradients : Gradients or None
+        :func:`integrate_normals` with ``keep_gradients``: the normals' gradients as
+        :func:`gradients_from_normals` gave them; else None.
     """
 
     height_um: np.ndarray
@@ -126,6 +134,7 @@ class IntegrationResult:
     residual_rms: float
     integrability: float
     n_invalid: int
+    gradients: Optional[Gradients] = None
 
 
 # ----------------------------------------------------------------------------- validation
@@ -219,11 +228,16 @@ def gradients_from_normals(normals, *, mask=None, max_slope: float = 20.0) -> Gr
     p = np.empty((M, N), np.float32)
     q = np.empty((M, N), np.float32)
     invalid = np.empty((M, N), bool)
-    n_clamped = 0
-    # band by band: a dozen (M, N) float32 temporaries otherwise (3.8 GB for 10000 x 8000)
-    for rows in _bands(M, N):
-        n_clamped += _gradients_band(normals[rows], None if mask is None else mask[rows], np.float32(max_slope),
-                                     p[rows], q[rows], invalid[rows])
+    # band by band: a dozen (M, N) float32 temporaries otherwise (3.8 GB for 10000 x 8000); the bands
+    # over GRADIENT_THREADS threads (numpy's elementwise steps release the GIL), each writing its own rows
+    # and the clamped counts, integers, summed: the same to the bit whatever the threads. On the normals
+    # of a 4000 x 3000 run (scripts/benchmark_speed.py's capture), 0.33-0.40 s wall in one thread, 0.19-0.29 s
+    # in two (this function timed with UVPS_THREADS=1 and 2 alternated 8 times, load 1.6-1.8)
+    slope = np.float32(max_slope)
+    n_clamped = sum(map_bands(
+        lambda rows: _gradients_band(normals[rows], None if mask is None else mask[rows], slope,
+                                     p[rows], q[rows], invalid[rows]),
+        M, size=max(1, BAND_PIXELS // N), threads=default_threads(GRADIENT_THREADS)))
     n_invalid = int(invalid.sum())
     if n_invalid:
         logger.warning(
@@ -231,12 +245,16 @@ def gradients_from_normals(normals, *, mask=None, max_slope: float = 20.0) -> Gr
         )
     if n_clamped:
         logger.info("%d pixel(s) steeper than max_slope=%g clamped", n_clamped, max_slope)
-    return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped)
+    return Gradients(p=p, q=q, invalid=invalid, n_invalid=n_invalid, n_clamped=n_clamped, mask=mask)
 
 
 #: Pixels per band of the per-pixel steps (gradients, diagnostics): a band's temporaries are a few
 #: times 4 MB.
 BAND_PIXELS = 1 << 20
+
+
+#: Threads of :func:`gradients_from_normals`' bands (at most; :func:`uvps.core.threads.default_threads`).
+GRADIENT_THREADS = 2
 
 
 def _bands(M: int, N: int):
@@ -275,11 +293,12 @@ def _gradients_band(normals, mask, max_slope, p, q, invalid) -> int:
 # ----------------------------------------------------------------------------- solvers
 
 
-def _prepare(p, q, mask, *, copy: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Float32 p, q with non-finite values and pixels outside the mask set to 0: copies, or (``copy``
-    False, for float32 arrays this module made) the arrays themselves, modified in place.
+def _prepare(p, q, mask, *, copy: bool = True, invalid=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Float32 p, q with non-finite values, ``invalid`` pixels (bool, counted as non-finite) and pixels
+    outside the mask set to 0: copies, or (``copy`` False, for float32 arrays this module made) the
+    arrays themselves, modified in place.
 
-    Returns p, q, the valid-pixel map and the number of non-finite pixels inside the mask.
+    Returns p, q, the valid-pixel map and the number of non-finite (or ``invalid``) pixels inside the mask.
     """
     p, q = _check_gradients(p, q)
     mask = _check_mask(mask, p.shape)
@@ -287,6 +306,8 @@ def _prepare(p, q, mask, *, copy: bool = True) -> tuple[np.ndarray, np.ndarray, 
     q = q.astype(np.float32, copy=copy)
     valid = np.isfinite(p)
     valid &= np.isfinite(q)
+    if invalid is not None:
+        valid &= ~invalid
     n_invalid = int(p.size - np.count_nonzero(valid)) if mask is None else int(np.count_nonzero(mask & ~valid))
     if mask is not None:
         valid &= mask
@@ -413,11 +434,11 @@ def frankot_chellappa(p, q, *, pixel_size_um, pad: str = "reflect", mask=None) -
     return _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad=pad, mask=mask, copy=True)
 
 
-def _frankot_chellappa(p, q, *, pixel_size_um, pad, mask, copy) -> IntegrationResult:
+def _frankot_chellappa(p, q, *, pixel_size_um, pad, mask, copy, invalid=None) -> IntegrationResult:
     pixel_size_um = check_pixel_size(pixel_size_um)
     if pad not in _PADS:
         raise UVPSInputError(f"pad must be one of {_PADS}; got {pad!r}")
-    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy)
+    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy, invalid=invalid)
     M, N = p.shape
     z = _fc_mirrored(p, q) if pad == "reflect" else _fc_periodic(p, q)
     logger.debug("frankot_chellappa on (%d, %d), pad=%s", M, N, pad)
@@ -544,9 +565,9 @@ def dct_poisson(p, q, *, pixel_size_um, mask=None) -> IntegrationResult:
     return _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=True)
 
 
-def _dct_poisson(p, q, *, pixel_size_um, mask, copy) -> IntegrationResult:
+def _dct_poisson(p, q, *, pixel_size_um, mask, copy, invalid=None) -> IntegrationResult:
     pixel_size_um = check_pixel_size(pixel_size_um)
-    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy)
+    p, q, valid, n_invalid = _prepare(p, q, mask, copy=copy, invalid=invalid)
     M, N = p.shape
 
     # Right-hand side b = D^T h of the normal equations D^T D z = D^T h, where h holds the
@@ -577,7 +598,7 @@ def _dct_poisson(p, q, *, pixel_size_um, mask, copy) -> IntegrationResult:
 
 
 def integrate_normals(
-    normals, *, pixel_size_um, method: str = "fc", mask=None
+    normals, *, pixel_size_um, method: str = "fc", mask=None, keep_gradients: bool = False
 ) -> IntegrationResult:
     """Height in micrometres from a normal map.
 
@@ -592,6 +613,9 @@ def integrate_normals(
         ``"dct"``: :func:`dct_poisson`.
     mask : ndarray of bool, shape (M, N), optional
         True = use; the height is NaN outside.
+    keep_gradients : bool
+        Keep the normals' gradients, unchanged, in the result's ``gradients``: a run reuses them (its
+        detection, gradients.tif) instead of computing them again.
 
     Returns
     -------
@@ -608,15 +632,21 @@ def integrate_normals(
         raise UVPSInputError(f"method must be one of {METHODS}; got {method!r}")
     pixel_size_um = check_pixel_size(pixel_size_um)
     grads = gradients_from_normals(normals, mask=mask)
-    if grads.n_invalid:
-        # NaN marks them for the solver: set to 0 there, excluded from the median/diagnostics.
-        grads.p[grads.invalid] = np.nan
-        grads.q[grads.invalid] = np.nan
-    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000)
+    # the gradients are this function's own: solved in place, not copied (0.64 GB at 10000 x 8000). The
+    # solver writes into them only the 0 of its left-out pixels: the invalid ones (excluded from the
+    # median/diagnostics) and those outside the mask, already 0, and non-finite ones (a (0, 0, 0) normal's
+    # gradient is NaN), which kept gradients keep: they are solved on copies then.
+    p, q = grads.p, grads.q
+    if keep_gradients and not (np.isfinite(p).all() and np.isfinite(q).all()):
+        p, q = p.copy(), q.copy()
+    invalid = grads.invalid if grads.n_invalid else None
     if method == "fc":
-        return _frankot_chellappa(grads.p, grads.q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask,
-                                  copy=False)
-    return _dct_poisson(grads.p, grads.q, pixel_size_um=pixel_size_um, mask=mask, copy=False)
+        res = _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask, copy=False,
+                                 invalid=invalid)
+    else:
+        res = _dct_poisson(p, q, pixel_size_um=pixel_size_um, mask=mask, copy=False, invalid=invalid)
+    res.gradients = grads if keep_gradients else None
+    return res
 
 
 def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER_MAD, floor: float = CURL_FLOOR,

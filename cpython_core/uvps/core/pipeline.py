@@ -28,7 +28,7 @@ import numpy as np
 from .card import CardCalibration, apply_card
 from ..errors import UVPSInputError
 from .flatfield import GainCorrected, block_grid, divided_grid, fit_dropoffs, fit_log_grid, with_common
-from .integrate import (IntegrationResult, frankot_chellappa, gradients_from_normals, integrate_normals,
+from .integrate import (Gradients, IntegrationResult, _frankot_chellappa, gradients_from_normals, integrate_normals,
                         nonintegrable_patches)
 from .stack import Capture, release_caches
 from .lights import (LightEstimate, LightModel, beyond_model, dropoff_common, estimate_lights, intensities_from_levels,
@@ -271,8 +271,14 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     if "height" in stages:
         t0 = time.perf_counter()
         report(progress, span["height"][0], "integrating the height")
+        # the normals' gradients kept where the run reuses them, for the detection (computed with the same
+        # mask) and gradients.tif (without one): each computed again took 0.33-0.40 s wall in one thread at
+        # 4000 x 3000, 0.19-0.29 s in two. Held to the writing (p, q: 96 MB), they raise a --regions run's
+        # peak, its detection's (/usr/bin/time's maxrss 1461-1516 -> 1528-1610 MB over 5 runs each, the
+        # calibrated route on scripts/benchmark_speed.py's capture), a run without it 940 -> 951-954 MB.
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
-                                       method=options.integration, mask=res.capture.mask)
+                                       method=options.integration, mask=res.capture.mask,
+                                       keep_gradients="protrusions" in stages or res.capture.mask is None)
         res.timings_s["integrate"] = _since(t0)
     # no stage below reads the stack: what its views keep to be read faster is not held by the detection
     release_caches(res.capture.images)
@@ -280,9 +286,11 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         t0 = time.perf_counter()
         res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,
                                            pixel_size_um=res.capture.pixel_size_um, regions=regions,
-                                           n_areas=n_areas, params=detection,
+                                           n_areas=n_areas, params=detection, gradients=res.height.gradients,
                                            progress=sub_progress(progress, *span["protrusions"]))
         res.timings_s["protrusions"] = _since(t0)
+        if res.height.gradients is not None and res.height.gradients.mask is not None:
+            res.height.gradients = None         # gradients.tif's are computed without a mask: not these
         res.diagnostics["detect"] = protrusion_diagnostics(res.protrusions, res.capture.pixel_size_um)
     if res.height is not None:
         # after the detection, which reads the heights as integrated (each protrusion over its own local
@@ -672,7 +680,8 @@ class DetectionHeight(NamedTuple):
     left_out: Optional[np.ndarray]      # bool, the pixels whose gradients it was integrated without
 
 
-def detection_height(height_um, normals, *, pixel_size_um: float, params: DetectionParams) -> DetectionHeight:
+def detection_height(height_um, normals, *, pixel_size_um: float, params: DetectionParams,
+                     gradients: Optional[Gradients] = None) -> DetectionHeight:
     """The height a run's detection reads: the normals integrated again (Frankot-Chellappa) without the
     gradients of long non-integrable patches (:func:`uvps.core.integrate.nonintegrable_patches`, the
     walls of cracks) where ``params.curl_k`` is set and there are any, else ``height_um`` itself (also
@@ -685,6 +694,11 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
     (stroke bumps 7.8 um high at the median against 1.4 um in the true height), which set the
     ``stroke`` rule's bar above 9 of the 13 protrusions it missed on seed 1.
 
+    ``gradients``: :func:`uvps.core.integrate.gradients_from_normals` of ``normals`` (default ``max_slope``)
+    already computed (the run's height stage keeps them, :func:`run`), used, and left unchanged, when
+    their mask (``Gradients.mask``) is the one this function computes with (None where every height is
+    finite, else the finite heights'), else computed again.
+
     Returns
     -------
     DetectionHeight
@@ -695,33 +709,48 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
         return DetectionHeight(height_um, None)
     valid = np.isfinite(height_um)
     mask = None if valid.all() else valid
-    g = gradients_from_normals(normals, mask=mask)
+    reused = gradients is not None and _same_mask(gradients.mask, mask)
+    g = gradients if reused else gradients_from_normals(normals, mask=mask)
     left_out = nonintegrable_patches(g.p, g.q, min_extent_px=params.max_width_um / pixel_size_um, k=params.curl_k,
                                      mask=mask)
     log.info("detection: %.1f %% of the gradients (long non-integrable patches) left out of its height",
              100.0 * left_out.mean())
     if not left_out.any():      # nothing to leave out: the run's own height (its integration, its scale)
         return DetectionHeight(height_um, None)
-    g.p[left_out] = 0.0
-    g.q[left_out] = 0.0
-    return DetectionHeight(frankot_chellappa(g.p, g.q, pixel_size_um=pixel_size_um, mask=mask).height_um, left_out)
+    # zeroed where left out, in copies when the gradients are the caller's; solved in place (frankot_chellappa
+    # would copy them again: 96 MB more at 4000 x 3000)
+    p, q = (g.p.copy(), g.q.copy()) if reused else (g.p, g.q)
+    p[left_out] = 0.0
+    q[left_out] = 0.0
+    height = _frankot_chellappa(p, q, pixel_size_um=pixel_size_um, pad="reflect", mask=mask, copy=False).height_um
+    return DetectionHeight(height, left_out)
+
+
+def _same_mask(a, b) -> bool:
+    """Both None, or both arrays equal element by element (the same pixels masked)."""
+    if a is None or b is None:
+        return a is None and b is None
+    return a.shape == b.shape and bool(np.array_equal(a, b))
 
 
 def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, regions=None, n_areas=None,
-                     seed: int = 0, params: DetectionParams = None, progress: Progress = None) -> Protrusions:
+                     seed: int = 0, params: DetectionParams = None, gradients: Optional[Gradients] = None,
+                     progress: Progress = None) -> Protrusions:
     """Colour areas and the automated protrusions of a run (paper section 3: albedo colour + height).
 
     ``regions``: None (the whole image), "auto" (proposed from the albedo colour,
     :func:`uvps.core.regions.propose_regions`), or a :class:`~uvps.core.regions.RegionMap` (from files:
     :func:`uvps.files.tables.load_regions`). With areas,
     detection is restricted to them (the paper masks each area) and each protrusion gets its area.
+    ``gradients``: the normals' own, for :func:`detection_height` (reused where their mask is its).
     """
     proposed = isinstance(regions, str) and regions == "auto"
     if not proposed and regions is not None and not isinstance(regions, RegionMap):
         raise UVPSInputError(f"regions must be None, 'auto' or a RegionMap (files: uvps.files.tables.load_regions); "
                              f"got {type(regions).__name__}")
     params = params or _detector("DetectionParams")()
-    height = functools.partial(detection_height, height_um, normals, pixel_size_um=pixel_size_um, params=params)
+    height = functools.partial(detection_height, height_um, normals, pixel_size_um=pixel_size_um, params=params,
+                               gradients=gradients)
     if proposed:    # the areas from the albedo, the detection's height from the normals: side by side
         dh, regions = concurrently(height, functools.partial(propose_regions, albedo, pixel_size_um=pixel_size_um,
                                                              n_areas=n_areas, seed=seed))
