@@ -375,7 +375,7 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
 def _started_as_the_batchs_worker() -> tuple:
     """In a worker: (the pipeline and the maps' zarr imported, uvps.workers.exit_at_teardown's hook set)."""
     import gc
-    return ("uvps.workflow" in sys.modules and "zarr" in sys.modules,
+    return ("uvps.core.pipeline" in sys.modules and "zarr" in sys.modules,
             any(getattr(cb, "__qualname__", "").startswith("exit_at_teardown.") for cb in gc.callbacks))
 
 
