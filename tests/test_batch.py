@@ -146,11 +146,11 @@ def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path)
 
     # a small capture is written in a few milliseconds: each worker holds its new folder open for a
     # second after writing it (before the swap), so that the kill falls inside the write, not beside it.
-    # The hold wraps the name the workflow calls (it imported write_run from uvps.files.runfolder): a
-    # hold on runfolder's own name is never called, and a kill that fell after the swap found the
-    # capture whole on the rerun ("skipped", not "done")
+    # The hold wraps the name the workflow calls (uvps.files.runfolder.write_run, which the workflow
+    # imports where it writes); a kill that fell after the swap found the capture whole on the rerun
+    # ("skipped", not "done")
     def hold_new_folders(seconds):
-        import uvps.workflow as wf
+        import uvps.files.runfolder as wf
 
         original = getattr(wf, "_write_run_unheld", wf.write_run)
 
