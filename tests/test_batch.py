@@ -146,11 +146,11 @@ def test_a_killed_worker_leaves_nothing_half_written(captures, client, tmp_path)
 
     # a small capture is written in a few milliseconds: each worker holds its new folder open for a
     # second after writing it (before the swap), so that the kill falls inside the write, not beside it.
-    # The hold wraps the name the workflow calls (it imported write_run from uvps.files.runfolder): a
-    # hold on runfolder's own name is never called, and a kill that fell after the swap found the
-    # capture whole on the rerun ("skipped", not "done")
+    # The hold wraps the name the workflow calls (uvps.files.runfolder.write_run, which the workflow
+    # imports where it writes); a kill that fell after the swap found the capture whole on the rerun
+    # ("skipped", not "done")
     def hold_new_folders(seconds):
-        import uvps.workflow as wf
+        import uvps.files.runfolder as wf
 
         original = getattr(wf, "_write_run_unheld", wf.write_run)
 
@@ -375,7 +375,7 @@ def test_the_batch_workers_keep_each_capture_to_one_thread():
 def _started_as_the_batchs_worker() -> tuple:
     """In a worker: (the pipeline and the maps' zarr imported, uvps.workers.exit_at_teardown's hook set)."""
     import gc
-    return ("uvps.workflow" in sys.modules and "zarr" in sys.modules,
+    return ("uvps.core.pipeline" in sys.modules and "zarr" in sys.modules,
             any(getattr(cb, "__qualname__", "").startswith("exit_at_teardown.") for cb in gc.callbacks))
 
 

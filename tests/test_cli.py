@@ -457,3 +457,40 @@ def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_an_internal_erro
     monkeypatch.setitem(cli.COMMANDS, "info", dataclasses.replace(spec, run=failing))
     assert cli.main(["info", str(tmp_path)]) == 2
     assert "internal error: SystemError: a real internal error" in capsys.readouterr().err
+
+
+#: The numeric core's libraries: none is imported to parse a capture command's or batch's command line.
+_NUMERIC = ("numba", "scipy", "skimage", "dask", "matplotlib")
+
+
+def test_parsing_the_capture_commands_and_batch_imports_no_numeric_core():
+    """`uvps run`, the steps and `uvps batch` declare their parameters without the numeric core: the
+    command line is parsed (and `run` starts hashing its capture, `batch` its cluster) before numba,
+    scipy and scikit-image are imported (0.7 s on one core)."""
+    code = ("import sys; from uvps.cli import build_parser; from uvps.commands import COMMANDS; "
+            "specs = {n: COMMANDS[n] for n in ('run', 'flatfield', 'lights', 'normals', 'batch')}; "
+            "build_parser(specs).parse_args(['run', 'cap', '-o', 'out', '--regions', 'auto']); "
+            f"print(sorted(m for m in {_NUMERIC!r} if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout
+
+
+def test_a_run_hashes_its_capture_while_it_imports_the_numeric_core(tmp_path):
+    """`uvps run` starts hashing its input files (run.json's SHA-256, ~0.85 CPU s for a 1.15 GB stack) before
+    it imports the pipeline, so that the hashing takes the other core while this one imports; the hashes
+    written are the files'."""
+    cap = make_capture(shape=(60, 80), n_lights=6, seed=3)
+    write_capture(cap, tmp_path / "cap")
+    code = ("import sys, uvps.workflow as w, uvps.files.io as io; seen = []; h = io.hash_inputs_meanwhile; "
+            "w.hash_inputs_meanwhile = lambda c: seen.append('uvps.core.pipeline' in sys.modules) or h(c); "
+            "from uvps.cli import main; "
+            f"s = main(['run', {str(tmp_path / 'cap')!r}, '-o', {str(tmp_path / 'run')!r}]); print(s, seen)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-2:] == ["0", "[False]"], r.stdout
+    inputs = json.loads((tmp_path / "run" / "run.json").read_text())["inputs"]
+    files = sorted((tmp_path / "cap").glob("uv_*.tif"))
+    assert sorted(Path(i["path"]).name for i in inputs) == [f.name for f in files]
+    for i in inputs:
+        assert i["sha256"] == hashlib.sha256(Path(i["path"]).read_bytes()).hexdigest()

@@ -45,16 +45,13 @@ from .errors import UVPSInputError
 from .files.omezarr import (CHUNK_PX, LABELS, StoreBatch, ZarrImage, open_tiff, write_dask_ome_labels,
                             write_dask_ome_zarr)
 from .files.outputs import new_output_dir, report, write_json_atomic
+from .files.paintingfolder import (PAINTING_DIR, PAINTING_LABELS, PAINTING_LAYOUT,  # noqa: F401 - re-exported
+                                  PAINTING_PROTRUSIONS, PAINTING_REGIONS)
 from .files.tables import _names_beside, atomic_write_text, read_protrusions_csv, write_label_tiff
 from .painting_maps import MapContext, PlacedTile, painting_array
 
 log = logging.getLogger(__name__)
 
-PAINTING_DIR = "painting"
-PAINTING_PROTRUSIONS, PAINTING_REGIONS, PAINTING_LAYOUT = "painting_protrusions.csv", "painting_regions.csv", \
-    "layout.csv"
-#: The painting's label images (protrusions: the painting's ids; regions: the colour areas), an OME-Zarr of their own.
-PAINTING_LABELS = "labels.ome.zarr"
 #: Largest overview the colour areas are proposed on (pixels); a larger painting is block-averaged.
 OVERVIEW_MAX_PX = 4_000_000
 

@@ -13,24 +13,25 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
-from .core.measure import empty_table
+# Only what declaring the commands' parameters and reading a capture need is imported here: the
+# numeric core (numba, scipy, scikit-image: 0.7 s on one core) is imported by the functions that
+# run it, so that a command line is parsed, and a capture's hashing started, before it
+# (:func:`run_into_folder`; ``python -X importtime -m uvps run --help``).
 from .core.level import LEVELS
-from .core.pipeline import LAMP_BEAMS, SAMPLE_MODES, RunOptions, given_lights, run
-from .core.regions import propose_regions, region_statistics, whole_image
+from .core.options import LAMP_BEAMS, SAMPLE_MODES, RunOptions
 from .errors import UVPSInputError
 from .files.calibration import apply as apply_calibration, run_params
-from .files.cards import load_card
-from .files.io import read_capture
+from .files.io import hash_inputs_meanwhile, read_capture
 from .files.outputs import (CommandResult, OutputSpec, Progress, atomic_output_dir, check_output_dir, new_output_dir,
                             report, sub_progress)
-from .files.runfolder import (FILES, STEP_REWRITES, RunImages, drop_manual_work, hash_inputs_meanwhile, manual_work,
-                              read_run, set_aside_for_step, set_aside_manual_work, write_run)
-from .files.tables import check_region_files, load_regions, read_protrusions_csv, write_regions_csv
 from .spec import Param
+
+if TYPE_CHECKING:
+    from .files.runfolder import RunImages
 
 log = logging.getLogger(__name__)
 
@@ -199,11 +200,16 @@ def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *
     if cal is None and step.reuse_lights:
         params = _folder_lights(run_dir, params)
     if step.whole_run and params.get("regions") not in (None, "auto"):
+        from .files.tables import check_region_files
         check_region_files(params["regions"])      # a typo of auto, before the images are read
     capture = read_request_capture(inputs, params, sub_progress(progress, 0.0, 0.1))
     if cal is not None:
         capture = apply_calibration(cal, capture)
-    hashes = hash_inputs_meanwhile(capture)       # run.json's input hashes, made while the run computes
+    # run.json's input hashes, made on the other core while this one imports the numeric core and runs
+    hashes = hash_inputs_meanwhile(capture)
+    from .core.pipeline import given_lights, run
+    from .files.cards import load_card
+    from .files.tables import load_regions
     protrusions = step.whole_run and bool(params.get("regions") or params.get("detect"))
     regions = params.get("regions") if protrusions else None
     if regions is not None and regions != "auto":
@@ -262,6 +268,8 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
     """Write the run's files into ``run_dir``: a step's moved in one by one; the whole run's (report
     included) built in a new folder that replaces the old one in one step, so that a run folder is
     never a mixture of two runs."""
+    from .files.runfolder import manual_work, set_aside_for_step, set_aside_manual_work, write_run
+
     if not step.whole_run:
         # a step that rewrites the albedo or the height in place sets the manual work measured on them
         # aside as a whole run does; flatfield and lights alone leave albedo and height as they are
@@ -297,6 +305,8 @@ def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protru
 def kept_aside(run_dir: Path, kept: Path, out: CommandResult, *, step: str) -> None:
     """After a step's :func:`uvps.files.runfolder.set_aside_for_step`: the manual files leave ``run_dir``
     (kept in ``kept``, under ``earlier/``), and the result says where, in one warning."""
+    from .files.runfolder import STEP_REWRITES, drop_manual_work, manual_work
+
     drop_manual_work(run_dir)
     what = STEP_REWRITES[step]
     out.diagnostics["earlier_manual_work"] = str(kept)
@@ -305,25 +315,30 @@ def kept_aside(run_dir: Path, kept: Path, out: CommandResult, *, step: str) -> N
                         f"{what} has no manual count of its own until one is made on it")
 
 
-#: What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the report's
-#: figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all: those
-#: of an earlier run (its flat-field, OME-Zarr stores) were made under its lamps and heights; the
-#: manual work among them (the wand's count, a comparison) moves to ``earlier/<date>_<run id>/`` with
-#: the files it was measured on (:func:`uvps.files.runfolder.set_aside_manual_work`). Anything else in
-#: the folder (the user's clicks or notes, ``earlier/``, the demo's ``capture/``) is carried into the
-#: new folder unchanged.
-RUN_OWNED = frozenset(f for f, *_ in FILES.values()) | {"figures", "relight.tif"}
+def run_owned() -> frozenset:
+    """What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the
+    report's figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all:
+    those of an earlier run (its flat-field, OME-Zarr stores) were made under its lamps and heights; the
+    manual work among them (the wand's count, a comparison) moves to ``earlier/<date>_<run id>/`` with the
+    files it was measured on (:func:`uvps.files.runfolder.set_aside_manual_work`). Anything else in the
+    folder (the user's clicks or notes, ``earlier/``, the demo's ``capture/``) is carried into the new
+    folder unchanged."""
+    from .files.runfolder import FILES
+
+    return frozenset(f for f, *_ in FILES.values()) | {"figures", "relight.tif"}
 
 
 def carried_over(name: str) -> bool:
-    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :data:`RUN_OWNED`;
+    """Whether a new ``run`` keeps the entry ``name`` of the folder it replaces (see :func:`run_owned`;
     leftovers of an interrupted write, hidden ``.*.tmp`` names, are not kept)."""
-    return name not in RUN_OWNED and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
+    return name not in run_owned() and not (name.startswith(".") and (".tmp" in name or ".uvps-new-" in name))
 
 
 def _statistics_and_report(run_dir, result, params, out, progress):
     """``run`` with colour areas or detection: statistics and the report, from the arrays in memory
     (the files just written hold the same float32 values)."""
+    from .files.runfolder import RunImages
+
     st = result.stereo
     images = RunImages(st.albedo, result.height.height_um, st.normals, result.capture.pixel_size_um,
                        result.height.height_um.shape)
@@ -337,6 +352,9 @@ def _statistics_and_report(run_dir, result, params, out, progress):
 def regions_for(spec, run_dir: Path, images, *, n_areas=None, seed=0):
     """Colour areas from ``params.regions``: a label TIFF path, "auto", or None (the run's
     ``regions_labels.tif`` when present, else None). Returns (RegionMap or None, proposed?)."""
+    from .core.regions import propose_regions
+    from .files.tables import load_regions
+
     if spec is None:
         spec = run_dir / "regions_labels.tif"
         if not spec.is_file():
@@ -353,6 +371,10 @@ def regions_for(spec, run_dir: Path, images, *, n_areas=None, seed=0):
 
 def _stats_and_csv(tmp: Path, run_dir: Path, regions, px: float, bins_um, warnings: list,
                    path: Optional[Path] = None):
+    from .core.measure import empty_table
+    from .core.regions import region_statistics
+    from .files.tables import read_protrusions_csv, write_regions_csv
+
     # areas are usually registered before detection: no table yet means counts of 0, not a warning
     path = path or run_dir / "protrusions.csv"
     table = read_protrusions_csv(path) if path.is_file() else empty_table()
@@ -369,6 +391,9 @@ def statistics(run_dir, *, table=None, regions=None, bins_um=100.0, pixel_size_u
     ``regions``: a label TIFF, default the run's ``regions_labels.tif``, else the whole image;
     ``table``: default ``protrusions.csv``, else ``protrusions_manual.csv`` when only the wand ran.
     """
+    from .core.regions import whole_image
+    from .files.runfolder import read_run
+
     run_dir = Path(run_dir)
     warnings = []
     if table:

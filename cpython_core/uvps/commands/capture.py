@@ -3,6 +3,9 @@ once, as a :class:`uvps.spec.CommandSpec` beside its function (registered by :mo
 
 A spec is called as ``spec(inputs, params, output_dir, progress=None)`` and returns a
 :class:`~uvps.files.outputs.CommandResult` (docs/architecture.md, "Commands").
+
+The numeric core is imported by the commands' functions, not here: declaring the commands (parsing
+a command line, ``uvps spec``) imports no numba or scipy (:mod:`uvps.workflow`).
 """
 from __future__ import annotations
 
@@ -11,11 +14,6 @@ import logging
 
 import numpy as np
 
-from ..core.integrate import integrate_normals
-from ..core.level import level_height
-from ..core.pipeline import integration_diagnostics
-from ..core.relight import relight
-from ..files import runfolder
 from ..files.io import write_imagej_tiff
 from ..files.outputs import CommandResult, OutputSpec, atomic_output_dir, check_output_dir, report, sub_progress
 from ..spec import CommandSpec, Param
@@ -39,6 +37,11 @@ def _capture_command(step: CaptureStep):
 
 def _cmd_integrate(inputs, params, output_dir, *, progress=None):
     """``integrate``: height in um from ``<run>/normals.tif``."""
+    from ..core.integrate import integrate_normals
+    from ..core.level import level_height
+    from ..core.pipeline import integration_diagnostics
+    from ..files import runfolder
+
     run_dir = check_output_dir(output_dir)
     images = runfolder.read_run(run_dir, need=("normals",), pixel_size_um=params["pixel_size_um"])
     report(progress, 0.2, "integrating")
@@ -62,6 +65,9 @@ def _cmd_integrate(inputs, params, output_dir, *, progress=None):
 
 def _cmd_relight(inputs, params, output_dir, *, progress=None):
     """``relight``: the surface under a virtual raking light (``azimuth_deg``, ``elevation_deg``)."""
+    from ..core.relight import relight
+    from ..files import runfolder
+
     run_dir = check_output_dir(output_dir)
     warnings = []
     images = runfolder.read_run(run_dir, need=("normals",), pixel_size_um=params["pixel_size_um"])

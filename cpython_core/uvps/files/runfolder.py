@@ -22,7 +22,8 @@ from .. import __version__
 from ..errors import UVPSInputError, check_pixel_size
 from ..core.flatfield import flatfield
 from ..core.integrate import gradients_from_normals
-from .io import BAND_BYTES, Capture, imagej_tiff_writer, read_tiff, sha256_file, write_imagej_tiff
+from .io import (BAND_BYTES, Capture, hash_inputs_meanwhile, imagej_tiff_writer, input_hashes,  # noqa: F401 - re-exported
+                 read_tiff, sha256_file, write_imagej_tiff)
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import release_caches, row_bands
@@ -166,20 +167,6 @@ def is_relative(relief: Optional[dict]) -> bool:
     return bool(relief) and relief.get("scale") == "relative"
 
 
-def input_hashes(capture: Capture) -> list:
-    """SHA-256 of every input file (a stack is hashed once; null for an image that is no file, e.g. a
-    capture made in memory)."""
-    paths = []
-    for f in capture.files:
-        p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
-        if p not in paths:
-            paths.append(p)
-    # two files at a time: hashlib releases the GIL (16 files, 1.15 GB: 1.18 s -> 0.68 s on 2 cores)
-    with ThreadPoolExecutor(2) as pool:
-        digests = pool.map(lambda p: sha256_file(p) if Path(p).is_file() else None, paths)
-        return [{"path": str(p), "sha256": d} for p, d in zip(paths, digests)]
-
-
 # ------------------------------------------------------------------------------------------------
 # writing
 # ------------------------------------------------------------------------------------------------
@@ -256,17 +243,6 @@ def _write_all(jobs) -> None:
         futures = [pool.submit(job) for job in jobs]
     for f in futures:
         f.result()
-
-
-def hash_inputs_meanwhile(capture: Capture):
-    """:func:`input_hashes` of ``capture`` started in a background thread: a future whose result is the list
-    (the hashing of a 1 GB stack, ~1-2 CPU s, overlaps the run's one-thread parts instead of following
-    it). The files are those just read; a run that fails leaves the thread to end on its own."""
-    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash")
-    try:
-        return pool.submit(input_hashes, capture)
-    finally:
-        pool.shutdown(wait=False)
 
 
 def _spec_in(final: Path, written: Path, name: str) -> OutputSpec:
