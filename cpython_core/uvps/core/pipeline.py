@@ -213,14 +213,13 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     if "height" in stages:
         t0 = time.perf_counter()
         report(progress, span["height"][0], "integrating the height")
-        # the normals' gradients kept where the run reuses them, for the detection (computed with the same
-        # mask) and gradients.tif (without one): each computed again took 0.33-0.40 s wall in one thread at
-        # 4000 x 3000, 0.19-0.29 s in two. Held to the writing (p, q: 96 MB), they raise a --regions run's
-        # peak, its detection's (/usr/bin/time's maxrss 1461-1516 -> 1528-1610 MB over 5 runs each, the
-        # calibrated route on scripts/benchmark_speed.py's capture), a run without it 940 -> 951-954 MB.
+        # the normals' gradients kept for the detection's height (computed again they took 0.33-0.40 s wall in
+        # one thread at 4000 x 3000), which drops them once it is made. Not for gradients.tif: held to the
+        # writing they raised the peak of a 10000 x 8000 run by their 0.6 GB (3.49 -> 4.06 GiB), the writer
+        # computes them again (0.19-0.29 s in two threads)
         res.height = integrate_normals(res.stereo.normals, pixel_size_um=res.capture.pixel_size_um,
                                        method=options.integration, mask=res.capture.mask,
-                                       keep_gradients="protrusions" in stages or res.capture.mask is None)
+                                       keep_gradients="protrusions" in stages)
         res.timings_s["integrate"] = _since(t0)
     # no stage below reads the stack: what its views keep to be read faster is not held by the detection
     release_caches(res.capture.images)
@@ -228,11 +227,9 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
         t0 = time.perf_counter()
         res.protrusions = find_protrusions(res.stereo.albedo, res.height.height_um, res.stereo.normals,
                                            pixel_size_um=res.capture.pixel_size_um, regions=regions,
-                                           n_areas=n_areas, params=detection, gradients=res.height.gradients,
+                                           n_areas=n_areas, params=detection, gradients=_handed_over(res.height),
                                            progress=sub_progress(progress, *span["protrusions"]))
         res.timings_s["protrusions"] = _since(t0)
-        if res.height.gradients is not None and res.height.gradients.mask is not None:
-            res.height.gradients = None         # gradients.tif's are computed without a mask: not these
         res.diagnostics["detect"] = protrusion_diagnostics(res.protrusions, res.capture.pixel_size_um)
     if res.height is not None:
         # after the detection, which reads the heights as integrated (each protrusion over its own local
@@ -668,6 +665,13 @@ def detection_height(height_um, normals, *, pixel_size_um: float, params: Detect
     return DetectionHeight(height, left_out)
 
 
+def _handed_over(height: IntegrationResult):
+    """``height.gradients``, cleared there: the callee it is passed to holds the only reference, and drops
+    it when done (:func:`find_protrusions`, once its height is made)."""
+    g, height.gradients = height.gradients, None
+    return g
+
+
 def _same_mask(a, b) -> bool:
     """Both None, or both arrays equal element by element (the same pixels masked)."""
     if a is None or b is None:
@@ -698,6 +702,8 @@ def find_protrusions(albedo, height_um, normals=None, *, pixel_size_um: float, r
                                                              n_areas=n_areas, seed=seed))
     else:
         dh = height()
+    # the kept gradients (96 MB at 4000 x 3000) dropped before the detector, whose temporaries make a run's peak
+    height = gradients = None
     mask = regions.labels > 0 if regions is not None else None
     det = _detector("detect_protrusions")(albedo, dh.height_um, pixel_size_um=pixel_size_um, normals=normals, mask=mask,
                              params=params, left_out=dh.left_out,

@@ -196,7 +196,7 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
         names.append("flatfield")
     jobs = [lambda: write_lights(folder, cap, result.lights)]
     if result.stereo is not None:
-        jobs += stereo_writers(folder, result.stereo, cap.pixel_size_um, gradients=_unmasked_gradients(result))
+        jobs += stereo_writers(folder, result.stereo, cap.pixel_size_um)
         names += ["normals", "albedo", "gradients"]
     if result.height is not None:
         jobs.append(lambda: write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method,
@@ -313,17 +313,8 @@ def write_stereo(folder: Path, res, pixel_size_um: float) -> None:
         job()
 
 
-def _unmasked_gradients(result):
-    """The gradients a run's height stage kept of its normals (``IntegrationResult.gradients``) when they
-    were computed without a mask, as gradients.tif's are; else None."""
-    g = getattr(result.height, "gradients", None) if result.height is not None else None
-    return g if g is not None and g.mask is None else None
-
-
-def stereo_writers(folder: Path, res, pixel_size_um: float, *, gradients=None) -> list:
-    """The writers of :func:`write_stereo`'s three files, one callable each (independent of one another).
-    ``gradients``: :func:`~uvps.core.integrate.gradients_from_normals` of ``res.normals`` without a mask,
-    already computed (a run's height stage keeps them, :func:`uvps.core.pipeline.run`); else computed."""
+def stereo_writers(folder: Path, res, pixel_size_um: float) -> list:
+    """The writers of :func:`write_stereo`'s three files, one callable each (independent of one another)."""
     def normals():
         write_imagej_tiff(folder / "normals.tif", np.moveaxis(res.normals, -1, 0), axes="CYX",
                           pixel_size_um=pixel_size_um, labels=["nx", "ny", "nz"])
@@ -336,7 +327,7 @@ def stereo_writers(folder: Path, res, pixel_size_um: float, *, gradients=None) -
             write_imagej_tiff(folder / "albedo.tif", res.albedo, axes="YX", pixel_size_um=pixel_size_um)
 
     def gradients_tif():
-        g = gradients if gradients is not None else gradients_from_normals(res.normals)
+        g = gradients_from_normals(res.normals)
         with imagej_tiff_writer(folder / "gradients.tif", (2,) + g.p.shape, np.float32, axes="CYX",
                                 pixel_size_um=pixel_size_um, labels=["p = dz/dx", "q = dz/dy (y up)"]) as tif:
             tif.put(0, g.p)
