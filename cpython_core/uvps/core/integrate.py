@@ -91,7 +91,7 @@ class Gradients:
         every normal with ``nz <= 0``) and was scaled down to ``max_slope``.
     mask : ndarray of bool or None
         The mask they were computed with (boolean, as checked), None without one: whoever reuses
-        them (a run's detection and its gradients.tif, :mod:`uvps.core.pipeline`) compares it.
+        them (a run's detection, :func:`uvps.core.pipeline.detection_height`) compares it.
     """
 
     p: np.ndarray
@@ -614,8 +614,9 @@ def integrate_normals(
     mask : ndarray of bool, shape (M, N), optional
         True = use; the height is NaN outside.
     keep_gradients : bool
-        Keep the normals' gradients, unchanged, in the result's ``gradients``: a run reuses them (its
-        detection, gradients.tif) instead of computing them again.
+        Keep the normals' gradients, unchanged, in the result's ``gradients``: a run that detects
+        reuses them for its detection's height instead of computing them again (gradients.tif's
+        writer computes its own: held to the writing they raised a large run's peak).
 
     Returns
     -------
