@@ -463,6 +463,13 @@ def test_ctrl_c_inside_a_compiled_kernel_is_an_interruption_not_an_internal_erro
 _NUMERIC = ("numba", "scipy", "skimage", "dask", "matplotlib")
 
 
+def _fresh_python(code: str, timeout: float) -> str:
+    """``code`` run by a fresh interpreter (nothing imported yet); its standard output, once it succeeded."""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
 def test_parsing_the_capture_commands_and_batch_imports_no_numeric_core():
     """`uvps run`, the steps and `uvps batch` declare their parameters without the numeric core: the
     command line is parsed (and `run` starts hashing its capture, `batch` its cluster) before numba,
@@ -471,9 +478,7 @@ def test_parsing_the_capture_commands_and_batch_imports_no_numeric_core():
             "specs = {n: COMMANDS[n] for n in ('run', 'flatfield', 'lights', 'normals', 'batch')}; "
             "build_parser(specs).parse_args(['run', 'cap', '-o', 'out', '--regions', 'auto']); "
             f"print(sorted(m for m in {_NUMERIC!r} if m in sys.modules))")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.strip() == "[]", r.stdout
+    assert _fresh_python(code, 120).strip() == "[]"
 
 
 def test_a_run_hashes_its_capture_while_it_imports_the_numeric_core(tmp_path):
@@ -486,9 +491,8 @@ def test_a_run_hashes_its_capture_while_it_imports_the_numeric_core(tmp_path):
             "w.hash_inputs_meanwhile = lambda c: seen.append('uvps.core.pipeline' in sys.modules) or h(c); "
             "from uvps.cli import main; "
             f"s = main(['run', {str(tmp_path / 'cap')!r}, '-o', {str(tmp_path / 'run')!r}]); print(s, seen)")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.split()[-2:] == ["0", "[False]"], r.stdout
+    out = _fresh_python(code, 300)
+    assert out.split()[-2:] == ["0", "[False]"], out
     inputs = json.loads((tmp_path / "run" / "run.json").read_text())["inputs"]
     files = sorted((tmp_path / "cap").glob("uv_*.tif"))
     assert sorted(Path(i["path"]).name for i in inputs) == [f.name for f in files]
