@@ -699,7 +699,7 @@ def test_the_detection_reuses_the_height_stages_gradients(folder, tmp_path, monk
         np.testing.assert_array_equal(tifffile.imread(tmp_path / "each" / f"{name}.tif"), value, err_msg=name)
 
 
-def test_the_kept_gradients_are_not_held_past_the_detection(folder):
+def test_the_kept_gradients_are_not_held_past_the_detection(folder, monkeypatch):
     """The height stage keeps the normals' gradients only for a run that detects, and the run hands them to
     the detection, which drops them: a run's result holds none, so they are not held through the detector
     nor the writing (0.6 GB at 10000 x 8000)."""
@@ -718,12 +718,8 @@ def test_the_kept_gradients_are_not_held_past_the_detection(folder):
 
     plain = pipeline.run(cap, stages=("normals", "height"))
     assert plain.height.gradients is None
-    pipeline_run = pipeline.run
-    try:
-        pipeline.detection_height = height
-        res = pipeline_run(cap, stages=("normals", "height", "protrusions"))
-    finally:
-        pipeline.detection_height = real
+    monkeypatch.setattr(pipeline, "detection_height", height)
+    res = pipeline.run(cap, stages=("normals", "height", "protrusions"))
     assert res.height.gradients is None and res.protrusions is not None
     assert len(seen) == 1 and seen[0]() is None      # handed over, used, and freed with the run still held
 

@@ -8,6 +8,7 @@ so that no command calls another. It calls the library (:mod:`uvps.core`), the f
 """
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
@@ -315,6 +316,7 @@ def kept_aside(run_dir: Path, kept: Path, out: CommandResult, *, step: str) -> N
                         f"{what} has no manual count of its own until one is made on it")
 
 
+@functools.cache
 def run_owned() -> frozenset:
     """What a run folder holds that ``run`` owns: every file of :data:`uvps.files.runfolder.FILES`, the
     report's figures and ``relight.tif`` (made from the run's normals). A new ``run`` replaces them all:

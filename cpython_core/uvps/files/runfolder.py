@@ -22,8 +22,7 @@ from .. import __version__
 from ..errors import UVPSInputError, check_pixel_size
 from ..core.flatfield import flatfield
 from ..core.integrate import gradients_from_normals
-from .io import (BAND_BYTES, Capture, hash_inputs_meanwhile, imagej_tiff_writer, input_hashes,  # noqa: F401 - re-exported
-                 read_tiff, sha256_file, write_imagej_tiff)
+from .io import BAND_BYTES, Capture, imagej_tiff_writer, input_hashes, read_tiff, write_imagej_tiff
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import release_caches, row_bands
@@ -178,8 +177,8 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     ``folder`` is usually the temporary folder of :func:`uvps.files.outputs.atomic_output_dir`, moved to
     the run folder ``final`` afterwards. ``params`` (the request's) and ``warnings`` go into
     ``run.json`` with the result's diagnostics and timings. ``inputs``: the input files' hashes
-    (:func:`input_hashes`), a list or a future of one (hashed while the run computed:
-    :func:`hash_inputs_meanwhile`); None hashes them here. Returns the
+    (:func:`uvps.files.io.input_hashes`), a list or a future of one (hashed while the run computed:
+    :func:`uvps.files.io.hash_inputs_meanwhile`); None hashes them here. Returns the
     :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``.
 
     The lights, normals, albedo, gradients and depth files are written two at a time (:data:`WRITERS`
