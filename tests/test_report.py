@@ -478,3 +478,25 @@ def test_outlines_are_scikit_images_outer_boundaries_pixel_for_pixel():
     big[5:9, 5:9], big[5:9, 9:12] = 70000, 3          # a label above uint16, touching another
     assert np.array_equal(outer_boundaries(big), find_boundaries(big, mode="outer"))
     assert outer_boundaries(big).sum() > 0
+
+
+def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outlines():
+    from skimage.segmentation import find_boundaries
+
+    from uvps.report.painting import FIGURE_DPI, FIGURE_WIDTH_IN, _at_most
+
+    width = FIGURE_WIDTH_IN * FIGURE_DPI
+    labels = np.ones((300, 3000), np.int32)
+    labels[:, 1501:] = 2                                # one vertical paint edge, its outline 2 px wide
+    edges = find_boundaries(labels, mode="inner")
+    small = _at_most(edges, width, any_of=True)
+    assert small.shape == (90, width) and small.dtype == bool
+    assert small.any(axis=1).all()                      # every row still shows the outline
+    assert small.sum(axis=1).max() <= 2                 # and not widened beyond the pixels it falls in
+    rgb = np.full((300, 3000, 3), 7.0)
+    rgb[:, 1500:] = 21.0
+    a = _at_most(rgb, width)
+    assert a.shape == (90, width, 3)
+    assert np.isclose(a.mean(), rgb.mean(), rtol=1e-4)  # area averaging: the levels are kept
+    little = np.zeros((10, width))
+    assert _at_most(little, width) is little            # an overview already that small is drawn as it is

@@ -81,7 +81,7 @@ def display_step(shape) -> int:
     return max(1, int(np.ceil(max(shape[:2]) / _MAX_DISPLAY_PX)))
 
 
-def _yxc(img: np.ndarray) -> np.ndarray:
+def as_yxc(img: np.ndarray) -> np.ndarray:
     """(3, M, N) -> (M, N, 3); (M, N) and (M, N, 3) unchanged."""
     img = np.asarray(img)
     if img.ndim == 3 and img.shape[0] == 3 and img.shape[-1] != 3:
@@ -91,7 +91,7 @@ def _yxc(img: np.ndarray) -> np.ndarray:
 
 def display_albedo(albedo: np.ndarray, step: int = 1) -> np.ndarray:
     """Every ``step``-th pixel of the albedo as (M', N[, 3]) in 0..1 (99.5th percentile = 1)."""
-    a = _yxc(albedo)[::step, ::step].astype(np.float64)
+    a = as_yxc(albedo)[::step, ::step].astype(np.float64)
     finite = a[np.isfinite(a)]
     scale = float(np.percentile(finite, 99.5)) if finite.size else 1.0
     return np.clip(np.nan_to_num(a / (scale or 1.0)), 0.0, 1.0)
@@ -200,7 +200,7 @@ def plot_lights(lights: dict, path) -> Path:
 
 def plot_normals(normals: np.ndarray, path, *, pixel_size_um: float) -> Path:
     """Normal map in the usual RGB encoding ``(n + 1) / 2`` (x red, y green, z blue)."""
-    n = _yxc(normals)
+    n = as_yxc(normals)
     step = display_step(n.shape)
     rgb = np.clip((np.nan_to_num(n[::step, ::step]) + 1.0) / 2.0, 0, 1)
     fig = figure((7, 7 * n.shape[0] / n.shape[1] + 0.6), layout=None)
@@ -227,7 +227,7 @@ def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float,
                 labels: Optional[np.ndarray] = None) -> Path:
     """Albedo (fluorescence colour), scaled by its 99.5th percentile, with the protrusions of
     ``labels`` (an (M, N) label image, 0 = none) outlined in red."""
-    shape = _yxc(albedo).shape
+    shape = as_yxc(albedo).shape
     step = display_step(shape)
     a = display_albedo(albedo, step)
     fig = figure((7, 7 * shape[0] / shape[1] + 0.6), layout=None)
@@ -503,7 +503,7 @@ def plot_comparison_map(albedo: np.ndarray, a: dict, b: dict, comparison, path, 
     """
     from matplotlib.patches import Circle
 
-    m, n = _yxc(albedo).shape[:2]
+    m, n = as_yxc(albedo).shape[:2]
     img = display_albedo(albedo, display_step((m, n)))
     fig = figure((7, 7 * m / n + 0.6), layout=None)
     ax = fig.add_subplot()
