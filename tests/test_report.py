@@ -500,3 +500,28 @@ def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outl
     assert np.isclose(a.mean(), rgb.mean(), rtol=1e-4)  # area averaging: the levels are kept
     little = np.zeros((10, width))
     assert _at_most(little, width) is little            # an overview already that small is drawn as it is
+
+
+def test_the_painting_report_counts_every_protrusion_and_names_those_in_no_area(tmp_path):
+    from uvps.core.mosaic import Registration
+    from uvps.report.painting import write_painting_report
+
+    albedo = np.full((40, 60, 3), 100.0, np.float32)
+    labels = np.zeros((40, 60), np.int32)
+    labels[:, :30] = 1                                  # one paint on the left; the right in no area
+    kept = [{"X": 5.0, "Y": 5.0, "width_um": 80.0, "area": "area 1"},
+            {"X": 12.0, "Y": 30.0, "width_um": 120.0, "area": "area 1"},
+            {"X": 50.0, "Y": 20.0, "width_um": 70.0, "area": ""}]
+    areas = {"area 1": {"label": 1, "tiles": 1, "area_cm2": 0.0608, "count": 2, "density_per_cm2": 32.9}}
+    page = write_painting_report(tmp_path, albedo=albedo, labels=labels, covered=np.ones((40, 60), bool),
+                                 kept=kept, areas=areas, registration=Registration({"t": (0.0, 0.0)}, []),
+                                 shapes={"t": (40, 60)}, origin=(0, 0), step=1, pixel_size_um=15.0).read_text()
+    # the heading counts the 3 the overview draws and the tables list, not the 2 the areas hold
+    assert "1 tiles, 3 protrusions</h1>" in page
+    assert "<p>1 protrusion lies in no colour area" in page
+    kept[2]["area"] = "area 1"
+    areas["area 1"]["count"] = 3
+    page = write_painting_report(tmp_path, albedo=albedo, labels=labels, covered=np.ones((40, 60), bool),
+                                 kept=kept, areas=areas, registration=Registration({"t": (0.0, 0.0)}, []),
+                                 shapes={"t": (40, 60)}, origin=(0, 0), step=1, pixel_size_um=15.0).read_text()
+    assert "3 protrusions</h1>" in page and "in no colour area" not in page

@@ -189,7 +189,13 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
                             [[p.name, p.dx, p.dy, p.confidence, p.residual_px if p.residual_px is not None
                               else float("nan"), "yes" if p.used else "no", p.why] for p in registration.pairs])
     warn = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or "<li>none</li>"
-    total = sum(a["count"] for a in areas.values())
+    # every kept protrusion, as the overview's title, painting_protrusions.csv and painting_regions.csv's
+    # "all areas" row count them; those the colour areas' labels leave out (a pixel in no area) said so
+    total = len(kept)
+    outside = total - sum(a["count"] for a in areas.values())
+    outside_note = (f"<p>{outside} protrusion{'s' if outside != 1 else ''} lie{'' if outside != 1 else 's'} in no "
+                    "colour area: not in this table's counts and densities (their <code>area</code> is empty in "
+                    "painting_protrusions.csv).</p>" if outside else "")
     viewer = ""
     if view is not None:
         from .deepzoom import viewer_html
@@ -205,7 +211,7 @@ each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.z
 <h2>The painting and its protrusions</h2><img src="figures/painting_overview.png" alt="overview">
 {viewer}
 <h2>Density</h2><img src="figures/painting_density.png" alt="density">
-<h2>Per colour area</h2>{area_table}<img src="figures/painting_widths.png" alt="widths">
+<h2>Per colour area</h2>{area_table}{outside_note}<img src="figures/painting_widths.png" alt="widths">
 <h2>Tiles and their registration</h2><img src="figures/painting_tiles.png" alt="tiles">{pair_table}
 </body></html>
 """
