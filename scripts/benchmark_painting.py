@@ -11,10 +11,10 @@ bands), and the times (the batch, the sum of the tiles' run times, the stitching
 ratio to the tiles' sum / workers). The worst seed is the figure quoted in docs/benchmarks.md, "Painting in
 tiles".
 
-The tiles are 600 x 800 px by default: a tile there took 14-16 s (docs/benchmarks.md), against ~1.4 s at
+The tiles are 600 x 800 px by default: a tile there took 11-15 s (docs/benchmarks.md), against ~1.4 s at
 the generator's own 200 x 240 px, where the cluster's start and its processes' imports (~2.5 s, paid once
-per batch, not by the stitching) outweigh the tiles and the ratio measures them; a real tile of
-4000 x 3000 takes longer still (docs/decisions/painting.md, "The batch's fixed costs (small tiles)").
+per batch, not by the stitching) outweigh the tiles and the ratio measures them (docs/decisions/painting.md,
+"The benchmark's tiles: 600 x 800 px").
 
     OMP_NUM_THREADS=1 python scripts/benchmark_painting.py --seeds 1 2 3
     OMP_NUM_THREADS=1 python scripts/benchmark_painting.py --grid 4 3 --tile 300 400 --seeds 1

@@ -42,7 +42,9 @@ def _at_most(img: np.ndarray, width: int, *, any_of: bool = False) -> np.ndarray
         return img
     size = (width, max(1, int(round(m * width / n))))
     if any_of:
-        return cv2.resize(img.astype(np.uint8), size, interpolation=cv2.INTER_AREA) > 0
+        # every weight of the area average is positive: above 0 exactly where any pixel averaged is set
+        # (uint8 rounds a pixel under half covered back to 0: a 1 px outline shrunk 3x vanished)
+        return cv2.resize(img.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
     return cv2.resize(np.ascontiguousarray(img, dtype=np.float32), size, interpolation=cv2.INTER_AREA)
 
 
@@ -194,7 +196,8 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
     total = len(kept)
     outside = total - sum(a["count"] for a in areas.values())
     outside_note = (f"<p>{outside} protrusion{'s' if outside != 1 else ''} lie{'' if outside != 1 else 's'} in no "
-                    "colour area: not in this table's counts and densities (their <code>area</code> is empty in "
+                    "colour area: not in this table's counts and densities ("
+                    f"{'its' if outside == 1 else 'their'} <code>area</code> is empty in "
                     "painting_protrusions.csv).</p>" if outside else "")
     viewer = ""
     if view is not None:
