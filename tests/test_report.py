@@ -519,7 +519,7 @@ def test_the_painting_report_counts_every_protrusion_and_names_those_in_no_area(
                                  kept=kept, areas=areas, registration=Registration({"t": (0.0, 0.0)}, []),
                                  shapes={"t": (40, 60)}, origin=(0, 0), step=1, pixel_size_um=15.0).read_text()
     # the heading counts the 3 the overview draws and the tables list, not the 2 the areas hold
-    assert "1 tiles, 3 protrusions</h1>" in page
+    assert "The painting: 1 tile, 3 protrusions</h1>" in page
     assert "<p>1 protrusion lies in no colour area" in page
     kept[2]["area"] = "area 1"
     areas["area 1"]["count"] = 3

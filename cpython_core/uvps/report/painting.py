@@ -207,7 +207,7 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
 <html lang="en"><head><meta charset="utf-8"><title>uvps painting report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}img{{max-width:100%}}
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}</style></head>
-<body><h1>The painting: {len(registration.corners)} tiles, {total} protrusions</h1>
+<body><h1>The painting: {len(registration.corners)} tile{'s' if len(registration.corners) != 1 else ''}, {total} protrusion{'s' if total != 1 else ''}</h1>
 <p>Pixel size {pixel_size_um:g} \u00b5m; registered tiles (largest pair residual {registration.max_residual_px:.2f} px);
 each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr, labels.ome.zarr.</p>
 <h2>Warnings</h2><ul>{warn}</ul>
