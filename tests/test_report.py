@@ -483,7 +483,8 @@ def test_outlines_are_scikit_images_outer_boundaries_pixel_for_pixel():
 def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outlines():
     from skimage.segmentation import find_boundaries
 
-    from uvps.report.painting import FIGURE_DPI, FIGURE_WIDTH_IN, _at_most
+    from uvps.report.page import FIGURE_DPI
+    from uvps.report.painting import FIGURE_WIDTH_IN, _at_most
 
     width = FIGURE_WIDTH_IN * FIGURE_DPI
     for edge in range(1490, 1500):                      # wherever the edge falls in the 3.3 px a pixel averages
@@ -491,7 +492,7 @@ def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outl
         labels[:, edge:] = 2                            # one vertical paint edge, its outline 2 px wide
         labels[:, 2500:] = 0                            # and a paint beside no area: its outline 1 px wide
         edges = find_boundaries(labels, mode="inner")
-        small = _at_most(edges, width, any_of=True)
+        small = _at_most(edges, width)
         assert small.shape == (90, width) and small.dtype == bool
         assert (small.sum(axis=1) >= 2).all()           # every row still shows both outlines
         assert small.sum(axis=1).max() <= 4             # and neither widened beyond the pixels it falls in

@@ -57,12 +57,16 @@ _MAX_LAMP_LABELS = 24  # more lamps are coloured by number, not labelled one by 
 # helpers
 
 
+#: Dots per inch of every figure (:func:`figure`): a figure ``w`` inches wide is a PNG of ``w * FIGURE_DPI`` px.
+FIGURE_DPI = 100
+
+
 def figure(figsize, layout="constrained"):
     # Figure objects without pyplot: no global state, always the Agg canvas. Image figures pass
     # layout=None (a fixed margin): the constrained layout costs a second draw.
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=figsize, dpi=100, layout=layout)
+    fig = Figure(figsize=figsize, dpi=FIGURE_DPI, layout=layout)
     if layout is None:
         fig.subplots_adjust(left=0.1, right=0.95, bottom=0.1, top=0.92)
     return fig

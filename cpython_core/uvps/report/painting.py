@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from ..files.tables import atomic_write_text
-from .page import as_yxc, display_albedo, figure, save_figure, table_html
+from .page import FIGURE_DPI, as_yxc, display_albedo, figure, save_figure, table_html
+from .text import plural
 
 #: Width bins of the per-area table (um).
 WIDTH_EDGES_UM = (0, 60, 100, 200, 400, np.inf)
-#: The overview's and the density's figures: their width in inches, and matplotlib's dots per inch there
-#: (:func:`uvps.report.page.figure`).
-FIGURE_WIDTH_IN, FIGURE_DPI = 9, 100
+#: The overview's and the density's figures' width in inches (their PNGs ``FIGURE_WIDTH_IN * FIGURE_DPI`` px).
+FIGURE_WIDTH_IN = 9
 
 
 def _extent(shape, step, origin, px_um):
@@ -32,20 +32,19 @@ def _extent(shape, step, origin, px_um):
     return (x0, x0 + w, y0 + h, y0)
 
 
-def _at_most(img: np.ndarray, width: int, *, any_of: bool = False) -> np.ndarray:
+def _at_most(img: np.ndarray, width: int) -> np.ndarray:
     """``img`` (M, N[, 3]) area-averaged down to at most ``width`` columns (``cv2.INTER_AREA``), or as it is;
-    ``any_of``: a boolean image, a pixel set where any pixel it averages is (an outline stays drawn)."""
+    a boolean image (an outline) comes back set where any pixel it averages is, so the outline stays drawn."""
     import cv2
 
     m, n = img.shape[:2]
     if n <= width:
         return img
-    size = (width, max(1, int(round(m * width / n))))
-    if any_of:
-        # every weight of the area average is positive: above 0 exactly where any pixel averaged is set
-        # (uint8 rounds a pixel under half covered back to 0: a 1 px outline shrunk 3x vanished)
-        return cv2.resize(img.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
-    return cv2.resize(np.ascontiguousarray(img, dtype=np.float32), size, interpolation=cv2.INTER_AREA)
+    small = cv2.resize(np.ascontiguousarray(img, dtype=np.float32), (width, max(1, int(round(m * width / n)))),
+                       interpolation=cv2.INTER_AREA)
+    # every weight of the area average is positive: above 0 exactly where any pixel averaged is set (a uint8
+    # average rounds a pixel under half covered back to 0: a 1 px outline shrunk 3x vanished)
+    return small > 0 if img.dtype == bool else small
 
 
 def _overview(albedo, labels, kept, extent, px_um, path):
@@ -59,7 +58,7 @@ def _overview(albedo, labels, kept, extent, px_um, path):
     fig = figure((FIGURE_WIDTH_IN, FIGURE_WIDTH_IN * m / max(n, 1) + 0.8), layout=None)
     ax = fig.add_subplot()
     ax.imshow(display_albedo(_at_most(as_yxc(albedo), width)), extent=extent, interpolation="nearest")
-    edges = _at_most(find_boundaries(labels, mode="inner"), width, any_of=True)
+    edges = _at_most(find_boundaries(labels, mode="inner"), width)
     ax.imshow(np.ma.masked_where(~edges, edges), extent=extent, cmap="autumn", alpha=0.8, interpolation="nearest")
     if kept:
         x = np.array([r["X"] for r in kept]) * px_um / 1000
@@ -195,7 +194,7 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
     # "all areas" row count them; those the colour areas' labels leave out (a pixel in no area) said so
     total = len(kept)
     outside = total - sum(a["count"] for a in areas.values())
-    outside_note = (f"<p>{outside} protrusion{'s' if outside != 1 else ''} lie{'' if outside != 1 else 's'} in no "
+    outside_note = (f"<p>{plural(outside, 'protrusion')} lie{'s' if outside == 1 else ''} in no "
                     "colour area: not in this table's counts and densities ("
                     f"{'its' if outside == 1 else 'their'} <code>area</code> is empty in "
                     "painting_protrusions.csv).</p>" if outside else "")
@@ -207,7 +206,7 @@ def write_painting_report(folder, *, albedo, labels, covered, kept, areas, regis
 <html lang="en"><head><meta charset="utf-8"><title>uvps painting report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}img{{max-width:100%}}
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}</style></head>
-<body><h1>The painting: {len(registration.corners)} tile{'s' if len(registration.corners) != 1 else ''}, {total} protrusion{'s' if total != 1 else ''}</h1>
+<body><h1>The painting: {plural(len(registration.corners), 'tile')}, {plural(total, 'protrusion')}</h1>
 <p>Pixel size {pixel_size_um:g} \u00b5m; registered tiles (largest pair residual {registration.max_residual_px:.2f} px);
 each protrusion of an overlap counted once. Maps: albedo.ome.zarr, normals.ome.zarr, height.ome.zarr, labels.ome.zarr.</p>
 <h2>Warnings</h2><ul>{warn}</ul>
