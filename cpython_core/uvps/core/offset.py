@@ -213,10 +213,10 @@ def block_stats(img, block: int, saturation=None) -> BlockStats:
 @numba.njit(inline="always", nogil=True, cache=True)
 def _view_sample(a, d, f, has_dark, has_factor, i, j, c):  # pragma: no cover - compiled
     # one sample as a view computes it, in its float32 arithmetic: float32(raw), minus the dark frame
-    # and clipped at 0, times the beam's factor
+    # (float32, or integer counts as stored: converted exactly) and clipped at 0, times the beam's factor
     x = np.float32(a[i, j, c])
     if has_dark:
-        x = x - d[i, j, c]
+        x = x - np.float32(d[i, j, c])
         if x < np.float32(0.0):
             x = np.float32(0.0)
     if has_factor:

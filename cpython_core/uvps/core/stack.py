@@ -159,7 +159,7 @@ class RawParts:
     ----------
     raw : ndarray, (m, n) or (m, n, C)
         The band as stored (a memory-mapped file's view, not copied), in this machine's byte order.
-    dark : ndarray of float32 like ``raw``, or None
+    dark : ndarray like ``raw`` (float32, or integer counts as stored), or None
         A dark frame subtracted, clipped at 0 (:class:`uvps.files.io.DarkSubtracted`).
     factor : ndarray of float32, (m, n), or None
         A factor multiplied: 1 / a lamp's gain map (:class:`uvps.core.flatfield.GainCorrected`).

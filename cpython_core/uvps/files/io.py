@@ -23,7 +23,6 @@ import math
 import mmap
 import os
 import re
-import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -859,7 +858,10 @@ def _read_dark(dark_path: Path, shape_img, dtype, linearize: str, *, as_float: b
     images are) with ``as_float``, else in its own integer dtype (the images' counts kept)."""
     if not dark_path.is_file():
         raise UVPSInputError(f"dark frame {dark_path} does not exist")
-    d = read_image(dark_path)
+    # kept integer, an uncompressed frame is memory-mapped: its pages are the page cache's (the run hashes
+    # its inputs), not 72 MB more of the process's own at 4000 x 3000 RGB
+    mapped = None if as_float else _map_tiff(dark_path)
+    d = mapped[0] if mapped is not None and mapped[0].dtype.isnative else read_image(dark_path)
     if d.shape != tuple(shape_img) or d.dtype.newbyteorder("=") != np.dtype(dtype).newbyteorder("="):
         raise UVPSInputError(
             f"dark frame {dark_path} is {d.shape} {d.dtype};"
@@ -884,10 +886,6 @@ def _minus_dark(image: np.ndarray, d: np.ndarray) -> None:
         np.maximum(image, 0, out=image)
 
 
-#: Held while a :class:`DarkSubtracted` makes its float32 frame (module-wide: a view stays picklable).
-_DARK_LOCK = threading.Lock()
-
-
 class DarkSubtracted(StackView):
     """Memory-mapped files seen with a dark frame subtracted, clipped at 0, computed on access (float32).
 
@@ -899,31 +897,20 @@ class DarkSubtracted(StackView):
 
     def __init__(self, images, dark):
         super().__init__(images)
-        # an integer dark frame is kept in its own dtype; its float32 values (exact below 2**24) are made
-        # once, when a stage first reads the stack, and dropped by release_caches() once the stages that
-        # read it are done: the detection's peak does not hold them (a 4000 x 3000 RGB frame is 0.14 GB
-        # as float32), and the block passes do not convert the frame's band again for every image (1464
-        # conversions, 0.67 s of CPU at 4000 x 3000 x 16: scripts/benchmark_speed.py)
-        dark = np.asarray(dark)
-        self.dark = dark if np.issubdtype(dark.dtype, np.integer) else dark.astype(np.float32, copy=False)
-        self._dark32 = None
-
-    def _dark(self, rows, cols) -> np.ndarray:
-        """The dark frame's band as float32 (made once, also when two threads read the stack first)."""
-        d = self._dark32
-        if d is None:
-            with _DARK_LOCK:
-                d = self._dark32
-                if d is None:
-                    d = self._dark32 = self.dark.astype(np.float32, copy=False)
-        return d[rows, cols]
-
-    def release_caches(self) -> None:
-        self._dark32 = None
-        super().release_caches()
+        # an integer dark frame is kept as it is stored (memory-mapped where its file allows: _read_dark),
+        # and each sample converted where it is read (exact below 2**24): the compiled kernels convert it
+        # sample by sample, the other reads band by band. A float32 copy of the whole frame, made once,
+        # was 0.14 GB of a 4000 x 3000 RGB run's peak held through its normals and integration, and its
+        # first touch of fresh memory (docs/decisions/speed.md, "The dark frame as stored")
+        dark = dark if isinstance(dark, np.ndarray) else np.asarray(dark)
+        if not np.issubdtype(dark.dtype, np.integer):
+            dark = dark.astype(np.float32, copy=False)
+        elif not dark.dtype.isnative:        # the compiled kernels read this machine's byte order
+            dark = dark.astype(dark.dtype.newbyteorder("="))
+        self.dark = dark
 
     def correct(self, out, kk, rk, ck):
-        v = out - self._dark(rk, ck)
+        v = np.subtract(out, self.dark[rk, ck], dtype=np.float32)
         return np.maximum(v, 0, out=v)
 
     def raw_parts(self, k: int, rows: slice, cols: slice):
@@ -931,7 +918,7 @@ class DarkSubtracted(StackView):
         p = raw_parts(self.base, k, rows, cols)
         if p is None or p.dark is not None or p.factor is not None:
             return None
-        return dataclasses.replace(p, dark=self._dark(rows, cols))
+        return dataclasses.replace(p, dark=self.dark[rows, cols])
 
 
 def _needs_linearize(kind: str, dtype, linearize: str) -> bool:
