@@ -339,6 +339,29 @@ print('READ_S', time.perf_counter() - t0)
 """
 
 
+#: The first touch of memory this process has not used before (GB/s), and the same memory written again:
+#: a run's arrays and the files it writes are memory first touched, which the warm read of the stack (into
+#: memory its previous read just freed) hardly is. On a virtual machine whose host takes back the memory
+#: its guest leaves free for a few seconds the two differ by up to 100x (docs/decisions/speed.md,
+#: "Memory first touched").
+FIRST_TOUCH_CODE = """
+import time, numpy as np
+a = np.empty(2 ** 28, np.float32)
+t0 = time.perf_counter(); a.fill(1); t1 = time.perf_counter(); a.fill(2); t2 = time.perf_counter()
+print('TOUCH_GBPS', 2 ** 30 / 1e9 / (t1 - t0), 2 ** 30 / 1e9 / (t2 - t1))
+"""
+
+
+def first_touch(env, idle_s: float) -> tuple:
+    """(first touch, again) in GB/s of 1 GiB in a fresh process started after ``idle_s`` seconds of
+    nothing run by this script."""
+    time.sleep(idle_s)
+    out = subprocess.run([sys.executable, "-c", FIRST_TOUCH_CODE], capture_output=True, text=True, env=env,
+                         check=True).stdout
+    line = next(x for x in out.splitlines() if x.startswith("TOUCH_GBPS "))
+    return tuple(float(v) for v in line.split()[1:3])
+
+
 def profile_run(folder: Path, top: int) -> str:
     """cProfile of read_capture + pipeline.run (the default stages) in this process: the top lines."""
     from uvps.files.io import read_capture
@@ -380,7 +403,7 @@ def doc_rows(ms: list, read_s: float, raw: float) -> list:
         read = m.name == "read the stack with tifffile"
         row = {"name": m.name, "wall_s": read_s if read else m.wall_s,     # stages in run order: a list of pairs
                "stages": [[k, v] for k, v in (m.stages or {}).items()],
-               "cpu_ratio": m.cpu_s / m.wall_s, "load_before": m.load_before}   # kept in the JSON, not shown
+               "cpu_ratio": m.cpu_s / m.wall_s, "load_before": m.load_before}
         if m.name.startswith("uvps demo"):
             row["rss_gib"] = m.maxrss_gib
         else:
@@ -465,15 +488,16 @@ def write_load_doc(ms: list, read_s: float, raw: float, argv) -> Path:
 
 def render_doc(results: dict) -> str:
     """docs/benchmarks.md's first speed table (4000 x 3000 x 16): wall (s; bold: ``uvps run``'s, the figure
-    of the target "within 10x the read"), / read, peak RSS / raw stack (a process on another capture, the
-    demo: its peak RSS in GiB, in brackets), run.json's stages (s).
+    of the target "within 10x the read"), / read, CPU / wall (user + system CPU time over wall: at most 2 on
+    2 cores), peak RSS / raw stack (a process on another capture, the demo: its peak RSS in GiB, in
+    brackets), run.json's stages (s).
 
     Parameters
     ----------
     results : dict
         ``{"rows": doc_rows(...)}`` as docs/benchmarks/speed.json keeps them.
     """
-    lines = ["| process | wall (s) | / read | peak RSS / raw stack | stages (s) |", "|---|---|---|---|---|"]
+    lines = ["| process | wall (s) | / read | CPU / wall | peak RSS / raw stack | stages (s) |", "|---|---|---|---|---|---|"]
     for r in results["rows"]:
         wall = f"{r['wall_s']:.2f}" if r["name"].startswith("read ") else f"{r['wall_s']:.1f}"
         if r["name"] == "uvps run":
@@ -481,7 +505,8 @@ def render_doc(results: dict) -> str:
         ratio = f"{r['read_ratio']:.0f}" if "read_ratio" in r else ""
         rss = f"{r['rss_ratio']:.2f}" if "rss_ratio" in r else f"({r['rss_gib']:.2f} GiB)"
         stages = ", ".join(f"{k} {v:.1f}" for k, v in r.get("stages", []))
-        cells = [DOC_ROWS[r["name"]], wall, ratio, rss, stages]
+        cpu = f"{r['cpu_ratio']:.2f}" if r.get("cpu_ratio", float("nan")) == r.get("cpu_ratio") else ""
+        cells = [DOC_ROWS[r["name"]], wall, ratio, cpu, rss, stages]
         lines.append("|" + "|".join(f" {c} " if c else " " for c in cells) + "|")
     return "\n".join(lines) + "\n"
 
@@ -545,6 +570,8 @@ def main(argv=None) -> int:
     # too), and a read of 0.3-0.9 s varies with what else runs; the floor is the fastest
     read_cmd = ([sys.executable, "-c", READ_STACK_CODE, str(folder), "1" if each else "0"] if a.stack else
                 [sys.executable, "-c", read_code, str(folder)])
+    touch_idle = first_touch(env, 10.0)       # memory left free for 10 s, as a run's later stages meet it
+    touch_hot = first_touch(env, 0.0)          # memory the previous process has just freed
     reads = [run_child("read the stack with tifffile", read_cmd, env) for _ in range(4)]
     rd = min(reads[1:], key=lambda m: m.inner_s)
     ms.append(rd)
@@ -589,7 +616,9 @@ def main(argv=None) -> int:
             f"RGB uint16 {'pages of one multi-page TIFF' if a.stack else 'TIFFs'} (warm page cache); raw stack {raw / 2 ** 30:.2f} GiB. Reading it with tifffile ({read_how}) "
             f"took {read_s:.2f} s (the fastest of 3 warm reads, inside the process; '/ read' divides each wall time by it, the process's "
             "start and imports included). Peak RSS: each process's own maximum resident set (os.wait4); CPU / wall: "
-            "its user + system CPU time over its wall time (2 cores: at most 2).", "",
+            "its user + system CPU time over its wall time (2 cores: at most 2). "
+            f"First touch of 1 GiB (FIRST_TOUCH_CODE): {touch_idle[0]:.2f} GB/s after 10 s idle, {touch_hot[0]:.2f} GB/s "
+            f"just after another process freed it; written again {touch_hot[1]:.1f} GB/s.", "",
             tab, ""]
     if a.note:
         text += [a.note, ""]
@@ -603,6 +632,7 @@ def main(argv=None) -> int:
     elif a.doc and all(m.returncode == 0 for m in ms):
         from benchdoc import write_doc
         doc = {"argv": list(argv or sys.argv[1:]), "load": load_line(), "read_s": read_s, "raw_gib": raw / 2 ** 30,
+               "first_touch_gbps": {"idle_10s": touch_idle[0], "just_freed": touch_hot[0], "again": touch_hot[1]},
                "rows": doc_rows(ms, read_s, raw)}
         print("wrote", write_doc(DOC_SECTION, doc, render_doc(doc), source="scripts/benchmark_speed.py"))
     return 0 if all(m.returncode == 0 for m in ms) else 1

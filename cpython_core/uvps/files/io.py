@@ -901,7 +901,7 @@ class DarkSubtracted(StackView):
         # and each sample converted where it is read (exact below 2**24): the compiled kernels convert it
         # sample by sample, the other reads band by band. A float32 copy of the whole frame, made once,
         # was 0.14 GB of a 4000 x 3000 RGB run's peak held through its normals and integration, and its
-        # first touch of fresh memory (docs/decisions/speed.md, "The dark frame as stored")
+        # first touch of fresh memory (docs/decisions/speed.md, "Memory first touched; the dark frame as stored")
         dark = dark if isinstance(dark, np.ndarray) else np.asarray(dark)
         if not np.issubdtype(dark.dtype, np.integer):
             dark = dark.astype(np.float32, copy=False)
