@@ -356,10 +356,9 @@ def first_touch(env, idle_s: float) -> tuple:
     """(first touch, again) in GB/s of 1 GiB in a fresh process started after ``idle_s`` seconds of
     nothing run by this script."""
     time.sleep(idle_s)
-    out = subprocess.run([sys.executable, "-c", FIRST_TOUCH_CODE], capture_output=True, text=True, env=env,
-                         check=True).stdout
-    line = next(x for x in out.splitlines() if x.startswith("TOUCH_GBPS "))
-    return tuple(float(v) for v in line.split()[1:3])
+    out = subprocess.run([sys.executable, "-c", FIRST_TOUCH_CODE], capture_output=True, text=True, env=env).stdout
+    line = next((x for x in out.splitlines() if x.startswith("TOUCH_GBPS ")), None)
+    return (float("nan"), float("nan")) if line is None else tuple(float(v) for v in line.split()[1:3])
 
 
 def profile_run(folder: Path, top: int) -> str:

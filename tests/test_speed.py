@@ -442,13 +442,14 @@ def test_dark_frame_is_subtracted_in_the_files_counts(tmp_path):
 
 
 
-@pytest.mark.parametrize("byteorder", ["<", ">"])
-def test_dark_frame_is_read_as_stored_never_copied_whole(tmp_path, byteorder):
+@pytest.mark.parametrize("byteorder,frame", [("<", "rgb"), (">", "rgb"), ("<", "grey"), ("<", "rgba"), ("<", "grey_alpha")])
+def test_dark_frame_is_read_as_stored_never_copied_whole(tmp_path, byteorder, frame):
     """A memory-mapped capture's integer dark frame is kept as stored: memory-mapped from its uncompressed
-    file (a big-endian one, as ImageJ writes, read once into this machine's order), no float32 copy of the
-    whole frame made or held by a run (it was 0.14 GB of a 4000 x 3000 RGB run's peak); every way the
-    stages read the view (bands, single images, scattered pixels, the compiled block and band kernels
-    through the beams' view) gives the counts minus the frame, clipped at 0, as float32 computes them."""
+    file when it is the images' shape and type (a big-endian one, as ImageJ writes, or one with an alpha
+    channel is read, alpha dropped); a run never converts the whole frame (a float32 copy of it was 0.14 GB
+    of a 4000 x 3000 RGB run's memory) and holds no copy after it; every way the stages read the view (bands,
+    single images, scattered pixels, the compiled block and band kernels, through the beams' view too)
+    gives the counts minus the frame, clipped at 0, as float32 computes them."""
     import tifffile
     from uvps.core.flatfield import GainCorrected, block_grid
     from uvps.core.stack import StackView
@@ -457,19 +458,38 @@ def test_dark_frame_is_read_as_stored_never_copied_whole(tmp_path, byteorder):
     cap = make_capture(shape=(60, 80), n_lights=4, seed=1, pixel_size_um=30.0, black_level=300.0)
     write_capture(cap, tmp_path / "cap", truth=False, dark_frame=True)
     d = tifffile.imread(tmp_path / "cap" / "dark" / "dark.tif")
+    grey = frame.startswith("grey")
+    if grey:
+        for f in (tmp_path / "cap").glob("uv_*.tif"):
+            tifffile.imwrite(f, tifffile.imread(f)[..., 1])
+        d = d[..., 1].copy()
     d[:10] = 20000                                         # clips part of the signal at 0
+    stored = {"rgba": lambda: np.dstack([d, np.full(d.shape[:2], 65535, d.dtype)]),
+              "grey_alpha": lambda: np.dstack([d, np.full(d.shape, 65535, d.dtype)])}.get(frame, lambda: d)()
     dark = tmp_path / "dark.tif"
-    tifffile.imwrite(dark, d, byteorder=byteorder)
-    capture = read_capture(tmp_path / "cap", dark=dark, lights=tmp_path / "cap" / "lights_positions_mm.csv")
+    tifffile.imwrite(dark, stored, byteorder=byteorder,
+                     **({"photometric": "minisblack", "extrasamples": ["unassalpha"]} if frame == "grey_alpha" else {}))
+    capture = read_capture(tmp_path / "cap", dark=dark, lights=tmp_path / "cap" / "lights_positions_mm.csv",
+                           pixel_size_um=30.0)
     view = capture.images
     assert isinstance(view, DarkSubtracted) and view.dark.dtype == np.uint16 and view.dark.dtype.isnative
-    assert isinstance(view.dark, np.memmap) == (byteorder == "<")   # mapped where the file is in this order
-    frame = view.dark
+    assert view.dark.shape == d.shape
+    assert isinstance(view.dark, np.memmap) == (byteorder == "<" and frame in ("rgb", "grey", "rgba"))
+    whole = []
+    real_astype = np.ndarray.astype
+
+    class Counting(type(view.dark)):
+        def astype(self, *a, **k):
+            if self.shape == d.shape:
+                whole.append(self.shape)
+            return real_astype(np.asarray(self), *a, **k)
+
+    view.dark = frame_seen = view.dark.view(Counting)
     res = run(capture, RunOptions(), stages=("normals", "height", "protrusions"), dark_given=True)
-    assert res.protrusions is not None
-    assert view.dark is frame                              # still the frame as stored
+    assert res.protrusions is not None and whole == []     # never converted whole (the code before: once)
+    assert view.dark is frame_seen
     held = [v for v in vars(view).values() if isinstance(v, np.ndarray) and v.shape == d.shape]
-    assert [h is frame for h in held] == [True]            # and no other copy of it
+    assert [h is frame_seen for h in held] == [True]       # and no other copy of it held
     want = np.maximum(np.stack([tifffile.imread(f) for f in sorted((tmp_path / "cap").glob("uv_*.tif"))])
                       .astype(np.float32) - d.astype(np.float32), 0)
     assert (want[:, :10] == 0).any() and (want[:, 10:] > 0).all()
@@ -481,6 +501,7 @@ def test_dark_frame_is_read_as_stored_never_copied_whole(tmp_path, byteorder):
     coeffs = np.random.default_rng(2).normal(0, 0.1, (4, 5, 5))
     beams = GainCorrected(view, coeffs)
     np.testing.assert_array_equal(beams[:, 3:40], StackView.__getitem__(beams, (slice(None), slice(3, 40))))
+    assert whole == []
 
 
 @pytest.mark.parametrize("grey", [False, True])

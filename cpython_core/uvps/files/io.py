@@ -858,10 +858,14 @@ def _read_dark(dark_path: Path, shape_img, dtype, linearize: str, *, as_float: b
     images are) with ``as_float``, else in its own integer dtype (the images' counts kept)."""
     if not dark_path.is_file():
         raise UVPSInputError(f"dark frame {dark_path} does not exist")
-    # kept integer, an uncompressed frame is memory-mapped: its pages are the page cache's (the run hashes
-    # its inputs), not 72 MB more of the process's own at 4000 x 3000 RGB
+    # kept integer, an uncompressed frame of the images' own shape and pixel type is memory-mapped: its pages
+    # are the page cache's, read from the file as the bands need them, not 72 MB more of the process's own
+    # memory at 4000 x 3000 RGB. Anything else (big-endian, compressed, with an alpha channel read_image
+    # drops, another pixel type read_image judges) is read
     mapped = None if as_float else _map_tiff(dark_path)
-    d = mapped[0] if mapped is not None and mapped[0].dtype.isnative else read_image(dark_path)
+    usable = (mapped is not None and mapped[0].dtype.isnative and mapped[0].shape == tuple(shape_img)
+              and mapped[0].dtype in (np.uint8, np.uint16))
+    d = mapped[0] if usable else read_image(dark_path)
     if d.shape != tuple(shape_img) or d.dtype.newbyteorder("=") != np.dtype(dtype).newbyteorder("="):
         raise UVPSInputError(
             f"dark frame {dark_path} is {d.shape} {d.dtype};"
@@ -900,8 +904,9 @@ class DarkSubtracted(StackView):
         # an integer dark frame is kept as it is stored (memory-mapped where its file allows: _read_dark),
         # and each sample converted where it is read (exact below 2**24): the compiled kernels convert it
         # sample by sample, the other reads band by band. A float32 copy of the whole frame, made once,
-        # was 0.14 GB of a 4000 x 3000 RGB run's peak held through its normals and integration, and its
-        # first touch of fresh memory (docs/decisions/speed.md, "Memory first touched; the dark frame as stored")
+        # was 0.14 GB of a 4000 x 3000 RGB run's memory held through its normals and integration, and its
+        # first touch of fresh memory (docs/decisions/speed.md, "Memory first touched; the dark frame as stored").
+        # Like the images' files, a mapped frame must not be rewritten while a run reads it
         dark = dark if isinstance(dark, np.ndarray) else np.asarray(dark)
         if not np.issubdtype(dark.dtype, np.integer):
             dark = dark.astype(np.float32, copy=False)
