@@ -504,7 +504,7 @@ def render_doc(results: dict) -> str:
         ratio = f"{r['read_ratio']:.0f}" if "read_ratio" in r else ""
         rss = f"{r['rss_ratio']:.2f}" if "rss_ratio" in r else f"({r['rss_gib']:.2f} GiB)"
         stages = ", ".join(f"{k} {v:.1f}" for k, v in r.get("stages", []))
-        cpu = f"{r['cpu_ratio']:.2f}" if r.get("cpu_ratio", float("nan")) == r.get("cpu_ratio") else ""
+        cpu = f"{r['cpu_ratio']:.2f}" if math.isfinite(r.get("cpu_ratio", math.nan)) else ""   # NaN: not measured
         cells = [DOC_ROWS[r["name"]], wall, ratio, cpu, rss, stages]
         lines.append("|" + "|".join(f" {c} " if c else " " for c in cells) + "|")
     return "\n".join(lines) + "\n"

@@ -907,7 +907,7 @@ class DarkSubtracted(StackView):
         # was 0.14 GB of a 4000 x 3000 RGB run's memory held through its normals and integration, and its
         # first touch of fresh memory (docs/decisions/speed.md, "Memory first touched; the dark frame as stored").
         # Like the images' files, a mapped frame must not be rewritten while a run reads it
-        dark = dark if isinstance(dark, np.ndarray) else np.asarray(dark)
+        dark = np.asanyarray(dark)               # a np.memmap stays one
         if not np.issubdtype(dark.dtype, np.integer):
             dark = dark.astype(np.float32, copy=False)
         elif not dark.dtype.isnative:        # the compiled kernels read this machine's byte order
