@@ -447,6 +447,58 @@ def test_nonintegrable_patches_leave_a_clean_field_alone():
     assert nonintegrable_patches(p2, q2, min_extent_px=1000.0 / px)[crack].mean() > 0.75
 
 
+def _patches_by_scikit_image(p, q, *, min_extent_px, k=None, floor=None, mask=None):
+    """nonintegrable_patches as its docstring states it, by np.gradient on whole images and
+    scikit-image's label and regionprops_table: the reference for the banded, OpenCV form."""
+    from scipy import ndimage
+    from skimage.measure import label, regionprops_table
+    from uvps.core.integrate import CURL_FLOOR, CURL_OUTLIER_MAD
+
+    k = CURL_OUTLIER_MAD if k is None else k
+    floor = CURL_FLOOR if floor is None else floor
+    p, q = np.nan_to_num(np.asarray(p, np.float32)), np.nan_to_num(np.asarray(q, np.float32))
+    curl = np.abs(-np.gradient(p, axis=0) - np.gradient(q, axis=1))
+    inside = np.ones(p.shape, bool) if mask is None else mask
+    threshold = max(k * 1.4826 * float(np.median(curl[inside])), floor)
+    lab = label((curl > threshold) & inside, connectivity=2)
+    if lab.max() == 0:
+        return np.zeros(p.shape, bool), curl
+    props = regionprops_table(lab, properties=("label", "bbox"))
+    extent = np.maximum(props["bbox-2"] - props["bbox-0"], props["bbox-3"] - props["bbox-1"])
+    long = np.zeros(lab.max() + 1, bool)
+    long[props["label"][extent >= min_extent_px]] = True
+    return ndimage.binary_dilation(long[lab], structure=np.ones((3, 3), bool)) & inside, curl
+
+
+def test_nonintegrable_patches_are_the_whole_image_form_to_the_bit():
+    """The curl is made in bands of rows in threads, and the patches found by OpenCV's connected
+    components: the same curl to the bit as np.gradient's on the whole images (NaN taken as 0, the
+    image's first and last rows and columns one-sided), and the same patches as scikit-image's
+    labels and boxes, with a mask, NaNs, bands of every remainder, and images of 2 rows."""
+    from uvps.core.integrate import curl_magnitude, nonintegrable_patches
+
+    rng = np.random.default_rng(8)
+    p, q, _, _, crack = _domes_and_a_crack(1, px=15.0)
+    cases = [(p, q, None, 1000.0 / 15.0, {}), (p, q, rng.random(p.shape) > 0.05, 20.0, {}),
+             (p, q, None, 3.0, {"k": 2.0, "floor": 0.0})]
+    for shape in ((2, 9), (3, 3), (257, 31), (513, 40), (600, 5)):
+        a = rng.normal(size=shape).astype(np.float32)
+        b = rng.normal(size=shape).astype(np.float32)
+        a[rng.random(shape) < 0.05] = np.nan
+        b[0, -1] = np.nan
+        cases += [(a, b, None, 2.0, {"k": 1.5}), (a, b, rng.random(shape) > 0.3, 1.0, {"k": 1.0, "floor": 0.5})]
+    found = 0
+    for i, (a, b, mask, extent, kw) in enumerate(cases):
+        want, curl = _patches_by_scikit_image(a, b, min_extent_px=extent, mask=mask, **kw)
+        assert np.array_equal(curl_magnitude(a, b), curl), i
+        assert np.array_equal(curl_magnitude(a, b, rows=7), curl), i
+        got = nonintegrable_patches(a, b, min_extent_px=extent, mask=mask, **kw)
+        assert got.dtype == bool and np.array_equal(got, want), i
+        found += int(got.any())
+    assert found >= 5                     # patches found, not only empty answers compared
+    assert nonintegrable_patches(p, q, min_extent_px=1000.0 / 15.0)[crack].mean() > 0.75
+
+
 def test_the_detections_height_leaves_the_crack_out_and_the_runs_height_is_kept():
     """``find_protrusions`` reads :func:`uvps.core.pipeline.detection_height`: with ``curl_k`` the normals
     integrated again without the crack's gradients (closer to the truth on the domes than the run's

@@ -480,6 +480,31 @@ def test_outlines_are_scikit_images_outer_boundaries_pixel_for_pixel():
     assert outer_boundaries(big).sum() > 0
 
 
+def test_area_borders_are_scikit_images_inner_boundaries_pixel_for_pixel():
+    # the colour-area figure, the painting overview and its deep-zoom layer draw area borders with
+    # OpenCV's morphology; they must be find_boundaries(mode="inner")'s, at the image's edges, where
+    # areas touch and for every label type (bool masks included)
+    from skimage.segmentation import find_boundaries
+    from uvps.errors import UVPSInputError
+    from uvps.report.page import inner_boundaries
+
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        m, n = (int(v) for v in rng.integers(1, 30, 2))
+        labels = rng.integers(0, int(rng.integers(1, 7)), (m, n))
+        labels[rng.random((m, n)) < 0.3] = 0
+        want = find_boundaries(labels.astype(np.int32), mode="inner")
+        for kind in (np.int32, np.uint8, np.uint16, np.uint32, np.int64):
+            assert np.array_equal(inner_boundaries(labels.astype(kind)), want), (trial, kind)
+        assert np.array_equal(inner_boundaries(labels > 0), find_boundaries(labels > 0, mode="inner"))
+    big = np.zeros((40, 50), np.int32)
+    big[5:9, 5:9], big[5:9, 9:12], big[20:, 30:] = 70000, 3, 2 ** 25     # above uint16 and float32's
+    assert np.array_equal(inner_boundaries(big), find_boundaries(big, mode="inner"))
+    assert inner_boundaries(big)[20:, 30:].sum() == 20 + 20 - 1   # its top row and left column: not the image's edges
+    with pytest.raises(UVPSInputError, match="non-negative"):
+        inner_boundaries(np.array([[0, -1], [2, 2]]))
+
+
 def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outlines():
     from skimage.segmentation import find_boundaries
 

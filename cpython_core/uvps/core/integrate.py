@@ -52,6 +52,7 @@ __all__ = [
     "dct_poisson",
     "integrate_normals",
     "nonintegrable_patches",
+    "curl_magnitude",
     "METHODS",
 ]
 
@@ -688,23 +689,63 @@ def nonintegrable_patches(p, q, *, min_extent_px: float, k: float = CURL_OUTLIER
     A. Agrawal, R. Raskar and R. Chellappa, "What is the range of surface reconstructions from a
     gradient field?", ECCV 2006, LNCS 3951, pp. 578-591 (sec. 4: curl to find the gradients to drop).
     """
-    from skimage.measure import label, regionprops_table
-    from scipy import ndimage
+    import cv2
 
-    p = np.nan_to_num(np.asarray(p, np.float32))
-    q = np.nan_to_num(np.asarray(q, np.float32))
-    # curl: dp/dy - dq/dx with y up (rows down)
-    curl = np.abs(-np.gradient(p, axis=0) - np.gradient(q, axis=1))
-    inside = np.ones(p.shape, bool) if mask is None else np.asarray(mask, bool)
-    scale = 1.4826 * float(np.median(curl[inside])) if inside.any() else 0.0
+    p = np.asarray(p, np.float32)
+    q = np.asarray(q, np.float32)
+    curl = curl_magnitude(p, q)
+    inside = None if mask is None else np.asarray(mask, bool)
+    if inside is None:
+        scale = 1.4826 * float(np.median(curl))
+    else:
+        scale = 1.4826 * float(np.median(curl[inside])) if inside.any() else 0.0
     threshold = max(k * scale, floor)
     if not threshold > 0:
         return np.zeros(p.shape, bool)
-    lab = label((curl > threshold) & inside, connectivity=2)
-    if lab.max() == 0:
+    high = curl > threshold
+    del curl
+    if inside is not None:
+        high &= inside
+    # OpenCV's connected components (8-neighbours, int32 labels, each one's bounding box) instead of
+    # scikit-image's label + regionprops_table: the same components and boxes, without the int64 label
+    # image (96 MB at 4000 x 3000) and the per-region properties
+    n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(high.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    if n_lab <= 1:
         return np.zeros(p.shape, bool)
-    props = regionprops_table(lab, properties=("label", "bbox"))
-    extent = np.maximum(props["bbox-2"] - props["bbox-0"], props["bbox-3"] - props["bbox-1"])
-    long = np.zeros(lab.max() + 1, bool)
-    long[props["label"][extent >= min_extent_px]] = True
-    return ndimage.binary_dilation(long[lab], structure=np.ones((3, 3), bool)) & inside
+    extent = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    long = extent >= min_extent_px
+    long[0] = False                     # the background
+    if not long.any():
+        return np.zeros(p.shape, bool)
+    # grown by one pixel (a 3 x 3 square; nothing beyond the image: scipy's binary_dilation with
+    # border_value 0, as cv2.dilate leaves pixels outside out of the maximum)
+    out = cv2.dilate(long[lab].view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    if inside is not None:
+        out &= inside
+    return out
+
+
+def curl_magnitude(p, q, *, rows: int = 256) -> np.ndarray:
+    """``|dp/dy - dq/dx|`` (y up) of a gradient field, NaN taken as 0, by ``np.gradient``'s differences.
+
+    The same values, to the bit, as ``np.abs(-np.gradient(np.nan_to_num(p), axis=0) -
+    np.gradient(np.nan_to_num(q), axis=1))``, made ``rows`` rows at a time (each band with one row
+    of ``p`` either side), in threads (:func:`uvps.core.threads.map_bands`): the whole-image form holds
+    five float32 images besides its output (240 MB at 4000 x 3000).
+    """
+    p = np.asarray(p, np.float32)
+    q = np.asarray(q, np.float32)
+    M = p.shape[0]
+    if M < 2 or p.shape[1] < 2:
+        raise UVPSInputError(f"a curl needs at least 2 x 2 gradients; got {p.shape}")
+    out = np.empty(p.shape, np.float32)
+
+    def band(rr):
+        r0, r1 = rr.start, rr.stop
+        a0, a1 = max(r0 - 1, 0), min(r1 + 1, M)
+        dpdy = np.gradient(np.nan_to_num(p[a0:a1]), axis=0)[r0 - a0: r0 - a0 + r1 - r0]
+        dqdx = np.gradient(np.nan_to_num(q[r0:r1]), axis=1)
+        np.abs(-dpdy - dqdx, out=out[r0:r1])
+
+    map_bands(band, M, size=max(2, int(rows)), threads=default_threads(2))
+    return out

@@ -77,9 +77,9 @@ def _colour(kind: str, block: np.ndarray, scale) -> np.ndarray:
         rgb = (matplotlib.colormaps["viridis"](np.nan_to_num(t))[..., :3] * 255 + 0.5).astype(np.uint8)
         rgb[~np.isfinite(block)] = 0
         return rgb
-    from skimage.segmentation import find_boundaries
+    from .page import inner_boundaries
 
-    edge = find_boundaries(block, mode="inner")
+    edge = inner_boundaries(block)
     out = np.zeros(block.shape + (4,), np.uint8)
     out[edge] = (0, 255, 255, 255)                         # cyan, as the overview's circles
     return out

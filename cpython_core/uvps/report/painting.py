@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..files.tables import atomic_write_text
-from .page import FIGURE_DPI, as_yxc, display_albedo, figure, save_figure, table_html
+from .page import FIGURE_DPI, as_yxc, display_albedo, figure, inner_boundaries, save_figure, table_html
 from .text import plural
 
 #: Width bins of the per-area table (um).
@@ -48,8 +48,6 @@ def _at_most(img: np.ndarray, width: int) -> np.ndarray:
 
 
 def _overview(albedo, labels, kept, extent, px_um, path):
-    from skimage.segmentation import find_boundaries
-
     m, n = labels.shape
     # an image figure: a fixed margin (layout=None), not the constrained layout's second draw; the albedo
     # and the areas' outlines at the figure's own width in pixels (its PNG's), which matplotlib's nearest
@@ -58,7 +56,7 @@ def _overview(albedo, labels, kept, extent, px_um, path):
     fig = figure((FIGURE_WIDTH_IN, FIGURE_WIDTH_IN * m / max(n, 1) + 0.8), layout=None)
     ax = fig.add_subplot()
     ax.imshow(display_albedo(_at_most(as_yxc(albedo), width)), extent=extent, interpolation="nearest")
-    edges = _at_most(find_boundaries(labels, mode="inner"), width)
+    edges = _at_most(inner_boundaries(labels), width)
     ax.imshow(np.ma.masked_where(~edges, edges), extent=extent, cmap="autumn", alpha=0.8, interpolation="nearest")
     if kept:
         x = np.array([r["X"] for r in kept]) * px_um / 1000
