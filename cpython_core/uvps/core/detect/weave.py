@@ -21,16 +21,28 @@ class WeaveEstimate:
     n_peaks: int = 0
 
 
-def _ring_median(power: np.ndarray, ring: np.ndarray, band: np.ndarray) -> np.ndarray:
-    """Median of ``power`` over ``band`` per integer radial ring (0 where a ring is empty)."""
-    sel, pb = ring[band], power[band]
+def _ring_median(pb: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Median of the powers ``pb`` per integer radial ring ``sel`` (the bins of the searched band;
+    0 where a ring is empty), indexed by ring."""
     order = np.lexsort((pb, sel))
     rs, ps = sel[order], pb[order]
     starts = np.flatnonzero(np.r_[True, rs[1:] != rs[:-1]])
     counts = np.diff(np.r_[starts, rs.size])
-    med = np.zeros(int(ring.max()) + 1)
+    med = np.zeros(int(sel.max()) + 1)
     med[rs[starts]] = ps[starts + counts // 2]
     return med
+
+
+class _LogPower:
+    """``np.log(power + 1e-300)`` read bin by bin (:func:`_peak_frequency` reads five bins a peak),
+    not made over the whole spectrum."""
+
+    def __init__(self, power: np.ndarray):
+        self.power = power
+        self.shape = power.shape
+
+    def __getitem__(self, index):
+        return np.log(self.power[index] + 1e-300)
 
 
 def _peak_frequency(logp: np.ndarray, ky: int, kx: int) -> tuple:
@@ -87,17 +99,27 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
     if not band.any():
         return hs, none
-    ring = np.minimum((fr * max(m, n)).astype(np.int64), max(m, n))
+    # each bin's ring, and its power over its ring's median, made in place and inside the band alone:
+    # the same values as the whole-spectrum maps, without four full-size float64 / int64 temporaries
+    np.multiply(fr, max(m, n), out=fr)
+    ring = fr.astype(np.int64)
     del fr
-    med = _ring_median(power, ring, band)[ring]
+    np.minimum(ring, max(m, n), out=ring)
+    at = np.flatnonzero(band)
+    del band
+    ring_at = ring.ravel()[at]
     del ring
-    ratio = np.divide(power, med, out=np.zeros_like(power), where=band & (med > 0))
-    del med
-    lab, k = ndi.label(band & (ratio > p.weave_factor), structure=np.ones((3, 3)))
-    del ratio, band
+    med = _ring_median(power.ravel()[at], ring_at)[ring_at]
+    del ring_at
+    peak = np.zeros(power.shape, bool)
+    above = med > 0
+    peak.ravel()[at[above]] = power.ravel()[at[above]] / med[above] > p.weave_factor
+    del med, above, at
+    lab, k = ndi.label(peak, structure=np.ones((3, 3)))
+    del peak
     if not k:
         return hs, none
-    logp = np.log(power + 1e-300)
+    logp = _LogPower(power)
     # the peak bin of each component (labels are few; ndimage.maximum_position sorts them all)
     sel = np.flatnonzero(lab)
     order = np.lexsort((power.ravel()[sel], lab.ravel()[sel]))
