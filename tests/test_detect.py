@@ -1153,6 +1153,51 @@ def test_weave_fit_recovers_two_sinusoids():
                                rtol=1e-4)
 
 
+def test_weave_peaks_are_the_band_bins_far_above_their_rings_median():
+    """The weave's peaks as _remove_weave's docstring states them, on whole-spectrum maps: the
+    Hann-windowed spectrum's bins in the searched band whose power exceeds weave_factor x the median
+    of their integer radial ring; _remove_weave makes them on the band's bins alone. The same number
+    of peaks (8-connected groups of bins) on weaves of one to three sinusoids, and the ring median
+    is the sorted ring's element count // 2."""
+    from scipy import ndimage as ndi
+    from uvps.core.detect.weave import _remove_weave, _ring_median
+
+    rng = np.random.default_rng(11)
+    sel = rng.integers(0, 9, 400)
+    pb = rng.random(400)
+    med = _ring_median(pb, sel)
+    for r in range(9):
+        ring = np.sort(pb[sel == r])
+        assert med[r] == (ring[ring.size // 2] if ring.size else 0.0)
+    px, p = 15.0, DetectionParams()
+    m, n = 180, 240
+    yy, xx = np.mgrid[:m, :n].astype(np.float64)
+    found = []
+    for k in (1, 2, 3):
+        h = rng.normal(0, 0.3, (m, n))
+        for _ in range(k):
+            period = rng.uniform(200, 600) / px
+            angle = rng.uniform(0, np.pi)
+            h += rng.uniform(1, 3) * np.sin(2 * np.pi * (xx * np.cos(angle) + yy * np.sin(angle)) / period)
+        h = h.astype(np.float32)
+        x = (h.astype(np.float64) - float(np.mean(h))) * np.outer(np.hanning(m), np.hanning(n))
+        power = np.abs(np.fft.rfft2(x)) ** 2
+        fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])
+        band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
+        ring = np.minimum((fr * max(m, n)).astype(np.int64), max(m, n))
+        ring_med = np.zeros(max(m, n) + 1)
+        for r in np.unique(ring[band]):
+            ring_med[r] = np.sort(power[band & (ring == r)])[int((band & (ring == r)).sum()) // 2]
+        medmap = ring_med[ring]
+        ratio = np.divide(power, medmap, out=np.zeros_like(power), where=band & (medmap > 0))
+        peaks = ratio > p.weave_factor
+        want = ndi.label(peaks, structure=np.ones((3, 3)))[1]
+        _, est = _remove_weave(h, px, p)
+        assert est.n_peaks == want, (k, est.n_peaks, want)
+        found.append(want)
+    assert min(found) >= 1
+
+
 def test_holes_and_distance_match_scipy():
     from scipy import ndimage as ndi
     from uvps.core.detect import _edt, _holes

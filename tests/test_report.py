@@ -498,11 +498,49 @@ def test_area_borders_are_scikit_images_inner_boundaries_pixel_for_pixel():
             assert np.array_equal(inner_boundaries(labels.astype(kind)), want), (trial, kind)
         assert np.array_equal(inner_boundaries(labels > 0), find_boundaries(labels > 0, mode="inner"))
     big = np.zeros((40, 50), np.int32)
-    big[5:9, 5:9], big[5:9, 9:12], big[20:, 30:] = 70000, 3, 2 ** 25     # above uint16 and float32's
+    big[5:9, 5:9], big[5:9, 9:12] = 70000, 3                              # above uint16: float32
+    assert np.array_equal(inner_boundaries(big), find_boundaries(big, mode="inner"))
+    big[20:, 30:] = 2 ** 25                                                 # above float32's: float64
     assert np.array_equal(inner_boundaries(big), find_boundaries(big, mode="inner"))
     assert inner_boundaries(big)[20:, 30:].sum() == 20 + 20 - 1   # its top row and left column: not the image's edges
     with pytest.raises(UVPSInputError, match="non-negative"):
         inner_boundaries(np.array([[0, -1], [2, 2]]))
+    assert inner_boundaries(np.zeros((0, 5), np.int32)).shape == (0, 5)
+
+
+def test_float_protrusion_labels_with_nan_are_outlined_and_negative_ones_refused_by_name(tmp_path):
+    # a float label TIFF (as some Fiji workflows save one) with NaN or infinite background is outlined
+    # as its integer labels are; a label below 0 is refused naming the file, not outlined wrongly; a label
+    # TIFF of another size than the run's images is left out, as before
+    import re
+
+    from uvps.errors import UVPSInputError
+
+    _, labels = _domes()
+    figures = {}
+    for case, background in (("int", None), ("nan", np.nan), ("inf", np.inf)):
+        d = tmp_path / case
+        d.mkdir()
+        _run_folder(d)
+        if background is not None:
+            f = labels.astype(np.float32)
+            f[labels == 0] = background
+            write_imagej_tiff(d / "protrusions_labels.tif", f, axes="YX", pixel_size_um=PX)
+        html = write_report(d, bins_um=100.0).read_text()
+        assert "albedo.png" in re.findall(r"src='figures/([a-z0-9]+\.png)'", html)
+        figures[case] = {n: (d / "figures" / n).read_bytes() for n in ("albedo.png", "height.png")}
+    assert figures["nan"] == figures["int"] and figures["inf"] == figures["int"]
+    d = tmp_path / "negative"
+    d.mkdir()
+    _run_folder(d)
+    bad = labels.astype(np.int32)
+    bad[0, 0] = -2
+    write_imagej_tiff(d / "protrusions_labels.tif", bad, axes="YX", pixel_size_um=PX)
+    with pytest.raises(UVPSInputError, match=r"protrusions_labels\.tif: protrusion labels must be integers "
+                                             r"from 0 .* found -2 to"):
+        write_report(d, bins_um=100.0)
+    write_imagej_tiff(d / "protrusions_labels.tif", bad[:-1], axes="YX", pixel_size_um=PX)
+    assert write_report(d, bins_um=100.0).is_file()          # not the run's size: left out
 
 
 def test_the_painting_overview_is_drawn_at_its_figures_width_and_keeps_thin_outlines():

@@ -731,10 +731,14 @@ def curl_magnitude(p, q, *, rows: int = 256) -> np.ndarray:
     The same values, to the bit, as ``np.abs(-np.gradient(np.nan_to_num(p), axis=0) -
     np.gradient(np.nan_to_num(q), axis=1))``, made ``rows`` rows at a time (each band with one row
     of ``p`` either side), in threads (:func:`uvps.core.threads.map_bands`): the whole-image form holds
-    five float32 images besides its output (240 MB at 4000 x 3000).
+    five float32 images besides its output (240 MB at 4000 x 3000). Called inside another parallel
+    part (:func:`uvps.core.threads.concurrently`: the run's detection height beside its colour areas),
+    its bands run one after another in that thread.
     """
     p = np.asarray(p, np.float32)
     q = np.asarray(q, np.float32)
+    if p.ndim != 2 or q.shape != p.shape:
+        raise UVPSInputError(f"p and q must be two images of one shape; got {p.shape} and {q.shape}")
     M = p.shape[0]
     if M < 2 or p.shape[1] < 2:
         raise UVPSInputError(f"a curl needs at least 2 x 2 gradients; got {p.shape}")

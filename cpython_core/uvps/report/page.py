@@ -80,6 +80,14 @@ def save_figure(fig, path) -> Path:
     return path
 
 
+def _check_shown(name: str, shown: np.ndarray, shape, step: int) -> None:
+    """A ``display`` or ``outline`` given to a figure must be of the image drawn at every ``step``-th pixel."""
+    want = tuple(-(-int(v) // step) for v in shape[:2])
+    if tuple(np.shape(shown)[:2]) != want:
+        raise UVPSInputError(f"{name}: expected the image at every {step}-th pixel, {want[0]} x {want[1]}; "
+                             f"got {' x '.join(map(str, np.shape(shown)[:2]))}")
+
+
 def display_step(shape) -> int:
     return max(1, int(np.ceil(max(shape[:2]) / _MAX_DISPLAY_PX)))
 
@@ -113,6 +121,8 @@ def _morphology_labels(labels: np.ndarray):
     uint16 below 65535 labels, float32 below 2^24, else float64.
     """
     lab = np.asarray(labels)
+    if lab.ndim != 2:
+        raise UVPSInputError(f"labels must be a 2-D image; got shape {lab.shape}")
     if lab.size and lab.dtype != bool and int(lab.min()) < 0:
         raise UVPSInputError(f"labels must be non-negative integers; the smallest is {int(lab.min())}")
     top = int(lab.max()) if lab.size else 0
@@ -136,12 +146,14 @@ def outer_boundaries(labels: np.ndarray) -> np.ndarray:
     them through ``scipy.ndimage``'s generic grey morphology: 0.34 s at 3000 x 4000 against
     0.07 s here (``tests/test_report.py`` checks the two agree, the image's edges included: OpenCV
     leaves pixels outside the image out of a minimum or maximum, as ndimage's reflection does).
-    Labels are non-negative integers of any width (scikit-image's own answer for int64 labels
-    marks objects' edges too: the background it lifts to 2^63 - 1 is not held exactly).
+    Labels are a 2-D image of non-negative integers of any width (scikit-image's own answer for
+    int64 labels marks objects' edges too: the background it lifts to 2^63 - 1 is not held exactly).
     """
     import cv2
 
     f, top = _morphology_labels(labels)
+    if not f.size:
+        return np.zeros(f.shape, bool)
     square = np.ones((3, 3), np.uint8)
     edge = _thick_boundaries(f)
     background = f == 0
@@ -159,8 +171,11 @@ def inner_boundaries(labels: np.ndarray) -> np.ndarray:
     """``skimage.segmentation.find_boundaries(labels, mode="inner")``, pixel for pixel, by OpenCV:
     the labelled pixels (not 0) whose 4-neighbourhood holds another label. As
     :func:`outer_boundaries`, ~10x faster than scikit-image's generic grey morphology
-    (``tests/test_report.py`` checks the two agree)."""
+    (``tests/test_report.py`` checks the two agree). Labels: a 2-D image of non-negative integers
+    (any integer type, whole-valued floats) or a bool mask."""
     f, _ = _morphology_labels(labels)
+    if not f.size:
+        return np.zeros(f.shape, bool)
     edge = _thick_boundaries(f)
     edge &= f != 0
     return edge
@@ -248,6 +263,8 @@ def _draw_outlines(ax, labels, step, shape, ext, colour=(1.0, 0.0, 0.0, 1.0), ou
     ``outline``: ``_outline(labels, step)`` when the caller has it."""
     if labels is None or not labels.any():
         return 0
+    if outline is not None:
+        _check_shown("outline", outline, labels.shape, step)
     edge = (_outline(labels, step) if outline is None else outline)[: shape[0], : shape[1]]
     overlay = np.zeros(edge.shape + (4,))
     overlay[edge] = colour
@@ -266,6 +283,8 @@ def plot_albedo(albedo: np.ndarray, path, *, pixel_size_um: float,
     """
     shape = as_yxc(albedo).shape
     step = display_step(shape)
+    if display is not None:
+        _check_shown("display", display, shape, step)
     a = display_albedo(albedo, step) if display is None else display
     fig = figure((7, 7 * shape[0] / shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
@@ -440,6 +459,8 @@ def region_colours(regions, albedo: Optional[np.ndarray], *, display: Optional[n
     cols = dict(getattr(regions, "colors", {}) or {})
     if albedo is not None:
         step = display_step(regions.labels.shape)
+        if display is not None:
+            _check_shown("display", display, regions.labels.shape, step)
         a = display_albedo(albedo, step) if display is None else display
         if a.ndim == 2:
             a = np.repeat(a[..., None], 3, axis=-1)
@@ -458,6 +479,8 @@ def plot_regions(albedo: np.ndarray, regions, path, *, pixel_size_um: float,
     """Albedo with the colour-area borders and numbers (to check a proposal before editing it).
     ``display``: ``display_albedo(albedo, display_step(shape))`` when the caller has it."""
     step = display_step(regions.labels.shape)
+    if display is not None:
+        _check_shown("display", display, regions.labels.shape, step)
     a = display_albedo(albedo, step) if display is None else display
     fig = figure((7, 7 * a.shape[0] / a.shape[1] + 0.6), layout=None)
     ax = fig.add_subplot()
@@ -547,6 +570,8 @@ def plot_comparison_map(albedo: np.ndarray, a: dict, b: dict, comparison, path, 
     from matplotlib.patches import Circle
 
     m, n = as_yxc(albedo).shape[:2]
+    if display is not None:
+        _check_shown("display", display, (m, n), display_step((m, n)))
     img = display_albedo(albedo, display_step((m, n))) if display is None else display
     fig = figure((7, 7 * m / n + 0.6), layout=None)
     ax = fig.add_subplot()
@@ -843,9 +868,6 @@ def _read_inputs(run_dir: Path, run, table, images=None) -> _RunInputs:
     if table is not None and not table_path.is_file():
         raise UVPSInputError(f"protrusion table {table_path} does not exist")
     plabels, px_l = _read_optional_tiff(_labels_path(table_path))
-    if plabels is not None and plabels.size and plabels.dtype.kind in "if" and float(np.nanmin(plabels)) < 0:
-        raise UVPSInputError(f"{_labels_path(table_path)}: protrusion labels must be non-negative "
-                             f"integers (0 = none); its smallest is {float(np.nanmin(plabels)):g}")
     if images is None:
         images = read_run(run_dir, need=(), require_pixel_size=False)
     px = images.pixel_size_um
@@ -856,7 +878,22 @@ def _read_inputs(run_dir: Path, run, table, images=None) -> _RunInputs:
         if px is None and (run_dir / "lights.json").is_file():
             px = _read_json(run_dir / "lights.json").get("pixel_size_um")
     shape = images.shape if images.shape is not None else (plabels.shape[-2:] if plabels is not None else None)
+    if plabels is not None and shape is not None and plabels.shape == tuple(shape[:2]):
+        plabels = _checked_labels(plabels, _labels_path(table_path))
     return _RunInputs(images.normals, images.albedo, images.height_um, plabels, table_path, px, shape)
+
+
+def _checked_labels(labels: np.ndarray, path: Path) -> np.ndarray:
+    """A protrusion label image the figures outline: floats' NaN and infinities are no protrusion (0);
+    a label below 0, or a float one past 2^53 (no longer an exact integer), is refused by the file's name."""
+    if labels.dtype.kind == "f":
+        labels = np.where(np.isfinite(labels), labels, 0)
+    if labels.size and labels.dtype.kind in "if":
+        low, high = float(labels.min()), float(labels.max())
+        if low < 0 or (labels.dtype.kind == "f" and high >= 2.0 ** 53):
+            raise UVPSInputError(f"{path}: protrusion labels must be integers from 0 (no protrusion) up; "
+                                 f"found {low:g} to {high:g}")
+    return labels
 
 
 def _display_for(inputs: _RunInputs, shape) -> Optional[np.ndarray]:
