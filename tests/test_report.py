@@ -457,6 +457,17 @@ def test_lamps_from_a_calibration_folder_name_its_route(tmp_path):
     assert "scale set by the given lamps" in summary
 
 
+def _random_labels(seed: int, zero_fraction: float, trials: int = 300):
+    """Small label images (1-29 px a side, up to 6 labels, a share of background) to hold OpenCV's
+    morphology against scikit-image's."""
+    rng = np.random.default_rng(seed)
+    for trial in range(trials):
+        m, n = (int(v) for v in rng.integers(1, 30, 2))
+        labels = rng.integers(0, int(rng.integers(1, 7)), (m, n))
+        labels[rng.random((m, n)) < zero_fraction] = 0
+        yield trial, labels
+
+
 def test_outlines_are_scikit_images_outer_boundaries_pixel_for_pixel():
     # the report draws protrusion outlines with OpenCV's morphology (0.07 against 0.34 s at
     # 3000 x 4000); they must be find_boundaries(mode="outer")'s, at the image's edges, where two
@@ -464,11 +475,7 @@ def test_outlines_are_scikit_images_outer_boundaries_pixel_for_pixel():
     from skimage.segmentation import find_boundaries
     from uvps.report.page import outer_boundaries
 
-    rng = np.random.default_rng(4)
-    for trial in range(300):
-        m, n = (int(v) for v in rng.integers(1, 30, 2))
-        labels = rng.integers(0, int(rng.integers(1, 7)), (m, n))
-        labels[rng.random((m, n)) < 0.4] = 0
+    for trial, labels in _random_labels(4, 0.4):
         want = find_boundaries(labels.astype(np.int32), mode="outer")
         for kind in (np.int32, np.uint16, np.uint32, np.int64):
             # against int32's: with int64 labels find_boundaries lifts the background to 2^63 - 1,
@@ -488,11 +495,7 @@ def test_area_borders_are_scikit_images_inner_boundaries_pixel_for_pixel():
     from uvps.errors import UVPSInputError
     from uvps.report.page import inner_boundaries
 
-    rng = np.random.default_rng(5)
-    for trial in range(300):
-        m, n = (int(v) for v in rng.integers(1, 30, 2))
-        labels = rng.integers(0, int(rng.integers(1, 7)), (m, n))
-        labels[rng.random((m, n)) < 0.3] = 0
+    for trial, labels in _random_labels(5, 0.3):
         want = find_boundaries(labels.astype(np.int32), mode="inner")
         for kind in (np.int32, np.uint8, np.uint16, np.uint32, np.int64):
             assert np.array_equal(inner_boundaries(labels.astype(kind)), want), (trial, kind)
