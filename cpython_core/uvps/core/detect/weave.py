@@ -62,6 +62,34 @@ def _peak_frequency(logp: np.ndarray, ky: int, kx: int) -> tuple:
     return (fy - 1.0 if fy >= 0.5 else fy), (kx + dx) / n
 
 
+def _weave_peaks(power: np.ndarray, shape, px: float, p: DetectionParams):
+    """The bins of the ``rfft2`` power spectrum of an image of ``shape`` in the searched band (periods
+    ``weave_min_period_um`` to ``weave_max_period_um``) whose power exceeds ``weave_factor`` times the
+    median of their integer radial ring (:func:`_ring_median`), as a bool map; None when the band
+    holds no bin."""
+    m, n = shape
+    fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
+    band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
+    if not band.any():
+        return None
+    # each bin's ring, and its power over its ring's median, made in place and inside the band alone:
+    # the same values as the whole-spectrum maps, without four full-size float64 / int64 temporaries
+    np.multiply(fr, max(m, n), out=fr)
+    ring = fr.astype(np.int64)
+    del fr
+    np.minimum(ring, max(m, n), out=ring)
+    at = np.flatnonzero(band)
+    del band
+    ring_at = ring.ravel()[at]
+    del ring
+    med = _ring_median(power.ravel()[at], ring_at)[ring_at]
+    del ring_at
+    peak = np.zeros(power.shape, bool)
+    above = med > 0
+    peak.ravel()[at[above]] = power.ravel()[at[above]] / med[above] > p.weave_factor
+    return peak
+
+
 def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     """Measure the canvas weave on the height's power spectrum and subtract it.
 
@@ -95,26 +123,9 @@ def _remove_weave(hs: np.ndarray, px: float, p: DetectionParams) -> tuple:
     power = np.abs(spec)
     del spec
     np.square(power, out=power)
-    fr = np.hypot(np.fft.fftfreq(m)[:, None], np.fft.rfftfreq(n)[None, :])  # cycles per pixel
-    band = (fr >= px / p.weave_max_period_um) & (fr <= px / p.weave_min_period_um)
-    if not band.any():
+    peak = _weave_peaks(power, (m, n), px, p)
+    if peak is None:
         return hs, none
-    # each bin's ring, and its power over its ring's median, made in place and inside the band alone:
-    # the same values as the whole-spectrum maps, without four full-size float64 / int64 temporaries
-    np.multiply(fr, max(m, n), out=fr)
-    ring = fr.astype(np.int64)
-    del fr
-    np.minimum(ring, max(m, n), out=ring)
-    at = np.flatnonzero(band)
-    del band
-    ring_at = ring.ravel()[at]
-    del ring
-    med = _ring_median(power.ravel()[at], ring_at)[ring_at]
-    del ring_at
-    peak = np.zeros(power.shape, bool)
-    above = med > 0
-    peak.ravel()[at[above]] = power.ravel()[at[above]] / med[above] > p.weave_factor
-    del med, above, at
     lab, k = ndi.label(peak, structure=np.ones((3, 3)))
     del peak
     if not k:
