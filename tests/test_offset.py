@@ -45,6 +45,50 @@ def test_no_black_level_measures_zero(small):
     assert abs(term.mean.mean()) < 0.001 * term.median_signal
 
 
+@pytest.mark.parametrize("rows, cols, masked", [(600, 800, False), (590, 797, True)])
+def test_both_block_sizes_come_from_one_pass_with_the_two_passes_values(small, monkeypatch, rows, cols, masked):
+    """The term's two block sizes (32 and 16 px) merged from one pass over the stack on 8 px blocks: the
+    same term to the bit as a pass for each size, on grids that do and do not start on the same row, with
+    a mask; each image read once instead of twice. Float images, whose sums change with the order, keep
+    a pass per size."""
+    import dataclasses
+
+    import uvps.core.offset as off
+
+    _, black = small
+    images = np.ascontiguousarray(black.images[:, :rows, :cols])
+    assert images.dtype == np.uint16
+    mask = None
+    if masked:
+        mask = np.ones((rows, cols), bool)
+        mask[100:180, 200:420] = False
+    reads = []
+    stats = off.image_block_stats
+    monkeypatch.setattr(off, "image_block_stats", lambda *a, **kw: reads.append(a[4]) or stats(*a, **kw))
+
+    def term(imgs, one_pass):
+        reads.clear()
+        with monkeypatch.context() as m:
+            if not one_pass:
+                m.setattr(off, "_both_grids", lambda *a, **kw: None)
+            got = estimate_additive(imgs, mask=mask, saturation=65535)
+        return got, sorted(reads)
+
+    got, got_reads = term(images, True)
+    ref, ref_reads = term(images, False)
+    K = len(images)
+    assert got_reads == [8] * K and ref_reads == [16] * K + [32] * K
+    assert ref.diagnostics["block_px_compared"] == 16 and ref.diagnostics["block_px"] == 32
+    for f in dataclasses.fields(off.AdditiveTerm):
+        a, b = getattr(got, f.name), getattr(ref, f.name)
+        assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, f.name
+    assert np.all(np.abs(got.mean - [300.0, 200.0, 120.0]) <= 4 * got.stderr + 1.0)
+    as_float = images.astype(np.float32)
+    assert off._both_grids(as_float, 16, 32, None) is None
+    _, float_reads = term(as_float, True)
+    assert float_reads == [16] * K + [32] * K
+
+
 def test_grey_captures_are_measured_like_colour_ones(small):
     """A grey stack (K, M, N) gets the same block means as one channel and its black level measured:
     the grey of the per-channel levels, and none on the clean capture. (A transposed block grid for

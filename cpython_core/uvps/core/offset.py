@@ -225,15 +225,12 @@ def _view_sample(a, d, f, has_dark, has_factor, i, j, c):  # pragma: no cover - 
 
 
 @numba.njit(inline="always", nogil=True, cache=True)
-def _block_means(rows, block):  # pragma: no cover - compiled
-    # the block kernels' last step: each block's mean from its rows' column sums, in one order
-    R, N, C = rows.shape
-    means = np.zeros((R, N // block, C))
-    for r in range(R):
-        for j in range(N):
-            for c in range(C):
-                means[r, j // block, c] += rows[r, j, c]
-    return means / (block * block)
+def _fold_block_row(acc, block, means, r):  # pragma: no cover - compiled
+    # one block row's column sums added into its blocks' sums, in one order, and the sums cleared for the next
+    for j in range(acc.shape[0]):
+        for c in range(acc.shape[1]):
+            means[r, j // block, c] += acc[j, c]
+            acc[j, c] = 0.0
 
 
 def block_stats_parts(parts, block: int, saturation=None) -> BlockStats:
@@ -264,7 +261,10 @@ def _block_stats_kernel(a, d, f, as_view, has_dark, has_factor, block, sat):  # 
     # With a dark frame each row's values are made first (_dark_row), then summed: its clip in the
     # per-sample loop made that loop 12x slower (14 ns a sample against 1-2; the same sums in the same order)
     R, Cb, C = a.shape[0] // block, a.shape[1] // block, a.shape[2]
-    rows = np.zeros((R, Cb * block, C))
+    # one block row's column sums at a time (all of them at once were R * Cb * block * C float64, 36 MB
+    # an image on 8 px blocks at 4000 x 3000 RGB, memory touched for the first time on every call)
+    acc = np.zeros((Cb * block, C))
+    means = np.zeros((R, Cb, C))
     gmin = np.full((R, Cb), np.inf)
     smin = np.full((R, Cb), np.inf)
     satd = np.zeros((R, Cb), np.bool_)
@@ -285,13 +285,15 @@ def _block_stats_kernel(a, d, f, as_view, has_dark, has_factor, block, sat):  # 
                         v = float(_view_sample(a, d, f, False, has_factor, i, j, c))
                     else:
                         v = float(a[i, j, c])
-                    rows[r, j, c] += v
+                    acc[j, c] += v
                     g += v
                     lo_s = min(lo_s, v)
                     hit |= v >= sat
                 lo_g = min(lo_g, g)
             gmin[r, cb], smin[r, cb], satd[r, cb] = lo_g, lo_s, hit
-    return _block_means(rows, block), gmin, smin, satd
+        if i % block == block - 1:
+            _fold_block_row(acc, block, means, r)
+    return means / (block * block), gmin, smin, satd
 
 
 @numba.njit(inline="always", nogil=True, cache=True)
@@ -370,29 +372,75 @@ def _first_call(kernel, *args):
     return r
 
 
-def _channel_blocks(images, *, block, mask, saturation):
-    """Per-channel block means (K, C, R, Cb) and the blocks usable in every image (R, Cb)."""
+def _grid(shape, block: int) -> tuple:
+    """The centred grid of ``block`` px blocks of an (M, N) image: (R, Cb, r0, c0)."""
+    M, N = shape
+    R, Cb = M // block, N // block
+    return R, Cb, (M - R * block) // 2, (N - Cb * block) // 2
+
+
+def _channel_blocks(images, *, block, mask, saturation, blocks=None):
+    """Per-channel block means (K, C, R, Cb) and the blocks usable in every image (R, Cb); ``blocks``: the
+    means and the usable blocks of each image (K, R, Cb) when made already (:func:`_both_grids`), else by
+    a pass of its own."""
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 1
-    R, Cb = M // block, N // block
-    r0, c0 = (M - R * block) // 2, (N - Cb * block) // 2
-    out = np.empty((K, C, R, Cb))
-    usable = np.empty((K, R, Cb), bool)
+    R, Cb, r0, c0 = _grid((M, N), block)
+    if blocks is not None:
+        out, usable = blocks
+    else:
+        out = np.empty((K, C, R, Cb))
+        usable = np.empty((K, R, Cb), bool)
 
-    def one(k):
-        st = image_block_stats(images, k, slice(r0, r0 + R * block), slice(c0, c0 + Cb * block), block, saturation)
-        out[k] = np.moveaxis(st.means, -1, 0) if st.means.ndim == 3 else st.means[None]
-        usable[k] = ~st.saturated & (st.sample_min > 0)
+        def one(k):
+            st = image_block_stats(images, k, slice(r0, r0 + R * block), slice(c0, c0 + Cb * block), block,
+                                   saturation)
+            out[k] = np.moveaxis(st.means, -1, 0) if st.means.ndim == 3 else st.means[None]
+            usable[k] = ~st.saturated & (st.sample_min > 0)
 
-    # the first image in this thread (numba types the kernel on its first call), the others in
-    # default_threads(2) threads: the kernel and the file reads release the GIL; each image's own
-    each_image(one, K)
+        # the first image in this thread (numba types the kernel on its first call), the others in
+        # default_threads(2) threads: the kernel and the file reads release the GIL; each image's own
+        each_image(one, K)
     ok = usable.all(axis=0)
     if mask is not None:
         ok &= mask[r0:r0 + R * block, c0:c0 + Cb * block].reshape(R, block, Cb, block).all(axis=(1, 3))
     rows = r0 + block * np.arange(R) + (block - 1) / 2.0
     cols = c0 + block * np.arange(Cb) + (block - 1) / 2.0
     return out, ok, rows, cols
+
+
+def _both_grids(images, small: int, large: int, saturation) -> Optional[dict]:
+    """:func:`_channel_blocks`' means and usable blocks (``blocks``) of both of :func:`estimate_additive`'s
+    block sizes from ONE pass over the stack: each image's statistics on ``small // 2`` px blocks, merged
+    into both grids (the two grids' origins differ by a multiple of that size). The same values as a pass
+    for each size: a block's sum of integer samples is exact in any order (below 2**53), and a fine block's
+    mean times its area, a power of two, gives its sum back exactly. None where that does not hold
+    (samples that are not integers, other sizes): a pass for each size then."""
+    K, M, N = images.shape[:3]
+    b = small // 2
+    dtype = np.dtype(getattr(images, "dtype", np.float64))
+    grids = {blk: _grid((M, N), blk) for blk in (small, large)}
+    Rs, Cs, r0, c0 = grids[small]
+    if (not np.issubdtype(dtype, np.integer) or dtype.itemsize > 4 or b < 1 or small != 2 * b or large % b
+            or b & (b - 1) or any((r - r0) % b or (c - c0) % b or r < r0 or c < c0 or r + R * blk > r0 + Rs * small
+                                  or c + Cb * blk > c0 + Cs * small for blk, (R, Cb, r, c) in grids.items())):
+        return None
+    C = images.shape[3] if images.ndim == 4 else 1
+    out = {blk: (np.empty((K, C, R, Cb)), np.empty((K, R, Cb), bool)) for blk, (R, Cb, _, _) in grids.items()}
+
+    def one(k):
+        st = image_block_stats(images, k, slice(r0, r0 + 2 * Rs * b), slice(c0, c0 + 2 * Cs * b), b, saturation)
+        sums = (np.moveaxis(st.means, -1, 0) if st.means.ndim == 3 else st.means[None]) * (b * b)
+        for blk, (R, Cb, r, c) in grids.items():
+            f, i0, j0 = blk // b, (r - r0) // b, (c - c0) // b
+            part = (slice(i0, i0 + R * f), slice(j0, j0 + Cb * f))
+            means, usable = out[blk]
+            means[k] = sums[(slice(None),) + part].reshape(C, R, f, Cb, f).sum(axis=(2, 4)) / (blk * blk)
+            lowest = st.sample_min[part].reshape(R, f, Cb, f).min(axis=(1, 3))
+            usable[k] = ~st.saturated[part].reshape(R, f, Cb, f).any(axis=(1, 3)) & (lowest > 0)
+
+    each_image(one, K)
+    return out
 
 
 def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_degree=4, block=None,
@@ -457,10 +505,11 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
         large, small = small, max(2, small // 2)
     kw = dict(mask=mask, saturation=saturation, degree=degree, dropoff_degree=dropoff_degree, n_iter=n_iter,
               tiles=tiles, keep=keep)
-    term = _estimate_at(images, large, **kw)
+    both = None if small == large else _both_grids(images, small, large, saturation)
+    term = _estimate_at(images, large, blocks=both and both[large], **kw)
     if not np.all(np.isfinite(term.stderr)) or small == large:
         return term
-    other = _estimate_at(images, small, **kw)
+    other = _estimate_at(images, small, blocks=both and both[small], **kw)
     if np.all(np.isfinite(other.stderr)):
         spread = np.abs(term.mean - other.mean)
         term.diagnostics["jackknife_stderr_counts"] = [round(float(v), 3) for v in term.stderr]
@@ -472,10 +521,11 @@ def estimate_additive(images, *, mask=None, saturation=None, degree=0, dropoff_d
     return term
 
 
-def _estimate_at(images, block, *, mask, saturation, degree, dropoff_degree, n_iter, tiles, keep) -> AdditiveTerm:
+def _estimate_at(images, block, *, mask, saturation, degree, dropoff_degree, n_iter, tiles, keep,
+                 blocks=None) -> AdditiveTerm:
     """:func:`estimate_additive` on blocks of ``block`` px: the measure and its jackknife standard error."""
     K, M, N = images.shape[:3]
-    blk, ok, rows, cols = _channel_blocks(images, block=block, mask=mask, saturation=saturation)
+    blk, ok, rows, cols = _channel_blocks(images, block=block, mask=mask, saturation=saturation, blocks=blocks)
     C = blk.shape[1]
     n_ok = int(ok.sum())
     if n_ok < 4 * (dropoff_degree + 1) ** 2:
