@@ -89,6 +89,28 @@ def test_both_block_sizes_come_from_one_pass_with_the_two_passes_values(small, m
     assert float_reads == [16] * K + [32] * K
 
 
+@pytest.mark.parametrize("grey", [False, True])
+def test_one_pass_blocks_are_each_sizes_own_with_saturated_and_dark_pixels(small, grey):
+    """Each size's block means and usable blocks merged from the one pass are those of a pass of its own,
+    for colour and grey stacks, where a few pixels (inside one 8 px block) are saturated or black: a
+    block holding any of them is left out, at both sizes."""
+    import uvps.core.offset as off
+
+    _, black = small
+    images = black.images[:, :590, :797].copy()
+    images[:, 40:44, 100:103] = 65535
+    images[:, 300:302, 500:505] = 0
+    if grey:
+        images = np.ascontiguousarray(images[..., 1])
+    both = off._both_grids(images, 16, 32, 65535.0)
+    for blk in (16, 32):
+        ref = off._channel_blocks(images, block=blk, mask=None, saturation=65535.0)
+        got = off._channel_blocks(images, block=blk, mask=None, saturation=65535.0, blocks=both[blk])
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+        assert 2 <= (~ref[1]).sum() <= 4, blk     # the blocks of the saturated pixels and of the black ones
+
+
 def test_grey_captures_are_measured_like_colour_ones(small):
     """A grey stack (K, M, N) gets the same block means as one channel and its black level measured:
     the grey of the per-channel levels, and none on the clean capture. (A transposed block grid for

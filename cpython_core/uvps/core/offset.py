@@ -381,8 +381,8 @@ def _grid(shape, block: int) -> tuple:
 
 def _channel_blocks(images, *, block, mask, saturation, blocks=None):
     """Per-channel block means (K, C, R, Cb) and the blocks usable in every image (R, Cb); ``blocks``: the
-    means and the usable blocks of each image (K, R, Cb) when made already (:func:`_both_grids`), else by
-    a pass of its own."""
+    means (K, C, R, Cb) and each image's usable blocks (K, R, Cb) when made already (:func:`_both_grids`),
+    else a pass of its own makes them."""
     K, M, N = images.shape[:3]
     C = images.shape[3] if images.ndim == 4 else 1
     R, Cb, r0, c0 = _grid((M, N), block)
@@ -412,16 +412,17 @@ def _channel_blocks(images, *, block, mask, saturation, blocks=None):
 def _both_grids(images, small: int, large: int, saturation) -> Optional[dict]:
     """:func:`_channel_blocks`' means and usable blocks (``blocks``) of both of :func:`estimate_additive`'s
     block sizes from ONE pass over the stack: each image's statistics on ``small // 2`` px blocks, merged
-    into both grids (the two grids' origins differ by a multiple of that size). The same values as a pass
-    for each size: a block's sum of integer samples is exact in any order (below 2**53), and a fine block's
-    mean times its area, a power of two, gives its sum back exactly. None where that does not hold
-    (samples that are not integers, other sizes): a pass for each size then."""
+    into both grids (for an even ``small`` and ``large = 2 * small`` their origins differ by 0 or
+    ``small // 2``: checked). The same values as a pass for each size: a block's sum of integer samples is
+    exact in any order (below 2**53), and a fine block's mean times its area, a power of two, gives its sum
+    back exactly. None where that does not hold (samples that are not integers, other sizes, grids off the
+    fine one): a pass for each size then."""
     K, M, N = images.shape[:3]
     b = small // 2
     dtype = np.dtype(getattr(images, "dtype", np.float64))
     grids = {blk: _grid((M, N), blk) for blk in (small, large)}
     Rs, Cs, r0, c0 = grids[small]
-    if (not np.issubdtype(dtype, np.integer) or dtype.itemsize > 4 or b < 1 or small != 2 * b or large % b
+    if (not np.issubdtype(dtype, np.integer) or dtype.itemsize > 4 or small != 2 * b or large % b
             or b & (b - 1) or any((r - r0) % b or (c - c0) % b or r < r0 or c < c0 or r + R * blk > r0 + Rs * small
                                   or c + Cb * blk > c0 + Cs * small for blk, (R, Cb, r, c) in grids.items())):
         return None
