@@ -89,6 +89,18 @@ def test_both_block_sizes_come_from_one_pass_with_the_two_passes_values(small, m
     assert float_reads == [16] * K + [32] * K
 
 
+def test_the_two_centred_grids_fall_on_the_fine_one():
+    """What the one pass relies on: for blocks of b, 2b and 4b px (b a power of two) centred on any image
+    side, the 4b grid starts on the 2b grid's origin or b px after it, and ends inside it."""
+    from uvps.core.offset import _grid
+
+    for b in (2, 4, 8, 16):
+        for side in range(4 * b, 5001):
+            Rs, _, r0, _ = _grid((side, side), 2 * b)
+            Rl, _, r1, _ = _grid((side, side), 4 * b)
+            assert r1 - r0 in (0, b) and r1 + 4 * b * Rl <= r0 + 2 * b * Rs, (b, side)
+
+
 @pytest.mark.parametrize("grey", [False, True])
 def test_one_pass_blocks_are_each_sizes_own_with_saturated_and_dark_pixels(small, grey):
     """Each size's block means and usable blocks merged from the one pass are those of a pass of its own,

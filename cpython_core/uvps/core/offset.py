@@ -411,21 +411,21 @@ def _channel_blocks(images, *, block, mask, saturation, blocks=None):
 
 def _both_grids(images, small: int, large: int, saturation) -> Optional[dict]:
     """:func:`_channel_blocks`' means and usable blocks (``blocks``) of both of :func:`estimate_additive`'s
-    block sizes from ONE pass over the stack: each image's statistics on ``small // 2`` px blocks, merged
-    into both grids (for an even ``small`` and ``large = 2 * small`` their origins differ by 0 or
-    ``small // 2``: checked). The same values as a pass for each size: a block's sum of integer samples is
-    exact in any order (below 2**53), and a fine block's mean times its area, a power of two, gives its sum
-    back exactly. None where that does not hold (samples that are not integers, other sizes, grids off the
-    fine one): a pass for each size then."""
+    block sizes from ONE pass over the stack: each image's statistics on ``b = small // 2`` px blocks, merged
+    into both grids. The same values as a pass for each size: a block's sum of integer samples is exact in
+    any order (below 2**53), and a fine block's mean times its area, a power of two, gives its sum back
+    exactly. None for samples that are not integers or sizes other than ``large = 2 * small = 4 * b``: a pass
+    for each size then."""
     K, M, N = images.shape[:3]
     b = small // 2
     dtype = np.dtype(getattr(images, "dtype", np.float64))
+    if not (np.issubdtype(dtype, np.integer) and dtype.itemsize <= 4 and large == 2 * small == 4 * b
+            and b & (b - 1) == 0):
+        return None
+    # the centred grids then fall on the fine one: the large grid starts where the small one does or b px
+    # further, and ends inside it (every image side up to 5000 px: tests/test_offset.py)
     grids = {blk: _grid((M, N), blk) for blk in (small, large)}
     Rs, Cs, r0, c0 = grids[small]
-    if (not np.issubdtype(dtype, np.integer) or dtype.itemsize > 4 or small != 2 * b or large % b
-            or b & (b - 1) or any((r - r0) % b or (c - c0) % b or r < r0 or c < c0 or r + R * blk > r0 + Rs * small
-                                  or c + Cb * blk > c0 + Cs * small for blk, (R, Cb, r, c) in grids.items())):
-        return None
     C = images.shape[3] if images.ndim == 4 else 1
     out = {blk: (np.empty((K, C, R, Cb)), np.empty((K, R, Cb), bool)) for blk, (R, Cb, _, _) in grids.items()}
 
