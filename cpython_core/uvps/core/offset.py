@@ -363,13 +363,22 @@ _TYPED = set()
 def _first_call(kernel, *args):
     """``kernel(*args)``; its first call with a signature under a lock: numba types a kernel on its first
     call with new argument types, and the stages call these from their threads."""
-    sig = (kernel, tuple(numba.typeof(a) for a in args))
+    sig = (kernel,) + tuple(map(_type_key, args))
     if sig in _TYPED:
         return kernel(*args)
     with _COMPILING:
         r = kernel(*args)
         _TYPED.add(sig)
     return r
+
+
+def _type_key(a) -> tuple:
+    """What numba types an argument by (an array: its dtype, dimensions, layout, writability and alignment), in
+    0.3 us where ``numba.typeof`` takes 7 us: the normals' bands call a kernel 3000 times at 4000 x 3000 x 16."""
+    if isinstance(a, np.ndarray):
+        f = a.flags
+        return (a.dtype, a.ndim, f.c_contiguous, f.f_contiguous, f.writeable, f.aligned)
+    return (type(a),)
 
 
 def _grid(shape, block: int) -> tuple:
