@@ -113,33 +113,3 @@ def test_divided_grid_is_the_gain_corrected_stacks_grid():
     np.testing.assert_array_equal(divided_grid(grid, np.zeros((5, 5, 5))).values, grid.values)
     with pytest.raises(UVPSInputError):
         divided_grid(grid, gains[:3])
-
-
-@pytest.mark.parametrize("dark_corner", [False, True])
-def test_the_lamps_fits_are_the_same_in_one_and_two_threads(dark_corner, monkeypatch):
-    """The lamps' drop-off fits run in two threads (one beside the calling one); each lamp's fit is its own
-    arithmetic, so the fits are those of one thread to the bit: every lamp lighting every block, and a lamp
-    leaving a corner dark (the partly-lit fits, four rounds of the lamps' fits)."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
-    import uvps.core.threads as th
-
-    images, _ = _capture(seed=4, K=8)
-    if dark_corner:
-        images[2, : M // 2, : N // 2] = 0.0           # lamp 3 leaves a quarter of the field dark
-    grid = block_grid(images)
-    pools = []
-    monkeypatch.setattr(th, "ThreadPoolExecutor", lambda n, **kw: pools.append(n) or ThreadPoolExecutor(n, **kw))
-    monkeypatch.setenv(th.THREADS_VARIABLE, "2")
-    two = fit_dropoffs(grid, degree=DEG)
-    assert set(pools) == ({1} if len(os.sched_getaffinity(0)) >= 2 else set())
-    monkeypatch.setenv(th.THREADS_VARIABLE, "1")
-    pools.clear()
-    one = fit_dropoffs(grid, degree=DEG)
-    assert pools == []
-    assert len(one) == len(two) == 8
-    for a, b in zip(one, two):
-        np.testing.assert_array_equal(a.coeffs, b.coeffs)
-        np.testing.assert_array_equal(a.ratio_coeffs, b.ratio_coeffs)
-        assert (a.level, a.gradient_rms, a.n_blocks) == (b.level, b.gradient_rms, b.n_blocks)

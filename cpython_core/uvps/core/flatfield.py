@@ -24,7 +24,6 @@ from numpy.polynomial import legendre as L
 from ..errors import UVPSInputError
 from .stack import StackView, raw_parts
 from .offset import corrected_band, each_image, image_block_stats
-from .threads import default_threads, map_bands
 
 log = logging.getLogger(__name__)
 
@@ -260,9 +259,10 @@ def fit_dropoffs(grid: BlockGrid, *, degree=4, n_iter=8) -> list:
         logv = np.log(np.where(ok_all[None], grid.values, np.nan))
     logG = logv.mean(axis=0)
     design = _grid_design(grid, degree)
-    n_ok = int(ok_all.sum())
-    fits = _each_lamp(lambda k: _ratio_fit(_fit_values(logv[k] - logG, ok_all, grid, degree, n_iter, design), grid,
-                                           ok_all, degree, n_ok), K)
+    fits = []
+    for k in range(K):
+        ratio = _fit_values(logv[k] - logG, ok_all, grid, degree, n_iter, design)
+        fits.append(_ratio_fit(ratio, grid, ok_all, degree, int(ok_all.sum())))
     _set_levels(fits, grid)
     return fits
 
@@ -284,9 +284,6 @@ PARTLY_LIT_LAMPS = 5
 #: blocks lit by :data:`PARTLY_LIT_LAMPS` lamps are lit by every lamp (a dome's low lamps leaving parts
 #: of the field dark); otherwise they use the blocks lit by every lamp, as always.
 PARTLY_LIT_SHARE = 0.9
-
-#: Threads the lamps' drop-off fits run in (the machine's 2 cores; at most :func:`uvps.core.threads.default_threads`).
-FIT_THREADS = 2
 
 
 def _fit_partly_lit(grid, support, degree, n_iter, rounds=4):
@@ -323,18 +320,13 @@ def _fit_partly_lit(grid, support, degree, n_iter, rounds=4):
         # (a masked one): NaN there, and no lamp's fit uses it
         with np.errstate(invalid="ignore", divide="ignore"):
             a = np.where(valid, logv - F, 0.0).sum(axis=0) / n_lit
-        C[:] = _each_lamp(lambda k: _fit_values(logv[k] - a, valid[k], grid, degree, n_iter, design), K)
+        for k in range(K):
+            C[k] = _fit_values(logv[k] - a, valid[k], grid, degree, n_iter, design)
         C -= C.mean(axis=0)
         F = np.einsum("ri,kij,cj->krc", Vv, C, Vu)
-    fits = _each_lamp(lambda k: _ratio_fit(C[k].copy(), grid, support, degree, int(valid[k].sum())), K)
+    fits = [_ratio_fit(C[k].copy(), grid, support, degree, int(valid[k].sum())) for k in range(K)]
     _set_levels(fits, grid)
     return fits
-
-
-def _each_lamp(fit, K: int) -> list:
-    """``[fit(k) for k in range(K)]``, the lamps' fits in threads (:data:`FIT_THREADS`): each is its own arithmetic
-    (numpy and LAPACK, which release the GIL), so the fits are the same to the bit whatever the threads."""
-    return map_bands(lambda k: fit(k.start), K, size=1, threads=default_threads(FIT_THREADS))
 
 
 def _set_levels(fits, grid):
