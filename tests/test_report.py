@@ -594,3 +594,39 @@ def test_the_painting_report_counts_every_protrusion_and_names_those_in_no_area(
                                  kept=kept, areas=areas, registration=Registration({"t": (0.0, 0.0)}, []),
                                  shapes={"t": (40, 60)}, origin=(0, 0), step=1, pixel_size_um=15.0).read_text()
     assert "3 protrusions</h1>" in page and "in no colour area" not in page
+
+
+@pytest.mark.parametrize("case", ["full", "no lights, no pixel size"])
+def test_figures_drawn_in_two_threads_are_those_of_one(tmp_path, monkeypatch, case):
+    """The figures are drawn in two threads: every PNG is the one-thread PNG byte for byte, and the HTML (figures
+    in their order, the figures not drawn and why, in theirs) is the same."""
+    from concurrent.futures import ThreadPoolExecutor
+    import os
+
+    import uvps.core.threads as th
+
+    pools = []
+    monkeypatch.setattr(th, "ThreadPoolExecutor", lambda n, **kw: pools.append(n) or ThreadPoolExecutor(n, **kw))
+    texts, pngs = {}, {}
+    for threads in ("1", "2"):
+        folder = tmp_path / threads / "run"
+        folder.mkdir(parents=True)
+        _run_folder(folder, lights=case == "full")
+        if case != "full":
+            _strip_calibration(folder)
+            (folder / "protrusions_labels.tif").unlink()
+            (folder / "run.json").unlink()
+        monkeypatch.setenv(th.THREADS_VARIABLE, threads)
+        pools.clear()
+        texts[threads] = write_report(folder, title="t").read_text().replace(str(folder), "F")
+        pngs[threads] = {p.name: p.read_bytes() for p in sorted((folder / "figures").glob("*.png"))}
+        assert pools == ([1] if threads == "2" and len(os.sched_getaffinity(0)) >= 2 else [])
+    strip = lambda t: re.sub(r"written \S+ \S+ UTC", "", t)     # noqa: E731 - the minute it was written
+    assert strip(texts["1"]) == strip(texts["2"])
+    assert pngs["1"] == pngs["2"]
+    if case == "full":
+        assert set(pngs["1"]) == {"lights.png", "normals.png", "albedo.png", "height.png", "detail3d.png",
+                                  "regions.png", "histograms.png"}
+    else:
+        skipped = re.findall(r"(lights\.png: lights\.json missing|image figures: no pixel size)", texts["2"])
+        assert skipped == ["lights.png: lights.json missing", "image figures: no pixel size"]

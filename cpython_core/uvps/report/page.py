@@ -34,6 +34,7 @@ from ..files.io import read_tiff
 from ..files.tables import atomic_write_text, read_protrusions_csv
 from ..files.outputs import Progress, atomic_path, report
 from ..core.regions import bin_names, region_statistics, whole_image
+from ..core.threads import concurrently
 from ..files.tables import load_regions
 from ..files.runfolder import earlier_work, read_run
 from .text import (Facts, Raw, area_table_html, cm2, density, facts_of, height,
@@ -743,21 +744,17 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     lights = _read_json(run_dir / "lights.json") if (run_dir / "lights.json").is_file() else None
     facts = facts_of(run, lights, pixel_size_um=inputs.pixel_size_um, shape=inputs.shape)
 
-    report(progress, 0.15, "lights")
-    _lights_figure(page, lights, figdir)
     px = inputs.pixel_size_um
-    if px is None:
-        page.skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
+    no_px = px is None
+    if no_px:
         px = float("nan")
     protrusions = read_protrusions_csv(inputs.table_path) if inputs.table_path.is_file() else None
-    report(progress, 0.3, "normals and albedo")
-    _normals_and_albedo_figures(page, inputs, figdir, px)
-    report(progress, 0.45, "height map")
-    _height_figures(page, inputs, protrusions, figdir, px, facts, progress)
-
-    report(progress, 0.7, "statistics")
-    regions, stats, colours = _area_statistics(page, run_dir, inputs, protrusions, figdir, px,
-                                               regions=regions, stats=stats, bins_um=bins_um)
+    report(progress, 0.15, "statistics")
+    regions, stats, colours = _area_data(run_dir, inputs, protrusions, px, regions=regions, stats=stats,
+                                         bins_um=bins_um)
+    report(progress, 0.25, "figures")
+    _figures(page, inputs, lights, protrusions, figdir, px, facts, regions=regions, stats=stats, colours=colours,
+             no_px=no_px)
     report(progress, 0.85, "comparison")
     if comparison is None and not (run_dir / "comparison.csv").is_file():
         comparison = _manual_vs_automated(run_dir, inputs, regions, px, figdir)
@@ -908,6 +905,42 @@ def _labels_path(table_path: Path) -> Path:
     return table_path.with_name(table_path.stem + "_labels.tif")
 
 
+def _figures(page: _Page, inputs: _RunInputs, lights, table, figdir: Path, px: float, facts: Facts, *, regions, stats,
+             colours, no_px: bool) -> None:
+    """The report's figures into ``page``, drawn in two threads (:func:`uvps.core.threads.concurrently`): the lamps,
+    normals, albedo and colour areas in this one, the height, its 3-D detail and the histograms in the other.
+
+    Each figure is a matplotlib ``Figure`` of its own on its own Agg canvas (no pyplot, no global state; matplotlib
+    keeps its fonts per thread), and what two figures share (the display albedo, the outlines) is made before the
+    threads start: the same PNGs as one after the other, in about two thirds of the time (the drawing and the PNGs'
+    compression release the GIL part of the time). Each group collects into a page of its own, merged in the
+    order the figures were drawn one after the other, so the HTML (figures in :data:`FIGURE_ORDER`, the figures not
+    drawn in that order) does not depend on the threads.
+    """
+    import matplotlib.figure  # noqa: F401  - imported here, once, not by two threads at once
+
+    if np.isfinite(px):
+        inputs.display()
+        inputs.outline()
+    parts = [_Page() for _ in range(5)]
+    if no_px:
+        parts[1].skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
+
+    def lamps_and_images():
+        _lights_figure(parts[0], lights, figdir)
+        _normals_and_albedo_figures(parts[1], inputs, figdir, px)
+        _regions_figure(parts[3], inputs, figdir, px, regions)
+
+    def height_and_histograms():
+        _height_figures(parts[2], inputs, table, figdir, px, facts)
+        _histograms_figure(parts[4], stats, figdir, colours, table)
+
+    concurrently(lamps_and_images, height_and_histograms)
+    for part in parts:
+        page.figures.update(part.figures)
+        page.skipped.extend(part.skipped)
+
+
 def _lights_figure(page: _Page, lights: Optional[dict], figdir: Path) -> None:
     """The lamp positions from ``lights.json``."""
     if lights is not None:
@@ -949,8 +982,7 @@ def _normals_and_albedo_figures(page: _Page, inputs: _RunInputs, figdir: Path, p
         page.skipped.append(("albedo.png", "albedo.tif missing"))
 
 
-def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: float,
-                    facts: Facts, progress: Progress) -> None:
+def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: float, facts: Facts) -> None:
     """The height map with the protrusions outlined, and the 3-D detail of the largest one."""
     height = inputs.height
     if height is None:
@@ -971,7 +1003,6 @@ def _height_figures(page: _Page, inputs: _RunInputs, table, figdir: Path, px: fl
                  figdir / "height.png", pixel_size_um=px, labels=lab, relative=rel,
                  outline=inputs.outline())
     centre, width_um, what = _detail_target(height, table, px)
-    report(progress, 0.55, "3-D detail")
     _figure_step(page, "detail3d.png", f"{what[0].upper() + what[1:]} in 3-D, hill-shaded "
                  "(light from the upper left; as the paper's Fig. 2e), on the plane through the "
                  "paint around it; distances in \u00b5m from its centre, the vertical stretch "
@@ -994,38 +1025,44 @@ def _detail_target(height: np.ndarray, table, px: float):
     return (c, r), 20 * px, "the highest point (no protrusions)"
 
 
-def _area_statistics(page: _Page, run_dir: Path, inputs: _RunInputs, table, figdir: Path,
-                     px: float, *, regions, stats, bins_um):
-    """The colour-area figure and the per-area histograms; returns (regions, stats, colours)."""
-    images_ok = np.isfinite(px)
-    albedo = inputs.albedo
+def _area_data(run_dir: Path, inputs: _RunInputs, table, px: float, *, regions, stats, bins_um):
+    """The colour areas (given, else ``regions_labels.tif``, else the whole image), the per-area statistics and the
+    areas' colours: (regions, stats, colours)."""
     if regions is None and inputs.shape is not None:
         if (run_dir / "regions_labels.tif").is_file():
             regions = load_regions(run_dir / "regions_labels.tif", shape=inputs.shape)
         else:
             regions = whole_image(inputs.shape)
-    if regions is not None and albedo is not None and images_ok and len(regions.ids) > 1:
-        _figure_step(page, "regions.png", "The colour areas the densities are counted in "
-                     "(borders in yellow, with their names).", plot_regions,
-                     albedo, regions, figdir / "regions.png", pixel_size_um=px,
-                     display=_display_for(inputs, regions.labels.shape))
-    if stats is None and table is not None and regions is not None and images_ok:
+    if stats is None and table is not None and regions is not None and np.isfinite(px):
         stats = region_statistics(table, regions, pixel_size_um=px, bins_um=bins_um)
     colours = None
-    if stats is not None:
-        colours = (region_colours(regions, albedo, display=_display_for(inputs, regions.labels.shape))
-                   if regions is not None else None)
-        edges = np.asarray(stats.edges_um, float)
-        bw = np.diff(edges[np.isfinite(edges)])
-        bins = (f"{sig(bw[0], 3)} \u00b5m" if bw.size and np.allclose(bw, bw[0]) else "the given")
-        _figure_step(page, "histograms.png", "Protrusions per cm\u00b2 by width, one panel per "
-                     f"colour area, in {bins} width bins (as the paper's Fig. 4a); the numbers "
-                     "are in Table 2.", plot_histograms, stats, figdir / "histograms.png",
-                     colours=colours)
-    else:
+    if stats is not None and regions is not None:
+        colours = region_colours(regions, inputs.albedo, display=_display_for(inputs, regions.labels.shape))
+    return regions, stats, colours
+
+
+def _regions_figure(page: _Page, inputs: _RunInputs, figdir: Path, px: float, regions) -> None:
+    """The colour areas over the albedo, when there are several."""
+    if regions is not None and inputs.albedo is not None and np.isfinite(px) and len(regions.ids) > 1:
+        _figure_step(page, "regions.png", "The colour areas the densities are counted in "
+                     "(borders in yellow, with their names).", plot_regions,
+                     inputs.albedo, regions, figdir / "regions.png", pixel_size_um=px,
+                     display=_display_for(inputs, regions.labels.shape))
+
+
+def _histograms_figure(page: _Page, stats, figdir: Path, colours, table) -> None:
+    """Protrusions per cm^2 by width, one panel per colour area."""
+    if stats is None:
         page.skipped.append(("histograms.png", "protrusions.csv missing" if table is None
                              else "no image size or pixel size for the colour areas"))
-    return regions, stats, colours
+        return
+    edges = np.asarray(stats.edges_um, float)
+    bw = np.diff(edges[np.isfinite(edges)])
+    bins = (f"{sig(bw[0], 3)} \u00b5m" if bw.size and np.allclose(bw, bw[0]) else "the given")
+    _figure_step(page, "histograms.png", "Protrusions per cm\u00b2 by width, one panel per "
+                 f"colour area, in {bins} width bins (as the paper's Fig. 4a); the numbers "
+                 "are in Table 2.", plot_histograms, stats, figdir / "histograms.png",
+                 colours=colours)
 
 
 def _manual_vs_automated(run_dir: Path, inputs: _RunInputs, regions, px: float, figdir: Path):
