@@ -498,3 +498,30 @@ def test_a_run_hashes_its_capture_while_it_imports_the_numeric_core(tmp_path):
     assert sorted(Path(i["path"]).name for i in inputs) == [f.name for f in files]
     for i in inputs:
         assert i["sha256"] == hashlib.sha256(Path(i["path"]).read_bytes()).hexdigest()
+
+
+def test_the_hashes_run_at_the_lowest_priority_and_leave_the_runs_own(tmp_path, monkeypatch):
+    """run.json's hashes are made in threads at nice 19 (they take the cores the run leaves idle, not a share of
+    its two-thread stages); the calling thread keeps its priority, and the hashes are the files' SHA-256."""
+    import os
+    import threading
+
+    import uvps.files.io as io
+
+    cap = make_capture(shape=(60, 80), n_lights=6, seed=3)
+    write_capture(cap, tmp_path / "cap")
+    capture = io.read_capture(tmp_path / "cap")
+    seen = []
+    sha = io.sha256_file
+
+    def spy(path, **kw):
+        seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+        return sha(path, **kw)
+
+    monkeypatch.setattr(io, "sha256_file", spy)
+    before = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    hashes = io.hash_inputs_meanwhile(capture).result(timeout=60)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
+    assert len(seen) == 6 and set(seen) == {19}
+    for entry in hashes:
+        assert entry["sha256"] == hashlib.sha256(Path(entry["path"]).read_bytes()).hexdigest()

@@ -23,6 +23,7 @@ import math
 import mmap
 import os
 import re
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -1327,8 +1328,17 @@ def hash_inputs_meanwhile(capture: Capture):
     instead of following it: :func:`uvps.workflow.run_into_folder` starts it as soon as the capture is
     read, before it imports the numeric core (0.7 s on one core; ``python -X importtime``). The files are
     those just read; a run that fails leaves the thread to end on its own."""
-    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash")
+    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash", initializer=_lowest_priority)
     try:
         return pool.submit(input_hashes, capture)
     finally:
         pool.shutdown(wait=False)
+
+
+def _lowest_priority() -> None:
+    """This thread (and the threads it starts) at the lowest scheduling priority (nice 19; Linux sets it per
+    thread): run.json's hashes take the cores the run leaves idle (its imports, its one-thread steps) instead
+    of a share of its two-thread stages (the calibrated 4000 x 3000 x 16 run: docs/decisions/speed.md,
+    "The input hashes at the lowest priority"). Nothing where the platform has no per-thread priority."""
+    with contextlib.suppress(AttributeError, OSError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
