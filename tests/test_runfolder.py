@@ -198,3 +198,40 @@ def test_detect_and_integrate_on_a_relative_run_keep_it_relative(relative_run):
     assert "relative_height" in header and "height_um" not in header
     COMMANDS["integrate"]({}, {}, run)
     assert height_unit(run / "depth.tif") == "relative"
+
+
+@pytest.mark.parametrize("proc", [True, False])
+def test_the_file_mode_is_read_without_changing_the_umask_whatever_the_threads(proc, monkeypatch):
+    """Files written from several threads (the writer's, the report's figures) each get 0o666 minus the umask,
+    and the umask stays what it was: read from /proc on Linux, and set and restored under a lock elsewhere (two
+    threads interleaving os.umask(0) and its restore gave a file 0o666)."""
+    import builtins
+    import os
+    import sys
+    import threading
+
+    from uvps.files import atomic
+
+    if not proc:          # the platforms without /proc: the lock alone
+        real_open = builtins.open
+        monkeypatch.setattr(builtins, "open", lambda f, *a, **k: (_ for _ in ()).throw(OSError("no /proc"))
+                            if str(f) == "/proc/self/status" else real_open(f, *a, **k))
+    before = os.umask(0o027)
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)       # threads switch between any two calls: the race shows when it is there
+    try:
+        modes = []
+
+        def many():
+            modes.extend({atomic.file_mode() for _ in range(20000)})
+
+        threads = [threading.Thread(target=many) for _ in range(3)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert set(modes) == {0o640}
+        assert os.umask(0o027) == 0o027
+    finally:
+        sys.setswitchinterval(switch)
+        os.umask(before)

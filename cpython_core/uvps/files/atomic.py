@@ -6,16 +6,29 @@ import contextlib
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 
+_UMASK_LOCK = threading.Lock()
+
+
 def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    """The process's umask, unchanged. Linux says it in ``/proc/self/status``; elsewhere ``os.umask``, the only
+    call that reads it, also sets it for every thread: set and restored under a lock (two threads writing files
+    interleaved their calls, which gave a file mode 0o666 and could leave the umask 0)."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
+        return mask
 
 
 def file_mode() -> int:
