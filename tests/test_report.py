@@ -596,10 +596,48 @@ def test_the_painting_report_counts_every_protrusion_and_names_those_in_no_area(
     assert "3 protrusions</h1>" in page and "in no colour area" not in page
 
 
-@pytest.mark.parametrize("case", ["full", "no lights, no pixel size"])
+def _report_case(folder: Path, case: str) -> None:
+    if case == "partial":
+        _run_folder(folder, lights=False, normals=False, albedo=False)
+        (folder / "run.json").unlink()
+    elif case == "no pixel size":
+        _run_folder(folder, lights=False)
+        _strip_calibration(folder)
+        (folder / "protrusions_labels.tif").unlink()
+        (folder / "run.json").unlink()
+    elif case == "no images":
+        _run_folder(folder, normals=False, albedo=False)
+        (folder / "depth.tif").unlink()
+    elif case == "no lamps, no height":
+        _run_folder(folder, lights=False)
+        (folder / "depth.tif").unlink()
+        (folder / "protrusions.csv").unlink()
+    else:
+        _run_folder(folder)
+
+
+#: Each case's figures as the HTML shows them and the figures not drawn, in order, as the report drew them one
+#: figure after the other (before its figures were drawn in two threads).
+_REPORT_CASES = {
+    "full": (["albedo", "height", "histograms", "regions", "detail3d", "normals", "lights"], []),
+    "partial": (["height", "histograms", "detail3d"],
+                ["run summary: run.json missing", "lights.png: lights.json missing", "normals.png: normals.tif missing",
+                 "albedo.png: albedo.tif missing"]),
+    "no pixel size": ([], ["run summary: run.json missing", "lights.png: lights.json missing",
+                           "image figures: no pixel size (no calibrated TIFF, run.json)",
+                           "histograms.png: no image size or pixel size for the colour areas"]),
+    "no images": (["histograms", "lights"], ["normals.png: normals.tif missing", "albedo.png: albedo.tif missing",
+                                             "height.png, detail3d.png: depth.tif missing"]),
+    "no lamps, no height": (["albedo", "regions", "normals"],
+                            ["lights.png: lights.json missing", "height.png, detail3d.png: depth.tif missing",
+                             "histograms.png: protrusions.csv missing"]),
+}
+
+
+@pytest.mark.parametrize("case", list(_REPORT_CASES))
 def test_figures_drawn_in_two_threads_are_those_of_one(tmp_path, monkeypatch, case):
-    """The figures are drawn in two threads: every PNG is the one-thread PNG byte for byte, and the HTML (figures
-    in their order, the figures not drawn and why, in theirs) is the same."""
+    """The figures are drawn in two threads: the HTML shows the figures and lists those not drawn in the order
+    the report met them one after the other, and every PNG is the one-thread PNG byte for byte."""
     from concurrent.futures import ThreadPoolExecutor
     import os
 
@@ -611,22 +649,15 @@ def test_figures_drawn_in_two_threads_are_those_of_one(tmp_path, monkeypatch, ca
     for threads in ("1", "2"):
         folder = tmp_path / threads / "run"
         folder.mkdir(parents=True)
-        _run_folder(folder, lights=case == "full")
-        if case != "full":
-            _strip_calibration(folder)
-            (folder / "protrusions_labels.tif").unlink()
-            (folder / "run.json").unlink()
+        _report_case(folder, case)
         monkeypatch.setenv(th.THREADS_VARIABLE, threads)
         pools.clear()
         texts[threads] = write_report(folder, title="t").read_text().replace(str(folder), "F")
         pngs[threads] = {p.name: p.read_bytes() for p in sorted((folder / "figures").glob("*.png"))}
         assert pools == ([1] if threads == "2" and len(os.sched_getaffinity(0)) >= 2 else [])
+        shown, skipped = _REPORT_CASES[case]
+        assert re.findall(r"src='figures/([a-z0-9]+)\.png'", texts[threads]) == shown
+        assert re.findall(r"<li>([^<]*(?:missing|no pixel size|no image size)[^<]*)</li>", texts[threads]) == skipped
     strip = lambda t: re.sub(r"written \S+ \S+ UTC", "", t)     # noqa: E731 - the minute it was written
     assert strip(texts["1"]) == strip(texts["2"])
-    assert pngs["1"] == pngs["2"]
-    if case == "full":
-        assert set(pngs["1"]) == {"lights.png", "normals.png", "albedo.png", "height.png", "detail3d.png",
-                                  "regions.png", "histograms.png"}
-    else:
-        skipped = re.findall(r"(lights\.png: lights\.json missing|image figures: no pixel size)", texts["2"])
-        assert skipped == ["lights.png: lights.json missing", "image figures: no pixel size"]
+    assert pngs["1"] == pngs["2"] and len(pngs["1"]) == len(_REPORT_CASES[case][0])

@@ -23,6 +23,7 @@ import math
 import mmap
 import os
 import re
+import sys
 import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -1307,38 +1308,86 @@ def sha256_file(path: PathLike, *, chunk_bytes: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def input_hashes(capture: Capture) -> list:
-    """SHA-256 of every input file (a stack is hashed once; null for an image that is no file, e.g. a
-    capture made in memory)."""
+def _input_paths(capture: Capture) -> list:
+    """The capture's input files, each once (a stack's ``stack.tif#k`` images are one file)."""
     paths = []
     for f in capture.files:
         p = f.rsplit("#", 1)[0] if "#" in f and not Path(f).exists() else f   # "stack.tif#k"
         if p not in paths:
             paths.append(p)
+    return paths
+
+
+def _digest(path) -> Optional[str]:
+    return sha256_file(path) if Path(path).is_file() else None
+
+
+def input_hashes(capture: Capture) -> list:
+    """SHA-256 of every input file (a stack is hashed once; null for an image that is no file, e.g. a
+    capture made in memory)."""
+    paths = _input_paths(capture)
     # two files at a time: hashlib releases the GIL (16 files, 1.15 GB: 1.18 s -> 0.68 s on 2 cores)
     with ThreadPoolExecutor(2) as pool:
-        digests = pool.map(lambda p: sha256_file(p) if Path(p).is_file() else None, paths)
-        return [{"path": str(p), "sha256": d} for p, d in zip(paths, digests)]
+        return [{"path": str(p), "sha256": d} for p, d in zip(paths, pool.map(_digest, paths))]
 
 
-def hash_inputs_meanwhile(capture: Capture):
-    """:func:`input_hashes` of ``capture`` started in a background thread: a future whose result is the list.
+def hash_inputs_meanwhile(capture: Capture) -> "InputHashes":
+    """:func:`input_hashes` of ``capture`` begun in two background threads at the lowest priority
+    (:class:`InputHashes`; its ``result()`` is the list).
 
-    The hashing of a 1 GB stack (0.85 CPU s: SHA-256 at 1.35 GB/s here) overlaps what runs on one core
-    instead of following it: :func:`uvps.workflow.run_into_folder` starts it as soon as the capture is
-    read, before it imports the numeric core (0.7 s on one core; ``python -X importtime``). The files are
-    those just read; a run that fails leaves the thread to end on its own."""
-    pool = ThreadPoolExecutor(1, thread_name_prefix="uvps-hash", initializer=_lowest_priority)
-    try:
-        return pool.submit(input_hashes, capture)
-    finally:
-        pool.shutdown(wait=False)
+    The hashing of a 1 GB stack (0.85 CPU s: SHA-256 at 1.35 GB/s here) runs on what the run leaves idle instead
+    of following it or taking a share of its two-thread stages: :func:`uvps.workflow.run_into_folder` starts it
+    as soon as the capture is read, before it imports the numeric core (0.7 s on one core; ``python -X
+    importtime``). The files are those just read; a run that fails leaves the threads to end on their own
+    (daemon threads: they do not hold the process's exit)."""
+    return InputHashes(_input_paths(capture), background=2)
+
+
+class InputHashes:
+    """The SHA-256 of ``paths`` taken file by file from one queue by ``background`` daemon threads at the lowest
+    scheduling priority (nice 19 on Linux, which sets it per thread: the calibrated 4000 x 3000 x 16 run,
+    docs/decisions/speed.md, "The input hashes at the lowest priority") and, once :meth:`result` is called, by
+    the calling thread at its own: a run whose other work left the background threads no core (other processes,
+    a batch's workers on every core) hashes what they have not begun itself and waits only for the files they
+    have."""
+
+    def __init__(self, paths, *, background: int = 2):
+        self.paths = list(paths)
+        self._digests = [None] * len(self.paths)
+        self._errors = {}
+        self._lock = threading.Lock()
+        self._next = 0
+        self._threads = [threading.Thread(target=self._work, args=(True,), daemon=True, name=f"uvps-hash-{i}")
+                         for i in range(max(0, int(background)))]
+        for t in self._threads:
+            t.start()
+
+    def _work(self, low: bool) -> None:
+        if low:
+            _lowest_priority()
+        while True:
+            with self._lock:
+                i, self._next = self._next, self._next + 1
+            if i >= len(self.paths):
+                return
+            try:
+                self._digests[i] = _digest(self.paths[i])
+            except Exception as e:      # noqa: BLE001 - raised by result(), in the caller
+                self._errors[i] = e
+
+    def result(self) -> list:
+        """``[{"path", "sha256"}, ...]`` in the files' order, once every file is hashed; a file's error raised."""
+        self._work(False)
+        for t in self._threads:
+            t.join()
+        if self._errors:
+            raise self._errors[min(self._errors)]
+        return [{"path": str(p), "sha256": d} for p, d in zip(self.paths, self._digests)]
 
 
 def _lowest_priority() -> None:
-    """This thread (and the threads it starts) at the lowest scheduling priority (nice 19; Linux sets it per
-    thread): run.json's hashes take the cores the run leaves idle (its imports, its one-thread steps) instead
-    of a share of its two-thread stages (the calibrated 4000 x 3000 x 16 run: docs/decisions/speed.md,
-    "The input hashes at the lowest priority"). Nothing where the platform has no per-thread priority."""
-    with contextlib.suppress(AttributeError, OSError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    """This thread at the lowest scheduling priority (nice 19), on Linux, where a thread has its own; elsewhere
+    (``setpriority`` takes a process id there) nothing."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)

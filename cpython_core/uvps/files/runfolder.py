@@ -177,8 +177,8 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     ``folder`` is usually the temporary folder of :func:`uvps.files.outputs.atomic_output_dir`, moved to
     the run folder ``final`` afterwards. ``params`` (the request's) and ``warnings`` go into
     ``run.json`` with the result's diagnostics and timings. ``inputs``: the input files' hashes
-    (:func:`uvps.files.io.input_hashes`), a list or a future of one (hashed while the run computed:
-    :func:`uvps.files.io.hash_inputs_meanwhile`); None hashes them here. Returns the
+    (:func:`uvps.files.io.input_hashes`), a list or an :class:`uvps.files.io.InputHashes` (hashed while the
+    run computed: :func:`uvps.files.io.hash_inputs_meanwhile`); None hashes them here. Returns the
     :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``.
 
     The lights, normals, albedo, gradients and depth files are written two at a time (:data:`WRITERS`

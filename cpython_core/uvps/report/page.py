@@ -917,11 +917,12 @@ def _figures(page: _Page, inputs: _RunInputs, lights, table, figdir: Path, px: f
     order the figures were drawn one after the other, so the HTML (figures in :data:`FIGURE_ORDER`, the figures not
     drawn in that order) does not depend on the threads.
     """
-    import matplotlib.figure  # noqa: F401  - imported here, once, not by two threads at once
+    import matplotlib.figure  # noqa: F401  - before the threads (each thread's first figure imports the rest)
 
-    if np.isfinite(px):
+    if np.isfinite(px):          # what both threads' figures draw, made once before they start
         inputs.display()
-        inputs.outline()
+        if inputs.albedo is not None or inputs.height is not None:
+            inputs.outline()
     parts = [_Page() for _ in range(5)]
     if no_px:
         parts[1].skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
