@@ -526,7 +526,7 @@ def test_the_hashes_run_at_the_lowest_priority_and_leave_the_runs_own(tmp_path, 
 
     monkeypatch.setattr(io, "sha256_file", spy)
     hashes = io.hash_inputs_meanwhile(capture)
-    for t in hashes._threads:
+    for t in hashes._jobs._threads:
         t.join(60)
     got = hashes.result()
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before

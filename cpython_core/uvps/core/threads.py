@@ -13,6 +13,7 @@ surface, :mod:`uvps.core.detect`); a stage's rows, pixels or images cut into ban
 from __future__ import annotations
 
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -201,3 +202,70 @@ def _cut(n: int, size, parts, step: int) -> list:
 def _enter() -> None:
     """Mark this thread as inside a parallel part (:func:`map_bands` then runs its bands in it alone)."""
     _INSIDE.depth = getattr(_INSIDE, "depth", 0) + 1
+
+
+class Background:
+    """Zero-argument ``jobs`` taken in order from one queue by ``threads`` daemon threads at the lowest scheduling
+    priority (:func:`lowest_priority`) and, once :meth:`results` is called, by the calling thread at its own.
+
+    For work a run needs only at its end (run.json's input hashes, the run folder's first files): it takes the
+    cores the run's own stages leave idle (imports, one-thread steps) instead of a share of their two threads, and
+    a run whose cores other processes hold (a batch's workers on every core) does what the threads have not begun
+    itself, waiting only for the jobs they have. Daemon threads: a run that fails does not wait for them at exit
+    (:meth:`wait` ends them where the caller must).
+    """
+
+    def __init__(self, jobs, *, threads: int = 2, name: str = "uvps-background"):
+        self._jobs = list(jobs)
+        self._results = [None] * len(self._jobs)
+        self._errors = {}
+        self._lock = threading.Lock()
+        self._next = 0
+        self._threads = [threading.Thread(target=self._work, args=(True,), daemon=True, name=f"{name}-{i}")
+                         for i in range(max(0, min(int(threads), len(self._jobs))))]
+        for t in self._threads:
+            t.start()
+
+    def _work(self, low: bool) -> None:
+        if low:
+            lowest_priority()
+        while True:
+            with self._lock:
+                i, self._next = self._next, self._next + 1
+            if i >= len(self._jobs):
+                return
+            try:
+                self._results[i] = self._jobs[i]()
+            except BaseException as e:      # noqa: BLE001 - raised by results(), in the caller
+                self._errors[i] = e
+
+    def cancel(self) -> None:
+        """No job begins from now on; those begun end (their threads joined)."""
+        with self._lock:
+            self._next = len(self._jobs)
+        for t in self._threads:
+            t.join()
+
+    def wait(self) -> None:
+        """Every job done (the calling thread takes those not begun); their errors are kept for :meth:`results`."""
+        self._work(False)
+        for t in self._threads:
+            t.join()
+
+    def results(self) -> list:
+        """The jobs' results in their order, once all are done; the earliest job's error raised."""
+        self.wait()
+        if self._errors:
+            raise self._errors[min(self._errors)]
+        return list(self._results)
+
+
+def lowest_priority() -> None:
+    """This thread at the lowest scheduling priority (nice 19), on Linux, where a thread has its own (the threads it
+    starts inherit it); elsewhere (``setpriority`` takes a process id there) nothing."""
+    if sys.platform.startswith("linux"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except Exception:       # noqa: BLE001 - a priority refused leaves the thread at its own
+            pass
+

@@ -17,14 +17,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fnmatch
+import functools
 import hashlib
 import logging
 import math
 import mmap
 import os
 import re
-import sys
-import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -37,6 +36,7 @@ import tifffile
 from ..errors import UVPSInputError, check_pixel_size
 from ..core.progress import Progress, report
 from ..core.stack import Capture, LazyStack, RawParts, StackView, raw_parts, row_bands
+from ..core.threads import Background, default_threads
 from .atomic import atomic_path
 from .lightfiles import LightFile, LightPositions, read_lp, read_positions, read_text  # noqa: F401  (re-exported)
 from .raw import RAW_DEVELOP, _rawpy, raw_image_size, raw_reading, read_raw  # noqa: F401  (camera raw files; RAW_DEVELOP re-exported)
@@ -1332,62 +1332,27 @@ def input_hashes(capture: Capture) -> list:
 
 
 def hash_inputs_meanwhile(capture: Capture) -> "InputHashes":
-    """:func:`input_hashes` of ``capture`` begun in two background threads at the lowest priority
-    (:class:`InputHashes`; its ``result()`` is the list).
+    """:func:`input_hashes` of ``capture`` begun in two background threads (at most ``UVPS_THREADS``) at the
+    lowest priority (:class:`InputHashes`; its ``result()`` is the list).
 
     The hashing of a 1 GB stack (0.85 CPU s: SHA-256 at 1.35 GB/s here) runs on what the run leaves idle instead
     of following it or taking a share of its two-thread stages: :func:`uvps.workflow.run_into_folder` starts it
     as soon as the capture is read, before it imports the numeric core (0.7 s on one core; ``python -X
     importtime``). The files are those just read; a run that fails leaves the threads to end on their own
     (daemon threads: they do not hold the process's exit)."""
-    return InputHashes(_input_paths(capture), background=2)
+    return InputHashes(_input_paths(capture), background=default_threads(2))
 
 
 class InputHashes:
-    """The SHA-256 of ``paths`` taken file by file from one queue by ``background`` daemon threads at the lowest
-    scheduling priority (nice 19 on Linux, which sets it per thread: the calibrated 4000 x 3000 x 16 run,
-    docs/decisions/speed.md, "The input hashes at the lowest priority") and, once :meth:`result` is called, by
-    the calling thread at its own: a run whose other work left the background threads no core (other processes,
-    a batch's workers on every core) hashes what they have not begun itself and waits only for the files they
-    have."""
+    """The SHA-256 of ``paths``, file by file, made by :class:`uvps.core.threads.Background` (``background``
+    threads at the lowest priority: the calibrated 4000 x 3000 x 16 run, docs/decisions/speed.md, "The input
+    hashes at the lowest priority"; :meth:`result` hashes what they have not begun in the calling thread)."""
 
     def __init__(self, paths, *, background: int = 2):
         self.paths = list(paths)
-        self._digests = [None] * len(self.paths)
-        self._errors = {}
-        self._lock = threading.Lock()
-        self._next = 0
-        self._threads = [threading.Thread(target=self._work, args=(True,), daemon=True, name=f"uvps-hash-{i}")
-                         for i in range(max(0, int(background)))]
-        for t in self._threads:
-            t.start()
-
-    def _work(self, low: bool) -> None:
-        if low:
-            _lowest_priority()
-        while True:
-            with self._lock:
-                i, self._next = self._next, self._next + 1
-            if i >= len(self.paths):
-                return
-            try:
-                self._digests[i] = _digest(self.paths[i])
-            except Exception as e:      # noqa: BLE001 - raised by result(), in the caller
-                self._errors[i] = e
+        self._jobs = Background([functools.partial(_digest, p) for p in self.paths], threads=background,
+                                name="uvps-hash")
 
     def result(self) -> list:
         """``[{"path", "sha256"}, ...]`` in the files' order, once every file is hashed; a file's error raised."""
-        self._work(False)
-        for t in self._threads:
-            t.join()
-        if self._errors:
-            raise self._errors[min(self._errors)]
-        return [{"path": str(p), "sha256": d} for p, d in zip(self.paths, self._digests)]
-
-
-def _lowest_priority() -> None:
-    """This thread at the lowest scheduling priority (nice 19), on Linux, where a thread has its own; elsewhere
-    (``setpriority`` takes a process id there) nothing."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(Exception):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        return [{"path": str(p), "sha256": d} for p, d in zip(self.paths, self._jobs.results())]
