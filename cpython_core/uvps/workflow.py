@@ -227,19 +227,12 @@ def run_into_folder(step: CaptureStep, inputs: dict, params: dict, output_dir, *
         # the card's images with the capture's dark frame subtracted, as the capture's were
         card = load_card(params["card"], lights=given_lights(capture), pixel_size_um=capture.pixel_size_um,
                          dark=params["dark"], linearize=params["linearize"])
-
-    def compute(on_stereo=None):
-        result = run(capture, run_options(params), stages=todo + (("protrusions",) if protrusions else ()),
-                     dark_given=params["dark"] is not None, regions=regions, card=card,
-                     n_areas=params.get("n_areas"), on_stereo=on_stereo, progress=sub_progress(progress, 0.1, 0.9))
-        if cal is not None:
-            _with_calibration(result, cal)
-        return result
-
-    if step.whole_run:
-        out = _whole_run_folder(step, run_dir, compute, params, protrusions, progress, inputs=hashes)
-    else:
-        out = _write_folder(step, run_dir, compute(), params, protrusions, progress, inputs=hashes)
+    result = run(capture, run_options(params), stages=todo + (("protrusions",) if protrusions else ()),
+                 dark_given=params["dark"] is not None, regions=regions, card=card,
+                 n_areas=params.get("n_areas"), progress=sub_progress(progress, 0.1, 0.9))
+    if cal is not None:
+        _with_calibration(result, cal)
+    out = _write_folder(step, run_dir, result, params, protrusions, progress, inputs=hashes)
     out.diagnostics["lights_file"] = params["lights"] if cal is None else str(cal.lights)
     out.diagnostics["elapsed_s"] = round(time.perf_counter() - t_all, 3)
     report(progress, 1.0, f"{step.name}: done")
@@ -273,45 +266,29 @@ def _with_calibration(result, cal) -> None:
 
 def _write_folder(step: CaptureStep, run_dir: Path, result, params: dict, protrusions: bool,
                   progress, *, inputs=None) -> CommandResult:
-    """Write a step's files into ``run_dir``, moved in one by one (a whole run: :func:`_whole_run_folder`)."""
-    from .files.runfolder import set_aside_for_step, write_run
+    """Write the run's files into ``run_dir``: a step's moved in one by one; the whole run's (report
+    included) built in a new folder that replaces the old one in one step, so that a run folder is
+    never a mixture of two runs."""
+    from .files.runfolder import manual_work, set_aside_for_step, set_aside_manual_work, write_run
 
-    # a step that rewrites the albedo or the height in place sets the manual work measured on them
-    # aside as a whole run does; flatfield and lights alone leave albedo and height as they are
-    rewrites = result.stereo is not None or result.height is not None
-    with atomic_output_dir(run_dir) as tmp:
-        kept = set_aside_for_step(run_dir, tmp, step=step.name) if rewrites else None
-        outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
-                            progress=sub_progress(progress, 0.9, 0.95), inputs=inputs)
-    out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
-    if kept is not None:
-        kept_aside(run_dir, run_dir / kept.relative_to(tmp), out, step=step.name)
-    return out
-
-
-def _whole_run_folder(step: CaptureStep, run_dir: Path, compute, params: dict, protrusions: bool,
-                      progress, *, inputs=None) -> CommandResult:
-    """Run ``compute(on_stereo)`` and write the whole run's files (report included) into a new folder that
-    replaces ``run_dir`` in one step, so that a run folder is never a mixture of two runs. The new folder is made
-    first: the lamps', normals' and albedo's files are begun there as soon as they are final
-    (:func:`uvps.files.runfolder.begin_run_folder`), while the run integrates and detects; a run that fails
-    stops them before the folder is removed."""
-    from .files.runfolder import begin_run_folder, manual_work, set_aside_manual_work, write_run
-
+    if not step.whole_run:
+        # a step that rewrites the albedo or the height in place sets the manual work measured on them
+        # aside as a whole run does; flatfield and lights alone leave albedo and height as they are
+        rewrites = result.stereo is not None or result.height is not None
+        with atomic_output_dir(run_dir) as tmp:
+            kept = set_aside_for_step(run_dir, tmp, step=step.name) if rewrites else None
+            outputs = write_run(tmp, result, command=step.name, params=params, final=run_dir,
+                                progress=sub_progress(progress, 0.9, 0.95), inputs=inputs)
+        out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
+        if kept is not None:
+            kept_aside(run_dir, run_dir / kept.relative_to(tmp), out, step=step.name)
+        return out
+    # the manual work of the earlier run moves aside with the run it was measured on
+    # (earlier/<date>_<run id>/): nothing a user made is lost by a re-run
     with new_output_dir(run_dir, carry_over=carried_over) as new:
-        begun = []
-        try:
-            result = compute(lambda res: begun.append(begin_run_folder(new, res)))
-            # the manual work of the earlier run moves aside with the run it was measured on
-            # (earlier/<date>_<run id>/): nothing a user made is lost by a re-run
-            kept = set_aside_manual_work(run_dir, new)
-            outputs = write_run(new, result, command=step.name, params=params, final=run_dir,
-                                progress=sub_progress(progress, 0.9, 0.95), inputs=inputs,
-                                begun=begun[0] if begun else None)
-        except BaseException:
-            for b in begun:
-                b.cancel()
-            raise
+        kept = set_aside_manual_work(run_dir, new)
+        outputs = write_run(new, result, command=step.name, params=params, final=run_dir,
+                            progress=sub_progress(progress, 0.9, 0.95), inputs=inputs)
         out = CommandResult(outputs, dict(result.diagnostics), list(result.warnings))
         if protrusions:
             out = _statistics_and_report(new, result, params, out, sub_progress(progress, 0.95, 1.0))

@@ -21,7 +21,7 @@ import functools
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -158,8 +158,7 @@ KNOWN_POSITIONS_RESIDUALS = 150000
 
 def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "normals", "height"),
         dark_given: bool = False, regions=None, n_areas=None, detection: DetectionParams = None,
-        card: Optional[CardCalibration] = None, on_stereo: Optional[Callable] = None,
-        progress: Progress = None) -> RunResult:
+        card: Optional[CardCalibration] = None, progress: Progress = None) -> RunResult:
     """Run the pipeline on a capture, in memory.
 
     Parameters
@@ -183,9 +182,6 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     card : CardCalibration, optional
         A card's per-lamp flat-field (:mod:`uvps.core.card`; from files:
         :func:`uvps.files.cards.load_card`).
-    on_stereo : callable(RunResult), optional
-        Called once the lamps, normals and albedo are final, before the height (a run folder's writer begins
-        its first files there: :func:`uvps.files.runfolder.begin_run_folder`).
     progress : callable(fraction, message), optional
 
     Returns
@@ -214,8 +210,6 @@ def run(capture: Capture, options: RunOptions = None, *, stages=("flatfield", "n
     _run_lights(res, capture, sub_progress(progress, *span["lights"]), card=card)
     if "normals" in stages:
         _run_normals(res, sub_progress(progress, *span["normals"]))
-        if on_stereo is not None:
-            on_stereo(res)
     if "height" in stages:
         t0 = time.perf_counter()
         report(progress, span["height"][0], "integrating the height")

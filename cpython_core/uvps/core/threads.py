@@ -208,11 +208,10 @@ class Background:
     """Zero-argument ``jobs`` taken in order from one queue by ``threads`` daemon threads at the lowest scheduling
     priority (:func:`lowest_priority`) and, once :meth:`results` is called, by the calling thread at its own.
 
-    For work a run needs only at its end (run.json's input hashes, the run folder's first files): it takes the
+    For work a run needs only at its end (run.json's input hashes, :class:`uvps.files.io.InputHashes`): it takes the
     cores the run's own stages leave idle (imports, one-thread steps) instead of a share of their two threads, and
     a run whose cores other processes hold (a batch's workers on every core) does what the threads have not begun
-    itself, waiting only for the jobs they have. Daemon threads: a run that fails does not wait for them at exit
-    (:meth:`wait` ends them where the caller must).
+    itself, waiting only for the jobs they have. Daemon threads: a run that fails does not wait for them at exit.
     """
 
     def __init__(self, jobs, *, threads: int = 2, name: str = "uvps-background"):
@@ -238,13 +237,6 @@ class Background:
                 self._results[i] = self._jobs[i]()
             except BaseException as e:      # noqa: BLE001 - raised by results(), in the caller
                 self._errors[i] = e
-
-    def cancel(self) -> None:
-        """No job begins from now on; those begun end (their threads joined)."""
-        with self._lock:
-            self._next = len(self._jobs)
-        for t in self._threads:
-            t.join()
 
     def wait(self) -> None:
         """Every job done (the calling thread takes those not begun); their errors are kept for :meth:`results`."""

@@ -26,7 +26,7 @@ from .io import BAND_BYTES, Capture, imagej_tiff_writer, input_hashes, read_tiff
 from .tables import not_counted, write_label_tiff, write_protrusions_csv
 from .omezarr import write_ome_zarr
 from ..core.stack import release_caches, row_bands
-from ..core.threads import Background, default_threads, map_bands
+from ..core.threads import default_threads, map_bands
 from .outputs import OutputSpec, Progress, _link_or_copy, _link_tree, report, write_json_atomic
 from ..core.regions import region_statistics
 from .tables import write_regions_csv
@@ -170,20 +170,8 @@ def is_relative(relief: Optional[dict]) -> bool:
 # writing
 # ------------------------------------------------------------------------------------------------
 
-def begin_run_folder(folder: Path, result) -> Background:
-    """Begin writing ``lights.json``, ``dropoff.tif``, ``normals.tif`` and ``albedo.tif`` of ``result`` into
-    ``folder`` once its lamps, normals and albedo are final (:func:`uvps.core.pipeline.run`'s ``on_stereo``), in
-    :data:`WRITERS` threads at the lowest priority (:class:`uvps.core.threads.Background`): the files are written on what the
-    integration, the levelling and the detection leave idle instead of after them. :func:`write_run` given the
-    result (``begun=``) writes the other files and waits for these."""
-    cap = result.capture
-    return Background([lambda: write_lights(folder, cap, result.lights)]
-                      + stereo_writers(folder, result.stereo, cap.pixel_size_um)[:2], threads=default_threads(WRITERS),
-                      name="uvps-write")
-
-
 def write_run(folder: Path, result, *, command: str, params: dict, final: Optional[Path] = None, warnings=(),
-              progress: Progress = None, inputs=None, begun: Optional[Background] = None) -> list:
+              progress: Progress = None, inputs=None) -> list:
     """Write a :class:`uvps.core.pipeline.RunResult` into ``folder``.
 
     ``folder`` is usually the temporary folder of :func:`uvps.files.outputs.atomic_output_dir`, moved to
@@ -191,8 +179,7 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
     ``run.json`` with the result's diagnostics and timings. ``inputs``: the input files' hashes
     (:func:`uvps.files.io.input_hashes`), a list or an :class:`uvps.files.io.InputHashes` (hashed while the
     run computed: :func:`uvps.files.io.hash_inputs_meanwhile`); None hashes them here. Returns the
-    :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``. ``begun``: the
-    lights, normals and albedo files already being written (:func:`begin_run_folder`), waited for here.
+    :class:`~uvps.files.outputs.OutputSpec` of every file written, with its path under ``final``.
 
     The lights, normals, albedo, gradients and depth files are written two at a time (:data:`WRITERS`
     threads: tifffile's writes and numpy's copies release the GIL); each file is the one a single thread
@@ -206,17 +193,15 @@ def write_run(folder: Path, result, *, command: str, params: dict, final: Option
         write_flatfield(folder, cap, result.lights, progress=progress)
         release_caches(cap.images)        # the stack read again: what its views made for it is dropped
         names.append("flatfield")
-    jobs = [] if begun is not None else [lambda: write_lights(folder, cap, result.lights)]
+    jobs = [lambda: write_lights(folder, cap, result.lights)]
     if result.stereo is not None:
-        jobs += stereo_writers(folder, result.stereo, cap.pixel_size_um)[2 if begun is not None else 0:]
+        jobs += stereo_writers(folder, result.stereo, cap.pixel_size_um)
         names += ["normals", "albedo", "gradients"]
     if result.height is not None:
         jobs.append(lambda: write_height(folder, result.height.height_um, cap.pixel_size_um, result.height.method,
                                          relief=relief, level=getattr(result, "level", None)))
         names.append("depth")
     _write_all(jobs)
-    if begun is not None:
-        begun.results()
     if result.protrusions is not None:
         names += write_protrusions(folder, result.protrusions, cap.pixel_size_um,
                                    bins_um=params.get("bins_um") or 100.0, relief=relief)
