@@ -1345,8 +1345,9 @@ def hash_inputs_meanwhile(capture: Capture) -> "InputHashes":
 
 class InputHashes:
     """The SHA-256 of ``paths``, file by file, made by :class:`uvps.core.threads.Background` (``background``
-    threads at the lowest priority: the calibrated 4000 x 3000 x 16 run, docs/decisions/speed.md, "The input
-    hashes at the lowest priority"; :meth:`result` hashes what they have not begun in the calling thread)."""
+    threads at the lowest priority: the calibrated 4000 x 3000 x 16 run, docs/decisions/speed.md, "The report's
+    figures in two threads; the input hashes at the lowest priority"; :meth:`result` hashes what they have not
+    begun in the calling thread)."""
 
     def __init__(self, paths, *, background: int = 2):
         self.paths = list(paths)
