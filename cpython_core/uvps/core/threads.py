@@ -238,15 +238,12 @@ class Background:
             except BaseException as e:      # noqa: BLE001 - raised by results(), in the caller
                 self._errors[i] = e
 
-    def wait(self) -> None:
-        """Every job done (the calling thread takes those not begun); their errors are kept for :meth:`results`."""
+    def results(self) -> list:
+        """The jobs' results in their order, once all are done (this thread takes those not begun); the earliest
+        job's error raised."""
         self._work(False)
         for t in self._threads:
             t.join()
-
-    def results(self) -> list:
-        """The jobs' results in their order, once all are done; the earliest job's error raised."""
-        self.wait()
         if self._errors:
             raise self._errors[min(self._errors)]
         return list(self._results)
@@ -260,4 +257,3 @@ def lowest_priority() -> None:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         except Exception:       # noqa: BLE001 - a priority refused leaves the thread at its own
             pass
-

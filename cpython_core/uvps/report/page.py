@@ -745,16 +745,14 @@ def write_report(run_dir, *, table=None, bins_um=100.0, stats=None, regions=None
     facts = facts_of(run, lights, pixel_size_um=inputs.pixel_size_um, shape=inputs.shape)
 
     px = inputs.pixel_size_um
-    no_px = px is None
-    if no_px:
+    if px is None:
         px = float("nan")
     protrusions = read_protrusions_csv(inputs.table_path) if inputs.table_path.is_file() else None
     report(progress, 0.15, "statistics")
     regions, stats, colours = _area_data(run_dir, inputs, protrusions, px, regions=regions, stats=stats,
                                          bins_um=bins_um)
     report(progress, 0.25, "figures")
-    _figures(page, inputs, lights, protrusions, figdir, px, facts, regions=regions, stats=stats, colours=colours,
-             no_px=no_px)
+    _figures(page, inputs, lights, protrusions, figdir, px, facts, regions=regions, stats=stats, colours=colours)
     report(progress, 0.85, "comparison")
     if comparison is None and not (run_dir / "comparison.csv").is_file():
         comparison = _manual_vs_automated(run_dir, inputs, regions, px, figdir)
@@ -906,7 +904,7 @@ def _labels_path(table_path: Path) -> Path:
 
 
 def _figures(page: _Page, inputs: _RunInputs, lights, table, figdir: Path, px: float, facts: Facts, *, regions, stats,
-             colours, no_px: bool) -> None:
+             colours) -> None:
     """The report's figures into ``page``, drawn in two threads (:func:`uvps.core.threads.concurrently`): the lamps,
     normals, albedo and colour areas in this one, the height, its 3-D detail and the histograms in the other.
 
@@ -924,7 +922,7 @@ def _figures(page: _Page, inputs: _RunInputs, lights, table, figdir: Path, px: f
         if inputs.albedo is not None or inputs.height is not None:
             inputs.outline()
     parts = [_Page() for _ in range(5)]
-    if no_px:
+    if inputs.pixel_size_um is None:
         parts[1].skipped.append(("image figures", "no pixel size (no calibrated TIFF, run.json)"))
 
     def lamps_and_images():
